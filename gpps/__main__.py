@@ -1,0 +1,5 @@
+import sys
+
+from gpps.cli import main
+
+sys.exit(main())

@@ -1,0 +1,78 @@
+"""Argument checks shared by the public API and the stages ("expected ..., got ...")."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def as_array(name, a, *, ndim=None, shape=None, dtype=np.float32, finite=True) -> np.ndarray:
+    """``a`` as a numpy array of ``dtype``, checked for dimension, shape and finiteness.
+
+    ``shape`` may hold None for free axes.
+    """
+    if hasattr(a, "numpy") and not isinstance(a, np.ndarray):  # warp / torch arrays
+        a = a.numpy()
+    try:
+        arr = np.asarray(a, dtype=dtype)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name}: expected an array of numbers, got {type(a).__name__}") from None
+    if ndim is not None and arr.ndim != ndim:
+        want = shape if shape is not None else f"{ndim} dimensions"
+        raise ValueError(f"{name}: expected shape {_fmt(want)}, got {arr.shape}")
+    if shape is not None:
+        if len(shape) != arr.ndim or any(w is not None and w != g for w, g in zip(shape, arr.shape)):
+            raise ValueError(f"{name}: expected shape {_fmt(shape)}, got {arr.shape}")
+    if finite and np.issubdtype(arr.dtype, np.floating) and not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name}: expected finite values, got NaN or inf")
+    return arr
+
+
+def _fmt(shape):
+    if isinstance(shape, str):
+        return shape
+    return "(" + ", ".join("?" if s is None else str(s) for s in shape) + ")"
+
+
+def as_mask(name, m, shape=None) -> np.ndarray:
+    arr = np.asarray(m)
+    if arr.ndim != 2:
+        raise ValueError(f"{name}: expected shape (H, W), got {arr.shape}")
+    if shape is not None and arr.shape != tuple(shape):
+        raise ValueError(f"{name}: expected shape {tuple(shape)}, got {arr.shape}")
+    if arr.dtype != bool:
+        if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+            raise TypeError(f"{name}: expected a boolean or numeric (H, W) array, got {arr.dtype}")
+        arr = arr > 0
+    if not arr.any():
+        raise ValueError(f"{name}: expected at least one pixel inside the mask, got an empty mask")
+    return arr
+
+
+def unit_normals(name, n, mask, tol=1e-3) -> np.ndarray:
+    """(H, W, 3) float32 normals, unit inside ``mask`` (checked), zero outside."""
+    h, w = mask.shape
+    arr = as_array(name, n, shape=(h, w, 3))
+    norms = np.linalg.norm(arr[mask], axis=-1)
+    if np.any(np.abs(norms - 1.0) > tol):
+        k = int(np.argmax(np.abs(norms - 1.0)))
+        raise ValueError(f"{name}: expected unit vectors inside the mask, got norm {norms[k]:.6g}")
+    out = np.zeros_like(arr)
+    out[mask] = arr[mask] / norms[:, None]
+    return out
+
+
+def albedo_map(name, a, shape) -> np.ndarray:
+    """(H, W, 3) float32 albedo from an (H, W, 3) map, an (H, W) grey map or an RGB triple."""
+    h, w = shape
+    arr = as_array(name, a)
+    if arr.shape == (3,):
+        arr = np.broadcast_to(arr, (h, w, 3))
+    elif arr.shape == ():
+        arr = np.full((h, w, 3), float(arr), np.float32)
+    elif arr.shape == (h, w):
+        arr = np.repeat(arr[..., None], 3, axis=-1)
+    elif arr.shape != (h, w, 3):
+        raise ValueError(f"{name}: expected (H, W, 3), (H, W) or (3,) with (H, W) = {shape}, got {arr.shape}")
+    if np.any(arr < 0):
+        raise ValueError(f"{name}: expected values >= 0")
+    return np.ascontiguousarray(arr, dtype=np.float32)

@@ -1,0 +1,66 @@
+"""Lazy, once-per-process initialisation of Warp and device selection.
+
+Warp is initialised on first use, never at import of :mod:`gpps`, so that
+``import gpps`` is cheap and so that callers (tests, CI, the CLI) can choose
+the kernel cache folder first.  The cache folder is taken, in order, from
+``GPPS_CACHE_DIR`` (``<dir>/warp``), ``WARP_CACHE_PATH`` or Warp's default.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+
+_lock = threading.Lock()
+_wp = None
+
+
+def warp():
+    """Return the initialised ``warp`` module (initialising it once)."""
+    global _wp
+    if _wp is not None:
+        return _wp
+    with _lock:
+        if _wp is None:
+            import warp as wp
+
+            wp.config.log_level = wp.LOG_WARNING
+            wp.config.quiet = True
+            cache = os.environ.get("GPPS_CACHE_DIR")
+            if cache:
+                wp.config.kernel_cache_dir = os.path.join(cache, "warp")
+            elif os.environ.get("WARP_CACHE_PATH"):
+                wp.config.kernel_cache_dir = os.environ["WARP_CACHE_PATH"]
+            wp.init()
+            _wp = wp
+    return _wp
+
+
+def available_devices() -> list[str]:
+    """Names of the Warp devices present: always ``"cpu"``, plus ``"cuda:i"``."""
+    wp = warp()
+    return [str(d) for d in wp.get_devices()]
+
+
+def resolve_device(device: str | None = None) -> str:
+    """Return a Warp device name.
+
+    Args:
+        device: ``None`` or ``"auto"`` picks ``"cuda:0"`` when Warp sees a CUDA
+            device and ``"cpu"`` otherwise; ``"cpu"``, ``"cuda"`` or
+            ``"cuda:N"`` are checked against the devices present.
+
+    Raises:
+        ValueError: the requested device does not exist here.
+    """
+    wp = warp()
+    if device is None or device == "auto":
+        return "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
+    if not isinstance(device, str):
+        device = str(device)
+    if device == "cuda":
+        device = "cuda:0"
+    names = available_devices()
+    if device not in names:
+        raise ValueError(f"device: expected one of {names} or 'auto', got {device!r}")
+    return device

@@ -1,0 +1,357 @@
+"""Reading and writing images, arrays and DiLiGenT-style folders.
+
+Every writer goes through :func:`atomic_write`: the data is written to a
+temporary name in the target folder and renamed into place, so a crash never
+leaves a half-written file.  Folders are written the same way (a temporary
+sibling folder renamed at the end).
+
+16-bit RGB PNGs are read with OpenCV (``IMREAD_UNCHANGED``; imageio and Pillow
+silently return 8 bits) and converted from OpenCV's BGR order to RGB.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "atomic_write",
+    "atomic_dir",
+    "save_npy",
+    "save_json",
+    "save_txt",
+    "save_png",
+    "save_tiff",
+    "read_image",
+    "read_mask",
+    "read_K",
+    "read_matrix",
+    "Dataset",
+    "read_dataset",
+    "write_dataset",
+]
+
+
+def _cv2():
+    import cv2
+
+    return cv2
+
+
+@contextlib.contextmanager
+def atomic_write(path, suffix: str | None = None):
+    """Yield a temporary path beside ``path``; rename it onto ``path`` on success.
+
+    Args:
+        path: final file name.
+        suffix: extension of the temporary name (defaults to that of ``path``,
+            so that writers that look at the extension, like OpenCV, work).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    suffix = path.suffix if suffix is None else suffix
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp" + suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+@contextlib.contextmanager
+def atomic_dir(path):
+    """Yield a temporary folder beside ``path``; on success it replaces ``path``.
+
+    An existing folder at ``path`` is replaced as a whole (moved aside, then
+    removed), so readers never see a mix of old and new files.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    old = None
+    if path.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
+        os.replace(path, old / "x")
+    os.replace(tmp, path)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def save_npy(path, array) -> None:
+    with atomic_write(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.save(f, np.asarray(array))
+
+
+def save_json(path, obj) -> None:
+    with atomic_write(path) as tmp:
+        tmp.write_text(json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def save_txt(path, array, fmt: str = "%.9g") -> None:
+    with atomic_write(path) as tmp:
+        np.savetxt(tmp, np.atleast_2d(np.asarray(array, dtype=np.float64)), fmt=fmt)
+
+
+def save_png(path, image, bits: int = 16) -> None:
+    """Write an image in [0, 1] (float) or an integer image as PNG.
+
+    Args:
+        path: file name.
+        image: (H, W) or (H, W, 3) RGB; floats are clipped to [0, 1] and scaled
+            to ``2**bits - 1``; integer arrays are written as they are.
+        bits: 8 or 16 (for float input).
+    """
+    img = np.asarray(image)
+    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (1, 3)):
+        raise ValueError(f"image: expected (H, W) or (H, W, 3), got shape {img.shape}")
+    if bits not in (8, 16):
+        raise ValueError(f"bits: expected 8 or 16, got {bits!r}")
+    if np.issubdtype(img.dtype, np.floating):
+        if not np.all(np.isfinite(img)):
+            raise ValueError("image: expected finite values, got NaN or inf")
+        scale = 2**bits - 1
+        img = np.round(np.clip(img, 0.0, 1.0) * scale).astype(np.uint16 if bits == 16 else np.uint8)
+    elif img.dtype not in (np.uint8, np.uint16):
+        raise TypeError(f"image: expected float, uint8 or uint16, got {img.dtype}")
+    if img.ndim == 3 and img.shape[2] == 3:
+        img = img[..., ::-1]  # RGB -> BGR for OpenCV
+    cv2 = _cv2()
+    with atomic_write(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(img)):
+            raise OSError(f"could not write PNG {path}")
+
+
+def save_tiff(path, array) -> None:
+    """Write a float32 array (e.g. depth) as a single-channel TIFF."""
+    import tifffile
+
+    with atomic_write(path) as tmp:
+        tifffile.imwrite(tmp, np.asarray(array, dtype=np.float32))
+
+
+def read_image(path, *, dtype=np.float32) -> np.ndarray:
+    """Read an 8/16-bit grey or RGB image as floats in [0, 1].
+
+    Returns:
+        (H, W, C) array, C = 1 for grey and 3 for colour (RGB order).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"image not found: {path}")
+    cv2 = _cv2()
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"{path}: not a readable image")
+    if img.dtype == np.uint8:
+        scale = 255.0
+    elif img.dtype == np.uint16:
+        scale = 65535.0
+    else:
+        scale = 1.0
+    if img.ndim == 2:
+        img = img[..., None]
+    elif img.shape[2] == 4:
+        img = img[..., 2::-1]
+    elif img.shape[2] == 3:
+        img = img[..., ::-1]
+    return (img.astype(np.float64) / scale).astype(dtype)
+
+
+def read_mask(path) -> np.ndarray:
+    """Read a mask image: (H, W) bool, True where any channel is > half range."""
+    m = read_image(path)
+    return np.any(m > 0.5, axis=-1)
+
+
+def read_matrix(path, *, shape=None, name: str | None = None) -> np.ndarray:
+    """Read a whitespace/comma separated numeric text matrix (float64)."""
+    path = Path(path)
+    name = name or path.name
+    if not path.is_file():
+        raise FileNotFoundError(f"{name}: file not found: {path}")
+    text = path.read_text().replace(",", " ")
+    rows = [r.split() for r in text.splitlines() if r.strip() and not r.lstrip().startswith("#")]
+    try:
+        m = np.array([[float(v) for v in r] for r in rows], dtype=np.float64)
+    except ValueError:
+        raise ValueError(f"{name}: expected numbers, could not parse {path}") from None
+    if m.ndim != 2:
+        raise ValueError(f"{name}: expected a matrix with equal row lengths in {path}")
+    if shape is not None:
+        for want, got in zip(shape, m.shape):
+            if want is not None and want != got:
+                raise ValueError(f"{name}: expected shape {shape}, got {m.shape}")
+    if not np.all(np.isfinite(m)):
+        raise ValueError(f"{name}: expected finite numbers, got NaN or inf")
+    return m
+
+
+def read_K(path) -> np.ndarray:
+    """Read a 3x3 intrinsic matrix from text (DiLiGenT ``K.txt``)."""
+    return read_matrix(path, shape=(3, 3), name="K")
+
+
+@dataclass
+class Dataset:
+    """A photometric-stereo capture: images, lights, mask and optional camera/ground truth.
+
+    Attributes:
+        images: (N, H, W, C) float32, already divided by the light intensities
+            when ``normalised`` is True.
+        mask: (H, W) bool.
+        light_directions: (N, 3) unit vectors toward the lights, or None.
+        light_positions: (N, 3) point-light positions (scene units), or None.
+        light_intensities: (N, 3) RGB intensities as read (ones if absent).
+        K: (3, 3) intrinsics or None (orthographic).
+        normal_gt: (H, W, 3) float32 or None.
+        depth_gt: (H, W) float or None.
+        material: dict from ``material.json`` or None.
+        filenames: image file names in order.
+    """
+
+    images: np.ndarray
+    mask: np.ndarray
+    light_directions: np.ndarray | None = None
+    light_positions: np.ndarray | None = None
+    light_intensities: np.ndarray | None = None
+    K: np.ndarray | None = None
+    normal_gt: np.ndarray | None = None
+    depth_gt: np.ndarray | None = None
+    material: dict | None = None
+    filenames: list[str] = field(default_factory=list)
+    normalised: bool = True
+    extra: dict = field(default_factory=dict)
+
+
+def read_dataset(root, *, normalise: bool = True, indices=None) -> Dataset:
+    """Read a DiLiGenT-style folder.
+
+    Layout: ``filenames.txt`` (else ``*.png`` sorted), ``light_directions.txt``
+    and/or ``light_positions.txt`` (N x 3), ``light_intensities.txt`` (N x 3),
+    ``mask.png`` (else all pixels), ``K.txt`` (optional), ``normal_gt.npy`` /
+    ``Normal_gt.mat``-free ground truth, ``depth_gt.npy``, ``material.json``.
+
+    Args:
+        root: folder.
+        normalise: divide each image by its row of ``light_intensities.txt``.
+        indices: optional subset of image indices (0-based) to read.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"dataset folder not found: {root}")
+    fn_file = root / "filenames.txt"
+    if fn_file.is_file():
+        names = [s.strip() for s in fn_file.read_text().splitlines() if s.strip()]
+    else:
+        names = sorted(p.name for p in root.glob("*.png") if p.name[0].isdigit())
+    if not names:
+        raise ValueError(f"{root}: no images (filenames.txt or numbered *.png)")
+    n = len(names)
+    sel = list(range(n)) if indices is None else [int(i) for i in indices]
+    for i in sel:
+        if not 0 <= i < n:
+            raise ValueError(f"indices: expected values in [0, {n}), got {i}")
+
+    def opt(name, shape):
+        p = root / name
+        return read_matrix(p, shape=shape, name=name) if p.is_file() else None
+
+    ld = opt("light_directions.txt", (n, 3))
+    lp = opt("light_positions.txt", (n, 3))
+    li = opt("light_intensities.txt", (n, 3))
+    K = read_K(root / "K.txt") if (root / "K.txt").is_file() else None
+    imgs = [read_image(root / names[i]) for i in sel]
+    shapes = {im.shape for im in imgs}
+    if len(shapes) != 1:
+        raise ValueError(f"{root}: images differ in shape: {sorted(shapes)}")
+    images = np.stack(imgs)
+    if images.shape[-1] == 1:
+        images = np.repeat(images, 3, axis=-1)
+    h, w = images.shape[1:3]
+    mask = read_mask(root / "mask.png") if (root / "mask.png").is_file() else np.ones((h, w), bool)
+    if mask.shape != (h, w):
+        raise ValueError(f"mask.png: expected shape {(h, w)}, got {mask.shape}")
+    li_sel = None if li is None else li[sel]
+    if normalise and li_sel is not None:
+        if np.any(li_sel <= 0):
+            raise ValueError("light_intensities.txt: expected positive intensities")
+        images = (images / li_sel[:, None, None, :].astype(np.float32)).astype(np.float32)
+    ngt = np.load(root / "normal_gt.npy").astype(np.float32) if (root / "normal_gt.npy").is_file() else None
+    dgt = np.load(root / "depth_gt.npy") if (root / "depth_gt.npy").is_file() else None
+    mat = json.loads((root / "material.json").read_text()) if (root / "material.json").is_file() else None
+    return Dataset(
+        images=images,
+        mask=mask,
+        light_directions=None if ld is None else ld[sel],
+        light_positions=None if lp is None else lp[sel],
+        light_intensities=li_sel,
+        K=K,
+        normal_gt=ngt,
+        depth_gt=dgt,
+        material=mat,
+        filenames=[names[i] for i in sel],
+        normalised=normalise and li_sel is not None,
+    )
+
+
+def write_dataset(root, ds: Dataset, *, bits: int = 16) -> Path:
+    """Write a :class:`Dataset` as a DiLiGenT-style folder, atomically.
+
+    Images are written as they are (they should already be in [0, 1]); the
+    light intensities are written to ``light_intensities.txt`` so that a
+    reader divides by them.
+    """
+    root = Path(root)
+    images = np.asarray(ds.images)
+    if images.ndim != 4 or images.shape[-1] != 3:
+        raise ValueError(f"images: expected (N, H, W, 3), got shape {images.shape}")
+    n = images.shape[0]
+    names = ds.filenames or [f"{i + 1:03d}.png" for i in range(n)]
+    with atomic_dir(root) as tmp:
+        for name, img in zip(names, images):
+            save_png(tmp / name, img, bits=bits)
+        (tmp / "filenames.txt").write_text("\n".join(names) + "\n")
+        if ds.light_directions is not None:
+            save_txt(tmp / "light_directions.txt", ds.light_directions)
+        if ds.light_positions is not None:
+            save_txt(tmp / "light_positions.txt", ds.light_positions)
+        li = ds.light_intensities if ds.light_intensities is not None else np.ones((n, 3))
+        save_txt(tmp / "light_intensities.txt", li)
+        save_png(tmp / "mask.png", ds.mask.astype(np.uint8) * 255)
+        if ds.K is not None:
+            save_txt(tmp / "K.txt", ds.K)
+        if ds.material is not None:
+            save_json(tmp / "material.json", ds.material)
+        if ds.normal_gt is not None:
+            save_npy(tmp / "normal_gt.npy", np.asarray(ds.normal_gt, dtype=np.float32))
+        if ds.depth_gt is not None:
+            save_npy(tmp / "depth_gt.npy", np.asarray(ds.depth_gt, dtype=np.float32))
+        for k, v in ds.extra.items():
+            save_npy(tmp / f"{k}.npy", v)
+    return root

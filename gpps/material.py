@@ -1,0 +1,89 @@
+"""Material (reflectance model and its per-scene parameters)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Literal, get_args
+
+import numpy as np
+
+BRDF = Literal["lambertian", "phong", "blinn-phong", "cook-torrance", "ashikhmin-shirley"]
+BRDF_NAMES: tuple[str, ...] = get_args(BRDF)
+_DEVICE_TAG = {name: i for i, name in enumerate(BRDF_NAMES)}  # matches gpps.kernels.brdf constants
+
+__all__ = ["Material", "BRDF", "BRDF_NAMES"]
+
+
+def _check_real(name, value, lo=None, hi=None, lo_open=False):
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name}: expected a real number, got {value!r}") from None
+    if not np.isfinite(v):
+        raise ValueError(f"{name}: expected a finite number, got {value!r}")
+    if lo is not None and (v < lo or (lo_open and v == lo)):
+        raise ValueError(f"{name}: expected {'>' if lo_open else '>='} {lo}, got {value!r}")
+    if hi is not None and v > hi:
+        raise ValueError(f"{name}: expected <= {hi}, got {value!r}")
+    return v
+
+
+@dataclass(frozen=True)
+class Material:
+    """Reflectance model with per-scene parameters (the albedo kd is a per-pixel map).
+
+    Attributes:
+        brdf: the model: Lambertian (2.13), Phong (2.20), Blinn-Phong (2.21),
+            Cook-Torrance (2.22-2.29) or Ashikhmin-Shirley (5.1-5.2).
+        ks: specular weight (>= 0), scalar: highlights take the light's colour.
+        shininess: Phong / Blinn-Phong exponent n (> 0).
+        roughness: Cook-Torrance RMS microfacet slope m (> 0).
+        f0: Fresnel reflectance at normal incidence (Schlick, 2.29), in [0, 1].
+        eta_u: Ashikhmin-Shirley exponent along the tangent u (> 0; the seed uses 10).
+        eta_v: Ashikhmin-Shirley exponent along the tangent v (> 0).
+    """
+
+    brdf: BRDF = "blinn-phong"
+    ks: float = 0.5
+    shininess: float = 30.0
+    roughness: float = 0.3
+    f0: float = 0.5
+    eta_u: float = 10.0
+    eta_v: float = 10.0
+
+    def __post_init__(self):
+        if self.brdf not in BRDF_NAMES:
+            raise ValueError(f"brdf: expected one of {list(BRDF_NAMES)}, got {self.brdf!r}")
+        object.__setattr__(self, "ks", _check_real("ks", self.ks, lo=0.0))
+        object.__setattr__(self, "shininess", _check_real("shininess", self.shininess, lo=0.0, lo_open=True))
+        object.__setattr__(self, "roughness", _check_real("roughness", self.roughness, lo=0.0, lo_open=True))
+        object.__setattr__(self, "f0", _check_real("f0", self.f0, lo=0.0, hi=1.0))
+        object.__setattr__(self, "eta_u", _check_real("eta_u", self.eta_u, lo=0.0, lo_open=True))
+        object.__setattr__(self, "eta_v", _check_real("eta_v", self.eta_v, lo=0.0, lo_open=True))
+
+    @property
+    def device_tag(self) -> int:
+        return _DEVICE_TAG[self.brdf]
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Material":
+        if not isinstance(d, dict):
+            raise TypeError(f"material: expected a dict, got {type(d).__name__}")
+        known = {k: d[k] for k in ("brdf", "ks", "shininess", "roughness", "f0", "eta_u", "eta_v") if k in d}
+        return cls(**known)
+
+    @classmethod
+    def default_for(cls, brdf: str) -> "Material":
+        """Parameters that give visible, in-range highlights for each model."""
+        if brdf not in BRDF_NAMES:
+            raise ValueError(f"brdf: expected one of {list(BRDF_NAMES)}, got {brdf!r}")
+        return {
+            "lambertian": cls("lambertian", ks=0.0),
+            "phong": cls("phong", ks=0.5, shininess=30.0),
+            "blinn-phong": cls("blinn-phong", ks=0.5, shininess=40.0),
+            "cook-torrance": cls("cook-torrance", ks=0.6, roughness=0.25, f0=0.5),
+            "ashikhmin-shirley": cls("ashikhmin-shirley", ks=0.8, eta_u=30.0, eta_v=30.0, f0=0.5),
+        }[brdf]

@@ -1,0 +1,1 @@
+"""Stages: classes that allocate their device buffers once and run per frame."""

@@ -1,0 +1,77 @@
+"""Rendering synthetic photometric-stereo captures (thin API over :class:`gpps.pipeline.render.Renderer`)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+
+from gpps.io import Dataset
+from gpps.lights import DirectionalLights, PointLights, ring_directions, ring_positions
+from gpps.material import Material
+from gpps.pipeline.render import Renderer, add_noise, quantise
+from gpps.scenes import D0, Scene
+
+__all__ = ["default_lights", "render", "render_dataset"]
+
+LIGHT_INTENSITY = 0.8
+
+
+def default_lights(kind: Literal["directional", "point"] = "directional", n: int = 3, *, slant_deg: float = 35.0, d0: float = D0):
+    """``n`` lights spread evenly in azimuth around the view axis.
+
+    Directional: slant ``slant_deg`` from the view axis.  Point: on a circle in
+    the camera plane z = 0 whose radius gives that slant at the object's centre
+    (depth ``d0``), with intensities scaled so that the radiance there is
+    ``LIGHT_INTENSITY``.
+    """
+    if kind == "directional":
+        return DirectionalLights(ring_directions(n, slant_deg), np.full((n, 3), LIGHT_INTENSITY))
+    if kind == "point":
+        r = d0 * np.tan(np.deg2rad(slant_deg))
+        # the sphere's front is nearer than d0: keep its highlights in range
+        return PointLights(ring_positions(n, r, 0.0), np.full((n, 3), 0.65 * LIGHT_INTENSITY * (r * r + d0 * d0)))
+    raise ValueError(f"lights: expected 'directional' or 'point', got {kind!r}")
+
+
+def render(scene: Scene, material: Material, lights, *, noise: float = 0.0, bits: int | None = None, seed: int = 0, device=None) -> np.ndarray:
+    """Render ``scene`` under ``lights``: (N, H, W, 3) float32.
+
+    Args:
+        scene: a :class:`gpps.scenes.Scene` (exact normals are used).
+        material: reflectance model and parameters.
+        lights: :class:`DirectionalLights` or :class:`PointLights`.
+        noise: standard deviation of additive Gaussian noise (image units, 1 = white).
+        bits: None keeps floats; 8 or 16 clips to [0, 1] and quantises (after the noise).
+        seed: noise seed.
+        device: Warp device (None: CUDA when present).
+    """
+    r = Renderer(scene.shape, scene.camera, lights, material, device=device)
+    img = r.render(scene.depth, scene.mask, scene.albedo, normals=scene.normals).numpy()
+    img = add_noise(img, noise, seed)
+    img[:, ~scene.mask] = 0.0
+    return quantise(img, bits)
+
+
+def render_dataset(scene: Scene, material: Material, lights, **kw) -> Dataset:
+    """Render and package as a :class:`gpps.io.Dataset` with ground truth.
+
+    Images are stored already divided by the light intensities' ... no: they are
+    stored as rendered, and ``light_intensities`` holds the lights' RGB
+    intensities (a reader divides by them, as for DiLiGenT).
+    """
+    images = render(scene, material, lights, **kw)
+    ds = Dataset(
+        images=images,
+        mask=scene.mask,
+        light_directions=lights.directions if isinstance(lights, DirectionalLights) else None,
+        light_positions=lights.positions if isinstance(lights, PointLights) else None,
+        light_intensities=np.asarray(lights.intensities),
+        K=np.asarray(scene.camera.K) if scene.camera.is_perspective else None,
+        normal_gt=scene.normals,
+        depth_gt=scene.depth,
+        material=material.to_dict(),
+        normalised=False,
+        extra={"albedo_gt": scene.albedo},
+    )
+    return ds

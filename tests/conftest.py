@@ -1,0 +1,42 @@
+"""Shared test set-up: project-controlled caches, devices, data paths."""
+
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
+os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
+os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
+os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+
+SHARED = ROOT.parent / "shared"
+DATA = Path(os.environ.get("GPPS_DATA", SHARED / "data"))
+
+
+def _devices():
+    from gpps._runtime import available_devices
+
+    devs = ["cpu"]
+    if any(d.startswith("cuda") for d in available_devices()):
+        devs.append("cuda:0")
+    only = os.environ.get("GPPS_TEST_DEVICES")  # e.g. "cuda:0" on the GPU machine
+    if only:
+        devs = [d for d in devs if d in only.split(",")]
+    return devs
+
+
+DEVICES = _devices()
+
+
+def pytest_generate_tests(metafunc):
+    if "device" in metafunc.fixturenames:
+        metafunc.parametrize("device", DEVICES)
+
+
+@pytest.fixture(scope="session")
+def data_root():
+    if not DATA.is_dir():
+        pytest.skip(f"real data not found at {DATA}")
+    return DATA

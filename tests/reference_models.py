@@ -1,0 +1,70 @@
+"""Independent float64 numpy implementations of the seed's image model (for tests only).
+
+Written from the equations, not from the kernels: each function takes unit
+vectors n, l, v of shape (..., 3) and returns the diffuse cosine and the
+specular factor s with I = E * (kd * cos + ks * s).
+"""
+
+import numpy as np
+
+
+def dot(a, b):
+    return np.sum(a * b, axis=-1)
+
+
+def normalize(a):
+    return a / np.linalg.norm(a, axis=-1, keepdims=True)
+
+
+def phong(n, l, v, shininess):  # (2.19)-(2.20)
+    r = 2 * dot(l, n)[..., None] * n - l
+    return np.maximum(dot(r, v), 0.0) ** shininess
+
+
+def blinn_phong(n, l, v, shininess):  # (2.21)
+    h = normalize(l + v)
+    return np.maximum(dot(n, h), 0.0) ** shininess
+
+
+def cook_torrance(n, l, v, m, f0):  # (2.22)-(2.29), the 1/(n.l) cancelled by the cosine
+    h = normalize(l + v)
+    nh, nv, nl, vh = dot(n, h), dot(n, v), dot(n, l), dot(v, h)
+    alpha = np.arccos(np.clip(nh, -1, 1))
+    D = np.exp(-np.tan(alpha) ** 2 / m**2) / (np.pi * m**2 * np.cos(alpha) ** 4)
+    T = 2 * nh * nv / vh
+    R = 2 * nh * nl / vh
+    G = np.minimum(1.0, np.minimum(T, R))
+    F = f0 + (1 - f0) * (1 - vh) ** 5
+    return G * D * F / (4 * nv)
+
+
+def ashikhmin_shirley(n, l, v, eu, ev, f0):  # (5.1)-(5.2) with A&S 2000's max(n.l, n.v) and the cosine n.l
+    h = normalize(l + v)
+    nh, nv, nl, vh = dot(n, h), dot(n, v), dot(n, l), dot(v, h)
+    ex = np.broadcast_to([1.0, 0.0, 0.0], n.shape)
+    ey = np.broadcast_to([0.0, 1.0, 0.0], n.shape)
+    a = np.where((np.abs(n[..., 0]) > 0.9)[..., None], ey, ex)
+    u = normalize(a - dot(a, n)[..., None] * n)
+    w = np.cross(n, u)
+    hu, hw = dot(h, u), dot(h, w)
+    zeta = (eu * hu**2 + ev * hw**2) / (1 - nh**2)
+    F = f0 + (1 - f0) * (1 - vh) ** 5
+    return np.sqrt((eu + 1) * (ev + 1)) / (8 * np.pi) * nh**zeta / (vh * np.maximum(nl, nv)) * F * nl
+
+
+def terms(material, n, l, v):
+    """(cos, s) for a gpps.Material, with attached shadows."""
+    nl = dot(n, l)
+    b = material.brdf
+    if b == "lambertian":
+        s = np.zeros_like(nl)
+    elif b == "phong":
+        s = phong(n, l, v, material.shininess)
+    elif b == "blinn-phong":
+        s = blinn_phong(n, l, v, material.shininess)
+    elif b == "cook-torrance":
+        s = cook_torrance(n, l, v, material.roughness, material.f0)
+    else:
+        s = ashikhmin_shirley(n, l, v, material.eta_u, material.eta_v, material.f0)
+    lit = nl > 0
+    return np.where(lit, nl, 0.0), np.where(lit & (dot(n, v) > 0), s, 0.0)
