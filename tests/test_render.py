@@ -233,7 +233,7 @@ def test_cli_render(tmp_path):
     from gpps.cli import main
 
     out = tmp_path / "sphere"
-    rc = main(["--device", "cpu", "render", "--scene", "sphere", "--brdf", "cook-torrance", "--lights", "point", "--n-lights", "5", "--camera", "perspective", "--size", "48", "--out", str(out)])
+    rc = main(["render", "--scene", "sphere", "--brdf", "cook-torrance", "--lights", "point", "--n-lights", "5", "--camera", "perspective", "--size", "48", "--out", str(out)])
     assert rc == 0
     names = sorted(p.name for p in out.iterdir())
     for want in ["001.png", "005.png", "filenames.txt", "light_positions.txt", "light_intensities.txt", "mask.png", "K.txt", "material.json", "normal_gt.npy", "depth_gt.npy"]:
