@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["DirectionalLights", "PointLights", "Lights", "ring_directions", "ring_positions"]
+__all__ = ["DirectionalLights", "PointLights", "Lights", "ring_directions", "ring_positions", "spiral_directions"]
 
 
 def _as_n3(name, a, n=None):
@@ -154,3 +154,17 @@ def ring_positions(n: int, radius: float, z: float = 0.0, phase_deg: float = 90.
         raise ValueError(f"n: expected a positive integer, got {n!r}")
     az = np.deg2rad(phase_deg) + 2 * np.pi * np.arange(n) / n
     return np.stack([radius * np.cos(az), radius * np.sin(az), np.full(n, float(z))], axis=1)
+
+
+def spiral_directions(n: int, min_slant_deg: float = 15.0, max_slant_deg: float = 50.0) -> np.ndarray:
+    """``n`` unit directions on a golden-angle spiral, slants growing from ``min`` to ``max``.
+
+    Unlike a ring, the slants differ, which uncalibrated PS needs (a ring of equal
+    slants leaves the GBR scale undetermined by the light-intensity prior).
+    """
+    if int(n) != n or n < 1:
+        raise ValueError(f"n: expected a positive integer, got {n!r}")
+    k = np.arange(n)
+    s = np.deg2rad(min_slant_deg + (max_slant_deg - min_slant_deg) * (k / max(n - 1, 1)))
+    az = np.deg2rad(90.0) + k * np.pi * (3.0 - np.sqrt(5.0))
+    return np.stack([np.sin(s) * np.cos(az), np.sin(s) * np.sin(az), np.cos(s)], axis=1)

@@ -7,7 +7,7 @@ from typing import Literal
 import numpy as np
 
 from gpps.io import Dataset
-from gpps.lights import DirectionalLights, PointLights, ring_directions, ring_positions
+from gpps.lights import DirectionalLights, PointLights, ring_directions, ring_positions, spiral_directions
 from gpps.material import Material
 from gpps.pipeline.render import Renderer, add_noise, quantise
 from gpps.scenes import D0, Scene
@@ -17,17 +17,26 @@ __all__ = ["default_lights", "render", "render_dataset"]
 LIGHT_INTENSITY = 0.8
 
 
-def default_lights(kind: Literal["directional", "point"] = "directional", n: int = 3, *, slant_deg: float = 35.0, d0: float = D0):
-    """``n`` lights spread evenly in azimuth around the view axis.
+def default_lights(kind: Literal["directional", "point"] = "directional", n: int = 3, *, slant_deg: float = 35.0, d0: float = D0, layout: Literal["ring", "spiral"] = "ring"):
+    """``n`` lights spread around the view axis.
 
-    Directional: slant ``slant_deg`` from the view axis.  Point: on a circle in
-    the camera plane z = 0 whose radius gives that slant at the object's centre
-    (depth ``d0``), with intensities scaled so that the radiance there is
-    ``LIGHT_INTENSITY``.
+    Directional: ``layout="ring"``: evenly in azimuth at slant ``slant_deg``
+    from the view axis; ``"spiral"``: a golden-angle spiral with slants from 15
+    to 50 deg.  Point: on the camera plane z = 0 at the positions that give
+    those directions at the object's centre (depth ``d0``), with intensities
+    scaled so that the radiance there is about ``LIGHT_INTENSITY``.
     """
+    if layout not in ("ring", "spiral"):
+        raise ValueError(f"layout: expected 'ring' or 'spiral', got {layout!r}")
+    dirs = ring_directions(n, slant_deg) if layout == "ring" else spiral_directions(n)
     if kind == "directional":
-        return DirectionalLights(ring_directions(n, slant_deg), np.full((n, 3), LIGHT_INTENSITY))
+        return DirectionalLights(dirs, np.full((n, 3), LIGHT_INTENSITY))
     if kind == "point":
+        if layout == "spiral":
+            pos = dirs / dirs[:, 2:3] * d0 + [0.0, 0.0, -d0]
+            pos[:, 2] = 0.0
+            r2 = np.sum(pos[:, :2] ** 2, 1)
+            return PointLights(pos, np.repeat((0.65 * LIGHT_INTENSITY * (r2 + d0 * d0))[:, None], 3, 1))
         r = d0 * np.tan(np.deg2rad(slant_deg))
         # the sphere's front is nearer than d0: keep its highlights in range
         return PointLights(ring_positions(n, r, 0.0), np.full((n, 3), 0.65 * LIGHT_INTENSITY * (r * r + d0 * d0)))

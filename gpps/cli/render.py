@@ -14,7 +14,8 @@ def register(sub):
     p.add_argument("--brdf", choices=BRDF_NAMES, default="blinn-phong")
     p.add_argument("--lights", choices=["directional", "point"], default="directional")
     p.add_argument("--n-lights", type=int, default=3)
-    p.add_argument("--slant", type=float, default=35.0, help="angle of the lights from the view axis (deg)")
+    p.add_argument("--slant", type=float, default=35.0, help="angle of the lights from the view axis (deg), ring layout")
+    p.add_argument("--layout", choices=["ring", "spiral"], default="ring", help="ring: equal slants; spiral: slants from 15 to 50 deg")
     p.add_argument("--camera", choices=["orthographic", "perspective"], default="perspective")
     p.add_argument("--size", type=int, default=256)
     p.add_argument("--albedo", choices=["uniform", "texture"], default="uniform")
@@ -43,7 +44,7 @@ def run(args) -> int:
 
     t0 = time.perf_counter()
     scene = make_scene(args.scene, args.size, args.camera, albedo=args.albedo, seed=args.seed)
-    lights = default_lights(args.lights, args.n_lights, slant_deg=args.slant)
+    lights = default_lights(args.lights, args.n_lights, slant_deg=args.slant, layout=args.layout)
     ds = render_dataset(scene, material_from_args(args), lights, noise=args.noise, bits=args.bits, seed=args.seed, device=args.device)
     write_dataset(args.out, ds, bits=args.bits)
     print(f"wrote {len(ds.images)} images of {args.scene} ({args.size}x{args.size}, {args.camera}, {args.lights} lights, {args.brdf}) to {args.out} in {time.perf_counter() - t0:.2f} s")
