@@ -1,0 +1,253 @@
+"""Taichi device math for the masked Poisson integrator (4.20).
+
+The discrete problem is the weighted graph Laplacian of the mask (the masked
+5-point Laplacian with natural, i.e. Neumann, boundary conditions)::
+
+    (A u)_a = dg_a u_a - sum_{b ~ a} w_ab u_b,       dg_a = sum_{b ~ a} w_ab
+
+Edge weights are stored per pixel: ``wx[i, j]`` joins ``(i, j)`` and
+``(i, j+1)``, ``wy[i, j]`` joins ``(i, j)`` and ``(i+1, j)``; a pixel with
+``dg == 0`` is outside the mask.
+
+Multigrid levels are packed side by side in one 2D field (level ``k`` starts
+at column ``off_k``), so each kernel is compiled once per field set and takes
+the level geometry ``(off, h, w)`` as scalar arguments.  Coarsening is
+aggregation of 2x2 blocks (restriction = sum, prolongation = injection), the
+coarse operator is rediscretised from the fine edge weights (see
+:func:`gpps.pipeline.integration.build_levels`).  Several Jacobi sweeps are
+unrolled per kernel (``ti.static``) to keep launches few; the conjugate
+gradient scalars live in a small device field so the solve runs without host
+syncs except the periodic residual check.
+
+Only device code lives here; allocation and orchestration are in
+:mod:`gpps.pipeline.integration`.
+"""
+
+
+from gpps._taichi import ti
+
+# indices into the scalar field ``sc``
+RZ, PQ, RR, ALPHA, RZN = 0, 1, 2, 3, 4
+
+
+@ti.func
+def _neigh(x: ti.template(), wx: ti.template(), wy: ti.template(), i, j, off, h, w):
+    """sum_b w_ab x_b over the 4-neighbours of (i, j) of a level at column off."""
+    s = x[i, off + j] * 0
+    if j > 0:
+        s += wx[i, off + j - 1] * x[i, off + j - 1]
+    if j < w - 1:
+        s += wx[i, off + j] * x[i, off + j + 1]
+    if i > 0:
+        s += wy[i - 1, off + j] * x[i - 1, off + j]
+    if i < h - 1:
+        s += wy[i, off + j] * x[i + 1, off + j]
+    return s
+
+
+@ti.func
+def _jacobi_point(src: ti.template(), f: ti.template(), wx: ti.template(), wy: ti.template(), dg: ti.template(),
+                  i, j, off, h, w, omega: ti.template()):
+    """One damped Jacobi update of pixel (i, j); 0 outside the mask."""
+    d = dg[i, off + j]
+    v = src[i, off + j] * 0
+    if d > 0:
+        v = (1 - omega) * src[i, off + j] + omega * (f[i, off + j] + _neigh(src, wx, wy, i, j, off, h, w)) / d
+    return v
+
+
+@ti.kernel
+def smooth(e: ti.template(), f: ti.template(), t: ti.template(), wx: ti.template(), wy: ti.template(),
+           dg: ti.template(), off: ti.i32, h: ti.i32, w: ti.i32, omega: ti.template(), npairs: ti.template()):
+    """``2 * npairs`` damped Jacobi sweeps on ``A e = f`` (ping-pong through t)."""
+    for _ in ti.static(range(npairs)):
+        for i, j in ti.ndrange(h, w):
+            t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, omega)
+        for i, j in ti.ndrange(h, w):
+            e[i, off + j] = _jacobi_point(t, f, wx, wy, dg, i, j, off, h, w, omega)
+
+
+@ti.kernel
+def down(e: ti.template(), f: ti.template(), t: ti.template(), wx: ti.template(), wy: ti.template(),
+         dg: ti.template(), off: ti.i32, h: ti.i32, w: ti.i32, offc: ti.i32, hc: ti.i32, wc: ti.i32,
+         omega: ti.template(), npairs: ti.template()):
+    """V-cycle descent at one level: pre-smooth from e = 0, residual, restrict."""
+    for _ in ti.static(range(npairs)):
+        for i, j in ti.ndrange(h, w):
+            t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, omega)
+        for i, j in ti.ndrange(h, w):
+            e[i, off + j] = _jacobi_point(t, f, wx, wy, dg, i, j, off, h, w, omega)
+    for i, j in ti.ndrange(h, w):
+        d = dg[i, off + j]
+        r = f[i, off + j] * 0
+        if d > 0:
+            r = f[i, off + j] - d * e[i, off + j] + _neigh(e, wx, wy, i, j, off, h, w)
+        t[i, off + j] = r
+    for ci, cj in ti.ndrange(hc, wc):
+        s = t[2 * ci, off + 2 * cj]
+        if 2 * cj + 1 < w:
+            s += t[2 * ci, off + 2 * cj + 1]
+        if 2 * ci + 1 < h:
+            s += t[2 * ci + 1, off + 2 * cj]
+            if 2 * cj + 1 < w:
+                s += t[2 * ci + 1, off + 2 * cj + 1]
+        f[ci, offc + cj] = s
+        e[ci, offc + cj] = 0
+
+
+@ti.kernel
+def up(e: ti.template(), f: ti.template(), t: ti.template(), wx: ti.template(), wy: ti.template(),
+       dg: ti.template(), off: ti.i32, h: ti.i32, w: ti.i32, offc: ti.i32, omega: ti.template(), npairs: ti.template()):
+    """V-cycle ascent at one level: add the injected coarse correction, post-smooth."""
+    for i, j in ti.ndrange(h, w):
+        if dg[i, off + j] > 0:
+            e[i, off + j] += e[i // 2, offc + j // 2]
+    for _ in ti.static(range(npairs)):
+        for i, j in ti.ndrange(h, w):
+            t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, omega)
+        for i, j in ti.ndrange(h, w):
+            e[i, off + j] = _jacobi_point(t, f, wx, wy, dg, i, j, off, h, w, omega)
+
+
+@ti.kernel
+def coarse_exact(e: ti.template(), f: ti.template(), cidx: ti.template(), pinv: ti.template(), n: ti.i32):
+    """e = pinv(A_c) f on the coarsest level's n active cells (dense, exact)."""
+    for k in range(n):
+        s = f[cidx[k, 0], cidx[k, 1]] * 0
+        for m in range(n):
+            s += pinv[k, m] * f[cidx[m, 0], cidx[m, 1]]
+        e[cidx[k, 0], cidx[k, 1]] = s
+
+
+# ----------------------------------------------------------------------------- conjugate gradient (level 0)
+
+
+@ti.kernel
+def residual_norm(x: ti.template(), b: ti.template(), r: ti.template(), wx: ti.template(), wy: ti.template(),
+                  dg: ti.template(), sc: ti.template(), h: ti.i32, w: ti.i32):
+    """r = b - A x and sc[RR] = |r|^2."""
+    sc[RR] = 0
+    for i, j in ti.ndrange(h, w):
+        d = dg[i, j]
+        v = b[i, j] * 0
+        if d > 0:
+            v = b[i, j] - d * x[i, j] + _neigh(x, wx, wy, i, j, 0, h, w)
+        r[i, j] = v
+        sc[RR] += v * v
+
+
+@ti.kernel
+def cg_start(x: ti.template(), b: ti.template(), r: ti.template(), e: ti.template(), f: ti.template(),
+             wx: ti.template(), wy: ti.template(), dg: ti.template(), sc: ti.template(), h: ti.i32, w: ti.i32):
+    """r = b - A x, sc[RR] = |r|^2, and the preconditioner input f_0 = r, e_0 = 0."""
+    sc[RR] = 0
+    for i, j in ti.ndrange(h, w):
+        d = dg[i, j]
+        v = b[i, j] * 0
+        if d > 0:
+            v = b[i, j] - d * x[i, j] + _neigh(x, wx, wy, i, j, 0, h, w)
+        r[i, j] = v
+        f[i, j] = v
+        e[i, j] = 0
+        sc[RR] += v * v
+
+
+@ti.kernel
+def cg_first_direction(r: ti.template(), e: ti.template(), p: ti.template(), sc: ti.template(), h: ti.i32, w: ti.i32):
+    """p = M r (already in e), sc[RZ] = r . M r."""
+    sc[RZ] = 0
+    for i, j in ti.ndrange(h, w):
+        p[i, j] = e[i, j]
+        sc[RZ] += r[i, j] * e[i, j]
+
+
+@ti.kernel
+def cg_step(x: ti.template(), r: ti.template(), p: ti.template(), q: ti.template(), e: ti.template(),
+            f: ti.template(), wx: ti.template(), wy: ti.template(), dg: ti.template(), sc: ti.template(),
+            h: ti.i32, w: ti.i32):
+    """q = A p; alpha = rz / p.q; x += alpha p; r -= alpha q; f_0 = r, e_0 = 0; sc[RR] = |r|^2."""
+    sc[PQ] = 0
+    for i, j in ti.ndrange(h, w):
+        d = dg[i, j]
+        v = p[i, j] * 0
+        if d > 0:
+            v = d * p[i, j] - _neigh(p, wx, wy, i, j, 0, h, w)
+        q[i, j] = v
+        sc[PQ] += p[i, j] * v
+    sc[ALPHA] = 0
+    if sc[PQ] > 0:
+        sc[ALPHA] = sc[RZ] / sc[PQ]
+    sc[RR] = 0
+    for i, j in ti.ndrange(h, w):
+        a = sc[ALPHA]
+        x[i, j] += a * p[i, j]
+        rv = r[i, j] - a * q[i, j]
+        r[i, j] = rv
+        f[i, j] = rv
+        e[i, j] = 0
+        sc[RR] += rv * rv
+
+
+@ti.kernel
+def cg_direction(r: ti.template(), e: ti.template(), p: ti.template(), sc: ti.template(), h: ti.i32, w: ti.i32):
+    """rz' = r . M r; p = M r + (rz'/rz) p; rz = rz'."""
+    sc[RZN] = 0
+    for i, j in ti.ndrange(h, w):
+        sc[RZN] += r[i, j] * e[i, j]
+    beta = sc[RZN] * 0
+    if sc[RZ] > 0:
+        beta = sc[RZN] / sc[RZ]
+    sc[RZ] = sc[RZN]
+    for i, j in ti.ndrange(h, w):
+        p[i, j] = e[i, j] + beta * p[i, j]
+
+
+# ----------------------------------------------------------------------------- right-hand side on the device
+
+
+@ti.kernel
+def gradients_uniform(nrm: ti.types.ndarray(), gj: ti.template(), gi: ti.template(), dg: ti.template(),
+                      perspective: ti.i32, fx: ti.f64, fy: ti.f64, cx: ti.f64, cy: ti.f64, s: ti.f64,
+                      min_nz: ti.f64, h: ti.i32, w: ti.i32):
+    """Per-pixel steps of u (depth, or log-depth under perspective) from unit normals.
+
+    Orthographic: du/dj = s n_x / n_z, du/di = -s n_y / n_z.
+    Perspective (PPN, (3.2)-(3.3)): with m = n . ((j-cx)/fx, -(i-cy)/fy, -1) < 0,
+    d(log d)/dj = -n_x / (fx m), d(log d)/di = n_y / (fy m).
+    ``nrm`` is any (H, W, 3) array Taichi accepts (numpy, or a CUDA torch tensor).
+    """
+    for i, j in ti.ndrange(h, w):
+        a = ti.cast(0, ti.f64)
+        c = ti.cast(0, ti.f64)
+        if dg[i, j] > 0:
+            nx = ti.cast(nrm[i, j, 0], ti.f64)
+            ny = ti.cast(nrm[i, j, 1], ti.f64)
+            nz = ti.cast(nrm[i, j, 2], ti.f64)
+            if perspective:
+                m = nx * (j - cx) / fx - ny * (i - cy) / fy - nz
+                m = ti.min(m, -min_nz)
+                a = -nx / (fx * m)
+                c = ny / (fy * m)
+            else:
+                den = ti.max(nz, min_nz)
+                a = s * nx / den
+                c = -s * ny / den
+        gj[i, j] = ti.cast(a, gj.dtype)
+        gi[i, j] = ti.cast(c, gi.dtype)
+
+
+@ti.kernel
+def rhs_uniform(gj: ti.template(), gi: ti.template(), wx: ti.template(), wy: ti.template(), b: ti.template(),
+                h: ti.i32, w: ti.i32):
+    """b = -div of the edge targets t = mean of the two pixels' steps (weights wx, wy)."""
+    for i, j in ti.ndrange(h, w):
+        v = b[i, j] * 0
+        if j > 0:
+            v += wx[i, j - 1] * 0.5 * (gj[i, j - 1] + gj[i, j])
+        if j < w - 1:
+            v -= wx[i, j] * 0.5 * (gj[i, j] + gj[i, j + 1])
+        if i > 0:
+            v += wy[i - 1, j] * 0.5 * (gi[i - 1, j] + gi[i, j])
+        if i < h - 1:
+            v -= wy[i, j] * 0.5 * (gi[i, j] + gi[i + 1, j])
+        b[i, j] = v

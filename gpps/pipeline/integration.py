@@ -1,0 +1,797 @@
+"""Normal integration stage: normals to depth by variational (Poisson) integration.
+
+Minimises (4.20), ``F(u) = sum over mask edges of w_e (u_b - u_a - t_e)^2``,
+whose normal equations are the masked 5-point Laplacian with natural (Neumann)
+boundary conditions, ``A u = b = -div(t)``, the discrete ``Laplace(u) = div(g)``.
+
+* Orthographic camera: ``u`` is the depth ``d`` (scene units); per-pixel steps
+  ``du/dj = s n_x/n_z``, ``du/di = -s n_y/n_z`` (``s`` = pixel size; rows go
+  down, ``d = -z``).
+* Perspective camera (PPN, (3.2)-(3.3), as BiNI): ``u = log d``; with
+  ``m = n . ((j-cx)/fx, -(i-cy)/fy, -1)`` (< 0 for visible normals),
+  ``du/dj = -n_x/(fx m)`` and ``du/di = n_y/(fy m)``.  Depth ``exp(u)`` is
+  known up to one scale factor per connected component.
+
+An edge between pixels ``a`` and ``b = a + step`` collects the one-sided
+terms of both pixels as in BiNI (Cao et al., ECCV 2022): weight
+``w_e = c_a w+_a + c_b w-_b``, target ``t_e = (c_a w+_a g_a + c_b w-_b g_b)/w_e``.
+Plain Poisson integration has ``c = 1``, ``w+- = 1/2`` (``w_e = 1``, ``t_e`` the
+mean step).  ``weighting="normal"`` takes BiNI's ``c = N_z^2`` and
+``bilateral=True`` re-weights ``w+-`` from the current depth (iteratively
+reweighted least squares) to preserve discontinuities.
+
+Each connected component (4-neighbourhood) of the valid mask is integrated up
+to a constant, fixed afterwards: mean 0 (orthographic depth / perspective
+log-depth) or, with ``reference_depth``, mean depth = ``reference_depth``.
+
+Solvers: ``multigrid`` (Taichi; conjugate gradient preconditioned by a
+geometric multigrid V-cycle on coarsened masks), ``jacobi`` (Taichi, damped
+Jacobi, the reference and smoother), ``direct`` (scipy sparse LU, pinned per
+component) and ``dct`` (scipy, Simchony et al.'s DCT solution, full
+rectangles with uniform weights only).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Literal, get_args
+
+import numpy as np
+
+from gpps.camera import Orthographic, Perspective
+
+__all__ = [
+    "IntegratorConfig",
+    "IntegrationResult",
+    "Integrator",
+    "Solver",
+    "pixel_gradients",
+    "edge_system",
+    "divergence_rhs",
+    "laplacian",
+    "build_levels",
+    "normal_equation_residual",
+    "ls_energy",
+]
+
+Solver = Literal["multigrid", "jacobi", "direct", "dct"]
+Weighting = Literal["uniform", "normal"]
+DType = Literal["float32", "float64"]
+Progress = Callable[[float, float, str], None]
+
+
+@dataclass(frozen=True)
+class IntegratorConfig:
+    """Options of :class:`Integrator`.
+
+    Attributes:
+        solver: see the module docstring.
+        tol: relative residual ``|b - A u| / |b|`` of the normal equations to stop at.
+        max_iter: conjugate-gradient iterations (multigrid) or Jacobi sweeps;
+            ``None`` = 500 / 200000.
+        weighting: ``"uniform"`` (plain Poisson) or ``"normal"`` (BiNI's N_z^2 confidence).
+        bilateral: discontinuity-preserving re-weighting (BiNI).
+        bilateral_k: BiNI's sigmoid sharpness ``k``.
+        bilateral_max_iter: outer (re-weighting) iterations at most.
+        bilateral_tol: relative energy change that stops the outer iterations.
+        min_nz: floor on ``n_z`` (orthographic) or ``-m`` (perspective) that
+            bounds the slopes of grazing normals.
+        dtype: device precision of the Taichi solvers.
+        smooth_pairs: Jacobi sweep pairs before and after each coarse correction.
+        omega: Jacobi damping.
+        check_every: iterations between residual checks (the only host syncs).
+        coarsest: coarsen while ``max(h, w) > coarsest``.
+    """
+
+    solver: Solver = "multigrid"
+    tol: float = 1e-5
+    max_iter: int | None = None
+    weighting: Weighting = "uniform"
+    bilateral: bool = False
+    bilateral_k: float = 2.0
+    bilateral_max_iter: int = 50
+    bilateral_tol: float = 1e-4
+    min_nz: float = 1e-3
+    dtype: DType = "float32"
+    smooth_pairs: int = 1
+    omega: float = 0.8
+    check_every: int = 2
+    coarsest: int = 8
+
+    def __post_init__(self):
+        for name, lit in (("solver", Solver), ("weighting", Weighting), ("dtype", DType)):
+            if getattr(self, name) not in get_args(lit):
+                raise ValueError(f"{name}: expected one of {get_args(lit)}, got {getattr(self, name)!r}")
+        if not (isinstance(self.tol, (int, float)) and 0 < self.tol < 1):
+            raise ValueError(f"tol: expected a number in (0, 1), got {self.tol!r}")
+        if self.max_iter is not None and (not isinstance(self.max_iter, int) or self.max_iter < 1):
+            raise ValueError(f"max_iter: expected an integer >= 1 or None, got {self.max_iter!r}")
+        if not 0 < self.omega <= 1:
+            raise ValueError(f"omega: expected 0 < omega <= 1, got {self.omega!r}")
+        if not 0 < self.min_nz < 1:
+            raise ValueError(f"min_nz: expected 0 < min_nz < 1, got {self.min_nz!r}")
+        for name in ("smooth_pairs", "check_every", "bilateral_max_iter", "coarsest"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name}: expected an integer >= 1, got {v!r}")
+        if self.coarsest > 16:
+            raise ValueError(f"coarsest: expected <= 16, got {self.coarsest}")
+        if not self.bilateral_k > 0:
+            raise ValueError(f"bilateral_k: expected > 0, got {self.bilateral_k!r}")
+
+    @property
+    def iterations_cap(self) -> int:
+        if self.max_iter is not None:
+            return self.max_iter
+        return 200000 if self.solver == "jacobi" else 500
+
+
+@dataclass
+class IntegrationResult:
+    """Output of an integration.
+
+    Attributes:
+        depth: (H, W) float32 depth ``d = -z > 0`` (orthographic without a
+            reference: relative depth with mean 0 per component), 0 outside ``mask``.
+        mask: (H, W) bool, pixels that were integrated (input mask minus invalid normals).
+        iterations: solver iterations (summed over bilateral outer iterations).
+        residual: final relative residual ``|b - A u| / |b|`` of the normal
+            equations, recomputed on the host in float64 from the returned
+            solution (in float32 this has a floor near ``1e-7 |u| / |b|``).
+        converged: whether the solver's own residual reached ``tol``.
+        n_invalid: mask pixels dropped for NaN, zero-length or back-facing normals.
+        n_components: connected components integrated independently.
+        outer_iterations: bilateral re-weighting iterations (0 without ``bilateral``).
+        timings: seconds: ``setup``, ``rhs``, ``solve``, ``post``, ``total``.
+        solver: the solver used.
+        log_depth: perspective only: (H, W) float64 ``log d`` before scaling (0 outside).
+        solver_residual: the residual the solver itself measured (device
+            precision; the CG recurrence for ``multigrid``).
+    """
+
+    depth: np.ndarray
+    mask: np.ndarray
+    iterations: int
+    residual: float
+    converged: bool
+    n_invalid: int
+    n_components: int
+    outer_iterations: int = 0
+    timings: dict = field(default_factory=dict)
+    solver: str = "multigrid"
+    log_depth: np.ndarray | None = None
+    solver_residual: float = float("nan")
+
+
+# ============================================================================ numpy assembly
+
+
+def pixel_gradients(normals: np.ndarray, valid: np.ndarray, camera, min_nz: float):
+    """Per-pixel steps of ``u`` and BiNI's N_z factors.
+
+    Args:
+        normals: (H, W, 3) unit normals (gpps frame).
+        valid: (H, W) bool.
+        camera: :class:`Orthographic` or :class:`Perspective`.
+        min_nz: slope bound (see :class:`IntegratorConfig`).
+
+    Returns:
+        ``gj, gi, nzj, nzi``, each (H, W) float64, 0 outside ``valid``:
+        ``du/dj``, ``du/di`` (per pixel step) and ``N_z`` such that BiNI's
+        residual is ``N_z (du - g)`` (orthographic ``n_z/s``; perspective ``-f m``).
+    """
+    n = np.asarray(normals, dtype=np.float64)
+    h, w = valid.shape
+    nx, ny, nz = n[..., 0], n[..., 1], n[..., 2]
+    with np.errstate(all="ignore"):
+        if camera.is_perspective:
+            cx, cy = camera.principal_point((h, w))
+            jj, ii = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+            m = nx * (jj - cx) / camera.fx - ny * (ii - cy) / camera.fy - nz
+            m = np.minimum(m, -min_nz)
+            gj = -nx / (camera.fx * m)
+            gi = ny / (camera.fy * m)
+            nzj, nzi = -camera.fx * m, -camera.fy * m
+        else:
+            s = camera.pixel_size
+            den = np.maximum(nz, min_nz)
+            gj, gi = s * nx / den, -s * ny / den
+            nzj = nzi = den / s
+    out = []
+    for a in (gj, gi, nzj, nzi):
+        out.append(np.where(valid, a, 0.0))
+    return tuple(out)
+
+
+def edge_system(valid, gj, gi, cj=None, ci=None, wpj=None, wpi=None):
+    """Edge weights and targets of (4.20).
+
+    Args:
+        valid: (H, W) bool.
+        gj, gi: (H, W) per-pixel steps.
+        cj, ci: (H, W) per-pixel confidences (None = 1).
+        wpj, wpi: (H, W) forward-term weights w+ (backward w- = 1 - w+; None = 1/2).
+
+    Returns:
+        ``wx, wy, tx, ty``: (H, W) float64; ``wx[i, j]``/``tx[i, j]`` belong to
+        the edge ``(i, j)-(i, j+1)``, ``wy``/``ty`` to ``(i, j)-(i+1, j)``;
+        0 where the edge leaves the mask.
+    """
+    h, w = valid.shape
+    one = np.ones((h, w))
+    cj = one if cj is None else cj
+    ci = one if ci is None else ci
+    wpj = 0.5 * one if wpj is None else wpj
+    wpi = 0.5 * one if wpi is None else wpi
+    wx = np.zeros((h, w))
+    wy = np.zeros((h, w))
+    tx = np.zeros((h, w))
+    ty = np.zeros((h, w))
+    ex = valid[:, :-1] & valid[:, 1:]
+    a = cj[:, :-1] * wpj[:, :-1]
+    b = cj[:, 1:] * (1 - wpj[:, 1:])
+    s = a + b
+    ok = ex & (s > 0)
+    with np.errstate(all="ignore"):
+        wx[:, :-1] = np.where(ok, s, 0.0)
+        tx[:, :-1] = np.where(ok, (a * gj[:, :-1] + b * gj[:, 1:]) / s, 0.0)
+    ey = valid[:-1, :] & valid[1:, :]
+    a = ci[:-1, :] * wpi[:-1, :]
+    b = ci[1:, :] * (1 - wpi[1:, :])
+    s = a + b
+    ok = ey & (s > 0)
+    with np.errstate(all="ignore"):
+        wy[:-1, :] = np.where(ok, s, 0.0)
+        ty[:-1, :] = np.where(ok, (a * gi[:-1, :] + b * gi[1:, :]) / s, 0.0)
+    return wx, wy, tx, ty
+
+
+def divergence_rhs(wx, wy, tx, ty) -> np.ndarray:
+    """``b = -div(w t)``: the right-hand side of the normal equations of (4.20)."""
+    fx = wx * tx
+    fy = wy * ty
+    b = -fx - fy
+    b[:, 1:] += fx[:, :-1]
+    b[1:, :] += fy[:-1, :]
+    return b
+
+
+def laplacian(wx, wy, valid):
+    """Sparse weighted graph Laplacian over the valid pixels.
+
+    Returns:
+        ``(A, idx)``: CSR matrix (n x n, float64) and the flat indices of the
+        n valid pixels in row-major order.
+    """
+    import scipy.sparse as sp
+
+    h, w = valid.shape
+    lab = -np.ones(h * w, dtype=np.int64)
+    idx = np.flatnonzero(valid.ravel())
+    lab[idx] = np.arange(idx.size)
+    lab = lab.reshape(h, w)
+    rows, cols, vals = [], [], []
+    for wgt, da, db in ((wx[:, :-1], (slice(None), slice(None, -1)), (slice(None), slice(1, None))),
+                        (wy[:-1, :], (slice(None, -1), slice(None)), (slice(1, None), slice(None)))):
+        sel = wgt > 0
+        a = lab[da][sel]
+        bb = lab[db][sel]
+        v = wgt[sel]
+        rows += [a, bb]
+        cols += [bb, a]
+        vals += [-v, -v]
+    rows = np.concatenate(rows) if rows else np.zeros(0, np.int64)
+    cols = np.concatenate(cols) if cols else np.zeros(0, np.int64)
+    vals = np.concatenate(vals) if vals else np.zeros(0)
+    off = sp.coo_matrix((vals, (rows, cols)), shape=(idx.size, idx.size)).tocsr()
+    A = off - sp.diags(np.asarray(off.sum(axis=1)).ravel())
+    return A.tocsr(), idx
+
+
+def apply_laplacian(u, wx, wy):
+    """``A u`` on the image grid (float64)."""
+    ex = wx[:, :-1] * (u[:, 1:] - u[:, :-1])
+    ey = wy[:-1, :] * (u[1:, :] - u[:-1, :])
+    out = np.zeros_like(u)
+    out[:, :-1] -= ex
+    out[:, 1:] += ex
+    out[:-1, :] -= ey
+    out[1:, :] += ey
+    return out
+
+
+def normal_equation_residual(u, wx, wy, b) -> float:
+    """Relative residual ``|b - A u| / |b|`` (float64)."""
+    nb = float(np.linalg.norm(b))
+    r = b - apply_laplacian(np.asarray(u, np.float64), wx, wy)
+    return float(np.linalg.norm(r)) / nb if nb > 0 else float(np.linalg.norm(r))
+
+
+def ls_energy(u, wx, wy, tx, ty) -> float:
+    """The discrete (4.20) energy ``sum_e w_e (u_b - u_a - t_e)^2``."""
+    ex = u[:, 1:] - u[:, :-1] - tx[:, :-1]
+    ey = u[1:, :] - u[:-1, :] - ty[:-1, :]
+    return float(np.sum(wx[:, :-1] * ex * ex) + np.sum(wy[:-1, :] * ey * ey))
+
+
+def level_shapes(h: int, w: int, coarsest: int) -> list[tuple[int, int]]:
+    shapes = [(h, w)]
+    while max(shapes[-1]) > coarsest:
+        hh, ww = shapes[-1]
+        shapes.append(((hh + 1) // 2, (ww + 1) // 2))
+    return shapes
+
+
+def build_levels(wx, wy, coarsest: int = 8, alpha: float = 0.5):
+    """Coarsened edge weights for the multigrid hierarchy.
+
+    2x2 blocks aggregate into one coarse cell; a coarse edge's weight is
+    ``alpha`` times the sum of the fine edge weights that cross it (``alpha =
+    1`` would be the Galerkin operator of piecewise-constant interpolation;
+    ``1/2`` rediscretises the Laplacian at twice the spacing, the usual fix for
+    aggregation's too-weak coarse correction).
+
+    Returns:
+        list of ``(wx_k, wy_k)`` per level, level 0 first.
+    """
+    levels = [(wx, wy)]
+    h, w = wx.shape
+    for (hc, wc) in level_shapes(h, w, coarsest)[1:]:
+        fx, fy = levels[-1]
+        ph, pw = 2 * hc - fx.shape[0], 2 * wc - fx.shape[1]
+        fx = np.pad(fx, ((0, ph), (0, pw)))
+        fy = np.pad(fy, ((0, ph), (0, pw)))
+        cx = np.zeros((hc, wc))
+        cy = np.zeros((hc, wc))
+        cx[:, :] = alpha * (fx[0::2, 1::2] + fx[1::2, 1::2])
+        cy[:, :] = alpha * (fy[1::2, 0::2] + fy[1::2, 1::2])
+        cx[:, -1] = 0
+        cy[-1, :] = 0
+        levels.append((cx, cy))
+    return levels
+
+
+def _diag(wx, wy):
+    d = wx.copy() + wy
+    d[:, 1:] += wx[:, :-1]
+    d[1:, :] += wy[:-1, :]
+    return d
+
+
+def _sigmoid(x):
+    return 0.5 * (1.0 + np.tanh(0.5 * x))
+
+
+# ============================================================================ the stage
+
+
+class Integrator:
+    """Integrates normal maps over one mask with one camera.
+
+    Configured once (mask, camera, options); Taichi fields are allocated once
+    at the first Taichi solve and reused by every later call, so a stream of
+    normal maps (with the previous depth as a warm start) costs only the solve.
+
+    Args:
+        mask: (H, W) bool (or 0/nonzero) pixels to integrate; at least 2.
+        camera: :class:`gpps.camera.Orthographic` or
+            :class:`gpps.camera.Perspective`; ``None`` = orthographic, pixel size 1.
+        config: :class:`IntegratorConfig` (``None`` = defaults).
+        device: ``"auto"``, ``"cpu"`` or ``"cuda:0"`` for the Taichi solvers.
+    """
+
+    def __init__(self, mask, camera=None, config: IntegratorConfig | None = None, device: str | None = "auto"):
+        m = np.asarray(mask)
+        if m.ndim != 2:
+            raise ValueError(f"mask: expected (H, W), got shape {m.shape}")
+        if m.dtype != bool:
+            if not np.issubdtype(m.dtype, np.number):
+                raise ValueError(f"mask: expected a boolean or numeric (H, W) array, got dtype {m.dtype}")
+            m = np.nan_to_num(m.astype(np.float64)) != 0
+        if min(m.shape) < 1 or m.sum() < 2:
+            raise ValueError(f"mask: expected at least 2 pixels set, got {int(m.sum())} of shape {m.shape}")
+        self.mask = m.copy()
+        self.shape = m.shape
+        if camera is None:
+            camera = Orthographic(1.0)
+        if not isinstance(camera, (Orthographic, Perspective)):
+            raise TypeError(f"camera: expected gpps.camera.Orthographic or Perspective, got {type(camera).__name__}")
+        self.camera = camera
+        self.config = config if config is not None else IntegratorConfig()
+        if not isinstance(self.config, IntegratorConfig):
+            raise TypeError(f"config: expected IntegratorConfig, got {type(self.config).__name__}")
+        self.device = device
+        self._dev = None  # Taichi state, created lazily
+        self._levels_key = None
+        self._labels_key = None
+
+    # ------------------------------------------------------------------ checks
+
+    def _check_normals(self, normals):
+        n = np.asarray(normals)
+        h, w = self.shape
+        if n.ndim != 3 or n.shape != (h, w, 3):
+            raise ValueError(f"normals: expected shape (H, W, 3) = ({h}, {w}, 3) matching the mask, got {n.shape}")
+        if not np.issubdtype(n.dtype, np.number):
+            raise ValueError(f"normals: expected a numeric array, got dtype {n.dtype}")
+        n = n.astype(np.float64)
+        with np.errstate(all="ignore"):
+            norm = np.linalg.norm(n, axis=-1)
+            ok = np.isfinite(norm) & (norm > 1e-6)
+            n = np.where(ok[..., None], n / np.where(ok, norm, 1.0)[..., None], 0.0)
+        if self.camera.is_perspective:
+            cx, cy = self.camera.principal_point(self.shape)
+            jj, ii = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+            facing = n[..., 0] * (jj - cx) / self.camera.fx - n[..., 1] * (ii - cy) / self.camera.fy - n[..., 2] < 0
+        else:
+            facing = n[..., 2] > 0
+        valid = self.mask & ok & facing
+        n_invalid = int(self.mask.sum() - valid.sum())
+        if valid.sum() < 2:
+            raise ValueError(
+                f"normals: expected at least 2 finite, non-zero, camera-facing normals inside the mask, "
+                f"got {int(valid.sum())} ({n_invalid} of {int(self.mask.sum())} invalid)"
+            )
+        return n, valid, n_invalid
+
+    def _check_warm(self, warm_start):
+        if warm_start is None:
+            return None
+        d = np.asarray(warm_start, dtype=np.float64)
+        if d.shape != self.shape:
+            raise ValueError(f"warm_start: expected depth of shape (H, W) = {self.shape}, got {d.shape}")
+        return d
+
+    # ------------------------------------------------------------------ components
+
+    def _components(self, valid):
+        key = valid.tobytes()
+        if self._labels_key != key:
+            from scipy import ndimage
+
+            lab, n = ndimage.label(valid)
+            self._labels, self._ncomp, self._labels_key = lab, n, key
+        return self._labels, self._ncomp
+
+    def _comp_mean(self, a, valid):
+        lab, n = self._components(valid)
+        s = np.bincount(lab.ravel(), weights=np.where(valid, a, 0).ravel(), minlength=n + 1)
+        c = np.bincount(lab.ravel(), minlength=n + 1)
+        mean = s / np.maximum(c, 1)
+        mean[0] = 0
+        return mean[lab]
+
+    # ------------------------------------------------------------------ main entry
+
+    def integrate(self, normals, warm_start=None, *, reference_depth: float | None = None,
+                  progress: Progress | None = None) -> IntegrationResult:
+        """Integrate one normal map.
+
+        Args:
+            normals: (H, W, 3) normals in the gpps frame (need not be unit; NaN,
+                zero-length and back-facing ones inside the mask are dropped and
+                counted in ``n_invalid``).
+            warm_start: optional (H, W) depth to start from (e.g. the previous
+                frame's); only its shape up to a constant per component matters.
+            reference_depth: if given (> 0), each component's mean depth is set
+                to it; otherwise orthographic depth has mean 0 and perspective
+                log-depth has mean 0 (depth ~ 1) per component.
+            progress: optional ``progress(done, total, message)``.
+
+        Returns:
+            :class:`IntegrationResult`.
+        """
+        t0 = time.perf_counter()
+        cfg = self.config
+        if reference_depth is not None:
+            reference_depth = float(reference_depth)
+            if not (np.isfinite(reference_depth) and reference_depth > 0):
+                raise ValueError(f"reference_depth: expected a finite number > 0, got {reference_depth!r}")
+        n, valid, n_invalid = self._check_normals(normals)
+        warm = self._check_warm(warm_start)
+        gj, gi, nzj, nzi = pixel_gradients(n, valid, self.camera, cfg.min_nz)
+        cj = ci = None
+        if cfg.weighting == "normal":
+            scale = float(np.mean(nzj[valid] ** 2))
+            cj, ci = nzj ** 2 / scale, nzi ** 2 / scale
+        u0 = None
+        if warm is not None:
+            if self.camera.is_perspective:
+                with np.errstate(all="ignore"):
+                    u0 = np.where(valid & (warm > 0) & np.isfinite(warm), np.log(np.abs(warm) + 1e-300), 0.0)
+            else:
+                u0 = np.where(valid & np.isfinite(warm), warm, 0.0)
+            u0 = np.where(valid, u0 - self._comp_mean(u0, valid), 0.0)
+        timings = {"setup": time.perf_counter() - t0}
+
+        wpj = wpi = None
+        outer = 0
+        total_it = 0
+        energy = None
+        nout = cfg.bilateral_max_iter if cfg.bilateral else 1
+        u = u0
+        for k in range(nout):
+            wx, wy, tx, ty = edge_system(valid, gj, gi, cj, ci, wpj, wpi)
+            t1 = time.perf_counter()
+            inner_progress = progress if not cfg.bilateral else None
+            u, its, res, tim = self._solve(n, valid, wx, wy, tx, ty, u, inner_progress)
+            total_it += its
+            for key, v in tim.items():
+                timings[key] = timings.get(key, 0.0) + v
+            if not cfg.bilateral:
+                break
+            outer = k + 1
+            # BiNI re-weighting from the one-sided differences of the current u
+            ex = (wx[:, :-1] > 0)
+            ey = (wy[:-1, :] > 0)
+            dj = np.zeros_like(u)
+            dj[:, :-1] = np.where(ex, u[:, 1:] - u[:, :-1], 0.0)  # forward step at (i, j)
+            djm = np.zeros_like(u)
+            djm[:, 1:] = dj[:, :-1]  # backward step at (i, j)
+            di = np.zeros_like(u)
+            di[:-1, :] = np.where(ey, u[1:, :] - u[:-1, :], 0.0)
+            dim = np.zeros_like(u)
+            dim[1:, :] = di[:-1, :]
+            wpj = _sigmoid(cfg.bilateral_k * ((nzj * djm) ** 2 - (nzj * dj) ** 2))
+            wpi = _sigmoid(cfg.bilateral_k * ((nzi * dim) ** 2 - (nzi * di) ** 2))
+            cj1 = np.ones_like(u) if cj is None else cj
+            ci1 = np.ones_like(u) if ci is None else ci
+            e_new = float(
+                np.sum((cj1 * wpj * (dj - gj) ** 2)[:, :-1][ex])
+                + np.sum((cj1 * (1 - wpj) * (djm - gj) ** 2)[:, 1:][ex])
+                + np.sum((ci1 * wpi * (di - gi) ** 2)[:-1, :][ey])
+                + np.sum((ci1 * (1 - wpi) * (dim - gi) ** 2)[1:, :][ey])
+            )
+            if progress is not None:
+                progress(k + 1, nout, f"bilateral energy {e_new:.4g}")
+            if energy is not None and abs(energy - e_new) <= cfg.bilateral_tol * max(abs(energy), 1e-300):
+                break
+            energy = e_new
+        # final residual of the last system (float64, host)
+        b = divergence_rhs(wx, wy, tx, ty)
+        true_res = normal_equation_residual(np.where(valid, u, 0.0), wx, wy, b)
+        solver_res = true_res if res is None else res
+
+        t2 = time.perf_counter()
+        u = np.where(valid, u - self._comp_mean(u, valid), 0.0)
+        log_depth = None
+        if self.camera.is_perspective:
+            log_depth = u
+            depth = np.where(valid, np.exp(u), 0.0)
+            if reference_depth is not None:
+                depth = depth * (reference_depth / np.where(valid, self._comp_mean(depth, valid), 1.0))
+        else:
+            depth = u + (reference_depth if reference_depth is not None else 0.0)
+        depth = np.where(valid, depth, 0.0).astype(np.float32)
+        timings["post"] = time.perf_counter() - t2
+        timings["total"] = time.perf_counter() - t0
+        if progress is not None:
+            progress(1, 1, f"residual {true_res:.2e}")
+        _, ncomp = self._components(valid)
+        return IntegrationResult(
+            depth=depth, mask=valid, iterations=total_it, residual=true_res, solver_residual=solver_res,
+            converged=bool(solver_res <= cfg.tol),
+            n_invalid=n_invalid, n_components=int(ncomp), outer_iterations=outer, timings=timings,
+            solver=cfg.solver, log_depth=log_depth,
+        )
+
+    # ------------------------------------------------------------------ solvers
+
+    def _solve(self, n, valid, wx, wy, tx, ty, u0, progress):
+        cfg = self.config
+        if cfg.solver == "direct":
+            return self._solve_direct(valid, wx, wy, tx, ty)
+        if cfg.solver == "dct":
+            return self._solve_dct(valid, wx, wy, tx, ty)
+        return self._solve_taichi(n, valid, wx, wy, tx, ty, u0, progress)
+
+    def _solve_direct(self, valid, wx, wy, tx, ty):
+        import scipy.sparse.linalg as spla
+
+        t0 = time.perf_counter()
+        b = divergence_rhs(wx, wy, tx, ty)
+        A, idx = laplacian(wx, wy, valid)
+        lab, ncomp = self._components(valid)
+        labv = lab.ravel()[idx]
+        # pin the first pixel of each component (Dirichlet 0), solve the SPD rest
+        _, first = np.unique(labv, return_index=True)
+        keep = np.ones(idx.size, bool)
+        keep[first] = False
+        bv = b.ravel()[idx]
+        t1 = time.perf_counter()
+        x = np.zeros(idx.size)
+        if keep.any():
+            Ak = A[keep][:, keep].tocsc()
+            x[keep] = spla.spsolve(Ak, bv[keep])
+        u = np.zeros(self.shape)
+        u.ravel()[idx] = x
+        t2 = time.perf_counter()
+        return u, 1, None, {"rhs": t1 - t0, "solve": t2 - t1}
+
+    def _solve_dct(self, valid, wx, wy, tx, ty):
+        from scipy.fft import dctn, idctn
+
+        h, w = self.shape
+        full = valid.all() and np.all(wx[:, :-1] == 1) and np.all(wy[:-1, :] == 1)
+        if not full:
+            raise ValueError(
+                "solver: 'dct' (Simchony) needs a full rectangular mask, valid normals everywhere and uniform, "
+                "non-bilateral weights; use 'direct' or 'multigrid' on masked domains"
+            )
+        t0 = time.perf_counter()
+        b = divergence_rhs(wx, wy, tx, ty)
+        t1 = time.perf_counter()
+        lam = (2 - 2 * np.cos(np.pi * np.arange(h) / h))[:, None] + (2 - 2 * np.cos(np.pi * np.arange(w) / w))[None, :]
+        lam[0, 0] = 1.0
+        bh = dctn(b, type=2, norm="ortho")
+        bh /= lam  # A = -Laplacian (positive semi-definite): A u = b
+        bh[0, 0] = 0.0
+        u = idctn(bh, type=2, norm="ortho")
+        return u, 1, None, {"rhs": t1 - t0, "solve": time.perf_counter() - t1}
+
+    # ------------------------------------------------------------------ Taichi
+
+    def _ensure_device(self):
+        if self._dev is not None:
+            return self._dev
+        from gpps import _taichi
+
+        ti = _taichi.init(self.device)
+        cfg = self.config
+        h, w = self.shape
+        shapes = level_shapes(h, w, cfg.coarsest)
+        offs = np.concatenate([[0], np.cumsum([s[1] for s in shapes])]).astype(int)
+        wp_ = int(offs[-1])
+        ft = ti.f32 if cfg.dtype == "float32" else ti.f64
+        ncmax = shapes[-1][0] * shapes[-1][1]
+        fb = ti.FieldsBuilder()
+        d = {}
+        for name in ("wx", "wy", "dg", "e", "f", "t"):
+            d[name] = ti.field(ft)
+            fb.dense(ti.ij, (h, wp_)).place(d[name])
+        for name in ("z", "b", "r", "p", "q", "gj", "gi"):
+            d[name] = ti.field(ft)
+            fb.dense(ti.ij, (h, w)).place(d[name])
+        d["sc"] = ti.field(ft)
+        fb.dense(ti.i, 8).place(d["sc"])
+        d["pinv"] = ti.field(ft)
+        fb.dense(ti.ij, (ncmax, ncmax)).place(d["pinv"])
+        d["cidx"] = ti.field(ti.i32)
+        fb.dense(ti.ij, (ncmax, 2)).place(d["cidx"])
+        d["tree"] = fb.finalize()
+        d["shapes"], d["offs"], d["wp"], d["np_dtype"] = shapes, offs, wp_, np.dtype(cfg.dtype)
+        self._dev = d
+        return d
+
+    def close(self) -> None:
+        """Free the Taichi fields (the object can no longer use a Taichi solver)."""
+        if self._dev is not None:
+            try:
+                self._dev["tree"].destroy()
+            finally:
+                self._dev = None
+
+    def _upload_levels(self, valid, wx, wy):
+        d = self._dev
+        key = (wx.tobytes(), wy.tobytes())
+        if self._levels_key == key:
+            return
+        cfg = self.config
+        levels = build_levels(wx, wy, cfg.coarsest)
+        h = self.shape[0]
+        P = {k: np.zeros((h, d["wp"]), dtype=d["np_dtype"]) for k in ("wx", "wy", "dg")}
+        for k, ((lx, ly), (hh, ww)) in enumerate(zip(levels, d["shapes"])):
+            o = d["offs"][k]
+            P["wx"][:hh, o:o + ww] = lx
+            P["wy"][:hh, o:o + ww] = ly
+            P["dg"][:hh, o:o + ww] = _diag(lx, ly)
+        for k in ("wx", "wy", "dg"):
+            d[k].from_numpy(P[k])
+        # exact pseudo-inverse on the coarsest level
+        lx, ly = levels[-1]
+        dgc = _diag(lx, ly)
+        act = np.argwhere(dgc > 0)
+        nc = len(act)
+        ncmax = d["pinv"].shape[0]
+        pinv = np.zeros((ncmax, ncmax), dtype=d["np_dtype"])
+        cidx = np.zeros((ncmax, 2), dtype=np.int32)
+        if nc:
+            A, idx = laplacian(lx, ly, dgc > 0)
+            pinv[:nc, :nc] = np.linalg.pinv(A.toarray(), hermitian=True)
+            cidx[:nc, 0] = act[:, 0]
+            cidx[:nc, 1] = act[:, 1] + d["offs"][len(levels) - 1]
+        d["pinv"].from_numpy(pinv)
+        d["cidx"].from_numpy(cidx)
+        d["nc"] = nc
+        self._levels_key = key
+
+    def _vcycle(self):
+        from gpps.kernels import poisson as K
+
+        d, cfg = self._dev, self.config
+        sh, of = d["shapes"], d["offs"]
+        L = len(sh)
+        args = (d["e"], d["f"], d["t"], d["wx"], d["wy"], d["dg"])
+        for k in range(L - 1):
+            K.down(*args, int(of[k]), sh[k][0], sh[k][1], int(of[k + 1]), sh[k + 1][0], sh[k + 1][1],
+                   cfg.omega, cfg.smooth_pairs)
+        K.coarse_exact(d["e"], d["f"], d["cidx"], d["pinv"], d["nc"])
+        for k in range(L - 2, -1, -1):
+            K.up(*args, int(of[k]), sh[k][0], sh[k][1], int(of[k + 1]), cfg.omega, cfg.smooth_pairs)
+
+    def _solve_taichi(self, n, valid, wx, wy, tx, ty, u0, progress):
+        from gpps.kernels import poisson as K
+
+        cfg = self.config
+        t0 = time.perf_counter()
+        d = self._ensure_device()
+        self._upload_levels(valid, wx, wy)
+        h, w = self.shape
+        uniform = cfg.weighting == "uniform" and not cfg.bilateral
+        if uniform:
+            # right-hand side computed on the device (the streaming path)
+            cam = self.camera
+            if cam.is_perspective:
+                cx, cy = cam.principal_point(self.shape)
+                pars = (1, cam.fx, cam.fy, cx, cy, 1.0)
+            else:
+                cx, cy = cam.principal_point(self.shape)
+                pars = (0, 1.0, 1.0, cx, cy, cam.pixel_size)
+            K.gradients_uniform(np.ascontiguousarray(n, dtype=d["np_dtype"]), d["gj"], d["gi"], d["dg"], *pars,
+                                cfg.min_nz, h, w)
+            K.rhs_uniform(d["gj"], d["gi"], d["wx"], d["wy"], d["b"], h, w)
+        else:
+            d["b"].from_numpy(divergence_rhs(wx, wy, tx, ty).astype(d["np_dtype"]))
+        if u0 is not None:
+            d["z"].from_numpy(np.where(valid, u0, 0.0).astype(d["np_dtype"]))
+        else:
+            d["z"].fill(0)
+        # |b|^2
+        d["r"].fill(0)
+        K.residual_norm(d["r"], d["b"], d["q"], d["wx"], d["wy"], d["dg"], d["sc"], h, w)
+        bb = float(d["sc"][K.RR])
+        t1 = time.perf_counter()
+        tol2 = (cfg.tol ** 2) * bb
+        cap = cfg.iterations_cap
+        its = 0
+        if bb == 0.0:
+            res = 0.0
+        elif cfg.solver == "jacobi":
+            pairs = 8
+            K.residual_norm(d["z"], d["b"], d["r"], d["wx"], d["wy"], d["dg"], d["sc"], h, w)
+            rr = float(d["sc"][K.RR])
+            while rr > tol2 and its < cap:
+                K.smooth(d["z"], d["b"], d["t"], d["wx"], d["wy"], d["dg"], 0, h, w, cfg.omega, pairs)
+                its += 2 * pairs
+                if its % (2 * pairs * cfg.check_every) == 0 or its >= cap:
+                    K.residual_norm(d["z"], d["b"], d["r"], d["wx"], d["wy"], d["dg"], d["sc"], h, w)
+                    rr = float(d["sc"][K.RR])
+                    if progress is not None:
+                        progress(min(its, cap), cap, f"jacobi residual {math.sqrt(rr / bb):.2e}")
+            res = math.sqrt(rr / bb)
+        else:
+            args = (d["wx"], d["wy"], d["dg"], d["sc"], h, w)
+            K.cg_start(d["z"], d["b"], d["r"], d["e"], d["f"], *args)
+            rr = float(d["sc"][K.RR])
+            if rr > tol2:
+                self._vcycle()
+                K.cg_first_direction(d["r"], d["e"], d["p"], d["sc"], h, w)
+                while its < cap:
+                    K.cg_step(d["z"], d["r"], d["p"], d["q"], d["e"], d["f"], *args)
+                    its += 1
+                    if its % cfg.check_every == 0 or its >= cap:
+                        rr_prev, rr = rr, float(d["sc"][K.RR])  # the only host sync
+                        if progress is not None:
+                            progress(its, cap, f"residual {math.sqrt(rr / bb):.2e}")
+                        if rr <= tol2:
+                            break
+                        if cfg.dtype == "float32" and rr > 0.8 * rr_prev and rr < 1e-8 * bb:
+                            break  # stagnation at the float32 precision floor
+                    self._vcycle()
+                    K.cg_direction(d["r"], d["e"], d["p"], d["sc"], h, w)
+            res = math.sqrt(rr / bb)
+        u = d["z"].to_numpy().astype(np.float64)
+        t2 = time.perf_counter()
+        return u, its, res, {"rhs": t1 - t0, "solve": t2 - t1}

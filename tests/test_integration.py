@@ -1,0 +1,282 @@
+"""Normal integration (4.20): analytic surfaces, solver agreement, bad input.
+
+The analytic surfaces (sphere cap, Gaussian bumps, a vase of revolution) and
+their exact normals are written here, independently of the library: a height
+field ``z = H(x, y) - Z0`` in the gpps frame has normal ``~ (-H_x, -H_y, 1)``;
+under the perspective camera the depth along each pixel ray is found by a
+fixed-point iteration ``d = Z0 - H(d r_x, d r_y)``.
+"""
+
+import numpy as np
+import pytest
+
+from gpps.camera import Orthographic, Perspective
+from gpps.integrate import IntegratorConfig, integrate_normals
+from gpps.pipeline.integration import Integrator, divergence_rhs, edge_system, ls_energy, pixel_gradients
+
+N = 256
+Z0 = 10.0
+
+
+# ----------------------------------------------------------------------------- analytic surfaces (scale L)
+
+
+def sphere(x, y, L):
+    R = 1.2 * L
+    s = np.sqrt(np.maximum(R * R - x * x - y * y, 1e-12))
+    return s, -x / s, -y / s
+
+
+def bumps(x, y, L):
+    h = np.zeros_like(x)
+    hx = np.zeros_like(x)
+    hy = np.zeros_like(x)
+    for a, x0, y0, sg in ((0.30, -0.3, 0.2, 0.25), (0.20, 0.35, -0.25, 0.2), (-0.15, 0.2, 0.45, 0.15)):
+        x0, y0, sg, a = x0 * L, y0 * L, sg * L, a * L
+        g = a * np.exp(-((x - x0) ** 2 + (y - y0) ** 2) / (2 * sg * sg))
+        h += g
+        hx += -g * (x - x0) / (sg * sg)
+        hy += -g * (y - y0) / (sg * sg)
+    return h, hx, hy
+
+
+def vase(x, y, L):
+    rho = L * (0.9 + 0.15 * np.sin(3 * y / L))
+    drho = 0.45 * np.cos(3 * y / L)
+    s = np.sqrt(np.maximum(rho * rho - x * x, 1e-12))
+    return s, -x / s, rho * drho / s
+
+
+SURFACES = {"sphere": sphere, "bumps": bumps, "vase": vase}
+
+
+def masks():
+    ii, jj = np.meshgrid(np.arange(N), np.arange(N), indexing="ij")
+    r = np.hypot(ii - 127.5, jj - 127.5)
+    return {
+        "disc": r < 100,
+        "ring": (r > 40) & (r < 110),
+        "blobs": (np.hypot(ii - 85, jj - 80) < 50) | (np.hypot(ii - 170, jj - 175) < 55),
+    }
+
+
+def scene(surface, camera_kind):
+    """Exact depth (H, W) and unit normals (H, W, 3) of a surface, with its camera."""
+    f = SURFACES[surface]
+    ii, jj = np.meshgrid(np.arange(N, dtype=float), np.arange(N, dtype=float), indexing="ij")
+    c = (N - 1) / 2
+    if camera_kind == "orthographic":
+        L, s = 1.0, 2.0 / N
+        cam = Orthographic(s)
+        x, y = (jj - c) * s, -(ii - c) * s
+        h, hx, hy = f(x, y, L)
+        depth = Z0 - h
+    else:
+        K = np.array([[600.0, 0, c], [0, 600.0, c], [0, 0, 1]])
+        cam = Perspective(K)
+        L = c / 600.0 * Z0
+        rx, ry = (jj - c) / 600.0, -(ii - c) / 600.0
+        d = np.full((N, N), Z0)
+        for _ in range(200):
+            h, _, _ = f(d * rx, d * ry, L)
+            d = Z0 - h
+        h, hx, hy = f(d * rx, d * ry, L)
+        depth = d
+    n = np.stack([-hx, -hy, np.ones_like(hx)], axis=-1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return depth, n, cam
+
+
+def aligned_error(est, true, mask, perspective):
+    """Max |error| / depth range after per-component offset (or scale) alignment."""
+    from scipy import ndimage
+
+    lab, k = ndimage.label(mask)
+    err = 0.0
+    for c in range(1, k + 1):
+        m = lab == c
+        e, t = est[m].astype(np.float64), true[m]
+        if perspective:
+            e = e * (e @ t) / (e @ e)
+        else:
+            e = e + np.mean(t - e)
+        err = max(err, np.max(np.abs(e - t)))
+    return err / np.ptp(true[mask])
+
+
+CASES = [("sphere", "disc"), ("bumps", "ring"), ("vase", "blobs")]
+
+
+@pytest.mark.parametrize("camera_kind", ["orthographic", "perspective"])
+@pytest.mark.parametrize("surface,mask_name", CASES)
+def test_analytic_multigrid_matches_direct(surface, mask_name, camera_kind, device):
+    depth, n, cam = scene(surface, camera_kind)
+    mask = masks()[mask_name]
+    if surface == "vase":  # stay off the vase's silhouette (grazing normals)
+        mask &= n[..., 2] > 0.35
+    persp = cam.is_perspective
+    ref = integrate_normals(n, mask, camera=cam, solver="direct")
+    mg = integrate_normals(n, mask, camera=cam, solver="multigrid", device=device, tol=1e-10, dtype="float64")
+    assert mg.n_invalid == 0 and ref.n_invalid == 0
+    e_ref = aligned_error(ref.depth, depth, mask, persp)
+    e_mg = aligned_error(mg.depth, depth, mask, persp)
+    assert e_ref <= 1e-3, e_ref
+    assert e_mg <= 1e-3, e_mg
+    # the multigrid reaches the direct solution's residual and energy
+    assert mg.residual <= 1e-9 and ref.residual <= 1e-9
+    gj, gi, _, _ = pixel_gradients(n, mask, cam, 1e-3)
+    wx, wy, tx, ty = edge_system(mask, gj, gi)
+    u_ref = ref.log_depth if persp else ref.depth.astype(np.float64)
+    u_mg = mg.log_depth if persp else mg.depth.astype(np.float64)
+    E_ref, E_mg = ls_energy(u_ref, wx, wy, tx, ty), ls_energy(u_mg, wx, wy, tx, ty)
+    assert E_mg <= E_ref * (1 + 1e-6) + 1e-18
+    assert mg.n_components == (2 if mask_name == "blobs" else 1)
+
+
+def test_float32_multigrid_accuracy(device):
+    depth, n, cam = scene("sphere", "perspective")
+    mask = masks()["disc"]
+    res = integrate_normals(n, mask, camera=cam, device=device, reference_depth=float(depth[mask].mean()))
+    assert res.converged and res.iterations <= 30
+    assert aligned_error(res.depth, depth, mask, True) <= 1e-3
+    # reference_depth fixes the scale: no alignment needed
+    assert abs(res.depth[mask].mean() - depth[mask].mean()) < 1e-3 * depth[mask].mean()
+    assert np.all(res.depth[~mask] == 0) and np.all(np.isfinite(res.depth))
+
+
+def test_warm_start_and_reuse(device):
+    depth, n, cam = scene("bumps", "orthographic")
+    mask = masks()["ring"]
+    integ = Integrator(mask, cam, IntegratorConfig(tol=1e-6, dtype="float64"), device=device)
+    cold = integ.integrate(n)
+    warm = integ.integrate(n, warm_start=cold.depth)
+    assert warm.iterations < cold.iterations  # (the warm start is the float32-rounded solution)
+    assert np.allclose(warm.depth, cold.depth, atol=1e-5 * np.ptp(depth[mask]))
+    with pytest.raises(ValueError, match=r"warm_start: expected .*got"):
+        integ.integrate(n, warm_start=np.zeros((3, 3)))
+    integ.close()
+
+
+def test_jacobi_converges_to_direct(device):
+    ii, jj = np.meshgrid(np.arange(24), np.arange(24), indexing="ij")
+    mask = np.hypot(ii - 11.5, jj - 11.5) < 11
+    x, y = (jj - 11.5) / 12, -(ii - 11.5) / 12
+    h, hx, hy = bumps(x, y, 1.0)
+    n = np.stack([-hx, -hy, np.ones_like(h)], -1)
+    cam = Orthographic(1 / 12)
+    ref = integrate_normals(n, mask, camera=cam, solver="direct")
+    jac = integrate_normals(n, mask, camera=cam, solver="jacobi", device=device, tol=1e-6, dtype="float64")
+    assert jac.converged and jac.iterations > 10
+    assert np.max(np.abs(jac.depth - ref.depth)) < 1e-4 * np.ptp(ref.depth[mask])
+
+
+def test_dct_matches_direct_on_rectangle():
+    depth, n, cam = scene("bumps", "perspective")
+    sl = (slice(60, 124), slice(70, 150))
+    n, depth = n[sl], depth[sl]
+    mask = np.ones(depth.shape, bool)
+    K = cam.K.copy()
+    K[0, 2] -= 70
+    K[1, 2] -= 60
+    cam = Perspective(K)
+    a = integrate_normals(n, mask, camera=cam, solver="dct")
+    b = integrate_normals(n, mask, camera=cam, solver="direct")
+    assert np.max(np.abs(a.log_depth - b.log_depth)) < 1e-9
+    assert aligned_error(a.depth, depth, mask, True) < 1e-3
+    with pytest.raises(ValueError, match="dct"):
+        integrate_normals(n, masks()["disc"][:64, :80], camera=cam, solver="dct")
+
+
+def test_bilateral_mode_runs_and_keeps_smooth_surfaces():
+    # a smooth surface has no discontinuity: the re-weighted result stays close to the exact depth
+    depth, n, cam = scene("sphere", "orthographic")
+    sl = (slice(64, 192, 2), slice(64, 192, 2))
+    depth, n = depth[sl], n[sl]
+    cam = Orthographic(2 * cam.pixel_size)
+    mask = np.ones(depth.shape, bool)
+    bil = integrate_normals(n, mask, camera=cam, solver="direct", bilateral=True)
+    assert bil.outer_iterations >= 1 and np.all(np.isfinite(bil.depth))
+    assert aligned_error(bil.depth, depth, mask, False) < 1e-2
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+def _sphere_small():
+    ii, jj = np.meshgrid(np.arange(32), np.arange(32), indexing="ij")
+    x, y = (jj - 15.5) / 16, -(ii - 15.5) / 16
+    h, hx, hy = sphere(x, y, 1.0)
+    n = np.stack([-hx, -hy, np.ones_like(h)], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    mask = np.hypot(x, y) < 0.9
+    return n, mask
+
+
+def test_bad_shapes_and_values():
+    n, mask = _sphere_small()
+    with pytest.raises(ValueError, match=r"normals: expected shape \(H, W, 3\).*got \(32, 32\)"):
+        integrate_normals(n[..., 0], mask, solver="direct")
+    with pytest.raises(ValueError, match=r"normals: expected .*got \(32, 31, 3\)"):
+        integrate_normals(n[:, :31], mask, solver="direct")
+    with pytest.raises(ValueError, match=r"mask: expected \(H, W\)"):
+        integrate_normals(n, mask[None], solver="direct")
+    with pytest.raises(ValueError, match="mask: expected at least 2 pixels"):
+        integrate_normals(n, np.zeros_like(mask), solver="direct")
+    one = np.zeros_like(mask)
+    one[5, 5] = True
+    with pytest.raises(ValueError, match="mask: expected at least 2 pixels"):
+        integrate_normals(n, one, solver="direct")
+    with pytest.raises(ValueError, match="solver: expected one of"):
+        integrate_normals(n, mask, solver="cg")
+    with pytest.raises(ValueError, match="reference_depth"):
+        integrate_normals(n, mask, solver="direct", reference_depth=-1.0)
+    with pytest.raises(ValueError, match="normals: expected at least 2 finite"):
+        integrate_normals(np.full_like(n, np.nan), mask, solver="direct")
+    with pytest.raises(TypeError, match="camera"):
+        integrate_normals(n, mask, solver="direct", camera="perspective")
+
+
+def test_nan_and_zero_normals_are_masked_and_reported():
+    n, mask = _sphere_small()
+    bad = n.copy()
+    bad[10, 10] = np.nan
+    bad[12, 14] = 0.0
+    bad[20, 16] = [0.0, 0.0, -1.0]  # facing away
+    res = integrate_normals(bad, mask, solver="direct", reference_depth=3.0)
+    assert res.n_invalid == 3
+    assert not res.mask[10, 10] and not res.mask[12, 14] and not res.mask[20, 16]
+    assert np.all(np.isfinite(res.depth)) and res.depth[10, 10] == 0
+    good = integrate_normals(n, mask, solver="direct", reference_depth=3.0)
+    m = res.mask
+    diff = (res.depth - good.depth)[m]
+    assert np.max(np.abs(diff - diff.mean())) < 0.02
+
+
+def test_progress_callback(device):
+    n, mask = _sphere_small()
+    calls = []
+    integrate_normals(n, mask, device=device, progress=lambda d, t, msg: calls.append((d, t, msg)))
+    assert calls and calls[-1][0] == calls[-1][1]
+
+
+def test_taichi_init_once():
+    from gpps import _taichi
+
+    if _taichi.current_device() not in (None, "cpu"):
+        pytest.skip("Taichi already runs on CUDA in this process")
+    _taichi.init("cpu")
+    assert _taichi.init("cpu") is _taichi.ti
+    saved = _taichi._device
+    try:
+        _taichi._device = "cuda:0"  # pretend it runs elsewhere
+        with pytest.raises(RuntimeError, match="already initialised"):
+            _taichi.init("cpu")
+    finally:
+        _taichi._device = saved
+
+
+def test_rhs_is_compatible():
+    n, mask = _sphere_small()
+    gj, gi, _, _ = pixel_gradients(n, mask, Orthographic(1.0), 1e-3)
+    b = divergence_rhs(*edge_system(mask, gj, gi))
+    assert abs(b.sum()) < 1e-9 and np.all(b[~mask] == 0)
