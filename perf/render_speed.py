@@ -6,7 +6,6 @@ FLOPs are not counted here (the model kernels are measured in perf/bench.py).
 
 import argparse
 
-import numpy as np
 from _common import timeit, write_results
 
 from gpps._runtime import resolve_device, warp

@@ -1,0 +1,379 @@
+"""The per-pixel photometric-stereo solver stage: N images -> normals, albedo, diagnostics.
+
+One Warp launch solves every pixel (the iteration loop, the multi-start and
+the IRLS rounds all run inside the kernel, see :mod:`gpps.kernels.solve`), so
+a solve needs no host synchronisation and :meth:`PixelSolver.launch` can be
+captured in a CUDA graph.  Buffers are allocated once for ``(N, H, W)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, get_args
+
+import numpy as np
+
+from gpps._check import as_array, as_mask
+from gpps._runtime import resolve_device, warp
+from gpps.lights import DirectionalLights, PointLights
+from gpps.material import Material
+from gpps.pipeline.params import camera_params, light_params, material_params
+
+SolverName = Literal["none", "lm", "dogleg", "bfgs"]
+RobustName = Literal["none", "huber", "cauchy"]
+AlbedoMode = Literal["rgb", "grey"]
+SOLVER_NAMES: tuple[str, ...] = get_args(SolverName)
+ROBUST_NAMES: tuple[str, ...] = get_args(RobustName)
+
+_SOLVER_TAG = {"none": 0, "lm": 1, "dogleg": 2, "bfgs": 3}
+_ROBUST_TAG = {"none": 0, "huber": 1, "cauchy": 2}
+
+# flag bits (same values as gpps.kernels.solve.FLAG_*)
+FLAG_ILL_CONDITIONED = 1
+FLAG_FEW_OBSERVATIONS = 2
+FLAG_NOT_CONVERGED = 4
+FLAG_WOODHAM_FALLBACK = 8
+FLAG_ALBEDO_FROM_NEIGHBOURS = 16
+
+__all__ = [
+    "PixelSolver",
+    "SolverConfig",
+    "SOLVER_NAMES",
+    "ROBUST_NAMES",
+    "FLAG_ILL_CONDITIONED",
+    "FLAG_FEW_OBSERVATIONS",
+    "FLAG_NOT_CONVERGED",
+    "FLAG_WOODHAM_FALLBACK",
+    "FLAG_ALBEDO_FROM_NEIGHBOURS",
+    "check_light_configuration",
+]
+
+
+def _num(name, v, lo=None, hi=None, integer=False, lo_open=False):
+    try:
+        x = int(v) if integer else float(v)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name}: expected a {'integer' if integer else 'number'}, got {v!r}") from None
+    if integer and x != v:
+        raise TypeError(f"{name}: expected an integer, got {v!r}")
+    if not np.isfinite(x):
+        raise ValueError(f"{name}: expected a finite number, got {v!r}")
+    if lo is not None and (x < lo or (lo_open and x == lo)):
+        raise ValueError(f"{name}: expected {'>' if lo_open else '>='} {lo}, got {v!r}")
+    if hi is not None and x > hi:
+        raise ValueError(f"{name}: expected <= {hi}, got {v!r}")
+    return x
+
+
+@dataclass(frozen=True)
+class SolverConfig:
+    """Settings of :class:`PixelSolver`.
+
+    Attributes:
+        solver: ``"lm"`` Levenberg-Marquardt (Algorithm 4), ``"dogleg"`` Powell's
+            dog leg (Algorithm 5), ``"bfgs"`` quasi-Newton BFGS (Algorithm 3), or
+            ``"none"``: only the Lambertian least-squares (Woodham) solution.
+        max_iters: cap on cost evaluations per start and per IRLS round.
+        starts: starts per pixel (best final cost wins): the least-squares
+            normal, the view direction, then the least-squares normal tilted
+            toward ``starts - 2`` evenly spread azimuths, alternately by
+            ``start_angle_deg`` and twice that.
+            Several starts beat the multimodality of 3-image specular fits.
+        start_angle_deg: tilt of the extra starts (degrees).
+        tol_step: stop when a step is shorter than this (radians).
+        tol_grad: stop when ``|J^T W r|_inf`` is at most this.
+        robust: robust loss by iteratively reweighted least squares (IRLS).
+        robust_scale: the loss's scale, relative to the pixel's brightest grey value.
+        irls_rounds: reweighting rounds (used when ``robust != "none"``).
+        shadow_threshold: drop observations whose grey value is below this
+            fraction of the pixel's brightest (0 keeps all).
+        saturation: drop observations with a channel >= this value (None: keep).
+        albedo: ``"rgb"`` (3 channels) or ``"grey"`` (one value for all channels).
+        cond_threshold: flag pixels whose valid light directions' Gram matrix
+            has a Frobenius condition number above this (lighting sensitivity, 3.13).
+        early_exit: stop each solve on convergence; False always runs
+            ``max_iters`` evaluations (uniform work, e.g. for timing).
+        neighbour_radius: pixels with fewer than 3 lit observations (attached
+            shadows) cannot fix normal and albedo together; a second pass holds
+            their albedo at the mean of the nearest well-determined pixels
+            (searched up to this radius, in pixels) and re-solves the normal with
+            a weak tie-breaking prior toward their mean normal.  0 disables the pass.
+        lit_threshold: an observation counts as lit (informative) when its grey
+            value exceeds this fraction of the pixel's brightest; pixels with
+            fewer than 3 lit observations get the neighbour pass above.
+        warm_start: start from the normals passed to :meth:`PixelSolver.solve`
+            (one start per pixel) instead of the least-squares solution.
+        lm_tau: initial LM damping ``tau * max(diag J^T J)`` (Algorithm 4).
+        dogleg_radius: initial trust radius of the dog leg (radians).
+    """
+
+    solver: SolverName = "lm"
+    max_iters: int = 50
+    starts: int = 10
+    start_angle_deg: float = 20.0
+    tol_step: float = 1e-6
+    tol_grad: float = 1e-14
+    robust: RobustName = "none"
+    robust_scale: float = 0.1
+    irls_rounds: int = 3
+    shadow_threshold: float = 0.0
+    saturation: float | None = None
+    albedo: AlbedoMode = "rgb"
+    cond_threshold: float = 1e3
+    early_exit: bool = True
+    neighbour_radius: int = 32
+    lit_threshold: float = 0.05
+    warm_start: bool = False
+    lm_tau: float = 1e-3
+    dogleg_radius: float = 0.3
+
+    def __post_init__(self):
+        if self.solver not in SOLVER_NAMES:
+            raise ValueError(f"solver: expected one of {list(SOLVER_NAMES)}, got {self.solver!r}")
+        if self.robust not in ROBUST_NAMES:
+            raise ValueError(f"robust: expected one of {list(ROBUST_NAMES)}, got {self.robust!r}")
+        if self.albedo not in get_args(AlbedoMode):
+            raise ValueError(f"albedo: expected one of {list(get_args(AlbedoMode))}, got {self.albedo!r}")
+        _num("max_iters", self.max_iters, lo=1, integer=True)
+        _num("starts", self.starts, lo=1, integer=True)
+        _num("irls_rounds", self.irls_rounds, lo=0, integer=True)
+        _num("neighbour_radius", self.neighbour_radius, lo=0, hi=256, integer=True)
+        _num("start_angle_deg", self.start_angle_deg, lo=0.0, hi=45.0)
+        _num("tol_step", self.tol_step, lo=0.0)
+        _num("tol_grad", self.tol_grad, lo=0.0)
+        _num("robust_scale", self.robust_scale, lo=0.0, lo_open=True)
+        _num("shadow_threshold", self.shadow_threshold, lo=0.0, hi=1.0)
+        if self.saturation is not None:
+            _num("saturation", self.saturation, lo=0.0, lo_open=True)
+        _num("lit_threshold", self.lit_threshold, lo=0.0, hi=1.0)
+        _num("cond_threshold", self.cond_threshold, lo=1.0)
+        _num("lm_tau", self.lm_tau, lo=0.0, lo_open=True)
+        _num("dogleg_radius", self.dogleg_radius, lo=0.0, lo_open=True)
+
+
+def _directions_at(lights, point: np.ndarray) -> np.ndarray:
+    if isinstance(lights, DirectionalLights):
+        return np.asarray(lights.directions, np.float64)
+    d = np.asarray(lights.positions, np.float64) - point[None]
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def check_light_configuration(lights, point=None, *, tol: float = 1e-3) -> float:
+    """Raise ValueError when the lights cannot determine normals; return the condition number.
+
+    Needs at least 3 lights whose directions (at ``point`` for point lights)
+    span 3D: collinear or coplanar directions leave a normal component
+    undetermined (the non-singularity condition behind 3.13).
+
+    Returns:
+        The 2-norm condition number of the (N, 3) direction matrix.
+    """
+    n = len(lights)
+    if n < 3:
+        raise ValueError(f"lights: expected at least 3 lights to determine normals, got {n}")
+    p = np.zeros(3) if point is None else np.asarray(point, np.float64)
+    d = _directions_at(lights, p)
+    s = np.linalg.svd(d, compute_uv=False)
+    if s[0] <= 0 or s[-1] / s[0] < tol:
+        what = "collinear" if (s[0] > 0 and s[1] / s[0] < tol) else "coplanar"
+        raise ValueError(
+            f"lights: the {n} light directions are {what} (singular values {np.round(s, 6).tolist()}); "
+            "photometric stereo needs 3 non-coplanar directions"
+        )
+    return float(s[0] / s[-1])
+
+
+class PixelSolver:
+    """Per-pixel calibrated photometric stereo on N images; buffers allocated once.
+
+    Args:
+        shape: (N, H, W): number of images and image size.
+        camera: :class:`gpps.camera.Orthographic` or :class:`gpps.camera.Perspective`.
+        lights: :class:`DirectionalLights` or :class:`PointLights` (N of them);
+            the model uses their intensities as the light radiance, so pass
+            unit intensities for images already divided by them.
+        material: :class:`gpps.material.Material` (model and per-scene ks,
+            shininess, roughness, f0, eta); its ``brdf`` selects the model.
+        config: :class:`SolverConfig` (default: LM, 8 starts).
+        device: Warp device (None: CUDA if present, else CPU).
+
+    Raises:
+        ValueError: fewer than 3 lights or degenerate (collinear / coplanar)
+            light directions (checked at the scene centre for point lights).
+    """
+
+    Config = SolverConfig
+
+    def __init__(self, shape, camera, lights, material: Material, config: SolverConfig | None = None, device=None):
+        wp = warp()
+        from gpps.kernels import solve as sk
+
+        self._sk = sk
+        self.device = resolve_device(device)
+        try:
+            n, h, w = (int(s) for s in shape)
+        except (TypeError, ValueError):
+            raise ValueError(f"shape: expected (N, H, W), got {shape!r}") from None
+        if n < 1 or h < 1 or w < 1:
+            raise ValueError(f"shape: expected (N, H, W) with positive sizes, got {shape!r}")
+        if not isinstance(lights, (DirectionalLights, PointLights)):
+            raise TypeError(f"lights: expected DirectionalLights or PointLights, got {type(lights).__name__}")
+        if len(lights) != n:
+            raise ValueError(f"lights: expected {n} lights (one per image), got {len(lights)}")
+        self.config = config if config is not None else SolverConfig()
+        if not isinstance(self.config, SolverConfig):
+            raise TypeError(f"config: expected PixelSolver.Config, got {type(self.config).__name__}")
+        self.shape = (n, h, w)
+        self.camera = camera
+        self.cam = camera_params(camera, (h, w))
+        self.lights = lights
+        if isinstance(lights, DirectionalLights):
+            self.light_cond = check_light_configuration(lights)
+        self.lp = light_params(lights, self.device)
+        self.material = material
+        self.mp = material_params(material)
+        self.prm = self._params(self.config)
+        d = self.device
+        self.images = wp.zeros((n, h, w), dtype=wp.vec3, device=d)
+        self.mask = wp.zeros((h, w), dtype=wp.uint8, device=d)
+        self.valid = wp.ones((n, h, w), dtype=wp.uint8, device=d)
+        self.depth = wp.ones((h, w), dtype=wp.float32, device=d)
+        self.weights = wp.zeros((n, h, w), dtype=wp.float32, device=d)
+        self.normals = wp.zeros((h, w), dtype=wp.vec3, device=d)
+        self.albedo = wp.zeros((h, w), dtype=wp.vec3, device=d)
+        self.residual = wp.zeros((h, w), dtype=wp.float32, device=d)
+        self.iterations = wp.zeros((h, w), dtype=wp.int32, device=d)
+        self.flags = wp.zeros((h, w), dtype=wp.int32, device=d)
+        self.cond = wp.zeros((h, w), dtype=wp.float32, device=d)
+
+    def _params(self, c: SolverConfig):
+        p = self._sk.SolverParams()
+        p.method = _SOLVER_TAG[c.solver]
+        p.max_iters = int(c.max_iters)
+        p.starts = int(c.starts)
+        p.start_angle = float(np.deg2rad(c.start_angle_deg))
+        p.tol_step = float(c.tol_step)
+        p.tol_grad = float(c.tol_grad)
+        p.robust = _ROBUST_TAG[c.robust]
+        p.robust_scale = float(c.robust_scale)
+        p.irls_rounds = int(c.irls_rounds) if c.robust != "none" else 0
+        p.shadow_threshold = float(c.shadow_threshold)
+        p.saturation = float(c.saturation) if c.saturation is not None else 0.0
+        p.warm_start = int(bool(c.warm_start))
+        p.grey_albedo = int(c.albedo == "grey")
+        p.cond_threshold = float(c.cond_threshold)
+        p.early_exit = int(bool(c.early_exit))
+        p.lm_tau = float(c.lm_tau)
+        p.dogleg_radius = float(c.dogleg_radius)
+        p.lit_threshold = float(c.lit_threshold)
+        return p
+
+    def set_config(self, config: SolverConfig) -> None:
+        if not isinstance(config, SolverConfig):
+            raise TypeError(f"config: expected PixelSolver.Config, got {type(config).__name__}")
+        self.config = config
+        self.prm = self._params(config)
+
+    def set_material(self, material: Material) -> None:
+        self.material = material
+        self.mp = material_params(material)
+
+    # ------------------------------------------------------------------ per frame
+
+    def _images(self, images) -> np.ndarray:
+        n, h, w = self.shape
+        arr = as_array("images", images)
+        if arr.shape == (n, h, w):
+            arr = np.repeat(arr[..., None], 3, axis=-1)
+        elif arr.shape == (n, h, w, 1):
+            arr = np.repeat(arr, 3, axis=-1)
+        if arr.shape != (n, h, w, 3):
+            raise ValueError(f"images: expected shape ({n}, {h}, {w}, 3) or ({n}, {h}, {w}), got {arr.shape}")
+        if np.any(arr < 0):
+            raise ValueError("images: expected values >= 0")
+        return np.ascontiguousarray(arr, dtype=np.float32)
+
+    def upload(self, images, mask, *, depth=None, valid=None, init_normals=None) -> None:
+        """Check and copy one frame's inputs into the device buffers."""
+        n, h, w = self.shape
+        img = self._images(images)
+        m = as_mask("mask", mask, (h, w))
+        if depth is None:
+            if isinstance(self.lights, PointLights):
+                raise ValueError("depth: expected an (H, W) depth estimate for point lights (2.30-2.31), got None")
+            dep = np.ones((h, w), np.float32)
+        else:
+            dep = as_array("depth", depth, shape=(h, w))
+            if np.any(dep[m] <= 0):
+                raise ValueError("depth: expected values > 0 inside the mask")
+            dep = np.where(m, dep, 1.0).astype(np.float32)
+        if valid is None:
+            val = np.ones((n, h, w), np.uint8)
+        else:
+            val = np.asarray(valid)
+            if val.shape != (n, h, w):
+                raise ValueError(f"valid: expected shape ({n}, {h}, {w}), got {val.shape}")
+            val = (val > 0).astype(np.uint8)
+        if self.config.warm_start:
+            if init_normals is None:
+                raise ValueError("init_normals: expected (H, W, 3) normals for a warm start, got None")
+        if init_normals is not None:
+            nrm = as_array("init_normals", init_normals, shape=(h, w, 3))
+            self.normals.assign(nrm)
+        if isinstance(self.lights, PointLights):
+            # the configuration must determine normals at the object's centre
+            pts = self.camera.backproject(np.where(m, dep, 0.0))
+            check_light_configuration(self.lights, np.median(pts[m], axis=0))
+        self.images.assign(img)
+        self.mask.assign(m.astype(np.uint8))
+        self.depth.assign(dep)
+        self.valid.assign(val)
+
+    def launch(self) -> None:
+        """Solve all pixels from the current buffers: two kernel launches, no host sync (graph-capturable)."""
+        warp().launch(
+            self._sk.solve_kernel,
+            dim=self.shape[1:],
+            inputs=[self.images, self.mask, self.valid, self.depth, self.cam, self.lp, self.mp, self.prm],
+            outputs=[self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags, self.cond],
+            device=self.device,
+        )
+        if self.config.neighbour_radius > 0 and self.config.solver != "none":
+            warp().launch(
+                self._sk.underdetermined_kernel,
+                dim=self.shape[1:],
+                inputs=[self.images, self.mask, self.depth, self.cam, self.lp, self.mp, self.prm, int(self.config.neighbour_radius)],
+                outputs=[self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags],
+                device=self.device,
+            )
+
+    def solve(self, images, mask, *, depth=None, valid=None, init_normals=None) -> dict:
+        """Solve one frame.
+
+        Args:
+            images: (N, H, W, 3) RGB or (N, H, W) grey observations >= 0.
+            mask: (H, W) bool, not empty.
+            depth: (H, W) depth estimate (> 0 inside the mask, scene units);
+                required for point lights (per-pixel direction and 1/r^2), optional otherwise.
+            valid: optional (N, H, W) bool: observations to use (e.g. unsaturated).
+            init_normals: (H, W, 3) warm-start normals (with ``config.warm_start``).
+
+        Returns:
+            dict of numpy arrays: ``normals`` (H, W, 3), ``albedo`` (H, W, 3),
+            ``residual`` (H, W), ``iterations`` (H, W), ``flags`` (H, W),
+            ``cond`` (H, W), ``weights`` (N, H, W).
+        """
+        self.upload(images, mask, depth=depth, valid=valid, init_normals=init_normals)
+        self.launch()
+        return self.fetch()
+
+    def fetch(self) -> dict:
+        return {
+            "normals": self.normals.numpy(),
+            "albedo": self.albedo.numpy(),
+            "residual": self.residual.numpy(),
+            "iterations": self.iterations.numpy(),
+            "flags": self.flags.numpy(),
+            "cond": self.cond.numpy(),
+            "weights": self.weights.numpy(),
+        }

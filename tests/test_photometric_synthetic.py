@@ -1,0 +1,54 @@
+"""Rendered scenes: every BRDF x camera x light kind, 3 lights, 16-bit (the full matrix at 128^2 here;
+perf/synthetic_calibrated.py gives the 256^2 table)."""
+
+
+import numpy as np
+import pytest
+
+from gpps.evaluation import BRDFS, run_case  # noqa: E402
+
+SIZE = 128
+
+
+@pytest.mark.parametrize("light_kind", ["directional", "point"])
+@pytest.mark.parametrize("camera", ["orthographic", "perspective"])
+@pytest.mark.parametrize("scene", ["sphere", "bumps"])
+def test_noise_free_matrix(scene, camera, light_kind):
+    for brdf in BRDFS:
+        r = run_case(scene, SIZE, camera, light_kind, brdf, device="cpu")
+        assert r["maen"] <= 0.5, r
+        if brdf in ("blinn-phong", "cook-torrance", "ashikhmin-shirley"):
+            assert r["maen_least_squares"] > 3.0, r
+
+
+@pytest.mark.parametrize("brdf", ["blinn-phong", "cook-torrance"])
+def test_noisy_bumps(brdf):
+    """1% Gaussian noise: MAEN <= 2.5 deg on the bumps (directional, perspective) and far below least squares."""
+    r = run_case("bumps", SIZE, "perspective", "directional", brdf, noise=0.01, device="cpu")
+    assert r["maen"] <= 2.5, r
+    assert r["maen"] < 0.3 * r["maen_least_squares"], r
+
+
+def test_pps_and_ppn_perspective():
+    from gpps.evaluation import make_case
+
+    from gpps.metrics import normal_errors
+    from gpps.perspective import gradient_to_normals, lambertian_closed_form, normals_to_gradient, pps_blinn_phong
+
+    img, L, sc, mat = make_case("bumps", 48, "perspective", "directional", "blinn-phong")
+    g = normals_to_gradient(sc.normals, sc.mask, sc.camera)
+    # PPN gradient is the gradient of ln(depth)
+    ld = np.log(np.where(sc.mask, sc.depth, 1.0))
+    inner = sc.mask[1:-1, 2:] & sc.mask[1:-1, :-2]
+    fd = (ld[1:-1, 2:] - ld[1:-1, :-2]) / 2
+    assert np.abs(fd - g[1:-1, 1:-1, 0])[inner].max() < 2e-3
+    fdv = (ld[2:, 1:-1] - ld[:-2, 1:-1]) / 2
+    inner = sc.mask[2:, 1:-1] & sc.mask[:-2, 1:-1]
+    assert np.abs(fdv - g[1:-1, 1:-1, 1])[inner].max() < 2e-3
+    assert normal_errors(gradient_to_normals(g, sc.mask, sc.camera), sc.normals, sc.mask)["max"] < 1e-3
+    img_l, L_l, sc_l, _ = make_case("bumps", 48, "perspective", "directional", "lambertian")
+    cf = lambertian_closed_form(img_l, sc_l.mask, L_l, sc_l.camera)
+    assert normal_errors(cf["normals"], sc_l.normals, sc_l.mask)["mean"] < 0.05
+    for residual in ("direct", "ratio"):
+        r = pps_blinn_phong(img, sc.mask, L, sc.camera, ks=mat.ks, shininess=mat.shininess, residual=residual)
+        assert normal_errors(r["normals"], sc.normals, sc.mask)["median"] < 0.05
