@@ -66,16 +66,16 @@ def _samples(brdf, mat, rng):
 
 
 @pytest.mark.parametrize("brdf", list(MATERIALS))
-def test_model_jacobians_match_central_differences(brdf):
+def test_model_jacobians_match_central_differences(device, brdf):
     from kernels_for_tests import np_chart, np_terms, terms_grad_kernel
 
     wp = warp()
     mat = MATERIALS[brdf]
     rng = np.random.default_rng(7)
     (n0, t1, t2, x, l, v), p = _samples(brdf, mat, rng)
-    arrs = [wp.array(a.astype(np.float32), dtype=wp.vec3 if a.shape[1] == 3 else wp.vec2, device="cpu") for a in (n0, t1, t2, x, l, v)]
-    out = wp.zeros((M, 6), dtype=wp.float32, device="cpu")
-    wp.launch(terms_grad_kernel, dim=M, inputs=arrs + [material_params(mat)], outputs=[out], device="cpu")
+    arrs = [wp.array(a.astype(np.float32), dtype=wp.vec3 if a.shape[1] == 3 else wp.vec2, device=device) for a in (n0, t1, t2, x, l, v)]
+    out = wp.zeros((M, 6), dtype=wp.float32, device=device)
+    wp.launch(terms_grad_kernel, dim=M, inputs=arrs + [material_params(mat)], outputs=[out], device=device)
     got = out.numpy().astype(np.float64)
 
     def f(xx):
@@ -99,7 +99,7 @@ def test_model_jacobians_match_central_differences(brdf):
 
 @pytest.mark.parametrize("brdf", list(MATERIALS))
 @pytest.mark.parametrize("grey", [False, True])
-def test_reduced_cost_gradient_and_gauss_newton_matrix(brdf, grey):
+def test_reduced_cost_gradient_and_gauss_newton_matrix(device, brdf, grey):
     """Variable projection: J^T W r and J^T W J of the reduced residual against central differences."""
     from kernels_for_tests import evaluate_kernel, np_chart, np_normalize, np_reduced_cost, np_tangent_t1
 
@@ -126,16 +126,16 @@ def test_reduced_cost_gradient_and_gauss_newton_matrix(brdf, grey):
         obs = rng.uniform(0.05, 0.9, (nl_, 3))
         w = rng.uniform(0.2, 1.0, nl_)
         lights = DirectionalLights(dirs, rad)
-        lp = light_params(lights, "cpu")
-        images = wp.array(obs.astype(np.float32).reshape(nl_, 1, 1, 3), dtype=wp.vec3, device="cpu")
-        weights = wp.array(w.astype(np.float32).reshape(nl_, 1, 1), dtype=wp.float32, device="cpu")
-        out = wp.zeros(9, dtype=wp.float32, device="cpu")
+        lp = light_params(lights, device)
+        images = wp.array(obs.astype(np.float32).reshape(nl_, 1, 1, 3), dtype=wp.vec3, device=device)
+        weights = wp.array(w.astype(np.float32).reshape(nl_, 1, 1), dtype=wp.float32, device=device)
+        out = wp.zeros(9, dtype=wp.float32, device=device)
         wp.launch(
             evaluate_kernel,
             dim=1,
             inputs=[wp.vec3(*n0), wp.vec3(*t1), wp.vec3(*t2), wp.vec2(*x), images, weights, lp, material_params(mat), wp.vec3(*v), int(grey)],
             outputs=[out],
-            device="cpu",
+            device=device,
         )
         got = out.numpy().astype(np.float64)
 

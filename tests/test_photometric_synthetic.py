@@ -13,18 +13,18 @@ SIZE = 128
 @pytest.mark.parametrize("light_kind", ["directional", "point"])
 @pytest.mark.parametrize("camera", ["orthographic", "perspective"])
 @pytest.mark.parametrize("scene", ["sphere", "bumps"])
-def test_noise_free_matrix(scene, camera, light_kind):
+def test_noise_free_matrix(device, scene, camera, light_kind):
     for brdf in BRDFS:
-        r = run_case(scene, SIZE, camera, light_kind, brdf, device="cpu")
+        r = run_case(scene, SIZE, camera, light_kind, brdf, device=device)
         assert r["maen"] <= 0.5, r
         if brdf in ("blinn-phong", "cook-torrance", "ashikhmin-shirley"):
             assert r["maen_least_squares"] > 3.0, r
 
 
 @pytest.mark.parametrize("brdf", ["blinn-phong", "cook-torrance"])
-def test_noisy_bumps(brdf):
+def test_noisy_bumps(device, brdf):
     """1% Gaussian noise: MAEN <= 2.5 deg on the bumps (directional, perspective) and far below least squares."""
-    r = run_case("bumps", SIZE, "perspective", "directional", brdf, noise=0.01, device="cpu")
+    r = run_case("bumps", SIZE, "perspective", "directional", brdf, noise=0.01, device=device)
     assert r["maen"] <= 2.5, r
     assert r["maen"] < 0.3 * r["maen_least_squares"], r
 

@@ -43,9 +43,9 @@ def test_least_squares_is_woodham_on_lambertian_all_lit():
     np.testing.assert_allclose(r.albedo[1, 1], kd, atol=1e-3)
 
 
-def test_warm_start_fixed_iterations_and_reuse():
+def test_warm_start_fixed_iterations_and_reuse(device):
     img, L, sc, mat = _case(size=32)
-    ps = PixelSolver(img.shape[:3], sc.camera, L, mat, SolverConfig(), device="cpu")
+    ps = PixelSolver(img.shape[:3], sc.camera, L, mat, SolverConfig(), device=device)
     a = ps.solve(img, sc.mask)
     ps.set_config(SolverConfig(warm_start=True, early_exit=False, max_iters=5, neighbour_radius=0))
     b = ps.solve(img, sc.mask, init_normals=a["normals"])
