@@ -1,14 +1,23 @@
-"""Perspective normal integration on the true DiLiGenT normal maps vs depth_gt.
+"""Perspective normal integration on the true DiLiGenT normal maps vs depth_gt (BiNI's protocol).
 
 For each object of ``<data>/integration/diligent`` integrates the ground-truth
-normal map (BiNI 16-bit colour coding) with the object's K, aligns the scale
-of the result to ``depth_gt`` by least squares over the evaluated pixels
-(mask and finite ground truth; perspective integration fixes depth up to one
-scale), and prints the mean absolute depth error (mm) beside the published
-bilateral-normal-integration numbers.  Objects with depth discontinuities
-(buddha, goblet) use the bilateral mode.
+normal map (BiNI 16-bit colour coding) with the object's K in three modes:
+
+* ``poisson``: plain uniform log-depth Poisson (w = 1/2, no N_z weighting);
+* ``bilateral``: BiNI's IRLS (k = 2, N_z-multiplied one-sided equations,
+  first solve with w = 1/2, at most 100 outer iterations, relative energy
+  change 1e-4), every re-weighted solve warm-started, inner tolerance 1e-3,
+  last system finished to 1e-6;
+* ``bilateral_pinit``: the same with the first weights taken from the plain
+  Poisson solution.
+
+All solves are Taichi multigrid-preconditioned CG in float64.  The error is
+the mean absolute depth error (MADE, mm) over mask & finite depth_gt after
+aligning the one free scale either by BiNI's rule (``median(gt / est)``, the
+published protocol: ``ratio`` uses it) or by least squares.
 
 Usage: python perf/integration_diligent.py [--device cpu] [--solver multigrid] [--objects bear,cow]
+       [--modes poisson,bilateral,bilateral_pinit]
 Writes perf/results/integration_diligent_<device>.json.
 """
 
@@ -27,7 +36,12 @@ sys.path.insert(0, str(ROOT))
 os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 
 BINI = {"bear": 0.334, "buddha": 1.098, "cow": 0.058, "goblet": 9.018, "pot1": 0.635, "pot2": 0.220}
-DISCONTINUOUS = {"buddha", "goblet"}
+SMOOTH = {"bear", "cow", "pot1", "pot2"}  # the issue's 1.2x target; buddha and goblet are reported
+MODES = {
+    "poisson": dict(bilateral=False, weighting="uniform"),
+    "bilateral": dict(bilateral=True, weighting="normal", bilateral_init="bini"),
+    "bilateral_pinit": dict(bilateral=True, weighting="normal", bilateral_init="poisson"),
+}
 
 
 def load(folder: Path):
@@ -43,53 +57,68 @@ def load(folder: Path):
     return n, mask, K, gt
 
 
+def made(depth, valid, gt):
+    """(MADE with BiNI's median-ratio scale, MADE with the least-squares scale) in mm."""
+    ev = valid & np.isfinite(gt)
+    d = depth.astype(np.float64)[ev]
+    g = gt[ev]
+    med = float(np.mean(np.abs(np.median(g / d) * d - g)))
+    ls = float(np.mean(np.abs(float(d @ g / (d @ d)) * d - g)))
+    return med, ls, int(ev.sum())
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--solver", default="multigrid")
     ap.add_argument("--data", default=os.environ.get("GPPS_DATA", str(ROOT.parent / "shared" / "data")))
     ap.add_argument("--objects", default=",".join(BINI))
-    ap.add_argument("--bilateral", default="auto", choices=["auto", "all", "none"])
+    ap.add_argument("--modes", default=",".join(MODES))
     args = ap.parse_args(argv)
 
     from gpps.camera import Perspective
     from gpps.integrate import integrate_normals
 
+    modes = args.modes.split(",")
+    for m in modes:
+        if m not in MODES:
+            ap.error(f"--modes: unknown mode {m!r}; expected some of {list(MODES)}")
     rows = []
-    print(f"{'object':8s} {'mode':10s} {'MAE mm':>8s} {'BiNI':>7s} {'ratio':>6s} {'iters':>6s} {'outer':>5s} {'time s':>7s}")
+    print(f"{'object':8s} {'mode':16s} {'MADE med':>9s} {'MADE ls':>8s} {'BiNI':>7s} {'ratio':>6s} {'iters':>6s} "
+          f"{'outer':>5s} {'time s':>7s}")
     for name in args.objects.split(","):
         n, mask, K, gt = load(Path(args.data) / "integration" / "diligent" / name)
-        if args.bilateral == "all":
-            modes = [True]
-        elif args.bilateral == "none":
-            modes = [False]
-        else:  # plain Poisson everywhere, plus the bilateral mode on objects with discontinuities
-            modes = [False, True] if name in DISCONTINUOUS else [False]
-        for bil in modes:
+        for mode in modes:
             t0 = time.perf_counter()
             res = integrate_normals(n, mask, camera=Perspective(K), solver=args.solver, device=args.device,
-                                    bilateral=bil, weighting="normal" if bil else "uniform", tol=1e-6,
-                                    dtype="float64")
+                                    tol=1e-6, dtype="float64", **MODES[mode])
             dt = time.perf_counter() - t0
-            ev = res.mask & np.isfinite(gt)
-            d = res.depth.astype(np.float64)[ev]
-            g = gt[ev]
-            scale = float(d @ g / (d @ d))  # least-squares scale on the evaluated pixels
-            mae = float(np.mean(np.abs(scale * d - g)))
-            mae_med = float(np.mean(np.abs(np.median(g / d) * d - g)))
-            row = dict(object=name, mode="bilateral" if bil else "poisson", mae_mm=mae, mae_mm_median_scale=mae_med,
-                       bini_mm=BINI[name], ratio=mae / BINI[name], iterations=res.iterations,
-                       outer_iterations=res.outer_iterations, residual=res.residual, seconds=dt,
-                       n_pixels=int(ev.sum()), n_invalid=res.n_invalid,
-                       alignment="least-squares scale over mask & finite depth_gt")
+            med, ls, npx = made(res.depth, res.mask, gt)
+            row = dict(object=name, mode=mode, made_mm_median_scale=med, made_mm_lsq_scale=ls, bini_mm=BINI[name],
+                       ratio=med / BINI[name], ratio_lsq=ls / BINI[name],
+                       meets_1p2x=bool(med <= 1.2 * BINI[name]), smooth_target=name in SMOOTH,
+                       iterations=res.iterations, outer_iterations=res.outer_iterations, residual=res.residual,
+                       seconds=dt, n_pixels=npx, n_invalid=res.n_invalid)
             rows.append(row)
-            print(f"{name:8s} {row['mode']:10s} {mae:8.3f} {BINI[name]:7.3f} {row['ratio']:6.2f} {res.iterations:6d} "
-                  f"{res.outer_iterations:5d} {dt:7.2f}")
+            print(f"{name:8s} {mode:16s} {med:9.3f} {ls:8.3f} {BINI[name]:7.3f} {row['ratio']:6.2f} "
+                  f"{res.iterations:6d} {res.outer_iterations:5d} {dt:7.2f}", flush=True)
+    summary = {}
+    for mode in modes:
+        rs = [r for r in rows if r["mode"] == mode]
+        summary[mode] = dict(
+            smooth_within_1p2x=[r["object"] for r in rs if r["smooth_target"] and r["meets_1p2x"]],
+            smooth_short=[r["object"] for r in rs if r["smooth_target"] and not r["meets_1p2x"]],
+            all_within_1p2x=[r["object"] for r in rs if r["meets_1p2x"]],
+        )
+        print(f"{mode}: smooth objects within 1.2x of BiNI: {summary[mode]['smooth_within_1p2x']}, "
+              f"short: {summary[mode]['smooth_short']}")
     out = ROOT / "perf" / "results" / f"integration_diligent_{args.device.replace(':', '')}.json"
     from gpps.io import save_json
 
-    save_json(out, {"device": args.device, "solver": args.solver, "rows": rows,
-                    "note": "perspective log-depth Poisson (PPN gradients); scale aligned by least squares"})
+    save_json(out, {"device": args.device, "solver": args.solver, "dtype": "float64", "tol": 1e-6,
+                    "cpu_count": os.cpu_count(), "rows": rows, "summary": summary,
+                    "note": "MADE over mask & finite depth_gt; ratio = median-scale MADE / BiNI published "
+                            "(BiNI's protocol: scale = nanmedian(gt / est)); ratio_lsq uses the least-squares scale"})
     print(f"wrote {out}")
     return 0
 

@@ -199,6 +199,43 @@ def test_bilateral_mode_runs_and_keeps_smooth_surfaces():
     assert aligned_error(bil.depth, depth, mask, False) < 1e-2
 
 
+def test_normal_weighting_is_binis_multiplied_form_and_exact_on_analytic_surfaces(device):
+    # BiNI multiplies each one-sided equation by the pixel's own N_z instead of dividing:
+    # N_z du = n_x along j and N_z du = -n_y along i (rows go down); perspective N_z = -f m
+    for kind in ("perspective", "orthographic"):
+        depth, n, cam = scene("sphere", kind)
+        mask = masks()["disc"]
+        gj, gi, nzj, nzi = pixel_gradients(n, mask, cam, 1e-3)
+        assert np.allclose((nzj * gj)[mask], n[..., 0][mask], atol=1e-9)
+        assert np.allclose((nzi * gi)[mask], -n[..., 1][mask], atol=1e-9)
+        if cam.is_perspective:
+            c = (N - 1) / 2
+            ii, jj = np.meshgrid(np.arange(N, dtype=float), np.arange(N, dtype=float), indexing="ij")
+            # BiNI's coefficient written in the gpps frame (fx = fy here)
+            ref = -n[..., 0] * (jj - c) + n[..., 1] * (ii - c) + 600.0 * n[..., 2]
+            assert np.allclose(nzj[mask], ref[mask], rtol=1e-12)
+        # the weighted (w = 1/2) system integrates an exact field exactly, direct and multigrid
+        d1 = integrate_normals(n, mask, camera=cam, solver="direct", weighting="normal")
+        d2 = integrate_normals(n, mask, camera=cam, device=device, weighting="normal", tol=1e-8, dtype="float64")
+        assert aligned_error(d1.depth, depth, mask, cam.is_perspective) <= 1e-3
+        assert aligned_error(d2.depth, depth, mask, cam.is_perspective) <= 1e-3
+        assert d2.converged
+
+
+def test_bilateral_weights_favour_the_smaller_jump():
+    from gpps.pipeline.integration import bilateral_weights
+
+    u = np.array([[0.0, 0.1, 5.0, 5.1]])
+    valid = np.ones_like(u, bool)
+    wx = np.array([[1.0, 1.0, 1.0, 0.0]])
+    wy = np.zeros_like(u)
+    one = np.ones_like(u)
+    wpj, wpi, _ = bilateral_weights(u, valid, wx, wy, one, one, 2.0, 1e-8)
+    assert wpj[0, 1] < 1e-6 and wpj[0, 2] > 1 - 1e-6  # the jump lies forward of pixel 1, backward of pixel 2
+    assert np.all(wpj >= 1e-8) and np.all(wpj <= 1 - 1e-8)  # never exactly 0: no edge is cut off entirely
+    assert np.allclose(wpi, 0.5)
+
+
 # ----------------------------------------------------------------------------- bad input
 
 

@@ -6,7 +6,6 @@ Writes ``depth.npy``, ``depth.tiff``, ``mesh.ply``, ``view.png`` and
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import numpy as np

@@ -16,8 +16,9 @@ aggregation of 2x2 blocks (restriction = sum, prolongation = injection), the
 coarse operator is rediscretised from the fine edge weights (see
 :func:`gpps.pipeline.integration.build_levels`).  Several Jacobi sweeps are
 unrolled per kernel (``ti.static``) to keep launches few; the conjugate
-gradient scalars live in a small device field so the solve runs without host
-syncs except the periodic residual check.
+gradient scalars live in a small float64 device field (dot products are
+accumulated in float64 whatever the field precision) so the solve runs without
+host syncs except the periodic residual check.
 
 Only device code lives here; allocation and orchestration are in
 :mod:`gpps.pipeline.integration`.
@@ -120,6 +121,23 @@ def coarse_exact(e: ti.template(), f: ti.template(), cidx: ti.template(), pinv: 
 
 
 # ----------------------------------------------------------------------------- conjugate gradient (level 0)
+#
+# Every dot product is accumulated in float64 (``sc`` is always an f64 field and
+# each term is widened before the add): a float32 sum of ~10^6 terms carries a
+# relative error of order 1e-3..1e-2, which made alpha/beta inconsistent with
+# the vectors and stalled float32 CG near 1e-5 at 1024^2.
+
+
+@ti.func
+def _sq(v):
+    d = ti.cast(v, ti.f64)
+    return d * d
+
+
+@ti.func
+def _mul(a, b):
+    return ti.cast(a, ti.f64) * ti.cast(b, ti.f64)
+
 
 
 @ti.kernel
@@ -133,7 +151,7 @@ def residual_norm(x: ti.template(), b: ti.template(), r: ti.template(), wx: ti.t
         if d > 0:
             v = b[i, j] - d * x[i, j] + _neigh(x, wx, wy, i, j, 0, h, w)
         r[i, j] = v
-        sc[RR] += v * v
+        sc[RR] += _sq(v)
 
 
 @ti.kernel
@@ -149,7 +167,7 @@ def cg_start(x: ti.template(), b: ti.template(), r: ti.template(), e: ti.templat
         r[i, j] = v
         f[i, j] = v
         e[i, j] = 0
-        sc[RR] += v * v
+        sc[RR] += _sq(v)
 
 
 @ti.kernel
@@ -158,7 +176,7 @@ def cg_first_direction(r: ti.template(), e: ti.template(), p: ti.template(), sc:
     sc[RZ] = 0
     for i, j in ti.ndrange(h, w):
         p[i, j] = e[i, j]
-        sc[RZ] += r[i, j] * e[i, j]
+        sc[RZ] += _mul(r[i, j], e[i, j])
 
 
 @ti.kernel
@@ -173,19 +191,19 @@ def cg_step(x: ti.template(), r: ti.template(), p: ti.template(), q: ti.template
         if d > 0:
             v = d * p[i, j] - _neigh(p, wx, wy, i, j, 0, h, w)
         q[i, j] = v
-        sc[PQ] += p[i, j] * v
+        sc[PQ] += _mul(p[i, j], v)
     sc[ALPHA] = 0
     if sc[PQ] > 0:
         sc[ALPHA] = sc[RZ] / sc[PQ]
     sc[RR] = 0
     for i, j in ti.ndrange(h, w):
-        a = sc[ALPHA]
+        a = ti.cast(sc[ALPHA], x.dtype)
         x[i, j] += a * p[i, j]
         rv = r[i, j] - a * q[i, j]
         r[i, j] = rv
         f[i, j] = rv
         e[i, j] = 0
-        sc[RR] += rv * rv
+        sc[RR] += _sq(rv)
 
 
 @ti.kernel
@@ -193,13 +211,14 @@ def cg_direction(r: ti.template(), e: ti.template(), p: ti.template(), sc: ti.te
     """rz' = r . M r; p = M r + (rz'/rz) p; rz = rz'."""
     sc[RZN] = 0
     for i, j in ti.ndrange(h, w):
-        sc[RZN] += r[i, j] * e[i, j]
+        sc[RZN] += _mul(r[i, j], e[i, j])
     beta = sc[RZN] * 0
     if sc[RZ] > 0:
         beta = sc[RZN] / sc[RZ]
     sc[RZ] = sc[RZN]
+    bt = ti.cast(beta, p.dtype)
     for i, j in ti.ndrange(h, w):
-        p[i, j] = e[i, j] + beta * p[i, j]
+        p[i, j] = e[i, j] + bt * p[i, j]
 
 
 # ----------------------------------------------------------------------------- right-hand side on the device

@@ -54,10 +54,12 @@ __all__ = [
     "build_levels",
     "normal_equation_residual",
     "ls_energy",
+    "bilateral_weights",
 ]
 
 Solver = Literal["multigrid", "jacobi", "direct", "dct"]
 Weighting = Literal["uniform", "normal"]
+BilateralInit = Literal["bini", "poisson"]
 DType = Literal["float32", "float64"]
 Progress = Callable[[float, float, str], None]
 
@@ -74,8 +76,18 @@ class IntegratorConfig:
         weighting: ``"uniform"`` (plain Poisson) or ``"normal"`` (BiNI's N_z^2 confidence).
         bilateral: discontinuity-preserving re-weighting (BiNI).
         bilateral_k: BiNI's sigmoid sharpness ``k``.
-        bilateral_max_iter: outer (re-weighting) iterations at most.
+        bilateral_max_iter: outer (re-weighting) iterations at most (BiNI's evaluation: 100).
         bilateral_tol: relative energy change that stops the outer iterations.
+        bilateral_inner_tol: relative residual of each re-weighted solve (each
+            warm-started from the previous iterate); the last system is then
+            solved again to ``tol``.  Loose is enough: the weights move anyway.
+        bilateral_init: ``"bini"`` (first solve with ``w+- = 1/2``, as BiNI) or
+            ``"poisson"`` (first weights from the plain uniform Poisson solution:
+            fewer outer iterations, a different local minimum of the
+            non-convex IRLS energy).
+        bilateral_floor: weights ``w+-`` are kept in ``[floor, 1 - floor]`` so that
+            no edge weight is exactly 0: a region cut off by discontinuities keeps
+            a (weak) link that fixes its offset, instead of a singular system.
         min_nz: floor on ``n_z`` (orthographic) or ``-m`` (perspective) that
             bounds the slopes of grazing normals.
         dtype: device precision of the Taichi solvers.
@@ -91,8 +103,11 @@ class IntegratorConfig:
     weighting: Weighting = "uniform"
     bilateral: bool = False
     bilateral_k: float = 2.0
-    bilateral_max_iter: int = 50
+    bilateral_max_iter: int = 100
     bilateral_tol: float = 1e-4
+    bilateral_inner_tol: float = 1e-3
+    bilateral_init: BilateralInit = "bini"
+    bilateral_floor: float = 1e-8
     min_nz: float = 1e-3
     dtype: DType = "float32"
     smooth_pairs: int = 1
@@ -101,7 +116,8 @@ class IntegratorConfig:
     coarsest: int = 8
 
     def __post_init__(self):
-        for name, lit in (("solver", Solver), ("weighting", Weighting), ("dtype", DType)):
+        for name, lit in (("solver", Solver), ("weighting", Weighting), ("dtype", DType),
+                          ("bilateral_init", BilateralInit)):
             if getattr(self, name) not in get_args(lit):
                 raise ValueError(f"{name}: expected one of {get_args(lit)}, got {getattr(self, name)!r}")
         if not (isinstance(self.tol, (int, float)) and 0 < self.tol < 1):
@@ -120,6 +136,12 @@ class IntegratorConfig:
             raise ValueError(f"coarsest: expected <= 16, got {self.coarsest}")
         if not self.bilateral_k > 0:
             raise ValueError(f"bilateral_k: expected > 0, got {self.bilateral_k!r}")
+        for name in ("bilateral_tol", "bilateral_inner_tol"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and 0 < v < 1):
+                raise ValueError(f"{name}: expected a number in (0, 1), got {v!r}")
+        if not (isinstance(self.bilateral_floor, (int, float)) and 0 < self.bilateral_floor < 0.5):
+            raise ValueError(f"bilateral_floor: expected a number in (0, 0.5), got {self.bilateral_floor!r}")
 
     @property
     def iterations_cap(self) -> int:
@@ -360,8 +382,37 @@ def _diag(wx, wy):
     return d
 
 
-def _sigmoid(x):
-    return 0.5 * (1.0 + np.tanh(0.5 * x))
+def _sigmoid(x, floor=0.0):
+    """Logistic ``1 / (1 + exp(-x))`` (overflow-free), clipped to ``[floor, 1 - floor]``."""
+    from scipy.special import expit
+
+    return np.clip(expit(x), floor, 1.0 - floor)
+
+
+def bilateral_weights(u, valid, wx, wy, nzj, nzi, k, floor=0.0):
+    """BiNI's IRLS update of the forward-term weights ``w+`` (backward: ``1 - w+``).
+
+    ``w+ = sigmoid(k ((N_z d-)^2 - (N_z d+)^2))`` with ``d+-`` the one-sided
+    differences of ``u`` at each pixel (0 where the neighbour is missing) and
+    ``N_z`` the pixel's own coefficient (:func:`pixel_gradients`): the side
+    with the smaller jump gets the larger weight.
+
+    Returns:
+        ``wpj, wpi, (dj, djm, di, dim)``: weights and the one-sided differences.
+    """
+    ex = wx[:, :-1] > 0
+    ey = wy[:-1, :] > 0
+    dj = np.zeros_like(u)
+    dj[:, :-1] = np.where(ex, u[:, 1:] - u[:, :-1], 0.0)  # forward step at (i, j)
+    djm = np.zeros_like(u)
+    djm[:, 1:] = dj[:, :-1]  # backward step at (i, j)
+    di = np.zeros_like(u)
+    di[:-1, :] = np.where(ey, u[1:, :] - u[:-1, :], 0.0)
+    dim = np.zeros_like(u)
+    dim[1:, :] = di[:-1, :]
+    wpj = _sigmoid(k * ((nzj * djm) ** 2 - (nzj * dj) ** 2), floor)
+    wpi = _sigmoid(k * ((nzi * dim) ** 2 - (nzi * di) ** 2), floor)
+    return np.where(valid, wpj, 0.5), np.where(valid, wpi, 0.5), (dj, djm, di, dim)
 
 
 # ============================================================================ the stage
@@ -509,33 +560,35 @@ class Integrator:
         wpj = wpi = None
         outer = 0
         total_it = 0
-        energy = None
-        nout = cfg.bilateral_max_iter if cfg.bilateral else 1
         u = u0
-        for k in range(nout):
-            wx, wy, tx, ty = edge_system(valid, gj, gi, cj, ci, wpj, wpi)
-            t1 = time.perf_counter()
-            inner_progress = progress if not cfg.bilateral else None
-            u, its, res, tim = self._solve(n, valid, wx, wy, tx, ty, u, inner_progress)
+        bil = cfg.bilateral
+        inner_tol = max(cfg.tol, cfg.bilateral_inner_tol) if bil else cfg.tol
+
+        def solve(wx, wy, tx, ty, u, prog, tol):
+            nonlocal total_it
+            u, its, res, tim = self._solve(n, valid, wx, wy, tx, ty, u, prog, tol)
             total_it += its
             for key, v in tim.items():
                 timings[key] = timings.get(key, 0.0) + v
-            if not cfg.bilateral:
+            return u, res
+
+        if bil and cfg.bilateral_init == "poisson":
+            wx, wy, tx, ty = edge_system(valid, gj, gi)
+            u, res = solve(wx, wy, tx, ty, u, None, inner_tol)
+            wpj, wpi, _ = bilateral_weights(u, valid, wx, wy, nzj, nzi, cfg.bilateral_k, cfg.bilateral_floor)
+        energy = None
+        nout = cfg.bilateral_max_iter if bil else 1
+        for k in range(nout):
+            wx, wy, tx, ty = edge_system(valid, gj, gi, cj, ci, wpj, wpi)
+            u, res = solve(wx, wy, tx, ty, u, None if bil else progress, inner_tol)
+            if not bil:
                 break
             outer = k + 1
-            # BiNI re-weighting from the one-sided differences of the current u
-            ex = (wx[:, :-1] > 0)
-            ey = (wy[:-1, :] > 0)
-            dj = np.zeros_like(u)
-            dj[:, :-1] = np.where(ex, u[:, 1:] - u[:, :-1], 0.0)  # forward step at (i, j)
-            djm = np.zeros_like(u)
-            djm[:, 1:] = dj[:, :-1]  # backward step at (i, j)
-            di = np.zeros_like(u)
-            di[:-1, :] = np.where(ey, u[1:, :] - u[:-1, :], 0.0)
-            dim = np.zeros_like(u)
-            dim[1:, :] = di[:-1, :]
-            wpj = _sigmoid(cfg.bilateral_k * ((nzj * djm) ** 2 - (nzj * dj) ** 2))
-            wpi = _sigmoid(cfg.bilateral_k * ((nzi * dim) ** 2 - (nzi * di) ** 2))
+            # BiNI's IRLS re-weighting from the one-sided differences of the current u
+            wpj, wpi, (dj, djm, di, dim) = bilateral_weights(u, valid, wx, wy, nzj, nzi, cfg.bilateral_k,
+                                                             cfg.bilateral_floor)
+            ex = wx[:, :-1] > 0
+            ey = wy[:-1, :] > 0
             cj1 = np.ones_like(u) if cj is None else cj
             ci1 = np.ones_like(u) if ci is None else ci
             e_new = float(
@@ -549,6 +602,9 @@ class Integrator:
             if energy is not None and abs(energy - e_new) <= cfg.bilateral_tol * max(abs(energy), 1e-300):
                 break
             energy = e_new
+        if bil and res is not None and inner_tol > cfg.tol:
+            # the re-weighted solves were loose: finish the last system to tol (warm, a few iterations)
+            u, res = solve(wx, wy, tx, ty, u, None, cfg.tol)
         # final residual of the last system (float64, host)
         b = divergence_rhs(wx, wy, tx, ty)
         true_res = normal_equation_residual(np.where(valid, u, 0.0), wx, wy, b)
@@ -579,13 +635,13 @@ class Integrator:
 
     # ------------------------------------------------------------------ solvers
 
-    def _solve(self, n, valid, wx, wy, tx, ty, u0, progress):
+    def _solve(self, n, valid, wx, wy, tx, ty, u0, progress, tol):
         cfg = self.config
         if cfg.solver == "direct":
             return self._solve_direct(valid, wx, wy, tx, ty)
         if cfg.solver == "dct":
             return self._solve_dct(valid, wx, wy, tx, ty)
-        return self._solve_taichi(n, valid, wx, wy, tx, ty, u0, progress)
+        return self._solve_taichi(n, valid, wx, wy, tx, ty, u0, progress, tol)
 
     def _solve_direct(self, valid, wx, wy, tx, ty):
         import scipy.sparse.linalg as spla
@@ -654,7 +710,7 @@ class Integrator:
         for name in ("z", "b", "r", "p", "q", "gj", "gi"):
             d[name] = ti.field(ft)
             fb.dense(ti.ij, (h, w)).place(d[name])
-        d["sc"] = ti.field(ft)
+        d["sc"] = ti.field(ti.f64)  # CG scalars: float64 accumulators whatever the precision
         fb.dense(ti.i, 8).place(d["sc"])
         d["pinv"] = ti.field(ft)
         fb.dense(ti.ij, (ncmax, ncmax)).place(d["pinv"])
@@ -721,7 +777,7 @@ class Integrator:
         for k in range(L - 2, -1, -1):
             K.up(*args, int(of[k]), sh[k][0], sh[k][1], int(of[k + 1]), cfg.omega, cfg.smooth_pairs)
 
-    def _solve_taichi(self, n, valid, wx, wy, tx, ty, u0, progress):
+    def _solve_taichi(self, n, valid, wx, wy, tx, ty, u0, progress, tol):
         from gpps.kernels import poisson as K
 
         cfg = self.config
@@ -753,7 +809,7 @@ class Integrator:
         K.residual_norm(d["r"], d["b"], d["q"], d["wx"], d["wy"], d["dg"], d["sc"], h, w)
         bb = float(d["sc"][K.RR])
         t1 = time.perf_counter()
-        tol2 = (cfg.tol ** 2) * bb
+        tol2 = (tol ** 2) * bb
         cap = cfg.iterations_cap
         its = 0
         if bb == 0.0:
