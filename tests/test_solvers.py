@@ -135,3 +135,53 @@ def test_slant_tilt_definitions():
     s, t = slant_tilt(np.array([[0.0, 0.0, 1.0], [np.sin(0.5), 0.0, np.cos(0.5)], [0.0, -np.sin(0.3), np.cos(0.3)]]))
     np.testing.assert_allclose(s, np.degrees([0.0, 0.5, 0.3]), atol=1e-9)
     np.testing.assert_allclose(t[1:], [0.0, -90.0], atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- specialised kernels
+
+
+def test_specialised_kernels_cached_and_selected():
+    """One cached kernel pair per (solver, brdf, robust) in its own Warp module; PixelSolver follows config and material."""
+    from gpps.kernels import solve as sk
+    from gpps.material import Material
+
+    a = sk.get_solve_kernels("lm", "blinn-phong", "none")
+    assert a is sk.get_solve_kernels("lm", "blinn-phong", "none")
+    b = sk.get_solve_kernels("dogleg", "blinn-phong", "none")
+    assert a[0] is not b[0] and a[0].module is not b[0].module
+    assert a[0].module is a[1].module
+    # solver "none" ignores model and loss: one build, no second pass
+    n = sk.get_solve_kernels("none", "phong", "cauchy")
+    assert n is sk.get_solve_kernels("none", "lambertian", "none") and n[1] is None
+    with pytest.raises(ValueError, match="method"):
+        sk.get_solve_kernels("newton", "phong")
+    with pytest.raises(ValueError, match="brdf"):
+        sk.get_solve_kernels("lm", "ward")
+
+    img, L, sc, mat = _case(size=8)
+    ps = PixelSolver(img.shape[:3], sc.camera, L, mat, SolverConfig(), device="cpu")
+    assert ps.kernels == sk.get_solve_kernels("lm", mat.brdf, "none")
+    ps.set_config(SolverConfig(solver="bfgs", robust="huber"))
+    assert ps.kernels == sk.get_solve_kernels("bfgs", mat.brdf, "huber")
+    ps.set_config(SolverConfig(solver="bfgs", robust="huber", irls_rounds=0))
+    assert ps.kernels == sk.get_solve_kernels("bfgs", mat.brdf, "none")
+    ps.set_material(Material.default_for("cook-torrance"))
+    assert ps.kernels == sk.get_solve_kernels("bfgs", "cook-torrance", "none")
+
+
+@pytest.mark.parametrize(
+    "brdf,solver,robust",
+    [("cook-torrance", "lm", "cauchy"), ("phong", "dogleg", "none"), ("ashikhmin-shirley", "bfgs", "huber"), ("lambertian", "none", "none")],
+)
+def test_specialised_kernels_match_generic(brdf, solver, robust):
+    """The specialised kernels give bitwise the results of the generic (run-time switch) build."""
+    from gpps.kernels import solve as sk
+
+    img, L, sc, mat = _case(brdf=brdf, size=16, noise=0.002)
+    cfg = SolverConfig(solver=solver, robust=robust, starts=4, max_iters=20)
+    ps = PixelSolver(img.shape[:3], sc.camera, L, mat, cfg, device="cpu")
+    spec = ps.solve(img, sc.mask)
+    ps._solve_kernel, ps._underdetermined_kernel = sk.get_solve_kernels(None, None, None)
+    gen = ps.solve(img, sc.mask)
+    for k in spec:
+        np.testing.assert_array_equal(spec[k], gen[k], err_msg=k)

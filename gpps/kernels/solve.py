@@ -27,16 +27,34 @@ observations (shadow: grey value below ``shadow_threshold`` times the pixel's
 brightest; saturated: a channel >= ``saturation``; or masked out by the
 caller's ``valid``) and otherwise 1, times the robust (IRLS) weight of the
 Huber or Cauchy loss after each reweighting round.
+
+Specialisation: Warp emits every ``@wp.func`` a kernel reaches, and a kernel
+that switched at run time between the solvers, the five reflectance models and
+the robust losses carried all of them (NVRTC then inlines them at every call
+site).  :func:`get_solve_kernels` instead builds, once per
+``(method, brdf, robust)``, the two kernels in a Warp module of their own from
+the functions that :func:`_solver_funcs` defines with ``wp.static``
+conditions: the branches of the other solvers, models and losses are dropped
+at code generation, so each module holds only the code its launch runs.  The
+other settings (iterations, tolerances, starts, thresholds, ...) stay run-time
+fields of :class:`SolverParams`.  The kernels are forward-only
+(``enable_backward=False``): nothing differentiates through the solver.
 """
+
+from types import SimpleNamespace
 
 import warp as wp
 
 from gpps.kernels.brdf import CameraParams, LightParams, MaterialParams, light_dir, light_radiance, pixel_point, view_dir
 from gpps.kernels.jacobians import (
+    ashikhmin_shirley_value_grad,
+    blinn_phong_value_grad,
     chart_normal,
     chart_normal_jacobian,
+    cook_torrance_value_grad,
     diffuse_value_grad,
     mat32,
+    phong_value_grad,
     specular_value_grad,
     tangent_basis_t1,
 )
@@ -133,124 +151,6 @@ def _dot2(a: wp.vec2, b: wp.vec2):
 
 
 @wp.func
-def evaluate(
-    n0: wp.vec3,
-    t1: wp.vec3,
-    t2: wp.vec3,
-    x: wp.vec2,
-    images: wp.array3d(dtype=wp.vec3),
-    weights: wp.array3d(dtype=wp.float32),
-    px: Pixel,
-    lights: LightParams,
-    mat: MaterialParams,
-):
-    """Variable-projection evaluation of the reduced cost at ``n(x)`` (4.2 with kd eliminated)."""
-    i = px.i
-    j = px.j
-    p = px.p
-    v = px.v
-    grey_albedo = px.grey_albedo
-    n = chart_normal(n0, t1, t2, x)
-    dn = chart_normal_jacobian(n0, t1, t2, x)
-    dn0 = wp.vec3(dn[0, 0], dn[1, 0], dn[2, 0])
-    dn1 = wp.vec3(dn[0, 1], dn[1, 1], dn[2, 1])
-    ks = mat.ks
-    # pass 1: normal equations of the albedo and their derivatives
-    saa = wp.vec3(0.0)
-    say = wp.vec3(0.0)
-    dsaa0 = wp.vec3(0.0)
-    dsaa1 = wp.vec3(0.0)
-    dsay0 = wp.vec3(0.0)
-    dsay1 = wp.vec3(0.0)
-    wsum = float(0.0)
-    for k in range(lights.count):
-        w = weights[k, i, j]
-        if w > 0.0:
-            l = light_dir(lights, k, p)
-            e = light_radiance(lights, k, p)
-            obs = images[k, i, j]
-            dg = diffuse_value_grad(n, l)
-            sg = specular_value_grad(mat, n, l, v)
-            gd = wp.vec3(dg[1], dg[2], dg[3])
-            gs = wp.vec3(sg[1], sg[2], sg[3])
-            da0 = wp.dot(gd, dn0)
-            da1 = wp.dot(gd, dn1)
-            ds0 = wp.dot(gs, dn0)
-            ds1 = wp.dot(gs, dn1)
-            wsum += w
-            for c in range(3):
-                a = e[c] * dg[0]
-                y = obs[c] - e[c] * ks * sg[0]
-                a0 = e[c] * da0
-                a1 = e[c] * da1
-                y0 = -e[c] * ks * ds0
-                y1 = -e[c] * ks * ds1
-                saa[c] += w * a * a
-                say[c] += w * a * y
-                dsaa0[c] += w * 2.0 * a * a0
-                dsaa1[c] += w * 2.0 * a * a1
-                dsay0[c] += w * (a0 * y + a * y0)
-                dsay1[c] += w * (a1 * y + a * y1)
-    if grey_albedo != 0:
-        saa = wp.vec3(saa[0] + saa[1] + saa[2])
-        say = wp.vec3(say[0] + say[1] + say[2])
-        dsaa0 = wp.vec3(dsaa0[0] + dsaa0[1] + dsaa0[2])
-        dsaa1 = wp.vec3(dsaa1[0] + dsaa1[1] + dsaa1[2])
-        dsay0 = wp.vec3(dsay0[0] + dsay0[1] + dsay0[2])
-        dsay1 = wp.vec3(dsay1[0] + dsay1[1] + dsay1[2])
-    kd = wp.vec3(0.0)
-    dkd0 = wp.vec3(0.0)
-    dkd1 = wp.vec3(0.0)
-    if px.fix_kd != 0:
-        kd = px.kd
-    for c in range(3):
-        if px.fix_kd == 0 and saa[c] > 1.0e-20:
-            kc = say[c] / saa[c]
-            if kc > 0.0:
-                kd[c] = kc
-                dkd0[c] = (dsay0[c] - kc * dsaa0[c]) / saa[c]
-                dkd1[c] = (dsay1[c] - kc * dsaa1[c]) / saa[c]
-    # pass 2: residuals r = y - kd a and their exact derivatives
-    cost = float(0.0)
-    jtj = wp.mat22(0.0)
-    jtr = wp.vec2(0.0)
-    for k in range(lights.count):
-        w = weights[k, i, j]
-        if w > 0.0:
-            l = light_dir(lights, k, p)
-            e = light_radiance(lights, k, p)
-            obs = images[k, i, j]
-            dg = diffuse_value_grad(n, l)
-            sg = specular_value_grad(mat, n, l, v)
-            gd = wp.vec3(dg[1], dg[2], dg[3])
-            gs = wp.vec3(sg[1], sg[2], sg[3])
-            da0 = wp.dot(gd, dn0)
-            da1 = wp.dot(gd, dn1)
-            ds0 = wp.dot(gs, dn0)
-            ds1 = wp.dot(gs, dn1)
-            for c in range(3):
-                a = e[c] * dg[0]
-                r = obs[c] - e[c] * ks * sg[0] - kd[c] * a
-                j0 = -e[c] * ks * ds0 - dkd0[c] * a - kd[c] * e[c] * da0
-                j1 = -e[c] * ks * ds1 - dkd1[c] * a - kd[c] * e[c] * da1
-                cost += 0.5 * w * r * r
-                jtr += w * r * wp.vec2(j0, j1)
-                jtj += w * wp.mat22(j0 * j0, j0 * j1, j0 * j1, j1 * j1)
-    if px.prior_w > 0.0:
-        dp = n - px.prior_n
-        cost += 0.5 * px.prior_w * wp.dot(dp, dp)
-        jtr += px.prior_w * wp.vec2(wp.dot(dn0, dp), wp.dot(dn1, dp))
-        jtj += px.prior_w * wp.mat22(wp.dot(dn0, dn0), wp.dot(dn0, dn1), wp.dot(dn0, dn1), wp.dot(dn1, dn1))
-    ev = Eval()
-    ev.cost = cost
-    ev.jtj = jtj
-    ev.jtr = jtr
-    ev.kd = kd
-    ev.wsum = wsum
-    return ev
-
-
-@wp.func
 def solve22(a: wp.mat22, b: wp.vec2):
     """``a^-1 b`` for a symmetric positive (semi)definite 2x2; zero when singular (checked determinant)."""
     det = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
@@ -299,267 +199,6 @@ def _result(n: wp.vec3, ev: Eval, iters: int, converged: int):
     res.iters = iters
     res.converged = converged
     return res
-
-
-@wp.func
-def run_lm(
-    nstart: wp.vec3,
-    images: wp.array3d(dtype=wp.vec3),
-    weights: wp.array3d(dtype=wp.float32),
-    px: Pixel,
-    lights: LightParams,
-    mat: MaterialParams,
-    prm: SolverParams,
-):
-    """Levenberg-Marquardt (Algorithm 4; Madsen-Nielsen damping update), chart re-centred at each accepted step.
-
-    ``d = -(J^T J + lambda I)^-1 J^T r``; gain ratio
-    ``rho = (F(x) - F(x + d)) / (1/2 d^T (lambda d - J^T r))`` (Algorithm 4's
-    denominator is ``L(0) - L(d)`` of the Gauss-Newton model); accepted steps
-    shrink lambda by ``max(1/3, 1 - (2 rho - 1)^3)``, rejected ones grow it by
-    ``nu`` and double ``nu``.  Stops on ``|J^T r|_inf <= tol_grad``, a step
-    ``<= tol_step`` (radians), or ``max_iters`` evaluations.
-    """
-    n0 = nstart
-    t1 = tangent_basis_t1(n0)
-    t2 = wp.cross(n0, t1)
-    zero = wp.vec2(0.0)
-    ev = evaluate(n0, t1, t2, zero, images, weights, px, lights, mat)
-    lam = prm.lm_tau * wp.max(wp.max(ev.jtj[0, 0], ev.jtj[1, 1]), 1.0e-20)
-    nu = float(2.0)
-    k = int(0)
-    converged = int(0)
-    while k < prm.max_iters:
-        g = ev.jtr
-        if wp.max(wp.abs(g[0]), wp.abs(g[1])) <= prm.tol_grad:
-            converged = 1
-            if prm.early_exit != 0:
-                break
-        a = ev.jtj + wp.mat22(lam, 0.0, 0.0, lam)
-        d = -solve22(a, g)
-        k += 1
-        if wp.length(d) <= prm.tol_step:
-            converged = 1
-            if prm.early_exit != 0:
-                break
-        trial = evaluate(n0, t1, t2, d, images, weights, px, lights, mat)
-        pred = 0.5 * (lam * _dot2(d, d) - _dot2(d, g))
-        rho = float(-1.0)
-        if pred > 0.0:
-            rho = (ev.cost - trial.cost) / pred
-        if rho > 0.0:
-            # re-centre the chart on the accepted normal, reusing the trial's Jacobian
-            dn_old = chart_normal_jacobian(n0, t1, t2, d)
-            n0 = chart_normal(n0, t1, t2, d)
-            t1 = tangent_basis_t1(n0)
-            t2 = wp.cross(n0, t1)
-            ev = transport(trial, dn_old, t1, t2)
-            t = 2.0 * rho - 1.0
-            lam = lam * wp.max(1.0 / 3.0, 1.0 - t * t * t)
-            nu = 2.0
-        else:
-            lam = lam * nu
-            nu = 2.0 * nu
-            if lam > 1.0e16:
-                converged = 1
-                if prm.early_exit != 0:
-                    break
-    return _result(n0, ev, k, converged)
-
-
-@wp.func
-def run_dogleg(
-    nstart: wp.vec3,
-    images: wp.array3d(dtype=wp.vec3),
-    weights: wp.array3d(dtype=wp.float32),
-    px: Pixel,
-    lights: LightParams,
-    mat: MaterialParams,
-    prm: SolverParams,
-):
-    """Powell's dog leg (Algorithm 5, 4.10-4.15) on the reduced problem.
-
-    ``h_sd = -g`` with ``g = J^T r`` and Cauchy step length
-    ``alpha = |g|^2 / |J g|^2`` (4.15); ``h_gn = -(J^T J)^-1 g`` (the
-    least-squares form of 4.10 for N > 2 residuals); the dog-leg step is
-    (4.12-4.14) with beta chosen so that ``|h_dl| = Delta``.
-
-    Algorithm 5's ``L(0) - L(h_dl)`` is garbled in the text; the correct gain
-    ratio denominator is the decrease of the Gauss-Newton model
-    ``L(0) - L(h) = -h^T g - 1/2 h^T J^T J h``, which reduces to Madsen et al.'s
-    cases: ``F(x)`` for the Gauss-Newton step (when J is square), ``Delta (2
-    |alpha g| - Delta) / (2 alpha)`` for the clipped steepest-descent step and
-    ``1/2 alpha (1 - beta)^2 |g|^2 + beta (2 - beta) F(x)`` otherwise.  We
-    evaluate the general expression.  Radius: ``rho > 0.75`` ->
-    ``Delta = max(Delta, 3 |h|)``, ``rho < 0.25`` -> ``Delta / 2``.
-    """
-    n0 = nstart
-    t1 = tangent_basis_t1(n0)
-    t2 = wp.cross(n0, t1)
-    zero = wp.vec2(0.0)
-    ev = evaluate(n0, t1, t2, zero, images, weights, px, lights, mat)
-    delta = prm.dogleg_radius
-    k = int(0)
-    converged = int(0)
-    while k < prm.max_iters:
-        g = ev.jtr
-        if wp.max(wp.abs(g[0]), wp.abs(g[1])) <= prm.tol_grad or delta <= prm.tol_step:
-            converged = 1
-            if prm.early_exit != 0:
-                break
-        a = ev.jtj
-        gag = _dot2(g, a * g)
-        gg = _dot2(g, g)
-        alpha = float(0.0)
-        if gag > 0.0:
-            alpha = gg / gag
-        hgn = -solve22(a, g)
-        if _dot2(hgn, hgn) == 0.0:
-            # singular J^T J: a tiny damping keeps the Gauss-Newton leg defined
-            tr = a[0, 0] + a[1, 1]
-            hgn = -solve22(a + wp.mat22(1.0e-6 * tr + 1.0e-20, 0.0, 0.0, 1.0e-6 * tr + 1.0e-20), g)
-        h = wp.vec2(0.0)
-        lg = wp.sqrt(gg)
-        if wp.length(hgn) <= delta:
-            h = hgn
-        elif alpha * lg >= delta or alpha == 0.0:
-            if lg > 0.0:
-                h = -(delta / lg) * g
-        else:
-            sa = -alpha * g
-            bma = hgn - sa
-            c = _dot2(sa, bma)
-            b2 = _dot2(bma, bma)
-            disc = wp.max(c * c + b2 * (delta * delta - _dot2(sa, sa)), 0.0)
-            beta = float(0.0)
-            if b2 > 0.0:
-                beta = (-c + wp.sqrt(disc)) / b2
-            h = sa + beta * bma
-        k += 1
-        if wp.length(h) <= prm.tol_step:
-            converged = 1
-            if prm.early_exit != 0:
-                break
-        trial = evaluate(n0, t1, t2, h, images, weights, px, lights, mat)
-        pred = -_dot2(h, g) - 0.5 * _dot2(h, a * h)
-        rho = float(-1.0)
-        if pred > 0.0:
-            rho = (ev.cost - trial.cost) / pred
-        if rho > 0.0:
-            dn_old = chart_normal_jacobian(n0, t1, t2, h)
-            n0 = chart_normal(n0, t1, t2, h)
-            t1 = tangent_basis_t1(n0)
-            t2 = wp.cross(n0, t1)
-            ev = transport(trial, dn_old, t1, t2)
-        if rho > 0.75:
-            delta = wp.max(delta, 3.0 * wp.length(h))
-        elif rho < 0.25:
-            delta = 0.5 * delta
-    return _result(n0, ev, k, converged)
-
-
-@wp.func
-def run_bfgs(
-    nstart: wp.vec3,
-    images: wp.array3d(dtype=wp.vec3),
-    weights: wp.array3d(dtype=wp.float32),
-    px: Pixel,
-    lights: LightParams,
-    mat: MaterialParams,
-    prm: SolverParams,
-):
-    """Quasi-Newton with BFGS updates (Algorithm 3, 4.4-4.8) and a backtracking Armijo line search.
-
-    The chart is kept fixed (so the secant pairs live in one coordinate system)
-    and re-centred, with B reset, only when ``|x| > 0.5``.  ``B0`` is the
-    Gauss-Newton matrix ``J^T J`` (plus a tiny ridge), a standard choice for
-    least squares.  B is updated only when ``Theta^T Y > sqrt(eps) |Theta| |Y|``
-    (Algorithm 3).  Stops on ``|grad| <= tol_grad``, a step ``<= tol_step`` or
-    ``max_iters`` line-search evaluations.
-    """
-    n0 = nstart
-    t1 = tangent_basis_t1(n0)
-    t2 = wp.cross(n0, t1)
-    x = wp.vec2(0.0)
-    ev = evaluate(n0, t1, t2, x, images, weights, px, lights, mat)
-    tr = ev.jtj[0, 0] + ev.jtj[1, 1]
-    ridge = 1.0e-6 * tr + 1.0e-20
-    b = ev.jtj + wp.mat22(ridge, 0.0, 0.0, ridge)
-    k = int(0)
-    converged = int(0)
-    while k < prm.max_iters:
-        g = ev.jtr
-        if wp.max(wp.abs(g[0]), wp.abs(g[1])) <= prm.tol_grad:
-            converged = 1
-            if prm.early_exit != 0:
-                break
-        d = -solve22(b, g)
-        gd = _dot2(g, d)
-        if gd >= 0.0:
-            d = -g
-            gd = -_dot2(g, g)
-            b = ev.jtj + wp.mat22(ridge, 0.0, 0.0, ridge)
-        # keep steps in the chart's useful range (about 0.5 rad)
-        ld = wp.length(d)
-        if ld > 0.5:
-            d = d * (0.5 / ld)
-            gd = gd * (0.5 / ld)
-        step = float(1.0)
-        accepted = int(0)
-        trial = ev
-        while k < prm.max_iters:
-            k += 1
-            trial = evaluate(n0, t1, t2, x + step * d, images, weights, px, lights, mat)
-            if trial.cost <= ev.cost + 1.0e-4 * step * gd:
-                accepted = 1
-                break
-            step = 0.5 * step
-            if step * ld <= prm.tol_step:
-                break
-        if accepted == 0:
-            converged = 1
-            break
-        theta = step * d
-        yv = trial.jtr - g
-        x = x + theta
-        ev = trial
-        ty = _dot2(theta, yv)
-        if ty > 3.45e-4 * wp.length(theta) * wp.length(yv):  # sqrt(float32 eps)
-            u = b * theta
-            tu = _dot2(theta, u)
-            if tu > 0.0:
-                b = b + wp.outer(yv, yv) / ty - wp.outer(u, u) / tu
-        if wp.length(theta) <= prm.tol_step:
-            converged = 1
-            if prm.early_exit != 0:
-                break
-        if wp.length(x) > 0.5:
-            n0 = chart_normal(n0, t1, t2, x)
-            t1 = tangent_basis_t1(n0)
-            t2 = wp.cross(n0, t1)
-            x = wp.vec2(0.0)
-            ev = evaluate(n0, t1, t2, x, images, weights, px, lights, mat)
-            tr = ev.jtj[0, 0] + ev.jtj[1, 1]
-            ridge = 1.0e-6 * tr + 1.0e-20
-            b = ev.jtj + wp.mat22(ridge, 0.0, 0.0, ridge)
-    return _result(chart_normal(n0, t1, t2, x), ev, k, converged)
-
-
-@wp.func
-def run_method(
-    nstart: wp.vec3,
-    images: wp.array3d(dtype=wp.vec3),
-    weights: wp.array3d(dtype=wp.float32),
-    px: Pixel,
-    lights: LightParams,
-    mat: MaterialParams,
-    prm: SolverParams,
-):
-    if prm.method == DOGLEG:
-        return run_dogleg(nstart, images, weights, px, lights, mat, prm)
-    if prm.method == BFGS:
-        return run_bfgs(nstart, images, weights, px, lights, mat, prm)
-    return run_lm(nstart, images, weights, px, lights, mat, prm)
 
 
 @wp.func
@@ -637,69 +276,6 @@ def brightest_half_vector(images: wp.array3d(dtype=wp.vec3), weights: wp.array3d
 
 
 @wp.func
-def solve_pixel(
-    ninit: wp.vec3,
-    gmax: float,
-    images: wp.array3d(dtype=wp.vec3),
-    weights: wp.array3d(dtype=wp.float32),
-    px: Pixel,
-    lights: LightParams,
-    mat: MaterialParams,
-    prm: SolverParams,
-):
-    """Multi-start nonlinear least squares, then IRLS rounds from the best start."""
-    i = px.i
-    j = px.j
-    v = px.v
-    best = StartResult()
-    best.cost = 1.0e30
-    best.n = ninit
-    total = int(0)
-    nstarts = wp.max(prm.starts, 1)
-    if prm.warm_start != 0:
-        nstarts = 1
-    hbright = brightest_half_vector(images, weights, px, lights)
-    for s in range(nstarts):
-        res = run_method(start_normal(s, ninit, v, hbright, prm), images, weights, px, lights, mat, prm)
-        total += res.iters
-        if res.cost < best.cost and wp.dot(res.n, v) > 0.0:
-            best = res
-    if best.cost >= 1.0e30:
-        # every start ended facing away from the camera: keep the least-squares start
-        best = run_method(ninit, images, weights, px, lights, mat, prm)
-        total += best.iters
-    for rnd in range(prm.irls_rounds):
-        # robust reweighting from the residuals at the current best (Huber / Cauchy IRLS)
-        scale = prm.robust_scale * wp.max(gmax, 1.0e-12)
-        for k in range(lights.count):
-            if weights[k, i, j] > 0.0:
-                l = light_dir(lights, k, px.p)
-                e = light_radiance(lights, k, px.p)
-                o = images[k, i, j]
-                dg = diffuse_value_grad(best.n, l)
-                sg = specular_value_grad(mat, best.n, l, v)
-                r2 = float(0.0)
-                for c in range(3):
-                    r = o[c] - e[c] * (best.kd[c] * dg[0] + mat.ks * sg[0])
-                    r2 += r * r
-                rr = wp.sqrt(r2 / 3.0) / scale
-                w = float(1.0)
-                if prm.robust == ROBUST_HUBER:
-                    if rr > 1.0:
-                        w = 1.0 / rr
-                else:
-                    w = 1.0 / (1.0 + rr * rr)
-                weights[k, i, j] = wp.max(w, 1.0e-6)
-        res = run_method(best.n, images, weights, px, lights, mat, prm)
-        total += res.iters
-        best = res
-    out = PixelSolution()
-    out.best = best
-    out.total = total
-    return out
-
-
-@wp.func
 def store_solution(
     sol: PixelSolution,
     flag: int,
@@ -745,230 +321,844 @@ def make_pixel(cam: CameraParams, depth: wp.array2d(dtype=wp.float32), i: int, j
     return px
 
 
-@wp.kernel
-def solve_kernel(
+@wp.func
+def store_least_squares(
+    ninit: wp.vec3,
+    kdw: wp.vec3,
+    flag: int,
+    use_all: int,
     images: wp.array3d(dtype=wp.vec3),
-    mask: wp.array2d(dtype=wp.uint8),
-    valid: wp.array3d(dtype=wp.uint8),
-    depth: wp.array2d(dtype=wp.float32),
-    cam: CameraParams,
-    lights: LightParams,
-    mat: MaterialParams,
-    prm: SolverParams,
     weights: wp.array3d(dtype=wp.float32),
+    px: Pixel,
+    lights: LightParams,
     normals: wp.array2d(dtype=wp.vec3),
     albedo: wp.array2d(dtype=wp.vec3),
     residual: wp.array2d(dtype=wp.float32),
     iterations: wp.array2d(dtype=wp.int32),
     flags: wp.array2d(dtype=wp.int32),
-    cond: wp.array2d(dtype=wp.float32),
 ):
-    """Solve one pixel: observation weights, Lambertian least squares (Woodham) start,
-    multi-start nonlinear least squares, IRLS rounds; one launch for the whole image.
-
-    Args:
-        images: (N, H, W) RGB observations (already divided by light intensities
-            when the lights carry unit intensity).
-        mask: (H, W) 1 inside the object.
-        valid: (N, H, W) 1 where the caller keeps the observation.
-        depth: (H, W) depth estimate > 0 (used for point lights and the view ray).
-        weights: (N, H, W) scratch: observation weights (output, for inspection).
-        normals: (H, W) in: warm start when ``prm.warm_start``; out: unit normals (0 outside).
-        albedo: (H, W) RGB albedo kd.
-        residual: (H, W) RMS weighted residual per valid observation and channel.
-        iterations: (H, W) cost evaluations used (all starts and rounds).
-        flags: (H, W) FLAG_* bits.
-        cond: (H, W) Frobenius condition number of the valid lights' Gram matrix.
-    """
-    i, j = wp.tid()
-    nl_ = lights.count
-    if mask[i, j] == wp.uint8(0):
-        normals[i, j] = wp.vec3(0.0)
-        albedo[i, j] = wp.vec3(0.0)
-        residual[i, j] = 0.0
-        iterations[i, j] = 0
-        flags[i, j] = 0
-        cond[i, j] = 0.0
-        for k in range(nl_):
-            weights[k, i, j] = 0.0
-        return
-    px = make_pixel(cam, depth, i, j, prm)
+    """Store the Lambertian least-squares (Woodham) solution of solver ``"none"``."""
+    i = px.i
+    j = px.j
     p = px.p
-    v = px.v
-    # ---- observation validity (shadows, saturation, caller's mask)
-    gmax = float(0.0)
-    for k in range(nl_):
-        gmax = wp.max(gmax, grey(images[k, i, j]))
-    ninfo = int(0)
-    for k in range(nl_):
-        o = images[k, i, j]
-        ok = valid[k, i, j] != wp.uint8(0)
-        if grey(o) < prm.shadow_threshold * gmax:
-            ok = False
-        if prm.saturation > 0.0 and wp.max(o[0], wp.max(o[1], o[2])) >= prm.saturation:
-            ok = False
-        w = float(0.0)
-        if ok:
-            w = 1.0
-            if grey(o) > prm.lit_threshold * gmax:
-                ninfo += 1
-        weights[k, i, j] = w
-    flag = int(0)
-    if ninfo < 3:
-        # fewer than 3 lit observations: normal and albedo are not determined together
-        flag = flag | FLAG_FEW_OBSERVATIONS
-    # ---- lighting sensitivity (3.13): conditioning of the valid light directions
-    gram = light_gram(weights, i, j, p, lights)
-    cnd = cond_frobenius(gram)
-    cond[i, j] = cnd
-    if cnd > prm.cond_threshold:
-        flag = flag | FLAG_ILL_CONDITIONED
-    # ---- Woodham least squares on the valid observations (I / E = kd (l . n))
-    use_all = int(0)
-    if cnd >= 1.0e29:
-        use_all = 1
-        flag = flag | FLAG_WOODHAM_FALLBACK
-    a = wp.mat33(0.0)
-    bc0 = wp.vec3(0.0)
-    bc1 = wp.vec3(0.0)
-    bc2 = wp.vec3(0.0)
+    nl_ = lights.count
+    normals[i, j] = ninit
+    albedo[i, j] = wp.vec3(wp.max(kdw[0], 0.0), wp.max(kdw[1], 0.0), wp.max(kdw[2], 0.0))
+    # residual of the Lambertian fit (no shadows in the model: plain least squares)
+    rs = float(0.0)
+    ws = float(0.0)
     for k in range(nl_):
         if use_all != 0 or weights[k, i, j] > 0.0:
             l = light_dir(lights, k, p)
             e = light_radiance(lights, k, p)
             o = images[k, i, j]
-            y = wp.vec3(0.0)
             for c in range(3):
-                if e[c] > 0.0:
-                    y[c] = o[c] / e[c]
-            a += wp.outer(l, l)
-            bc0 += y[0] * l
-            bc1 += y[1] * l
-            bc2 += y[2] * l
-    bg = bc0 + bc1 + bc2
-    ninit = v
-    kdw = wp.vec3(0.0)
-    det = wp.determinant(a)
-    fa = wp.sqrt(wp.ddot(a, a))
-    if wp.abs(det) > 1.0e-12 * fa * fa * fa and fa > 0.0:
-        ai = wp.inverse(a)
-        gvec = ai * bg
-        if wp.length(gvec) > 0.0:
-            ninit = wp.normalize(gvec)
-            kdw = wp.vec3(wp.dot(ai * bc0, ninit), wp.dot(ai * bc1, ninit), wp.dot(ai * bc2, ninit))
-    if prm.warm_start != 0:
-        nw = normals[i, j]
-        if wp.length(nw) > 0.5:
-            ninit = wp.normalize(nw)
-    if prm.method == NONE:
-        normals[i, j] = ninit
-        albedo[i, j] = wp.vec3(wp.max(kdw[0], 0.0), wp.max(kdw[1], 0.0), wp.max(kdw[2], 0.0))
-        # residual of the Lambertian fit (no shadows in the model: plain least squares)
-        rs = float(0.0)
-        ws = float(0.0)
+                r = o[c] - e[c] * kdw[c] * wp.dot(ninit, l)
+                rs += r * r
+            ws += 3.0
+    if ws > 0.0:
+        residual[i, j] = wp.sqrt(rs / ws)
+    else:
+        residual[i, j] = 0.0
+    iterations[i, j] = 0
+    flags[i, j] = flag
+
+
+# --------------------------------------------------------------------------- specialisation
+
+METHODS = ("none", "lm", "dogleg", "bfgs")
+BRDFS = ("lambertian", "phong", "blinn-phong", "cook-torrance", "ashikhmin-shirley")  # as gpps.material.BRDF_NAMES
+ROBUST = ("none", "huber", "cauchy")
+
+
+def _specular_value_grad_for(brdf, module, sfx: str):
+    """:func:`gpps.kernels.jacobians.specular_value_grad` with the model fixed at code generation.
+
+    Same gating and lobes as the run-time dispatcher (``mat.model`` is not
+    read); ``brdf=None`` returns the run-time dispatcher itself.
+    """
+    if brdf is None:
+        return specular_value_grad
+
+    @wp.func(name="specular_value_grad" + sfx, module=module)
+    def spec_vg(mat: MaterialParams, n: wp.vec3, l: wp.vec3, v: wp.vec3):
+        if wp.static(brdf == "lambertian"):
+            return wp.vec4(0.0)
+        else:
+            if wp.dot(n, l) <= 0.0 or wp.dot(n, v) <= 0.0:
+                return wp.vec4(0.0)
+            if wp.static(brdf == "phong"):
+                return phong_value_grad(n, l, v, mat.shininess)
+            elif wp.static(brdf == "blinn-phong"):
+                return blinn_phong_value_grad(n, l, v, mat.shininess)
+            elif wp.static(brdf == "cook-torrance"):
+                return cook_torrance_value_grad(n, l, v, mat.roughness, mat.f0)
+            else:
+                return ashikhmin_shirley_value_grad(n, l, v, mat.eta_u, mat.eta_v, mat.f0)
+
+    return spec_vg
+
+
+def _solver_funcs(method, brdf, robust, module=None, sfx: str = ""):
+    """Define the solver functions for one ``(method, brdf, robust)``.
+
+    ``None`` for any of them keeps that choice a run-time switch on
+    ``prm.method`` / ``mat.model`` / ``prm.robust`` (the generic build).  The
+    ``wp.static`` conditions are evaluated at code generation, so only the
+    chosen branches are emitted.  ``module`` / ``sfx``: Warp module and key
+    suffix of the functions (distinct per specialisation).
+    """
+    spec_vg = _specular_value_grad_for(brdf, module, sfx)
+
+    @wp.func(name="evaluate" + sfx, module=module)
+    def evaluate(
+        n0: wp.vec3,
+        t1: wp.vec3,
+        t2: wp.vec3,
+        x: wp.vec2,
+        images: wp.array3d(dtype=wp.vec3),
+        weights: wp.array3d(dtype=wp.float32),
+        px: Pixel,
+        lights: LightParams,
+        mat: MaterialParams,
+    ):
+        """Variable-projection evaluation of the reduced cost at ``n(x)`` (4.2 with kd eliminated)."""
+        i = px.i
+        j = px.j
+        p = px.p
+        v = px.v
+        grey_albedo = px.grey_albedo
+        n = chart_normal(n0, t1, t2, x)
+        dn = chart_normal_jacobian(n0, t1, t2, x)
+        dn0 = wp.vec3(dn[0, 0], dn[1, 0], dn[2, 0])
+        dn1 = wp.vec3(dn[0, 1], dn[1, 1], dn[2, 1])
+        ks = mat.ks
+        # pass 1: normal equations of the albedo and their derivatives
+        saa = wp.vec3(0.0)
+        say = wp.vec3(0.0)
+        dsaa0 = wp.vec3(0.0)
+        dsaa1 = wp.vec3(0.0)
+        dsay0 = wp.vec3(0.0)
+        dsay1 = wp.vec3(0.0)
+        wsum = float(0.0)
+        for k in range(lights.count):
+            w = weights[k, i, j]
+            if w > 0.0:
+                l = light_dir(lights, k, p)
+                e = light_radiance(lights, k, p)
+                obs = images[k, i, j]
+                dg = diffuse_value_grad(n, l)
+                sg = spec_vg(mat, n, l, v)
+                gd = wp.vec3(dg[1], dg[2], dg[3])
+                gs = wp.vec3(sg[1], sg[2], sg[3])
+                da0 = wp.dot(gd, dn0)
+                da1 = wp.dot(gd, dn1)
+                ds0 = wp.dot(gs, dn0)
+                ds1 = wp.dot(gs, dn1)
+                wsum += w
+                for c in range(3):
+                    a = e[c] * dg[0]
+                    y = obs[c] - e[c] * ks * sg[0]
+                    a0 = e[c] * da0
+                    a1 = e[c] * da1
+                    y0 = -e[c] * ks * ds0
+                    y1 = -e[c] * ks * ds1
+                    saa[c] += w * a * a
+                    say[c] += w * a * y
+                    dsaa0[c] += w * 2.0 * a * a0
+                    dsaa1[c] += w * 2.0 * a * a1
+                    dsay0[c] += w * (a0 * y + a * y0)
+                    dsay1[c] += w * (a1 * y + a * y1)
+        if grey_albedo != 0:
+            saa = wp.vec3(saa[0] + saa[1] + saa[2])
+            say = wp.vec3(say[0] + say[1] + say[2])
+            dsaa0 = wp.vec3(dsaa0[0] + dsaa0[1] + dsaa0[2])
+            dsaa1 = wp.vec3(dsaa1[0] + dsaa1[1] + dsaa1[2])
+            dsay0 = wp.vec3(dsay0[0] + dsay0[1] + dsay0[2])
+            dsay1 = wp.vec3(dsay1[0] + dsay1[1] + dsay1[2])
+        kd = wp.vec3(0.0)
+        dkd0 = wp.vec3(0.0)
+        dkd1 = wp.vec3(0.0)
+        if px.fix_kd != 0:
+            kd = px.kd
+        for c in range(3):
+            if px.fix_kd == 0 and saa[c] > 1.0e-20:
+                kc = say[c] / saa[c]
+                if kc > 0.0:
+                    kd[c] = kc
+                    dkd0[c] = (dsay0[c] - kc * dsaa0[c]) / saa[c]
+                    dkd1[c] = (dsay1[c] - kc * dsaa1[c]) / saa[c]
+        # pass 2: residuals r = y - kd a and their exact derivatives
+        cost = float(0.0)
+        jtj = wp.mat22(0.0)
+        jtr = wp.vec2(0.0)
+        for k in range(lights.count):
+            w = weights[k, i, j]
+            if w > 0.0:
+                l = light_dir(lights, k, p)
+                e = light_radiance(lights, k, p)
+                obs = images[k, i, j]
+                dg = diffuse_value_grad(n, l)
+                sg = spec_vg(mat, n, l, v)
+                gd = wp.vec3(dg[1], dg[2], dg[3])
+                gs = wp.vec3(sg[1], sg[2], sg[3])
+                da0 = wp.dot(gd, dn0)
+                da1 = wp.dot(gd, dn1)
+                ds0 = wp.dot(gs, dn0)
+                ds1 = wp.dot(gs, dn1)
+                for c in range(3):
+                    a = e[c] * dg[0]
+                    r = obs[c] - e[c] * ks * sg[0] - kd[c] * a
+                    j0 = -e[c] * ks * ds0 - dkd0[c] * a - kd[c] * e[c] * da0
+                    j1 = -e[c] * ks * ds1 - dkd1[c] * a - kd[c] * e[c] * da1
+                    cost += 0.5 * w * r * r
+                    jtr += w * r * wp.vec2(j0, j1)
+                    jtj += w * wp.mat22(j0 * j0, j0 * j1, j0 * j1, j1 * j1)
+        if px.prior_w > 0.0:
+            dp = n - px.prior_n
+            cost += 0.5 * px.prior_w * wp.dot(dp, dp)
+            jtr += px.prior_w * wp.vec2(wp.dot(dn0, dp), wp.dot(dn1, dp))
+            jtj += px.prior_w * wp.mat22(wp.dot(dn0, dn0), wp.dot(dn0, dn1), wp.dot(dn0, dn1), wp.dot(dn1, dn1))
+        ev = Eval()
+        ev.cost = cost
+        ev.jtj = jtj
+        ev.jtr = jtr
+        ev.kd = kd
+        ev.wsum = wsum
+        return ev
+
+    @wp.func(name="run_lm" + sfx, module=module)
+    def run_lm(
+        nstart: wp.vec3,
+        images: wp.array3d(dtype=wp.vec3),
+        weights: wp.array3d(dtype=wp.float32),
+        px: Pixel,
+        lights: LightParams,
+        mat: MaterialParams,
+        prm: SolverParams,
+    ):
+        """Levenberg-Marquardt (Algorithm 4; Madsen-Nielsen damping update), chart re-centred at each accepted step.
+
+        ``d = -(J^T J + lambda I)^-1 J^T r``; gain ratio
+        ``rho = (F(x) - F(x + d)) / (1/2 d^T (lambda d - J^T r))`` (Algorithm 4's
+        denominator is ``L(0) - L(d)`` of the Gauss-Newton model); accepted steps
+        shrink lambda by ``max(1/3, 1 - (2 rho - 1)^3)``, rejected ones grow it by
+        ``nu`` and double ``nu``.  Stops on ``|J^T r|_inf <= tol_grad``, a step
+        ``<= tol_step`` (radians), or ``max_iters`` evaluations.
+        """
+        n0 = nstart
+        t1 = tangent_basis_t1(n0)
+        t2 = wp.cross(n0, t1)
+        zero = wp.vec2(0.0)
+        ev = evaluate(n0, t1, t2, zero, images, weights, px, lights, mat)
+        lam = prm.lm_tau * wp.max(wp.max(ev.jtj[0, 0], ev.jtj[1, 1]), 1.0e-20)
+        nu = float(2.0)
+        k = int(0)
+        converged = int(0)
+        while k < prm.max_iters:
+            g = ev.jtr
+            if wp.max(wp.abs(g[0]), wp.abs(g[1])) <= prm.tol_grad:
+                converged = 1
+                if prm.early_exit != 0:
+                    break
+            a = ev.jtj + wp.mat22(lam, 0.0, 0.0, lam)
+            d = -solve22(a, g)
+            k += 1
+            if wp.length(d) <= prm.tol_step:
+                converged = 1
+                if prm.early_exit != 0:
+                    break
+            trial = evaluate(n0, t1, t2, d, images, weights, px, lights, mat)
+            pred = 0.5 * (lam * _dot2(d, d) - _dot2(d, g))
+            rho = float(-1.0)
+            if pred > 0.0:
+                rho = (ev.cost - trial.cost) / pred
+            if rho > 0.0:
+                # re-centre the chart on the accepted normal, reusing the trial's Jacobian
+                dn_old = chart_normal_jacobian(n0, t1, t2, d)
+                n0 = chart_normal(n0, t1, t2, d)
+                t1 = tangent_basis_t1(n0)
+                t2 = wp.cross(n0, t1)
+                ev = transport(trial, dn_old, t1, t2)
+                t = 2.0 * rho - 1.0
+                lam = lam * wp.max(1.0 / 3.0, 1.0 - t * t * t)
+                nu = 2.0
+            else:
+                lam = lam * nu
+                nu = 2.0 * nu
+                if lam > 1.0e16:
+                    converged = 1
+                    if prm.early_exit != 0:
+                        break
+        return _result(n0, ev, k, converged)
+
+
+    @wp.func(name="run_dogleg" + sfx, module=module)
+    def run_dogleg(
+        nstart: wp.vec3,
+        images: wp.array3d(dtype=wp.vec3),
+        weights: wp.array3d(dtype=wp.float32),
+        px: Pixel,
+        lights: LightParams,
+        mat: MaterialParams,
+        prm: SolverParams,
+    ):
+        """Powell's dog leg (Algorithm 5, 4.10-4.15) on the reduced problem.
+
+        ``h_sd = -g`` with ``g = J^T r`` and Cauchy step length
+        ``alpha = |g|^2 / |J g|^2`` (4.15); ``h_gn = -(J^T J)^-1 g`` (the
+        least-squares form of 4.10 for N > 2 residuals); the dog-leg step is
+        (4.12-4.14) with beta chosen so that ``|h_dl| = Delta``.
+
+        Algorithm 5's ``L(0) - L(h_dl)`` is garbled in the text; the correct gain
+        ratio denominator is the decrease of the Gauss-Newton model
+        ``L(0) - L(h) = -h^T g - 1/2 h^T J^T J h``, which reduces to Madsen et al.'s
+        cases: ``F(x)`` for the Gauss-Newton step (when J is square), ``Delta (2
+        |alpha g| - Delta) / (2 alpha)`` for the clipped steepest-descent step and
+        ``1/2 alpha (1 - beta)^2 |g|^2 + beta (2 - beta) F(x)`` otherwise.  We
+        evaluate the general expression.  Radius: ``rho > 0.75`` ->
+        ``Delta = max(Delta, 3 |h|)``, ``rho < 0.25`` -> ``Delta / 2``.
+        """
+        n0 = nstart
+        t1 = tangent_basis_t1(n0)
+        t2 = wp.cross(n0, t1)
+        zero = wp.vec2(0.0)
+        ev = evaluate(n0, t1, t2, zero, images, weights, px, lights, mat)
+        delta = prm.dogleg_radius
+        k = int(0)
+        converged = int(0)
+        while k < prm.max_iters:
+            g = ev.jtr
+            if wp.max(wp.abs(g[0]), wp.abs(g[1])) <= prm.tol_grad or delta <= prm.tol_step:
+                converged = 1
+                if prm.early_exit != 0:
+                    break
+            a = ev.jtj
+            gag = _dot2(g, a * g)
+            gg = _dot2(g, g)
+            alpha = float(0.0)
+            if gag > 0.0:
+                alpha = gg / gag
+            hgn = -solve22(a, g)
+            if _dot2(hgn, hgn) == 0.0:
+                # singular J^T J: a tiny damping keeps the Gauss-Newton leg defined
+                tr = a[0, 0] + a[1, 1]
+                hgn = -solve22(a + wp.mat22(1.0e-6 * tr + 1.0e-20, 0.0, 0.0, 1.0e-6 * tr + 1.0e-20), g)
+            h = wp.vec2(0.0)
+            lg = wp.sqrt(gg)
+            if wp.length(hgn) <= delta:
+                h = hgn
+            elif alpha * lg >= delta or alpha == 0.0:
+                if lg > 0.0:
+                    h = -(delta / lg) * g
+            else:
+                sa = -alpha * g
+                bma = hgn - sa
+                c = _dot2(sa, bma)
+                b2 = _dot2(bma, bma)
+                disc = wp.max(c * c + b2 * (delta * delta - _dot2(sa, sa)), 0.0)
+                beta = float(0.0)
+                if b2 > 0.0:
+                    beta = (-c + wp.sqrt(disc)) / b2
+                h = sa + beta * bma
+            k += 1
+            if wp.length(h) <= prm.tol_step:
+                converged = 1
+                if prm.early_exit != 0:
+                    break
+            trial = evaluate(n0, t1, t2, h, images, weights, px, lights, mat)
+            pred = -_dot2(h, g) - 0.5 * _dot2(h, a * h)
+            rho = float(-1.0)
+            if pred > 0.0:
+                rho = (ev.cost - trial.cost) / pred
+            if rho > 0.0:
+                dn_old = chart_normal_jacobian(n0, t1, t2, h)
+                n0 = chart_normal(n0, t1, t2, h)
+                t1 = tangent_basis_t1(n0)
+                t2 = wp.cross(n0, t1)
+                ev = transport(trial, dn_old, t1, t2)
+            if rho > 0.75:
+                delta = wp.max(delta, 3.0 * wp.length(h))
+            elif rho < 0.25:
+                delta = 0.5 * delta
+        return _result(n0, ev, k, converged)
+
+
+    @wp.func(name="run_bfgs" + sfx, module=module)
+    def run_bfgs(
+        nstart: wp.vec3,
+        images: wp.array3d(dtype=wp.vec3),
+        weights: wp.array3d(dtype=wp.float32),
+        px: Pixel,
+        lights: LightParams,
+        mat: MaterialParams,
+        prm: SolverParams,
+    ):
+        """Quasi-Newton with BFGS updates (Algorithm 3, 4.4-4.8) and a backtracking Armijo line search.
+
+        The chart is kept fixed (so the secant pairs live in one coordinate system)
+        and re-centred, with B reset, only when ``|x| > 0.5``.  ``B0`` is the
+        Gauss-Newton matrix ``J^T J`` (plus a tiny ridge), a standard choice for
+        least squares.  B is updated only when ``Theta^T Y > sqrt(eps) |Theta| |Y|``
+        (Algorithm 3).  Stops on ``|grad| <= tol_grad``, a step ``<= tol_step`` or
+        ``max_iters`` line-search evaluations.
+        """
+        n0 = nstart
+        t1 = tangent_basis_t1(n0)
+        t2 = wp.cross(n0, t1)
+        x = wp.vec2(0.0)
+        ev = evaluate(n0, t1, t2, x, images, weights, px, lights, mat)
+        tr = ev.jtj[0, 0] + ev.jtj[1, 1]
+        ridge = 1.0e-6 * tr + 1.0e-20
+        b = ev.jtj + wp.mat22(ridge, 0.0, 0.0, ridge)
+        k = int(0)
+        converged = int(0)
+        while k < prm.max_iters:
+            g = ev.jtr
+            if wp.max(wp.abs(g[0]), wp.abs(g[1])) <= prm.tol_grad:
+                converged = 1
+                if prm.early_exit != 0:
+                    break
+            d = -solve22(b, g)
+            gd = _dot2(g, d)
+            if gd >= 0.0:
+                d = -g
+                gd = -_dot2(g, g)
+                b = ev.jtj + wp.mat22(ridge, 0.0, 0.0, ridge)
+            # keep steps in the chart's useful range (about 0.5 rad)
+            ld = wp.length(d)
+            if ld > 0.5:
+                d = d * (0.5 / ld)
+                gd = gd * (0.5 / ld)
+            step = float(1.0)
+            accepted = int(0)
+            trial = ev
+            while k < prm.max_iters:
+                k += 1
+                trial = evaluate(n0, t1, t2, x + step * d, images, weights, px, lights, mat)
+                if trial.cost <= ev.cost + 1.0e-4 * step * gd:
+                    accepted = 1
+                    break
+                step = 0.5 * step
+                if step * ld <= prm.tol_step:
+                    break
+            if accepted == 0:
+                converged = 1
+                break
+            theta = step * d
+            yv = trial.jtr - g
+            x = x + theta
+            ev = trial
+            ty = _dot2(theta, yv)
+            if ty > 3.45e-4 * wp.length(theta) * wp.length(yv):  # sqrt(float32 eps)
+                u = b * theta
+                tu = _dot2(theta, u)
+                if tu > 0.0:
+                    b = b + wp.outer(yv, yv) / ty - wp.outer(u, u) / tu
+            if wp.length(theta) <= prm.tol_step:
+                converged = 1
+                if prm.early_exit != 0:
+                    break
+            if wp.length(x) > 0.5:
+                n0 = chart_normal(n0, t1, t2, x)
+                t1 = tangent_basis_t1(n0)
+                t2 = wp.cross(n0, t1)
+                x = wp.vec2(0.0)
+                ev = evaluate(n0, t1, t2, x, images, weights, px, lights, mat)
+                tr = ev.jtj[0, 0] + ev.jtj[1, 1]
+                ridge = 1.0e-6 * tr + 1.0e-20
+                b = ev.jtj + wp.mat22(ridge, 0.0, 0.0, ridge)
+        return _result(chart_normal(n0, t1, t2, x), ev, k, converged)
+
+    @wp.func(name="run_method" + sfx, module=module)
+    def run_method(
+        nstart: wp.vec3,
+        images: wp.array3d(dtype=wp.vec3),
+        weights: wp.array3d(dtype=wp.float32),
+        px: Pixel,
+        lights: LightParams,
+        mat: MaterialParams,
+        prm: SolverParams,
+    ):
+        if wp.static(method == "lm"):
+            return run_lm(nstart, images, weights, px, lights, mat, prm)
+        elif wp.static(method == "dogleg"):
+            return run_dogleg(nstart, images, weights, px, lights, mat, prm)
+        elif wp.static(method == "bfgs"):
+            return run_bfgs(nstart, images, weights, px, lights, mat, prm)
+        else:
+            # generic build: run-time switch
+            if prm.method == DOGLEG:
+                return run_dogleg(nstart, images, weights, px, lights, mat, prm)
+            if prm.method == BFGS:
+                return run_bfgs(nstart, images, weights, px, lights, mat, prm)
+            return run_lm(nstart, images, weights, px, lights, mat, prm)
+
+    @wp.func(name="solve_pixel" + sfx, module=module)
+    def solve_pixel(
+        ninit: wp.vec3,
+        gmax: float,
+        images: wp.array3d(dtype=wp.vec3),
+        weights: wp.array3d(dtype=wp.float32),
+        px: Pixel,
+        lights: LightParams,
+        mat: MaterialParams,
+        prm: SolverParams,
+    ):
+        """Multi-start nonlinear least squares, then IRLS rounds from the best start."""
+        i = px.i
+        j = px.j
+        v = px.v
+        best = StartResult()
+        best.cost = 1.0e30
+        best.n = ninit
+        total = int(0)
+        nstarts = wp.max(prm.starts, 1)
+        if prm.warm_start != 0:
+            nstarts = 1
+        hbright = brightest_half_vector(images, weights, px, lights)
+        for s in range(nstarts):
+            res = run_method(start_normal(s, ninit, v, hbright, prm), images, weights, px, lights, mat, prm)
+            total += res.iters
+            if res.cost < best.cost and wp.dot(res.n, v) > 0.0:
+                best = res
+        if best.cost >= 1.0e30:
+            # every start ended facing away from the camera: keep the least-squares start
+            best = run_method(ninit, images, weights, px, lights, mat, prm)
+            total += best.iters
+        if wp.static(robust != "none"):
+            # (robust "none" runs no reweighting round: irls_rounds is 0)
+            for rnd in range(prm.irls_rounds):
+                # robust reweighting from the residuals at the current best (Huber / Cauchy IRLS)
+                scale = prm.robust_scale * wp.max(gmax, 1.0e-12)
+                for k in range(lights.count):
+                    if weights[k, i, j] > 0.0:
+                        l = light_dir(lights, k, px.p)
+                        e = light_radiance(lights, k, px.p)
+                        o = images[k, i, j]
+                        dg = diffuse_value_grad(best.n, l)
+                        sg = spec_vg(mat, best.n, l, v)
+                        r2 = float(0.0)
+                        for c in range(3):
+                            r = o[c] - e[c] * (best.kd[c] * dg[0] + mat.ks * sg[0])
+                            r2 += r * r
+                        rr = wp.sqrt(r2 / 3.0) / scale
+                        w = float(1.0)
+                        if wp.static(robust == "huber"):
+                            if rr > 1.0:
+                                w = 1.0 / rr
+                        elif wp.static(robust == "cauchy"):
+                            w = 1.0 / (1.0 + rr * rr)
+                        else:
+                            # generic build: run-time switch
+                            if prm.robust == ROBUST_HUBER:
+                                if rr > 1.0:
+                                    w = 1.0 / rr
+                            else:
+                                w = 1.0 / (1.0 + rr * rr)
+                        weights[k, i, j] = wp.max(w, 1.0e-6)
+                res = run_method(best.n, images, weights, px, lights, mat, prm)
+                total += res.iters
+                best = res
+        out = PixelSolution()
+        out.best = best
+        out.total = total
+        return out
+
+    return SimpleNamespace(
+        evaluate=evaluate, run_lm=run_lm, run_dogleg=run_dogleg, run_bfgs=run_bfgs, run_method=run_method, solve_pixel=solve_pixel
+    )
+
+
+# generic (run-time dispatch) functions, for direct use from other kernels (e.g. the tests)
+_GENERIC = _solver_funcs(None, None, None)
+evaluate = _GENERIC.evaluate
+run_lm = _GENERIC.run_lm
+run_dogleg = _GENERIC.run_dogleg
+run_bfgs = _GENERIC.run_bfgs
+run_method = _GENERIC.run_method
+solve_pixel = _GENERIC.solve_pixel
+
+
+def _make_kernels(method, brdf, robust, module_name: str, sfx: str):
+    module = wp.get_module(module_name)
+    solve_pixel = _solver_funcs(method, brdf, robust, module, sfx).solve_pixel
+
+    @wp.kernel(name="solve_kernel" + sfx, module=module, enable_backward=False)
+    def solve_kernel(
+        images: wp.array3d(dtype=wp.vec3),
+        mask: wp.array2d(dtype=wp.uint8),
+        valid: wp.array3d(dtype=wp.uint8),
+        depth: wp.array2d(dtype=wp.float32),
+        cam: CameraParams,
+        lights: LightParams,
+        mat: MaterialParams,
+        prm: SolverParams,
+        weights: wp.array3d(dtype=wp.float32),
+        normals: wp.array2d(dtype=wp.vec3),
+        albedo: wp.array2d(dtype=wp.vec3),
+        residual: wp.array2d(dtype=wp.float32),
+        iterations: wp.array2d(dtype=wp.int32),
+        flags: wp.array2d(dtype=wp.int32),
+        cond: wp.array2d(dtype=wp.float32),
+    ):
+        """Solve one pixel: observation weights, Lambertian least squares (Woodham) start,
+        multi-start nonlinear least squares, IRLS rounds; one launch for the whole image.
+
+        Args:
+            images: (N, H, W) RGB observations (already divided by light intensities
+                when the lights carry unit intensity).
+            mask: (H, W) 1 inside the object.
+            valid: (N, H, W) 1 where the caller keeps the observation.
+            depth: (H, W) depth estimate > 0 (used for point lights and the view ray).
+            weights: (N, H, W) scratch: observation weights (output, for inspection).
+            normals: (H, W) in: warm start when ``prm.warm_start``; out: unit normals (0 outside).
+            albedo: (H, W) RGB albedo kd.
+            residual: (H, W) RMS weighted residual per valid observation and channel.
+            iterations: (H, W) cost evaluations used (all starts and rounds).
+            flags: (H, W) FLAG_* bits.
+            cond: (H, W) Frobenius condition number of the valid lights' Gram matrix.
+        """
+        i, j = wp.tid()
+        nl_ = lights.count
+        if mask[i, j] == wp.uint8(0):
+            normals[i, j] = wp.vec3(0.0)
+            albedo[i, j] = wp.vec3(0.0)
+            residual[i, j] = 0.0
+            iterations[i, j] = 0
+            flags[i, j] = 0
+            cond[i, j] = 0.0
+            for k in range(nl_):
+                weights[k, i, j] = 0.0
+            return
+        px = make_pixel(cam, depth, i, j, prm)
+        p = px.p
+        v = px.v
+        # ---- observation validity (shadows, saturation, caller's mask)
+        gmax = float(0.0)
+        for k in range(nl_):
+            gmax = wp.max(gmax, grey(images[k, i, j]))
+        ninfo = int(0)
+        for k in range(nl_):
+            o = images[k, i, j]
+            ok = valid[k, i, j] != wp.uint8(0)
+            if grey(o) < prm.shadow_threshold * gmax:
+                ok = False
+            if prm.saturation > 0.0 and wp.max(o[0], wp.max(o[1], o[2])) >= prm.saturation:
+                ok = False
+            w = float(0.0)
+            if ok:
+                w = 1.0
+                if grey(o) > prm.lit_threshold * gmax:
+                    ninfo += 1
+            weights[k, i, j] = w
+        flag = int(0)
+        if ninfo < 3:
+            # fewer than 3 lit observations: normal and albedo are not determined together
+            flag = flag | FLAG_FEW_OBSERVATIONS
+        # ---- lighting sensitivity (3.13): conditioning of the valid light directions
+        gram = light_gram(weights, i, j, p, lights)
+        cnd = cond_frobenius(gram)
+        cond[i, j] = cnd
+        if cnd > prm.cond_threshold:
+            flag = flag | FLAG_ILL_CONDITIONED
+        # ---- Woodham least squares on the valid observations (I / E = kd (l . n))
+        use_all = int(0)
+        if cnd >= 1.0e29:
+            use_all = 1
+            flag = flag | FLAG_WOODHAM_FALLBACK
+        a = wp.mat33(0.0)
+        bc0 = wp.vec3(0.0)
+        bc1 = wp.vec3(0.0)
+        bc2 = wp.vec3(0.0)
         for k in range(nl_):
             if use_all != 0 or weights[k, i, j] > 0.0:
                 l = light_dir(lights, k, p)
                 e = light_radiance(lights, k, p)
                 o = images[k, i, j]
+                y = wp.vec3(0.0)
                 for c in range(3):
-                    r = o[c] - e[c] * kdw[c] * wp.dot(ninit, l)
-                    rs += r * r
-                ws += 3.0
-        if ws > 0.0:
-            residual[i, j] = wp.sqrt(rs / ws)
+                    if e[c] > 0.0:
+                        y[c] = o[c] / e[c]
+                a += wp.outer(l, l)
+                bc0 += y[0] * l
+                bc1 += y[1] * l
+                bc2 += y[2] * l
+        bg = bc0 + bc1 + bc2
+        ninit = v
+        kdw = wp.vec3(0.0)
+        det = wp.determinant(a)
+        fa = wp.sqrt(wp.ddot(a, a))
+        if wp.abs(det) > 1.0e-12 * fa * fa * fa and fa > 0.0:
+            ai = wp.inverse(a)
+            gvec = ai * bg
+            if wp.length(gvec) > 0.0:
+                ninit = wp.normalize(gvec)
+                kdw = wp.vec3(wp.dot(ai * bc0, ninit), wp.dot(ai * bc1, ninit), wp.dot(ai * bc2, ninit))
+        if prm.warm_start != 0:
+            nw = normals[i, j]
+            if wp.length(nw) > 0.5:
+                ninit = wp.normalize(nw)
+        if wp.static(method == "none"):
+            store_least_squares(ninit, kdw, flag, use_all, images, weights, px, lights, normals, albedo, residual, iterations, flags)
         else:
-            residual[i, j] = 0.0
-        iterations[i, j] = 0
-        flags[i, j] = flag
-        return
-    sol = solve_pixel(ninit, gmax, images, weights, px, lights, mat, prm)
-    store_solution(sol, flag, weights, px, nl_, normals, albedo, residual, iterations, flags)
+            if wp.static(method is None):
+                # generic build: run-time switch
+                if prm.method == NONE:
+                    store_least_squares(ninit, kdw, flag, use_all, images, weights, px, lights, normals, albedo, residual, iterations, flags)
+                    return
+            sol = solve_pixel(ninit, gmax, images, weights, px, lights, mat, prm)
+            store_solution(sol, flag, weights, px, nl_, normals, albedo, residual, iterations, flags)
+
+    if method == "none":
+        return solve_kernel, None
+
+    @wp.kernel(name="underdetermined_kernel" + sfx, module=module, enable_backward=False)
+    def underdetermined_kernel(
+        images: wp.array3d(dtype=wp.vec3),
+        mask: wp.array2d(dtype=wp.uint8),
+        depth: wp.array2d(dtype=wp.float32),
+        cam: CameraParams,
+        lights: LightParams,
+        mat: MaterialParams,
+        prm: SolverParams,
+        radius: int,
+        weights: wp.array3d(dtype=wp.float32),
+        normals: wp.array2d(dtype=wp.vec3),
+        albedo: wp.array2d(dtype=wp.vec3),
+        residual: wp.array2d(dtype=wp.float32),
+        iterations: wp.array2d(dtype=wp.int32),
+        flags: wp.array2d(dtype=wp.int32),
+    ):
+        """Second pass for pixels with fewer than 3 lit observations (attached shadows).
+
+        Two observations cannot fix a normal (2 dof) and an albedo together, so the
+        albedo is held at the mean albedo of the nearest well-determined pixels
+        (searched in growing square rings up to ``radius``, then 2 rings more; albedo
+        varies slowly) and the normal is re-solved with all starts.  A weak prior
+        toward those pixels' mean normal (weight 1e-3 of the data's scale) breaks
+        the remaining ties (the two mirror solutions of 2 observations, the cone of
+        solutions of 1).  Only flagged pixels are written and only unflagged ones
+        are read, so threads do not race.
+        """
+        i, j = wp.tid()
+        if mask[i, j] == wp.uint8(0) or prm.method == NONE:
+            return
+        f = flags[i, j]
+        if (f & FLAG_FEW_OBSERVATIONS) == 0:
+            return
+        h = mask.shape[0]
+        w = mask.shape[1]
+        acc = wp.vec3(0.0)
+        nacc = wp.vec3(0.0)
+        cnt = float(0.0)
+        r_stop = radius
+        for r in range(1, radius + 1):
+            if r > r_stop:
+                break
+            for t in range(8 * r):
+                # walk the square ring of radius r
+                side = t / (2 * r)
+                o = t % (2 * r)
+                di = int(0)
+                dj = int(0)
+                if side == 0:
+                    di = -r
+                    dj = -r + o
+                elif side == 1:
+                    di = -r + o
+                    dj = r
+                elif side == 2:
+                    di = r
+                    dj = r - o
+                else:
+                    di = r - o
+                    dj = -r
+                ii = i + di
+                jj = j + dj
+                if ii >= 0 and ii < h and jj >= 0 and jj < w:
+                    if mask[ii, jj] != wp.uint8(0) and (flags[ii, jj] & FLAG_FEW_OBSERVATIONS) == 0:
+                        acc += albedo[ii, jj]
+                        nacc += normals[ii, jj]
+                        cnt += 1.0
+            if cnt > 0.0 and r_stop == radius:
+                r_stop = wp.min(r + 2, radius)
+        if cnt == 0.0:
+            return
+        px = make_pixel(cam, depth, i, j, prm)
+        px.fix_kd = 1
+        px.kd = acc / cnt
+        gmax = float(0.0)
+        for k in range(lights.count):
+            gmax = wp.max(gmax, grey(images[k, i, j]))
+        ninit = normals[i, j]
+        if wp.length(nacc) > 0.0:
+            px.prior_n = wp.normalize(nacc)
+            px.prior_w = 1.0e-3 * gmax * gmax
+            ninit = px.prior_n
+        sol = solve_pixel(ninit, gmax, images, weights, px, lights, mat, prm)
+        sol.total = sol.total + iterations[i, j]
+        store_solution(sol, f | FLAG_ALBEDO_FROM_NEIGHBOURS, weights, px, lights.count, normals, albedo, residual, iterations, flags)
+
+    return solve_kernel, underdetermined_kernel
 
 
-@wp.kernel
-def underdetermined_kernel(
-    images: wp.array3d(dtype=wp.vec3),
-    mask: wp.array2d(dtype=wp.uint8),
-    depth: wp.array2d(dtype=wp.float32),
-    cam: CameraParams,
-    lights: LightParams,
-    mat: MaterialParams,
-    prm: SolverParams,
-    radius: int,
-    weights: wp.array3d(dtype=wp.float32),
-    normals: wp.array2d(dtype=wp.vec3),
-    albedo: wp.array2d(dtype=wp.vec3),
-    residual: wp.array2d(dtype=wp.float32),
-    iterations: wp.array2d(dtype=wp.int32),
-    flags: wp.array2d(dtype=wp.int32),
-):
-    """Second pass for pixels with fewer than 3 lit observations (attached shadows).
+_KERNELS: dict = {}
 
-    Two observations cannot fix a normal (2 dof) and an albedo together, so the
-    albedo is held at the mean albedo of the nearest well-determined pixels
-    (searched in growing square rings up to ``radius``, then 2 rings more; albedo
-    varies slowly) and the normal is re-solved with all starts.  A weak prior
-    toward those pixels' mean normal (weight 1e-3 of the data's scale) breaks
-    the remaining ties (the two mirror solutions of 2 observations, the cone of
-    solutions of 1).  Only flagged pixels are written and only unflagged ones
-    are read, so threads do not race.
+
+def specialisation_key(method, brdf, robust) -> tuple:
+    """The normalised ``(method, brdf, robust)`` that :func:`get_solve_kernels` builds for these settings.
+
+    Solver ``"none"`` (Woodham only) uses neither the model nor the loss, so it
+    has one build.  ``None`` (any of them): run-time switch (the generic build).
     """
-    i, j = wp.tid()
-    if mask[i, j] == wp.uint8(0) or prm.method == NONE:
-        return
-    f = flags[i, j]
-    if (f & FLAG_FEW_OBSERVATIONS) == 0:
-        return
-    h = mask.shape[0]
-    w = mask.shape[1]
-    acc = wp.vec3(0.0)
-    nacc = wp.vec3(0.0)
-    cnt = float(0.0)
-    r_stop = radius
-    for r in range(1, radius + 1):
-        if r > r_stop:
-            break
-        for t in range(8 * r):
-            # walk the square ring of radius r
-            side = t / (2 * r)
-            o = t % (2 * r)
-            di = int(0)
-            dj = int(0)
-            if side == 0:
-                di = -r
-                dj = -r + o
-            elif side == 1:
-                di = -r + o
-                dj = r
-            elif side == 2:
-                di = r
-                dj = r - o
-            else:
-                di = r - o
-                dj = -r
-            ii = i + di
-            jj = j + dj
-            if ii >= 0 and ii < h and jj >= 0 and jj < w:
-                if mask[ii, jj] != wp.uint8(0) and (flags[ii, jj] & FLAG_FEW_OBSERVATIONS) == 0:
-                    acc += albedo[ii, jj]
-                    nacc += normals[ii, jj]
-                    cnt += 1.0
-        if cnt > 0.0 and r_stop == radius:
-            r_stop = wp.min(r + 2, radius)
-    if cnt == 0.0:
-        return
-    px = make_pixel(cam, depth, i, j, prm)
-    px.fix_kd = 1
-    px.kd = acc / cnt
-    gmax = float(0.0)
-    for k in range(lights.count):
-        gmax = wp.max(gmax, grey(images[k, i, j]))
-    ninit = normals[i, j]
-    if wp.length(nacc) > 0.0:
-        px.prior_n = wp.normalize(nacc)
-        px.prior_w = 1.0e-3 * gmax * gmax
-        ninit = px.prior_n
-    sol = solve_pixel(ninit, gmax, images, weights, px, lights, mat, prm)
-    sol.total = sol.total + iterations[i, j]
-    store_solution(sol, f | FLAG_ALBEDO_FROM_NEIGHBOURS, weights, px, lights.count, normals, albedo, residual, iterations, flags)
+    if method is not None and method not in METHODS:
+        raise ValueError(f"method: expected one of {list(METHODS)} or None, got {method!r}")
+    if brdf is not None and brdf not in BRDFS:
+        raise ValueError(f"brdf: expected one of {list(BRDFS)} or None, got {brdf!r}")
+    if robust is not None and robust not in ROBUST:
+        raise ValueError(f"robust: expected one of {list(ROBUST)} or None, got {robust!r}")
+    if method == "none":
+        brdf, robust = "lambertian", "none"
+    return method, brdf, robust
+
+
+def module_name(method, brdf, robust) -> str:
+    """Name of the Warp module holding the kernels of one specialisation."""
+    method, brdf, robust = specialisation_key(method, brdf, robust)
+    tag = "_".join("any" if s is None else s.replace("-", "_") for s in (method, brdf, robust))
+    return f"gpps.kernels.solve.{tag}"
+
+
+def get_solve_kernels(method, brdf, robust="none"):
+    """``(solve_kernel, underdetermined_kernel)`` specialised for one solver, reflectance model and robust loss.
+
+    Args:
+        method: ``"none"``, ``"lm"``, ``"dogleg"`` or ``"bfgs"`` (None: run-time ``prm.method``).
+        brdf: a :data:`gpps.material.BRDF_NAMES` name (None: run-time ``mat.model``).
+        robust: ``"none"``, ``"huber"`` or ``"cauchy"`` (None: run-time ``prm.robust``);
+            ``"none"`` emits no IRLS round (``prm.irls_rounds`` must be 0).
+
+    The pair is built once per normalised key (:func:`specialisation_key`) and
+    cached; each pair lives in its own Warp module (:func:`module_name`), compiled
+    on first launch or by ``wp.load_module``.  ``underdetermined_kernel`` is
+    None for ``method="none"``.  ``prm.method`` / ``mat.model`` / ``prm.robust``
+    must agree with the specialisation (:class:`gpps.pipeline.solver.PixelSolver`
+    sees to it).
+    """
+    key = specialisation_key(method, brdf, robust)
+    ks = _KERNELS.get(key)
+    if ks is None:
+        name = module_name(*key)
+        ks = _make_kernels(*key, module_name=name, sfx="__" + name.rsplit(".", 1)[1])
+        _KERNELS[key] = ks
+    return ks
+
+
+def __getattr__(name):
+    # the former monolithic kernels: the generic build (run-time switches), made on first access
+    if name == "solve_kernel":
+        return get_solve_kernels(None, None, None)[0]
+    if name == "underdetermined_kernel":
+        return get_solve_kernels(None, None, None)[1]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

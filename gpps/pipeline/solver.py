@@ -233,6 +233,7 @@ class PixelSolver:
         self.material = material
         self.mp = material_params(material)
         self.prm = self._params(self.config)
+        self._select_kernels()
         d = self.device
         self.images = wp.zeros((n, h, w), dtype=wp.vec3, device=d)
         self.mask = wp.zeros((h, w), dtype=wp.uint8, device=d)
@@ -268,15 +269,32 @@ class PixelSolver:
         p.lit_threshold = float(c.lit_threshold)
         return p
 
+    def _select_kernels(self) -> None:
+        """Pick the kernels specialised for the current solver, reflectance model and robust loss.
+
+        Built once per process and specialisation (:func:`gpps.kernels.solve.get_solve_kernels`);
+        compiled on the first launch (or ``wp.load_module(kernel.module)``).
+        """
+        c = self.config
+        robust = c.robust if c.irls_rounds > 0 else "none"  # no reweighting round: no IRLS code
+        self._solve_kernel, self._underdetermined_kernel = self._sk.get_solve_kernels(c.solver, self.material.brdf, robust)
+
+    @property
+    def kernels(self) -> tuple:
+        """``(solve_kernel, underdetermined_kernel)`` that :meth:`launch` uses (the second None for solver "none")."""
+        return self._solve_kernel, self._underdetermined_kernel
+
     def set_config(self, config: SolverConfig) -> None:
         if not isinstance(config, SolverConfig):
             raise TypeError(f"config: expected PixelSolver.Config, got {type(config).__name__}")
         self.config = config
         self.prm = self._params(config)
+        self._select_kernels()
 
     def set_material(self, material: Material) -> None:
         self.material = material
         self.mp = material_params(material)
+        self._select_kernels()
 
     # ------------------------------------------------------------------ per frame
 
@@ -332,15 +350,15 @@ class PixelSolver:
     def launch(self) -> None:
         """Solve all pixels from the current buffers: two kernel launches, no host sync (graph-capturable)."""
         warp().launch(
-            self._sk.solve_kernel,
+            self._solve_kernel,
             dim=self.shape[1:],
             inputs=[self.images, self.mask, self.valid, self.depth, self.cam, self.lp, self.mp, self.prm],
             outputs=[self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags, self.cond],
             device=self.device,
         )
-        if self.config.neighbour_radius > 0 and self.config.solver != "none":
+        if self.config.neighbour_radius > 0 and self._underdetermined_kernel is not None:
             warp().launch(
-                self._sk.underdetermined_kernel,
+                self._underdetermined_kernel,
                 dim=self.shape[1:],
                 inputs=[self.images, self.mask, self.depth, self.cam, self.lp, self.mp, self.prm, int(self.config.neighbour_radius)],
                 outputs=[self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags],
