@@ -9,7 +9,7 @@ import numpy as np
 BRDFS = ["lambertian", "phong", "blinn-phong", "cook-torrance", "ashikhmin-shirley"]
 
 
-def make_case(scene_name, size, camera, light_kind, brdf, noise=0.0, device="cpu"):
+def make_case(scene_name, size, camera, light_kind, brdf, noise=0.0, device=None):
     """(images divided by intensities, unit-intensity lights, scene, material)."""
     from gpps.lights import DirectionalLights, PointLights
     from gpps.material import Material
@@ -25,7 +25,7 @@ def make_case(scene_name, size, camera, light_kind, brdf, noise=0.0, device="cpu
     return img, Lu, sc, mat
 
 
-def run_case(scene_name, size, camera, light_kind, brdf, *, noise=0.0, solver="lm", device="cpu"):
+def run_case(scene_name, size, camera, light_kind, brdf, *, noise=0.0, solver="lm", device=None):
     from gpps.metrics import normal_errors
     from gpps.photometric import solve_normals
 
