@@ -140,7 +140,7 @@ def test_slant_tilt_definitions():
 # ----------------------------------------------------------------------------- specialised kernels
 
 
-def test_specialised_kernels_cached_and_selected():
+def test_specialised_kernels_cached_and_selected(device):
     """One cached kernel pair per (solver, brdf, robust) in its own Warp module; PixelSolver follows config and material."""
     from gpps.kernels import solve as sk
     from gpps.material import Material
