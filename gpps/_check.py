@@ -76,3 +76,20 @@ def albedo_map(name, a, shape) -> np.ndarray:
     if np.any(arr < 0):
         raise ValueError(f"{name}: expected values >= 0")
     return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+def check_number(name, v, lo=None, hi=None, integer=False, lo_open=False):
+    """``v`` as a finite float (or int), checked against ``lo`` / ``hi``; ValueError/TypeError naming ``name``."""
+    try:
+        x = int(v) if integer else float(v)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name}: expected a {'integer' if integer else 'number'}, got {v!r}") from None
+    if integer and x != v:
+        raise TypeError(f"{name}: expected an integer, got {v!r}")
+    if not np.isfinite(x):
+        raise ValueError(f"{name}: expected a finite number, got {v!r}")
+    if lo is not None and (x < lo or (lo_open and x == lo)):
+        raise ValueError(f"{name}: expected {'>' if lo_open else '>='} {lo}, got {v!r}")
+    if hi is not None and x > hi:
+        raise ValueError(f"{name}: expected <= {hi}, got {v!r}")
+    return x

@@ -5,27 +5,14 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from typing import Literal, get_args
 
-import numpy as np
+
+from gpps._check import check_number
 
 BRDF = Literal["lambertian", "phong", "blinn-phong", "cook-torrance", "ashikhmin-shirley"]
 BRDF_NAMES: tuple[str, ...] = get_args(BRDF)
 _DEVICE_TAG = {name: i for i, name in enumerate(BRDF_NAMES)}  # matches gpps.kernels.brdf constants
 
 __all__ = ["Material", "BRDF", "BRDF_NAMES"]
-
-
-def _check_real(name, value, lo=None, hi=None, lo_open=False):
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name}: expected a real number, got {value!r}") from None
-    if not np.isfinite(v):
-        raise ValueError(f"{name}: expected a finite number, got {value!r}")
-    if lo is not None and (v < lo or (lo_open and v == lo)):
-        raise ValueError(f"{name}: expected {'>' if lo_open else '>='} {lo}, got {value!r}")
-    if hi is not None and v > hi:
-        raise ValueError(f"{name}: expected <= {hi}, got {value!r}")
-    return v
 
 
 @dataclass(frozen=True)
@@ -54,12 +41,12 @@ class Material:
     def __post_init__(self):
         if self.brdf not in BRDF_NAMES:
             raise ValueError(f"brdf: expected one of {list(BRDF_NAMES)}, got {self.brdf!r}")
-        object.__setattr__(self, "ks", _check_real("ks", self.ks, lo=0.0))
-        object.__setattr__(self, "shininess", _check_real("shininess", self.shininess, lo=0.0, lo_open=True))
-        object.__setattr__(self, "roughness", _check_real("roughness", self.roughness, lo=0.0, lo_open=True))
-        object.__setattr__(self, "f0", _check_real("f0", self.f0, lo=0.0, hi=1.0))
-        object.__setattr__(self, "eta_u", _check_real("eta_u", self.eta_u, lo=0.0, lo_open=True))
-        object.__setattr__(self, "eta_v", _check_real("eta_v", self.eta_v, lo=0.0, lo_open=True))
+        object.__setattr__(self, "ks", check_number("ks", self.ks, lo=0.0))
+        object.__setattr__(self, "shininess", check_number("shininess", self.shininess, lo=0.0, lo_open=True))
+        object.__setattr__(self, "roughness", check_number("roughness", self.roughness, lo=0.0, lo_open=True))
+        object.__setattr__(self, "f0", check_number("f0", self.f0, lo=0.0, hi=1.0))
+        object.__setattr__(self, "eta_u", check_number("eta_u", self.eta_u, lo=0.0, lo_open=True))
+        object.__setattr__(self, "eta_v", check_number("eta_v", self.eta_v, lo=0.0, lo_open=True))
 
     @property
     def device_tag(self) -> int:

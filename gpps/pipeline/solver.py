@@ -13,7 +13,7 @@ from typing import Literal, get_args
 
 import numpy as np
 
-from gpps._check import as_array, as_mask
+from gpps._check import check_number, as_array, as_mask
 from gpps._runtime import resolve_device, warp
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
@@ -49,20 +49,6 @@ __all__ = [
 ]
 
 
-def _num(name, v, lo=None, hi=None, integer=False, lo_open=False):
-    try:
-        x = int(v) if integer else float(v)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name}: expected a {'integer' if integer else 'number'}, got {v!r}") from None
-    if integer and x != v:
-        raise TypeError(f"{name}: expected an integer, got {v!r}")
-    if not np.isfinite(x):
-        raise ValueError(f"{name}: expected a finite number, got {v!r}")
-    if lo is not None and (x < lo or (lo_open and x == lo)):
-        raise ValueError(f"{name}: expected {'>' if lo_open else '>='} {lo}, got {v!r}")
-    if hi is not None and x > hi:
-        raise ValueError(f"{name}: expected <= {hi}, got {v!r}")
-    return x
 
 
 @dataclass(frozen=True)
@@ -134,21 +120,21 @@ class SolverConfig:
             raise ValueError(f"robust: expected one of {list(ROBUST_NAMES)}, got {self.robust!r}")
         if self.albedo not in get_args(AlbedoMode):
             raise ValueError(f"albedo: expected one of {list(get_args(AlbedoMode))}, got {self.albedo!r}")
-        _num("max_iters", self.max_iters, lo=1, integer=True)
-        _num("starts", self.starts, lo=1, integer=True)
-        _num("irls_rounds", self.irls_rounds, lo=0, integer=True)
-        _num("neighbour_radius", self.neighbour_radius, lo=0, hi=256, integer=True)
-        _num("start_angle_deg", self.start_angle_deg, lo=0.0, hi=45.0)
-        _num("tol_step", self.tol_step, lo=0.0)
-        _num("tol_grad", self.tol_grad, lo=0.0)
-        _num("robust_scale", self.robust_scale, lo=0.0, lo_open=True)
-        _num("shadow_threshold", self.shadow_threshold, lo=0.0, hi=1.0)
+        check_number("max_iters", self.max_iters, lo=1, integer=True)
+        check_number("starts", self.starts, lo=1, integer=True)
+        check_number("irls_rounds", self.irls_rounds, lo=0, integer=True)
+        check_number("neighbour_radius", self.neighbour_radius, lo=0, hi=256, integer=True)
+        check_number("start_angle_deg", self.start_angle_deg, lo=0.0, hi=45.0)
+        check_number("tol_step", self.tol_step, lo=0.0)
+        check_number("tol_grad", self.tol_grad, lo=0.0)
+        check_number("robust_scale", self.robust_scale, lo=0.0, lo_open=True)
+        check_number("shadow_threshold", self.shadow_threshold, lo=0.0, hi=1.0)
         if self.saturation is not None:
-            _num("saturation", self.saturation, lo=0.0, lo_open=True)
-        _num("lit_threshold", self.lit_threshold, lo=0.0, hi=1.0)
-        _num("cond_threshold", self.cond_threshold, lo=1.0)
-        _num("lm_tau", self.lm_tau, lo=0.0, lo_open=True)
-        _num("dogleg_radius", self.dogleg_radius, lo=0.0, lo_open=True)
+            check_number("saturation", self.saturation, lo=0.0, lo_open=True)
+        check_number("lit_threshold", self.lit_threshold, lo=0.0, hi=1.0)
+        check_number("cond_threshold", self.cond_threshold, lo=1.0)
+        check_number("lm_tau", self.lm_tau, lo=0.0, lo_open=True)
+        check_number("dogleg_radius", self.dogleg_radius, lo=0.0, lo_open=True)
 
 
 def _directions_at(lights, point: np.ndarray) -> np.ndarray:
