@@ -29,21 +29,17 @@ from gpps.kernels.brdf import (
     PI,
     MaterialParams,
     schlick,
+    tangent_frame_u,
 )
-
 
 # --------------------------------------------------------------------------- chart
 
 mat32 = wp.types.matrix(shape=(3, 2), dtype=wp.float32)
 
 
-@wp.func
-def tangent_basis_t1(n: wp.vec3):
-    """A unit vector orthogonal to ``n`` (continuous away from n = +-x)."""
-    a = wp.vec3(1.0, 0.0, 0.0)
-    if wp.abs(n[0]) > 0.9:
-        a = wp.vec3(0.0, 1.0, 0.0)
-    return wp.normalize(a - wp.dot(a, n) * n)
+# A unit vector orthogonal to n (continuous away from n = +-x): the same tangent as the
+# Ashikhmin-Shirley frame, so the chart and the anisotropic lobe share one definition.
+tangent_basis_t1 = tangent_frame_u
 
 
 @wp.func
