@@ -410,6 +410,37 @@ def _solver_funcs(method, brdf, robust, module=None, sfx: str = ""):
     """
     spec_vg = _specular_value_grad_for(brdf, module, sfx)
 
+    @wp.func(name="light_terms" + sfx, module=module)
+    def light_terms(
+        images: wp.array3d(dtype=wp.vec3),
+        lights: LightParams,
+        mat: MaterialParams,
+        k: int,
+        i: int,
+        j: int,
+        p: wp.vec3,
+        n: wp.vec3,
+        v: wp.vec3,
+        dn0: wp.vec3,
+        dn1: wp.vec3,
+    ):
+        """Light k at the pixel: radiance, observation, diffuse and specular values and their chart derivatives."""
+        l = light_dir(lights, k, p)
+        dg = diffuse_value_grad(n, l)
+        sg = spec_vg(mat, n, l, v)
+        gd = wp.vec3(dg[1], dg[2], dg[3])
+        gs = wp.vec3(sg[1], sg[2], sg[3])
+        return (
+            light_radiance(lights, k, p),
+            images[k, i, j],
+            dg[0],
+            sg[0],
+            wp.dot(gd, dn0),
+            wp.dot(gd, dn1),
+            wp.dot(gs, dn0),
+            wp.dot(gs, dn1),
+        )
+
     @wp.func(name="evaluate" + sfx, module=module)
     def evaluate(
         n0: wp.vec3,
@@ -422,7 +453,13 @@ def _solver_funcs(method, brdf, robust, module=None, sfx: str = ""):
         lights: LightParams,
         mat: MaterialParams,
     ):
-        """Variable-projection evaluation of the reduced cost at ``n(x)`` (4.2 with kd eliminated)."""
+        """Variable-projection evaluation of the reduced cost at ``n(x)`` (4.2 with kd eliminated).
+
+        Two passes over the lights: the albedo's normal equations (and their
+        derivatives) must be complete before the residuals can be formed, so
+        ``light_terms`` is evaluated twice per light; caching it would need
+        per-light scratch memory (N is a run-time size).
+        """
         i = px.i
         j = px.j
         p = px.p
@@ -444,21 +481,11 @@ def _solver_funcs(method, brdf, robust, module=None, sfx: str = ""):
         for k in range(lights.count):
             w = weights[k, i, j]
             if w > 0.0:
-                l = light_dir(lights, k, p)
-                e = light_radiance(lights, k, p)
-                obs = images[k, i, j]
-                dg = diffuse_value_grad(n, l)
-                sg = spec_vg(mat, n, l, v)
-                gd = wp.vec3(dg[1], dg[2], dg[3])
-                gs = wp.vec3(sg[1], sg[2], sg[3])
-                da0 = wp.dot(gd, dn0)
-                da1 = wp.dot(gd, dn1)
-                ds0 = wp.dot(gs, dn0)
-                ds1 = wp.dot(gs, dn1)
+                e, obs, dval, sval, da0, da1, ds0, ds1 = light_terms(images, lights, mat, k, i, j, p, n, v, dn0, dn1)
                 wsum += w
                 for c in range(3):
-                    a = e[c] * dg[0]
-                    y = obs[c] - e[c] * ks * sg[0]
+                    a = e[c] * dval
+                    y = obs[c] - e[c] * ks * sval
                     a0 = e[c] * da0
                     a1 = e[c] * da1
                     y0 = -e[c] * ks * ds0
@@ -495,20 +522,10 @@ def _solver_funcs(method, brdf, robust, module=None, sfx: str = ""):
         for k in range(lights.count):
             w = weights[k, i, j]
             if w > 0.0:
-                l = light_dir(lights, k, p)
-                e = light_radiance(lights, k, p)
-                obs = images[k, i, j]
-                dg = diffuse_value_grad(n, l)
-                sg = spec_vg(mat, n, l, v)
-                gd = wp.vec3(dg[1], dg[2], dg[3])
-                gs = wp.vec3(sg[1], sg[2], sg[3])
-                da0 = wp.dot(gd, dn0)
-                da1 = wp.dot(gd, dn1)
-                ds0 = wp.dot(gs, dn0)
-                ds1 = wp.dot(gs, dn1)
+                e, obs, dval, sval, da0, da1, ds0, ds1 = light_terms(images, lights, mat, k, i, j, p, n, v, dn0, dn1)
                 for c in range(3):
-                    a = e[c] * dg[0]
-                    r = obs[c] - e[c] * ks * sg[0] - kd[c] * a
+                    a = e[c] * dval
+                    r = obs[c] - e[c] * ks * sval - kd[c] * a
                     j0 = -e[c] * ks * ds0 - dkd0[c] * a - kd[c] * e[c] * da0
                     j1 = -e[c] * ks * ds1 - dkd1[c] * a - kd[c] * e[c] * da1
                     cost += 0.5 * w * r * r
