@@ -25,7 +25,8 @@ def make_case(scene_name, size, camera, light_kind, brdf, noise=0.0, device=None
     return img, Lu, sc, mat
 
 
-def run_case(scene_name, size, camera, light_kind, brdf, *, noise=0.0, solver="lm", device=None):
+def run_case(scene_name, size, camera, light_kind, brdf, *, noise=0.0, solver="lm", device=None, **options):
+    """Solve one rendered case with least squares and ``solver`` (``options``: further SolverConfig fields); errors and time."""
     from gpps.metrics import normal_errors
     from gpps.photometric import solve_normals
 
@@ -33,7 +34,7 @@ def run_case(scene_name, size, camera, light_kind, brdf, *, noise=0.0, solver="l
     depth = sc.depth if light_kind == "point" else None
     ls = solve_normals(img, sc.mask, L, camera=sc.camera, material=mat, solver="none", depth=depth, device=device)
     t = time.perf_counter()
-    nl = solve_normals(img, sc.mask, L, camera=sc.camera, material=mat, solver=solver, depth=depth, device=device)
+    nl = solve_normals(img, sc.mask, L, camera=sc.camera, material=mat, solver=solver, depth=depth, device=device, **options)
     dt = time.perf_counter() - t
     e_ls = normal_errors(ls.normals, sc.normals, sc.mask)
     e_nl = normal_errors(nl.normals, sc.normals, sc.mask)
@@ -51,6 +52,9 @@ def run_case(scene_name, size, camera, light_kind, brdf, *, noise=0.0, solver="l
         "under_5deg": e_nl["under_5deg"],
         "slant_mae": e_nl["slant_mae"],
         "tilt_mae": e_nl["tilt_mae"],
+        "maen_determined": normal_errors(nl.normals, sc.normals, sc.mask & ((nl.flags & 2) == 0))["mean"],
+        "underdetermined_fraction": float(((nl.flags & 2) != 0)[sc.mask].mean()),
+        "options": dict(options),
         "mean_iterations": float(nl.iterations[sc.mask].mean()),
         "seconds": dt,
     }

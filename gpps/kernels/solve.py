@@ -1028,7 +1028,7 @@ def _make_kernels(method, brdf, robust, module_name: str, sfx: str):
             store_solution(sol, flag, weights, px, nl_, normals, albedo, residual, iterations, flags)
 
     if method == "none":
-        return solve_kernel, None
+        return solve_kernel, None, None
 
     @wp.kernel(name="underdetermined_kernel" + sfx, module=module, enable_backward=False)
     def underdetermined_kernel(
@@ -1117,7 +1117,93 @@ def _make_kernels(method, brdf, robust, module_name: str, sfx: str):
         sol.total = sol.total + iterations[i, j]
         store_solution(sol, f | FLAG_ALBEDO_FROM_NEIGHBOURS, weights, px, lights.count, normals, albedo, residual, iterations, flags)
 
-    return solve_kernel, underdetermined_kernel
+    @wp.kernel(name="smooth_kernel" + sfx, module=module, enable_backward=False)
+    def smooth_kernel(
+        images: wp.array3d(dtype=wp.vec3),
+        mask: wp.array2d(dtype=wp.uint8),
+        depth: wp.array2d(dtype=wp.float32),
+        cam: CameraParams,
+        lights: LightParams,
+        mat: MaterialParams,
+        prm: SolverParams,
+        strength: float,
+        parity: int,
+        flags: wp.array2d(dtype=wp.int32),
+        weights: wp.array3d(dtype=wp.float32),
+        normals: wp.array2d(dtype=wp.vec3),
+        albedo: wp.array2d(dtype=wp.vec3),
+        residual: wp.array2d(dtype=wp.float32),
+        iterations: wp.array2d(dtype=wp.int32),
+    ):
+        """One red-black Gauss-Seidel half-sweep of the smoothness-regularised fit.
+
+        Minimises, over the whole normal field (seed 4.2 plus a first-order
+        smoothness term),
+
+            E = sum_p 1/2 sum_k w_k |I_k(p) - model(n_p)|^2 + strength/2 sum_(p~q) |n_p - n_q|^2
+
+        over 4-neighbour pairs inside the mask.  With the neighbours held fixed,
+        the terms of pixel p are its data cost plus ``strength * m / 2 |n_p - nbar|^2``
+        (``m`` neighbours, ``nbar`` their mean, not normalised): exactly the
+        solver's prior with ``prior_w = strength * m``.  Pixels with
+        ``(i + j) % 2 == parity`` are updated in place from a warm start (one
+        start, the observation weights of the main solve); they only read
+        pixels of the other colour, so threads do not race.  Pixels whose
+        albedo came from their neighbours (``FLAG_ALBEDO_FROM_NEIGHBOURS``)
+        keep it: fewer than 3 lit observations cannot fix it.
+        """
+        i, j = wp.tid()
+        if (i + j) % 2 != parity:
+            return
+        if mask[i, j] == wp.uint8(0):
+            return
+        h = mask.shape[0]
+        w = mask.shape[1]
+        acc = wp.vec3(0.0)
+        cnt = float(0.0)
+        if i > 0:
+            if mask[i - 1, j] != wp.uint8(0):
+                acc += normals[i - 1, j]
+                cnt += 1.0
+        if i + 1 < h:
+            if mask[i + 1, j] != wp.uint8(0):
+                acc += normals[i + 1, j]
+                cnt += 1.0
+        if j > 0:
+            if mask[i, j - 1] != wp.uint8(0):
+                acc += normals[i, j - 1]
+                cnt += 1.0
+        if j + 1 < w:
+            if mask[i, j + 1] != wp.uint8(0):
+                acc += normals[i, j + 1]
+                cnt += 1.0
+        if cnt == 0.0:
+            return
+        px = make_pixel(cam, depth, i, j, prm)
+        px.prior_n = acc / cnt
+        px.prior_w = strength * cnt
+        if (flags[i, j] & FLAG_ALBEDO_FROM_NEIGHBOURS) != 0:
+            # under-determined pixel: keep the albedo the neighbour pass gave it
+            px.fix_kd = 1
+            px.kd = albedo[i, j]
+        n0 = normals[i, j]
+        if wp.length(n0) < 0.5:
+            n0 = px.v
+        res = run_method(wp.normalize(n0), images, weights, px, lights, mat, prm)
+        if wp.dot(res.n, px.v) > 0.0:
+            normals[i, j] = res.n
+            albedo[i, j] = res.kd
+            wsum = float(0.0)
+            for k in range(lights.count):
+                wsum += weights[k, i, j]
+            if wsum > 0.0:
+                # data part of the RMS residual (the prior's share removed)
+                dp = res.n - px.prior_n
+                c = wp.max(res.cost - 0.5 * px.prior_w * wp.dot(dp, dp), 0.0)
+                residual[i, j] = wp.sqrt(2.0 * c / (3.0 * wsum))
+        iterations[i, j] = iterations[i, j] + res.iters
+
+    return solve_kernel, underdetermined_kernel, smooth_kernel
 
 
 _KERNELS: dict = {}
@@ -1148,7 +1234,7 @@ def module_name(method, brdf, robust) -> str:
 
 
 def get_solve_kernels(method, brdf, robust="none"):
-    """``(solve_kernel, underdetermined_kernel)`` specialised for one solver, reflectance model and robust loss.
+    """``(solve_kernel, underdetermined_kernel, smooth_kernel)`` specialised for one solver, reflectance model and robust loss.
 
     Args:
         method: ``"none"``, ``"lm"``, ``"dogleg"`` or ``"bfgs"`` (None: run-time ``prm.method``).
@@ -1159,7 +1245,7 @@ def get_solve_kernels(method, brdf, robust="none"):
     The pair is built once per normalised key (:func:`specialisation_key`) and
     cached; each pair lives in its own Warp module (:func:`module_name`), compiled
     on first launch or by ``wp.load_module``.  ``underdetermined_kernel`` is
-    None for ``method="none"``.  ``prm.method`` / ``mat.model`` / ``prm.robust``
+    None for ``method="none"``, and so is ``smooth_kernel``.  ``prm.method`` / ``mat.model`` / ``prm.robust``
     must agree with the specialisation (:class:`gpps.pipeline.solver.PixelSolver`
     sees to it).
     """
@@ -1176,6 +1262,8 @@ def __getattr__(name):
     # the former monolithic kernels: the generic build (run-time switches), made on first access
     if name == "solve_kernel":
         return get_solve_kernels(None, None, None)[0]
+    if name == "smooth_kernel":
+        return get_solve_kernels(None, None, None)[2]
     if name == "underdetermined_kernel":
         return get_solve_kernels(None, None, None)[1]
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
