@@ -1,0 +1,251 @@
+"""Fused Taichi kernels of the streaming Poisson integrator: few launches per frame.
+
+Same discrete problem, field layout and multigrid as :mod:`gpps.kernels.poisson`
+(packed levels side by side, 2x2 aggregation, damped Jacobi smoothing, an exact
+pseudo-inverse on the coarsest level, float64 accumulators for the conjugate
+gradient scalars), but the level geometry is fixed when the kernels are built,
+so a whole preconditioned-CG iteration (``A p``, the updates, every level of
+the V-cycle, the new direction) is *one* Taichi kernel: its top-level loops are
+unrolled with ``ti.static`` and run as consecutive parallel tasks of a single
+launch.  At real-time rates the Python launch (about 20-45 us a kernel on an
+H200, see ``../shared/device/README.md``) otherwise costs more than the work.
+
+:func:`make_fused` builds the kernels for one set of fields and one geometry;
+the fields are closed over (not passed), so each instance of
+:class:`gpps.pipeline.integration_device.StreamIntegrator` compiles its own.
+Only device code lives here.
+"""
+
+from gpps._taichi import ti
+from gpps.kernels.poisson import ALPHA, PQ, RR, RZ, RZN, _jacobi_point, _mul, _neigh, _sq
+
+
+def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspective: bool):
+    """Build the fused kernels over the fields ``F`` for the level geometry ``geo``.
+
+    Args:
+        F: Taichi fields: ``wx, wy, dg, e, f, t`` (packed levels, (H, sum W_k)),
+            ``z, b, r, p, q`` (level 0, (H, W)), ``sc`` (f64 scalars), ``pinv``,
+            ``cidx`` (coarsest level), ``lab`` (component label per pixel, -1
+            outside), ``csum, cden`` (f64 per-component accumulators), ``ccnt``
+            (pixels per component).
+        geo: ``[(off, h, w), ...]`` per level, level 0 first.
+        npairs: Jacobi sweep pairs before and after each coarse correction.
+        omega: Jacobi damping.
+        nc: active cells of the coarsest level.
+        perspective: the unknown is log-depth (PPN gradients, depth = exp).
+
+    Returns:
+        dict of kernels: ``rhs(nrm, fx, fy, cx, cy, s, min_nz)``,
+        ``pcg_begin()``, ``pcg_iteration()``, ``residual()``,
+        ``finish(out, reference)``, ``load(depth)`` (warm start from a depth map).
+    """
+    L = len(geo)
+    h0, w0 = geo[0][1], geo[0][2]
+    wx, wy, dg, e, f, t = F["wx"], F["wy"], F["dg"], F["e"], F["f"], F["t"]
+    z, b, r, p, q, sc = F["z"], F["b"], F["r"], F["p"], F["q"], F["sc"]
+    pinv, cidx, lab, csum, cden, ccnt = F["pinv"], F["cidx"], F["lab"], F["csum"], F["cden"], F["ccnt"]
+    ncomp = ccnt.shape[0]
+    om = omega
+
+    @ti.func
+    def vcycle():
+        """e = M f (one V-cycle from e = 0); every level unrolled, each loop a parallel task."""
+        for k in ti.static(range(L - 1)):
+            off, h, w = ti.static(geo[k])
+            offc, hc, wc = ti.static(geo[k + 1])
+            for _ in ti.static(range(npairs)):
+                for i, j in ti.ndrange(h, w):
+                    t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, om)
+                for i, j in ti.ndrange(h, w):
+                    e[i, off + j] = _jacobi_point(t, f, wx, wy, dg, i, j, off, h, w, om)
+            for i, j in ti.ndrange(h, w):
+                d = dg[i, off + j]
+                rr = f[i, off + j] * 0
+                if d > 0:
+                    rr = f[i, off + j] - d * e[i, off + j] + _neigh(e, wx, wy, i, j, off, h, w)
+                t[i, off + j] = rr
+            for ci, cj in ti.ndrange(hc, wc):
+                s = t[2 * ci, off + 2 * cj]
+                if 2 * cj + 1 < w:
+                    s += t[2 * ci, off + 2 * cj + 1]
+                if 2 * ci + 1 < h:
+                    s += t[2 * ci + 1, off + 2 * cj]
+                    if 2 * cj + 1 < w:
+                        s += t[2 * ci + 1, off + 2 * cj + 1]
+                f[ci, offc + cj] = s
+                e[ci, offc + cj] = 0
+        for kk in range(nc):
+            s = f[cidx[kk, 0], cidx[kk, 1]] * 0
+            for m in range(nc):
+                s += pinv[kk, m] * f[cidx[m, 0], cidx[m, 1]]
+            e[cidx[kk, 0], cidx[kk, 1]] = s
+        for k in ti.static(range(L - 2, -1, -1)):
+            off, h, w = ti.static(geo[k])
+            offc = ti.static(geo[k + 1][0])
+            for i, j in ti.ndrange(h, w):
+                if dg[i, off + j] > 0:
+                    e[i, off + j] += e[i // 2, offc + j // 2]
+            for _ in ti.static(range(npairs)):
+                for i, j in ti.ndrange(h, w):
+                    t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, om)
+                for i, j in ti.ndrange(h, w):
+                    e[i, off + j] = _jacobi_point(t, f, wx, wy, dg, i, j, off, h, w, om)
+
+    @ti.kernel
+    def rhs(nrm: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64, cy: ti.f64, s: ti.f64, min_nz: ti.f64):
+        """b = -div of the mean steps of u from unit normals (uniform weights); q holds the steps.
+
+        Orthographic: du/dj = s n_x / n_z, du/di = -s n_y / n_z.  Perspective
+        (PPN, 3.2-3.3): m = n . ((j-cx)/fx, -(i-cy)/fy, -1) < 0,
+        d(log d)/dj = -n_x / (fx m), d(log d)/di = n_y / (fy m).
+        """
+        for i, j in ti.ndrange(h0, w0):
+            a = ti.cast(0, ti.f64)
+            c = ti.cast(0, ti.f64)
+            if dg[i, j] > 0:
+                nx = ti.cast(nrm[i, j, 0], ti.f64)
+                ny = ti.cast(nrm[i, j, 1], ti.f64)
+                nz = ti.cast(nrm[i, j, 2], ti.f64)
+                if ti.static(perspective):
+                    m = nx * (j - cx) / fx - ny * (i - cy) / fy - nz
+                    m = ti.min(m, -min_nz)
+                    a = -nx / (fx * m)
+                    c = ny / (fy * m)
+                else:
+                    den = ti.max(nz, min_nz)
+                    a = s * nx / den
+                    c = -s * ny / den
+            q[i, j] = ti.cast(a, q.dtype)  # step along j
+            r[i, j] = ti.cast(c, r.dtype)  # step along i
+        sc[7] = 0
+        for i, j in ti.ndrange(h0, w0):
+            v = b[i, j] * 0
+            if j > 0:
+                v += wx[i, j - 1] * 0.5 * (q[i, j - 1] + q[i, j])
+            if j < w0 - 1:
+                v -= wx[i, j] * 0.5 * (q[i, j] + q[i, j + 1])
+            if i > 0:
+                v += wy[i - 1, j] * 0.5 * (r[i - 1, j] + r[i, j])
+            if i < h0 - 1:
+                v -= wy[i, j] * 0.5 * (r[i, j] + r[i + 1, j])
+            b[i, j] = v
+            sc[7] += _sq(v)  # |b|^2
+
+    @ti.kernel
+    def pcg_begin():
+        """r = b - A z, f = r, e = M r, p = e, rz = r . e, rr = |r|^2."""
+        sc[RR] = 0
+        for i, j in ti.ndrange(h0, w0):
+            d = dg[i, j]
+            v = b[i, j] * 0
+            if d > 0:
+                v = b[i, j] - d * z[i, j] + _neigh(z, wx, wy, i, j, 0, h0, w0)
+            r[i, j] = v
+            f[i, j] = v
+            e[i, j] = 0
+            sc[RR] += _sq(v)
+        vcycle()
+        sc[RZ] = 0
+        for i, j in ti.ndrange(h0, w0):
+            p[i, j] = e[i, j]
+            sc[RZ] += _mul(r[i, j], e[i, j])
+
+    @ti.kernel
+    def pcg_iteration():
+        """One preconditioned CG iteration, V-cycle included (one launch)."""
+        sc[PQ] = 0
+        for i, j in ti.ndrange(h0, w0):
+            d = dg[i, j]
+            v = p[i, j] * 0
+            if d > 0:
+                v = d * p[i, j] - _neigh(p, wx, wy, i, j, 0, h0, w0)
+            q[i, j] = v
+            sc[PQ] += _mul(p[i, j], v)
+        sc[ALPHA] = 0
+        if sc[PQ] > 0:
+            sc[ALPHA] = sc[RZ] / sc[PQ]
+        sc[RR] = 0
+        for i, j in ti.ndrange(h0, w0):
+            a = ti.cast(sc[ALPHA], z.dtype)
+            z[i, j] += a * p[i, j]
+            rv = r[i, j] - a * q[i, j]
+            r[i, j] = rv
+            f[i, j] = rv
+            e[i, j] = 0
+            sc[RR] += _sq(rv)
+        vcycle()
+        sc[RZN] = 0
+        for i, j in ti.ndrange(h0, w0):
+            sc[RZN] += _mul(r[i, j], e[i, j])
+        beta = sc[RZN] * 0
+        if sc[RZ] > 0:
+            beta = sc[RZN] / sc[RZ]
+        sc[RZ] = sc[RZN]
+        sc[5] = beta
+        for i, j in ti.ndrange(h0, w0):
+            p[i, j] = e[i, j] + ti.cast(sc[5], p.dtype) * p[i, j]
+
+    @ti.kernel
+    def residual():
+        """sc[RR] = |b - A z|^2 (the true residual, not the CG recurrence)."""
+        sc[RR] = 0
+        for i, j in ti.ndrange(h0, w0):
+            d = dg[i, j]
+            v = b[i, j] * 0
+            if d > 0:
+                v = b[i, j] - d * z[i, j] + _neigh(z, wx, wy, i, j, 0, h0, w0)
+            sc[RR] += _sq(v)
+
+    @ti.kernel
+    def load(depth: ti.types.ndarray()):
+        """z = u of a depth map (log-depth under perspective); 0 outside the mask or where depth <= 0."""
+        for i, j in ti.ndrange(h0, w0):
+            v = ti.cast(0, ti.f64)
+            dd = ti.cast(depth[i, j], ti.f64)
+            if lab[i, j] >= 0:
+                if ti.static(perspective):
+                    if dd > 0:
+                        v = ti.log(dd)
+                else:
+                    v = dd
+            z[i, j] = ti.cast(v, z.dtype)
+
+    @ti.kernel
+    def finish(out: ti.types.ndarray(), reference: ti.f64):
+        """Fix each component's constant and write the depth.
+
+        u's mean is set to 0 per component; orthographic depth = u + reference,
+        perspective depth = exp(u) scaled so that each component's mean depth
+        is ``reference`` (``reference <= 0``: left at exp(u), mean log-depth 0).
+        z keeps the centred u (the next frame's warm start).
+        """
+        for c in range(ncomp):
+            csum[c] = 0
+            cden[c] = 0
+        for i, j in ti.ndrange(h0, w0):
+            c = lab[i, j]
+            if c >= 0:
+                csum[c] += ti.cast(z[i, j], ti.f64)
+        for i, j in ti.ndrange(h0, w0):
+            c = lab[i, j]
+            if c >= 0:
+                u = ti.cast(z[i, j], ti.f64) - csum[c] / ccnt[c]
+                z[i, j] = ti.cast(u, z.dtype)
+                if ti.static(perspective):
+                    cden[c] += ti.exp(u)
+        for i, j in ti.ndrange(h0, w0):
+            c = lab[i, j]
+            v = ti.cast(0, ti.f64)
+            if c >= 0:
+                u = ti.cast(z[i, j], ti.f64)
+                if ti.static(perspective):
+                    v = ti.exp(u)
+                    if reference > 0:
+                        v *= reference * ccnt[c] / cden[c]
+                else:
+                    v = u + ti.max(reference, 0.0)
+            out[i, j] = ti.cast(v, ti.f32)
+
+    return {"rhs": rhs, "pcg_begin": pcg_begin, "pcg_iteration": pcg_iteration, "residual": residual,
+            "finish": finish, "load": load}

@@ -1,0 +1,305 @@
+"""Offline kernel benchmark: every per-frame kernel of gpps against the device's roofline.
+
+For each size (default 256^2, 512^2, 1024^2, 2048^2) on the chosen device, a
+perspective Blinn-Phong scene (``bumps``, 3 directional lights, 16-bit frames):
+
+* ``brdf``: image formation (render kernel, 3 lights);
+* ``residual_jacobian``: one variable-projection evaluation (cost, J^T r, J^T J) per pixel;
+* ``lm_iteration`` / ``dogleg_iteration``: one solver iteration, from the
+  difference of warm solves with 5 and 1 iterations (fixed work, no early exit);
+* ``solve_warm``: the streaming solve (1 start, 4 evaluations); ``solve_cold``: 10 starts, to convergence;
+* ``pcg_iteration``: one fused multigrid-preconditioned CG iteration of the integrator (the V-cycle is in it);
+* ``integration_cold``: integration to relative residual 1e-4 from zero;
+  ``integration_warm``: the streaming integration (2 iterations, warm);
+* ``frame_device``: the whole :class:`gpps.pipeline.stream.Stream` frame with the
+  uint16 triple already on the device; ``frame_host``: with the upload of a host uint16 triple.
+
+Timing: median over repeats after warm-up, device-synchronised; a Warp kernel
+is timed as ``inner`` back-to-back launches inside a CUDA graph (on CUDA) so the
+launch overhead does not hide the kernel, Taichi kernels as back-to-back
+launches.  Bytes and FLOPs are counted by hand per pixel (documented in
+``COUNTS``: an add, multiply or compare is 1 FLOP, an FMA 2, a sqrt, division,
+exp or log 1 -- the transcendental units make those cheap in throughput terms,
+so the FLOP bound is a lower bound).  The roofline is measured in the same
+run: copy bandwidth (``wp.copy`` of 512 MiB) and an FMA-chain FLOP probe.
+``ratio`` = measured time / max(bytes / bandwidth, FLOPs / peak) (1 = at the bound).
+
+Writes ``perf/results/bench_<device>.json`` and prints a table last.
+
+Usage:  python perf/bench.py [--device cuda:0] [--sizes 256 512 1024 2048] [--repeat 20]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+import traceback
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "perf"))
+os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
+
+N_LIGHTS = 3
+# per pixel, by hand (see each kernel): bytes moved to/from device memory, FLOPs
+COUNTS = {
+    # reads depth 4 + normal 12 + mask 1 + albedo 12, writes N x 12
+    # per light: view/light/half vectors and dots ~40, Blinn-Phong lobe (exp/log1p form) ~25, combine 3 ch ~10
+    "brdf": lambda n: (29 + 12 * n, 20 + 75 * n),
+    # reads N images (12) + N weights (4) + depth 4 + normal 12, writes 4; two passes over the lights
+    # (light_terms: lobe value + gradient ~110, diffuse ~15, chart derivatives ~12) and 3-channel
+    # normal equations / residuals ~60 per light and pass; chart, 2x2 algebra ~60
+    "residual_jacobian": lambda n: (16 * n + 20, 60 + 2 * n * (140 + 60)),
+    # one more evaluation and a 2x2 solve, data in registers/L1 except the images and weights
+    "iteration": lambda n: (16 * n, 2 * n * (140 + 60) + 120),
+    # per pixel per PCG iteration (all levels, 4/3 of the fine level): 2+2 Jacobi sweeps, residual,
+    # restrict, prolong (~28 B and ~12 FLOP per point each), CG: A p, 3 dots, 4 axpys (~60 B, ~30 FLOP)
+    "pcg_iteration": lambda n: (int(4 / 3 * 7 * 28) + 60, int(4 / 3 * 7 * 12) + 30),
+}
+
+
+def _median_time(fn, sync, repeat, inner=1, warmup=2):
+    for _ in range(warmup):
+        fn()
+    sync()
+    ts = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        for _ in range(inner):
+            fn()
+        sync()
+        ts.append((time.perf_counter() - t0) / inner)
+    return statistics.median(ts)
+
+
+def _graph_time(wp, launch, device, repeat, inner=20):
+    """Device time of ``launch`` from a CUDA graph of ``inner`` launches (CPU: plain launches)."""
+    if not device.startswith("cuda"):
+        return _median_time(launch, lambda: wp.synchronize_device(device), repeat, inner=1)
+    launch()
+    wp.synchronize_device(device)
+    wp.capture_begin(device=device)
+    try:
+        for _ in range(inner):
+            launch()
+    finally:
+        g = wp.capture_end(device=device)
+    return _median_time(lambda: wp.capture_launch(g), lambda: wp.synchronize_device(device), repeat) / inner
+
+
+def roofline(wp, device, repeat):
+    """Copy bandwidth (bytes read + written per second) and FMA-chain FLOP/s."""
+    n = (512 << 20) // 4 if device.startswith("cuda") else (64 << 20) // 4
+    a = wp.zeros(n, dtype=wp.float32, device=device)
+    b = wp.zeros(n, dtype=wp.float32, device=device)
+    t = _median_time(lambda: wp.copy(b, a), lambda: wp.synchronize_device(device), repeat, inner=5)
+    bw = 2 * 4 * n / t
+    from _bench_kernels import fma_peak
+
+    threads = 1 << 22 if device.startswith("cuda") else 1 << 12
+    steps = 256
+    out = wp.zeros(threads, dtype=wp.float32, device=device)
+    tf = _median_time(lambda: wp.launch(fma_peak, dim=threads, inputs=[out, steps], device=device),
+                      lambda: wp.synchronize_device(device), max(3, repeat // 4))
+    return bw, threads * steps * 16 / tf
+
+
+def bench_size(size, device, repeat, bw, peak, log):
+    import numpy as np
+
+    from gpps._runtime import warp
+    from gpps.material import Material
+    from gpps.pipeline.render import Renderer
+    from gpps.pipeline.solver import PixelSolver, SolverConfig
+    from gpps.pipeline.stream import Stream, StreamConfig
+    from gpps.scenes import make_scene
+    from gpps.synthetic import default_lights
+
+    wp = warp()
+    sync = lambda: wp.synchronize_device(device)  # noqa: E731
+    rows = []
+    t0 = time.perf_counter()
+    sc = make_scene("bumps", size, "perspective")
+    mat = Material.default_for("blinn-phong")
+    L = default_lights("directional", N_LIGHTS)
+    npx = size * size
+    log(f"[{size}] scene {time.perf_counter() - t0:.1f}s")
+
+    def row(name, seconds, count_key=None, extra=None, per=1.0):
+        r = {"size": size, "kernel": name, "seconds": seconds}
+        if count_key is not None:
+            bpp, fpp = COUNTS[count_key](N_LIGHTS)
+            by, fl = bpp * npx * per, fpp * npx * per
+            bound = max(by / bw, fl / peak)
+            r.update(bytes=by, flops=fl, gbps=by / seconds / 1e9, gflops=fl / seconds / 1e9,
+                     bound_s=bound, ratio=seconds / bound, limited_by="memory" if by / bw >= fl / peak else "compute")
+        if extra:
+            r.update(extra)
+        rows.append(r)
+        log(f"[{size}] {name:20s} {seconds * 1e3:9.3f} ms" + (f"  ratio {r['ratio']:.2f}" if "ratio" in r else ""))
+        return r
+
+    # ---- BRDF evaluation
+    rd = Renderer((size, size), sc.camera, L, mat, device=device)
+    images = rd.render(sc.depth, sc.mask, sc.albedo, normals=sc.normals)
+    from gpps.kernels import render as rk
+
+    def launch_render():
+        wp.launch(rk.render_kernel, dim=(size, size),
+                  inputs=[rd.depth, rd.normals, rd.mask, rd.albedo, rd.cam, rd.lp, rd.mp], outputs=[rd.images],
+                  device=device)
+
+    row("brdf", _graph_time(wp, launch_render, device, repeat), "brdf")
+    img_np = images.numpy() / np.asarray(L.intensities, np.float32)[:, None, None, :]
+    frame16 = np.round(np.clip(images.numpy(), 0, 1) * 65535).astype(np.uint16).mean(axis=-1).astype(np.uint16)
+
+    # ---- residual + Jacobian
+    from gpps.lights import DirectionalLights
+
+    Lu = DirectionalLights(L.directions)
+    ps = PixelSolver((N_LIGHTS, size, size), sc.camera, Lu, mat, SolverConfig(), device=device)
+    ps.upload(img_np, sc.mask)
+    ps.launch()
+    sync()
+    from _bench_kernels import evaluate_kernel
+
+    cost = wp.zeros((size, size), dtype=wp.float32, device=device)
+
+    def launch_eval():
+        wp.launch(evaluate_kernel, dim=(size, size),
+                  inputs=[ps.images, ps.weights, ps.depth, ps.normals, ps.cam, ps.lp, ps.mp, ps.prm],
+                  outputs=[cost], device=device)
+
+    row("residual_jacobian", _graph_time(wp, launch_eval, device, repeat), "residual_jacobian")
+
+    # ---- solver iterations: warm solves with 1 and 5 iterations
+    for solver in ("lm", "dogleg"):
+        ts = {}
+        for k in (1, 5):
+            ps.set_config(SolverConfig(solver=solver, warm_start=True, starts=1, max_iters=k, early_exit=False,
+                                       neighbour_radius=0))
+            ps.launch()
+            sync()
+            keep = ps.normals.numpy()
+
+            def launch_solve():
+                ps.normals.assign(keep) if not device.startswith("cuda") else None
+                ps.launch()
+
+            ts[k] = _graph_time(wp, ps.launch, device, repeat, inner=5)
+        row(f"{solver}_iteration", (ts[5] - ts[1]) / 4, "iteration", {"solve_1_iter_s": ts[1], "solve_5_iter_s": ts[5]})
+    ps.set_config(SolverConfig(warm_start=True, starts=1, max_iters=4, early_exit=False, neighbour_radius=0))
+    row("solve_warm", _graph_time(wp, ps.launch, device, repeat, inner=5), "iteration", per=5.0,
+        extra={"note": "1 start, 4 iterations (5 evaluations) + Woodham start and observation weights"})
+    ps.set_config(SolverConfig())
+    ps.upload(img_np, sc.mask)
+    tc = _median_time(ps.launch, sync, max(3, repeat // 4), warmup=1)
+    out = ps.fetch()
+    row("solve_cold", tc, extra={"mean_evaluations": float(out["iterations"][sc.mask].mean())})
+
+    # ---- integration
+    from gpps.pipeline.integration_device import StreamIntegrator
+
+    si = StreamIntegrator(sc.mask, sc.camera, device="cuda:0" if device.startswith("cuda") else "cpu")
+    if device.startswith("cuda"):
+        nrm = wp.to_torch(wp.array(sc.normals.astype(np.float32), dtype=wp.vec3, device=device))
+        dep = wp.to_torch(wp.zeros((size, size), dtype=wp.float32, device=device))
+    else:
+        nrm = np.ascontiguousarray(sc.normals, np.float32)
+        dep = np.zeros((size, size), np.float32)
+    from gpps import _taichi
+
+    tsync = _taichi.ti.sync
+    si.integrate(nrm, dep, tol=1e-4)
+    tsync()
+    K = si._K
+    row("pcg_iteration", _median_time(K["pcg_iteration"], tsync, repeat, inner=10), "pcg_iteration")
+
+    def cold():
+        si.reset()
+        si.integrate(nrm, dep, tol=1e-4)
+
+    tcold = _median_time(cold, tsync, max(3, repeat // 4), warmup=1)
+    its = si.last_iterations
+    row("integration_cold", tcold, extra={"iterations": its, "tol": 1e-4, "residual": si.last_residual})
+    tw = _median_time(lambda: si.integrate(nrm, dep, iterations=2), tsync, repeat)
+    row("integration_warm", tw, extra={"iterations": 2, "residual_after": si.residual()})
+    # accuracy of the cold solution against the true depth (scale-aligned)
+    d = dep.cpu().numpy() if hasattr(dep, "cpu") else dep
+    m = sc.mask
+    dd = d * np.exp(np.mean(np.log(sc.depth[m])) - np.mean(np.log(np.maximum(d[m], 1e-30))))
+    rows[-1]["depth_error_rel_range"] = float(np.abs(dd - sc.depth)[m].mean() / np.ptp(sc.depth[m]))
+    si.close()
+
+    # ---- whole frames through the stream
+    st = Stream((size, size), sc.camera, L, mat, mask=sc.mask, config=StreamConfig(), device=device)
+    fdev = wp.array(frame16, dtype=wp.uint16, device=device)
+    for _ in range(4):
+        r = st.process(fdev)
+        assert r.ok, r.error
+    sync()
+    tdev = _median_time(lambda: st.process(fdev), sync, repeat)
+    row("frame_device", tdev, extra={"triples_per_s": 1.0 / tdev})
+    thost = _median_time(lambda: st.process(frame16), sync, repeat)
+    row("frame_host", thost, extra={"triples_per_s": 1.0 / thost, "frame_bytes": int(frame16.nbytes)})
+    frames = [frame16] * max(repeat, 10)
+    sync()
+    t = time.perf_counter()
+    nres = sum(1 for _ in st.run(frames))
+    sync()
+    trun = (time.perf_counter() - t) / nres
+    row("frame_host_pipelined", trun, extra={"triples_per_s": 1.0 / trun, "note": "Stream.run: next upload overlaps"})
+    from gpps.metrics import normal_errors
+
+    rr = st.process(fdev).numpy()
+    rows[-1]["maen_stream"] = normal_errors(rr.normals, sc.normals, sc.mask)["mean"]
+    return rows
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--sizes", type=int, nargs="*", default=[256, 512, 1024, 2048])
+    ap.add_argument("--repeat", type=int, default=20)
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args(argv)
+    from gpps._runtime import resolve_device, warp
+    from gpps.io import save_json
+
+    wp = warp()
+    device = resolve_device(a.device)
+    log = lambda s: print(s, flush=True)  # noqa: E731
+    bw, peak = roofline(wp, device, a.repeat)
+    log(f"roofline: copy {bw / 1e9:.0f} GB/s, FMA {peak / 1e12:.2f} TFLOP/s")
+    from _common import device_label
+
+    label = device_label(device)
+    rows, errors = [], []
+    for size in a.sizes:
+        try:
+            rows += bench_size(size, device, a.repeat, bw, peak, log)
+        except Exception as e:  # keep the other sizes' numbers
+            errors.append({"size": size, "error": repr(e), "trace": traceback.format_exc()})
+            log(f"[{size}] FAILED: {e!r}")
+    path = Path(a.out) if a.out else ROOT / "perf" / "results" / f"bench_{label}.json"
+    save_json(path, {"device": device, "device_name": label, "copy_bandwidth_Bps": bw, "fma_peak_flops": peak,
+                     "n_lights": N_LIGHTS, "scene": "bumps, perspective, blinn-phong, 3 directional lights, uint16",
+                     "rows": rows, "errors": errors})
+    print(f"\n{'size':>5} {'kernel':22s} {'ms':>9} {'GB/s':>8} {'GFLOP/s':>9} {'ratio':>6}  notes")
+    for r in rows:
+        extra = ""
+        if "triples_per_s" in r:
+            extra = f"{r['triples_per_s']:.0f} triples/s"
+        elif "iterations" in r:
+            extra = f"{r['iterations']} it"
+        print(f"{r['size']:5d} {r['kernel']:22s} {r['seconds'] * 1e3:9.3f} {r.get('gbps', float('nan')):8.1f} "
+              f"{r.get('gflops', float('nan')):9.1f} {r.get('ratio', float('nan')):6.2f}  {extra}")
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
