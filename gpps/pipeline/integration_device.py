@@ -130,6 +130,10 @@ class StreamIntegrator:
         for name in ("z", "b", "r", "p", "q"):
             F[name] = ti.field(ft)
             fb.dense(ti.ij, (h, w)).place(F[name])
+        F["red"] = ti.field(ft)
+        fb.dense(ti.ij, (h, w)).place(F["red"])
+        F["part"] = ti.field(ti.f64)
+        fb.dense(ti.ij, ((h + 31) // 32, w)).place(F["part"])
         F["sc"] = ti.field(ti.f64)
         fb.dense(ti.i, 8).place(F["sc"])
         F["pinv"] = ti.field(ft)
@@ -221,11 +225,15 @@ class StreamIntegrator:
             bb = float(sc[7])
             its = 0
             rr = float(sc[2])
+            rr_min = rr
             while bb > 0 and rr > tol * tol * bb and its < max_iterations:
                 K["pcg_iteration"]()
                 its += 1
                 if its % self.config.check_every == 0:
                     rr = float(sc[2])
+                    if self.config.dtype == "float32" and rr > 4.0 * rr_min and rr_min < 1e-8 * bb:
+                        break  # past the float32 floor the CG recurrence wanders: stop
+                    rr_min = min(rr_min, rr)
             K["residual"]()
             rr = float(sc[2])
             self.last_iterations = its
