@@ -17,7 +17,7 @@ Only device code lives here.
 """
 
 from gpps._taichi import ti
-from gpps.kernels.poisson import ALPHA, PQ, RR, RZ, RZN, _jacobi_point, _mul, _neigh, _sq
+from gpps.kernels.poisson import ALPHA, PQ, RR, RZ, RZN, _jacobi_point, _mul, _neigh, _sq  # noqa: F401
 
 
 def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspective: bool):
@@ -76,51 +76,118 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             sc[idx] += s
 
     @ti.func
+    def _pre(i, j, off, h, w):
+        """Two damped Jacobi sweeps from e = 0 in one pass: the first iterate
+        ``e1 = omega f / d`` is pointwise, so the second reads it on the fly."""
+        d = dg[i, off + j]
+        v = f[i, off + j] * 0
+        if d > 0:
+            nb = f[i, off + j] * 0
+            if j > 0:
+                if dg[i, off + j - 1] > 0:
+                    nb += wx[i, off + j - 1] * om * f[i, off + j - 1] / dg[i, off + j - 1]
+            if j < w - 1:
+                if dg[i, off + j + 1] > 0:
+                    nb += wx[i, off + j] * om * f[i, off + j + 1] / dg[i, off + j + 1]
+            if i > 0:
+                if dg[i - 1, off + j] > 0:
+                    nb += wy[i - 1, off + j] * om * f[i - 1, off + j] / dg[i - 1, off + j]
+            if i < h - 1:
+                if dg[i + 1, off + j] > 0:
+                    nb += wy[i, off + j] * om * f[i + 1, off + j] / dg[i + 1, off + j]
+            e1 = om * f[i, off + j] / d
+            v = (1 - om) * e1 + om * (f[i, off + j] + nb) / d
+        return v
+
+    @ti.func
+    def _corr(i, j, off, offc):
+        """The level's iterate (in t) plus the prolonged (injected) coarse correction (in t, coarse level)."""
+        v = t[i, off + j] * 0
+        if dg[i, off + j] > 0:
+            v = t[i, off + j] + t[i // 2, offc + j // 2]
+        return v
+
+    @ti.func
+    def _post_first(i, j, off, h, w, offc):
+        """One damped Jacobi sweep applied to (iterate + coarse correction), computed on the fly."""
+        d = dg[i, off + j]
+        v = f[i, off + j] * 0
+        if d > 0:
+            nb = f[i, off + j] * 0
+            if j > 0:
+                nb += wx[i, off + j - 1] * _corr(i, j - 1, off, offc)
+            if j < w - 1:
+                nb += wx[i, off + j] * _corr(i, j + 1, off, offc)
+            if i > 0:
+                nb += wy[i - 1, off + j] * _corr(i - 1, j, off, offc)
+            if i < h - 1:
+                nb += wy[i, off + j] * _corr(i + 1, j, off, offc)
+            v = (1 - om) * _corr(i, j, off, offc) + om * (f[i, off + j] + nb) / d
+        return v
+
+    @ti.func
+    def _res(i, j, off, h, w):
+        """Residual f - A t at a fine point (0 outside the mask or the level)."""
+        rr = f[i, off + j] * 0
+        if i < h and j < w:
+            d = dg[i, off + j]
+            if d > 0:
+                rr = f[i, off + j] - d * t[i, off + j] + _neigh(t, wx, wy, i, j, off, h, w)
+        return rr
+
+    @ti.func
     def vcycle():
-        """e = M f (one V-cycle from e = 0); every level unrolled, each loop a parallel task."""
+        """t_0 = M f_0: one V-cycle from zero, every level unrolled.
+
+        Per level on the way down, two tasks: the pre-smoothing pair (from zero,
+        fused) and residual + restriction (fused); on the way up two: the first
+        post-smoothing sweep with the coarse correction added on the fly, and the
+        second.  Each level's iterate ends in ``t``.  Same operator as
+        :func:`gpps.kernels.poisson.down` / ``up`` (2x2 aggregation, injection,
+        damped Jacobi), with ``npairs - 1`` further plain sweep pairs.
+        """
         for k in ti.static(range(L - 1)):
             off, h, w = ti.static(geo[k])
             offc, hc, wc = ti.static(geo[k + 1])
-            for _ in ti.static(range(npairs)):
-                for i, j in ti.ndrange(h, w):
-                    t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, om)
+            for i, j in ti.ndrange(h, w):
+                t[i, off + j] = _pre(i, j, off, h, w)
+            for _ in ti.static(range(npairs - 1)):
                 for i, j in ti.ndrange(h, w):
                     e[i, off + j] = _jacobi_point(t, f, wx, wy, dg, i, j, off, h, w, om)
-            for i, j in ti.ndrange(h, w):
-                d = dg[i, off + j]
-                rr = f[i, off + j] * 0
-                if d > 0:
-                    rr = f[i, off + j] - d * e[i, off + j] + _neigh(e, wx, wy, i, j, off, h, w)
-                t[i, off + j] = rr
+                for i, j in ti.ndrange(h, w):
+                    t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, om)
             for ci, cj in ti.ndrange(hc, wc):
-                s = t[2 * ci, off + 2 * cj]
-                if 2 * cj + 1 < w:
-                    s += t[2 * ci, off + 2 * cj + 1]
-                if 2 * ci + 1 < h:
-                    s += t[2 * ci + 1, off + 2 * cj]
-                    if 2 * cj + 1 < w:
-                        s += t[2 * ci + 1, off + 2 * cj + 1]
-                f[ci, offc + cj] = s
-                e[ci, offc + cj] = 0
+                f[ci, offc + cj] = (_res(2 * ci, 2 * cj, off, h, w) + _res(2 * ci, 2 * cj + 1, off, h, w)
+                                    + _res(2 * ci + 1, 2 * cj, off, h, w) + _res(2 * ci + 1, 2 * cj + 1, off, h, w))
         for kk in range(nc):
             s = f[cidx[kk, 0], cidx[kk, 1]] * 0
             for m in range(nc):
                 s += pinv[kk, m] * f[cidx[m, 0], cidx[m, 1]]
-            e[cidx[kk, 0], cidx[kk, 1]] = s
+            t[cidx[kk, 0], cidx[kk, 1]] = s
         for k in ti.static(range(L - 2, -1, -1)):
             off, h, w = ti.static(geo[k])
             offc = ti.static(geo[k + 1][0])
             for i, j in ti.ndrange(h, w):
-                if dg[i, off + j] > 0:
-                    e[i, off + j] += e[i // 2, offc + j // 2]
-            for _ in ti.static(range(npairs)):
-                for i, j in ti.ndrange(h, w):
-                    t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, om)
+                e[i, off + j] = _post_first(i, j, off, h, w, offc)
+            for i, j in ti.ndrange(h, w):
+                t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, om)
+            for _ in ti.static(range(npairs - 1)):
                 for i, j in ti.ndrange(h, w):
                     e[i, off + j] = _jacobi_point(t, f, wx, wy, dg, i, j, off, h, w, om)
+                for i, j in ti.ndrange(h, w):
+                    t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, om)
 
-    @ti.kernel
-    def rhs(nrm: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64, cy: ti.f64, s: ti.f64, min_nz: ti.f64):
+    @ti.func
+    def stage2(idx: ti.template()):
+        """sc[idx] += the column sums of ``part`` (sc[idx] zeroed beforehand)."""
+        for j in range(w0):
+            s = ti.cast(0, ti.f64)
+            for c in range(NCH):
+                s += part[c, j]
+            sc[idx] += s
+
+    @ti.func
+    def _rhs(nrm: ti.template(), fx, fy, cx, cy, s, min_nz):
         """b = -div of the mean steps of u from unit normals (uniform weights); q holds the steps.
 
         Orthographic: du/dj = s n_x / n_z, du/di = -s n_y / n_z.  Perspective
@@ -159,59 +226,103 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             red[i, j] = ti.cast(_sq(v), red.dtype)
         reduce_into(7)  # |b|^2
 
+    @ti.func
+    def _begin():
+        """r = b - A z, f = r, t = M r, p = t, rz = r . t, rr = |r|^2 (reductions fused into the loops)."""
+        sc[RR] = 0
+        sc[RZ] = 0
+        for c, j in ti.ndrange(NCH, w0):
+            acc = ti.cast(0, ti.f64)
+            for ii in range(CH):
+                i = c * CH + ii
+                if i < h0:
+                    d = dg[i, j]
+                    v = b[i, j] * 0
+                    if d > 0:
+                        v = b[i, j] - d * z[i, j] + _neigh(z, wx, wy, i, j, 0, h0, w0)
+                    r[i, j] = v
+                    f[i, j] = v
+                    acc += _sq(v)
+            part[c, j] = acc
+        stage2(RR)
+        vcycle()
+        for c, j in ti.ndrange(NCH, w0):
+            acc = ti.cast(0, ti.f64)
+            for ii in range(CH):
+                i = c * CH + ii
+                if i < h0:
+                    p[i, j] = t[i, j]
+                    acc += _mul(r[i, j], t[i, j])
+            part[c, j] = acc
+        stage2(RZ)
+
+    @ti.kernel
+    def rhs(nrm: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64, cy: ti.f64, s: ti.f64, min_nz: ti.f64):
+        """b = -div of the steps from the normals (see ``_rhs``), |b|^2 in sc[7]."""
+        _rhs(nrm, fx, fy, cx, cy, s, min_nz)
+
     @ti.kernel
     def pcg_begin():
-        """r = b - A z, f = r, e = M r, p = e, rz = r . e, rr = |r|^2."""
-        for i, j in ti.ndrange(h0, w0):
-            d = dg[i, j]
-            v = b[i, j] * 0
-            if d > 0:
-                v = b[i, j] - d * z[i, j] + _neigh(z, wx, wy, i, j, 0, h0, w0)
-            r[i, j] = v
-            f[i, j] = v
-            e[i, j] = 0
-            red[i, j] = ti.cast(_sq(v), red.dtype)
-        reduce_into(RR)
-        vcycle()
-        for i, j in ti.ndrange(h0, w0):
-            p[i, j] = e[i, j]
-            red[i, j] = ti.cast(_mul(r[i, j], e[i, j]), red.dtype)
-        reduce_into(RZ)
+        """Start the CG from the current z (see ``_begin``)."""
+        _begin()
+
+    @ti.kernel
+    def rhs_begin(nrm: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64, cy: ti.f64, s: ti.f64, min_nz: ti.f64):
+        """``rhs`` and ``pcg_begin`` in one launch (the per-frame path)."""
+        _rhs(nrm, fx, fy, cx, cy, s, min_nz)
+        _begin()
 
     @ti.kernel
     def pcg_iteration():
-        """One preconditioned CG iteration, V-cycle included (one launch)."""
-        for i, j in ti.ndrange(h0, w0):
-            d = dg[i, j]
-            v = p[i, j] * 0
-            if d > 0:
-                v = d * p[i, j] - _neigh(p, wx, wy, i, j, 0, h0, w0)
-            q[i, j] = v
-            red[i, j] = ti.cast(_mul(p[i, j], v), red.dtype)
-        reduce_into(PQ)
+        """One preconditioned CG iteration, V-cycle included (one launch, about 30 tasks)."""
+        sc[PQ] = 0
+        sc[RR] = 0
+        sc[RZN] = 0
+        for c, j in ti.ndrange(NCH, w0):
+            acc = ti.cast(0, ti.f64)
+            for ii in range(CH):
+                i = c * CH + ii
+                if i < h0:
+                    d = dg[i, j]
+                    v = p[i, j] * 0
+                    if d > 0:
+                        v = d * p[i, j] - _neigh(p, wx, wy, i, j, 0, h0, w0)
+                    q[i, j] = v
+                    acc += _mul(p[i, j], v)
+            part[c, j] = acc
+        stage2(PQ)
         sc[ALPHA] = 0
         if sc[PQ] > 0:
             sc[ALPHA] = sc[RZ] / sc[PQ]
-        for i, j in ti.ndrange(h0, w0):
+        for c, j in ti.ndrange(NCH, w0):
+            acc = ti.cast(0, ti.f64)
             a = ti.cast(sc[ALPHA], z.dtype)
-            z[i, j] += a * p[i, j]
-            rv = r[i, j] - a * q[i, j]
-            r[i, j] = rv
-            f[i, j] = rv
-            e[i, j] = 0
-            red[i, j] = ti.cast(_sq(rv), red.dtype)
-        reduce_into(RR)
+            for ii in range(CH):
+                i = c * CH + ii
+                if i < h0:
+                    z[i, j] += a * p[i, j]
+                    rv = r[i, j] - a * q[i, j]
+                    r[i, j] = rv
+                    f[i, j] = rv
+                    acc += _sq(rv)
+            part[c, j] = acc
+        stage2(RR)
         vcycle()
-        for i, j in ti.ndrange(h0, w0):
-            red[i, j] = ti.cast(_mul(r[i, j], e[i, j]), red.dtype)
-        reduce_into(RZN)
+        for c, j in ti.ndrange(NCH, w0):
+            acc = ti.cast(0, ti.f64)
+            for ii in range(CH):
+                i = c * CH + ii
+                if i < h0:
+                    acc += _mul(r[i, j], t[i, j])
+            part[c, j] = acc
+        stage2(RZN)
         beta = sc[RZN] * 0
         if sc[RZ] > 0:
             beta = sc[RZN] / sc[RZ]
         sc[RZ] = sc[RZN]
         sc[5] = beta
         for i, j in ti.ndrange(h0, w0):
-            p[i, j] = e[i, j] + ti.cast(sc[5], p.dtype) * p[i, j]
+            p[i, j] = t[i, j] + ti.cast(sc[5], p.dtype) * p[i, j]
 
     @ti.kernel
     def residual():
@@ -319,5 +430,5 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                     v = u + ti.max(reference, 0.0)
             out[i, j] = ti.cast(v, ti.f32)
 
-    return {"rhs": rhs, "pcg_begin": pcg_begin, "pcg_iteration": pcg_iteration, "residual": residual,
+    return {"rhs": rhs, "pcg_begin": pcg_begin, "rhs_begin": rhs_begin, "pcg_iteration": pcg_iteration, "residual": residual,
             "finish": finish, "load": load}

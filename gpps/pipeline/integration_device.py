@@ -212,8 +212,7 @@ class StreamIntegrator:
         if (iterations is None) == (tol is None):
             raise ValueError("iterations, tol: expected exactly one of them")
         K = self._K
-        K["rhs"](normals, *self._cam, self.config.min_nz)
-        K["pcg_begin"]()
+        K["rhs_begin"](normals, *self._cam, self.config.min_nz)
         if iterations is not None:
             check_number("iterations", iterations, lo=0, integer=True)
             for _ in range(iterations):
