@@ -984,12 +984,19 @@ def _make_kernels(method, brdf, robust, module_name: str, sfx: str):
         if cnd >= 1.0e29:
             use_all = 1
             flag = flag | FLAG_WOODHAM_FALLBACK
+        # a valid warm start skips the least-squares start (a stream's per-frame path)
+        warm_ok = int(0)
+        nw = wp.vec3(0.0)
+        if prm.warm_start != 0 and prm.method != NONE:
+            nw = normals[i, j]
+            if wp.length(nw) > 0.5:
+                warm_ok = 1
         a = wp.mat33(0.0)
         bc0 = wp.vec3(0.0)
         bc1 = wp.vec3(0.0)
         bc2 = wp.vec3(0.0)
         for k in range(nl_):
-            if use_all != 0 or weights[k, i, j] > 0.0:
+            if warm_ok == 0 and (use_all != 0 or weights[k, i, j] > 0.0):
                 l = light_dir(lights, k, p)
                 e = light_radiance(lights, k, p)
                 o = images[k, i, j]
@@ -1012,10 +1019,8 @@ def _make_kernels(method, brdf, robust, module_name: str, sfx: str):
             if wp.length(gvec) > 0.0:
                 ninit = wp.normalize(gvec)
                 kdw = wp.vec3(wp.dot(ai * bc0, ninit), wp.dot(ai * bc1, ninit), wp.dot(ai * bc2, ninit))
-        if prm.warm_start != 0:
-            nw = normals[i, j]
-            if wp.length(nw) > 0.5:
-                ninit = wp.normalize(nw)
+        if warm_ok != 0:
+            ninit = wp.normalize(nw)
         if wp.static(method == "none"):
             store_least_squares(ninit, kdw, flag, use_all, images, weights, px, lights, normals, albedo, residual, iterations, flags)
         else:

@@ -73,7 +73,7 @@ class StreamConfig:
     """
 
     solver: StreamSolver = "lm"
-    iterations: int = 4
+    iterations: int = 3
     first_starts: int = 10
     first_iterations: int = 50
     integrate: bool = True
