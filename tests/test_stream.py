@@ -90,3 +90,18 @@ def test_stream_memory_stays_flat(device):
     grown = tracemalloc.get_traced_memory()[0] - base
     tracemalloc.stop()
     assert grown < 200_000, grown
+
+
+def test_cli_stream_synthetic(tmp_path, device):
+    import json
+
+    from gpps.cli import main
+
+    rc = main(["--device", device, "stream", "--synthetic", "--frames", "5", "--size", "32", "--save-every", "2",
+               "--out", str(tmp_path)])
+    assert rc == 0
+    rep = json.loads((tmp_path / "report.json").read_text())
+    assert rep["frames"] == 5 and rep["errors"] == []
+    n = np.load(tmp_path / "frame_000004" / "normals.npy")
+    assert n.shape == (32, 32, 3) and np.isfinite(n).all()
+    assert main(["--device", device, "stream", "--out", str(tmp_path)]) == 2  # neither SOURCE nor --synthetic
