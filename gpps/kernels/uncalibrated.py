@@ -20,6 +20,7 @@ def lambert_as_loss(
     spec: wp.array(dtype=wp.float32),
     f0: float,
     lobe: int,
+    robust: float,
     loss: wp.array(dtype=wp.float32),
 ):
     """Weighted squared error of the Lambertian + Ashikhmin-Shirley image model.
@@ -32,7 +33,9 @@ def lambert_as_loss(
 
     with ``ks = exp(spec[0])`` and ``eta = exp(spec[1])`` (log-parameters keep
     them positive); ``lobe`` 0: no specular term, 1: Ashikhmin-Shirley (5.1-5.2,
-    isotropic), 2: Blinn-Phong (2.21) with exponent eta.  The loss adds ``w_kp |I - I_kp|^2``.
+    isotropic), 2: Blinn-Phong (2.21) with exponent eta.  The loss adds ``w_kp |I - I_kp|^2``,
+    or with ``robust = c > 0`` the Cauchy loss ``w_kp c^2 log(1 + |I - I_kp|^2 / c^2)`` (cast
+    shadows, inter-reflections and other observations no model term explains then pull less).
 
     Args:
         images: (N, P) observed RGB.
@@ -41,6 +44,7 @@ def lambert_as_loss(
         normals, albedo: (P,) parameters.
         lights: (N,) parameters.
         spec: (2,) log ks, log eta.
+        robust: Cauchy scale (intensity units); 0 for least squares.
         loss: (1,) accumulator (zero it first).
     """
     k, p = wp.tid()
@@ -66,4 +70,8 @@ def lambert_as_loss(
             pred = pred + wp.vec3(ks * sp)
         pred = pred * e
     r = pred - images[k, p]
-    wp.atomic_add(loss, 0, w * wp.dot(r, r))
+    r2 = wp.dot(r, r)
+    if robust > 0.0:
+        c2 = robust * robust
+        r2 = c2 * wp.log(1.0 + r2 / c2)
+    wp.atomic_add(loss, 0, w * r2)

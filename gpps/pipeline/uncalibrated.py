@@ -68,6 +68,7 @@ class Refiner:
         f0: float = 0.5,
         specular: int = 1,
         fit_lights: bool = True,
+        robust: float = 0.0,
         iterations: int = 300,
         lr: float = 0.01,
         progress=None,
@@ -84,6 +85,7 @@ class Refiner:
             f0: Fresnel reflectance at normal incidence (fixed).
             specular: specular lobe: 0 none (Lambertian), 1 Ashikhmin-Shirley, 2 Blinn-Phong.
             fit_lights: update the lights (else keep them fixed).
+            robust: Cauchy scale of the residuals (intensity units); 0: least squares.
         """
         wp = warp()
         from warp.optim import Adam
@@ -116,7 +118,7 @@ class Refiner:
                 wp.launch(
                     self._k.lambert_as_loss,
                     dim=(N, P),
-                    inputs=[self.images, self.weights, self.views, self.normals, self.albedo, self.lights, self.spec, float(f0), int(specular)],
+                    inputs=[self.images, self.weights, self.views, self.normals, self.albedo, self.lights, self.spec, float(f0), int(specular), float(robust)],
                     outputs=[self.loss],
                     device=self.device,
                 )
