@@ -182,14 +182,6 @@ def bench_size(size, device, repeat, bw, peak, log):
         for k in (1, 5):
             ps.set_config(SolverConfig(solver=solver, warm_start=True, starts=1, max_iters=k, early_exit=False,
                                        neighbour_radius=0))
-            ps.launch()
-            sync()
-            keep = ps.normals.numpy()
-
-            def launch_solve():
-                ps.normals.assign(keep) if not device.startswith("cuda") else None
-                ps.launch()
-
             ts[k] = _graph_time(wp, ps.launch, device, repeat, inner=5)
         row(f"{solver}_iteration", (ts[5] - ts[1]) / 4, "iteration", {"solve_1_iter_s": ts[1], "solve_5_iter_s": ts[5]})
     ps.set_config(SolverConfig(warm_start=True, starts=1, max_iters=3, early_exit=False, neighbour_radius=0))

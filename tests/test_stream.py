@@ -105,3 +105,22 @@ def test_cli_stream_synthetic(tmp_path, device):
     n = np.load(tmp_path / "frame_000004" / "normals.npy")
     assert n.shape == (32, 32, 3) and np.isfinite(n).all()
     assert main(["--device", device, "stream", "--out", str(tmp_path)]) == 2  # neither SOURCE nor --synthetic
+
+
+@pytest.mark.parametrize("camera", ["orthographic", "perspective"])
+def test_stream_integrator_several_components_matches_direct(camera):
+    """Each mask component gets its own constant (mean depth = reference), as the direct solver gives."""
+    from gpps.pipeline.integration import Integrator, IntegratorConfig
+    from gpps.pipeline.integration_device import StreamIntegrator
+    from gpps.scenes import make_scene
+
+    sc = make_scene("bumps", 64, camera)
+    m = sc.mask.copy()
+    m[:, 28:31] = False
+    si = StreamIntegrator(m, sc.camera)
+    assert si.n_components == 2
+    out = np.zeros(m.shape, np.float32)
+    si.integrate(np.ascontiguousarray(sc.normals, np.float32), out, tol=1e-5, reference=10.0)
+    ref = Integrator(m, sc.camera, IntegratorConfig(solver="direct")).integrate(sc.normals, reference_depth=10.0)
+    assert np.abs(out - ref.depth)[m].max() < 1e-4 * np.ptp(ref.depth[m])
+    assert np.all(out[~m] == 0)

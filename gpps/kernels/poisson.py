@@ -224,33 +224,58 @@ def cg_direction(r: ti.template(), e: ti.template(), p: ti.template(), sc: ti.te
 # ----------------------------------------------------------------------------- right-hand side on the device
 
 
-@ti.kernel
-def gradients_uniform(nrm: ti.types.ndarray(), gj: ti.template(), gi: ti.template(), dg: ti.template(),
-                      perspective: ti.i32, fx: ti.f64, fy: ti.f64, cx: ti.f64, cy: ti.f64, s: ti.f64,
-                      min_nz: ti.f64, h: ti.i32, w: ti.i32):
-    """Per-pixel steps of u (depth, or log-depth under perspective) from unit normals.
+@ti.func
+def pixel_steps(nrm: ti.template(), i, j, perspective, fx, fy, cx, cy, s, min_nz):
+    """``(du/dj, du/di)`` at pixel (i, j) from its unit normal (float64).
 
     Orthographic: du/dj = s n_x / n_z, du/di = -s n_y / n_z.
     Perspective (PPN, (3.2)-(3.3)): with m = n . ((j-cx)/fx, -(i-cy)/fy, -1) < 0,
     d(log d)/dj = -n_x / (fx m), d(log d)/di = n_y / (fy m).
+    """
+    nx = ti.cast(nrm[i, j, 0], ti.f64)
+    ny = ti.cast(nrm[i, j, 1], ti.f64)
+    nz = ti.cast(nrm[i, j, 2], ti.f64)
+    a = ti.cast(0, ti.f64)
+    c = ti.cast(0, ti.f64)
+    if perspective:
+        m = ti.min(nx * (j - cx) / fx - ny * (i - cy) / fy - nz, -min_nz)
+        a = -nx / (fx * m)
+        c = ny / (fy * m)
+    else:
+        den = ti.max(nz, min_nz)
+        a = s * nx / den
+        c = -s * ny / den
+    return a, c
+
+
+@ti.func
+def div_mean_steps(gj: ti.template(), gi: ti.template(), wx: ti.template(), wy: ti.template(), i, j, h, w):
+    """-div at (i, j) of the edge targets t = mean of the two pixels' steps (weights wx, wy)."""
+    v = gj[i, j] * 0
+    if j > 0:
+        v += wx[i, j - 1] * 0.5 * (gj[i, j - 1] + gj[i, j])
+    if j < w - 1:
+        v -= wx[i, j] * 0.5 * (gj[i, j] + gj[i, j + 1])
+    if i > 0:
+        v += wy[i - 1, j] * 0.5 * (gi[i - 1, j] + gi[i, j])
+    if i < h - 1:
+        v -= wy[i, j] * 0.5 * (gi[i, j] + gi[i + 1, j])
+    return v
+
+
+@ti.kernel
+def gradients_uniform(nrm: ti.types.ndarray(), gj: ti.template(), gi: ti.template(), dg: ti.template(),
+                      perspective: ti.i32, fx: ti.f64, fy: ti.f64, cx: ti.f64, cy: ti.f64, s: ti.f64,
+                      min_nz: ti.f64, h: ti.i32, w: ti.i32):
+    """Per-pixel steps of u (depth, or log-depth under perspective) from unit normals (:func:`pixel_steps`).
+
     ``nrm`` is any (H, W, 3) array Taichi accepts (numpy, or a CUDA torch tensor).
     """
     for i, j in ti.ndrange(h, w):
         a = ti.cast(0, ti.f64)
         c = ti.cast(0, ti.f64)
         if dg[i, j] > 0:
-            nx = ti.cast(nrm[i, j, 0], ti.f64)
-            ny = ti.cast(nrm[i, j, 1], ti.f64)
-            nz = ti.cast(nrm[i, j, 2], ti.f64)
-            if perspective:
-                m = nx * (j - cx) / fx - ny * (i - cy) / fy - nz
-                m = ti.min(m, -min_nz)
-                a = -nx / (fx * m)
-                c = ny / (fy * m)
-            else:
-                den = ti.max(nz, min_nz)
-                a = s * nx / den
-                c = -s * ny / den
+            a, c = pixel_steps(nrm, i, j, perspective, fx, fy, cx, cy, s, min_nz)
         gj[i, j] = ti.cast(a, gj.dtype)
         gi[i, j] = ti.cast(c, gi.dtype)
 
@@ -260,13 +285,4 @@ def rhs_uniform(gj: ti.template(), gi: ti.template(), wx: ti.template(), wy: ti.
                 h: ti.i32, w: ti.i32):
     """b = -div of the edge targets t = mean of the two pixels' steps (weights wx, wy)."""
     for i, j in ti.ndrange(h, w):
-        v = b[i, j] * 0
-        if j > 0:
-            v += wx[i, j - 1] * 0.5 * (gj[i, j - 1] + gj[i, j])
-        if j < w - 1:
-            v -= wx[i, j] * 0.5 * (gj[i, j] + gj[i, j + 1])
-        if i > 0:
-            v += wy[i - 1, j] * 0.5 * (gi[i - 1, j] + gi[i, j])
-        if i < h - 1:
-            v -= wy[i, j] * 0.5 * (gi[i, j] + gi[i + 1, j])
-        b[i, j] = v
+        b[i, j] = div_mean_steps(gj, gi, wx, wy, i, j, h, w)

@@ -17,7 +17,7 @@ Only device code lives here.
 """
 
 from gpps._taichi import ti
-from gpps.kernels.poisson import ALPHA, PQ, RR, RZ, RZN, _jacobi_point, _mul, _neigh, _sq  # noqa: F401
+from gpps.kernels.poisson import ALPHA, PQ, RR, RZ, RZN, _jacobi_point, _mul, _neigh, _sq, div_mean_steps, pixel_steps
 
 
 def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspective: bool):
@@ -54,12 +54,22 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
     NCH = (h0 + CH - 1) // CH
 
     @ti.func
+    def stage2(idx: ti.template()):
+        """sc[idx] += the column sums of ``part`` (sc[idx] zeroed beforehand)."""
+        for j in range(w0):
+            s = ti.cast(0, ti.f64)
+            for c in range(NCH):
+                s += part[c, j]
+            sc[idx] += s
+
+    @ti.func
     def reduce_into(idx: ti.template()):
         """sc[idx] = sum of ``red`` over level 0, in float64, without same-address atomics per pixel.
 
         Stage 1: one thread per (row chunk, column) sums CH rows (coalesced);
-        stage 2: one thread per column sums the chunks and adds to sc[idx]
-        (W atomics instead of H * W, which serialised at ~1.4 ns each on an H100).
+        stage 2 (:func:`stage2`): one thread per column sums the chunks and adds
+        to sc[idx] (W atomics instead of H * W, which serialised at ~1.4 ns each
+        on an H100).
         """
         for c, j in ti.ndrange(NCH, w0):
             s = ti.cast(0, ti.f64)
@@ -69,11 +79,37 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                     s += ti.cast(red[i, j], ti.f64)
             part[c, j] = s
         sc[idx] = 0
-        for j in range(w0):
-            s = ti.cast(0, ti.f64)
-            for c in range(NCH):
-                s += part[c, j]
-            sc[idx] += s
+        stage2(idx)
+
+    @ti.func
+    def comp_sums(dst: ti.template()):
+        """dst[c] = sum of ``red`` over mask component c (labels ``lab``, -1 outside).
+
+        One component: :func:`reduce_into`.  Several: per (row chunk, column)
+        partial sums with one atomic per run of equal labels.
+        """
+        if ti.static(ncomp == 1):
+            reduce_into(6)
+            dst[0] = sc[6]
+        else:
+            for c in range(ncomp):
+                dst[c] = 0
+            for ch, j in ti.ndrange(NCH, w0):
+                cur = -1
+                s = ti.cast(0, ti.f64)
+                for ii in range(CH):
+                    i = ch * CH + ii
+                    if i < h0:
+                        c = lab[i, j]
+                        if c != cur:
+                            if cur >= 0:
+                                dst[cur] += s
+                            cur = c
+                            s = 0.0
+                        if c >= 0:
+                            s += ti.cast(red[i, j], ti.f64)
+                if cur >= 0:
+                    dst[cur] += s
 
     @ti.func
     def _pre(i, j, off, h, w):
@@ -178,50 +214,18 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                     t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, om)
 
     @ti.func
-    def stage2(idx: ti.template()):
-        """sc[idx] += the column sums of ``part`` (sc[idx] zeroed beforehand)."""
-        for j in range(w0):
-            s = ti.cast(0, ti.f64)
-            for c in range(NCH):
-                s += part[c, j]
-            sc[idx] += s
-
-    @ti.func
     def _rhs(nrm: ti.template(), fx, fy, cx, cy, s, min_nz):
-        """b = -div of the mean steps of u from unit normals (uniform weights); q holds the steps.
-
-        Orthographic: du/dj = s n_x / n_z, du/di = -s n_y / n_z.  Perspective
-        (PPN, 3.2-3.3): m = n . ((j-cx)/fx, -(i-cy)/fy, -1) < 0,
-        d(log d)/dj = -n_x / (fx m), d(log d)/di = n_y / (fy m).
-        """
+        """b = -div of the mean steps of u (:func:`gpps.kernels.poisson.pixel_steps`,
+        uniform weights); q and r hold the j- and i-steps meanwhile."""
         for i, j in ti.ndrange(h0, w0):
             a = ti.cast(0, ti.f64)
             c = ti.cast(0, ti.f64)
             if dg[i, j] > 0:
-                nx = ti.cast(nrm[i, j, 0], ti.f64)
-                ny = ti.cast(nrm[i, j, 1], ti.f64)
-                nz = ti.cast(nrm[i, j, 2], ti.f64)
-                if ti.static(perspective):
-                    m = nx * (j - cx) / fx - ny * (i - cy) / fy - nz
-                    m = ti.min(m, -min_nz)
-                    a = -nx / (fx * m)
-                    c = ny / (fy * m)
-                else:
-                    den = ti.max(nz, min_nz)
-                    a = s * nx / den
-                    c = -s * ny / den
+                a, c = pixel_steps(nrm, i, j, ti.static(perspective), fx, fy, cx, cy, s, min_nz)
             q[i, j] = ti.cast(a, q.dtype)  # step along j
             r[i, j] = ti.cast(c, r.dtype)  # step along i
         for i, j in ti.ndrange(h0, w0):
-            v = b[i, j] * 0
-            if j > 0:
-                v += wx[i, j - 1] * 0.5 * (q[i, j - 1] + q[i, j])
-            if j < w0 - 1:
-                v -= wx[i, j] * 0.5 * (q[i, j] + q[i, j + 1])
-            if i > 0:
-                v += wy[i - 1, j] * 0.5 * (r[i - 1, j] + r[i, j])
-            if i < h0 - 1:
-                v -= wy[i, j] * 0.5 * (r[i, j] + r[i + 1, j])
+            v = div_mean_steps(q, r, wx, wy, i, j, h0, w0)
             b[i, j] = v
             red[i, j] = ti.cast(_sq(v), red.dtype)
         reduce_into(7)  # |b|^2
@@ -358,65 +362,20 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         is ``reference`` (``reference <= 0``: left at exp(u), mean log-depth 0).
         z keeps the centred u (the next frame's warm start).
         """
-        if ti.static(ncomp == 1):
-            # one component: the two-stage reductions
-            for i, j in ti.ndrange(h0, w0):
-                red[i, j] = ti.select(lab[i, j] >= 0, z[i, j], 0.0)
-            reduce_into(6)
-            csum[0] = sc[6]
-            for i, j in ti.ndrange(h0, w0):
-                v = ti.cast(0, red.dtype)
-                if lab[i, j] >= 0:
-                    u = ti.cast(z[i, j], ti.f64) - csum[0] / ccnt[0]
-                    z[i, j] = ti.cast(u, z.dtype)
-                    if ti.static(perspective):
-                        v = ti.cast(ti.exp(u), red.dtype)
-                red[i, j] = v
-            if ti.static(perspective):
-                reduce_into(6)
-                cden[0] = sc[6]
-        else:
-            # several components: per-chunk partial sums, one atomic per label run of a column chunk
-            for c in range(ncomp):
-                csum[c] = 0
-                cden[c] = 0
-            for ch, j in ti.ndrange(NCH, w0):
-                cur = -1
-                s = ti.cast(0, ti.f64)
-                for ii in range(CH):
-                    i = ch * CH + ii
-                    if i < h0:
-                        c = lab[i, j]
-                        if c != cur:
-                            if cur >= 0:
-                                csum[cur] += s
-                            cur = c
-                            s = 0.0
-                        if c >= 0:
-                            s += ti.cast(z[i, j], ti.f64)
-                if cur >= 0:
-                    csum[cur] += s
-            for i, j in ti.ndrange(h0, w0):
-                c = lab[i, j]
-                if c >= 0:
-                    z[i, j] = ti.cast(ti.cast(z[i, j], ti.f64) - csum[c] / ccnt[c], z.dtype)
-            if ti.static(perspective):
-                for ch, j in ti.ndrange(NCH, w0):
-                    cur = -1
-                    s = ti.cast(0, ti.f64)
-                    for ii in range(CH):
-                        i = ch * CH + ii
-                        if i < h0:
-                            c = lab[i, j]
-                            if c != cur:
-                                if cur >= 0:
-                                    cden[cur] += s
-                                cur = c
-                                s = 0.0
-                            if c >= 0:
-                                s += ti.exp(ti.cast(z[i, j], ti.f64))
-                    if cur >= 0:
-                        cden[cur] += s
+        for i, j in ti.ndrange(h0, w0):
+            red[i, j] = ti.select(lab[i, j] >= 0, z[i, j], 0.0)
+        comp_sums(csum)
+        for i, j in ti.ndrange(h0, w0):
+            c = lab[i, j]
+            v = ti.cast(0, red.dtype)
+            if c >= 0:
+                u = ti.cast(z[i, j], ti.f64) - csum[c] / ccnt[c]
+                z[i, j] = ti.cast(u, z.dtype)
+                if ti.static(perspective):
+                    v = ti.cast(ti.exp(u), red.dtype)
+            red[i, j] = v
+        if ti.static(perspective):
+            comp_sums(cden)
         for i, j in ti.ndrange(h0, w0):
             c = lab[i, j]
             v = ti.cast(0, ti.f64)

@@ -182,11 +182,6 @@ class StreamIntegrator:
 
     # ------------------------------------------------------------------ per frame
 
-    def _ti_sync(self):
-        from gpps import _taichi
-
-        _taichi.ti.sync()
-
     def load(self, depth) -> None:
         """Warm start from a depth map (H, W) (numpy, or a CUDA tensor Taichi accepts)."""
         self._K["load"](depth)

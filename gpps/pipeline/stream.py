@@ -382,58 +382,45 @@ class Stream:
         self.stats["seconds"] += res.seconds
         return res
 
-    def process(self, frame) -> StreamResult:
-        """Reconstruct one frame (normals, albedo, depth); a bad frame gives an error result."""
+    def _start(self, frame):
+        """Number the frame and start its upload: ``(index, t0, (key, slot, event) or None, error or None)``."""
         t0 = time.perf_counter()
         idx = self.index
         self.index += 1
         try:
-            key, slot, ev = self._upload(frame)
+            return idx, t0, self._upload(frame), None
         except ValueError as e:
+            return idx, t0, None, str(e)
+
+    def _finish(self, started) -> StreamResult:
+        """Compute a started frame (or report its error) and return its result."""
+        idx, t0, up, err = started
+        if err is not None:
             self.stats["errors"] += 1
-            return StreamResult(idx, error=str(e), seconds=time.perf_counter() - t0)
-        self._compute(key, slot, ev)
+            return StreamResult(idx, error=err, seconds=time.perf_counter() - t0)
+        self._compute(*up)
         return self._result(idx, t0)
+
+    def process(self, frame) -> StreamResult:
+        """Reconstruct one frame (normals, albedo, depth); a bad frame gives an error result."""
+        return self._finish(self._start(frame))
 
     def run(self, frames: Iterable) -> Iterator[StreamResult]:
         """Yield one :class:`StreamResult` per frame of ``frames``, in order.
 
         The next frame's upload is started before the current frame computes
-        (on CUDA it runs on a separate stream and overlaps the compute).
+        (on CUDA it runs on a separate stream and overlaps the compute; the two
+        upload slots alternate, so it never overwrites the frame in use).
         """
         it = iter(frames)
-        nxt = None
-
-        def start(fr):
-            t0 = time.perf_counter()
-            idx = self.index
-            self.index += 1
-            try:
-                return idx, t0, self._upload(fr), None
-            except ValueError as e:
-                return idx, t0, None, str(e)
-
-        try:
-            fr = next(it)
-        except StopIteration:
-            return
-        cur = start(fr)
+        cur = None
+        for fr in it:
+            cur = self._start(fr)
+            break
         while cur is not None:
-            try:
-                nxt_frame = next(it)
-                have_next = True
-            except StopIteration:
-                have_next = False
-            idx, t0, up, err = cur
-            if err is not None:
-                self.stats["errors"] += 1
-                nxt = start(nxt_frame) if have_next else None
-                yield StreamResult(idx, error=err, seconds=time.perf_counter() - t0)
-                cur = nxt
-                continue
-            key, slot, ev = up
-            # upload the next frame into the other slot while this one computes
-            nxt = start(nxt_frame) if have_next else None
-            self._compute(key, slot, ev)
-            yield self._result(idx, t0)
+            nxt = None
+            for fr in it:
+                nxt = self._start(fr)
+                break
+            yield self._finish(cur)
             cur = nxt
