@@ -13,6 +13,25 @@ from gpps.material import BRDF_NAMES, Material
 
 __version__ = "0.1.0"
 
+_LAZY = {
+    "reconstruct": "gpps.reconstruction",
+    "Reconstruction": "gpps.reconstruction",
+    "RONConfig": "gpps.pipeline.ron",
+    "SolverConfig": "gpps.pipeline.solver",
+    "Stream": "gpps.pipeline.stream",
+    "StreamConfig": "gpps.pipeline.stream",
+}
+
+
+def __getattr__(name):
+    """Lazy exports: ``gpps.reconstruct`` and ``gpps.Stream`` load the pipeline (scipy, Warp) on first use."""
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'gpps' has no attribute {name!r}")
+
+
 __all__ = [
     "Orthographic",
     "Perspective",
@@ -21,4 +40,5 @@ __all__ = [
     "PointLights",
     "Material",
     "BRDF_NAMES",
+    *_LAZY,
 ]

@@ -1,0 +1,560 @@
+"""RON: the recurrent optimisation of normals, RGB albedo, depth and material (seed 4.1.10, Algorithm 2).
+
+The seed's real-time method is a loop, not one solve.  Each round of
+:class:`RON` runs the steps of Algorithm 2::
+
+    start: Lambertian least squares (Woodham); DGMC start normals on highlight
+           pixels (4.16-4.18, gpps.pipeline.dgmc)
+    repeat
+      1. normals, per pixel, with the current material (and, for point lights,
+         the light directions and 1/r^2 falloff from the current depth, 2.30-2.31):
+         PixelSolver (Algorithm 3, 4 or 5), multi-start; highlight pixels also
+         from their DGMC start (round 1) and every pixel also from its previous
+         normal (later rounds); the lowest residual wins
+      2. RGB albedo from those normals (the solver's variable projection: the
+         closed-form least-squares albedo given the normal)
+      3. depth: integrate the normals (4.20, Taichi multigrid, warm-started)
+      4. material: the parameters the caller did not give are updated
+      5. = step 1 of the next round (normals with the recent albedo/material)
+    until the energy and the normals stop changing, or the round cap
+
+The energy of a round is the mean squared residual of the model per
+observation and channel over the mask (after step 1); it is recorded per round
+(``RONResult.energy``).
+
+Material update (step 4).  The seed updates the Cook-Torrance roughness by
+(4.19), the root-mean-square deviation of the integrated depth from the mean
+surface.  As printed, (4.19) lacks the square, and it measures geometry
+(a length), not the microfacet slope distribution ``m`` of the BRDF, so it
+cannot recover a material's roughness from its images; it is kept as
+``material_rule="depth-rms"`` (with the square, see :func:`depth_rms_roughness`).
+The default ``material_rule="photometric"`` instead chooses the unknown scene
+parameters (``ks`` and the lobe width: shininess, roughness ``m`` or the
+Ashikhmin-Shirley exponents) that minimise the same energy, each pixel's
+normal and albedo re-solved for every candidate (variable projection over the
+per-pixel unknowns) on a fixed random sample of pixels (highlight pixels first):
+a log-spaced grid, then Nelder-Mead from its best point.  With coloured
+albedo or more than three images this identifies the material well (the
+specular lobe is white, the diffuse part has the albedo's colour); with three
+images of a grey object every candidate can fit each pixel, and the estimate
+is then reported as ``identifiable=False`` in ``RONResult.material_fit``.
+
+Point lights with an unknown depth start from a flat depth at
+``reference_depth`` (the working distance); each round the integrated depth
+(mean set to ``reference_depth``) moves the lights' directions and falloff.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from typing import Callable, Literal, get_args
+
+import numpy as np
+
+from gpps._check import as_array, as_mask, check_number
+from gpps.lights import DirectionalLights, PointLights
+from gpps.material import Material
+from gpps.pipeline.dgmc import DGMCConfig, dgmc_start
+from gpps.pipeline.solver import FLAG_FEW_OBSERVATIONS, PixelSolver, SolverConfig
+
+__all__ = [
+    "RON",
+    "RONConfig",
+    "RONResult",
+    "MaterialRule",
+    "LOBE_PARAMETERS",
+    "estimable_parameters",
+    "depth_rms_roughness",
+]
+
+MaterialRule = Literal["photometric", "depth-rms"]
+Progress = Callable[[float, float, str], None]
+
+# the scene parameters RON can estimate per model; "eta" ties Ashikhmin-Shirley's eta_u = eta_v
+LOBE_PARAMETERS: dict[str, tuple[str, ...]] = {
+    "lambertian": (),
+    "phong": ("ks", "shininess"),
+    "blinn-phong": ("ks", "shininess"),
+    "cook-torrance": ("ks", "roughness"),
+    "ashikhmin-shirley": ("ks", "eta"),
+}
+# log-space search ranges (lo, hi) of each parameter
+_RANGES = {"ks": (0.02, 3.0), "shininess": (2.0, 500.0), "roughness": (0.03, 0.8), "eta": (2.0, 500.0)}
+
+
+def estimable_parameters(brdf: str) -> tuple[str, ...]:
+    """Names of the scene parameters :class:`RON` can estimate for a reflectance model."""
+    if brdf not in LOBE_PARAMETERS:
+        raise ValueError(f"brdf: expected one of {list(LOBE_PARAMETERS)}, got {brdf!r}")
+    return LOBE_PARAMETERS[brdf]
+
+
+def _get(material: Material, name: str) -> float:
+    return float(material.eta_u if name == "eta" else getattr(material, name))
+
+
+def _with(material: Material, values: dict) -> Material:
+    d = material.to_dict()
+    for k, v in values.items():
+        if k == "eta":
+            d["eta_u"] = d["eta_v"] = float(v)
+        else:
+            d[k] = float(v)
+    return Material.from_dict(d)
+
+
+@dataclass(frozen=True)
+class RONConfig:
+    """Settings of :class:`RON`.
+
+    Attributes:
+        rounds: cap on rounds of Algorithm 2.
+        tol: stop when the energy changes by less than this fraction between
+            rounds and the normals by less than ``tol_normals_deg`` on average.
+        tol_normals_deg: see ``tol`` (degrees).
+        dgmc: start highlight pixels from DGMC normals (4.16-4.18) in round 1.
+        dgmc_config: the DGMC settings.
+        integrate: run step 3 (depth).  Point lights need it unless their depth is given.
+        estimate: scene parameters to estimate (names from
+            :data:`LOBE_PARAMETERS` for the model); empty: none.
+        material_rule: ``"photometric"`` (default) or ``"depth-rms"``, the
+            seed's (4.19) (Cook-Torrance roughness only; see the module docstring).
+        material_samples: pixels sampled for the photometric material fit.
+        material_grid: grid points per estimated parameter in the first fit.
+        material_evals: Nelder-Mead evaluations after the grid (and in later rounds).
+        material_trim: fraction of worst pixel residuals left out of the fit's
+            energy (robust to cast shadows and inter-reflections).
+        material_starts: starts per pixel in the fit's per-pixel solves.
+        roughness_window: Gaussian scale (pixels) of the mean surface of (4.19).
+        solver: the per-pixel solver settings (steps 1 and 5).
+        integrator: settings of the Taichi integrator (step 3).
+        seed: seed of the pixel sample (results are reproducible).
+    """
+
+    rounds: int = 5
+    tol: float = 1e-3
+    tol_normals_deg: float = 0.05
+    dgmc: bool = True
+    dgmc_config: DGMCConfig = field(default_factory=DGMCConfig)
+    integrate: bool = True
+    estimate: tuple[str, ...] = ()
+    material_rule: MaterialRule = "photometric"
+    material_samples: int = 2000
+    material_grid: int = 5
+    material_evals: int = 40
+    material_trim: float = 0.02
+    material_starts: int = 4
+    roughness_window: float = 4.0
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    integrator: object = None  # gpps.pipeline.integration.IntegratorConfig (None: defaults)
+    seed: int = 0
+
+    def __post_init__(self):
+        check_number("rounds", self.rounds, lo=1, integer=True)
+        check_number("tol", self.tol, lo=0.0)
+        check_number("tol_normals_deg", self.tol_normals_deg, lo=0.0)
+        if self.material_rule not in get_args(MaterialRule):
+            raise ValueError(f"material_rule: expected one of {list(get_args(MaterialRule))}, got {self.material_rule!r}")
+        if isinstance(self.estimate, str) or not all(isinstance(e, str) for e in self.estimate):
+            raise TypeError(f"estimate: expected a tuple of parameter names, got {self.estimate!r}")
+        object.__setattr__(self, "estimate", tuple(self.estimate))
+        bad = [e for e in self.estimate if e not in _RANGES]
+        if bad:
+            raise ValueError(f"estimate: expected names from {sorted(_RANGES)}, got {bad}")
+        check_number("material_samples", self.material_samples, lo=16, integer=True)
+        check_number("material_grid", self.material_grid, lo=1, hi=25, integer=True)
+        check_number("material_evals", self.material_evals, lo=0, integer=True)
+        check_number("material_trim", self.material_trim, lo=0.0, hi=0.5)
+        check_number("material_starts", self.material_starts, lo=1, integer=True)
+        check_number("roughness_window", self.roughness_window, lo=0.5)
+        if not isinstance(self.dgmc_config, DGMCConfig):
+            raise TypeError(f"dgmc_config: expected DGMCConfig, got {type(self.dgmc_config).__name__}")
+        if not isinstance(self.solver, SolverConfig):
+            raise TypeError(f"solver: expected SolverConfig, got {type(self.solver).__name__}")
+        if self.solver.solver == "none":
+            raise ValueError("solver: expected a nonlinear solver ('lm', 'dogleg' or 'bfgs') for RON, got 'none'")
+        if self.integrator is not None:
+            from gpps.pipeline.integration import IntegratorConfig
+
+            if not isinstance(self.integrator, IntegratorConfig):
+                raise TypeError(f"integrator: expected IntegratorConfig or None, got {type(self.integrator).__name__}")
+        if self.material_rule == "depth-rms" and any(e not in ("roughness",) for e in self.estimate):
+            raise ValueError("material_rule: 'depth-rms' (4.19) estimates the Cook-Torrance roughness only; "
+                             f"got estimate={self.estimate}")
+
+
+@dataclass
+class RONResult:
+    """Output of :meth:`RON.run`.
+
+    Attributes:
+        normals: (H, W, 3) float32 unit normals (gpps frame), zeros outside the mask.
+        albedo: (H, W, 3) float32 RGB albedo.
+        depth: (H, W) float32 depth (> 0 inside ``depth_mask``, 0 outside), or
+            None when integration was off.
+        depth_mask: (H, W) bool pixels with a depth.
+        material: the final material (estimated parameters filled in).
+        estimated: ``{name: value}`` of the parameters RON estimated.
+        energy: mean squared residual per observation and channel, per round.
+        normal_change_deg: mean normal change per round (round 1: from the start).
+        rounds: rounds run.
+        converged: whether the change criteria were met before the round cap.
+        residual, iterations, flags: per pixel, from the final solve (see PSResult).
+        highlight: (H, W) bool DGMC highlight region (False without DGMC).
+        start_normals: (H, W, 3) the round-1 start (least squares + DGMC).
+        material_fit: per material update: the parameters, energy, evaluations,
+            and ``identifiable`` (the energy's relative spread over the grid > 1e-3).
+        integration_residual: relative residual of the last integration.
+        timings: seconds per stage (summed over rounds) and ``total``.
+    """
+
+    normals: np.ndarray
+    albedo: np.ndarray
+    depth: np.ndarray | None
+    depth_mask: np.ndarray
+    material: Material
+    estimated: dict
+    energy: list
+    normal_change_deg: list
+    rounds: int
+    converged: bool
+    residual: np.ndarray
+    iterations: np.ndarray
+    flags: np.ndarray
+    highlight: np.ndarray
+    start_normals: np.ndarray
+    material_fit: list = field(default_factory=list)
+    integration_residual: float | None = None
+    timings: dict = field(default_factory=dict)
+
+
+def depth_rms_roughness(depth, mask, camera, *, window: float = 4.0) -> float:
+    """The seed's roughness update (4.19) with its square restored.
+
+    ``m = sqrt(1/n sum (z - zbar)^2)``, where ``zbar`` is the mean surface: the
+    depth smoothed by a normalised Gaussian of scale ``window`` pixels inside
+    the mask.  To make ``m`` a slope (dimensionless, like the Beckmann
+    roughness) the deviation is measured in units of the lateral extent of the
+    window (``window`` pixel footprints: ``pixel_size`` orthographic,
+    ``depth / f`` perspective).
+
+    Args:
+        depth: (H, W) depth (scene units, > 0 in the mask).
+        mask: (H, W) bool.
+        camera: the camera (footprint of a pixel).
+        window: Gaussian scale in pixels.
+
+    Returns:
+        m (>= 0).
+    """
+    from scipy.ndimage import gaussian_filter
+
+    m = as_mask("mask", mask)
+    z = as_array("depth", depth, shape=m.shape).astype(np.float64)
+    w = m.astype(np.float64)
+    zs = gaussian_filter(np.where(m, z, 0.0), window) / np.maximum(gaussian_filter(w, window), 1e-12)
+    if camera.is_perspective:
+        foot = np.abs(z) / np.sqrt(camera.fx * camera.fy)
+    else:
+        foot = np.full_like(z, float(camera.pixel_size))
+    dev = (z - zs) / (window * foot)
+    return float(np.sqrt(np.mean(dev[m] ** 2)))
+
+
+class RON:
+    """Algorithm 2 on N images: buffers (two pixel solvers, one integrator) allocated once.
+
+    Args:
+        shape: (N, H, W).
+        camera: :class:`gpps.camera.Orthographic` or :class:`Perspective`.
+        lights: :class:`DirectionalLights` or :class:`PointLights` (N).
+        material: the model and the starting / known parameters.
+        mask: (H, W) bool, the pixels to reconstruct.
+        config: :class:`RONConfig`.
+        device: Warp device (None: CUDA if present).
+    """
+
+    def __init__(self, shape, camera, lights, material: Material, mask, config: RONConfig | None = None, device=None):
+        from gpps._runtime import resolve_device
+
+        self.config = RONConfig() if config is None else config
+        if not isinstance(self.config, RONConfig):
+            raise TypeError(f"config: expected RONConfig, got {type(self.config).__name__}")
+        if not isinstance(material, Material):
+            raise TypeError(f"material: expected gpps.material.Material, got {type(material).__name__}")
+        allowed = estimable_parameters(material.brdf)
+        bad = [e for e in self.config.estimate if e not in allowed]
+        if bad:
+            raise ValueError(f"estimate: {material.brdf} has the parameters {list(allowed)}, got {bad}")
+        if self.config.material_rule == "depth-rms" and self.config.estimate and material.brdf != "cook-torrance":
+            raise ValueError(f"material_rule: 'depth-rms' needs the cook-torrance model, got {material.brdf!r}")
+        self.device = resolve_device(device)
+        n, h, w = (int(s) for s in shape)
+        self.shape = (n, h, w)
+        self.mask = as_mask("mask", mask, (h, w))
+        self.camera = camera
+        self.lights = lights
+        self.material = material
+        self.point = isinstance(lights, PointLights)
+        if self.point and not self.config.integrate:
+            pass  # allowed when the caller gives the depth; checked in run()
+        self.solver = PixelSolver(self.shape, camera, lights, material, self.config.solver, device=self.device)
+        self._fit_solver = None
+        self.integrator = None
+        if self.config.integrate:
+            from gpps.pipeline.integration import Integrator, IntegratorConfig
+
+            icfg = self.config.integrator if self.config.integrator is not None else IntegratorConfig(tol=1e-5)
+            self.integrator = Integrator(self.mask, camera=camera, config=icfg, device=self._taichi_device())
+
+    def _taichi_device(self) -> str:
+        return "cpu" if str(self.device).startswith("cpu") else str(self.device)
+
+    def close(self) -> None:
+        """Free the integrator's Taichi fields."""
+        if self.integrator is not None:
+            self.integrator.close()
+            self.integrator = None
+
+    # ------------------------------------------------------------------ steps
+
+    def _solve(self, images, depth, valid, material, *, starts=None, init=None, init_mask=None, mask=None) -> dict:
+        """Steps 1/2/5: cold multi-start solve of ``mask``; where ``init`` is given, also a
+        warm-started solve from it (on ``init_mask``); the lower residual wins per pixel."""
+        s = self.solver
+        cfg = self.config.solver
+        m = self.mask if mask is None else mask
+        s.set_material(material)
+        s.set_config(cfg if starts is None else replace(cfg, starts=starts))
+        # copies: on CPU, Warp's numpy() views alias the solver's buffers, which the next solve overwrites
+        out = {k: np.array(v) for k, v in s.solve(images, m, depth=depth, valid=valid).items()}
+        if init is not None:
+            im = m if init_mask is None else (init_mask & m)
+            if im.any():
+                s.set_config(replace(cfg, warm_start=True, starts=1, neighbour_radius=0, smoothness=0.0))
+                warm = s.solve(images, im, depth=depth, valid=valid, init_normals=init)
+                better = im & (warm["residual"] < out["residual"]) & ((warm["flags"] & FLAG_FEW_OBSERVATIONS) == 0)
+                for k in ("normals", "albedo", "residual", "flags", "cond"):
+                    out[k] = np.where(better.reshape(better.shape + (1,) * (out[k].ndim - 2)), warm[k], out[k])
+                out["iterations"] = out["iterations"] + np.where(im, warm["iterations"], 0)
+            s.set_config(cfg)
+        return out
+
+    def _energy(self, residual, mask) -> float:
+        r = residual[mask].astype(np.float64)
+        return float(np.mean(r * r))
+
+    def _sample(self, highlight) -> np.ndarray:
+        """A fixed pixel sample for the material fit: highlight pixels (up to half), the rest at random."""
+        c = self.config
+        rng = np.random.default_rng(c.seed)
+        idx = np.flatnonzero(self.mask.ravel())
+        k = min(c.material_samples, idx.size)
+        hl = np.flatnonzero((highlight & self.mask).ravel())
+        take = rng.choice(hl, min(hl.size, k // 2), replace=False) if hl.size else np.zeros(0, np.int64)
+        rest = np.setdiff1d(idx, take, assume_unique=True)
+        take = np.concatenate([take, rng.choice(rest, min(rest.size, k - take.size), replace=False)])
+        s = np.zeros(self.mask.size, bool)
+        s[take] = True
+        return s.reshape(self.mask.shape)
+
+    def _fit_energy(self, images, depth, valid, material, sample) -> float:
+        if self._fit_solver is None:
+            cfg = replace(self.config.solver, starts=self.config.material_starts, neighbour_radius=0,
+                          smoothness=0.0, warm_start=False)
+            self._fit_solver = PixelSolver(self.shape, self.camera, self.lights, material, cfg, device=self.device)
+        self._fit_solver.set_material(material)
+        out = self._fit_solver.solve(images, sample, depth=depth, valid=valid)
+        r = np.sort(out["residual"][sample].astype(np.float64) ** 2)
+        keep = max(1, int(round(r.size * (1.0 - self.config.material_trim))))
+        return float(np.mean(r[:keep]))
+
+    def _fit_material(self, images, depth, valid, material, sample, *, grid: bool) -> tuple[Material, dict]:
+        """Step 4, photometric: the estimated parameters minimising the sampled energy."""
+        from scipy.optimize import minimize
+
+        c = self.config
+        names = c.estimate
+        lo = np.log([_RANGES[k][0] for k in names])
+        hi = np.log([_RANGES[k][1] for k in names])
+        evals = []
+
+        def f(x):
+            x = np.clip(x, lo, hi)
+            e = self._fit_energy(images, depth, valid, _with(material, dict(zip(names, np.exp(x)))), sample)
+            evals.append(e)
+            return e
+
+        x0 = np.log([_get(material, k) for k in names])
+        x0 = np.clip(x0, lo, hi)
+        step = (hi - lo) / max(c.material_grid - 1, 1)
+        spread = None
+        if grid and c.material_grid > 1:
+            axes = [np.linspace(a, b, c.material_grid) for a, b in zip(lo, hi)]
+            pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(names))
+            vals = np.array([f(p) for p in pts])
+            x0 = pts[int(np.argmin(vals))]
+            spread = float((vals.max() - vals.min()) / max(vals.max(), 1e-300))
+            step = step / 2
+        else:
+            step = np.full(len(names), 0.15)
+        best = (f(x0), x0)
+        if c.material_evals > 0:
+            simplex = np.vstack([x0] + [x0 + np.eye(len(names))[i] * step[i] for i in range(len(names))])
+            res = minimize(f, x0, method="Nelder-Mead",
+                           options={"initial_simplex": simplex, "maxfev": c.material_evals, "xatol": 1e-3, "fatol": 0.0})
+            if res.fun < best[0]:
+                best = (float(res.fun), np.clip(res.x, lo, hi))
+        values = dict(zip(names, (float(v) for v in np.exp(best[1]))))
+        info = {"rule": "photometric", "values": values, "energy": best[0], "evaluations": len(evals),
+                "grid": bool(grid), "identifiable": None if spread is None else spread > 1e-3}
+        return _with(material, values), info
+
+    # ------------------------------------------------------------------ the loop
+
+    def run(self, images, *, depth=None, reference_depth: float | None = None, valid=None,
+            progress: Progress | None = None) -> RONResult:
+        """Run Algorithm 2.
+
+        Args:
+            images: (N, H, W, 3) or (N, H, W) images (divided by the light
+                intensities when the lights have unit intensities).
+            depth: (H, W) depth estimate (scene units).  Point lights: the
+                start of the loop (default: flat at ``reference_depth``).
+            reference_depth: mean depth of the object (scene units, > 0): fixes
+                the integrated depth's offset (orthographic) or scale
+                (perspective).  Needed for point lights without ``depth``.
+            valid: optional (N, H, W) bool observations to use.
+            progress: ``progress(done, total, message)``.
+
+        Returns:
+            :class:`RONResult`.
+        """
+        t_all = time.perf_counter()
+        c = self.config
+        n, h, w = self.shape
+        m = self.mask
+        step = progress or (lambda *a: None)
+        timings = {"least_squares": 0.0, "dgmc": 0.0, "normals": 0.0, "integration": 0.0, "material": 0.0}
+        if reference_depth is not None:
+            reference_depth = check_number("reference_depth", reference_depth, lo=0.0, lo_open=True)
+        if depth is not None:
+            depth = as_array("depth", depth, shape=(h, w))
+            if np.any(depth[m] <= 0):
+                raise ValueError("depth: expected values > 0 inside the mask")
+            if reference_depth is None:
+                reference_depth = float(np.mean(depth[m]))
+        if self.point and depth is None:
+            if reference_depth is None:
+                raise ValueError("reference_depth: expected the object's distance (scene units) for point lights "
+                                 "without a depth estimate, got None")
+            depth = np.full((h, w), reference_depth, np.float32)
+        if self.point and not c.integrate and depth is None:
+            raise ValueError("depth: point lights with integrate=False need a depth estimate")
+        cur_depth = None if depth is None else np.where(m, depth, reference_depth or 1.0).astype(np.float32)
+        solve_depth = cur_depth if self.point else None
+        total = float(c.rounds * 3 + 2)
+        step(0, total, "least squares")
+
+        # start: least squares (Woodham) + DGMC
+        t = time.perf_counter()
+        s = self.solver
+        s.set_config(replace(c.solver, solver="none", smoothness=0.0))
+        ls = {k: np.array(v) for k, v in s.solve(images, m, depth=solve_depth, valid=valid).items()}
+        s.set_config(c.solver)
+        timings["least_squares"] += time.perf_counter() - t
+        start = ls["normals"]
+        highlight = np.zeros((h, w), bool)
+        if c.dgmc and self.material.brdf != "lambertian":
+            t = time.perf_counter()
+            pts = self.camera.backproject(np.where(m, solve_depth, 1.0)) if self.point else None
+            nrm = ls["normals"].astype(np.float64)
+            ok = m & (np.abs(np.linalg.norm(nrm, axis=-1) - 1.0) < 1e-3)
+            nrm[~ok] = (0.0, 0.0, 1.0)
+            dg = dgmc_start(images, m, nrm, lights=self.lights, config=c.dgmc_config, points=pts)
+            start, highlight = dg.normals.astype(np.float32), dg.highlight
+            timings["dgmc"] += time.perf_counter() - t
+        step(1, total, "dgmc")
+
+        material = self.material
+        estimating = bool(c.estimate)
+        sample = self._sample(highlight) if estimating and c.material_rule == "photometric" else None
+        energies, changes, fits = [], [], []
+        prev = start
+        out = None
+        converged = False
+        integ = None
+        r = 0
+        for r in range(1, c.rounds + 1):
+            # steps 1-2 (5): normals and albedo with the current material and depth
+            t = time.perf_counter()
+            init, init_mask = (start, highlight) if r == 1 else (prev, None)
+            if r == 1 and not highlight.any():
+                init = None
+            out = self._solve(images, solve_depth, valid, material, init=init, init_mask=init_mask)
+            timings["normals"] += time.perf_counter() - t
+            energies.append(self._energy(out["residual"], m))
+            cosang = np.clip(np.sum(out["normals"][m] * prev[m], -1), -1.0, 1.0)
+            changes.append(float(np.degrees(np.arccos(cosang)).mean()))
+            prev = out["normals"]
+            step(1 + 3 * r - 2, total, f"round {r}: normals (energy {energies[-1]:.3g})")
+            if r > 1:
+                de = abs(energies[-1] - energies[-2]) / max(energies[-2], 1e-300)
+                if de < c.tol and changes[-1] < c.tol_normals_deg:
+                    converged = True
+                    break
+            if r == c.rounds:
+                break
+            if not (estimating or self.point):
+                # nothing that step 1 depends on changes: one round is the fixed point
+                converged = True
+                break
+            # step 3: depth
+            if c.integrate:
+                t = time.perf_counter()
+                integ = self.integrator.integrate(out["normals"], warm_start=cur_depth, reference_depth=reference_depth)
+                cur_depth = self._fill_depth(integ.depth, integ.mask, reference_depth)
+                if self.point:
+                    solve_depth = cur_depth
+                timings["integration"] += time.perf_counter() - t
+            step(1 + 3 * r - 1, total, f"round {r}: depth")
+            # step 4: material
+            if estimating:
+                t = time.perf_counter()
+                if c.material_rule == "photometric":
+                    material, info = self._fit_material(images, solve_depth, valid, material, sample, grid=(r == 1))
+                else:
+                    if cur_depth is None:
+                        raise ValueError("material_rule: 'depth-rms' needs integrate=True")
+                    mr = depth_rms_roughness(cur_depth, m, self.camera, window=c.roughness_window)
+                    mr = float(np.clip(mr, *_RANGES["roughness"]))
+                    material = _with(material, {"roughness": mr})
+                    info = {"rule": "depth-rms", "values": {"roughness": mr}}
+                fits.append(info)
+                timings["material"] += time.perf_counter() - t
+            step(1 + 3 * r, total, f"round {r}: material")
+
+        # the final depth, from the final normals
+        depth_out, depth_mask, ires = None, np.zeros((h, w), bool), None
+        if c.integrate:
+            t = time.perf_counter()
+            integ = self.integrator.integrate(out["normals"], warm_start=cur_depth, reference_depth=reference_depth)
+            depth_out, depth_mask, ires = integ.depth, integ.mask, float(integ.residual)
+            timings["integration"] += time.perf_counter() - t
+        step(total, total, "done")
+        timings["total"] = time.perf_counter() - t_all
+        estimated = {k: _get(material, k) for k in c.estimate}
+        return RONResult(
+            normals=np.where(m[..., None], out["normals"], 0.0).astype(np.float32),
+            albedo=out["albedo"], depth=depth_out, depth_mask=depth_mask, material=material, estimated=estimated,
+            energy=energies, normal_change_deg=changes, rounds=r, converged=converged,
+            residual=out["residual"], iterations=out["iterations"], flags=out["flags"], highlight=highlight,
+            start_normals=start, material_fit=fits, integration_residual=ires, timings=timings,
+        )
+
+    def _fill_depth(self, depth, dmask, reference_depth) -> np.ndarray:
+        """Integrated depth with the pixels it dropped filled by the mean (the solver needs depth > 0)."""
+        fill = float(np.mean(depth[dmask])) if dmask.any() else (reference_depth or 1.0)
+        d = np.where(dmask & (depth > 0), depth, fill)
+        return np.where(self.mask, d, fill).astype(np.float32)

@@ -1,0 +1,201 @@
+"""``gpps.reconstruct``: the whole pipeline in one call (seed chapter 4).
+
+Normals, RGB albedo, depth and the unknown material parameters from N >= 3
+images with known lights::
+
+    import gpps
+    rec = gpps.reconstruct(images, mask, lights, camera=cam, material="cook-torrance")
+    rec.normals, rec.albedo, rec.depth, rec.material, rec.estimated
+
+Stages (each in :mod:`gpps.pipeline`, each usable alone): Lambertian least
+squares, DGMC starts for highlight pixels (:mod:`gpps.pipeline.dgmc`), then the
+RON alternation (:mod:`gpps.pipeline.ron`: per-pixel normals and albedo by
+Levenberg-Marquardt / dog leg / BFGS, Taichi Poisson integration, material
+update; point-light directions recomputed from the depth every round).
+
+Which material parameters are estimated: pass ``material`` as a model name
+(``"blinn-phong"``) and every scene parameter of that model
+(:data:`gpps.pipeline.ron.LOBE_PARAMETERS`: ``ks`` and the lobe width) is
+estimated from the images; pass a :class:`gpps.material.Material` and its
+parameters are used as known, unless ``estimate`` names some of them.  The
+Cook-Torrance Fresnel ``f0`` is never estimated (it trades off against ``ks``
+with few images): the given or default value (0.5) is used and the result
+says so (``Reconstruction.fixed``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from gpps._check import as_array, as_mask
+from gpps.camera import Orthographic, Perspective
+from gpps.lights import DirectionalLights, PointLights
+from gpps.material import BRDF_NAMES, Material
+from gpps.pipeline.ron import RON, LOBE_PARAMETERS, RONConfig
+
+__all__ = ["reconstruct", "Reconstruction", "RONConfig"]
+
+
+@dataclass
+class Reconstruction:
+    """Output of :func:`reconstruct`.
+
+    Attributes:
+        normals: (H, W, 3) float32 unit normals, gpps frame, zeros outside the mask.
+        albedo: (H, W, 3) float32 RGB albedo (diffuse kd).
+        depth: (H, W) float32 depth (scene units, ``-z``), 0 outside ``depth_mask``;
+            None when integration was switched off.  Perspective without a
+            ``reference_depth``: known up to one scale (mean log-depth 0).
+        mask: (H, W) bool pixels solved.
+        depth_mask: (H, W) bool pixels with a depth.
+        material: the material used at the end (estimated parameters filled in).
+        estimated: ``{parameter: value}`` estimated from the images.
+        fixed: parameters of the model that were neither given nor estimated
+            (their default values were used).
+        energy: model energy (mean squared residual) per RON round.
+        rounds, converged: RON rounds run, and whether it stopped on its tolerance.
+        residual, iterations, flags: per pixel, from the final normal solve.
+        highlight: (H, W) bool DGMC highlight pixels.
+        details: the full :class:`gpps.pipeline.ron.RONResult`.
+        timings: seconds per stage and ``total``.
+    """
+
+    normals: np.ndarray
+    albedo: np.ndarray
+    depth: np.ndarray | None
+    mask: np.ndarray
+    depth_mask: np.ndarray
+    material: Material
+    estimated: dict
+    fixed: dict
+    energy: list
+    rounds: int
+    converged: bool
+    residual: np.ndarray
+    iterations: np.ndarray
+    flags: np.ndarray
+    highlight: np.ndarray
+    details: object = None
+    timings: dict = field(default_factory=dict)
+
+
+def _material(material, estimate) -> tuple[Material, tuple[str, ...], dict]:
+    if isinstance(material, str):
+        if material not in BRDF_NAMES:
+            raise ValueError(f"material: expected a gpps.material.Material or one of {list(BRDF_NAMES)}, got {material!r}")
+        mat = Material.default_for(material)
+        names = LOBE_PARAMETERS[material] if estimate == "auto" else estimate
+    elif isinstance(material, Material):
+        mat = material
+        names = () if estimate == "auto" else estimate
+    else:
+        raise TypeError(f"material: expected a gpps.material.Material or a model name, got {type(material).__name__}")
+    if isinstance(names, str):
+        names = (names,)
+    names = tuple(names)
+    allowed = LOBE_PARAMETERS[mat.brdf]
+    bad = [k for k in names if k not in allowed]
+    if bad:
+        raise ValueError(f"estimate: the {mat.brdf} model has the estimable parameters {list(allowed)}, got {bad}")
+    fixed = {}
+    if isinstance(material, str) and mat.brdf == "cook-torrance":
+        fixed["f0"] = mat.f0
+    if isinstance(material, str) and mat.brdf == "ashikhmin-shirley":
+        fixed["f0"] = mat.f0
+    return mat, names, fixed
+
+
+def reconstruct(
+    images,
+    mask,
+    lights,
+    *,
+    camera=None,
+    material: Material | str = "blinn-phong",
+    estimate="auto",
+    depth=None,
+    reference_depth: float | None = None,
+    valid=None,
+    saturation: float | None = None,
+    config: RONConfig | None = None,
+    device=None,
+    progress=None,
+) -> Reconstruction:
+    """Calibrated photometric stereo with DGMC starts and the RON alternation (Algorithm 2).
+
+    Args:
+        images: (N, H, W, 3) RGB or (N, H, W) grey images >= 0, N >= 3, divided by
+            the light intensities when ``lights`` has unit intensities.
+        mask: (H, W) bool object mask.
+        lights: :class:`DirectionalLights` or :class:`PointLights` (N, scene units).
+        camera: :class:`Orthographic` (default) or :class:`Perspective`.
+        material: a model name (its scene parameters are estimated) or a
+            :class:`Material` (its parameters are known).
+        estimate: ``"auto"`` (see above) or the names of parameters to estimate
+            (``"ks"``, ``"shininess"``, ``"roughness"``, ``"eta"``).
+        depth: (H, W) depth estimate (scene units > 0): for point lights, the
+            loop's start (default flat at ``reference_depth``).
+        reference_depth: the object's mean distance (scene units, > 0): fixes
+            the depth's offset/scale; required for point lights without ``depth``.
+        valid: optional (N, H, W) bool observations to use.
+        saturation: observations with a channel >= this are dropped (e.g. the
+            clipping level divided by the light intensity).
+        config: :class:`RONConfig` (its ``estimate`` is set from the arguments).
+        device: Warp device (None: CUDA if present); the integrator runs on the same.
+        progress: ``progress(done, total, message)``.
+
+    Returns:
+        :class:`Reconstruction`.
+
+    Raises:
+        ValueError / TypeError: bad shapes or values, unknown model or parameter
+            names, fewer than 3 lights or degenerate light directions, point
+            lights without a depth or a reference depth.
+    """
+    img = as_array("images", images)
+    if img.ndim not in (3, 4) or (img.ndim == 4 and img.shape[-1] not in (1, 3)):
+        raise ValueError(f"images: expected shape (N, H, W, 3) or (N, H, W), got {img.shape}")
+    n, h, w = img.shape[:3]
+    if n < 3:
+        raise ValueError(f"images: expected at least 3 images, got {n}")
+    m = as_mask("mask", mask, (h, w))
+    if not isinstance(lights, (DirectionalLights, PointLights)):
+        raise TypeError(f"lights: expected DirectionalLights or PointLights, got {type(lights).__name__}")
+    if len(lights) != n:
+        raise ValueError(f"lights: expected {n} lights (one per image), got {len(lights)}")
+    camera = Orthographic() if camera is None else camera
+    if not isinstance(camera, (Orthographic, Perspective)):
+        raise TypeError(f"camera: expected gpps.camera.Orthographic or Perspective, got {type(camera).__name__}")
+    mat, names, fixed = _material(material, estimate)
+    cfg = RONConfig() if config is None else config
+    if not isinstance(cfg, RONConfig):
+        raise TypeError(f"config: expected RONConfig, got {type(cfg).__name__}")
+    if cfg.material_rule == "depth-rms":
+        names = tuple(k for k in names if k == "roughness")
+    solver = cfg.solver
+    if saturation is not None:
+        solver = replace(solver, saturation=float(saturation))
+    if n > 6 and solver.robust == "none" and config is None:
+        # many real images: shadows and inter-reflections; robust loss and shadow dropping
+        solver = replace(solver, robust="cauchy", shadow_threshold=0.02, starts=min(solver.starts, 4))
+    cfg = replace(cfg, estimate=names, solver=solver)
+    if saturation is not None and cfg.dgmc_config.saturation is None:
+        cfg = replace(cfg, dgmc_config=replace(cfg.dgmc_config, saturation=float(saturation)))
+    val = None
+    if valid is not None:
+        val = np.asarray(valid)
+        if val.shape != (n, h, w):
+            raise ValueError(f"valid: expected shape ({n}, {h}, {w}), got {val.shape}")
+    ron = RON((n, h, w), camera, lights, mat, m, cfg, device=device)
+    try:
+        res = ron.run(img, depth=depth, reference_depth=reference_depth, valid=val, progress=progress)
+    finally:
+        ron.close()
+    return Reconstruction(
+        normals=res.normals, albedo=res.albedo, depth=res.depth, mask=m, depth_mask=res.depth_mask,
+        material=res.material, estimated=res.estimated, fixed=fixed, energy=res.energy, rounds=res.rounds,
+        converged=res.converged, residual=res.residual, iterations=res.iterations, flags=res.flags,
+        highlight=res.highlight, details=res, timings=res.timings,
+    )
