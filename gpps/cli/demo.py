@@ -7,7 +7,7 @@ from pathlib import Path
 
 
 def register(sub):
-    p = sub.add_parser("demo", help="render an embedded perspective scene with highlights and reconstruct it")
+    p = sub.add_parser("demo", help="render an embedded perspective Cook-Torrance scene under near point lights and reconstruct it with the pipeline")
     p.add_argument("--out", default="gpps_demo", help="output folder")
     p.add_argument("--size", type=int, default=256)
     p.set_defaults(func=run)
