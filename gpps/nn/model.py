@@ -1,0 +1,235 @@
+"""The single-image normal / depth network: architecture, weights file and numpy inference.
+
+A compact multi-scale encoder-decoder in the spirit of the seed's 6.2.4
+(Eigen & Fergus's three scales): a coarse *global* scale (the deepest
+features averaged over the whole image and passed through two fully
+connected layers, then added back everywhere), a mid scale and a fine scale
+(a U-Net decoder with skip connections) that predicts the x, y, z components
+of the normal and a relative depth at every pixel::
+
+    input (4, S, S): RGB / p99 inside the mask, and the mask
+      enc0  conv3x3 4->16, 16->16                  S
+      enc1  avgpool2, conv 16->32, 32->32          S/2
+      enc2  avgpool2, conv 32->64, 64->64          S/4
+      enc3  avgpool2, conv 64->96, 96->96          S/8
+      enc4  avgpool2, conv 96->128, 128->128       S/16
+      glob  mean over the image, fc 128->128, relu, fc 128->128; enc4 = relu(enc4 + glob)
+      dec3  up2 (nearest), concat enc3, conv 224->96, 96->96
+      dec2  up2, concat enc2, conv 160->64, 64->64
+      dec1  up2, concat enc1, conv 96->32, 32->32
+      dec0  up2, concat enc0, conv 48->16, 16->16
+      head  conv3x3 16->4: normal = normalize(out[0:3]), depth = out[3]
+
+Every conv is 3x3, zero padding 1, followed by ReLU (except the head).  The
+training code (``training/``, PyTorch) builds the same layers with the same
+names; the weights ship as ``gpps/nn/single_net.npz`` and are evaluated here
+with numpy only (no PyTorch, no network access).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["ARCH", "SingleNet", "load_weights", "prepare_input", "conv3x3", "WEIGHTS_PATH", "NET_SIZE"]
+
+WEIGHTS_PATH = Path(__file__).with_name("single_net.npz")
+NET_SIZE = 128  # the resolution the shipped network was trained at
+
+# (name, in_channels, out_channels) of the conv layers, in order; the training code uses the same table.
+ENC = [("enc0", 4, 16), ("enc1", 16, 32), ("enc2", 32, 64), ("enc3", 64, 96), ("enc4", 96, 128)]
+DEC = [("dec3", 128 + 96, 96), ("dec2", 96 + 64, 64), ("dec1", 64 + 32, 32), ("dec0", 32 + 16, 16)]
+GLOBAL = [("glob.fc1", 128, 128), ("glob.fc2", 128, 128)]
+HEAD = ("head", 16, 4)
+
+
+def _arch() -> dict:
+    """Every parameter's name and shape (conv: (out, in, 3, 3), fc: (out, in), biases (out,))."""
+    shapes = {}
+    for name, cin, cout in ENC + DEC:
+        shapes[f"{name}.conv1.weight"] = (cout, cin, 3, 3)
+        shapes[f"{name}.conv1.bias"] = (cout,)
+        shapes[f"{name}.conv2.weight"] = (cout, cout, 3, 3)
+        shapes[f"{name}.conv2.bias"] = (cout,)
+    for name, cin, cout in GLOBAL:
+        shapes[f"{name}.weight"] = (cout, cin)
+        shapes[f"{name}.bias"] = (cout,)
+    name, cin, cout = HEAD
+    shapes[f"{name}.weight"] = (cout, cin, 3, 3)
+    shapes[f"{name}.bias"] = (cout,)
+    return shapes
+
+
+ARCH = _arch()
+
+
+def prepare_input(image: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """The network's input (4, H, W) float32 from one image.
+
+    Args:
+        image: (H, W) grey or (H, W, 3) RGB, any positive scale (linear or 8-bit
+            gamma images alike: only the 99th percentile inside the mask is used).
+        mask: (H, W) bool object pixels; None: the whole frame.
+
+    The image is divided by the 99th percentile of its brightest channel
+    inside the mask, clipped to [0, 1.5], zeroed outside the mask; the fourth
+    channel is the mask.
+    """
+    img = np.asarray(image, dtype=np.float32)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, -1)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"image: expected (H, W) or (H, W, 3), got {img.shape}")
+    h, w = img.shape[:2]
+    m = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
+    if m.shape != (h, w):
+        raise ValueError(f"mask: expected shape {(h, w)}, got {m.shape}")
+    if not m.any():
+        raise ValueError("mask: expected at least one object pixel, got none")
+    img = np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0)
+    p = float(np.percentile(img[m].max(-1), 99.0))
+    x = np.clip(img / max(p, 1e-8), 0.0, 1.5) * m[..., None]
+    return np.concatenate([x.transpose(2, 0, 1), m[None].astype(np.float32)], 0).astype(np.float32)
+
+
+# --------------------------------------------------------------------------- numpy layers
+
+
+def conv3x3(x: np.ndarray, weight: np.ndarray, bias: np.ndarray) -> np.ndarray:
+    """3x3 convolution (cross-correlation as in PyTorch), zero padding 1: (Cin, H, W) -> (Cout, H, W)."""
+    cin, h, w = x.shape
+    cout = weight.shape[0]
+    xp = np.pad(x, ((0, 0), (1, 1), (1, 1)))
+    out = np.empty((cout, h * w), np.float32)
+    # accumulate the nine shifted products: memory stays O(Cin H W)
+    wk = weight.reshape(cout, cin, 9)
+    out[:] = bias[:, None]
+    for k in range(9):
+        di, dj = divmod(k, 3)
+        out += wk[:, :, k] @ xp[:, di : di + h, dj : dj + w].reshape(cin, h * w)
+    return out.reshape(cout, h, w)
+
+
+def _relu(x):
+    return np.maximum(x, 0.0, out=x)
+
+
+def _pool2(x):
+    c, h, w = x.shape
+    return x.reshape(c, h // 2, 2, w // 2, 2).mean(axis=(2, 4))
+
+
+def _up2(x):
+    return x.repeat(2, axis=1).repeat(2, axis=2)
+
+
+def load_weights(path: str | Path | None = None) -> tuple[dict, dict]:
+    """Read a weights file: ``(params, meta)``; params checked against :data:`ARCH`.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: a parameter is missing or has the wrong shape.
+    """
+    path = Path(path) if path is not None else WEIGHTS_PATH
+    if not path.is_file():
+        raise FileNotFoundError(f"weights: file not found: {path}")
+    with np.load(path, allow_pickle=False) as z:
+        params = {k: np.asarray(z[k], np.float32) for k in z.files if k != "meta"}
+        meta = json.loads(str(z["meta"])) if "meta" in z.files else {}
+    for k, shape in ARCH.items():
+        if k not in params:
+            raise ValueError(f"weights: parameter {k!r} missing from {path}")
+        if params[k].shape != shape:
+            raise ValueError(f"weights: {k!r} expected shape {shape}, got {params[k].shape}")
+    return params, meta
+
+
+@dataclass
+class SingleNet:
+    """The network with its weights, evaluated with numpy.
+
+    Example::
+
+        net = SingleNet.load()                       # the shipped weights
+        normals, rel_depth = net.predict(image, mask)
+    """
+
+    params: dict
+    meta: dict
+
+    @classmethod
+    def load(cls, path: str | Path | None = None) -> "SingleNet":
+        params, meta = load_weights(path)
+        return cls(params, meta)
+
+    @property
+    def size(self) -> int:
+        return int(self.meta.get("size", NET_SIZE))
+
+    def _block(self, name, x):
+        p = self.params
+        x = _relu(conv3x3(x, p[f"{name}.conv1.weight"], p[f"{name}.conv1.bias"]))
+        return _relu(conv3x3(x, p[f"{name}.conv2.weight"], p[f"{name}.conv2.bias"]))
+
+    def forward(self, x: np.ndarray) -> np.ndarray:
+        """Raw output (4, H, W) for an input (4, H, W) with H, W multiples of 16."""
+        p = self.params
+        c, h, w = x.shape
+        if c != 4 or h % 16 or w % 16:
+            raise ValueError(f"x: expected (4, H, W) with H, W multiples of 16, got {x.shape}")
+        skips = []
+        for k, (name, _, _) in enumerate(ENC):
+            if k:
+                x = _pool2(x)
+            x = self._block(name, x)
+            skips.append(x)
+        g = x.mean(axis=(1, 2))
+        g = np.maximum(p["glob.fc1.weight"] @ g + p["glob.fc1.bias"], 0.0)
+        g = p["glob.fc2.weight"] @ g + p["glob.fc2.bias"]
+        x = _relu(x + g[:, None, None])
+        for (name, _, _), skip in zip(DEC, skips[-2::-1]):
+            x = self._block(name, np.concatenate([_up2(x), skip], 0))
+        return conv3x3(x, p["head.weight"], p["head.bias"])
+
+    def predict(self, image: np.ndarray, mask: np.ndarray | None = None, *, size: int | None = None):
+        """Normals (H, W, 3) and relative depth (H, W) of one image.
+
+        The image is resized so that its longer side is ``size`` (default: the
+        training size), padded to a multiple of 16, evaluated, and the outputs
+        are resized back (normals renormalised).  The relative depth is in
+        units of half the image's longer side, mean 0 over the mask; larger
+        values are nearer the camera (it is a height).
+
+        Returns:
+            (normals, height): float32, zero outside the mask.
+        """
+        import cv2
+
+        img = np.asarray(image, np.float32)
+        h, w = img.shape[:2]
+        m = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
+        x = prepare_input(img, m)
+        s = int(size or self.size)
+        scale = s / max(h, w)
+        hs, ws = max(1, round(h * scale)), max(1, round(w * scale))
+        xs = np.stack([cv2.resize(ch, (ws, hs), interpolation=cv2.INTER_AREA) for ch in x])
+        ms = xs[3] > 0.5
+        xs[:3] *= ms
+        xs[3] = ms
+        H, W = -(-hs // 16) * 16, -(-ws // 16) * 16
+        oy, ox = (H - hs) // 2, (W - ws) // 2
+        xp = np.zeros((4, H, W), np.float32)
+        xp[:, oy : oy + hs, ox : ox + ws] = xs
+        out = self.forward(xp)[:, oy : oy + hs, ox : ox + ws]
+        out = np.stack([cv2.resize(ch, (w, h), interpolation=cv2.INTER_LINEAR) for ch in out])
+        n = out[:3].transpose(1, 2, 0)
+        n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-8)
+        n[..., 2] = np.maximum(n[..., 2], 1e-3)  # visible normals face the camera
+        n = n / np.linalg.norm(n, axis=-1, keepdims=True)
+        height = out[3]  # normalised image units: resolution-independent
+        height = np.where(m, height - height[m].mean(), 0.0)
+        n[~m] = 0.0
+        return n.astype(np.float32), height.astype(np.float32)

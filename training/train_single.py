@@ -1,0 +1,341 @@
+"""Train the single-image normal / depth network (issue 8) on scenes gpps renders itself.
+
+Runs on the GPU machine (PyTorch + the Warp kit; see /work/shared/device/README.md)::
+
+    source .device/b/install.sh && python3 training/train_single.py --out $OUT --minutes 5
+
+Data recipe (:mod:`gpps.nn.shapes`): ``--train`` random scenes of seeds ``0..train-1`` (height
+fields, surfaces of revolution, smooth-union blobs; uniform / noise / cell / stripe / mixed RGB
+albedo, grey a third of the time; the five reflectance models with random parameters; directional
+or point lights; orthographic or perspective camera; noise, ambient, 8-bit quantisation), each
+rendered under ``--lights`` random lights by gpps's Warp renderer; validation scenes use seeds
+``TRAIN_SEED_LIMIT - 1 - k`` (never trained on).  Augmentation: flips and 90-degree rotations
+(normals rotated with the image) and a gamma in [0.8, 1.25] on the normalised input.
+
+Losses (seed 6.10, 6.11): ``L_n = -(1/m) sum_i N_i . N*_i`` over the m mask pixels, and
+``L_d = (1/m) sum D_i^2 - (1/(2 m^2)) (sum D_i)^2 + (1/m) sum (grad_x D_i^2 + grad_y D_i^2)`` with
+``D = Z - Z*`` the relative height error (units of half the image width) and the gradients as
+differences over pixel pairs inside the mask divided by the pixel spacing 2/S.  Total
+``L = L_n + w_d L_d``.
+
+Writes ``single_net.npz`` (numpy weights + meta JSON, what :mod:`gpps.nn.model` loads) and
+``single_training.json`` (recipe, steps, losses, validation MAEN against the flat-plane baseline).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from multiprocessing import Pool
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # a script run from a checkout, not an installed package
+    sys.path.insert(0, str(ROOT))
+
+from gpps.nn.model import ARCH, DEC, ENC, GLOBAL, HEAD, prepare_input  # noqa: E402
+from gpps.nn.shapes import TRAIN_SEED_LIMIT, SceneRenderer, random_scene, render_random_sample  # noqa: E402
+
+
+def _scene(args):
+    size, seed = args
+    return random_scene(size, seed)
+
+
+def build_dataset(seeds, size, n_lights, device, pool, log=None):
+    """Inputs (N, L, 4, S, S) f16, normals (N, 3, S, S) f16, height (N, 1, S, S) f16, mask (N, 1, S, S) u8."""
+    n = len(seeds)
+    X = np.zeros((n, n_lights, 4, size, size), np.float16)
+    N = np.zeros((n, 3, size, size), np.float16)
+    Z = np.zeros((n, 1, size, size), np.float16)
+    M = np.zeros((n, 1, size, size), np.uint8)
+    rend = SceneRenderer(device)
+    stats = {"family": {}, "brdf": {}, "albedo": {}, "camera": {}, "lights": {}}
+    t0 = time.time()
+    for k, sc in enumerate(pool.imap(_scene, [(size, int(s)) for s in seeds], chunksize=16)):
+        sc, nrm, imgs, lights = render_random_sample(size, int(seeds[k]), rend, n_lights=n_lights, scene=sc)
+        for li in range(n_lights):
+            X[k, li] = prepare_input(imgs[li], sc.mask)
+        N[k] = nrm.transpose(2, 0, 1)
+        Z[k, 0] = sc.relative_height()
+        M[k, 0] = sc.mask
+        for key, val in (("family", sc.family), ("brdf", sc.material.brdf), ("albedo", sc.info["albedo"]),
+                         ("camera", sc.camera_kind), ("lights", lights.kind)):
+            stats[key][val] = stats[key].get(val, 0) + 1
+        if log and (k + 1) % 1000 == 0:
+            log(f"data {k + 1}/{n} {time.time() - t0:.1f}s")
+    return X, N, Z, M, stats
+
+
+def _fake(n, size, n_lights):
+    rng = np.random.default_rng(0)
+    X = rng.uniform(0, 1, (n, n_lights, 4, size, size)).astype(np.float16)
+    X[:, :, 3] = 1
+    nr = rng.normal(0, 1, (n, 3, size, size))
+    nr[:, 2] = np.abs(nr[:, 2])
+    nr /= np.linalg.norm(nr, axis=1, keepdims=True)
+    Z = rng.normal(0, 0.1, (n, 1, size, size)).astype(np.float16)
+    return X, nr.astype(np.float16), Z, np.ones((n, 1, size, size), np.uint8), {}
+
+
+def make_model(torch):
+    nn = torch.nn
+
+    class Block(nn.Module):
+        def __init__(self, cin, cout):
+            super().__init__()
+            self.conv1 = nn.Conv2d(cin, cout, 3, padding=1)
+            self.conv2 = nn.Conv2d(cout, cout, 3, padding=1)
+
+        def forward(self, x):
+            return torch.relu(self.conv2(torch.relu(self.conv1(x))))
+
+    class Glob(nn.Module):
+        def __init__(self):
+            super().__init__()
+            (_, a, b), (_, c, d) = GLOBAL
+            self.fc1 = nn.Linear(a, b)
+            self.fc2 = nn.Linear(c, d)
+
+        def forward(self, x):
+            g = x.mean(dim=(2, 3))
+            return self.fc2(torch.relu(self.fc1(g)))
+
+    class Net(nn.Module):
+        def __init__(self):
+            super().__init__()
+            for name, cin, cout in ENC + DEC:
+                self.add_module(name, Block(cin, cout))
+            self.glob = Glob()
+            self.head = nn.Conv2d(HEAD[1], HEAD[2], 3, padding=1)
+
+        def forward(self, x):
+            skips = []
+            for k, (name, _, _) in enumerate(ENC):
+                if k:
+                    x = torch.nn.functional.avg_pool2d(x, 2)
+                x = getattr(self, name)(x)
+                skips.append(x)
+            x = torch.relu(x + self.glob(x)[:, :, None, None])
+            for (name, _, _), skip in zip(DEC, skips[-2::-1]):
+                x = getattr(self, name)(torch.cat([torch.nn.functional.interpolate(x, scale_factor=2, mode="nearest"), skip], 1))
+            return self.head(x)
+
+    return Net()
+
+
+def losses(torch, out, n_gt, z_gt, m, size):
+    """(L_n (6.10), L_d (6.11), MAEN deg per image) for a batch."""
+    out = out.float()
+    n = torch.nn.functional.normalize(out[:, :3], dim=1, eps=1e-6)
+    mf = m.float()
+    cnt = mf.sum(dim=(1, 2, 3)).clamp_min(1.0)
+    dot = (n * n_gt).sum(1, keepdim=True)
+    l_n = -((dot * mf).sum(dim=(1, 2, 3)) / cnt)
+    d = (out[:, 3:4] - z_gt) * mf
+    s1 = d.sum(dim=(1, 2, 3))
+    s2 = (d * d).sum(dim=(1, 2, 3))
+    inv_h = size / 2.0  # 1 / pixel spacing in normalised units
+    mx = mf[..., :, 1:] * mf[..., :, :-1]
+    my = mf[..., 1:, :] * mf[..., :-1, :]
+    gx = (d[..., :, 1:] - d[..., :, :-1]) * inv_h * mx
+    gy = (d[..., 1:, :] - d[..., :-1, :]) * inv_h * my
+    l_d = s2 / cnt - 0.5 * (s1 / cnt) ** 2 + ((gx * gx).sum(dim=(1, 2, 3)) + (gy * gy).sum(dim=(1, 2, 3))) / cnt
+    with torch.no_grad():
+        ang = torch.rad2deg(torch.acos(dot.clamp(-1.0, 1.0)))
+        maen = (ang * mf).sum(dim=(1, 2, 3)) / cnt
+    return l_n, l_d, maen
+
+
+def si_error(torch, out, z_gt, m):
+    """Scale-(offset-)invariant RMS height error sqrt(mean D^2 - mean(D)^2) per image."""
+    mf = m.float()
+    cnt = mf.sum(dim=(1, 2, 3)).clamp_min(1.0)
+    d = (out[:, 3:4].float() - z_gt) * mf
+    mean = d.sum(dim=(1, 2, 3)) / cnt
+    return torch.sqrt(((d * d).sum(dim=(1, 2, 3)) / cnt - mean**2).clamp_min(0.0))
+
+
+def augment(torch, x, n, z, m):
+    """Random flips / 90-degree rotations (normals rotated with the image) and a gamma on the input."""
+    if torch.rand(()) < 0.5:  # horizontal flip: columns reversed, n_x -> -n_x
+        x, n, z, m = (t.flip(-1) for t in (x, n, z, m))
+        n = torch.cat([-n[:, :1], n[:, 1:]], 1)
+    if torch.rand(()) < 0.5:  # vertical flip: rows reversed, n_y -> -n_y
+        x, n, z, m = (t.flip(-2) for t in (x, n, z, m))
+        n = torch.cat([n[:, :1], -n[:, 1:2], n[:, 2:]], 1)
+    if torch.rand(()) < 0.5:  # transpose (rows <-> columns): x right <-> y down, so (nx, ny) -> (-ny, -nx)
+        x, n, z, m = (t.transpose(-1, -2) for t in (x, n, z, m))
+        n = torch.cat([-n[:, 1:2], -n[:, :1], n[:, 2:]], 1)
+    g = torch.exp(torch.empty(x.shape[0], 1, 1, 1, device=x.device).uniform_(math.log(0.8), math.log(1.25)))
+    x = torch.cat([x[:, :3].clamp_min(0.0) ** g, x[:, 3:]], 1)
+    return x, n, z, m
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--size", type=int, default=128)
+    ap.add_argument("--train", type=int, default=4000, help="training scenes")
+    ap.add_argument("--val", type=int, default=200, help="validation scenes")
+    ap.add_argument("--lights", type=int, default=2, help="renders (lights) per training scene")
+    ap.add_argument("--minutes", type=float, default=5.0, help="training wall-clock budget")
+    ap.add_argument("--max-steps", type=int, default=100000)
+    ap.add_argument("--batch", type=int, default=32)
+    ap.add_argument("--lr", type=float, default=2e-3)
+    ap.add_argument("--wd", type=float, default=1.0, help="weight of the depth loss (6.11)")
+    ap.add_argument("--workers", type=int, default=min(12, os.cpu_count() or 1))
+    ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--smoke", action="store_true", help="random tensors instead of renders (tests the torch code only)")
+    args = ap.parse_args(argv)
+
+    import torch
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_start = time.time()
+    log_lines = []
+
+    def log(msg):
+        line = f"[{time.time() - t_start:7.1f}s] {msg}"
+        print(line, flush=True)
+        log_lines.append(line)
+
+    torch.manual_seed(args.seed)
+    dev = torch.device(args.device)
+    warp_device = args.device if args.device.startswith("cuda") else "cpu"
+    tr_seeds = np.arange(args.train)
+    va_seeds = TRAIN_SEED_LIMIT - 1 - np.arange(args.val)
+    if args.smoke:
+        Xtr, Ntr, Ztr, Mtr, stats = _fake(args.train, args.size, args.lights)
+        Xva, Nva, Zva, Mva, _ = _fake(args.val, args.size, 1)
+    else:
+        with Pool(args.workers) as pool:  # numpy workers forked before Warp / CUDA start
+            Xtr, Ntr, Ztr, Mtr, stats = build_dataset(tr_seeds, args.size, args.lights, warp_device, pool, log)
+            Xva, Nva, Zva, Mva, _ = build_dataset(va_seeds, args.size, 1, warp_device, pool)
+    t_data = time.time() - t_start
+    log(f"data: {args.train} train x {args.lights} lights, {args.val} val scenes at {args.size}^2 in {t_data:.1f}s")
+
+    to = lambda a, dt: torch.from_numpy(a).to(dev, dt)  # noqa: E731
+    Xtr_t, Ntr_t, Ztr_t, Mtr_t = to(Xtr, torch.float16), to(Ntr, torch.float32), to(Ztr, torch.float32), to(Mtr, torch.bool)
+    Xva_t, Nva_t, Zva_t, Mva_t = to(Xva[:, 0], torch.float32), to(Nva, torch.float32), to(Zva, torch.float32), to(Mva, torch.bool)
+
+    model = make_model(torch).to(dev).to(memory_format=torch.channels_last)
+    n_params = sum(p.numel() for p in model.parameters())
+    opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
+    use_amp = dev.type == "cuda"
+
+    def evaluate():
+        model.eval()
+        maens, sis, lns, lds = [], [], [], []
+        with torch.no_grad():
+            for s in range(0, Xva_t.shape[0], 64):
+                xb = Xva_t[s : s + 64].contiguous(memory_format=torch.channels_last)
+                with torch.autocast("cuda", dtype=torch.bfloat16, enabled=use_amp):
+                    o = model(xb)
+                ln, ld, maen = losses(torch, o, Nva_t[s : s + 64], Zva_t[s : s + 64], Mva_t[s : s + 64], args.size)
+                maens.append(maen)
+                sis.append(si_error(torch, o, Zva_t[s : s + 64], Mva_t[s : s + 64]))
+                lns.append(ln)
+                lds.append(ld)
+        model.train()
+        cat = lambda v: float(torch.cat(v).mean())  # noqa: E731
+        return {"maen_deg": cat(maens), "si_height": cat(sis), "loss_normal": cat(lns), "loss_depth": cat(lds)}
+
+    # flat-plane baseline on the validation set: n = (0, 0, 1), height 0
+    flat = torch.zeros_like(Xva_t)
+    flat[:, 2] = 1.0
+    _, _, flat_maen = losses(torch, flat, Nva_t, Zva_t, Mva_t, args.size)
+    flat_si = si_error(torch, flat, Zva_t, Mva_t)
+    log(f"model: {n_params} parameters; flat-plane baseline val MAEN {float(flat_maen.mean()):.2f} deg, SI height {float(flat_si.mean()):.4f}")
+
+    budget = args.minutes * 60.0
+    t_train = time.time()
+    step = 0
+    history = []
+    ema = None
+    ntr = Xtr_t.shape[0]
+    while step < args.max_steps:
+        frac = (time.time() - t_train) / budget
+        if frac >= 1.0:
+            break
+        lr = args.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0)))) * min(1.0, (step + 1) / 300)
+        for g in opt.param_groups:
+            g["lr"] = lr
+        idx = torch.randint(0, ntr, (args.batch,), device=dev)
+        li = torch.randint(0, args.lights, (args.batch,), device=dev)
+        xb = Xtr_t[idx, li].float()
+        xb, nb, zb, mb = augment(torch, xb, Ntr_t[idx], Ztr_t[idx], Mtr_t[idx])
+        xb = xb.contiguous(memory_format=torch.channels_last)
+        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=use_amp):
+            o = model(xb)
+        ln, ld, maen = losses(torch, o, nb, zb, mb, args.size)
+        loss = ln.mean() + args.wd * ld.mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+        step += 1
+        cur = np.array([float(ln.mean()), float(ld.mean()), float(maen.mean())]) if step % 50 == 0 else None
+        if cur is not None:
+            ema = cur if ema is None else 0.9 * ema + 0.1 * cur
+        if step % 500 == 0:
+            v = evaluate()
+            rec = {"step": step, "time_s": round(time.time() - t_train, 1), "lr": lr,
+                   "train_loss_normal": float(ema[0]), "train_loss_depth": float(ema[1]), "train_maen_deg": float(ema[2]),
+                   **{f"val_{k}": val for k, val in v.items()}}
+            history.append(rec)
+            log(f"step {step} lr {lr:.2e} train L_n {ema[0]:.4f} L_d {ema[1]:.4f} MAEN {ema[2]:.2f} | val MAEN {v['maen_deg']:.2f} SI {v['si_height']:.4f}")
+    t_train = time.time() - t_train
+    final = evaluate()
+    log(f"done: {step} steps in {t_train:.1f}s; val MAEN {final['maen_deg']:.2f} deg (flat {float(flat_maen.mean()):.2f})")
+
+    params = {k: v.detach().float().cpu().numpy() for k, v in model.state_dict().items()}
+    for k, shape in ARCH.items():
+        assert params[k].shape == shape, (k, params[k].shape, shape)
+    extra = set(params) - set(ARCH)
+    assert not extra, extra
+    # a numpy check of the exported weights on one validation image
+    from gpps.nn.model import SingleNet
+
+    meta = {"size": args.size, "steps": step, "train_seconds": round(t_train, 1), "val_maen_deg": final["maen_deg"],
+            "trained_with": f"torch {torch.__version__}", "parameters": n_params}
+    net = SingleNet(params, meta)
+    o_np = net.forward(Xva[0, 0].astype(np.float32))
+    with torch.no_grad():
+        o_t = model.float()(Xva_t[:1].contiguous(memory_format=torch.channels_last))[0].cpu().numpy()
+    meta["numpy_vs_torch_max_abs"] = float(np.max(np.abs(o_np - o_t)))
+    np.savez(out / "single_net.npz", meta=np.array(json.dumps(meta)), **{k: v.astype(np.float32) for k, v in params.items()})
+    report = {
+        "recipe": {
+            "generator": "gpps.nn.shapes.render_random_sample (gpps Warp Renderer, device %s)" % warp_device,
+            "size": args.size, "train_scenes": args.train, "renders_per_train_scene": args.lights,
+            "train_seeds": [0, int(args.train) - 1], "val_seeds": [int(va_seeds[-1]), int(va_seeds[0])],
+            "val_scenes": args.val, "counts": stats,
+            "augmentation": "flips, transpose (normals rotated with the image), input gamma in [0.8, 1.25]",
+            "data_seconds": round(t_data, 1),
+        },
+        "model": {"parameters": n_params, "architecture": "gpps.nn.model docstring"},
+        "training": {"optimizer": "AdamW wd 1e-4", "lr": args.lr, "schedule": "300-step warm-up, cosine to 2% over the time budget",
+                     "batch": args.batch, "steps": step, "seconds": round(t_train, 1), "depth_loss_weight": args.wd,
+                     "mixed_precision": "bf16 autocast" if use_amp else "none", "device": str(dev)},
+        "losses": {"normal": "6.10: -(1/m) sum N.N*", "depth": "6.11 with lambda 1/2 and gradient terms (spacing 2/S)"},
+        "validation": {**final, "flat_plane_maen_deg": float(flat_maen.mean()), "flat_plane_si_height": float(flat_si.mean())},
+        "numpy_vs_torch_max_abs": meta["numpy_vs_torch_max_abs"],
+        "history": history,
+        "log": log_lines,
+    }
+    (out / "single_training.json").write_text(json.dumps(report, indent=2) + "\n")
+    log(f"wrote {out / 'single_net.npz'} and single_training.json")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
