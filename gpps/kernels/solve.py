@@ -76,6 +76,9 @@ FLAG_NOT_CONVERGED = wp.constant(4)  # the best start hit the iteration cap
 FLAG_WOODHAM_FALLBACK = wp.constant(8)  # weighted least squares was singular; all observations used
 FLAG_ALBEDO_FROM_NEIGHBOURS = wp.constant(16)  # under-determined pixel solved with its neighbours' albedo
 
+NEIGHBOUR_MIN_COUNT = 16  # well-determined pixels the neighbour pass gathers (before its 2 extra rings)
+WEISZFELD_ITERS = wp.constant(8)  # iterations of the neighbours' geometric median
+
 
 
 @wp.struct
@@ -100,6 +103,7 @@ class SolverParams:
     lm_tau: wp.float32
     dogleg_radius: wp.float32
     lit_threshold: wp.float32
+    lit_sigmas: wp.float32
 
 
 @wp.struct
@@ -251,6 +255,112 @@ def cond_frobenius(a: wp.mat33):
         return 1.0e30
     ai = wp.inverse(a)
     return fa * wp.sqrt(wp.ddot(ai, ai))
+
+
+@wp.func
+def ring_offset(r: int, t: int):
+    """Offset ``(di, dj)`` of the ``t``-th pixel (``0 <= t < 8 r``) of the square ring of radius ``r``."""
+    side = t / (2 * r)
+    o = t % (2 * r)
+    if side == 0:
+        return -r, -r + o
+    if side == 1:
+        return -r + o, r
+    if side == 2:
+        return r, r - o
+    return r - o, -r
+
+
+@wp.func
+def is_determined(mask: wp.array2d(dtype=wp.uint8), flags: wp.array2d(dtype=wp.int32), ii: int, jj: int):
+    """True for a pixel inside the image and the mask with at least 3 lit observations."""
+    if ii < 0 or ii >= mask.shape[0] or jj < 0 or jj >= mask.shape[1]:
+        return False
+    if mask[ii, jj] == wp.uint8(0):
+        return False
+    return (flags[ii, jj] & FLAG_FEW_OBSERVATIONS) == 0
+
+
+@wp.struct
+class NeighbourStats:
+    """Robust albedo and normal of the well-determined pixels around an under-determined one."""
+
+    kd: wp.vec3
+    n: wp.vec3
+    count: wp.float32
+    reach: wp.int32
+
+
+@wp.func
+def neighbour_stats(
+    i: int,
+    j: int,
+    radius: int,
+    min_count: int,
+    mask: wp.array2d(dtype=wp.uint8),
+    flags: wp.array2d(dtype=wp.int32),
+    normals: wp.array2d(dtype=wp.vec3),
+    albedo: wp.array2d(dtype=wp.vec3),
+):
+    """Geometric medians of the albedo and the normal of the nearest well-determined pixels.
+
+    Square rings around ``(i, j)`` are searched until ``min_count`` well-determined
+    pixels are found (or ``radius``), then 2 rings more.  The location is the
+    geometric (spatial) median ``argmin_m sum_q |x_q - m|`` by Weiszfeld's
+    iteration ``m <- sum_q x_q / |x_q - m| / sum_q 1 / |x_q - m|`` from the mean
+    (Weiszfeld 1937; breakdown point 1/2): a few grazing pixels whose shadowed
+    observation noise made them look lit, with a wrong albedo, cannot pull it.
+    ``count`` 0: none found.
+    """
+    out = NeighbourStats()
+    acc = wp.vec3(0.0)
+    nacc = wp.vec3(0.0)
+    cnt = float(0.0)
+    r_stop = radius
+    reach = int(0)
+    for r in range(1, radius + 1):
+        if r > r_stop:
+            break
+        reach = r
+        for t in range(8 * r):
+            di, dj = ring_offset(r, t)
+            if is_determined(mask, flags, i + di, j + dj):
+                acc += albedo[i + di, j + dj]
+                nacc += normals[i + di, j + dj]
+                cnt += 1.0
+        if cnt >= float(min_count) and r_stop == radius:
+            r_stop = wp.min(r + 2, radius)
+    out.count = cnt
+    out.reach = reach
+    if cnt == 0.0:
+        out.kd = wp.vec3(0.0)
+        out.n = wp.vec3(0.0)
+        return out
+    mk = acc / cnt
+    mn = nacc / cnt
+    for it in range(WEISZFELD_ITERS):
+        ak = wp.vec3(0.0)
+        an = wp.vec3(0.0)
+        wk = float(0.0)
+        wn = float(0.0)
+        ek = 1.0e-4 * wp.length(mk) + 1.0e-12
+        for r in range(1, reach + 1):
+            for t in range(8 * r):
+                di, dj = ring_offset(r, t)
+                if is_determined(mask, flags, i + di, j + dj):
+                    a = albedo[i + di, j + dj]
+                    q = normals[i + di, j + dj]
+                    u = 1.0 / wp.max(wp.length(a - mk), ek)
+                    z = 1.0 / wp.max(wp.length(q - mn), 1.0e-4)
+                    ak += u * a
+                    wk += u
+                    an += z * q
+                    wn += z
+        mk = ak / wk
+        mn = an / wn
+    out.kd = mk
+    out.n = mn
+    return out
 
 
 @wp.struct
@@ -907,6 +1017,7 @@ def _make_kernels(method, brdf, robust, module_name: str, sfx: str):
         mask: wp.array2d(dtype=wp.uint8),
         valid: wp.array3d(dtype=wp.uint8),
         depth: wp.array2d(dtype=wp.float32),
+        noise: wp.array(dtype=wp.float32),
         cam: CameraParams,
         lights: LightParams,
         mat: MaterialParams,
@@ -928,6 +1039,8 @@ def _make_kernels(method, brdf, robust, module_name: str, sfx: str):
             mask: (H, W) 1 inside the object.
             valid: (N, H, W) 1 where the caller keeps the observation.
             depth: (H, W) depth estimate > 0 (used for point lights and the view ray).
+            noise: (N,) noise standard deviation of each image's grey values (0: unknown);
+                an observation counts as lit only above ``prm.lit_sigmas`` times it.
             weights: (N, H, W) scratch: observation weights (output, for inspection).
             normals: (H, W) in: warm start when ``prm.warm_start``; out: unit normals (0 outside).
             albedo: (H, W) RGB albedo kd.
@@ -966,7 +1079,8 @@ def _make_kernels(method, brdf, robust, module_name: str, sfx: str):
             w = float(0.0)
             if ok:
                 w = 1.0
-                if grey(o) > prm.lit_threshold * gmax:
+                # lit: a clear fraction of the brightest and clear of the image noise
+                if grey(o) > prm.lit_threshold * gmax and grey(o) > prm.lit_sigmas * noise[k]:
                     ninfo += 1
             weights[k, i, j] = w
         flag = int(0)
@@ -1045,6 +1159,7 @@ def _make_kernels(method, brdf, robust, module_name: str, sfx: str):
         mat: MaterialParams,
         prm: SolverParams,
         radius: int,
+        min_count: int,
         weights: wp.array3d(dtype=wp.float32),
         normals: wp.array2d(dtype=wp.vec3),
         albedo: wp.array2d(dtype=wp.vec3),
@@ -1055,13 +1170,15 @@ def _make_kernels(method, brdf, robust, module_name: str, sfx: str):
         """Second pass for pixels with fewer than 3 lit observations (attached shadows).
 
         Two observations cannot fix a normal (2 dof) and an albedo together, so the
-        albedo is held at the mean albedo of the nearest well-determined pixels
-        (searched in growing square rings up to ``radius``, then 2 rings more; albedo
-        varies slowly) and the normal is re-solved with all starts.  A weak prior
-        toward those pixels' mean normal (weight 1e-3 of the data's scale) breaks
-        the remaining ties (the two mirror solutions of 2 observations, the cone of
-        solutions of 1).  Only flagged pixels are written and only unflagged ones
-        are read, so threads do not race.
+        albedo is held at the geometric median of the albedos of the nearest
+        well-determined pixels (:func:`neighbour_stats`: at least ``min_count`` of
+        them within ``radius``; albedo varies slowly) and the normal is re-solved
+        with all starts.  The dark observations stay in the fit: the model's
+        ``max(n.l, 0)`` penalises a solution that would light them.  A weak prior
+        toward the geometric median of those pixels' normals (weight 1e-3 of the
+        data's scale) breaks the remaining ties (the two mirror solutions of 2
+        observations, the cone of solutions of 1).  Only flagged pixels are
+        written and only unflagged ones are read, so threads do not race.
         """
         i, j = wp.tid()
         if mask[i, j] == wp.uint8(0) or prm.method == NONE:
@@ -1069,53 +1186,18 @@ def _make_kernels(method, brdf, robust, module_name: str, sfx: str):
         f = flags[i, j]
         if (f & FLAG_FEW_OBSERVATIONS) == 0:
             return
-        h = mask.shape[0]
-        w = mask.shape[1]
-        acc = wp.vec3(0.0)
-        nacc = wp.vec3(0.0)
-        cnt = float(0.0)
-        r_stop = radius
-        for r in range(1, radius + 1):
-            if r > r_stop:
-                break
-            for t in range(8 * r):
-                # walk the square ring of radius r
-                side = t / (2 * r)
-                o = t % (2 * r)
-                di = int(0)
-                dj = int(0)
-                if side == 0:
-                    di = -r
-                    dj = -r + o
-                elif side == 1:
-                    di = -r + o
-                    dj = r
-                elif side == 2:
-                    di = r
-                    dj = r - o
-                else:
-                    di = r - o
-                    dj = -r
-                ii = i + di
-                jj = j + dj
-                if ii >= 0 and ii < h and jj >= 0 and jj < w:
-                    if mask[ii, jj] != wp.uint8(0) and (flags[ii, jj] & FLAG_FEW_OBSERVATIONS) == 0:
-                        acc += albedo[ii, jj]
-                        nacc += normals[ii, jj]
-                        cnt += 1.0
-            if cnt > 0.0 and r_stop == radius:
-                r_stop = wp.min(r + 2, radius)
-        if cnt == 0.0:
+        nb = neighbour_stats(i, j, radius, min_count, mask, flags, normals, albedo)
+        if nb.count == 0.0:
             return
         px = make_pixel(cam, depth, i, j, prm)
         px.fix_kd = 1
-        px.kd = acc / cnt
+        px.kd = nb.kd
         gmax = float(0.0)
         for k in range(lights.count):
             gmax = wp.max(gmax, grey(images[k, i, j]))
         ninit = normals[i, j]
-        if wp.length(nacc) > 0.0:
-            px.prior_n = wp.normalize(nacc)
+        if wp.length(nb.n) > 0.0:
+            px.prior_n = wp.normalize(nb.n)
             px.prior_w = 1.0e-3 * gmax * gmax
             ninit = px.prior_n
         sol = solve_pixel(ninit, gmax, images, weights, px, lights, mat, prm)

@@ -46,6 +46,7 @@ __all__ = [
     "FLAG_WOODHAM_FALLBACK",
     "FLAG_ALBEDO_FROM_NEIGHBOURS",
     "check_light_configuration",
+    "estimate_noise",
 ]
 
 
@@ -81,12 +82,27 @@ class SolverConfig:
             ``max_iters`` evaluations (uniform work, e.g. for timing).
         neighbour_radius: pixels with fewer than 3 lit observations (attached
             shadows) cannot fix normal and albedo together; a second pass holds
-            their albedo at the mean of the nearest well-determined pixels
-            (searched up to this radius, in pixels) and re-solves the normal with
-            a weak tie-breaking prior toward their mean normal.  0 disables the pass.
+            their albedo at the geometric median of the albedos of the nearest
+            well-determined pixels (square rings searched until 16 are found, then
+            2 rings more, at most this radius in pixels) and re-solves the normal
+            with a weak tie-breaking prior toward the geometric median of their
+            normals.  The median ignores the few rim pixels that noise on a
+            shadowed observation made look determined.  0 disables the pass.
         lit_threshold: an observation counts as lit (informative) when its grey
-            value exceeds this fraction of the pixel's brightest; pixels with
-            fewer than 3 lit observations get the neighbour pass above.
+            value exceeds this fraction of the pixel's brightest and
+            ``lit_sigmas`` times the image's noise level; pixels with fewer than
+            3 lit observations get the neighbour pass above.  Dark observations
+            stay in the fit either way (unless ``shadow_threshold`` drops them):
+            the model's ``max(n.l, 0)`` makes them the inequality ``n.l <= 0``.
+        noise_level: standard deviation of the image noise (grey values, image
+            units as passed); None (default): estimated per image from each
+            frame by :func:`estimate_noise` in :meth:`PixelSolver.upload`.
+            A frame written straight into the buffers (the stream) keeps the
+            last value of :attr:`PixelSolver.noise` (zeros at first: no noise test).
+        lit_sigmas: the noise test of ``lit_threshold``: a shadowed observation's
+            noise passes ``lit_threshold`` of a dim grazing pixel (whose
+            brightest value is small) often, ``lit_sigmas`` noise levels rarely
+            (0.13 % at 3).  0 disables the test.
         warm_start: start from the normals passed to :meth:`PixelSolver.solve`
             (one start per pixel) instead of the least-squares solution.
         lm_tau: initial LM damping ``tau * max(diag J^T J)`` (Algorithm 4).
@@ -120,6 +136,8 @@ class SolverConfig:
     early_exit: bool = True
     neighbour_radius: int = 32
     lit_threshold: float = 0.05
+    noise_level: float | None = None
+    lit_sigmas: float = 3.0
     warm_start: bool = False
     lm_tau: float = 1e-3
     dogleg_radius: float = 0.3
@@ -145,6 +163,9 @@ class SolverConfig:
         if self.saturation is not None:
             check_number("saturation", self.saturation, lo=0.0, lo_open=True)
         check_number("lit_threshold", self.lit_threshold, lo=0.0, hi=1.0)
+        if self.noise_level is not None:
+            check_number("noise_level", self.noise_level, lo=0.0)
+        check_number("lit_sigmas", self.lit_sigmas, lo=0.0)
         check_number("cond_threshold", self.cond_threshold, lo=1.0)
         check_number("lm_tau", self.lm_tau, lo=0.0, lo_open=True)
         check_number("dogleg_radius", self.dogleg_radius, lo=0.0, lo_open=True)
@@ -152,6 +173,61 @@ class SolverConfig:
         check_number("smoothing_sweeps", self.smoothing_sweeps, lo=0, integer=True)
         if self.smoothness > 0.0 and self.solver == "none":
             raise ValueError("smoothness: expected 0 with solver 'none' (the smoothness term needs a nonlinear solver)")
+
+
+def estimate_noise(images, mask, *, max_pixels: int = 1 << 16) -> np.ndarray:
+    """Noise standard deviation of each image's grey values: (N,) float32.
+
+    Immerkaer's estimator (J. Immerkaer, "Fast noise variance estimation",
+    CVIU 64(2), 1996): the 3x3 kernel ``K = [[1, -2, 1], [-2, 4, -2], [1, -2, 1]]``
+    cancels a locally linear (and nearly cancels a smooth) signal and has gain
+    ``|K|_2 = 6`` on white noise.  Here in its robust form,
+    ``sigma = median |I * K| / (0.6745 * 6)``, over the pixels whose 3x3
+    neighbourhood lies in ``mask`` and is positive in that image (shadows clip
+    the noise at 0; edges, texture and highlights are outvoted by the median),
+    about ``max_pixels`` of them (every few rows).  0 (unknown) for an
+    image with fewer than 64 such pixels.  Dense high-frequency texture or
+    geometry inflates the estimate (it is signal to the kernel); that only
+    makes more dim observations count as unlit.
+
+    Args:
+        images: (N, H, W, 3) or (N, H, W) observations.
+        mask: (H, W) bool.
+        max_pixels: cap on the pixels used per image.
+    """
+    img = np.asarray(images, np.float32)
+    m = np.asarray(mask, bool)
+    n, h, w = img.shape[:3]
+    out = np.zeros(n, np.float32)
+    if h < 3 or w < 3:
+        return out
+    inner = m[1:-1, 1:-1].copy()
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            inner &= m[1 + di : h - 1 + di, 1 + dj : w - 1 + dj]
+    rows = np.nonzero(inner.any(axis=1))[0]
+    if rows.size == 0:
+        return out
+    # every st-th row with inner pixels: about max_pixels pixels
+    st = max(1, int(np.ceil(inner[rows].sum() / max_pixels)))
+    rows = rows[::st]
+    sel = inner[rows]  # (R, W - 2)
+    blk = img[:, np.stack([rows, rows + 1, rows + 2])]  # (N, 3, R, W[, 3]): the rows above, at and below
+    if blk.ndim == 5:
+        blk = (blk[..., 0] + blk[..., 1] + blk[..., 2]) / 3.0
+    lap = np.zeros((n, rows.size, w - 2), np.float32)
+    pos = np.broadcast_to(sel, lap.shape).copy()
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            sh = blk[:, 1 + di, :, 1 + dj : w - 1 + dj]
+            lap += (1 + (di == 0)) * (1 + (dj == 0)) * (-1) ** (di + dj) * sh  # K[di, dj]
+            pos &= sh > 0.0
+    lap = lap.reshape(n, -1)
+    pos = pos.reshape(n, -1)
+    for k in range(n):
+        if pos[k].sum() >= 64:
+            out[k] = float(np.median(np.abs(lap[k, pos[k]]))) / (0.6745 * 6.0)
+    return out
 
 
 def _directions_at(lights, point: np.ndarray) -> np.ndarray:
@@ -203,6 +279,10 @@ class PixelSolver:
     Raises:
         ValueError: fewer than 3 lights or degenerate (collinear / coplanar)
             light directions (checked at the scene centre for point lights).
+
+    Besides the per-frame buffers (``images``, ``mask``, ``valid``, ``depth``
+    and the outputs), ``noise`` (N,) holds each image's noise level for the
+    lit count (set by :meth:`upload`; ``noise_level`` is its host copy).
     """
 
     Config = SolverConfig
@@ -242,6 +322,8 @@ class PixelSolver:
         self.mask = wp.zeros((h, w), dtype=wp.uint8, device=d)
         self.valid = wp.ones((n, h, w), dtype=wp.uint8, device=d)
         self.depth = wp.ones((h, w), dtype=wp.float32, device=d)
+        self.noise = wp.zeros(n, dtype=wp.float32, device=d)
+        self.noise_level = np.zeros(n, np.float32)
         self.weights = wp.zeros((n, h, w), dtype=wp.float32, device=d)
         self.normals = wp.zeros((h, w), dtype=wp.vec3, device=d)
         self.albedo = wp.zeros((h, w), dtype=wp.vec3, device=d)
@@ -271,6 +353,7 @@ class PixelSolver:
         p.lm_tau = float(c.lm_tau)
         p.dogleg_radius = float(c.dogleg_radius)
         p.lit_threshold = float(c.lit_threshold)
+        p.lit_sigmas = float(c.lit_sigmas)
         return p
 
     def _select_kernels(self) -> None:
@@ -318,7 +401,11 @@ class PixelSolver:
         return np.ascontiguousarray(arr, dtype=np.float32)
 
     def upload(self, images, mask, *, depth=None, valid=None, init_normals=None) -> None:
-        """Check and copy one frame's inputs into the device buffers."""
+        """Check and copy one frame's inputs into the device buffers.
+
+        Also sets the per-image noise levels (:attr:`noise`, :attr:`noise_level`):
+        ``config.noise_level`` or, when that is None, :func:`estimate_noise` of the frame.
+        """
         n, h, w = self.shape
         img = self._images(images)
         m = as_mask("mask", mask, (h, w))
@@ -348,6 +435,12 @@ class PixelSolver:
             # the configuration must determine normals at the object's centre
             pts = self.camera.backproject(np.where(m, dep, 0.0))
             check_light_configuration(self.lights, np.median(pts[m], axis=0))
+        c = self.config
+        if c.noise_level is None:
+            self.noise_level = estimate_noise(img, m)
+        else:
+            self.noise_level = np.full(n, c.noise_level, np.float32)
+        self.noise.assign(self.noise_level)
         if self.config.smoothness > 0.0:
             g = img[:, m].mean(axis=-1)
             self.intensity_scale = float(max(np.percentile(g, 99.0), 1e-12))
@@ -365,7 +458,7 @@ class PixelSolver:
         warp().launch(
             self._solve_kernel,
             dim=self.shape[1:],
-            inputs=[self.images, self.mask, self.valid, self.depth, self.cam, self.lp, self.mp, self.prm],
+            inputs=[self.images, self.mask, self.valid, self.depth, self.noise, self.cam, self.lp, self.mp, self.prm],
             outputs=[self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags, self.cond],
             device=self.device,
         )
@@ -373,7 +466,7 @@ class PixelSolver:
             warp().launch(
                 self._underdetermined_kernel,
                 dim=self.shape[1:],
-                inputs=[self.images, self.mask, self.depth, self.cam, self.lp, self.mp, self.prm, int(self.config.neighbour_radius)],
+                inputs=[self.images, self.mask, self.depth, self.cam, self.lp, self.mp, self.prm, int(self.config.neighbour_radius), int(self._sk.NEIGHBOUR_MIN_COUNT)],
                 outputs=[self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags],
                 device=self.device,
             )
