@@ -21,7 +21,6 @@ def _scene(size=48, camera="perspective"):
 
 def test_stream_matches_batch_and_reports_bad_frames(device):
     from gpps.lights import DirectionalLights
-    from gpps.photometric import solve_normals
     from gpps.pipeline.integration import Integrator, IntegratorConfig
     from gpps.pipeline.stream import Stream, StreamConfig
 
@@ -34,16 +33,25 @@ def test_stream_matches_batch_and_reports_bad_frames(device):
     assert [r.index for r in out] == list(range(len(frames)))
     assert [r.ok for r in out] == [True, True, False, False, False, True, True, True]
     assert "NaN" in out[2].error and "shape" in out[3].error and "dtype" in out[4].error
-    # batch reference: the per-pixel solve on the same (quantised) frame, then the multigrid integrator
-    ref = solve_normals(frame.astype(np.float32) / 65535 / np.asarray(L.intensities, np.float32)[:, None, None, :],
-                        sc.mask, DirectionalLights(L.directions), camera=sc.camera, material=mat, device=device)
-    last = out[-1]
-    ang = np.degrees(np.arccos(np.clip((last.normals * ref.normals).sum(-1), -1, 1)))[sc.mask]
-    assert np.percentile(ang, 99) < 0.05, np.percentile(ang, 99)
-    assert normal_errors(last.normals, sc.normals, sc.mask)["mean"] < 0.1
-    np.testing.assert_allclose(last.albedo[sc.mask], ref.albedo[sc.mask], atol=2e-3)
-    dref = Integrator(sc.mask, sc.camera, IntegratorConfig(solver="direct")).integrate(last.normals).depth
+    # batch reference: gpps.reconstruct on the same (quantised) frame, the material known (nothing to estimate)
+    import gpps
+
+    rec = gpps.reconstruct(frame.astype(np.float32) / 65535 / np.asarray(L.intensities, np.float32)[:, None, None, :],
+                           sc.mask, DirectionalLights(L.directions), camera=sc.camera, material=mat, device=device)
+    assert rec.rounds == 1 and rec.estimated == {}
     m = sc.mask
+    for r in (out[0], out[-1]):  # the cold first frame and a warm-started later one
+        ang = np.degrees(np.arccos(np.clip((r.normals * rec.normals).sum(-1), -1, 1)))[m]
+        assert np.percentile(ang, 99) < 0.05, np.percentile(ang, 99)
+        # albedo: a handful of rim pixels may settle in another local minimum (reconstruct adds DGMC starts)
+        assert np.percentile(np.abs(r.albedo[m] - rec.albedo[m]).max(-1), 99.5) < 2e-3
+        d = r.depth * np.exp(np.mean(np.log(rec.depth[m])) - np.mean(np.log(r.depth[m])))  # same scale
+        dd = np.abs(d - rec.depth)[m] / np.ptp(rec.depth[m])
+        # both integrate to a tolerance (reconstruct: relative residual 1e-5): ~2e-4 of the range apart
+        assert dd.mean() < 1e-3 and dd.max() < 5e-3, (dd.mean(), dd.max())
+    last = out[-1]
+    assert normal_errors(last.normals, sc.normals, sc.mask)["mean"] < 0.1
+    dref = Integrator(sc.mask, sc.camera, IntegratorConfig(solver="direct")).integrate(last.normals).depth
     d = last.depth * np.exp(np.mean(np.log(dref[m])) - np.mean(np.log(last.depth[m])))
     assert np.abs(d - dref)[m].max() < 1e-3 * np.ptp(dref[m])
     # the rejected frames left the state alone: a process() after them is as good as before
