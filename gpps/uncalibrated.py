@@ -2,6 +2,15 @@
 
 Pipeline (:func:`solve_uncalibrated`):
 
+0. **Channel** (``UncalibratedConfig.channel``): with colour images the stages
+   1-3 see the *specular-free* magnitude (:func:`specular_free`, the S-U-V
+   space of Mallick et al. 2005): the part of the RGB orthogonal to the light's
+   colour, which under the dichromatic model is Lambertian shading times the
+   albedo's chromatic part, exactly rank 3 whatever the specular lobe.  On
+   Blinn-Phong / Ashikhmin-Shirley renders the grey path left 50% of the
+   observations with some highlight, the rank-3 subspace 6 deg off and the
+   lights 20-30 deg off; the specular-free path gives them to 0.4-1.4 deg.
+   Grey images (Yale B) and grey albedos keep the grey level.
 1. **Rank-3 factorisation** (5.8; Hayakawa): the grey image matrix ``M`` (N x P)
    is factored as ``M ~ L B^T`` by weighted alternating least squares, with
    shadowed and saturated observations as missing data (the seed's plain SVD
@@ -26,7 +35,15 @@ Pipeline (:func:`solve_uncalibrated`):
    flipped normal field is not integrable, so the perspective curl decides it
    when the view directions spread enough for that to show; otherwise the
    result says ``flip="ambiguous"`` and carries the alternative.
-5. **Refinement** (5.1-5.7): the Lambertian + Ashikhmin-Shirley image model
+5. **Refinement**, on the specular-free path (``final_solver="lm"``): the
+   lights stay as found; the shared material (``ks`` and the lobe's exponent)
+   is the one whose calibrated per-pixel fit leaves the smallest residual
+   (:func:`estimate_material`), and the normals and RGB albedo are that fit
+   on every pixel (:func:`gpps.photometric.solve_normals`, Levenberg-Marquardt
+   with the specular model).  With a perspective camera both members of the
+   flip pair are fitted: the lobe depends on the view vectors, which the flip
+   leaves alone, so the residuals decide the flip.
+   On the grey path (``final_solver="adam"``) (5.1-5.7): the Lambertian + Ashikhmin-Shirley image model
    with normals, RGB albedo, lights and the shared (ks, eta) as unknowns,
    fitted by Adam through Warp's autodiff (:mod:`gpps.pipeline.uncalibrated`).
    The model has no integrability term, so the lights' linear drift is then
@@ -59,8 +76,11 @@ from gpps.camera import Orthographic, Perspective
 Cue = Literal["intensity", "entropy", "ldr"]
 Refine = Literal["ashikhmin-shirley", "blinn-phong", "lambertian", "none"]
 Gauge = Literal["gbr", "fixed", "free"]
+Channel = Literal["auto", "specular-free", "grey"]
+LightFit = Literal["auto", "fit", "fixed"]
+Final = Literal["auto", "adam", "lm"]
 
-__all__ = ["UncalibratedConfig", "UncalibratedResult", "solve_uncalibrated", "factorize", "integrability_gbr", "gbr", "resolve_gbr", "ldr_candidates", "dark_images", "restore_gauge", "pca_merge", "light_direction_errors"]
+__all__ = ["UncalibratedConfig", "UncalibratedResult", "solve_uncalibrated", "factorize", "integrability_gbr", "gbr", "resolve_gbr", "ldr_candidates", "dark_images", "restore_gauge", "pca_merge", "light_direction_errors", "specular_free", "estimate_material"]
 
 
 @dataclass
@@ -71,6 +91,17 @@ class UncalibratedConfig:
         cues: GBR evidence to combine (see :func:`resolve_gbr`; "intensity":
             lights of equal brightness; "entropy": albedo-distribution entropy;
             "ldr": local diffuse maxima).  At least one.
+        channel: what the factorisation, integrability and GBR stages see:
+            "grey" the mean of the channels; "specular-free" the part of the
+            RGB orthogonal to ``source_color`` (:func:`specular_free`: diffuse
+            only under the dichromatic model, so highlights neither corrupt the
+            rank-3 subspace nor the integrability; on Blinn-Phong renders the
+            grey path's lights were 20-30 deg off); "auto" the latter when the
+            median ratio of the specular-free to the full RGB magnitude over lit
+            observations is at least ``chroma_min`` (a grey albedo, or grey
+            images, has none), else grey.
+        source_color: RGB colour of the lights (white by default).
+        chroma_min: the "auto" threshold.
         refine: image model of the refinement ("none" stops after the GBR).
         dark_fraction: images whose 99th percentile is below this fraction of
             the median image's are refused (:func:`dark_images`); 0 accepts all.
@@ -102,9 +133,25 @@ class UncalibratedConfig:
             0.5 -> 3.0 and bear 3.2 -> 4.5 (the specular lobe's pull on the GBR
             is not reliable); "fixed" improved the faces by 0.4-0.6 and bear by
             0.1, ball 0.51 -> 0.54 (perf/uncalibrated_real.py).
+        refine_lights: whether the joint refinement moves the lights: "fit",
+            "fixed", or "auto" (fit on the grey path, fixed on the
+            specular-free path, whose lights are already near the noise floor:
+            the Adam fit moved them 0.7 -> 1.9 deg on the Blinn-Phong bumps).
+        final_solver: normals, albedo (and material) by "adam" (the Refiner
+            with the material it fitted) or "lm" (:func:`estimate_material`,
+            then the calibrated Levenberg-Marquardt solver); "auto": "lm" on the
+            specular-free path, "adam" on the grey one (whose results on Yale B
+            and DiLiGenT were measured with it).
+        material_pixels: pixels of :func:`estimate_material`'s objective.
         normal_sets: > 1 fits that many bootstrap subsets of the images in
             the per-pixel pass and merges them by PCA (5.1.7).
         flip_ratio: perspective curl ratio above which the flip is decided.
+        flip_specular_ratio: with a perspective camera and a specular
+            refinement finished by "lm", the material is fitted with both
+            members of the flip pair (the lobe depends on the view vectors,
+            which the flip does not move): the lower residual is kept, and the
+            flip is "resolved" when the other is this many times larger (the
+            perspective curl decides otherwise).
         flip_min_spread: the flip is decided only when the view directions
             over the mask spread by at least this many degrees (the largest
             angle to their mean): the wrong flip's curl grows with that
@@ -125,6 +172,9 @@ class UncalibratedConfig:
     """
 
     cues: tuple[Cue, ...] = ("intensity", "ldr", "entropy")
+    channel: Channel = "auto"
+    source_color: tuple = (1.0, 1.0, 1.0)
+    chroma_min: float = 0.05
     refine: Refine = "ashikhmin-shirley"
     dark_fraction: float = 0.1
     shadow_fraction: float = 0.15
@@ -138,8 +188,12 @@ class UncalibratedConfig:
     refine_robust: float = 0.0
     final_robust: float = 0.03
     refine_gauge: Gauge = "fixed"
+    refine_lights: LightFit = "auto"
+    final_solver: Final = "auto"
+    material_pixels: int = 1500
     normal_sets: int = 0
     flip_ratio: float = 1.3
+    flip_specular_ratio: float = 2.0
     flip_min_spread: float = 5.0
     flip_min_curl: float = 1e-3
     integrability_smooth: float = 2.0
@@ -151,6 +205,13 @@ class UncalibratedConfig:
         self.cues = tuple(self.cues)
         if not self.cues or any(c not in get_args(Cue) for c in self.cues):
             raise ValueError(f"cues: expected a non-empty subset of {list(get_args(Cue))}, got {self.cues!r}")
+        if self.channel not in get_args(Channel):
+            raise ValueError(f"channel: expected one of {list(get_args(Channel))}, got {self.channel!r}")
+        self.source_color = tuple(float(v) for v in np.ravel(self.source_color))
+        if len(self.source_color) != 3 or not np.all(np.isfinite(self.source_color)) or min(self.source_color) < 0 or max(self.source_color) <= 0:
+            raise ValueError(f"source_color: expected 3 finite values >= 0, not all 0, got {self.source_color!r}")
+        if not 0 <= self.chroma_min <= 1:
+            raise ValueError(f"chroma_min: expected a value in [0, 1], got {self.chroma_min!r}")
         if self.refine not in get_args(Refine):
             raise ValueError(f"refine: expected one of {list(get_args(Refine))}, got {self.refine!r}")
         if not 0 <= self.dark_fraction < 1:
@@ -165,14 +226,20 @@ class UncalibratedConfig:
             raise ValueError(f"integrability_smooth: expected a value >= 0, got {self.integrability_smooth!r}")
         if int(self.ldr_window) != self.ldr_window or self.ldr_window < 3 or self.ldr_window % 2 == 0:
             raise ValueError(f"ldr_window: expected an odd integer >= 3, got {self.ldr_window!r}")
-        for name in ("als_iterations", "refine_iterations", "refine_pixels", "final_iterations", "normal_sets", "integrability_irls"):
+        for name in ("als_iterations", "refine_iterations", "refine_pixels", "final_iterations", "normal_sets", "integrability_irls", "material_pixels"):
             v = getattr(self, name)
             if int(v) != v or v < 0:
                 raise ValueError(f"{name}: expected an integer >= 0, got {v!r}")
+        if self.refine_lights not in get_args(LightFit):
+            raise ValueError(f"refine_lights: expected one of {list(get_args(LightFit))}, got {self.refine_lights!r}")
+        if self.final_solver not in get_args(Final):
+            raise ValueError(f"final_solver: expected one of {list(get_args(Final))}, got {self.final_solver!r}")
         if self.refine_gauge not in get_args(Gauge):
             raise ValueError(f"refine_gauge: expected one of {list(get_args(Gauge))}, got {self.refine_gauge!r}")
         if not self.flip_min_curl >= 0:
             raise ValueError(f"flip_min_curl: expected a value >= 0, got {self.flip_min_curl!r}")
+        if not self.flip_specular_ratio >= 1:
+            raise ValueError(f"flip_specular_ratio: expected a value >= 1, got {self.flip_specular_ratio!r}")
         if not self.flip_min_spread >= 0:
             raise ValueError(f"flip_min_spread: expected a value >= 0, got {self.flip_min_spread!r}")
         for name in ("refine_robust", "final_robust"):
@@ -191,12 +258,13 @@ class UncalibratedResult:
         albedo: (H, W, 3) RGB albedo (relative to the mean light intensity).
         light_directions: (N, 3) unit directions toward the lights.
         light_intensities: (N,) relative intensities (mean 1).
-        flip: "resolved" (perspective cue) or "ambiguous".
+        flip: "resolved" (perspective cues: specular residual or curl) or "ambiguous".
         alternative: when ambiguous, the flipped ``(normals, light_directions)``.
         baseline: factorisation + integrability + GBR (before refinement):
             dict with ``normals`` and ``light_directions``.
         gbr: the GBR parameters chosen and the cue values.
-        material: estimated ``ks`` and ``eta`` (Ashikhmin-Shirley) when refined.
+        material: estimated ``ks`` (relative to the mean light intensity) and
+            the exponent (``eta_u = eta_v`` or ``shininess``) when refined.
         losses: refinement loss every 10 steps.
         timings: seconds per stage.
     """
@@ -651,6 +719,48 @@ def dark_images(images, mask, fraction: float = 0.1) -> list[int]:
     return [int(k) for k in np.where(p < fraction * np.median(p))[0]]
 
 
+def specular_free(rgb: np.ndarray, source_color=(1.0, 1.0, 1.0)) -> np.ndarray:
+    """The specular-free magnitude of RGB observations (the S-U-V colour space, Mallick et al. 2005).
+
+    Under the dichromatic model ``I = E (a max(n.l, 0) + ks s c)`` the specular
+    term has the colour ``c`` of the source, so the part of ``I`` orthogonal to
+    ``c`` is diffuse only: ``|I - (I.c) c| = E max(n.l, 0) |a - (a.c) c|``
+    (``c`` unit): a Lambertian image with the albedo's chromatic part as its
+    albedo, whatever the specular lobe.  It is empty for a grey albedo
+    (``a`` parallel to ``c``).
+
+    Args:
+        rgb: (..., 3) observations.
+        source_color: the light's RGB colour (any scale).
+
+    Returns:
+        (...) magnitudes.
+    """
+    c = np.asarray(source_color, np.float64)
+    if c.shape != (3,) or not np.all(np.isfinite(c)) or np.linalg.norm(c) <= 0:
+        raise ValueError(f"source_color: expected 3 finite values, not all 0, got {source_color!r}")
+    c = c / np.linalg.norm(c)
+    x = np.asarray(rgb, np.float64)
+    return np.linalg.norm(x - (x @ c)[..., None] * c, axis=-1)
+
+
+def _factorisation_channel(rgb, cfg):
+    """The (N, P) matrix the factorisation sees: the grey level, or the specular-free magnitude when
+    ``cfg.channel`` asks for it ("auto": when the images carry enough colour)."""
+    grey = rgb.mean(-1).astype(np.float64)
+    info = {"used": False, "fraction": 0.0}
+    if cfg.channel == "grey":
+        return grey, info
+    sf = specular_free(rgb, cfg.source_color)
+    lit = grey > 0.15 * np.percentile(grey, 99, axis=1, keepdims=True)
+    frac = float(np.median(sf[lit] / np.maximum(np.linalg.norm(rgb[lit], axis=-1), 1e-12))) if lit.any() else 0.0
+    info["fraction"] = frac
+    if cfg.channel == "specular-free" or frac >= cfg.chroma_min:
+        info["used"] = True
+        return sf, info
+    return grey, info
+
+
 def _prepare(images, mask, dark_fraction: float = 0.0):
     imgs = as_array("images", images)
     if imgs.ndim == 3:
@@ -703,11 +813,14 @@ def solve_uncalibrated(images, mask, *, camera=None, config: UncalibratedConfig 
     imgs, mask = _prepare(images, mask, cfg.dark_fraction)
     N = imgs.shape[0]
     rgb = imgs[:, mask]  # (N, P, 3)
-    M = rgb.mean(-1).astype(np.float64)
-    hi = np.percentile(M, 99, axis=1, keepdims=True)
-    W = ((M > cfg.shadow_fraction * hi) & (rgb.max(-1) < cfg.saturation)).astype(np.float64)
-    W_obs = W.copy()  # what the refinement sees: it models highlights, so it keeps them
-    drop = min(int(cfg.highlight_trim * N), N - 3)
+    M, chroma = _factorisation_channel(rgb, cfg)
+    unsat = rgb.max(-1) < cfg.saturation
+    W = ((M > cfg.shadow_fraction * np.percentile(M, 99, axis=1, keepdims=True)) & unsat).astype(np.float64)
+    # what the refinement sees: it models highlights, so it keeps them; the shadows are judged on the
+    # grey level (the specular-free magnitude is small where the albedo is nearly grey, not shadowed)
+    grey = rgb.mean(-1).astype(np.float64)
+    W_obs = W.copy() if not chroma["used"] else ((grey > cfg.shadow_fraction * np.percentile(grey, 99, axis=1, keepdims=True)) & unsat).astype(np.float64)
+    drop = 0 if chroma["used"] else min(int(cfg.highlight_trim * N), N - 3)
     if drop > 0:
         rank = np.argsort(np.argsort(M, axis=0), axis=0)
         W = W * (rank < N - drop)
@@ -748,6 +861,11 @@ def solve_uncalibrated(images, mask, *, camera=None, config: UncalibratedConfig 
         return a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-12)
 
     base_n = unit(B)
+    if chroma["used"]:
+        # the specular-free channel fixed the lights; its pseudo-normals are only as good as the
+        # albedo's chromatic part (noisy where the albedo is near grey): take the normals from
+        # the full-intensity images with those lights, highlights (positive outliers) trimmed
+        base_n = unit(_pixel_pseudo_normals(grey, W_obs, L))
     base_l = unit(L)
     if np.median(base_l[:, 2]) < 0:
         base_l = -base_l
@@ -763,6 +881,7 @@ def solve_uncalibrated(images, mask, *, camera=None, config: UncalibratedConfig 
     normals, lights, albedo = base_n, L, None
     material: dict = {}
     losses: list = []
+    spec_flip = False  # the flip decided by the specular fit (perspective camera)
     if cfg.refine != "none":
         from gpps.pipeline.uncalibrated import Refiner
 
@@ -776,51 +895,82 @@ def solve_uncalibrated(images, mask, *, camera=None, config: UncalibratedConfig 
         alb = _albedo_ls(rgb, Wrgb, normals, L)
         level = float(np.median(M[Wrgb > 0]))
         robust, final_robust = cfg.refine_robust * level, cfg.final_robust * level
-        ref = Refiner(N, len(sub), device=device)
-        r = ref.run(rgb[:, sub], Wrgb[:, sub], views[sub], normals[sub], alb[sub], L, specular=spec, robust=robust, iterations=cfg.refine_iterations, lr=cfg.lr,
-                    progress=lambda d, t, m: step(2 + d / t, 5, "refining lights: " + m))
-        lights = r.lights
-        material = {"brdf": cfg.refine, "ks": r.ks}
-        if cfg.refine == "ashikhmin-shirley":
-            material.update(eta_u=r.eta, eta_v=r.eta, f0=0.5)
-        elif cfg.refine == "blinn-phong":
-            material.update(shininess=r.eta)
-        losses = r.losses
-        if cfg.refine_gauge != "free":
-            lights = restore_gauge(lights, L, keep_gbr=cfg.refine_gauge == "gbr")
+        final = cfg.final_solver
+        if final == "auto":
+            final = "lm" if chroma["used"] else "adam"
+        fit_lights = cfg.refine_lights == "fit" or (cfg.refine_lights == "auto" and not chroma["used"])
+        lights = L
+        if final == "adam" or fit_lights:
+            ref = Refiner(N, len(sub), device=device)
+            r = ref.run(rgb[:, sub], Wrgb[:, sub], views[sub], normals[sub], alb[sub], L, specular=spec, robust=robust, iterations=cfg.refine_iterations, lr=cfg.lr, fit_lights=fit_lights,
+                        progress=lambda d, t, m: step(2 + d / t, 5, "refining lights: " + m))
+            lights = r.lights if fit_lights else L
+            material = {"brdf": cfg.refine, "ks": r.ks}
+            if cfg.refine == "ashikhmin-shirley":
+                material.update(eta_u=r.eta, eta_v=r.eta, f0=0.5)
+            elif cfg.refine == "blinn-phong":
+                material.update(shininess=r.eta)
+            losses = r.losses
+            if fit_lights and cfg.refine_gauge != "free":
+                lights = restore_gauge(lights, L, keep_gbr=cfg.refine_gauge == "gbr")
         step(3, 5, "lights refined")
-        sets = max(1, cfg.normal_sets)
-        # the joint fit already solved every pixel with these lights (and this loss)
-        reuse = len(sub) == P and sets == 1 and cfg.refine_gauge == "free" and cfg.final_robust == cfg.refine_robust
-        ref_all = ref if len(sub) == P else Refiner(N, P, device=device)
-        nsets = []
-        for s in range(sets):
-            Wk = Wrgb
-            if sets > 1:
-                keep = rng.random(N) < 0.7
-                keep[rng.choice(N, 3, replace=False)] = True
-                Wk = Wrgb * keep[:, None]
-            if reuse:
-                nsets.append(r.normals)
-                albedo = r.albedo
-                continue
-            rr = ref_all.run(rgb, Wk, views, normals, _albedo_ls(rgb, Wk, normals, lights), lights, ks=max(r.ks, 1e-4), eta=r.eta, specular=spec,
-                             fit_lights=False, robust=final_robust, iterations=cfg.final_iterations, lr=cfg.lr,
-                             progress=lambda d, t, m: step(3 + (s + d / t) / sets, 5, "per-pixel pass: " + m))
-            nsets.append(rr.normals)
-            albedo = rr.albedo
-        normals = nsets[0] if len(nsets) == 1 else pca_merge(np.stack(nsets))
+        if final == "lm":
+            material = {"brdf": cfg.refine}
+            if spec:
+                # with a perspective camera the view vectors are not symmetric under the flip, so the
+                # specular lobe tells the two members of the pair apart: fit both, keep the better
+                cands = [lights, lights @ flip_m] if isinstance(camera, Perspective) else [lights]
+                fits = [estimate_material(imgs, mask, c, cfg.refine, camera=camera, pixels=cfg.material_pixels, seed=cfg.seed, device=device) for c in cands]
+                res_ = [f[1]["residual"] for f in fits]
+                j = int(np.argmin(res_))
+                lights = cands[j]
+                material.update(fits[j][0], search=fits[j][1])
+                if len(cands) == 2:
+                    gbr_info["flip_specular_residuals"] = res_
+                    spec_flip = max(res_) > cfg.flip_specular_ratio * max(min(res_), 1e-30)
+            step(4, 5, "material estimated")
+            normals, albedo = _calibrated_pass(imgs, mask, lights, material, camera, final_robust > 0, device)
+        else:
+            sets = max(1, cfg.normal_sets)
+            # the joint fit already solved every pixel with these lights (and this loss)
+            reuse = len(sub) == P and sets == 1 and cfg.refine_gauge == "free" and cfg.final_robust == cfg.refine_robust
+            ref_all = ref if len(sub) == P else Refiner(N, P, device=device)
+            nsets = []
+            for s in range(sets):
+                Wk = Wrgb
+                if sets > 1:
+                    keep = rng.random(N) < 0.7
+                    keep[rng.choice(N, 3, replace=False)] = True
+                    Wk = Wrgb * keep[:, None]
+                if reuse:
+                    nsets.append(r.normals)
+                    albedo = r.albedo
+                    continue
+                rr = ref_all.run(rgb, Wk, views, normals, _albedo_ls(rgb, Wk, normals, lights), lights, ks=max(r.ks, 1e-4), eta=r.eta, specular=spec,
+                                 fit_lights=False, robust=final_robust, iterations=cfg.final_iterations, lr=cfg.lr,
+                                 progress=lambda d, t, m: step(3 + (s + d / t) / sets, 5, "per-pixel pass: " + m))
+                nsets.append(rr.normals)
+                albedo = rr.albedo
+            normals = nsets[0] if len(nsets) == 1 else pca_merge(np.stack(nsets))
     t_ref = time.perf_counter()
     e = np.linalg.norm(lights, axis=1)
     ldirs = lights / e[:, None]
     if albedo is None:
         albedo = _albedo_ls(rgb, W, normals, lights / e.mean())
+    else:  # albedo and ks relative to the mean light intensity, as light_intensities are
+        albedo = albedo * e.mean()
+        if "ks" in material:
+            material["ks"] = float(material["ks"] * e.mean())
     intens = e / e.mean()
     # the convex/concave flip
     flip = "ambiguous"
     alternative = (_to_map(normals @ flip_m, mask), ldirs @ flip_m)
     gbr_info["flip_curl"] = None
-    if isinstance(camera, Perspective):
+    gbr_info["channel"] = "specular-free" if chroma["used"] else "grey"
+    gbr_info["chroma_fraction"] = chroma["fraction"]
+    if spec_flip:
+        flip, alternative = "resolved", None
+    elif isinstance(camera, Perspective):
         c0, c1 = _perspective_curls([_to_map(normals, mask), alternative[0]], mask, camera)
         vm = views.mean(0) / np.linalg.norm(views.mean(0))
         spread = float(np.degrees(np.arccos(np.clip((views @ vm).min(), -1.0, 1.0))))
@@ -846,6 +996,103 @@ def solve_uncalibrated(images, mask, *, camera=None, config: UncalibratedConfig 
         losses=losses,
         timings={"factorisation": t_fact - t0, "gbr": t_gbr - t_fact, "refinement": t_ref - t_gbr, "total": time.perf_counter() - t0},
     )
+
+
+def _pixel_pseudo_normals(M, W, L, rounds: int = 3, k: float = 3.0):
+    """Per pixel, the least-squares ``b`` of ``M[:, p] ~ L b`` over its weighted observations, refitted
+    ``rounds`` times without the observations brighter than the fit by more than ``k`` robust standard
+    deviations (highlights: a specular term only adds light), keeping at least 3."""
+    W = W.copy()
+    b = _solve_rows(W.T, M.T, L)
+    for _ in range(rounds):
+        r = M - L @ b.T
+        sigma = 1.4826 * np.median(np.abs(r[W > 0])) + 1e-12
+        Wn = W * (r < k * sigma)
+        few = Wn.sum(0) < 3
+        Wn[:, few] = W[:, few]
+        if np.array_equal(Wn, W):
+            break
+        W = Wn
+        b = _solve_rows(W.T, M.T, L)
+    return b
+
+
+def estimate_material(images, mask, lights, brdf: str, *, camera=None, pixels: int = 1500, seed: int = 0, start=None, device=None) -> tuple[dict, dict]:
+    """The shared specular parameters that best explain the images with the lights fixed.
+
+    The objective of a candidate ``(ks, exponent)`` is the mean squared residual
+    of the calibrated per-pixel fit (:func:`gpps.photometric.solve_normals`,
+    Levenberg-Marquardt; normals and RGB albedo free per pixel) on a random
+    subset of ``pixels`` pixels: the residual of the true material is at the
+    quantisation level, a wrong lobe leaves highlights unexplained.  A 3 x 3 grid
+    over ``ks`` (0.1, 0.3, 1 relative to the mean light intensity) and the
+    exponent (10, 30, 100; plus ``start`` when given) picks the start of a
+    Nelder-Mead search in log space.  The Fresnel ``f0`` of Ashikhmin-Shirley is
+    fixed at 0.5 and its two exponents are equal (isotropic), as in the refinement.
+
+    Args:
+        images: (N, H, W, 3).
+        mask: (H, W) bool.
+        lights: (N, 3) direction times intensity.
+        brdf: "blinn-phong" or "ashikhmin-shirley".
+        start: optional ``(ks, exponent)`` added to the grid.
+
+    Returns:
+        (material fields for :class:`gpps.material.Material`, info with the evaluations).
+    """
+    from scipy.optimize import minimize
+
+    from gpps.lights import DirectionalLights
+    from gpps.material import Material
+    from gpps.photometric import solve_normals
+
+    if brdf not in ("blinn-phong", "ashikhmin-shirley"):
+        raise ValueError(f"brdf: expected 'blinn-phong' or 'ashikhmin-shirley', got {brdf!r}")
+    mask = np.asarray(mask, bool)
+    idx = np.flatnonzero(mask)
+    rng = np.random.default_rng(seed)
+    sub = np.zeros(mask.size, bool)
+    sub[idx if len(idx) <= pixels else rng.choice(idx, pixels, replace=False)] = True
+    sub = sub.reshape(mask.shape)
+    e = np.linalg.norm(lights, axis=1)
+    L = DirectionalLights(lights / e[:, None], np.repeat(e[:, None], 3, 1))
+
+    def fields(x):
+        ks, ex = float(np.exp(x[0])), float(np.exp(x[1]))
+        return {"ks": ks, "shininess": ex} if brdf == "blinn-phong" else {"ks": ks, "eta_u": ex, "eta_v": ex, "f0": 0.5}
+
+    evals = []
+
+    def f(x):
+        x = np.clip(x, [-7.0, 0.0], [2.0, 7.0])
+        r = solve_normals(images, sub, L, camera=camera, material=Material(brdf, **fields(x)), solver="lm", device=device)
+        v = float(np.mean(r.residual[sub].astype(np.float64) ** 2))
+        evals.append((float(np.exp(x[0])), float(np.exp(x[1])), v))
+        return v
+
+    grid = [np.log([k, ex]) for k in (0.1, 0.3, 1.0) for ex in (10.0, 30.0, 100.0)]
+    if start is not None and start[0] > 0 and start[1] > 0:
+        grid.append(np.log(np.asarray(start, np.float64)))
+    vals = [f(x) for x in grid]
+    x0 = grid[int(np.argmin(vals))]
+    minimize(f, x0, method="Nelder-Mead", options={"xatol": 0.01, "fatol": 1e-12, "maxfev": 30, "initial_simplex": np.vstack([x0, x0 + [0.5, 0.0], x0 + [0.0, 0.5]])})
+    best = min(evals, key=lambda t: t[2])
+    return fields(np.log(best[:2])), {"evaluations": len(evals), "residual": best[2]}
+
+
+def _calibrated_pass(imgs, mask, lights, material, camera, robust, device):
+    """Normals and RGB albedo per pixel by the calibrated solver (:func:`gpps.photometric.solve_normals`,
+    Levenberg-Marquardt with the specular model) with the estimated lights and material."""
+    from gpps.lights import DirectionalLights
+    from gpps.material import Material
+    from gpps.photometric import solve_normals
+
+    e = np.linalg.norm(lights, axis=1)
+    L = DirectionalLights(lights / e[:, None], np.repeat(e[:, None], 3, 1))
+    kw = {k: v for k, v in material.items() if k not in ("brdf", "search")}
+    mat = Material(material["brdf"], **kw) if material.get("brdf", "lambertian") != "lambertian" else Material("lambertian", ks=0.0)
+    res = solve_normals(imgs, mask, L, camera=camera, material=mat, solver="lm", robust="cauchy" if robust else None, device=device)
+    return res.normals[mask].astype(np.float64), res.albedo[mask].astype(np.float64)
 
 
 def _albedo_ls(rgb, W, normals, L):

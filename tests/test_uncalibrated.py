@@ -295,3 +295,60 @@ def test_failure_modes_are_explicit(lambertian_capture):
         UncalibratedConfig(refine_gauge="loose")
     with pytest.raises(ValueError, match="ldr_window"):
         UncalibratedConfig(ldr_window=4)
+
+
+def test_specular_free_is_the_diffuse_chroma():
+    """Dichromatic model: the part of the RGB orthogonal to the (white) source colour is the Lambertian
+    shading times the albedo's chromatic part, whatever the specular lobe; a grey albedo has none."""
+    from gpps.uncalibrated import specular_free
+
+    scene = make_scene("bumps", 48, "orthographic", albedo="texture")
+    lights = default_lights("directional", 4, layout="spiral")
+    images = render(scene, Material.default_for("blinn-phong"), lights)
+    a = scene.albedo[scene.mask].astype(np.float64)
+    c = np.ones(3) / np.sqrt(3)
+    chroma = np.linalg.norm(a - (a @ c)[:, None] * c, axis=1)
+    shade = np.maximum(lights.directions @ scene.normals[scene.mask].T, 0) * lights.intensities[:, :1]  # (N, P)
+    sf = specular_free(images[:, scene.mask])
+    assert (images[:, scene.mask].mean(-1) - shade * a.mean(-1)).max() > 0.1  # there are highlights
+    np.testing.assert_allclose(sf, shade * chroma, atol=2e-5)
+    np.testing.assert_allclose(specular_free(np.full((5, 3), 0.7)), 0, atol=1e-12)
+    with pytest.raises(ValueError, match="source_color"):
+        specular_free(images[:, scene.mask], (0, 0, 0))
+
+
+@pytest.mark.parametrize("brdf", ["blinn-phong", "ashikhmin-shirley"])
+def test_specular_uncalibrated_synthetic(brdf, device):
+    """Highlights: the specular-free channel gives the lights, the material search the lobe, the
+    calibrated solver the normals; scored with the convex/concave flip as the only alignment."""
+    scene = make_scene("bumps", 80, "orthographic", albedo="texture")
+    lights = default_lights("directional", 6, layout="spiral")
+    mat = Material.default_for(brdf)
+    images = render(scene, mat, lights, bits=16)
+    res = solve_uncalibrated(images, scene.mask, config=UncalibratedConfig(refine=brdf, material_pixels=600), device=device)
+    assert res.gbr["channel"] == "specular-free" and res.flip == "ambiguous"
+    cands = [(res.normals, res.light_directions), res.alternative]
+    maen, lerr = min((_maen(n, scene.normals, scene.mask), light_direction_errors(l, lights.directions).mean()) for n, l in cands)
+    assert maen < 2.0 and lerr < 2.0, (maen, lerr)
+    # ks relative to the lights' median intensity (0.8 here); the exponent as rendered
+    exponent = res.material["shininess"] if brdf == "blinn-phong" else res.material["eta_u"]
+    np.testing.assert_allclose([res.material["ks"], exponent], [mat.ks * 0.8, mat.shininess if brdf == "blinn-phong" else mat.eta_u], rtol=0.15)
+    # the grey path on the same images is what the specular-free channel fixes
+    grey = solve_uncalibrated(images, scene.mask, config=UncalibratedConfig(refine="none", channel="grey"))
+    assert grey.gbr["channel"] == "grey"
+    gerr = min(light_direction_errors(grey.light_directions @ f, lights.directions).mean() for f in (np.eye(3), FLIP))
+    assert gerr > 5.0, gerr
+
+
+def test_channel_choice(lambertian_capture):
+    """"auto" takes the specular-free channel only when the images carry colour: grey images go grey."""
+    scene, lights, images = lambertian_capture
+    grey_images = np.repeat(images.mean(-1, keepdims=True), 3, -1)
+    res = solve_uncalibrated(grey_images, scene.mask, config=UncalibratedConfig(refine="none"))
+    assert res.gbr["channel"] == "grey" and res.gbr["chroma_fraction"] < 1e-6
+    with pytest.raises(ValueError, match="channel"):
+        UncalibratedConfig(channel="suv")
+    with pytest.raises(ValueError, match="source_color"):
+        UncalibratedConfig(source_color=(0, 0, 0))
+    with pytest.raises(ValueError, match="final_solver"):
+        UncalibratedConfig(final_solver="newton")
