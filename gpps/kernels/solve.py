@@ -26,7 +26,14 @@ Observation weights ``w_k`` (the (N, H, W) buffer) are 0 for dropped
 observations (shadow: grey value below ``shadow_threshold`` times the pixel's
 brightest; saturated: a channel >= ``saturation``; or masked out by the
 caller's ``valid``) and otherwise 1, times the robust (IRLS) weight of the
-Huber or Cauchy loss after each reweighting round.
+Huber or Cauchy loss after each reweighting round.  A *dark* observation
+(grey value within ``lit_sigmas`` noise levels of 0: attached or cast shadow,
+or as good as) gets ``w_k = -1``: a one-sided term ``1/2 min(0, y - kd a)^2``
+that only penalises a model brighter than the observation, i.e. the
+inequality ``n.l <= ~0`` of an attached shadow, without letting the clipped
+positive noise of a shadowed pixel pull the normal toward the terminator.
+It does not enter the albedo's elimination (the albedo is that of the lit
+observations, so the reduced cost and its exact Jacobian stay as above).
 
 Specialisation: Warp emits every ``@wp.func`` a kernel reaches, and a kernel
 that switched at run time between the solvers, the five reflectance models and
@@ -78,6 +85,7 @@ FLAG_ALBEDO_FROM_NEIGHBOURS = wp.constant(16)  # under-determined pixel solved w
 
 NEIGHBOUR_MIN_COUNT = 16  # well-determined pixels the neighbour pass gathers (before its 2 extra rings)
 WEISZFELD_ITERS = wp.constant(8)  # iterations of the neighbours' geometric median
+LINEAR_ITERS = wp.constant(5)  # IRLS rounds of the neighbours' first-order normal model
 
 
 
@@ -237,10 +245,10 @@ def start_normal(s: int, ninit: wp.vec3, v: wp.vec3, hbright: wp.vec3, prm: Solv
 
 @wp.func
 def light_gram(weights: wp.array3d(dtype=wp.float32), i: int, j: int, p: wp.vec3, lights: LightParams):
-    """``sum_k [w_k > 0] l_k l_k^T`` over the pixel's valid lights."""
+    """``sum_k [w_k != 0] l_k l_k^T`` over the pixel's valid lights (dark ones included)."""
     a = wp.mat33(0.0)
     for k in range(lights.count):
-        if weights[k, i, j] > 0.0:
+        if weights[k, i, j] != 0.0:
             l = light_dir(lights, k, p)
             a += wp.outer(l, l)
     return a
@@ -287,6 +295,8 @@ class NeighbourStats:
 
     kd: wp.vec3
     n: wp.vec3
+    n_lin: wp.vec3
+    lin_ok: wp.int32
     count: wp.float32
     reach: wp.int32
 
@@ -310,6 +320,12 @@ def neighbour_stats(
     iteration ``m <- sum_q x_q / |x_q - m| / sum_q 1 / |x_q - m|`` from the mean
     (Weiszfeld 1937; breakdown point 1/2): a few grazing pixels whose shadowed
     observation noise made them look lit, with a wrong albedo, cannot pull it.
+    ``n_lin``: the first-order (affine) model ``n(q) = c + g_i di + g_j dj`` of
+    the same pixels' normals fitted by least absolute deviations (IRLS with
+    weights ``1 / |residual|``, ``LINEAR_ITERS`` rounds from least squares),
+    evaluated at the pixel (``c``): on a rim the neighbours lie on one side and
+    the normal keeps turning, so their median lags where the extrapolation does
+    not.  ``lin_ok`` 0: the fit was singular (neighbours on a line).
     ``count`` 0: none found.
     """
     out = NeighbourStats()
@@ -360,6 +376,44 @@ def neighbour_stats(
         mn = an / wn
     out.kd = mk
     out.n = mn
+    # first-order model n(q) = c + g_i di + g_j dj of the neighbours' normals, least absolute
+    # deviations by IRLS (weights 1 / |residual|); c extrapolates the field to the pixel
+    lin = wp.vec3(mn)
+    gi = wp.vec3(0.0)
+    gj = wp.vec3(0.0)
+    ok = int(0)
+    for it in range(LINEAR_ITERS):
+        am = wp.mat33(0.0)
+        b0 = wp.vec3(0.0)
+        b1 = wp.vec3(0.0)
+        b2 = wp.vec3(0.0)
+        for r in range(1, reach + 1):
+            for t in range(8 * r):
+                di, dj = ring_offset(r, t)
+                if is_determined(mask, flags, i + di, j + dj):
+                    q = normals[i + di, j + dj]
+                    x = wp.vec3(1.0, float(di), float(dj))
+                    wgt = float(1.0)
+                    if it > 0:
+                        wgt = 1.0 / wp.max(wp.length(q - lin - float(di) * gi - float(dj) * gj), 1.0e-3)
+                    am += wgt * wp.outer(x, x)
+                    b0 += wgt * q[0] * x
+                    b1 += wgt * q[1] * x
+                    b2 += wgt * q[2] * x
+        fa = wp.sqrt(wp.ddot(am, am))
+        if wp.abs(wp.determinant(am)) <= 1.0e-6 * fa * fa * fa:
+            ok = 0
+            break
+        ai = wp.inverse(am)
+        c0 = ai * b0
+        c1 = ai * b1
+        c2 = ai * b2
+        lin = wp.vec3(c0[0], c1[0], c2[0])
+        gi = wp.vec3(c0[1], c1[1], c2[1])
+        gj = wp.vec3(c0[2], c1[2], c2[2])
+        ok = 1
+    out.n_lin = lin
+    out.lin_ok = ok
     return out
 
 
@@ -377,7 +431,7 @@ def brightest_half_vector(images: wp.array3d(dtype=wp.vec3), weights: wp.array3d
     kb = int(0)
     gb = float(-1.0)
     for k in range(lights.count):
-        if weights[k, px.i, px.j] > 0.0:
+        if weights[k, px.i, px.j] != 0.0:
             gk = grey(images[k, px.i, px.j])
             if gk > gb:
                 gb = gk
@@ -402,7 +456,7 @@ def store_solution(
     j = px.j
     wsum = float(0.0)
     for k in range(nl_):
-        wsum += weights[k, i, j]
+        wsum += wp.abs(weights[k, i, j])
     f = flag
     if sol.best.converged == 0:
         f = f | FLAG_NOT_CONVERGED
@@ -458,7 +512,7 @@ def store_least_squares(
     rs = float(0.0)
     ws = float(0.0)
     for k in range(nl_):
-        if use_all != 0 or weights[k, i, j] > 0.0:
+        if use_all != 0 or weights[k, i, j] != 0.0:
             l = light_dir(lights, k, p)
             e = light_radiance(lights, k, p)
             o = images[k, i, j]
@@ -631,16 +685,19 @@ def _solver_funcs(method, brdf, robust, module=None, sfx: str = ""):
         jtr = wp.vec2(0.0)
         for k in range(lights.count):
             w = weights[k, i, j]
-            if w > 0.0:
+            if w != 0.0:
                 e, obs, dval, sval, da0, da1, ds0, ds1 = light_terms(images, lights, mat, k, i, j, p, n, v, dn0, dn1)
                 for c in range(3):
                     a = e[c] * dval
                     r = obs[c] - e[c] * ks * sval - kd[c] * a
-                    j0 = -e[c] * ks * ds0 - dkd0[c] * a - kd[c] * e[c] * da0
-                    j1 = -e[c] * ks * ds1 - dkd1[c] * a - kd[c] * e[c] * da1
-                    cost += 0.5 * w * r * r
-                    jtr += w * r * wp.vec2(j0, j1)
-                    jtj += w * wp.mat22(j0 * j0, j0 * j1, j0 * j1, j1 * j1)
+                    # a dark observation (w < 0) only bounds the model from above: n.l <= about 0
+                    if w > 0.0 or r < 0.0:
+                        wa = wp.abs(w)
+                        j0 = -e[c] * ks * ds0 - dkd0[c] * a - kd[c] * e[c] * da0
+                        j1 = -e[c] * ks * ds1 - dkd1[c] * a - kd[c] * e[c] * da1
+                        cost += 0.5 * wa * r * r
+                        jtr += wa * r * wp.vec2(j0, j1)
+                        jtj += wa * wp.mat22(j0 * j0, j0 * j1, j0 * j1, j1 * j1)
         if px.prior_w > 0.0:
             dp = n - px.prior_n
             cost += 0.5 * px.prior_w * wp.dot(dp, dp)
@@ -1082,6 +1139,9 @@ def _make_kernels(method, brdf, robust, module_name: str, sfx: str):
                 # lit: a clear fraction of the brightest and clear of the image noise
                 if grey(o) > prm.lit_threshold * gmax and grey(o) > prm.lit_sigmas * noise[k]:
                     ninfo += 1
+                if grey(o) <= prm.lit_sigmas * noise[k]:
+                    # dark (attached or cast shadow, within the noise of 0): a one-sided term
+                    w = -1.0
             weights[k, i, j] = w
         flag = int(0)
         if ninfo < 3:
@@ -1110,7 +1170,7 @@ def _make_kernels(method, brdf, robust, module_name: str, sfx: str):
         bc1 = wp.vec3(0.0)
         bc2 = wp.vec3(0.0)
         for k in range(nl_):
-            if warm_ok == 0 and (use_all != 0 or weights[k, i, j] > 0.0):
+            if warm_ok == 0 and (use_all != 0 or weights[k, i, j] != 0.0):
                 l = light_dir(lights, k, p)
                 e = light_radiance(lights, k, p)
                 o = images[k, i, j]
@@ -1175,8 +1235,9 @@ def _make_kernels(method, brdf, robust, module_name: str, sfx: str):
         them within ``radius``; albedo varies slowly) and the normal is re-solved
         with all starts.  The dark observations stay in the fit: the model's
         ``max(n.l, 0)`` penalises a solution that would light them.  A weak prior
-        toward the geometric median of those pixels' normals (weight 1e-3 of the
-        data's scale) breaks the remaining ties (the two mirror solutions of 2
+        (weight 1e-3 of the data's scale) toward the first-order extrapolation of
+        those pixels' normals (or their geometric median when that fit is singular
+        or faces away) breaks the remaining ties (the two mirror solutions of 2
         observations, the cone of solutions of 1).  Only flagged pixels are
         written and only unflagged ones are read, so threads do not race.
         """
@@ -1198,6 +1259,10 @@ def _make_kernels(method, brdf, robust, module_name: str, sfx: str):
         ninit = normals[i, j]
         if wp.length(nb.n) > 0.0:
             px.prior_n = wp.normalize(nb.n)
+            if nb.lin_ok != 0 and wp.length(nb.n_lin) > 0.0:
+                nl = wp.normalize(nb.n_lin)
+                if wp.dot(nl, px.v) > 0.05:
+                    px.prior_n = nl
             px.prior_w = 1.0e-3 * gmax * gmax
             ninit = px.prior_n
         sol = solve_pixel(ninit, gmax, images, weights, px, lights, mat, prm)
@@ -1282,7 +1347,7 @@ def _make_kernels(method, brdf, robust, module_name: str, sfx: str):
             albedo[i, j] = res.kd
             wsum = float(0.0)
             for k in range(lights.count):
-                wsum += weights[k, i, j]
+                wsum += wp.abs(weights[k, i, j])
             if wsum > 0.0:
                 # data part of the RMS residual (the prior's share removed)
                 dp = res.n - px.prior_n

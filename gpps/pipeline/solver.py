@@ -85,9 +85,10 @@ class SolverConfig:
             their albedo at the geometric median of the albedos of the nearest
             well-determined pixels (square rings searched until 16 are found, then
             2 rings more, at most this radius in pixels) and re-solves the normal
-            with a weak tie-breaking prior toward the geometric median of their
-            normals.  The median ignores the few rim pixels that noise on a
-            shadowed observation made look determined.  0 disables the pass.
+            with a weak tie-breaking prior toward the first-order (affine, least
+            absolute deviations) extrapolation of their normals.  The robust fits
+            ignore the few rim pixels that noise on a shadowed observation made
+            look determined.  0 disables the pass.
         lit_threshold: an observation counts as lit (informative) when its grey
             value exceeds this fraction of the pixel's brightest and
             ``lit_sigmas`` times the image's noise level; pixels with fewer than
@@ -102,7 +103,10 @@ class SolverConfig:
         lit_sigmas: the noise test of ``lit_threshold``: a shadowed observation's
             noise passes ``lit_threshold`` of a dim grazing pixel (whose
             brightest value is small) often, ``lit_sigmas`` noise levels rarely
-            (0.13 % at 3).  0 disables the test.
+            (0.13 % at 3).  Observations at or below it are *dark*: a one-sided
+            term (weight -1 in ``weights``) that only penalises a model brighter
+            than them (see :mod:`gpps.kernels.solve`).  0: no noise test, and
+            only exact zeros are dark.
         warm_start: start from the normals passed to :meth:`PixelSolver.solve`
             (one start per pixel) instead of the least-squares solution.
         lm_tau: initial LM damping ``tau * max(diag J^T J)`` (Algorithm 4).
