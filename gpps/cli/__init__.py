@@ -13,7 +13,7 @@ import importlib
 import sys
 
 # Subcommand modules, in the order they appear in --help.
-SUBCOMMANDS = ["render", "reconstruct", "integrate", "stream", "demo"]
+SUBCOMMANDS = ["render", "reconstruct", "integrate", "stream", "demo", "single"]
 
 
 def build_parser() -> argparse.ArgumentParser:
