@@ -18,10 +18,16 @@ converted by ``(x, y, z) -> (x, -y, -z)``.  The LED model is gpps's
 ``Phi * max(cos(angle(Dir, P - S)), 0)^mu / |P - S|^2`` (2.30-2.31).
 
 Images.  Each LED image minus the ambient image (clipped at 0), divided by
-``Phi_k / mean(Phi)``; the returned :class:`PointLights` carry the intensity
-``mean(Phi)`` for every LED, so ``lights.intensities * falloff * albedo * cos``
-models the returned images directly (the albedo is then in the file's grey
-units times mm^2 / Phi, about 0.01; its scale is arbitrary).
+``Phi_k / mean(Phi)`` (the LEDs' relative powers).  The returned
+:class:`PointLights` carry the intensity ``D^2`` (mm^2) for every LED, ``D``
+the distance the LEDs are aimed at (:func:`aim_distance`), so that
+``intensity / r^2 * lobe * albedo * cos`` models the returned images with the
+albedo in grey units (about the grey value of a frontal white patch at ``D``).
+The albedo's absolute scale is arbitrary for photometric stereo, but the
+material fit of :func:`gpps.reconstruct` searches ``ks`` over an absolute
+range (0.02-3) that assumes albedos of order 0.1-1: with ``Phi`` itself as the
+intensity (albedo ~ 0.003 here) every candidate specular weight would be
+many times the diffuse one.
 """
 
 from __future__ import annotations
@@ -46,7 +52,8 @@ class NearLightCapture:
 
     Attributes:
         images: (N, H, W) float32 grey images (ambient subtracted, divided by
-            ``phi / mean(phi)``).
+            ``phi / mean(phi)``).  The lights' intensity is ``working_distance^2``
+            (see the module docstring).
         mask: (H, W) bool object mask.
         K: (3, 3) intrinsics (pixels, gpps convention ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``),
             scaled for ``downsample`` and shifted for ``crop``.
@@ -190,8 +197,9 @@ def read_nearlight(root, *, downsample: int = 1, crop=None, prefix: str = "photo
         K[1, 2] = (K[1, 2] - (f - 1) / 2) / f
     if not mask.any():
         raise ValueError(f"downsample: no {f}x{f} block lies entirely inside the object mask")
-    lights = PointLights(S * CV_TO_GPPS, intensities=np.full(n, phi.mean()), axes=axes * CV_TO_GPPS, mu=mu)
     aim = aim_distance(S, axes)
+    unit = aim**2 if np.isfinite(aim) else float(np.mean(np.abs(S[:, 2]))) ** 2
+    lights = PointLights(S * CV_TO_GPPS, intensities=np.full(n, unit), axes=axes * CV_TO_GPPS, mu=mu)
     return NearLightCapture(
         images=img.astype(np.float32), mask=mask, K=K, camera=Perspective(K), lights=lights, phi=phi,
         working_distance=aim, saturated=sat, downsample=f, crop=crop,
