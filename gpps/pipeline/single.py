@@ -8,8 +8,8 @@ camera, no scene), :func:`reconstruct_single`
    normals (with one image: that image's prediction);
 2. estimates the lights jointly (uncalibrated): given the current normals,
    each light's direction and RGB intensity by least squares on the
-   Lambertian part (attached shadows and the brightest 2 % left out, three
-   re-weightings), the albedo by least squares, then one global Blinn-Phong
+   Lambertian part (attached shadows and the brightest 2 % left out, 30
+   alternations with the albedo), the albedo by least squares, then one global Blinn-Phong
    specular weight ``ks`` on the residual (``shininess`` fixed);
 3. refines every pixel's normal and albedo by cuckoo search
    (:mod:`gpps.pipeline.cuckoo`, Warp) on the Blinn-Phong reprojection error
@@ -179,7 +179,7 @@ def _bp_spec(n, l, v, shininess):
     return np.where((c > 0) & (np.sum(n * l, -1) > 0), np.maximum(c, 0.0) ** shininess, 0.0)
 
 
-def estimate_lights(I, n, view, *, albedo=None, shininess=30.0, specular=True, iterations=3):
+def estimate_lights(I, n, view, *, albedo=None, shininess=30.0, specular=True, iterations=30):
     """Lights, albedo and ks from images and normals (the uncalibrated step of each round).
 
     Args:

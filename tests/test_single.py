@@ -1,0 +1,242 @@
+"""Issue 8: the shipped network (numpy inference against an independent reference, loads without
+PyTorch), the photometric objective against numpy, light estimation, and ``gpps single`` end to end."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from gpps.nn.model import ARCH, DEC, ENC, WEIGHTS_PATH, SingleNet, conv3x3, load_weights, prepare_input
+
+
+# --------------------------------------------------------------------------- independent numpy reference
+
+
+def _conv_ref(x, w, b):
+    """3x3 cross-correlation, zero padding 1, by sliding windows + einsum (not the shifted matmuls)."""
+    xp = np.pad(x.astype(np.float64), ((0, 0), (1, 1), (1, 1)))
+    win = np.lib.stride_tricks.sliding_window_view(xp, (3, 3), axis=(1, 2))  # (C, H, W, 3, 3)
+    return np.einsum("chwij,ocij->ohw", win, w.astype(np.float64)) + b[:, None, None]
+
+
+def _forward_ref(p, x):
+    relu = lambda a: np.maximum(a, 0.0)  # noqa: E731
+    block = lambda name, a: relu(_conv_ref(relu(_conv_ref(a, p[f"{name}.conv1.weight"], p[f"{name}.conv1.bias"])),  # noqa: E731
+                                           p[f"{name}.conv2.weight"], p[f"{name}.conv2.bias"]))
+    skips = []
+    a = x.astype(np.float64)
+    for k, (name, _, _) in enumerate(ENC):
+        if k:
+            c, h, w = a.shape
+            a = a.reshape(c, h // 2, 2, w // 2, 2).mean((2, 4))
+        a = block(name, a)
+        skips.append(a)
+    g = relu(p["glob.fc1.weight"] @ a.mean((1, 2)) + p["glob.fc1.bias"])
+    g = p["glob.fc2.weight"] @ g + p["glob.fc2.bias"]
+    a = relu(a + g[:, None, None])
+    for (name, _, _), s in zip(DEC, skips[-2::-1]):
+        up = np.kron(a, np.ones((1, 2, 2)))
+        a = block(name, np.concatenate([up, s], 0))
+    return _conv_ref(a, p["head.weight"], p["head.bias"])
+
+
+def test_conv3x3_against_reference():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(5, 7, 9)).astype(np.float32)
+    w = rng.normal(size=(4, 5, 3, 3)).astype(np.float32)
+    b = rng.normal(size=4).astype(np.float32)
+    np.testing.assert_allclose(conv3x3(x, w, b), _conv_ref(x, w, b), rtol=1e-4, atol=1e-4)
+    # one explicit pixel: out[o, i, j] = b + sum w[o, c, di, dj] x[c, i + di - 1, j + dj - 1]
+    o, i, j = 2, 0, 4
+    v = b[o] + sum(w[o, c, di, dj] * x[c, i + di - 1, j + dj - 1]
+                   for c in range(5) for di in range(3) for dj in range(3) if 0 <= i + di - 1 < 7)
+    assert conv3x3(x, w, b)[o, i, j] == pytest.approx(v, rel=1e-4)
+
+
+def test_forward_against_reference_random_weights():
+    rng = np.random.default_rng(1)
+    params = {k: (rng.normal(size=s) * (0.5 / np.sqrt(np.prod(s[1:])) if len(s) > 1 else 0.1)).astype(np.float32)
+              for k, s in ARCH.items()}
+    net = SingleNet(params, {"size": 32})
+    x = rng.uniform(0, 1, (4, 32, 48)).astype(np.float32)
+    np.testing.assert_allclose(net.forward(x), _forward_ref(params, x), rtol=1e-3, atol=1e-4)
+    with pytest.raises(ValueError, match="multiples of 16"):
+        net.forward(x[:, :30])
+
+
+def test_shipped_weights_and_their_size():
+    params, meta = load_weights()
+    assert WEIGHTS_PATH.stat().st_size < 20e6
+    assert set(ARCH) <= set(params)
+    assert meta["size"] == 128 and meta["steps"] > 1000
+    assert meta["numpy_vs_torch_max_abs"] < 1e-2  # measured at export, on the training machine
+
+
+def test_weights_load_without_torch_or_network(tmp_path):
+    code = (
+        "import sys, socket\n"
+        "sys.modules['torch'] = None\n"  # any import of torch now raises ImportError
+        "def _no_net(*a, **k):\n    raise RuntimeError('network access')\n"
+        "socket.socket.connect = _no_net\n"
+        "import numpy as np\n"
+        "from gpps.nn.model import SingleNet\n"
+        "net = SingleNet.load()\n"
+        "img = np.random.default_rng(0).uniform(0, 1, (40, 52, 3)).astype(np.float32)\n"
+        "n, h = net.predict(img)\n"
+        "assert n.shape == (40, 52, 3) and h.shape == (40, 52)\n"
+        "assert np.allclose(np.linalg.norm(n, axis=-1), 1, atol=1e-4) and np.all(n[..., 2] > 0)\n"
+        "assert 'torch' not in sys.modules or sys.modules['torch'] is None\n"
+        "print('ok')\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().endswith("ok")
+
+
+def test_prepare_input_scale_free():
+    rng = np.random.default_rng(2)
+    img = rng.uniform(0, 1, (16, 16, 3))
+    m = np.zeros((16, 16), bool)
+    m[2:14, 3:15] = True
+    a = prepare_input(img, m)
+    b = prepare_input(img * 37.0, m)
+    np.testing.assert_allclose(a, b, rtol=1e-5)
+    assert a.shape == (4, 16, 16) and np.all(a[:3, ~m] == 0) and np.all(a[3] == m)
+    with pytest.raises(ValueError, match="mask"):
+        prepare_input(img, np.zeros((16, 16), bool))
+
+
+def _sphere_capture(size=64, brdf="lambertian"):
+    from gpps.lights import DirectionalLights, ring_directions
+    from gpps.material import Material
+    from gpps.scenes import make_scene
+    from gpps.synthetic import render
+
+    sc = make_scene("sphere", size, "orthographic", albedo="texture", seed=5)
+    lights = DirectionalLights(ring_directions(3, 35.0), np.full((3, 3), 0.8))
+    mat = Material(brdf, ks=0.0 if brdf == "lambertian" else 0.3, shininess=30.0)
+    return sc, lights, render(sc, mat, lights, device="cpu")
+
+
+def test_network_beats_flat_plane_on_a_sphere():
+    from gpps.metrics import normal_errors
+
+    sc, _, imgs = _sphere_capture(64)
+    n, h = SingleNet.load().predict(imgs[0], sc.mask)
+    flat = np.zeros_like(n)
+    flat[..., 2] = 1
+    e_net = normal_errors(n, sc.normals, sc.mask)["mean"]
+    e_flat = normal_errors(flat, sc.normals, sc.mask)["mean"]
+    assert e_net < 0.5 * e_flat, (e_net, e_flat)
+    # the height is larger at the centre (nearer the camera) than at the rim
+    c = h[28:36, 28:36].mean()
+    assert c > h[sc.mask].mean()
+
+
+def test_photometric_objective_against_numpy(device):
+    import warp as wp
+
+    from gpps._runtime import warp
+    from gpps.kernels import cuckoo as ck
+
+    warp()
+    rng = np.random.default_rng(3)
+    P, N = 50, 3
+    x = np.concatenate([rng.uniform(-0.6, 0.6, (P, 2)), rng.uniform(0.1, 1.0, (P, 3))], 1).astype(np.float32)
+    ldir = rng.normal(size=(N, 3)) + [0, 0, 2]
+    ldir /= np.linalg.norm(ldir, axis=1, keepdims=True)
+    lrgb = rng.uniform(0.5, 1.0, (N, 3))
+    I = rng.uniform(0, 1, (N, P, 3)).astype(np.float32)
+    prior = rng.normal(size=(P, 3)) + [0, 0, 3]
+    prior /= np.linalg.norm(prior, axis=1, keepdims=True)
+    view = np.tile([0.0, 0.0, 1.0], (P, 1))
+    ks, shin, pw = 0.3, 20.0, 0.05
+    # numpy reference
+    n = np.stack([x[:, 0], x[:, 1], np.sqrt(1 - x[:, 0] ** 2 - x[:, 1] ** 2)], 1).astype(np.float64)
+    ref = np.zeros(P)
+    for k in range(N):
+        a = n @ ldir[k]
+        hv = ldir[k] + view
+        hv /= np.linalg.norm(hv, axis=1, keepdims=True)
+        s = np.where(a > 0, np.maximum(np.sum(n * hv, 1), 0) ** shin, 0.0)
+        model = lrgb[k] * (x[:, 2:] * np.maximum(a, 0)[:, None] + ks * s[:, None])
+        ref += np.sum((I[k] - model) ** 2, 1)
+    ref += pw * np.sum((n - prior) ** 2, 1)
+    d = ck.PhotoData()
+    d.images = wp.array(I, dtype=wp.vec3, device=device)
+    d.view = wp.array(view.astype(np.float32), dtype=wp.vec3, device=device)
+    d.prior = wp.array(prior.astype(np.float32), dtype=wp.vec3, device=device)
+    d.light_dir = wp.array(ldir.astype(np.float32), dtype=wp.vec3, device=device)
+    d.light_rgb = wp.array(lrgb.astype(np.float32), dtype=wp.vec3, device=device)
+    d.weight = wp.array(np.ones(P, np.float32), dtype=wp.float32, device=device)
+    d.ks, d.shininess, d.prior_weight, d.albedo_from_normal = ks, shin, pw, 0
+    out = wp.zeros(P, dtype=wp.float32, device=device)
+    wp.launch(ck.photometric_error_kernel, dim=P, inputs=[wp.array(x, dtype=ck.vec5, device=device), d], outputs=[out],
+              device=device)
+    np.testing.assert_allclose(out.numpy(), ref, rtol=2e-4, atol=1e-5)
+
+
+def test_estimate_lights_exact_normals():
+    from gpps.pipeline.single import estimate_lights, prepare_images
+
+    sc, lights, imgs = _sphere_capture(48)
+    I, m = prepare_images(imgs, sc.mask)
+    d, rgb, kd, ks = estimate_lights(I[:, m], sc.normals[m], np.tile([0, 0, 1.0], (int(m.sum()), 1)), specular=False)
+    err = np.degrees(np.arccos(np.clip(np.sum(d * lights.directions, 1), -1, 1)))
+    assert np.all(err < 1.0), err
+    np.testing.assert_allclose(rgb / rgb.mean(), 1.0, atol=0.02)
+
+
+def test_reconstruct_single_refines_and_is_reproducible():
+    from gpps.metrics import normal_errors
+    from gpps.pipeline.cuckoo import CuckooConfig
+    from gpps.pipeline.single import SingleConfig, reconstruct_single
+
+    sc, _, imgs = _sphere_capture(48)
+    cfg = SingleConfig(cuckoo=CuckooConfig(nests=8, generations=30, seed=2), integrate=False)
+    a = reconstruct_single(imgs, sc.mask, config=cfg, device="cpu")
+    b = reconstruct_single(imgs, sc.mask, config=cfg, device="cpu")
+    np.testing.assert_array_equal(a.normals, b.normals)
+    assert a.objective[0]["after"] < a.objective[0]["before"]
+    e_net = normal_errors(a.normals_net, sc.normals, a.mask)["mean"]
+    e_ref = normal_errors(a.normals, sc.normals, a.mask)["mean"]
+    assert e_ref < e_net, (e_net, e_ref)
+    one = reconstruct_single(imgs[0], sc.mask, config=SingleConfig(rounds=0, integrate=False))
+    assert one.normals.shape == sc.normals.shape and one.objective == []
+
+
+def test_single_config_validation():
+    from gpps.pipeline.single import SingleConfig
+
+    with pytest.raises(ValueError, match="albedo"):
+        SingleConfig(albedo="guess")
+    with pytest.raises(ValueError, match="lights"):
+        SingleConfig(lights="magic")
+    with pytest.raises(ValueError, match="rounds"):
+        SingleConfig(rounds=-1)
+    with pytest.raises(TypeError, match="cuckoo"):
+        SingleConfig(cuckoo={"nests": 3})
+
+
+def test_cli_single(tmp_path):
+    from gpps.cli import main
+    from gpps.io import save_png
+
+    sc, _, imgs = _sphere_capture(32)
+    paths = []
+    for k in range(3):
+        p = tmp_path / f"{k}.png"
+        save_png(p, np.clip(imgs[k], 0, 1), bits=8)
+        paths.append(str(p))
+    save_png(tmp_path / "mask.png", sc.mask.astype(np.uint8) * 255)
+    out = tmp_path / "out"
+    rc = main(["--device", "cpu", "single", *paths, "--mask", str(tmp_path / "mask.png"), "--out", str(out),
+               "--generations", "5", "--nests", "4"])
+    assert rc == 0
+    for f in ("normals.npy", "normals.png", "depth.npy", "mesh.ply", "view.png", "report.json", "albedo.png"):
+        assert (out / f).is_file(), f
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["pixels"] == int(sc.mask.sum()) and len(rep["light_directions"]) == 3
+    assert main(["single", str(tmp_path / "missing.png"), "--out", str(out)]) == 2
