@@ -36,8 +36,12 @@ def test_stream_matches_batch_and_reports_bad_frames(device):
     # batch reference: gpps.reconstruct on the same (quantised) frame, the material known (nothing to estimate)
     import gpps
 
+    from gpps.pipeline.ron import RONConfig
+
+    same = RONConfig(integrator=IntegratorConfig(tol=1e-5, weighting="uniform"))  # the stream's plain Poisson integration
     rec = gpps.reconstruct(frame.astype(np.float32) / 65535 / np.asarray(L.intensities, np.float32)[:, None, None, :],
-                           sc.mask, DirectionalLights(L.directions), camera=sc.camera, material=mat, device=device)
+                           sc.mask, DirectionalLights(L.directions), camera=sc.camera, material=mat, config=same,
+                           device=device)
     assert rec.rounds == 1 and rec.estimated == {}
     m = sc.mask
     for r in (out[0], out[-1]):  # the cold first frame and a warm-started later one
