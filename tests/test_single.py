@@ -186,7 +186,8 @@ def test_estimate_lights_exact_normals():
     d, rgb, kd, ks = estimate_lights(I[:, m], sc.normals[m], np.tile([0, 0, 1.0], (int(m.sum()), 1)), specular=False)
     err = np.degrees(np.arccos(np.clip(np.sum(d * lights.directions, 1), -1, 1)))
     assert np.all(err < 1.0), err
-    np.testing.assert_allclose(rgb / rgb.mean(), 1.0, atol=0.02)
+    # equal lights: equal intensities up to a colour shared with the albedo (per channel)
+    np.testing.assert_allclose(rgb / rgb[:1], 1.0, atol=0.02)
 
 
 def test_reconstruct_single_refines_and_is_reproducible():
