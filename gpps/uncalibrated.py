@@ -97,9 +97,12 @@ class UncalibratedConfig:
             only under the dichromatic model, so highlights neither corrupt the
             rank-3 subspace nor the integrability; on Blinn-Phong renders the
             grey path's lights were 20-30 deg off); "auto" the latter when the
-            median ratio of the specular-free to the full RGB magnitude over lit
-            observations is at least ``chroma_min`` (a grey albedo, or grey
-            images, has none), else grey.
+            ratio of the specular-free to the full RGB magnitude (per pixel the
+            median over its lit observations, then the median over the pixels)
+            is at least ``chroma_min`` (a grey albedo, or grey images, has
+            none), else grey.  Measured: the textured bumps 0.096-0.108 (with
+            highlights - without), the uniform sphere 0.16, DiLiGenT bear 0.39,
+            DiLiGenT ball 0.059 (nearly grey: its tint is the lights'; grey path).
         source_color: RGB colour of the lights (white by default).
         chroma_min: the "auto" threshold.
         refine: image model of the refinement ("none" stops after the GBR).
@@ -174,7 +177,7 @@ class UncalibratedConfig:
     cues: tuple[Cue, ...] = ("intensity", "ldr", "entropy")
     channel: Channel = "auto"
     source_color: tuple = (1.0, 1.0, 1.0)
-    chroma_min: float = 0.05
+    chroma_min: float = 0.08
     refine: Refine = "ashikhmin-shirley"
     dark_fraction: float = 0.1
     shadow_fraction: float = 0.15
@@ -753,7 +756,14 @@ def _factorisation_channel(rgb, cfg):
         return grey, info
     sf = specular_free(rgb, cfg.source_color)
     lit = grey > 0.15 * np.percentile(grey, 99, axis=1, keepdims=True)
-    frac = float(np.median(sf[lit] / np.maximum(np.linalg.norm(rgb[lit], axis=-1), 1e-12))) if lit.any() else 0.0
+    # the albedo's chromatic fraction: per pixel the median ratio over its lit observations (a few
+    # highlights do not move it), the median over the pixels lit at least once
+    cols = lit.any(0)
+    if cols.any():
+        ratio = np.where(lit, sf / np.maximum(np.linalg.norm(rgb, axis=-1), 1e-12), np.nan)[:, cols]
+        frac = float(np.median(np.nanmedian(ratio, axis=0)))
+    else:
+        frac = 0.0
     info["fraction"] = frac
     if cfg.channel == "specular-free" or frac >= cfg.chroma_min:
         info["used"] = True
