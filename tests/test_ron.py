@@ -133,7 +133,7 @@ def test_reconstruct_known_material_is_solve_then_integrate(device):
     ps = solve_normals(img, sc.mask, L, camera=sc.camera, material=TRUE["blinn-phong"], config=cfg.solver, device=device)
     np.testing.assert_allclose(rec.normals[sc.mask], ps.normals[sc.mask], atol=1e-6)
     np.testing.assert_allclose(rec.albedo[sc.mask], ps.albedo[sc.mask], atol=1e-6)
-    ir = integrate_normals(ps.normals, sc.mask, camera=sc.camera, reference_depth=5.0, weighting="normal", device=device)
+    ir = integrate_normals(ps.normals, sc.mask, camera=sc.camera, reference_depth=5.0, weighting="normal", device=device)  # perspective
     np.testing.assert_allclose(rec.depth, ir.depth, rtol=1e-5, atol=1e-6)
 
 

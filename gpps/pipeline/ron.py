@@ -129,7 +129,8 @@ class RONConfig:
         roughness_window: Gaussian scale (pixels) of the mean surface of (4.19).
         solver: the per-pixel solver settings (steps 1 and 5).
         integrator: settings of the Taichi integrator (step 3); None: multigrid
-            to a relative residual of 1e-5 with the ``"normal"`` (n_z^2) weighting.
+            to a relative residual of 1e-5, with the ``"normal"`` (n_z^2) weighting
+            for perspective cameras and ``"uniform"`` for orthographic ones.
         seed: seed of the pixel sample (results are reproducible).
     """
 
@@ -306,9 +307,11 @@ class RON:
         if self.config.integrate:
             from gpps.pipeline.integration import Integrator, IntegratorConfig
 
-            # default: BiNI's n_z^2 confidence weighting: grazing rim normals (a few degrees off with 3 images)
-            # otherwise dominate perspective log-depth (sphere 64^2: 2.6 % -> 0.2 % of the range)
-            icfg = self.config.integrator if self.config.integrator is not None else IntegratorConfig(tol=1e-5, weighting="normal")
+            # default, perspective: BiNI's n_z^2 confidence weighting: grazing rim normals (a few degrees off
+            # with 3 images) otherwise dominate the log-depth (sphere 64^2: 2.6 % -> 0.2 % of the range).
+            # Orthographic: uniform (with n_z^2 weights a 256^2 sphere under point lights came out 10 % off)
+            wt = "normal" if camera.is_perspective else "uniform"
+            icfg = self.config.integrator if self.config.integrator is not None else IntegratorConfig(tol=1e-5, weighting=wt)
             self.integrator = Integrator(self.mask, camera=camera, config=icfg, device=self._taichi_device())
 
     def _taichi_device(self) -> str:
