@@ -9,6 +9,8 @@ does) and solved with unit-intensity lights.
 Noisy cases can be solved with the smoothness term (``--smoothness``, SolverConfig.smoothness).
 "determined px": MAEN over the pixels with at least 3 lit observations (the
 others, in attached shadow of a light, are under-determined from 3 images).
+The solver estimates each image's noise level itself (SolverConfig.noise_level
+None: Immerkaer's estimate); nothing here passes it the true 1 %.
 
 Usage:  python perf/synthetic_calibrated.py [--size 256] [--device cpu] [--solver lm] [--smoothness 1] [--out perf/results/synthetic_calibrated_cpu.json]
 """

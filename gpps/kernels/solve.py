@@ -1016,7 +1016,8 @@ def _solver_funcs(method, brdf, robust, module=None, sfx: str = ""):
                 # robust reweighting from the residuals at the current best (Huber / Cauchy IRLS)
                 scale = prm.robust_scale * wp.max(gmax, 1.0e-12)
                 for k in range(lights.count):
-                    if weights[k, i, j] > 0.0:
+                    wk = weights[k, i, j]
+                    if wk != 0.0:
                         l = light_dir(lights, k, px.p)
                         e = light_radiance(lights, k, px.p)
                         o = images[k, i, j]
@@ -1025,6 +1026,9 @@ def _solver_funcs(method, brdf, robust, module=None, sfx: str = ""):
                         r2 = float(0.0)
                         for c in range(3):
                             r = o[c] - e[c] * (best.kd[c] * dg[0] + mat.ks * sg[0])
+                            if wk < 0.0:
+                                # a dark term's residual is one-sided; a cast shadow is its outlier
+                                r = wp.min(r, 0.0)
                             r2 += r * r
                         rr = wp.sqrt(r2 / 3.0) / scale
                         w = float(1.0)
@@ -1040,7 +1044,10 @@ def _solver_funcs(method, brdf, robust, module=None, sfx: str = ""):
                                     w = 1.0 / rr
                             else:
                                 w = 1.0 / (1.0 + rr * rr)
-                        weights[k, i, j] = wp.max(w, 1.0e-6)
+                        w = wp.max(w, 1.0e-6)
+                        if wk < 0.0:
+                            w = -w
+                        weights[k, i, j] = w
                 res = run_method(best.n, images, weights, px, lights, mat, prm)
                 total += res.iters
                 best = res
