@@ -48,7 +48,8 @@ class PSResult:
         flags: (H, W) int32 bits ``gpps.pipeline.solver.FLAG_*`` (ill-conditioned
             lights, fewer than 3 lit observations, not converged, ...).
         cond: (H, W) float32 condition number of the valid light directions (3.13).
-        weights: (N, H, W) float32 final observation weights (0: dropped).
+        weights: (N, H, W) float32 final observation weights (0: dropped; -1: dark, a one-sided
+            attached-shadow term that only penalises a model brighter than the observation).
         mask: (H, W) bool.
         timings: seconds: ``setup``, ``solve`` (device), ``total``.
         config: the solver settings used.
