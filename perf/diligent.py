@@ -140,7 +140,17 @@ def main(argv=None):
     a = ap.parse_args(argv)
     log = lambda s: print(s, flush=True)
     t0 = time.perf_counter()
-    res = {"device": a.device, "material_model": a.material, "solver_96": REAL_SOLVER,
+    import subprocess
+
+    def git(*args):
+        try:
+            return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, check=False).stdout.strip()
+        except OSError:
+            return None
+
+    commit = {"head": git("rev-parse", "--short", "HEAD"),
+              "dirty": [ln[3:] for ln in (git("status", "--short", "--untracked-files=no", "gpps") or "").splitlines()]}
+    res = {"device": a.device, "code": commit, "material_model": a.material, "solver_96": REAL_SOLVER,
            "ron": {"rounds": a.rounds, "material_samples": a.samples, "material_grid": a.grid,
                    "material_evals": a.evals, "material_starts_96": a.material_starts},
            "objects": []}
