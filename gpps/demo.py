@@ -17,15 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
+from gpps.evaluation import depth_error
 from gpps.io import atomic_dir, save_json, save_npy, save_png, write_dataset
 from gpps.material import Material
+from gpps.metrics import angular_error
 from gpps.scenes import make_scene
 from gpps.synthetic import default_lights, render_dataset
-
-
-def _angular_error_deg(a, b, mask):
-    c = np.clip(np.sum(a[mask] * b[mask], -1), -1.0, 1.0)
-    return np.degrees(np.arccos(c))
 
 
 def run_demo(out: Path, *, size: int = 256, device=None, progress=None) -> dict:
@@ -60,12 +57,9 @@ def run_demo(out: Path, *, size: int = 256, device=None, progress=None) -> dict:
                           reference_depth=working_distance, saturation=float(0.999 / inten.min()), device=device,
                           progress=lambda d, t, msg: step(2 + d / max(t, 1), 4, msg))
         t_rec = time.perf_counter() - t1
-        err = _angular_error_deg(rec.normals, scene.normals, scene.mask)
-        err_ls = _angular_error_deg(ls.normals, scene.normals, scene.mask)
-        dm = rec.depth_mask & scene.mask
-        d_est, d_gt = rec.depth[dm].astype(np.float64), scene.depth[dm].astype(np.float64)
-        d_est *= np.median(d_gt / d_est)  # perspective integration fixes depth up to one scale
-        depth_err = float(np.mean(np.abs(d_est - d_gt)) / (d_gt.max() - d_gt.min()))
+        err = angular_error(rec.normals, scene.normals, scene.mask)[scene.mask]
+        err_ls = angular_error(ls.normals, scene.normals, scene.mask)[scene.mask]
+        depth_err = depth_error(rec.depth, rec.depth_mask, scene)  # perspective: up to one scale
         save_npy(tmp / "normals.npy", rec.normals)
         save_npy(tmp / "depth.npy", rec.depth)
         save_png(tmp / "normals.png", (rec.normals + 1) / 2 * scene.mask[..., None], bits=8)

@@ -69,12 +69,27 @@ class PSResult:
     material: Material | None = None
 
 
-def _lights(lights, n):
+def check_inputs(images, mask, lights, camera=None):
+    """Check the arguments shared by :func:`solve_normals` and :func:`gpps.reconstruct`.
+
+    Returns:
+        ``(images, mask, lights, camera)``: images as an array of shape
+        (N, H, W, 3) or (N, H, W), the (H, W) bool mask, the lights, and the
+        camera (orthographic when None).
+    """
+    img = as_array("images", images)
+    if img.ndim not in (3, 4) or (img.ndim == 4 and img.shape[-1] not in (1, 3)):
+        raise ValueError(f"images: expected shape (N, H, W, 3) or (N, H, W), got {img.shape}")
+    n, h, w = img.shape[:3]
+    m = as_mask("mask", mask, (h, w))
     if not isinstance(lights, (DirectionalLights, PointLights)):
         raise TypeError(f"lights: expected gpps.lights.DirectionalLights or PointLights, got {type(lights).__name__}")
     if len(lights) != n:
         raise ValueError(f"lights: expected {n} lights (one per image), got {len(lights)}")
-    return lights
+    camera = Orthographic() if camera is None else camera
+    if not isinstance(camera, (Orthographic, Perspective)):
+        raise TypeError(f"camera: expected gpps.camera.Orthographic or Perspective, got {type(camera).__name__}")
+    return img, m, lights, camera
 
 
 def solve_normals(
@@ -130,15 +145,8 @@ def solve_normals(
         raise TypeError(f"config: expected SolverConfig, got {type(config).__name__}")
     elif options or solver != "lm" or robust is not None:
         raise ValueError("config: pass either config or solver/robust/options, not both")
-    img = as_array("images", images)
-    if img.ndim not in (3, 4) or (img.ndim == 4 and img.shape[-1] not in (1, 3)):
-        raise ValueError(f"images: expected shape (N, H, W, 3) or (N, H, W), got {img.shape}")
+    img, m, lights, camera = check_inputs(images, mask, lights, camera)
     n, h, w = img.shape[:3]
-    m = as_mask("mask", mask, (h, w))
-    lights = _lights(lights, n)
-    camera = Orthographic() if camera is None else camera
-    if not isinstance(camera, (Orthographic, Perspective)):
-        raise TypeError(f"camera: expected gpps.camera.Orthographic or Perspective, got {type(camera).__name__}")
     material = Material("lambertian", ks=0.0) if material is None else material
     if not isinstance(material, Material):
         raise TypeError(f"material: expected gpps.material.Material, got {type(material).__name__}")

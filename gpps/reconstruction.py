@@ -29,10 +29,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from gpps._check import as_array, as_mask
-from gpps.camera import Orthographic, Perspective
-from gpps.lights import DirectionalLights, PointLights
 from gpps.material import BRDF_NAMES, Material
+from gpps.photometric import check_inputs
 from gpps.pipeline.ron import RON, LOBE_PARAMETERS, RONConfig
 
 __all__ = ["reconstruct", "Reconstruction", "RONConfig"]
@@ -99,11 +97,8 @@ def _material(material, estimate) -> tuple[Material, tuple[str, ...], dict]:
     bad = [k for k in names if k not in allowed]
     if bad:
         raise ValueError(f"estimate: the {mat.brdf} model has the estimable parameters {list(allowed)}, got {bad}")
-    fixed = {}
-    if isinstance(material, str) and mat.brdf == "cook-torrance":
-        fixed["f0"] = mat.f0
-    if isinstance(material, str) and mat.brdf == "ashikhmin-shirley":
-        fixed["f0"] = mat.f0
+    # the Fresnel f0 of Cook-Torrance and Ashikhmin-Shirley is never estimated: a model name uses the default
+    fixed = {"f0": mat.f0} if isinstance(material, str) and mat.brdf in ("cook-torrance", "ashikhmin-shirley") else {}
     return mat, names, fixed
 
 
@@ -154,20 +149,10 @@ def reconstruct(
             names, fewer than 3 lights or degenerate light directions, point
             lights without a depth or a reference depth.
     """
-    img = as_array("images", images)
-    if img.ndim not in (3, 4) or (img.ndim == 4 and img.shape[-1] not in (1, 3)):
-        raise ValueError(f"images: expected shape (N, H, W, 3) or (N, H, W), got {img.shape}")
+    img, m, lights, camera = check_inputs(images, mask, lights, camera)
     n, h, w = img.shape[:3]
     if n < 3:
         raise ValueError(f"images: expected at least 3 images, got {n}")
-    m = as_mask("mask", mask, (h, w))
-    if not isinstance(lights, (DirectionalLights, PointLights)):
-        raise TypeError(f"lights: expected DirectionalLights or PointLights, got {type(lights).__name__}")
-    if len(lights) != n:
-        raise ValueError(f"lights: expected {n} lights (one per image), got {len(lights)}")
-    camera = Orthographic() if camera is None else camera
-    if not isinstance(camera, (Orthographic, Perspective)):
-        raise TypeError(f"camera: expected gpps.camera.Orthographic or Perspective, got {type(camera).__name__}")
     mat, names, fixed = _material(material, estimate)
     cfg = RONConfig() if config is None else config
     if not isinstance(cfg, RONConfig):

@@ -38,6 +38,7 @@ os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 import numpy as np  # noqa: E402
 
 import gpps  # noqa: E402
+from gpps.evaluation import depth_error  # noqa: E402
 from gpps.integrate import integrate_normals  # noqa: E402
 from gpps.lights import DirectionalLights, PointLights  # noqa: E402
 from gpps.material import Material  # noqa: E402
@@ -61,13 +62,6 @@ def case(scene, size, camera, kind, brdf, device):
     img = raw / np.asarray(L.intensities, np.float32)[:, None, None, :]
     Lu = DirectionalLights(L.directions) if kind == "directional" else PointLights(L.positions)
     return img, Lu, sc, float(0.999 / np.min(L.intensities))
-
-
-def depth_error(depth, dmask, sc):
-    m = dmask & sc.mask
-    d, g = depth[m].astype(np.float64), sc.depth[m].astype(np.float64)
-    d = d * np.median(g / d) if sc.camera.is_perspective else d - np.mean(d - g)
-    return float(np.mean(np.abs(d - g)) / (g.max() - g.min()))
 
 
 def pipeline_row(scene, size, camera, kind, brdf, device):
@@ -106,7 +100,7 @@ def dgmc_row(scene, size, camera, brdf, device):
     }
     for name, (cfg, init) in variants.items():
         ps.set_config(cfg)
-        out = {k: np.array(v) for k, v in ps.solve(img, hl, init_normals=init).items()}
+        out = ps.solve(img, hl, init_normals=init)
         e = angular_error(out["normals"], sc.normals, hl)[hl]
         row[name] = {"evaluations_per_pixel": float(out["iterations"][hl].mean()), "maen": float(e.mean()),
                      "median": float(np.median(e)), "over_5deg": float(np.mean(e > 5.0))}
@@ -141,7 +135,7 @@ def main():
         est = ", ".join(f"{k} {v:.3g} ({r['true'][k]:.3g})" for k, v in r["estimated"].items())
         print(f"{r['scene']:7s} {r['brdf']:14s} {r['camera']:12s} {r['lights']:11s} {r['maen']:6.3f} {100 * r['depth_error']:8.3f} "
               f"{100 * r['depth_error_exact_normals']:8.3f}  {est}  {r['seconds']:.0f}")
-    print(f"\nDGMC on highlight pixels (known material): evaluations per pixel / MAEN deg")
+    print("\nDGMC on highlight pixels (known material): evaluations per pixel / MAEN deg")
     for r in dg:
         cells = "  ".join(f"{k}: {r[k]['evaluations_per_pixel']:.1f} / {r[k]['maen']:.3f}" for k in
                           ("multistart_10", "one_start_least_squares", "one_start_dgmc"))

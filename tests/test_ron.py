@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import gpps
+from gpps.evaluation import depth_error
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
 from gpps.metrics import angular_error
@@ -35,20 +36,12 @@ def _case(brdf, camera, kind, size=64, scene="sphere", noise=0.0):
     return img, Lu, sc, sat
 
 
-def _depth_error(depth, dmask, sc):
-    """Mean absolute depth error after offset (orthographic) or scale (perspective) alignment, of the range."""
-    m = dmask & sc.mask
-    d, g = depth[m].astype(np.float64), sc.depth[m].astype(np.float64)
-    d = d * np.median(g / d) if sc.camera.is_perspective else d - np.mean(d - g)
-    return float(np.mean(np.abs(d - g)) / (g.max() - g.min()))
-
-
 def _depth_floor(sc, ref, device="cpu"):
     """The integrator's discretisation error from the exact normals (about 1.3 % of the range at 64^2, 0.3 % at 256^2)."""
     from gpps.integrate import integrate_normals
 
     ir = integrate_normals(sc.normals, sc.mask, camera=sc.camera, reference_depth=ref, device=device)
-    return _depth_error(ir.depth, ir.mask, sc)
+    return depth_error(ir.depth, ir.mask, sc)
 
 
 # --------------------------------------------------------------------------- (4.19)
@@ -111,7 +104,7 @@ def test_reconstruct_unknown_material(brdf, camera, kind, device):
     e = angular_error(rec.normals, sc.normals, sc.mask)[sc.mask]
     assert e.mean() <= 1.0, e.mean()
     # <= 1 % of the range at 256^2 (perf/reconstruct_synthetic.py); at 64^2 the integrator's own floor is higher
-    assert _depth_error(rec.depth, rec.depth_mask, sc) <= max(0.01, 1.2 * _depth_floor(sc, ref, device))
+    assert depth_error(rec.depth, rec.depth_mask, sc) <= max(0.01, 1.2 * _depth_floor(sc, ref, device))
     for k in estimable_parameters(brdf):
         assert rec.estimated[k] == pytest.approx(getattr(TRUE[brdf], k), rel=0.05)
     assert rec.energy[-1] < rec.energy[0]  # round 1 used the default material

@@ -34,9 +34,6 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-_LOBE = {"ks": "ks", "shininess": "shininess", "roughness": "roughness", "eta": "eta"}
-
-
 def run(args) -> int:
     import numpy as np
 
@@ -77,17 +74,14 @@ def run(args) -> int:
     else:
         estimate = tuple(k for k in LOBE_PARAMETERS[brdf] if k not in given_names)
     reference = args.reference_depth
-    depth0 = None
     if isinstance(lights, PointLights) and reference is None:
         if ds.depth_gt is not None:
-            depth0 = None
             reference = float(np.nanmean(np.asarray(ds.depth_gt, np.float64)[ds.mask]))
         else:
             raise ValueError("--reference-depth: expected the object's distance for point lights (light_positions.txt), got none")
     if reference is None and camera.is_perspective:
         reference = float(np.sqrt(camera.fx * camera.fy))  # unknown scale: one pixel ~ one unit at the mean depth
     valid = None
-    saturation = None
     if ds.light_intensities is not None and ds.normalised:
         raw = ds.images * np.asarray(ds.light_intensities, np.float32)[:, None, None, :]
         valid = ~np.any(raw >= 0.995, axis=-1)  # saturated in the file
@@ -133,7 +127,7 @@ def run(args) -> int:
             solver = replace(solver, shadow_threshold=0.02, starts=4)
         cfg = replace(cfg, solver=solver)
         rec = reconstruct(ds.images, ds.mask, lights, camera=camera, material=material, estimate=estimate,
-                          depth=depth0, reference_depth=reference, valid=valid, saturation=saturation,
+                          reference_depth=reference, valid=valid,
                           config=cfg, device=device, progress=prog)
         normals, albedo = rec.normals, rec.albedo
         depth, dmask = rec.depth, rec.depth_mask

@@ -53,7 +53,7 @@ from typing import Callable, Literal, get_args
 import numpy as np
 
 from gpps._check import as_array, as_mask, check_number
-from gpps.lights import DirectionalLights, PointLights
+from gpps.lights import PointLights
 from gpps.material import Material
 from gpps.pipeline.dgmc import DGMCConfig, dgmc_start
 from gpps.pipeline.solver import FLAG_FEW_OBSERVATIONS, PixelSolver, SolverConfig
@@ -299,8 +299,6 @@ class RON:
         self.lights = lights
         self.material = material
         self.point = isinstance(lights, PointLights)
-        if self.point and not self.config.integrate:
-            pass  # allowed when the caller gives the depth; checked in run()
         self.solver = PixelSolver(self.shape, camera, lights, material, self.config.solver, device=self.device)
         self._fit_solver = None
         self.integrator = None
@@ -333,8 +331,7 @@ class RON:
         m = self.mask if mask is None else mask
         s.set_material(material)
         s.set_config(cfg if starts is None else replace(cfg, starts=starts))
-        # copies: on CPU, Warp's numpy() views alias the solver's buffers, which the next solve overwrites
-        out = {k: np.array(v) for k, v in s.solve(images, m, depth=depth, valid=valid).items()}
+        out = s.solve(images, m, depth=depth, valid=valid)
         if init is not None:
             im = m if init_mask is None else (init_mask & m)
             if im.any():
@@ -458,8 +455,6 @@ class RON:
                 raise ValueError("reference_depth: expected the object's distance (scene units) for point lights "
                                  "without a depth estimate, got None")
             depth = np.full((h, w), reference_depth, np.float32)
-        if self.point and not c.integrate and depth is None:
-            raise ValueError("depth: point lights with integrate=False need a depth estimate")
         cur_depth = None if depth is None else np.where(m, depth, reference_depth or 1.0).astype(np.float32)
         solve_depth = cur_depth if self.point else None
         total = float(c.rounds * 3 + 2)
@@ -469,7 +464,7 @@ class RON:
         t = time.perf_counter()
         s = self.solver
         s.set_config(replace(c.solver, solver="none", smoothness=0.0))
-        ls = {k: np.array(v) for k, v in s.solve(images, m, depth=solve_depth, valid=valid).items()}
+        ls = s.solve(images, m, depth=solve_depth, valid=valid)
         s.set_config(c.solver)
         timings["least_squares"] += time.perf_counter() - t
         start = ls["normals"]

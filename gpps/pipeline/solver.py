@@ -512,12 +512,10 @@ class PixelSolver:
         return self.fetch()
 
     def fetch(self) -> dict:
-        return {
-            "normals": self.normals.numpy(),
-            "albedo": self.albedo.numpy(),
-            "residual": self.residual.numpy(),
-            "iterations": self.iterations.numpy(),
-            "flags": self.flags.numpy(),
-            "cond": self.cond.numpy(),
-            "weights": self.weights.numpy(),
-        }
+        """The current results as numpy arrays owned by the caller.
+
+        Copies: on the CPU, Warp's ``numpy()`` is a view of the device buffer,
+        which the next solve would overwrite under the caller's feet.
+        """
+        names = ("normals", "albedo", "residual", "iterations", "flags", "cond", "weights")
+        return {k: np.array(getattr(self, k).numpy(), copy=True) for k in names}
