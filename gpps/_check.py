@@ -33,7 +33,7 @@ def _fmt(shape):
     return "(" + ", ".join("?" if s is None else str(s) for s in shape) + ")"
 
 
-def as_mask(name, m, shape=None) -> np.ndarray:
+def as_mask(name, m, shape=None, allow_empty=False) -> np.ndarray:
     arr = np.asarray(m)
     if arr.ndim != 2:
         raise ValueError(f"{name}: expected shape (H, W), got {arr.shape}")
@@ -43,7 +43,7 @@ def as_mask(name, m, shape=None) -> np.ndarray:
         if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
             raise TypeError(f"{name}: expected a boolean or numeric (H, W) array, got {arr.dtype}")
         arr = arr > 0
-    if not arr.any():
+    if not allow_empty and not arr.any():
         raise ValueError(f"{name}: expected at least one pixel inside the mask, got an empty mask")
     return arr
 

@@ -55,7 +55,7 @@ import numpy as np
 from gpps._check import as_array, as_mask, check_number
 from gpps.lights import PointLights
 from gpps.material import Material
-from gpps.pipeline.dgmc import DGMCConfig, dgmc_start
+from gpps.pipeline.dgmc import DGMCConfig, dgmc_start, propagate_front
 from gpps.pipeline.solver import FLAG_FEW_OBSERVATIONS, PixelSolver, SolverConfig
 
 __all__ = [
@@ -204,7 +204,9 @@ class RONResult:
         converged: whether the change criteria were met before the round cap.
         residual, iterations, flags: per pixel, from the final solve (see PSResult).
         highlight: (H, W) bool DGMC highlight region (False without DGMC).
-        start_normals: (H, W, 3) the round-1 start (least squares + DGMC).
+        start_normals: (H, W, 3) the round-1 start: least squares, and on highlight
+            pixels the DGMC start (with ``DGMCConfig.start="front"``, the solved
+            normal of the neighbour each was started from).
         material_fit: per material update: the parameters, energy, evaluations,
             and ``identifiable`` (the energy's relative spread over the grid > 1e-3).
         integration_residual: relative residual of the last integration.
@@ -493,9 +495,27 @@ class RON:
             # steps 1-2 (5): normals and albedo with the current material and depth
             t = time.perf_counter()
             init, init_mask = (start, highlight) if r == 1 else (prev, None)
-            if r == 1 and not highlight.any():
+            front = r == 1 and highlight.any() and c.dgmc_config.start == "front"
+            if r == 1 and (not highlight.any() or front):
                 init = None
             out = self._solve(images, solve_depth, valid, material, init=init, init_mask=init_mask)
+            if front:
+                # DGMC on the solved front (4.16-4.18): highlight pixels start from their solved
+                # neighbours ring by ring; the lower residual wins per pixel
+                tf = time.perf_counter()
+                self.solver.set_material(material)
+                fr = propagate_front(self.solver, images, m, highlight, out, gaussian=dg.gaussian, mean=dg.mean,
+                                     depth=solve_depth, valid=valid, config=c.dgmc_config, keep_better=True)
+                for k in ("normals", "albedo", "residual", "flags"):
+                    out[k] = getattr(fr, k)
+                out["iterations"] = out["iterations"] + fr.iterations
+                # each front pixel started from its source's final (solved) normal
+                src = fr.source
+                has = src[..., 0] >= 0
+                start = start.copy()
+                start[has] = fr.normals[src[has, 0], src[has, 1]]
+                timings["dgmc"] += time.perf_counter() - tf
+                t += time.perf_counter() - tf
             timings["normals"] += time.perf_counter() - t
             energies.append(self._energy(out["residual"], m))
             cosang = np.clip(np.sum(out["normals"][m] * prev[m], -1), -1.0, 1.0)

@@ -511,6 +511,33 @@ class PixelSolver:
         self.launch()
         return self.fetch()
 
+    def resolve(self, mask, init_normals, *, names=("normals", "albedo", "residual", "iterations", "flags")) -> dict:
+        """Solve the uploaded frame again on another mask from other start normals.
+
+        The images, depth, observation mask and noise levels of the last
+        :meth:`upload` stay; only ``mask`` and the start normals change, so a
+        sequence of small solves (the DGMC front, :func:`gpps.pipeline.dgmc.propagate_front`)
+        does not copy the frame each time.  Needs ``config.warm_start``.
+
+        Args:
+            mask: (H, W) bool, the pixels to solve (may be empty: nothing runs).
+            init_normals: (H, W, 3) start normals (read where ``mask`` is set).
+            names: the outputs to return (copies), of those :meth:`fetch` returns.
+
+        Returns:
+            dict of numpy arrays, as :meth:`fetch`, restricted to ``names``.
+        """
+        if not self.config.warm_start:
+            raise ValueError("config: expected warm_start=True for resolve (it solves from init_normals)")
+        n, h, w = self.shape
+        m = as_mask("mask", mask, (h, w), allow_empty=True)
+        nrm = as_array("init_normals", init_normals, shape=(h, w, 3))
+        self.mask.assign(m.astype(np.uint8))
+        self.normals.assign(nrm)
+        if m.any():
+            self.launch()
+        return {k: np.array(getattr(self, k).numpy(), copy=True) for k in names}
+
     def fetch(self) -> dict:
         """The current results as numpy arrays owned by the caller.
 
