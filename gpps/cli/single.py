@@ -96,7 +96,7 @@ def run(args) -> int:
             "config": {"rounds": cfg.rounds, "nests": args.nests, "generations": args.generations, "beta": args.beta,
                        "p_c": args.pc, "seed": args.seed, "prior_weight": cfg.prior_weight},
             "light_directions": res.light_directions, "light_intensities": res.light_intensities, "ks": res.ks,
-            "objective": res.objective, "timings_s": res.timings, "view": view["method"],
+            "shininess": res.shininess, "highlights": res.highlights, "objective": res.objective, "timings_s": res.timings, "view": view["method"],
             "depth_unit": "half the longer image side (orthographic, nothing known about the camera)",
         }
         if "reason" in view:
