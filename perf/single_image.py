@@ -11,9 +11,12 @@ with the material the recipe drew (held-out seeds) or Blinn-Phong / Lambertian (
   error ``sqrt(mean D^2 - mean(D)^2)`` (D = predicted - true relative height, units of half the image
   width); the flat plane: n = (0, 0, 1), height 0.
 * refined: ``reconstruct_single`` on the three images (network on each, averaged; lights by least
-  squares; one cuckoo round, defaults of SingleConfig).
+  squares, their bas-relief, ks and shininess from the highlights; one cuckoo round, defaults of
+  SingleConfig).  Per row also the light error (deg), ks, shininess and the highlight fit.
 
-    python perf/single_image.py [--device cpu] [--size 256]
+    python perf/single_image.py [--device cpu] [--size 256] [--scenes sphere,bumps]
+
+The JSON is written only for the full set of scenes (``--scenes`` is for looking at a few).
 """
 
 from __future__ import annotations
@@ -39,6 +42,8 @@ def main():
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--generations", type=int, default=80)
+    ap.add_argument("--scenes", default=None,
+                    help="comma-separated subset of heldout-0..3,sphere,bumps (printed, no JSON written)")
     args = ap.parse_args()
 
     from gpps.lights import DirectionalLights, ring_directions
@@ -61,6 +66,12 @@ def main():
         sc = make_scene(name, S, "orthographic", albedo="texture", seed=123)
         height = np.where(sc.mask, (D0 - sc.depth) / HALF_EXTENT, 0.0)
         scenes.append((name, RandomScene(height, sc.mask, sc.albedo, sc.depth, "orthographic", mat, name, {})))
+    if args.scenes:
+        names = [n.strip() for n in args.scenes.split(",") if n.strip()]
+        unknown = sorted(set(names) - {n for n, _ in scenes})
+        if unknown:
+            ap.error(f"--scenes: unknown {unknown}; expected some of {[n for n, _ in scenes]}")
+        scenes = [(n, sc) for n, sc in scenes if n in names]
     cfg = SingleConfig(cuckoo=CuckooConfig(nests=12, generations=args.generations), integrate=False)
     rows = []
     for name, sc in scenes:
@@ -84,23 +95,29 @@ def main():
             "flat_si_height": si_height(np.zeros_like(z_true), z_true, m),
             "net_si_height": si_height(h1, z_true, m),
             "light_error_deg": np.degrees(np.arccos(np.clip(np.sum(res.light_directions * lights.directions, 1), -1, 1))).tolist(),
-            "ks": res.ks, "objective": res.objective, "net_seconds": t_net, "timings_s": res.timings,
+            "ks": res.ks, "shininess": res.shininess, "highlights": res.highlights,
+            "objective": res.objective, "net_seconds": t_net, "timings_s": res.timings,
         }
         row["refined_lower_than_net"] = row["refined3_maen"] < row["net_maen"]
         row["refined_lower_than_net3"] = row["refined3_maen"] < row["net3_avg_maen"]
         rows.append(row)
         print(f"{name:12s} {sc.material.brdf:18s} flat {row['flat_maen']:6.2f}  net {row['net_maen']:6.2f}  "
               f"net(3 avg) {row['net3_avg_maen']:6.2f}  refined {row['refined3_maen']:6.2f}  "
+              f"lights {np.round(row['light_error_deg'], 1)} deg  ks {res.ks:.3f} shininess {res.shininess:.0f}  "
               f"SI height net {row['net_si_height']:.4f} flat {row['flat_si_height']:.4f}  {res.timings['total']:.1f}s", flush=True)
     summary = {k: float(np.mean([r[k] for r in rows])) for k in
                ("flat_maen", "net_maen", "net3_avg_maen", "refined3_maen", "flat_si_height", "net_si_height")}
     summary["refined_lower_than_net_on"] = f"{sum(r['refined_lower_than_net'] for r in rows)}/{len(rows)}"
     summary["refined_lower_than_net3_on"] = f"{sum(r['refined_lower_than_net3'] for r in rows)}/{len(rows)}"
     print(summary)
+    if args.scenes:
+        return
     path = write_results("single_image", args.device, {
         "size": S, "lights": "3 directional, ring at 35 deg slant", "bits": 8,
         "config": {"nests": cfg.cuckoo.nests, "generations": cfg.cuckoo.generations, "beta": cfg.cuckoo.beta,
-                   "p_c": cfg.cuckoo.p_c, "rounds": cfg.rounds, "lights": cfg.lights, "albedo": cfg.albedo},
+                   "p_c": cfg.cuckoo.p_c, "rounds": cfg.rounds, "lights": cfg.lights, "albedo": cfg.albedo,
+                   "specular": cfg.specular, "shininess_range": list(cfg.shininess_range),
+                   "highlight_prior_deg": cfg.highlight_prior_deg or net.meta.get("val_maen_deg")},
         "weights_meta": net.meta, "rows": rows, "summary": summary,
     })
     print(path)
