@@ -39,7 +39,11 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
     Returns:
         dict of kernels: ``rhs(nrm, fx, fy, cx, cy, s, min_nz)``,
         ``pcg_begin()``, ``pcg_iteration()``, ``residual()``,
-        ``finish(out, reference)``, ``load(depth)`` (warm start from a depth map).
+        ``finish(out, reference)``, ``load(depth)`` (warm start from a depth map),
+        ``mg_step()`` (one multigrid correction), ``rhs_only(...)``,
+        ``scalars()`` (``sc`` as a vector), the builder ``frame(cycles)`` of
+        the one-launch frame kernel (right-hand side, ``cycles`` corrections,
+        depth), and for profiling ``vcycle_only()``, ``coarse_only()``, ``noop()``.
     """
     L = len(geo)
     h0, w0 = geo[0][1], geo[0][2]
@@ -172,6 +176,20 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         return rr
 
     @ti.func
+    def coarse_solve():
+        """t = pinv f on the coarsest level's active cells (one thread per cell).
+
+        ``pinv`` is symmetric (the pseudo-inverse of a symmetric matrix), so
+        thread ``kk`` reads column ``kk``: neighbouring threads read
+        neighbouring addresses (coalesced) instead of rows ``nc`` apart.
+        """
+        for kk in range(nc):
+            s = f[cidx[kk, 0], cidx[kk, 1]] * 0
+            for m in range(nc):
+                s += pinv[m, kk] * f[cidx[m, 0], cidx[m, 1]]
+            t[cidx[kk, 0], cidx[kk, 1]] = s
+
+    @ti.func
     def vcycle():
         """t_0 = M f_0: one V-cycle from zero, every level unrolled.
 
@@ -195,11 +213,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             for ci, cj in ti.ndrange(hc, wc):
                 f[ci, offc + cj] = (_res(2 * ci, 2 * cj, off, h, w) + _res(2 * ci, 2 * cj + 1, off, h, w)
                                     + _res(2 * ci + 1, 2 * cj, off, h, w) + _res(2 * ci + 1, 2 * cj + 1, off, h, w))
-        for kk in range(nc):
-            s = f[cidx[kk, 0], cidx[kk, 1]] * 0
-            for m in range(nc):
-                s += pinv[kk, m] * f[cidx[m, 0], cidx[m, 1]]
-            t[cidx[kk, 0], cidx[kk, 1]] = s
+        coarse_solve()
         for k in ti.static(range(L - 2, -1, -1)):
             off, h, w = ti.static(geo[k])
             offc = ti.static(geo[k + 1][0])
@@ -214,9 +228,10 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                     t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, om)
 
     @ti.func
-    def _rhs(nrm: ti.template(), fx, fy, cx, cy, s, min_nz):
+    def _rhs(nrm: ti.template(), fx, fy, cx, cy, s, min_nz, norm: ti.template()):
         """b = -div of the mean steps of u (:func:`gpps.kernels.poisson.pixel_steps`,
-        uniform weights); q and r hold the j- and i-steps meanwhile."""
+        uniform weights); q and r hold the j- and i-steps meanwhile; with
+        ``norm``, sc[7] = |b|^2."""
         for i, j in ti.ndrange(h0, w0):
             a = ti.cast(0, ti.f64)
             c = ti.cast(0, ti.f64)
@@ -228,7 +243,8 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             v = div_mean_steps(q, r, wx, wy, i, j, h0, w0)
             b[i, j] = v
             red[i, j] = ti.cast(_sq(v), red.dtype)
-        reduce_into(7)  # |b|^2
+        if ti.static(norm):
+            reduce_into(7)  # |b|^2
 
     @ti.func
     def _begin():
@@ -263,7 +279,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
     @ti.kernel
     def rhs(nrm: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64, cy: ti.f64, s: ti.f64, min_nz: ti.f64):
         """b = -div of the steps from the normals (see ``_rhs``), |b|^2 in sc[7]."""
-        _rhs(nrm, fx, fy, cx, cy, s, min_nz)
+        _rhs(nrm, fx, fy, cx, cy, s, min_nz, True)
 
     @ti.kernel
     def pcg_begin():
@@ -273,7 +289,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
     @ti.kernel
     def rhs_begin(nrm: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64, cy: ti.f64, s: ti.f64, min_nz: ti.f64):
         """``rhs`` and ``pcg_begin`` in one launch (the per-frame path)."""
-        _rhs(nrm, fx, fy, cx, cy, s, min_nz)
+        _rhs(nrm, fx, fy, cx, cy, s, min_nz, True)
         _begin()
 
     @ti.kernel
@@ -329,6 +345,53 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             p[i, j] = t[i, j] + ti.cast(sc[5], p.dtype) * p[i, j]
 
     @ti.kernel
+    def mg_step():
+        """One multigrid correction ``z += M (b - A z)`` (a V-cycle from zero on the residual).
+
+        The stationary iteration, not CG: one V-cycle and two level-0 passes per
+        launch, for warm-started frames whose error is already small and smooth.
+        sc[RR] = |b - A z|^2 before the correction.
+        """
+        sc[RR] = 0
+        for c, j in ti.ndrange(NCH, w0):
+            acc = ti.cast(0, ti.f64)
+            for ii in range(CH):
+                i = c * CH + ii
+                if i < h0:
+                    d = dg[i, j]
+                    v = b[i, j] * 0
+                    if d > 0:
+                        v = b[i, j] - d * z[i, j] + _neigh(z, wx, wy, i, j, 0, h0, w0)
+                    f[i, j] = v
+                    acc += _sq(v)
+            part[c, j] = acc
+        stage2(RR)
+        vcycle()
+        for i, j in ti.ndrange(h0, w0):
+            z[i, j] += t[i, j]
+
+    @ti.kernel
+    def rhs_only(nrm: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64, cy: ti.f64, s: ti.f64, min_nz: ti.f64):
+        """``rhs`` without starting the CG (the multigrid-correction path)."""
+        _rhs(nrm, fx, fy, cx, cy, s, min_nz, True)
+
+    @ti.kernel
+    def vcycle_only():
+        """One V-cycle on the current level-0 ``f`` (profiling)."""
+        vcycle()
+
+    @ti.kernel
+    def coarse_only():
+        """The coarsest-level solve alone (profiling)."""
+        coarse_solve()
+
+    @ti.kernel
+    def noop():
+        """One empty task (profiling: the launch overhead)."""
+        for i in range(1):
+            sc[6] += 0
+
+    @ti.kernel
     def residual():
         """sc[RR] = |b - A z|^2 (the true residual, not the CG recurrence)."""
         for i, j in ti.ndrange(h0, w0):
@@ -353,8 +416,8 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                     v = dd
             z[i, j] = ti.cast(v, z.dtype)
 
-    @ti.kernel
-    def finish(out: ti.types.ndarray(), reference: ti.f64):
+    @ti.func
+    def _finish(out: ti.template(), reference):
         """Fix each component's constant and write the depth.
 
         u's mean is set to 0 per component; orthographic depth = u + reference,
@@ -389,5 +452,49 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                     v = u + ti.max(reference, 0.0)
             out[i, j] = ti.cast(v, ti.f32)
 
+    @ti.kernel
+    def finish(out: ti.types.ndarray(), reference: ti.f64):
+        """Fix each component's constant and write the depth (see ``_finish``)."""
+        _finish(out, reference)
+
+    @ti.func
+    def _correct():
+        """z += M (b - A z): one V-cycle correction, no reductions."""
+        for i, j in ti.ndrange(h0, w0):
+            d = dg[i, j]
+            v = b[i, j] * 0
+            if d > 0:
+                v = b[i, j] - d * z[i, j] + _neigh(z, wx, wy, i, j, 0, h0, w0)
+            f[i, j] = v
+        vcycle()
+        for i, j in ti.ndrange(h0, w0):
+            z[i, j] += t[i, j]
+
+    frames = {}
+
+    def frame(cycles: int):
+        """The whole per-frame integration as *one* launch: right-hand side,
+        ``cycles`` V-cycle corrections from the current ``z`` (the previous
+        frame's solution, or 0 after a reset) and the depth write
+        (``frame(nrm, out, fx, fy, cx, cy, s, min_nz, reference)``).  One
+        kernel per ``cycles``, built on first use."""
+        if cycles not in frames:
+            @ti.kernel
+            def _frame(nrm: ti.types.ndarray(), out: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64,
+                       cy: ti.f64, s: ti.f64, min_nz: ti.f64, reference: ti.f64):
+                _rhs(nrm, fx, fy, cx, cy, s, min_nz, False)
+                for _ in ti.static(range(cycles)):
+                    _correct()
+                _finish(out, reference)
+
+            frames[cycles] = _frame
+        return frames[cycles]
+
+    @ti.kernel
+    def scalars() -> ti.types.vector(8, ti.f64):
+        """All of ``sc`` in one read (one launch and one copy instead of one per element)."""
+        return ti.Vector([sc[0], sc[1], sc[2], sc[3], sc[4], sc[5], sc[6], sc[7]], ti.f64)
+
     return {"rhs": rhs, "pcg_begin": pcg_begin, "rhs_begin": rhs_begin, "pcg_iteration": pcg_iteration, "residual": residual,
-            "finish": finish, "load": load}
+            "finish": finish, "load": load, "mg_step": mg_step, "rhs_only": rhs_only, "vcycle_only": vcycle_only,
+            "coarse_only": coarse_only, "noop": noop, "scalars": scalars, "frame": frame}

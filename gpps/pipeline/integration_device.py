@@ -30,6 +30,8 @@ from gpps.pipeline.integration import _diag, build_levels, laplacian, level_shap
 __all__ = ["StreamIntegratorConfig", "StreamIntegrator"]
 
 DType = Literal["float32", "float64"]
+Method = Literal["pcg", "multigrid"]
+_FUSED_MAX = 4  # multigrid cycles fused into the one-launch frame kernel (the streaming and cold counts)
 
 
 @dataclass(frozen=True)
@@ -38,22 +40,37 @@ class StreamIntegratorConfig:
 
     Attributes:
         coarsest: coarsen while ``max(h, w) > coarsest``; the coarsest level is
-            solved exactly by a dense pseudo-inverse (at most ``coarsest^2`` cells).
+            solved exactly by a dense pseudo-inverse (at most ``coarsest^2``
+            cells).  Each level costs a few parallel tasks (about 6 us each on
+            an H100, launch-bound at the small levels), the dense solve grows
+            as ``coarsest^4``: 16 was the faster of 16 and 32 at 1024^2.
         smooth_pairs: Jacobi sweep pairs before and after each coarse correction.
         omega: Jacobi damping.
         min_nz: floor on ``n_z`` (orthographic) or ``-m`` (perspective).
         dtype: field precision.
         check_every: iterations between residual checks in the ``tol`` mode.
+        method: ``"multigrid"`` (default): plain V-cycle corrections
+            ``u += M (b - A u)``; with a fixed iteration count the whole frame
+            (right-hand side, corrections, depth) is one Taichi launch.
+            ``"pcg"``: conjugate gradients preconditioned by one V-cycle per
+            iteration (two level-0 passes and reductions more per iteration,
+            and a restart per frame).  On an H100 at 1024^2
+            (``perf/integration_device_speed.py``) the multigrid form reaches
+            1e-4 of the depth range cold in 3 cycles and warm in 1, PCG in 2
+            and 1, each PCG iteration costing about 1.3 cycles.
     """
 
-    coarsest: int = 32
+    coarsest: int = 16
     smooth_pairs: int = 1
     omega: float = 0.8
     min_nz: float = 1e-3
     dtype: DType = "float32"
     check_every: int = 2
+    method: Method = "multigrid"
 
     def __post_init__(self):
+        if self.method not in get_args(Method):
+            raise ValueError(f"method: expected one of {get_args(Method)}, got {self.method!r}")
         if self.dtype not in get_args(DType):
             raise ValueError(f"dtype: expected one of {get_args(DType)}, got {self.dtype!r}")
         check_number("coarsest", self.coarsest, lo=2, hi=48, integer=True)
@@ -198,7 +215,8 @@ class StreamIntegrator:
             normals: (H, W, 3) unit normals (numpy, or on CUDA a torch tensor
                 view of a Warp array); read where the mask is set.
             out: (H, W) float32 array written with the depth (0 outside the mask).
-            iterations: run exactly this many PCG iterations (no host sync).
+            iterations: run exactly this many iterations (no host sync): PCG
+                iterations or V-cycle corrections (``config.method``).
             tol: else iterate until ``|b - A u| <= tol |b|`` (checked every
                 ``config.check_every`` iterations) or ``max_iterations``.
             reference: mean depth per component (None: orthographic mean 0,
@@ -206,38 +224,55 @@ class StreamIntegrator:
         """
         if (iterations is None) == (tol is None):
             raise ValueError("iterations, tol: expected exactly one of them")
-        K = self._K
-        K["rhs_begin"](normals, *self._cam, self.config.min_nz)
         if iterations is not None:
             check_number("iterations", iterations, lo=0, integer=True)
-            for _ in range(iterations):
-                K["pcg_iteration"]()
-            self.last_iterations = int(iterations)
         else:
             check_number("tol", tol, lo=0.0, hi=1.0, lo_open=True)
-            sc = self._F["sc"]
+        K = self._K
+        mg = self.config.method == "multigrid"
+        ref = float(reference) if reference is not None else 0.0
+        if mg and iterations is not None and iterations <= _FUSED_MAX:
+            # the whole frame in one launch (right-hand side, corrections, depth); longer
+            # runs launch per cycle (one kernel per count would compile a long unrolled chain)
+            K["frame"](int(iterations))(normals, out, *self._cam, self.config.min_nz, ref)
+            self.last_iterations = int(iterations)
+            return
+        if mg:
+            K["rhs_only"](normals, *self._cam, self.config.min_nz)
+            step = K["mg_step"]
+        else:
+            K["rhs_begin"](normals, *self._cam, self.config.min_nz)
+            step = K["pcg_iteration"]
+        if iterations is not None:
+            for _ in range(iterations):
+                step()
+            self.last_iterations = int(iterations)
+        else:
+            sc = K["scalars"]()  # one read: |b|^2 and (CG) |r|^2
             bb = float(sc[7])
             its = 0
-            rr = float(sc[2])
+            rr = float(sc[2]) if not mg else bb
             rr_min = rr
             while bb > 0 and rr > tol * tol * bb and its < max_iterations:
-                K["pcg_iteration"]()
+                step()
                 its += 1
                 if its % self.config.check_every == 0:
-                    rr = float(sc[2])
+                    if mg:
+                        K["residual"]()  # mg_step's sc[RR] is the residual before its correction
+                    rr = float(K["scalars"]()[2])
                     if self.config.dtype == "float32" and rr > 4.0 * rr_min and rr_min < 1e-8 * bb:
                         break  # past the float32 floor the CG recurrence wanders: stop
                     rr_min = min(rr_min, rr)
             K["residual"]()
-            rr = float(sc[2])
+            rr = float(K["scalars"]()[2])
             self.last_iterations = its
             self.last_residual = float(np.sqrt(rr / bb)) if bb > 0 else 0.0
-        K["finish"](out, float(reference) if reference is not None else 0.0)
+        K["finish"](out, ref)
 
     def residual(self) -> float:
         """Relative residual ``|b - A u| / |b|`` of the current solution (host sync)."""
         self._K["residual"]()
-        sc = self._F["sc"]
+        sc = self._K["scalars"]()
         bb = float(sc[7])
         return float(np.sqrt(float(sc[2]) / bb)) if bb > 0 else 0.0
 

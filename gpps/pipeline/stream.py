@@ -58,7 +58,10 @@ class StreamConfig:
         first_starts: starts per pixel of the first (cold) frame's full solve.
         first_iterations: evaluation cap per start of the first frame.
         integrate: compute depth.
-        integration_iterations: PCG iterations of the integrator per warm frame.
+        integration_iterations: iterations of the integrator per warm frame
+            (V-cycle corrections with the default
+            :class:`~gpps.pipeline.integration_device.StreamIntegratorConfig`;
+            one keeps a streaming step within 1e-4 of the depth range).
         first_tol: relative residual of the first frame's integration.
         reference_depth: mean depth per mask component (scene units); required
             for point lights (their 1/r^2 needs metric depth), optional otherwise
@@ -77,7 +80,7 @@ class StreamConfig:
     first_starts: int = 10
     first_iterations: int = 50
     integrate: bool = True
-    integration_iterations: int = 2
+    integration_iterations: int = 1
     first_tol: float = 1e-4
     reference_depth: float | None = None
     graph: Literal["auto", "off"] = "auto"
