@@ -531,11 +531,11 @@ def test_front_keep_better_never_raises_the_residual(device):
     np.testing.assert_array_equal(fr.normals[kept], sources["normals"][kept])
 
 
-def test_front_island_without_boundary_is_left_alone():
+def test_front_island_without_boundary_is_left_alone(device):
     """A highlight region with no solved pixel next to it is not reached: ring -1, no evaluations."""
     from gpps.pipeline.dgmc import propagate_front
 
-    img, sc, ls, dg, sources, one = _front_case("cpu", size=48)
+    img, sc, ls, dg, sources, one = _front_case(device, size=48)
     hm = dg.highlight.copy()
     ii, jj = np.nonzero(sc.mask)
     ci, cj = int(ii.mean()), int(jj.mean())
@@ -550,10 +550,10 @@ def test_front_island_without_boundary_is_left_alone():
     np.testing.assert_array_equal(fr.normals[island], sources["normals"][island])
 
 
-def test_front_bad_input():
+def test_front_bad_input(device):
     from gpps.pipeline.dgmc import propagate_front
 
-    img, sc, ls, dg, sources, one = _front_case("cpu", size=32)
+    img, sc, ls, dg, sources, one = _front_case(device, size=32)
     hm = dg.highlight
     with pytest.raises(ValueError, match="solution"):
         propagate_front(one, img, sc.mask, hm, {"normals": sources["normals"]})
@@ -564,6 +564,6 @@ def test_front_bad_input():
     with pytest.raises(ValueError, match="warm_start"):
         from gpps.pipeline.solver import PixelSolver, SolverConfig
 
-        cold = PixelSolver(one.shape, sc.camera, one.lights, one.material, SolverConfig(), device="cpu")
+        cold = PixelSolver(one.shape, sc.camera, one.lights, one.material, SolverConfig(), device=device)
         cold.upload(img, sc.mask)
         cold.resolve(sc.mask, sources["normals"])

@@ -117,7 +117,7 @@ def _sphere_capture(size=64, brdf="lambertian"):
     sc = make_scene("sphere", size, "orthographic", albedo="texture", seed=5)
     lights = DirectionalLights(ring_directions(3, 35.0), np.full((3, 3), 0.8))
     mat = Material(brdf, ks=0.0 if brdf == "lambertian" else 0.3, shininess=30.0)
-    return sc, lights, render(sc, mat, lights, device="cpu")
+    return sc, lights, render(sc, mat, lights, device=None)  # CUDA where present: the GPU kit has no Warp CPU
 
 
 def test_network_beats_flat_plane_on_a_sphere():
@@ -190,15 +190,15 @@ def test_estimate_lights_exact_normals():
     np.testing.assert_allclose(rgb / rgb[:1], 1.0, atol=0.02)
 
 
-def test_reconstruct_single_refines_and_is_reproducible():
+def test_reconstruct_single_refines_and_is_reproducible(device):
     from gpps.metrics import normal_errors
     from gpps.pipeline.cuckoo import CuckooConfig
     from gpps.pipeline.single import SingleConfig, reconstruct_single
 
     sc, _, imgs = _sphere_capture(48)
     cfg = SingleConfig(cuckoo=CuckooConfig(nests=8, generations=30, seed=2), integrate=False)
-    a = reconstruct_single(imgs, sc.mask, config=cfg, device="cpu")
-    b = reconstruct_single(imgs, sc.mask, config=cfg, device="cpu")
+    a = reconstruct_single(imgs, sc.mask, config=cfg, device=device)
+    b = reconstruct_single(imgs, sc.mask, config=cfg, device=device)
     np.testing.assert_array_equal(a.normals, b.normals)
     assert a.objective[0]["after"] < a.objective[0]["before"]
     e_net = normal_errors(a.normals_net, sc.normals, a.mask)["mean"]
@@ -281,7 +281,7 @@ def test_fit_highlights_without_highlights_changes_nothing():
         fit_highlights(I, n_b, v, l_b, rgb_b, kd_b, shininess_range=(10.0, 5.0))
 
 
-def test_refinement_beats_the_network_on_a_blinn_phong_sphere():
+def test_refinement_beats_the_network_on_a_blinn_phong_sphere(device):
     """Issue 8 regression: lights fitted to the network's (flattened) normals were ~10 deg too oblique
     and the refinement of a Blinn-Phong sphere ended worse than the network (64^2: 8.2 -> 9.0 deg)."""
     from gpps.metrics import normal_errors
@@ -291,7 +291,7 @@ def test_refinement_beats_the_network_on_a_blinn_phong_sphere():
 
     sc, lights, imgs = _sphere_capture(64, "blinn-phong")
     cfg = SingleConfig(cuckoo=CuckooConfig(nests=8, generations=30, seed=2), integrate=False)
-    res = reconstruct_single(quantise(imgs, 8), sc.mask, config=cfg, device="cpu")
+    res = reconstruct_single(quantise(imgs, 8), sc.mask, config=cfg, device=device)
     e_net = normal_errors(res.normals_net_first, sc.normals, res.mask)["mean"]
     e_net3 = normal_errors(res.normals_net, sc.normals, res.mask)["mean"]
     e_ref = normal_errors(res.normals, sc.normals, res.mask)["mean"]
