@@ -60,6 +60,7 @@ __all__ = [
 Solver = Literal["multigrid", "jacobi", "direct", "dct"]
 Weighting = Literal["uniform", "normal"]
 BilateralInit = Literal["bini", "poisson"]
+Robust = Literal["none", "cauchy"]
 DType = Literal["float32", "float64"]
 Progress = Callable[[float, float, str], None]
 
@@ -88,6 +89,19 @@ class IntegratorConfig:
         bilateral_floor: weights ``w+-`` are kept in ``[floor, 1 - floor]`` so that
             no edge weight is exactly 0: a region cut off by discontinuities keeps
             a (weak) link that fixes its offset, instead of a singular system.
+        robust: ``"cauchy"``: a robust loss on the edge residuals of (4.20)
+            by iteratively reweighted least squares: each edge's weight is
+            multiplied by ``1 / (1 + (r / sigma)^2)``, ``r = u_q - u_p - t`` from
+            the previous solution, ``sigma = robust_scale * 1.4826 * MAD(r)``
+            re-estimated every round, so that a few wrong normals (grazing
+            rims, rendering or acquisition artefacts, small depth jumps) stop
+            bending the whole surface as they do under the plain quadratic
+            loss.  Combines with ``weighting`` and ``bilateral``.  ``"none"``:
+            plain least squares.
+        robust_scale: ``sigma`` in robust standard deviations of the residuals.
+        robust_iterations: re-weighted solves after the first (without
+            ``bilateral``; with it, the weights are updated at every outer
+            iteration instead).
         min_nz: floor on ``n_z`` (orthographic) or ``-m`` (perspective) that
             bounds the slopes of grazing normals.
         dtype: device precision of the Taichi solvers.
@@ -108,6 +122,9 @@ class IntegratorConfig:
     bilateral_inner_tol: float = 1e-3
     bilateral_init: BilateralInit = "bini"
     bilateral_floor: float = 1e-8
+    robust: Robust = "none"
+    robust_scale: float = 2.0
+    robust_iterations: int = 8
     min_nz: float = 1e-3
     dtype: DType = "float32"
     smooth_pairs: int = 1
@@ -117,7 +134,7 @@ class IntegratorConfig:
 
     def __post_init__(self):
         for name, lit in (("solver", Solver), ("weighting", Weighting), ("dtype", DType),
-                          ("bilateral_init", BilateralInit)):
+                          ("bilateral_init", BilateralInit), ("robust", Robust)):
             if getattr(self, name) not in get_args(lit):
                 raise ValueError(f"{name}: expected one of {get_args(lit)}, got {getattr(self, name)!r}")
         if not (isinstance(self.tol, (int, float)) and 0 < self.tol < 1):
@@ -128,6 +145,12 @@ class IntegratorConfig:
             raise ValueError(f"omega: expected 0 < omega <= 1, got {self.omega!r}")
         if not 0 < self.min_nz < 1:
             raise ValueError(f"min_nz: expected 0 < min_nz < 1, got {self.min_nz!r}")
+        if not (isinstance(self.robust_scale, (int, float)) and not isinstance(self.robust_scale, bool)
+                and 0 < self.robust_scale < float("inf")):
+            raise ValueError(f"robust_scale: expected a finite number > 0, got {self.robust_scale!r}")
+        if not isinstance(self.robust_iterations, int) or isinstance(self.robust_iterations, bool) \
+                or self.robust_iterations < 0:
+            raise ValueError(f"robust_iterations: expected an integer >= 0, got {self.robust_iterations!r}")
         for name in ("smooth_pairs", "check_every", "bilateral_max_iter", "coarsest"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
@@ -268,6 +291,33 @@ def edge_system(valid, gj, gi, cj=None, ci=None, wpj=None, wpi=None):
         wy[:-1, :] = np.where(ok, s, 0.0)
         ty[:-1, :] = np.where(ok, (a * gi[:-1, :] + b * gi[1:, :]) / s, 0.0)
     return wx, wy, tx, ty
+
+
+def robust_edge_weights(u, ex, ey, tx, ty, scale: float, floor: float = 1e-6):
+    """Cauchy IRLS weights of the edges of (4.20) from the current solution.
+
+    Args:
+        u: (H, W) current solution (depth or log-depth).
+        ex, ey: (H, W) bool, the existing j- and i-edges (as ``wx > 0``, ``wy > 0``).
+        tx, ty: (H, W) edge targets (:func:`edge_system`).
+        scale: ``sigma`` in robust standard deviations (1.4826 MAD) of the residuals.
+        floor: smallest weight (keeps every edge, so no region is cut loose).
+
+    Returns:
+        ``(rwx, rwy, sigma)``: (H, W) multipliers of the edge weights (0 where no
+        edge) and the ``sigma`` used.
+    """
+    rx = np.zeros_like(u)
+    ry = np.zeros_like(u)
+    rx[:, :-1] = u[:, 1:] - u[:, :-1] - tx[:, :-1]
+    ry[:-1, :] = u[1:, :] - u[:-1, :] - ty[:-1, :]
+    r = np.abs(np.concatenate([rx[ex], ry[ey]]))
+    sigma = float(scale * 1.4826 * np.median(r)) if r.size else 0.0
+    if not sigma > 0:
+        return ex.astype(np.float64), ey.astype(np.float64), sigma
+    rwx = np.where(ex, np.maximum(1.0 / (1.0 + (rx / sigma) ** 2), floor), 0.0)
+    rwy = np.where(ey, np.maximum(1.0 / (1.0 + (ry / sigma) ** 2), floor), 0.0)
+    return rwx, rwy, sigma
 
 
 def divergence_rhs(wx, wy, tx, ty) -> np.ndarray:
@@ -577,12 +627,22 @@ class Integrator:
             u, res = solve(wx, wy, tx, ty, u, None, inner_tol)
             wpj, wpi, _ = bilateral_weights(u, valid, wx, wy, nzj, nzi, cfg.bilateral_k, cfg.bilateral_floor)
         energy = None
-        nout = cfg.bilateral_max_iter if bil else 1
+        rob = cfg.robust != "none"
+        rwx = rwy = None
+        nout = cfg.bilateral_max_iter if bil else (1 + cfg.robust_iterations if rob else 1)
         for k in range(nout):
             wx, wy, tx, ty = edge_system(valid, gj, gi, cj, ci, wpj, wpi)
-            u, res = solve(wx, wy, tx, ty, u, None if bil else progress, inner_tol)
+            ex, ey = wx > 0, wy > 0
+            if rwx is not None:
+                wx, wy = wx * rwx, wy * rwy
+            u, res = solve(wx, wy, tx, ty, u, None if (bil or rob) else progress, inner_tol)
+            if rob and k < nout - 1:
+                rwx, rwy, _ = robust_edge_weights(u, ex, ey, tx, ty, cfg.robust_scale)
             if not bil:
-                break
+                outer = k + 1 if rob else 0
+                if rob and progress is not None:
+                    progress(k + 1, nout, "robust re-weighting")
+                continue
             outer = k + 1
             # BiNI's IRLS re-weighting from the one-sided differences of the current u
             wpj, wpi, (dj, djm, di, dim) = bilateral_weights(u, valid, wx, wy, nzj, nzi, cfg.bilateral_k,
@@ -785,7 +845,7 @@ class Integrator:
         d = self._ensure_device()
         self._upload_levels(valid, wx, wy)
         h, w = self.shape
-        uniform = cfg.weighting == "uniform" and not cfg.bilateral
+        uniform = cfg.weighting == "uniform" and not cfg.bilateral and cfg.robust == "none"
         if uniform:
             # right-hand side computed on the device (the streaming path)
             cam = self.camera
