@@ -856,7 +856,7 @@ def propagate_front(solver, images, mask, highlight, solution: dict, *, gaussian
     """
     from dataclasses import replace
 
-    from gpps.pipeline.solver import FLAG_FEW_OBSERVATIONS
+    from gpps.pipeline.solver import ranks_better
 
     cfg = _check_config(config)
     n_img, h, w = solver.shape
@@ -921,7 +921,7 @@ def propagate_front(solver, images, mask, highlight, solution: dict, *, gaussian
             iters[pi, pj] = out["iterations"][pi, pj]
             take = np.ones(pi.size, bool)
             if keep_better:
-                take = (out["residual"][pi, pj] < res[pi, pj]) & ((out["flags"][pi, pj] & FLAG_FEW_OBSERVATIONS) == 0)
+                take = ranks_better(out["residual"][pi, pj], out["flags"][pi, pj], res[pi, pj])
             ti, tj = pi[take], pj[take]
             nrm[ti, tj] = out["normals"][ti, tj]
             alb[ti, tj] = out["albedo"][ti, tj]

@@ -307,10 +307,7 @@ def robust_edge_weights(u, ex, ey, tx, ty, scale: float, floor: float = 1e-6):
         ``(rwx, rwy, sigma)``: (H, W) multipliers of the edge weights (0 where no
         edge) and the ``sigma`` used.
     """
-    rx = np.zeros_like(u)
-    ry = np.zeros_like(u)
-    rx[:, :-1] = u[:, 1:] - u[:, :-1] - tx[:, :-1]
-    ry[:-1, :] = u[1:, :] - u[:-1, :] - ty[:-1, :]
+    rx, ry = edge_residuals(u, tx, ty)
     r = np.abs(np.concatenate([rx[ex], ry[ey]]))
     sigma = float(scale * 1.4826 * np.median(r)) if r.size else 0.0
     if not sigma > 0:
@@ -381,11 +378,19 @@ def normal_equation_residual(u, wx, wy, b) -> float:
     return float(np.linalg.norm(r)) / nb if nb > 0 else float(np.linalg.norm(r))
 
 
+def edge_residuals(u, tx, ty):
+    """(H, W) residuals ``u_b - u_a - t_e`` of the j- and i-edges of (4.20) (0 on the last column / row)."""
+    rx = np.zeros_like(u, dtype=np.float64)
+    ry = np.zeros_like(u, dtype=np.float64)
+    rx[:, :-1] = u[:, 1:] - u[:, :-1] - tx[:, :-1]
+    ry[:-1, :] = u[1:, :] - u[:-1, :] - ty[:-1, :]
+    return rx, ry
+
+
 def ls_energy(u, wx, wy, tx, ty) -> float:
     """The discrete (4.20) energy ``sum_e w_e (u_b - u_a - t_e)^2``."""
-    ex = u[:, 1:] - u[:, :-1] - tx[:, :-1]
-    ey = u[1:, :] - u[:-1, :] - ty[:-1, :]
-    return float(np.sum(wx[:, :-1] * ex * ex) + np.sum(wy[:-1, :] * ey * ey))
+    rx, ry = edge_residuals(u, tx, ty)
+    return float(np.sum(wx * rx * rx) + np.sum(wy * ry * ry))
 
 
 def level_shapes(h: int, w: int, coarsest: int) -> list[tuple[int, int]]:

@@ -258,7 +258,7 @@ class StreamIntegrator:
                 its += 1
                 if its % self.config.check_every == 0:
                     if mg:
-                        K["residual"]()  # mg_step's sc[RR] is the residual before its correction
+                        K["residual"]()  # mg_step computes no norm
                     rr = float(K["scalars"]()[2])
                     if self.config.dtype == "float32" and rr > 4.0 * rr_min and rr_min < 1e-8 * bb:
                         break  # past the float32 floor the CG recurrence wanders: stop

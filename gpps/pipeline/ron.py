@@ -56,7 +56,7 @@ from gpps._check import as_array, as_mask, check_number
 from gpps.lights import PointLights
 from gpps.material import Material
 from gpps.pipeline.dgmc import DGMCConfig, dgmc_start, propagate_front
-from gpps.pipeline.solver import FLAG_FEW_OBSERVATIONS, PixelSolver, SolverConfig
+from gpps.pipeline.solver import PixelSolver, SolverConfig, ranks_better
 
 __all__ = [
     "RON",
@@ -339,9 +339,8 @@ class RON:
             if im.any():
                 s.set_config(replace(cfg, warm_start=True, starts=1, neighbour_radius=0, smoothness=0.0))
                 warm = s.solve(images, im, depth=depth, valid=valid, init_normals=init)
-                # under-determined pixels (< 3 lit observations) fit any of a family of normals: their
-                # residual cannot rank starts, so they keep the neighbour pass of the cold solve
-                better = im & (warm["residual"] < out["residual"]) & ((warm["flags"] & FLAG_FEW_OBSERVATIONS) == 0)
+                # under-determined pixels keep the neighbour pass of the cold solve
+                better = im & ranks_better(warm["residual"], warm["flags"], out["residual"])
                 for k in ("normals", "albedo", "residual", "flags", "cond"):
                     out[k] = np.where(better.reshape(better.shape + (1,) * (out[k].ndim - 2)), warm[k], out[k])
                 out["iterations"] = out["iterations"] + np.where(im, warm["iterations"], 0)

@@ -46,10 +46,18 @@ __all__ = [
     "FLAG_WOODHAM_FALLBACK",
     "FLAG_ALBEDO_FROM_NEIGHBOURS",
     "check_light_configuration",
+    "ranks_better",
     "estimate_noise",
 ]
 
 
+
+
+def ranks_better(new_residual, new_flags, old_residual):
+    """Where another start's solution beats the current one: a lower residual, on a pixel
+    with 3 lit observations (an under-determined pixel fits a family of normals, so its
+    residual cannot rank starts).  Element-wise over matching arrays; returns bool."""
+    return (np.asarray(new_residual) < np.asarray(old_residual)) & ((np.asarray(new_flags) & FLAG_FEW_OBSERVATIONS) == 0)
 
 
 @dataclass(frozen=True)
@@ -536,13 +544,15 @@ class PixelSolver:
         self.normals.assign(nrm)
         if m.any():
             self.launch()
-        return {k: np.array(getattr(self, k).numpy(), copy=True) for k in names}
+        return self.fetch(names)
 
-    def fetch(self) -> dict:
+    def fetch(self, names=("normals", "albedo", "residual", "iterations", "flags", "cond", "weights")) -> dict:
         """The current results as numpy arrays owned by the caller.
 
         Copies: on the CPU, Warp's ``numpy()`` is a view of the device buffer,
         which the next solve would overwrite under the caller's feet.
+
+        Args:
+            names: the outputs to copy (default: all).
         """
-        names = ("normals", "albedo", "residual", "iterations", "flags", "cond", "weights")
         return {k: np.array(getattr(self, k).numpy(), copy=True) for k in names}
