@@ -69,8 +69,9 @@ def integrate_normals(
         warm_start: (H, W) depth to start from.
         device: ``"auto"``, ``"cpu"`` or ``"cuda:0"`` (Taichi solvers).
         progress: optional ``progress(done, total, message)`` callback.
-        **options: further :class:`IntegratorConfig` fields (``min_nz``,
-            ``dtype``, ``bilateral_k`` ...).
+        **options: further :class:`IntegratorConfig` fields (``robust``:
+            ``"curl"`` for measured normal maps with a few wrong normals,
+            ``"cauchy"``; ``min_nz``, ``dtype``, ``bilateral_k`` ...).
 
     Returns:
         :class:`IntegrationResult`; ``depth`` is (H, W) float32 with 0 outside

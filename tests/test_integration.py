@@ -12,7 +12,15 @@ import pytest
 
 from gpps.camera import Orthographic, Perspective
 from gpps.integrate import IntegratorConfig, integrate_normals
-from gpps.pipeline.integration import Integrator, divergence_rhs, edge_system, ls_energy, pixel_gradients
+from gpps.pipeline.integration import (
+    Integrator,
+    curl_edge_weights,
+    divergence_rhs,
+    edge_system,
+    loop_curl,
+    ls_energy,
+    pixel_gradients,
+)
 
 N = 256
 Z0 = 10.0
@@ -352,6 +360,115 @@ def test_robust_loss_ignores_a_few_wrong_normals(camera_kind):
     e_plain, e_rob = mean_error(plain.depth), mean_error(rob.depth)
     assert e_plain > 5e-3, e_plain
     assert e_rob < 2e-3 and e_rob < 0.2 * e_plain, (e_rob, e_plain)
+
+
+def test_loop_curl_and_curl_weights_match_a_brute_force_walk():
+    """loop_curl against a walk around every 2x2 loop written here; curl_edge_weights against the
+    per-edge rule (Cauchy of the worse adjacent loop, sigma from the median |curl|, 1 where no loop)."""
+    rng = np.random.default_rng(3)
+    h, w = 9, 11
+    valid = rng.random((h, w)) < 0.85
+    gj, gi = rng.normal(size=(h, w)), rng.normal(size=(h, w))
+    wx, wy, tx, ty = edge_system(valid, gj, gi)
+    ex, ey = wx > 0, wy > 0
+    curl, ok = loop_curl(ex, ey, tx, ty)
+    want = {}
+    for i in range(h - 1):
+        for j in range(w - 1):
+            closed = ex[i, j] and ex[i + 1, j] and ey[i, j] and ey[i, j + 1]
+            assert ok[i, j] == closed
+            if closed:  # (i,j) -> (i,j+1) -> (i+1,j+1) -> (i+1,j) -> (i,j)
+                want[i, j] = tx[i, j] + ty[i, j + 1] - tx[i + 1, j] - ty[i, j]
+                assert curl[i, j] == pytest.approx(want[i, j], abs=1e-12)
+            else:
+                assert curl[i, j] == 0
+    assert not ok[-1].any() and not ok[:, -1].any()
+    rwx, rwy, sigma = curl_edge_weights(ex, ey, tx, ty, 2.0)
+    assert sigma == pytest.approx(2.0 * 1.4826 * np.median(np.abs(list(want.values()))))
+    for i in range(h):
+        for j in range(w):
+            for e, rw, loops in ((ex, rwx, [(i - 1, j), (i, j)]), (ey, rwy, [(i, j - 1), (i, j)])):
+                if not e[i, j]:
+                    assert rw[i, j] == 0
+                    continue
+                cs = [abs(want[q]) for q in loops if q in want]
+                expect = 1.0 / (1.0 + (max(cs) / sigma) ** 2) if cs else 1.0
+                assert rw[i, j] == pytest.approx(max(expect, 1e-6), rel=1e-12)
+    # targets that are differences of any u close every loop: all weights 1
+    u = rng.normal(size=(h, w))
+    tx2, ty2 = np.zeros((h, w)), np.zeros((h, w))
+    tx2[:, :-1], ty2[:-1, :] = u[:, 1:] - u[:, :-1], u[1:, :] - u[:-1, :]
+    c2, _ = loop_curl(ex, ey, tx2, ty2)
+    assert np.abs(c2).max() < 1e-12
+    rwx2, rwy2, _ = curl_edge_weights(ex, ey, tx2 * ex, ty2 * ey, 2.0)
+    assert np.all(rwx2[ex] > 0.5) and np.all(rwy2[ey] > 0.5)  # sigma at round-off: loops close to 1e-16
+
+
+@pytest.mark.parametrize("camera_kind", ["orthographic", "perspective"])
+def test_curl_weights_ignore_a_few_wrong_normals(camera_kind, device):
+    """As the Cauchy test above, for robust="curl" (one weighted solve, Taichi multigrid on each
+    device): clean normals stay within the analytic 1e-3 bound; with 1 % wrong normals the plain
+    least squares is bent, the curl weights are not.  Measured when written (mean |error| / range):
+    orthographic 9.2e-3 plain -> 1.2e-4 curl, perspective 1.16e-2 -> 1.3e-3 (Cauchy IRLS: 4.1e-4, 1.56e-3)."""
+    depth, n, cam = scene("bumps", camera_kind)
+    sl = (slice(32, 224, 2), slice(32, 224, 2))
+    depth, n = depth[sl], n[sl].copy()
+    cam = Orthographic(2 * cam.pixel_size) if camera_kind == "orthographic" else \
+        Perspective(np.array([[300.0, 0, 47.5], [0, 300.0, 47.5], [0, 0, 1]]))
+    mask = np.ones(depth.shape, bool)
+    persp = camera_kind == "perspective"
+    kw = dict(camera=cam, solver="multigrid", device=device, tol=1e-9, dtype="float64")
+    clean = integrate_normals(n, mask, robust="curl", **kw)
+    assert clean.outer_iterations == 0 and clean.residual < 1e-8
+    assert aligned_error(clean.depth, depth, mask, persp) < 1e-3
+    rng = np.random.default_rng(0)
+    bad = rng.random(mask.shape) < 0.01
+    v = rng.normal(size=(int(bad.sum()), 3))
+    v[:, 2] = np.abs(v[:, 2]) + 0.05
+    n[bad] = v / np.linalg.norm(v, axis=-1, keepdims=True)
+    plain = integrate_normals(n, mask, **kw)
+    curl = integrate_normals(n, mask, robust="curl", **kw)
+
+    def mean_error(est):
+        e = est.astype(np.float64)[mask]
+        t = depth[mask]
+        e = e * (e @ t) / (e @ e) if persp else e + np.mean(t - e)
+        return float(np.mean(np.abs(e - t)) / np.ptp(t))
+
+    e_plain, e_curl = mean_error(plain.depth), mean_error(curl.depth)
+    assert e_plain > 5e-3, e_plain
+    assert e_curl < 2e-3 and e_curl < 0.2 * e_plain, (e_curl, e_plain)
+
+
+def _bini_normal_map(folder):
+    import cv2
+
+    raw = cv2.imread(str(folder / "normal_map.png"), cv2.IMREAD_UNCHANGED)
+    n = raw[..., ::-1].astype(np.float64) / 65535.0 * 2.0 - 1.0  # BGR -> (x, y, z): the gpps frame
+    mask = cv2.imread(str(folder / "mask.png"), cv2.IMREAD_GRAYSCALE) > 0
+    return n, mask, np.loadtxt(folder / "K.txt"), np.load(folder / "depth_gt.npz")["depth_gt"].astype(np.float64)
+
+
+# BiNI's published mean absolute depth errors (mm) on the true DiLiGenT normal maps (../shared/data/README.md)
+BINI_MM = {"bear": 0.334, "buddha": 1.098, "cow": 0.058, "goblet": 9.018, "pot1": 0.635, "pot2": 0.220}
+
+
+@pytest.mark.parametrize("name", sorted(BINI_MM))
+def test_diligent_true_normal_maps_within_1p2x_of_bini(name, data_root, device):
+    """The issue's real-data line, in the suite: robust="curl" integrates each true DiLiGenT normal map
+    with its K to a mean absolute depth error within 1.2x of BiNI's published number (BiNI's protocol:
+    one scale, median(gt / est), over mask & finite depth_gt).  Measured when written (CPU, float64):
+    bear 0.025 mm (0.08x), buddha 1.03 (0.93x), cow 0.061 (1.05x), goblet 8.12 (0.90x), pot1 0.545
+    (0.86x), pot2 0.156 (0.71x); plain Poisson: bear 1.56x, cow 2.89x, pot1 1.69x."""
+    n, mask, K, gt = _bini_normal_map(data_root / "integration" / "diligent" / name)
+    res = integrate_normals(n, mask, camera=Perspective(K), solver="multigrid", device=device, tol=1e-6,
+                            dtype="float64", robust="curl")
+    assert res.n_invalid == 0 and res.residual < 1e-5
+    ev = res.mask & np.isfinite(gt)
+    assert ev.sum() > 0.95 * mask.sum()
+    d, g = res.depth.astype(np.float64)[ev], gt[ev]
+    made = float(np.mean(np.abs(np.median(g / d) * d - g)))
+    assert made <= 1.2 * BINI_MM[name], (made, BINI_MM[name])
 
 
 @pytest.mark.parametrize("kw", [dict(robust="huber"), dict(robust_scale=0.0), dict(robust_scale=float("inf")),

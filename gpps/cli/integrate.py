@@ -24,8 +24,10 @@ def register(subparsers) -> None:
     p.add_argument("--solver", choices=["multigrid", "jacobi", "direct"], default="multigrid")
     p.add_argument("--tol", type=float, default=1e-5, help="relative residual to reach (default 1e-5)")
     p.add_argument("--bilateral", action="store_true", help="discontinuity-preserving (BiNI) re-weighting")
-    p.add_argument("--robust", action="store_true",
-                   help="Cauchy loss on the edge residuals (IRLS): a few wrong normals stop bending the surface")
+    p.add_argument("--robust", nargs="?", const="curl", default="none", choices=["none", "curl", "cauchy"],
+                   help="down-weight wrong normals so they stop bending the surface: 'curl' (bare --robust; "
+                        "edges weighted by the integrability of their loops, one solve: the mode for measured "
+                        "normal maps) or 'cauchy' (IRLS on the edge residuals)")
     p.add_argument("--reference-depth", type=float, default=None, help="mean depth per component (scene units)")
     p.add_argument("--out", required=True, help="output folder")
     p.set_defaults(func=run)
@@ -63,7 +65,7 @@ def run(args) -> int:
     camera = Perspective(read_K(args.K)) if args.K else Orthographic(args.pixel_size)
     res = integrate_normals(
         normals, mask, camera=camera, solver=args.solver, tol=args.tol, bilateral=args.bilateral,
-        robust="cauchy" if args.robust else "none",
+        robust=args.robust,
         reference_depth=args.reference_depth, device=args.device, progress=bar("integrate"),
     )
     out = Path(args.out)
@@ -77,7 +79,7 @@ def run(args) -> int:
         "residual": res.residual, "solver_residual": res.solver_residual, "converged": res.converged,
         "n_pixels": int(res.mask.sum()), "n_invalid": res.n_invalid, "n_components": res.n_components,
         "timings_s": res.timings, "camera": "perspective" if camera.is_perspective else "orthographic",
-        "bilateral": bool(args.bilateral), "robust": bool(args.robust), "device": args.device, "view": view["method"],
+        "bilateral": bool(args.bilateral), "robust": args.robust, "device": args.device, "view": view["method"],
     }
     if "reason" in view:
         report["view_fallback_reason"] = view["reason"]

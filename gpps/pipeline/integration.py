@@ -55,12 +55,15 @@ __all__ = [
     "normal_equation_residual",
     "ls_energy",
     "bilateral_weights",
+    "loop_curl",
+    "curl_edge_weights",
+    "robust_edge_weights",
 ]
 
 Solver = Literal["multigrid", "jacobi", "direct", "dct"]
 Weighting = Literal["uniform", "normal"]
 BilateralInit = Literal["bini", "poisson"]
-Robust = Literal["none", "cauchy"]
+Robust = Literal["none", "cauchy", "curl"]
 DType = Literal["float32", "float64"]
 Progress = Callable[[float, float, str], None]
 
@@ -96,12 +99,21 @@ class IntegratorConfig:
             re-estimated every round, so that a few wrong normals (grazing
             rims, rendering or acquisition artefacts, small depth jumps) stop
             bending the whole surface as they do under the plain quadratic
-            loss.  Combines with ``weighting`` and ``bilateral``.  ``"none"``:
-            plain least squares.
-        robust_scale: ``sigma`` in robust standard deviations of the residuals.
-        robust_iterations: re-weighted solves after the first (without
-            ``bilateral``; with it, the weights are updated at every outer
-            iteration instead).
+            loss.  Combines with ``weighting`` and ``bilateral``.
+            ``"curl"``: each edge is weighted by a Cauchy function of the
+            integrability defect (curl) of the targets around its two 2x2
+            pixel loops (:func:`curl_edge_weights`): a wrong normal or a
+            depth jump makes the loops through its edges fail to close, a
+            smooth surface closes them to discretisation order.  The weights
+            come from the data alone, so the problem stays convex and is one
+            weighted solve (no IRLS, no local minima).  This is the mode for
+            measured normal maps (perf/integration_diligent.py).
+            ``"none"``: plain least squares.
+        robust_scale: ``sigma`` in robust standard deviations (``1.4826 MAD``)
+            of the edge residuals (``"cauchy"``) or of the loop curls (``"curl"``).
+        robust_iterations: re-weighted solves after the first (``"cauchy"``
+            without ``bilateral``; with it, the weights are updated at every
+            outer iteration instead).
         min_nz: floor on ``n_z`` (orthographic) or ``-m`` (perspective) that
             bounds the slopes of grazing normals.
         dtype: device precision of the Taichi solvers.
@@ -314,6 +326,70 @@ def robust_edge_weights(u, ex, ey, tx, ty, scale: float, floor: float = 1e-6):
         return ex.astype(np.float64), ey.astype(np.float64), sigma
     rwx = np.where(ex, np.maximum(1.0 / (1.0 + (rx / sigma) ** 2), floor), 0.0)
     rwy = np.where(ey, np.maximum(1.0 / (1.0 + (ry / sigma) ** 2), floor), 0.0)
+    return rwx, rwy, sigma
+
+
+def loop_curl(ex, ey, tx, ty):
+    """Integrability defect of the edge targets around each 2x2 pixel loop.
+
+    The loop with top-left pixel ``(i, j)`` runs ``(i, j) -> (i, j+1) -> (i+1,
+    j+1) -> (i+1, j) -> (i, j)``; its curl is ``tx[i, j] + ty[i, j+1] -
+    tx[i+1, j] - ty[i, j]``, the discrete ``∮ grad u . dl``, which is 0 for
+    targets that are the differences of any ``u``.
+
+    Args:
+        ex, ey: (H, W) bool, the existing j- and i-edges.
+        tx, ty: (H, W) edge targets (:func:`edge_system`).
+
+    Returns:
+        ``(curl, ok)``: (H, W) float64 curl and bool, where the loop's four
+        edges all exist (the last row and column are never loop corners).
+    """
+    h, w = ex.shape
+    ok = np.zeros((h, w), bool)
+    curl = np.zeros((h, w))
+    ok[:-1, :-1] = ex[:-1, :-1] & ex[1:, :-1] & ey[:-1, :-1] & ey[:-1, 1:]
+    curl[:-1, :-1] = tx[:-1, :-1] + ty[:-1, 1:] - tx[1:, :-1] - ty[:-1, :-1]
+    return np.where(ok, curl, 0.0), ok
+
+
+def curl_edge_weights(ex, ey, tx, ty, scale: float, floor: float = 1e-6):
+    """Edge weights from the integrability of the targets (``IntegratorConfig.robust="curl"``).
+
+    A target that disagrees with the surface (a wrong normal at a grazing rim,
+    an acquisition artefact, a depth jump) leaves the two 2x2 loops through
+    its edge unclosed; on a smooth surface every loop closes up to the
+    discretisation error.  Each edge gets ``1 / (1 + (c / sigma)^2)`` with
+    ``c`` the larger ``|curl|`` of its (one or two) loops and ``sigma = scale *
+    1.4826 * median |curl|`` over all closed loops; an edge in no loop keeps
+    weight 1 (it carries no integrability information).  Curl-based trust in
+    the gradient field follows Agrawal, Raskar and Chellappa, "What is the
+    range of surface reconstructions from a gradient field?", ECCV 2006.
+
+    Args:
+        ex, ey: (H, W) bool, the existing j- and i-edges.
+        tx, ty: (H, W) edge targets (:func:`edge_system`).
+        scale: ``sigma`` in robust standard deviations of the loop curls.
+        floor: smallest weight (keeps every edge, so no region is cut loose).
+
+    Returns:
+        ``(rwx, rwy, sigma)``: (H, W) multipliers of the edge weights (0 where
+        no edge) and the ``sigma`` used (0: every loop closes, weights 1).
+    """
+    curl, ok = loop_curl(ex, ey, tx, ty)
+    a = np.abs(curl)
+    h, w = a.shape
+    # j-edge (i, j)-(i, j+1) borders the loops with corners (i-1, j) and (i, j);
+    # i-edge (i, j)-(i+1, j) borders (i, j-1) and (i, j)
+    cx = a.copy()
+    cx[1:, :] = np.maximum(cx[1:, :], a[:-1, :])
+    cy = a.copy()
+    cy[:, 1:] = np.maximum(cy[:, 1:], a[:, :-1])
+    sigma = float(scale * 1.4826 * np.median(a[ok])) if ok.any() else 0.0
+    if not sigma > 0:
+        return ex.astype(np.float64), ey.astype(np.float64), sigma
+    rwx = np.where(ex, np.maximum(1.0 / (1.0 + (cx / sigma) ** 2), floor), 0.0)
+    rwy = np.where(ey, np.maximum(1.0 / (1.0 + (cy / sigma) ** 2), floor), 0.0)
     return rwx, rwy, sigma
 
 
@@ -632,12 +708,15 @@ class Integrator:
             u, res = solve(wx, wy, tx, ty, u, None, inner_tol)
             wpj, wpi, _ = bilateral_weights(u, valid, wx, wy, nzj, nzi, cfg.bilateral_k, cfg.bilateral_floor)
         energy = None
-        rob = cfg.robust != "none"
+        rob = cfg.robust == "cauchy"
         rwx = rwy = None
         nout = cfg.bilateral_max_iter if bil else (1 + cfg.robust_iterations if rob else 1)
         for k in range(nout):
             wx, wy, tx, ty = edge_system(valid, gj, gi, cj, ci, wpj, wpi)
             ex, ey = wx > 0, wy > 0
+            if cfg.robust == "curl" and rwx is None:
+                # fixed, data-only weights from the first system's targets
+                rwx, rwy, _ = curl_edge_weights(ex, ey, tx, ty, cfg.robust_scale)
             if rwx is not None:
                 wx, wy = wx * rwx, wy * rwy
             u, res = solve(wx, wy, tx, ty, u, None if (bil or rob) else progress, inner_tol)
