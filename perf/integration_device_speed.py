@@ -22,6 +22,18 @@ Per size and configuration (``coarsest`` x ``method``):
   the width, a streaming step): ``k`` iterations from A's solution, k = 1..4,
   time and depth error against B's reference.
 
+``--block-cells 0,4096`` compares the fused single-block coarse levels
+(StreamIntegratorConfig.block_cells; 0 = off) within the same run.
+
+Roofline: the copy bandwidth is measured in the same run (torch device copy
+of 256 MiB, read + write); the warm one-cycle frame's DRAM traffic is counted
+from its passes (float32 fields: steps 24 B/pixel, right-hand side and
+residual 32, level-0 descent 21, level-0 ascent with the depth update 29,
+the two finishing passes 24; every coarser level adds its share of the
+descent and ascent, 1/4 of the level above), and ``roofline_ratio`` = the
+measured warm time / (bytes / bandwidth).  At these sizes the frame is bound
+by launches, not memory: the ratio says how far.
+
 Usage:  python perf/integration_device_speed.py [--device cuda:0] [--sizes 256,1024] [--repeat 20]
 Writes perf/results/integration_device_speed_<device>.json.
 """
@@ -53,6 +65,7 @@ def main(argv=None) -> int:
     ap.add_argument("--accuracy", type=float, default=1e-4)
     ap.add_argument("--coarsest", default="16,32")
     ap.add_argument("--methods", default="pcg,multigrid")
+    ap.add_argument("--block-cells", default="4096")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
 
@@ -89,6 +102,22 @@ def main(argv=None) -> int:
             ts.append((time.perf_counter() - t0) / inner)
         return statistics.median(ts)
 
+    bandwidth = None
+    if cuda:
+        src = torch.empty(64 * 2**20, dtype=torch.float32, device="cuda")
+        dst = torch.empty_like(src)
+        t = med(lambda: dst.copy_(src), a.repeat, 5)
+        bandwidth = 2 * src.numel() * 4 / t  # bytes read + written per second
+        del src, dst
+
+    def frame_bytes(shapes):
+        """DRAM bytes of one warm one-cycle multigrid frame (float32), from its passes (see the docstring)."""
+        h, w = shapes[0]
+        total = (24 + 32 + 24) * h * w  # steps, rhs + residual, finish
+        for (hh, ww) in shapes[:-1]:
+            total += (21 + 29) * hh * ww  # descent and ascent of each level but the coarsest
+        return total
+
     rows = []
     for n in map(int, a.sizes.split(",")):
         mask = np.ones((n, n), bool)
@@ -106,9 +135,10 @@ def main(argv=None) -> int:
         ref.close()
         rng = float(np.ptp(refs["A"]))
         nAd, nBd = dev(nA), dev(nB)
-        for coarsest in map(int, a.coarsest.split(",")):
-            for method in a.methods.split(","):
-                cfg = StreamIntegratorConfig(coarsest=coarsest, method=method)
+        for coarsest, method, bcells in [(c, m, b) for c in map(int, a.coarsest.split(","))
+                                         for m in a.methods.split(",") for b in map(int, a.block_cells.split(","))]:
+            if True:
+                cfg = StreamIntegratorConfig(coarsest=coarsest, method=method, block_cells=bcells)
                 si = StreamIntegrator(mask, cam, cfg, device=a.device)
                 K = si._K
                 out = dev(np.zeros((n, n), np.float32))
@@ -117,7 +147,8 @@ def main(argv=None) -> int:
                 step = K["mg_step"] if method == "multigrid" else K["pcg_iteration"]
                 rhs = (lambda: K["rhs_only"](nAd, *si._cam, cfg.min_nz)) if method == "multigrid" else \
                     (lambda: K["rhs_begin"](nAd, *si._cam, cfg.min_nz))
-                row = {"size": n, "coarsest": coarsest, "method": method, "levels": len(si.levels),
+                row = {"size": n, "coarsest": coarsest, "method": method, "block_cells": bcells,
+                       "levels": len(si.levels),
                        "coarsest_cells": int(si._F["cidx"].shape[0])}
                 row["pieces_us"] = {
                     "noop_launch": 1e6 * med(K["noop"], a.repeat, 10),
@@ -166,11 +197,17 @@ def main(argv=None) -> int:
                 row["warm"] = warm
                 ok = [w for w in warm if w["depth_error"] <= a.accuracy]
                 row["warm_to_accuracy"] = ok[0] if ok else None
+                if bandwidth and method == "multigrid":
+                    by = frame_bytes([(hh, ww) for (_, hh, ww) in si.levels])
+                    w1 = warm[0]["ms"] * 1e-3
+                    row["warm_1_cycle_roofline"] = {"bytes": by, "bandwidth_Bps": bandwidth,
+                                                    "bound_ms": 1e3 * by / bandwidth,
+                                                    "roofline_ratio": w1 / (by / bandwidth)}
                 si.close()
                 rows.append(row)
                 p = row["pieces_us"]
                 ca, wa = row["cold_to_accuracy"], row["warm_to_accuracy"]
-                print(f"{n:5d} coarsest {coarsest:2d} {method:9s} | noop {p['noop_launch']:6.1f} coarse {p['coarse_solve']:6.1f} "
+                print(f"{n:5d} coarsest {coarsest:2d} {method:9s} block {bcells:5d} | noop {p['noop_launch']:6.1f} coarse {p['coarse_solve']:6.1f} "
                       f"vcycle {p['vcycle']:7.1f} iter {p['iteration']:7.1f} rhs {p['rhs']:6.1f} finish {p['finish']:6.1f} "
                       f"read {p['read_scalars']:6.1f} us | cold {ca['iterations'] if ca else '-'} it "
                       f"{ca['ms'] if ca else float('nan'):.3f} ms | warm {wa['iterations'] if wa else '-'} it "
@@ -179,6 +216,7 @@ def main(argv=None) -> int:
 
     out = Path(a.out) if a.out else ROOT / "perf" / "results" / f"integration_device_speed_{a.device.replace(':', '')}.json"
     save_json(out, {"device": a.device, "device_name": dev_name, "accuracy": a.accuracy, "dtype": "float32",
+                    "copy_bandwidth_Bps": bandwidth,
                     "surface": "perf/integration_speed.py surface_normals, full square, orthographic; warm frame shifted 0.002",
                     "rows": rows})
     print(f"wrote {out}")

@@ -20,7 +20,8 @@ from gpps._taichi import ti
 from gpps.kernels.poisson import ALPHA, PQ, RR, RZ, RZN, _jacobi_point, _mul, _neigh, _sq, div_mean_steps, pixel_steps
 
 
-def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspective: bool):
+def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspective: bool, block: bool = False,
+               block_threads: int = 512, block_cells: int = 4096):
     """Build the fused kernels over the fields ``F`` for the level geometry ``geo``.
 
     Args:
@@ -35,6 +36,11 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         omega: Jacobi damping.
         nc: active cells of the coarsest level.
         perspective: the unknown is log-depth (PPN gradients, depth = exp).
+        block: run every level of at most ``block_cells`` cells, down and up
+            with the coarsest solve, as *one* task of a single thread block
+            of ``block_threads`` threads that steps from pass to pass with
+            ``ti.simt.block.sync()`` (CUDA only: on the GPU each task is a
+            kernel launch of about 5 us, more than the small levels' work).
 
     Returns:
         dict of kernels: ``rhs(nrm, fx, fy, cx, cy, s, min_nz)``,
@@ -53,7 +59,16 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
     ncomp = ccnt.shape[0]
     om = omega
 
-    red, part = F["red"], F["part"]
+    red, part, part2 = F["red"], F["part"], F["part2"]
+    NT = block_threads
+    fused = npairs == 1  # one task per level and direction (the on-the-fly sweeps below)
+    # first level handled inside the single block (CUDA): every level from K0 down
+    K0 = L
+    if block and fused:
+        for k in range(L):
+            if geo[k][1] * geo[k][2] <= block_cells:
+                K0 = k
+                break
     CH = 32  # rows per chunk of the two-stage reductions
     NCH = (h0 + CH - 1) // CH
 
@@ -176,22 +191,27 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         return rr
 
     @ti.func
-    def coarse_solve():
-        """t = pinv f on the coarsest level's active cells (one thread per cell).
+    def _coarse_cell(kk):
+        """t = (pinv f)[kk] at the coarsest level's active cell kk.
 
         ``pinv`` is symmetric (the pseudo-inverse of a symmetric matrix), so
         thread ``kk`` reads column ``kk``: neighbouring threads read
         neighbouring addresses (coalesced) instead of rows ``nc`` apart.
         """
-        for kk in range(nc):
-            s = f[cidx[kk, 0], cidx[kk, 1]] * 0
-            for m in range(nc):
-                s += pinv[m, kk] * f[cidx[m, 0], cidx[m, 1]]
-            t[cidx[kk, 0], cidx[kk, 1]] = s
+        s = f[cidx[kk, 0], cidx[kk, 1]] * 0
+        for m in range(nc):
+            s += pinv[m, kk] * f[cidx[m, 0], cidx[m, 1]]
+        t[cidx[kk, 0], cidx[kk, 1]] = s
 
     @ti.func
-    def vcycle():
-        """t_0 = M f_0: one V-cycle from zero, every level unrolled.
+    def coarse_solve():
+        """t = pinv f on the coarsest level's active cells (one thread per cell)."""
+        for kk in range(nc):
+            _coarse_cell(kk)
+
+    @ti.func
+    def vcycle_tasks():
+        """t_0 = M f_0: one V-cycle from zero, every level unrolled (the general form, any ``npairs``).
 
         Per level on the way down, two tasks: the pre-smoothing pair (from zero,
         fused) and residual + restriction (fused); on the way up two: the first
@@ -227,11 +247,197 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                 for i, j in ti.ndrange(h, w):
                     t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, om)
 
+    # ---------------------------------------------------------------- one task per level (npairs == 1)
+    # The same V(2, 2)-cycle as vcycle_tasks, with each level's two passes per
+    # direction fused into one by recomputing the first pass's values where the
+    # second needs them (12 pre-smoothed values per 2x2 block on the way down,
+    # 5 first post-sweep values per pixel on the way up): launches, not
+    # arithmetic, bound these passes on a GPU.  Level k >= 1 ends in ``e`` (the
+    # coarsest in ``t``, from the dense solve); level 0's final value is
+    # computed where it is consumed (``_mf0``).
+
     @ti.func
-    def _rhs(nrm: ti.template(), fx, fy, cx, cy, s, min_nz, norm: ti.template()):
+    def _pre_at(i, j, k: ti.template()):
+        """``_pre`` at level k, 0 off the level."""
+        off, h, w = ti.static(geo[k])
+        v = f[0, 0] * 0
+        if i >= 0 and i < h and j >= 0 and j < w:
+            v = _pre(i, j, off, h, w)
+        return v
+
+    @ti.func
+    def _res_vals(i, j, k: ti.template(), tc, tl, tr, tu, td):
+        """Residual f - A t at level k's pixel (i, j) from the given centre / left / right / up / down t."""
+        off, h, w = ti.static(geo[k])
+        rr = f[0, 0] * 0
+        if i < h and j < w:
+            d = dg[i, off + j]
+            if d > 0:
+                nb = f[0, 0] * 0
+                if j > 0:
+                    nb += wx[i, off + j - 1] * tl
+                if j < w - 1:
+                    nb += wx[i, off + j] * tr
+                if i > 0:
+                    nb += wy[i - 1, off + j] * tu
+                if i < h - 1:
+                    nb += wy[i, off + j] * td
+                rr = f[i, off + j] - d * tc + nb
+        return rr
+
+    @ti.func
+    def _down_cell(ci, cj, k: ti.template()):
+        """Level k's pre-smoothing at the 2x2 block of coarse cell (ci, cj), written to t, and the
+        block's summed residual, written to level k+1's f (the 8 pre-smoothed values around the
+        block are recomputed here rather than read after a sync)."""
+        off, h, w = ti.static(geo[k])
+        offc = ti.static(geo[k + 1][0])
+        i0 = 2 * ci
+        j0 = 2 * cj
+        t00 = _pre_at(i0, j0, k)
+        t01 = _pre_at(i0, j0 + 1, k)
+        t10 = _pre_at(i0 + 1, j0, k)
+        t11 = _pre_at(i0 + 1, j0 + 1, k)
+        u0 = _pre_at(i0 - 1, j0, k)
+        u1 = _pre_at(i0 - 1, j0 + 1, k)
+        d0 = _pre_at(i0 + 2, j0, k)
+        d1 = _pre_at(i0 + 2, j0 + 1, k)
+        l0 = _pre_at(i0, j0 - 1, k)
+        l1 = _pre_at(i0 + 1, j0 - 1, k)
+        r0 = _pre_at(i0, j0 + 2, k)
+        r1 = _pre_at(i0 + 1, j0 + 2, k)
+        t[i0, off + j0] = t00  # (i0, j0) is on the level: hc = ceil(h / 2), wc = ceil(w / 2)
+        if j0 + 1 < w:
+            t[i0, off + j0 + 1] = t01
+        if i0 + 1 < h:
+            t[i0 + 1, off + j0] = t10
+            if j0 + 1 < w:
+                t[i0 + 1, off + j0 + 1] = t11
+        f[ci, offc + cj] = (_res_vals(i0, j0, k, t00, l0, t01, u0, t10)
+                            + _res_vals(i0, j0 + 1, k, t01, t00, r0, u1, t11)
+                            + _res_vals(i0 + 1, j0, k, t10, l1, t11, t00, d0)
+                            + _res_vals(i0 + 1, j0 + 1, k, t11, t10, r1, t01, d1))
+
+    @ti.func
+    def _corr_at(i, j, k: ti.template()):
+        """Level k's pre-smoothed iterate plus the injected corrected coarse iterate (0 off the mask)."""
+        off, h, w = ti.static(geo[k])
+        offc = ti.static(geo[k + 1][0])
+        v = t[0, 0] * 0
+        if dg[i, off + j] > 0:
+            if ti.static(k + 1 == L - 1):
+                v = t[i, off + j] + t[i // 2, offc + j // 2]
+            else:
+                v = t[i, off + j] + e[i // 2, offc + j // 2]
+        return v
+
+    @ti.func
+    def _e1(i, j, k: ti.template()):
+        """The first post-smoothing sweep at level k's pixel (i, j), 0 off the level or the mask."""
+        off, h, w = ti.static(geo[k])
+        v = f[0, 0] * 0
+        if i >= 0 and i < h and j >= 0 and j < w:
+            d = dg[i, off + j]
+            if d > 0:
+                nb = f[0, 0] * 0
+                if j > 0:
+                    nb += wx[i, off + j - 1] * _corr_at(i, j - 1, k)
+                if j < w - 1:
+                    nb += wx[i, off + j] * _corr_at(i, j + 1, k)
+                if i > 0:
+                    nb += wy[i - 1, off + j] * _corr_at(i - 1, j, k)
+                if i < h - 1:
+                    nb += wy[i, off + j] * _corr_at(i + 1, j, k)
+                v = (1 - om) * _corr_at(i, j, k) + om * (f[i, off + j] + nb) / d
+        return v
+
+    @ti.func
+    def _up_point(i, j, k: ti.template()):
+        """Level k's corrected, post-smoothed iterate at (i, j) (the second sweep on ``_e1``)."""
+        off, h, w = ti.static(geo[k])
+        v = f[0, 0] * 0
+        d = dg[i, off + j]
+        if d > 0:
+            nb = f[0, 0] * 0
+            if j > 0:
+                nb += wx[i, off + j - 1] * _e1(i, j - 1, k)
+            if j < w - 1:
+                nb += wx[i, off + j] * _e1(i, j + 1, k)
+            if i > 0:
+                nb += wy[i - 1, off + j] * _e1(i - 1, j, k)
+            if i < h - 1:
+                nb += wy[i, off + j] * _e1(i + 1, j, k)
+            v = (1 - om) * _e1(i, j, k) + om * (f[i, off + j] + nb) / d
+        return v
+
+    @ti.func
+    def block_part():
+        """Levels K0 .. L-1, down, the dense solve and up, as one task of one thread block (CUDA)."""
+        ti.loop_config(block_dim=NT)
+        for tid in range(NT):
+            for k in ti.static(range(K0, L - 1)):
+                hc, wc = ti.static(geo[k + 1][1], geo[k + 1][2])
+                for it in range((hc * wc + NT - 1) // NT):
+                    cc = it * NT + tid
+                    if cc < hc * wc:
+                        _down_cell(cc // wc, cc % wc, k)
+                ti.simt.block.sync()
+            for it in range((nc + NT - 1) // NT):
+                kk = it * NT + tid
+                if kk < nc:
+                    _coarse_cell(kk)
+            ti.simt.block.sync()
+            for k in ti.static(range(L - 2, max(K0, 1) - 1, -1)):
+                off, h, w = ti.static(geo[k])
+                for it in range((h * w + NT - 1) // NT):
+                    cc = it * NT + tid
+                    if cc < h * w:
+                        e[cc // w, off + cc % w] = _up_point(cc // w, cc % w, k)
+                ti.simt.block.sync()
+
+    @ti.func
+    def vcycle_levels():
+        """Every pass of one V-cycle from zero on level 0's f except level 0's last (see ``_mf0``)."""
+        if ti.static(not fused):
+            vcycle_tasks()
+        else:
+            top = ti.static(min(K0, L - 1))
+            for k in ti.static(range(top)):
+                hc, wc = ti.static(geo[k + 1][1], geo[k + 1][2])
+                for ci, cj in ti.ndrange(hc, wc):
+                    _down_cell(ci, cj, k)
+            if ti.static(K0 < L):
+                block_part()
+            else:
+                coarse_solve()
+            for k in ti.static(range(top - 1, 0, -1)):
+                off, h, w = ti.static(geo[k])
+                for i, j in ti.ndrange(h, w):
+                    e[i, off + j] = _up_point(i, j, k)
+
+    @ti.func
+    def _mf0(i, j):
+        """``(M f_0)[i, j]``: level 0's result of the V-cycle run by ``vcycle_levels``."""
+        v = t[0, 0] * 0
+        if ti.static(fused and L > 1):
+            v = _up_point(i, j, 0)
+        else:
+            v = t[i, j]
+        return v
+
+    @ti.func
+    def vcycle():
+        """e_0 = M f_0 (one V-cycle from zero on level 0's f)."""
+        vcycle_levels()
+        for i, j in ti.ndrange(h0, w0):
+            e[i, j] = _mf0(i, j)
+
+    @ti.func
+    def _rhs(nrm: ti.template(), fx, fy, cx, cy, s, min_nz, norm: ti.template(), res: ti.template()):
         """b = -div of the mean steps of u (:func:`gpps.kernels.poisson.pixel_steps`,
         uniform weights); q and r hold the j- and i-steps meanwhile; with
-        ``norm``, sc[7] = |b|^2."""
+        ``norm``, sc[7] = |b|^2; with ``res``, also f = b - A z (the first
+        correction's residual, in the same pass)."""
         for i, j in ti.ndrange(h0, w0):
             a = ti.cast(0, ti.f64)
             c = ti.cast(0, ti.f64)
@@ -242,7 +448,14 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         for i, j in ti.ndrange(h0, w0):
             v = div_mean_steps(q, r, wx, wy, i, j, h0, w0)
             b[i, j] = v
-            red[i, j] = ti.cast(_sq(v), red.dtype)
+            if ti.static(norm):
+                red[i, j] = ti.cast(_sq(v), red.dtype)
+            if ti.static(res):
+                d = dg[i, j]
+                fv = v * 0
+                if d > 0:
+                    fv = v - d * z[i, j] + _neigh(z, wx, wy, i, j, 0, h0, w0)
+                f[i, j] = fv
         if ti.static(norm):
             reduce_into(7)  # |b|^2
 
@@ -277,15 +490,15 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             for ii in range(CH):
                 i = c * CH + ii
                 if i < h0:
-                    p[i, j] = t[i, j]
-                    acc += _mul(r[i, j], t[i, j])
+                    p[i, j] = e[i, j]
+                    acc += _mul(r[i, j], e[i, j])
             part[c, j] = acc
         stage2(RZ)
 
     @ti.kernel
     def rhs(nrm: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64, cy: ti.f64, s: ti.f64, min_nz: ti.f64):
         """b = -div of the steps from the normals (see ``_rhs``), |b|^2 in sc[7]."""
-        _rhs(nrm, fx, fy, cx, cy, s, min_nz, True)
+        _rhs(nrm, fx, fy, cx, cy, s, min_nz, True, False)
 
     @ti.kernel
     def pcg_begin():
@@ -295,7 +508,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
     @ti.kernel
     def rhs_begin(nrm: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64, cy: ti.f64, s: ti.f64, min_nz: ti.f64):
         """``rhs`` and ``pcg_begin`` in one launch (the per-frame path)."""
-        _rhs(nrm, fx, fy, cx, cy, s, min_nz, True)
+        _rhs(nrm, fx, fy, cx, cy, s, min_nz, True, False)
         _begin()
 
     @ti.kernel
@@ -339,7 +552,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             for ii in range(CH):
                 i = c * CH + ii
                 if i < h0:
-                    acc += _mul(r[i, j], t[i, j])
+                    acc += _mul(r[i, j], e[i, j])
             part[c, j] = acc
         stage2(RZN)
         beta = sc[RZN] * 0
@@ -348,7 +561,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         sc[RZ] = sc[RZN]
         sc[5] = beta
         for i, j in ti.ndrange(h0, w0):
-            p[i, j] = t[i, j] + ti.cast(sc[5], p.dtype) * p[i, j]
+            p[i, j] = e[i, j] + ti.cast(sc[5], p.dtype) * p[i, j]
 
     @ti.kernel
     def mg_step():
@@ -358,12 +571,12 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         launch, for warm-started frames whose error is already small and smooth.
         No reduction: the ``tol`` mode reads the true residual (``residual``).
         """
-        _correct()
+        _correct(False)
 
     @ti.kernel
     def rhs_only(nrm: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64, cy: ti.f64, s: ti.f64, min_nz: ti.f64):
         """``rhs`` without starting the CG (the multigrid-correction path)."""
-        _rhs(nrm, fx, fy, cx, cy, s, min_nz, True)
+        _rhs(nrm, fx, fy, cx, cy, s, min_nz, True, False)
 
     @ti.kernel
     def vcycle_only():
@@ -404,6 +617,49 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             z[i, j] = ti.cast(v, z.dtype)
 
     @ti.func
+    def _finish1(out: ti.template(), reference):
+        """``_finish`` for one component in three tasks: the sums of u and exp(u) in one
+        pass (sc[8], sc[9]; exp(u - m) sums to exp(-m) sum exp(u), so the perspective
+        scale needs no second pass over the centred u), their column totals, the write."""
+        for c, j in ti.ndrange(NCH, w0):
+            if c == 0 and j == 0:
+                sc[8] = 0
+                sc[9] = 0
+            a = ti.cast(0, ti.f64)
+            x = ti.cast(0, ti.f64)
+            for ii in range(CH):
+                i = c * CH + ii
+                if i < h0:
+                    if lab[i, j] >= 0:
+                        u = ti.cast(z[i, j], ti.f64)
+                        a += u
+                        if ti.static(perspective):
+                            x += ti.exp(u)
+            part[c, j] = a
+            part2[c, j] = x
+        for j in range(w0):
+            a = ti.cast(0, ti.f64)
+            x = ti.cast(0, ti.f64)
+            for c in range(NCH):
+                a += part[c, j]
+                x += part2[c, j]
+            sc[8] += a
+            sc[9] += x
+        for i, j in ti.ndrange(h0, w0):
+            v = ti.cast(0, ti.f64)
+            if lab[i, j] >= 0:
+                m = sc[8] / ccnt[0]
+                u = ti.cast(z[i, j], ti.f64) - m
+                z[i, j] = ti.cast(u, z.dtype)
+                if ti.static(perspective):
+                    v = ti.exp(u)
+                    if reference > 0:
+                        v *= reference * ccnt[0] / (sc[9] * ti.exp(-m))
+                else:
+                    v = u + ti.max(reference, 0.0)
+            out[i, j] = ti.cast(v, ti.f32)
+
+    @ti.func
     def _finish(out: ti.template(), reference):
         """Fix each component's constant and write the depth.
 
@@ -412,6 +668,14 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         is ``reference`` (``reference <= 0``: left at exp(u), mean log-depth 0).
         z keeps the centred u (the next frame's warm start).
         """
+        if ti.static(ncomp == 1):
+            _finish1(out, reference)
+        else:
+            _finish_components(out, reference)
+
+    @ti.func
+    def _finish_components(out: ti.template(), reference):
+        """``_finish`` for any number of components (per-component sums, two passes)."""
         for i, j in ti.ndrange(h0, w0):
             red[i, j] = ti.select(lab[i, j] >= 0, z[i, j], 0.0)
         comp_sums(csum)
@@ -445,14 +709,15 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         _finish(out, reference)
 
     @ti.func
-    def _correct():
-        """z += M (b - A z): one V-cycle correction, no reductions."""
+    def _correct(res_ready: ti.template()):
+        """z += M (b - A z): one V-cycle correction, no reductions (``res_ready``: f
+        already holds b - A z, written by ``_rhs``)."""
+        if ti.static(not res_ready):
+            for i, j in ti.ndrange(h0, w0):
+                f[i, j] = _res0(i, j)
+        vcycle_levels()
         for i, j in ti.ndrange(h0, w0):
-            v = _res0(i, j)
-            f[i, j] = v
-        vcycle()
-        for i, j in ti.ndrange(h0, w0):
-            z[i, j] += t[i, j]
+            z[i, j] += _mf0(i, j)
 
     frames = {}
 
@@ -466,9 +731,9 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             @ti.kernel
             def _frame(nrm: ti.types.ndarray(), out: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64,
                        cy: ti.f64, s: ti.f64, min_nz: ti.f64, reference: ti.f64):
-                _rhs(nrm, fx, fy, cx, cy, s, min_nz, False)
-                for _ in ti.static(range(cycles)):
-                    _correct()
+                _rhs(nrm, fx, fy, cx, cy, s, min_nz, False, cycles > 0)
+                for cyc in ti.static(range(cycles)):
+                    _correct(cyc == 0)
                 _finish(out, reference)
 
             frames[cycles] = _frame
