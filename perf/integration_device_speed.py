@@ -66,6 +66,7 @@ def main(argv=None) -> int:
     ap.add_argument("--coarsest", default="16,32")
     ap.add_argument("--methods", default="pcg,multigrid")
     ap.add_argument("--block-cells", default="4096")
+    ap.add_argument("--max-cold", type=int, default=10, help="cold runs of 1..N iterations (each N <= 4 compiles a kernel)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
 
@@ -161,7 +162,7 @@ def main(argv=None) -> int:
                 }
                 # cold: k iterations, no host sync
                 cold = []
-                for k in range(1, 11):
+                for k in range(1, a.max_cold + 1):
                     def run(k=k):
                         si.reset()
                         si.integrate(nAd, out, iterations=k)

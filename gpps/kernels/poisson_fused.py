@@ -247,14 +247,13 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                 for i, j in ti.ndrange(h, w):
                     t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, om)
 
-    # ---------------------------------------------------------------- one task per level (npairs == 1)
-    # The same V(2, 2)-cycle as vcycle_tasks, with each level's two passes per
-    # direction fused into one by recomputing the first pass's values where the
-    # second needs them (12 pre-smoothed values per 2x2 block on the way down,
-    # 5 first post-sweep values per pixel on the way up): launches, not
-    # arithmetic, bound these passes on a GPU.  Level k >= 1 ends in ``e`` (the
-    # coarsest in ``t``, from the dense solve); level 0's final value is
-    # computed where it is consumed (``_mf0``).
+    # ---------------------------------------------------------------- fewer tasks (npairs == 1)
+    # The same V(2, 2)-cycle as vcycle_tasks.  Down, each level's two passes are
+    # one task: the 8 pre-smoothed values around a 2x2 block are recomputed
+    # rather than read after a task boundary (launches, not arithmetic, bound
+    # these passes on a GPU).  Up stays two tasks per level: fusing it the same
+    # way recomputes 25 stencils per pixel and made Taichi's compile 15x longer.
+    # Level 0's last sweep is computed where it is consumed (``_mf0``).
 
     @ti.func
     def _pre_at(i, j, k: ti.template()):
@@ -288,99 +287,55 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
     @ti.func
     def _down_cell(ci, cj, k: ti.template()):
         """Level k's pre-smoothing at the 2x2 block of coarse cell (ci, cj), written to t, and the
-        block's summed residual, written to level k+1's f (the 8 pre-smoothed values around the
-        block are recomputed here rather than read after a sync)."""
+        block's summed residual, written to level k+1's f.  The pre-smoothed values of the 4x4 patch
+        around the block are computed here (a loop, so the stencil is compiled once) rather than read
+        after a task boundary."""
         off, h, w = ti.static(geo[k])
         offc = ti.static(geo[k + 1][0])
         i0 = 2 * ci
         j0 = 2 * cj
-        t00 = _pre_at(i0, j0, k)
-        t01 = _pre_at(i0, j0 + 1, k)
-        t10 = _pre_at(i0 + 1, j0, k)
-        t11 = _pre_at(i0 + 1, j0 + 1, k)
-        u0 = _pre_at(i0 - 1, j0, k)
-        u1 = _pre_at(i0 - 1, j0 + 1, k)
-        d0 = _pre_at(i0 + 2, j0, k)
-        d1 = _pre_at(i0 + 2, j0 + 1, k)
-        l0 = _pre_at(i0, j0 - 1, k)
-        l1 = _pre_at(i0 + 1, j0 - 1, k)
-        r0 = _pre_at(i0, j0 + 2, k)
-        r1 = _pre_at(i0 + 1, j0 + 2, k)
-        t[i0, off + j0] = t00  # (i0, j0) is on the level: hc = ceil(h / 2), wc = ceil(w / 2)
+        pv = ti.Vector([f[0, 0] * 0 for _ in ti.static(range(16))])  # patch rows i0-1..i0+2, cols j0-1..j0+2
+        for q in range(16):
+            a = q // 4
+            c = q % 4
+            if (a == 0 or a == 3) and (c == 0 or c == 3):
+                continue  # the corners are not needed
+            pv[q] = _pre_at(i0 - 1 + a, j0 - 1 + c, k)
+        t[i0, off + j0] = pv[5]  # (i0, j0) is on the level: hc = ceil(h / 2), wc = ceil(w / 2)
         if j0 + 1 < w:
-            t[i0, off + j0 + 1] = t01
+            t[i0, off + j0 + 1] = pv[6]
         if i0 + 1 < h:
-            t[i0 + 1, off + j0] = t10
+            t[i0 + 1, off + j0] = pv[9]
             if j0 + 1 < w:
-                t[i0 + 1, off + j0 + 1] = t11
-        f[ci, offc + cj] = (_res_vals(i0, j0, k, t00, l0, t01, u0, t10)
-                            + _res_vals(i0, j0 + 1, k, t01, t00, r0, u1, t11)
-                            + _res_vals(i0 + 1, j0, k, t10, l1, t11, t00, d0)
-                            + _res_vals(i0 + 1, j0 + 1, k, t11, t10, r1, t01, d1))
-
-    @ti.func
-    def _corr_at(i, j, k: ti.template()):
-        """Level k's pre-smoothed iterate plus the injected corrected coarse iterate (0 off the mask)."""
-        off, h, w = ti.static(geo[k])
-        offc = ti.static(geo[k + 1][0])
-        v = t[0, 0] * 0
-        if dg[i, off + j] > 0:
-            if ti.static(k + 1 == L - 1):
-                v = t[i, off + j] + t[i // 2, offc + j // 2]
-            else:
-                v = t[i, off + j] + e[i // 2, offc + j // 2]
-        return v
-
-    @ti.func
-    def _e1(i, j, k: ti.template()):
-        """The first post-smoothing sweep at level k's pixel (i, j), 0 off the level or the mask."""
-        off, h, w = ti.static(geo[k])
-        v = f[0, 0] * 0
-        if i >= 0 and i < h and j >= 0 and j < w:
-            d = dg[i, off + j]
-            if d > 0:
-                nb = f[0, 0] * 0
-                if j > 0:
-                    nb += wx[i, off + j - 1] * _corr_at(i, j - 1, k)
-                if j < w - 1:
-                    nb += wx[i, off + j] * _corr_at(i, j + 1, k)
-                if i > 0:
-                    nb += wy[i - 1, off + j] * _corr_at(i - 1, j, k)
-                if i < h - 1:
-                    nb += wy[i, off + j] * _corr_at(i + 1, j, k)
-                v = (1 - om) * _corr_at(i, j, k) + om * (f[i, off + j] + nb) / d
-        return v
-
-    @ti.func
-    def _up_point(i, j, k: ti.template()):
-        """Level k's corrected, post-smoothed iterate at (i, j) (the second sweep on ``_e1``)."""
-        off, h, w = ti.static(geo[k])
-        v = f[0, 0] * 0
-        d = dg[i, off + j]
-        if d > 0:
-            nb = f[0, 0] * 0
-            if j > 0:
-                nb += wx[i, off + j - 1] * _e1(i, j - 1, k)
-            if j < w - 1:
-                nb += wx[i, off + j] * _e1(i, j + 1, k)
-            if i > 0:
-                nb += wy[i - 1, off + j] * _e1(i - 1, j, k)
-            if i < h - 1:
-                nb += wy[i, off + j] * _e1(i + 1, j, k)
-            v = (1 - om) * _e1(i, j, k) + om * (f[i, off + j] + nb) / d
-        return v
+                t[i0 + 1, off + j0 + 1] = pv[10]
+        f[ci, offc + cj] = (_res_vals(i0, j0, k, pv[5], pv[4], pv[6], pv[1], pv[9])
+                            + _res_vals(i0, j0 + 1, k, pv[6], pv[5], pv[7], pv[2], pv[10])
+                            + _res_vals(i0 + 1, j0, k, pv[9], pv[8], pv[10], pv[5], pv[13])
+                            + _res_vals(i0 + 1, j0 + 1, k, pv[10], pv[9], pv[11], pv[6], pv[14]))
 
     @ti.func
     def block_part():
-        """Levels K0 .. L-1, down, the dense solve and up, as one task of one thread block (CUDA)."""
+        """Levels K0 .. L-1 as one task of one thread block (CUDA): per level down, the pre-smoothing
+        pass and the residual restriction; the dense coarsest solve; per level up (but level 0), the
+        two post-smoothing sweeps; a block barrier after each pass (as a task boundary would be)."""
         ti.loop_config(block_dim=NT)
         for tid in range(NT):
             for k in ti.static(range(K0, L - 1)):
-                hc, wc = ti.static(geo[k + 1][1], geo[k + 1][2])
+                off, h, w = ti.static(geo[k])
+                offc, hc, wc = ti.static(geo[k + 1])
+                for it in range((h * w + NT - 1) // NT):
+                    cc = it * NT + tid
+                    if cc < h * w:
+                        t[cc // w, off + cc % w] = _pre(cc // w, cc % w, off, h, w)
+                ti.simt.block.sync()
                 for it in range((hc * wc + NT - 1) // NT):
                     cc = it * NT + tid
                     if cc < hc * wc:
-                        _down_cell(cc // wc, cc % wc, k)
+                        ci = cc // wc
+                        cj = cc % wc
+                        f[ci, offc + cj] = (_res(2 * ci, 2 * cj, off, h, w) + _res(2 * ci, 2 * cj + 1, off, h, w)
+                                            + _res(2 * ci + 1, 2 * cj, off, h, w)
+                                            + _res(2 * ci + 1, 2 * cj + 1, off, h, w))
                 ti.simt.block.sync()
             for it in range((nc + NT - 1) // NT):
                 kk = it * NT + tid
@@ -389,15 +344,27 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             ti.simt.block.sync()
             for k in ti.static(range(L - 2, max(K0, 1) - 1, -1)):
                 off, h, w = ti.static(geo[k])
+                offc = ti.static(geo[k + 1][0])
                 for it in range((h * w + NT - 1) // NT):
                     cc = it * NT + tid
                     if cc < h * w:
-                        e[cc // w, off + cc % w] = _up_point(cc // w, cc % w, k)
+                        e[cc // w, off + cc % w] = _post_first(cc // w, cc % w, off, h, w, offc)
+                ti.simt.block.sync()
+                for it in range((h * w + NT - 1) // NT):
+                    cc = it * NT + tid
+                    if cc < h * w:
+                        t[cc // w, off + cc % w] = _jacobi_point(e, f, wx, wy, dg, cc // w, cc % w, off, h, w, om)
                 ti.simt.block.sync()
 
     @ti.func
     def vcycle_levels():
-        """Every pass of one V-cycle from zero on level 0's f except level 0's last (see ``_mf0``)."""
+        """Every pass of one V-cycle from zero on level 0's f except level 0's last sweep (``_mf0``).
+
+        Down, one task per level (``_down_cell``); the levels from K0 and the
+        coarsest solve in one single-block task (CUDA) or as tasks; up, two
+        tasks per level (first sweep with the injected correction into e, the
+        second into t), level 0's second left to the consumer.
+        """
         if ti.static(not fused):
             vcycle_tasks()
         else:
@@ -410,27 +377,36 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                 block_part()
             else:
                 coarse_solve()
-            for k in ti.static(range(top - 1, 0, -1)):
+            for k in ti.static(range(top - 1, -1, -1)):
                 off, h, w = ti.static(geo[k])
+                offc = ti.static(geo[k + 1][0])
                 for i, j in ti.ndrange(h, w):
-                    e[i, off + j] = _up_point(i, j, k)
+                    e[i, off + j] = _post_first(i, j, off, h, w, offc)
+                if ti.static(k > 0):
+                    for i, j in ti.ndrange(h, w):
+                        t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, om)
+            if ti.static(K0 == 0 and L > 1):  # the block did level 0's descent: its first sweep up
+                offc0 = ti.static(geo[1][0])
+                for i, j in ti.ndrange(h0, w0):
+                    e[i, j] = _post_first(i, j, 0, h0, w0, offc0)
 
     @ti.func
     def _mf0(i, j):
         """``(M f_0)[i, j]``: level 0's result of the V-cycle run by ``vcycle_levels``."""
         v = t[0, 0] * 0
         if ti.static(fused and L > 1):
-            v = _up_point(i, j, 0)
+            v = _jacobi_point(e, f, wx, wy, dg, i, j, 0, h0, w0, om)
         else:
             v = t[i, j]
         return v
 
     @ti.func
     def vcycle():
-        """e_0 = M f_0 (one V-cycle from zero on level 0's f)."""
+        """t_0 = M f_0 (one V-cycle from zero on level 0's f)."""
         vcycle_levels()
-        for i, j in ti.ndrange(h0, w0):
-            e[i, j] = _mf0(i, j)
+        if ti.static(fused and L > 1):
+            for i, j in ti.ndrange(h0, w0):
+                t[i, j] = _mf0(i, j)
 
     @ti.func
     def _rhs(nrm: ti.template(), fx, fy, cx, cy, s, min_nz, norm: ti.template(), res: ti.template()):
@@ -490,8 +466,8 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             for ii in range(CH):
                 i = c * CH + ii
                 if i < h0:
-                    p[i, j] = e[i, j]
-                    acc += _mul(r[i, j], e[i, j])
+                    p[i, j] = t[i, j]
+                    acc += _mul(r[i, j], t[i, j])
             part[c, j] = acc
         stage2(RZ)
 
@@ -552,7 +528,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             for ii in range(CH):
                 i = c * CH + ii
                 if i < h0:
-                    acc += _mul(r[i, j], e[i, j])
+                    acc += _mul(r[i, j], t[i, j])
             part[c, j] = acc
         stage2(RZN)
         beta = sc[RZN] * 0
@@ -561,7 +537,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         sc[RZ] = sc[RZN]
         sc[5] = beta
         for i, j in ti.ndrange(h0, w0):
-            p[i, j] = e[i, j] + ti.cast(sc[5], p.dtype) * p[i, j]
+            p[i, j] = t[i, j] + ti.cast(sc[5], p.dtype) * p[i, j]
 
     @ti.kernel
     def mg_step():
