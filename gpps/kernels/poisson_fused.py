@@ -155,29 +155,29 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         return v
 
     @ti.func
-    def _corr(i, j, off, offc):
-        """The level's iterate (in t) plus the prolonged (injected) coarse correction (in t, coarse level)."""
+    def _corr(i, j, off, offc, src: ti.template()):
+        """The level's iterate (in t) plus the prolonged (injected) coarse correction (in src, coarse level)."""
         v = t[i, off + j] * 0
         if dg[i, off + j] > 0:
-            v = t[i, off + j] + t[i // 2, offc + j // 2]
+            v = t[i, off + j] + src[i // 2, offc + j // 2]
         return v
 
     @ti.func
-    def _post_first(i, j, off, h, w, offc):
+    def _post_first(i, j, off, h, w, offc, src: ti.template()):
         """One damped Jacobi sweep applied to (iterate + coarse correction), computed on the fly."""
         d = dg[i, off + j]
         v = f[i, off + j] * 0
         if d > 0:
             nb = f[i, off + j] * 0
             if j > 0:
-                nb += wx[i, off + j - 1] * _corr(i, j - 1, off, offc)
+                nb += wx[i, off + j - 1] * _corr(i, j - 1, off, offc, src)
             if j < w - 1:
-                nb += wx[i, off + j] * _corr(i, j + 1, off, offc)
+                nb += wx[i, off + j] * _corr(i, j + 1, off, offc, src)
             if i > 0:
-                nb += wy[i - 1, off + j] * _corr(i - 1, j, off, offc)
+                nb += wy[i - 1, off + j] * _corr(i - 1, j, off, offc, src)
             if i < h - 1:
-                nb += wy[i, off + j] * _corr(i + 1, j, off, offc)
-            v = (1 - om) * _corr(i, j, off, offc) + om * (f[i, off + j] + nb) / d
+                nb += wy[i, off + j] * _corr(i + 1, j, off, offc, src)
+            v = (1 - om) * _corr(i, j, off, offc, src) + om * (f[i, off + j] + nb) / d
         return v
 
     @ti.func
@@ -238,7 +238,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             off, h, w = ti.static(geo[k])
             offc = ti.static(geo[k + 1][0])
             for i, j in ti.ndrange(h, w):
-                e[i, off + j] = _post_first(i, j, off, h, w, offc)
+                e[i, off + j] = _post_first(i, j, off, h, w, offc, t)
             for i, j in ti.ndrange(h, w):
                 t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, om)
             for _ in ti.static(range(npairs - 1)):
@@ -348,7 +348,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                 for it in range((h * w + NT - 1) // NT):
                     cc = it * NT + tid
                     if cc < h * w:
-                        e[cc // w, off + cc % w] = _post_first(cc // w, cc % w, off, h, w, offc)
+                        e[cc // w, off + cc % w] = _post_first(cc // w, cc % w, off, h, w, offc, t)
                 ti.simt.block.sync()
                 for it in range((h * w + NT - 1) // NT):
                     cc = it * NT + tid
@@ -357,19 +357,59 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                 ti.simt.block.sync()
 
     @ti.func
+    def _up_point(i, j, k: ti.template(), src: ti.template()):
+        """Level k's two post-smoothing sweeps at (i, j) in one pass: the first sweep at the pixel
+        and its 4 neighbours in a loop (so the stencil is compiled once), then the second."""
+        off, h, w = ti.static(geo[k])
+        offc = ti.static(geo[k + 1][0])
+        v = f[0, 0] * 0
+        d = dg[i, off + j]
+        if d > 0:
+            ev = ti.Vector([f[0, 0] * 0 for _ in ti.static(range(5))])  # centre, left, right, up, down
+            for q in range(5):
+                ii = i
+                jj = j
+                if q == 1:
+                    jj = j - 1
+                elif q == 2:
+                    jj = j + 1
+                elif q == 3:
+                    ii = i - 1
+                elif q == 4:
+                    ii = i + 1
+                if ii >= 0 and ii < h and jj >= 0 and jj < w:
+                    ev[q] = _post_first(ii, jj, off, h, w, offc, src)
+            nb = f[0, 0] * 0
+            if j > 0:
+                nb += wx[i, off + j - 1] * ev[1]
+            if j < w - 1:
+                nb += wx[i, off + j] * ev[2]
+            if i > 0:
+                nb += wy[i - 1, off + j] * ev[3]
+            if i < h - 1:
+                nb += wy[i, off + j] * ev[4]
+            v = (1 - om) * ev[0] + om * (f[i, off + j] + nb) / d
+        return v
+
+    TOP = min(K0, L - 1)  # levels below TOP descend as tasks; from K0 on, in the block (or as tasks)
+
+    def _src(k):
+        """Where level k+1's corrected iterate lives when level k ascends: e for a level that
+        ascended as one fused task (1 <= k+1 < TOP), t for the coarsest and the block's levels."""
+        return e if 1 <= k + 1 < TOP else t
+
+    @ti.func
     def vcycle_levels():
-        """Every pass of one V-cycle from zero on level 0's f except level 0's last sweep (``_mf0``).
+        """Every pass of one V-cycle from zero on level 0's f except level 0's ascent (``_mf0``).
 
         Down, one task per level (``_down_cell``); the levels from K0 and the
-        coarsest solve in one single-block task (CUDA) or as tasks; up, two
-        tasks per level (first sweep with the injected correction into e, the
-        second into t), level 0's second left to the consumer.
+        coarsest solve in one single-block task (CUDA) or as tasks; up, one task
+        per level (``_up_point``, into e), level 0's left to the consumer.
         """
         if ti.static(not fused):
             vcycle_tasks()
         else:
-            top = ti.static(min(K0, L - 1))
-            for k in ti.static(range(top)):
+            for k in ti.static(range(TOP)):
                 hc, wc = ti.static(geo[k + 1][1], geo[k + 1][2])
                 for ci, cj in ti.ndrange(hc, wc):
                     _down_cell(ci, cj, k)
@@ -377,36 +417,27 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                 block_part()
             else:
                 coarse_solve()
-            for k in ti.static(range(top - 1, -1, -1)):
+            for k in ti.static(range(TOP - 1, 0, -1)):
                 off, h, w = ti.static(geo[k])
-                offc = ti.static(geo[k + 1][0])
                 for i, j in ti.ndrange(h, w):
-                    e[i, off + j] = _post_first(i, j, off, h, w, offc)
-                if ti.static(k > 0):
-                    for i, j in ti.ndrange(h, w):
-                        t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, om)
-            if ti.static(K0 == 0 and L > 1):  # the block did level 0's descent: its first sweep up
-                offc0 = ti.static(geo[1][0])
-                for i, j in ti.ndrange(h0, w0):
-                    e[i, j] = _post_first(i, j, 0, h0, w0, offc0)
+                    e[i, off + j] = _up_point(i, j, k, ti.static(_src(k)))
 
     @ti.func
     def _mf0(i, j):
         """``(M f_0)[i, j]``: level 0's result of the V-cycle run by ``vcycle_levels``."""
         v = t[0, 0] * 0
         if ti.static(fused and L > 1):
-            v = _jacobi_point(e, f, wx, wy, dg, i, j, 0, h0, w0, om)
+            v = _up_point(i, j, 0, ti.static(_src(0)))
         else:
             v = t[i, j]
         return v
 
     @ti.func
     def vcycle():
-        """t_0 = M f_0 (one V-cycle from zero on level 0's f)."""
+        """e_0 = M f_0 (one V-cycle from zero on level 0's f)."""
         vcycle_levels()
-        if ti.static(fused and L > 1):
-            for i, j in ti.ndrange(h0, w0):
-                t[i, j] = _mf0(i, j)
+        for i, j in ti.ndrange(h0, w0):
+            e[i, j] = _mf0(i, j)
 
     @ti.func
     def _rhs(nrm: ti.template(), fx, fy, cx, cy, s, min_nz, norm: ti.template(), res: ti.template()):
@@ -466,8 +497,8 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             for ii in range(CH):
                 i = c * CH + ii
                 if i < h0:
-                    p[i, j] = t[i, j]
-                    acc += _mul(r[i, j], t[i, j])
+                    p[i, j] = e[i, j]
+                    acc += _mul(r[i, j], e[i, j])
             part[c, j] = acc
         stage2(RZ)
 
@@ -528,7 +559,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             for ii in range(CH):
                 i = c * CH + ii
                 if i < h0:
-                    acc += _mul(r[i, j], t[i, j])
+                    acc += _mul(r[i, j], e[i, j])
             part[c, j] = acc
         stage2(RZN)
         beta = sc[RZN] * 0
@@ -537,7 +568,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         sc[RZ] = sc[RZN]
         sc[5] = beta
         for i, j in ti.ndrange(h0, w0):
-            p[i, j] = t[i, j] + ti.cast(sc[5], p.dtype) * p[i, j]
+            p[i, j] = e[i, j] + ti.cast(sc[5], p.dtype) * p[i, j]
 
     @ti.kernel
     def mg_step():
