@@ -22,15 +22,13 @@ Per size and configuration (``coarsest`` x ``method``):
   the width, a streaming step): ``k`` iterations from A's solution, k = 1..4,
   time and depth error against B's reference.
 
-``--block-cells 0,4096`` compares the fused single-block coarse levels
-(StreamIntegratorConfig.block_cells; 0 = off) within the same run.
-
 Roofline: the copy bandwidth is measured in the same run (torch device copy
 of 256 MiB, read + write); the warm one-cycle frame's DRAM traffic is counted
-from its passes (float32 fields: steps 24 B/pixel, right-hand side and
-residual 32, level-0 descent 21, level-0 ascent with the depth update 29,
-the two finishing passes 24; every coarser level adds its share of the
-descent and ascent, 1/4 of the level above), and ``roofline_ratio`` = the
+from its passes (float32 fields, per pixel: normals to steps 24 B,
+right-hand side with the first residual 32, descent 21 (pre-smoothing 20,
+restriction 1), ascent 45 (first sweep 25, second sweep into the depth
+update 20), the finish's sum and write passes 24; every coarser level adds
+its descent and ascent at 1/4 the pixels of the level above), and ``roofline_ratio`` = the
 measured warm time / (bytes / bandwidth).  At these sizes the frame is bound
 by launches, not memory: the ratio says how far.
 
@@ -65,7 +63,6 @@ def main(argv=None) -> int:
     ap.add_argument("--accuracy", type=float, default=1e-4)
     ap.add_argument("--coarsest", default="16,32")
     ap.add_argument("--methods", default="pcg,multigrid")
-    ap.add_argument("--block-cells", default="4096")
     ap.add_argument("--max-cold", type=int, default=10, help="cold runs of 1..N iterations (each N <= 4 compiles a kernel)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
@@ -116,7 +113,7 @@ def main(argv=None) -> int:
         h, w = shapes[0]
         total = (24 + 32 + 24) * h * w  # steps, rhs + residual, finish
         for (hh, ww) in shapes[:-1]:
-            total += (21 + 29) * hh * ww  # descent and ascent of each level but the coarsest
+            total += (21 + 45) * hh * ww  # descent and ascent of each level but the coarsest
         return total
 
     rows = []
@@ -136,10 +133,9 @@ def main(argv=None) -> int:
         ref.close()
         rng = float(np.ptp(refs["A"]))
         nAd, nBd = dev(nA), dev(nB)
-        for coarsest, method, bcells in [(c, m, b) for c in map(int, a.coarsest.split(","))
-                                         for m in a.methods.split(",") for b in map(int, a.block_cells.split(","))]:
-            if True:
-                cfg = StreamIntegratorConfig(coarsest=coarsest, method=method, block_cells=bcells)
+        for coarsest in map(int, a.coarsest.split(",")):
+            for method in a.methods.split(","):
+                cfg = StreamIntegratorConfig(coarsest=coarsest, method=method)
                 si = StreamIntegrator(mask, cam, cfg, device=a.device)
                 K = si._K
                 out = dev(np.zeros((n, n), np.float32))
@@ -148,8 +144,7 @@ def main(argv=None) -> int:
                 step = K["mg_step"] if method == "multigrid" else K["pcg_iteration"]
                 rhs = (lambda: K["rhs_only"](nAd, *si._cam, cfg.min_nz)) if method == "multigrid" else \
                     (lambda: K["rhs_begin"](nAd, *si._cam, cfg.min_nz))
-                row = {"size": n, "coarsest": coarsest, "method": method, "block_cells": bcells,
-                       "levels": len(si.levels),
+                row = {"size": n, "coarsest": coarsest, "method": method, "levels": len(si.levels),
                        "coarsest_cells": int(si._F["cidx"].shape[0])}
                 row["pieces_us"] = {
                     "noop_launch": 1e6 * med(K["noop"], a.repeat, 10),
@@ -208,7 +203,7 @@ def main(argv=None) -> int:
                 rows.append(row)
                 p = row["pieces_us"]
                 ca, wa = row["cold_to_accuracy"], row["warm_to_accuracy"]
-                print(f"{n:5d} coarsest {coarsest:2d} {method:9s} block {bcells:5d} | noop {p['noop_launch']:6.1f} coarse {p['coarse_solve']:6.1f} "
+                print(f"{n:5d} coarsest {coarsest:2d} {method:9s} | noop {p['noop_launch']:6.1f} coarse {p['coarse_solve']:6.1f} "
                       f"vcycle {p['vcycle']:7.1f} iter {p['iteration']:7.1f} rhs {p['rhs']:6.1f} finish {p['finish']:6.1f} "
                       f"read {p['read_scalars']:6.1f} us | cold {ca['iterations'] if ca else '-'} it "
                       f"{ca['ms'] if ca else float('nan'):.3f} ms | warm {wa['iterations'] if wa else '-'} it "

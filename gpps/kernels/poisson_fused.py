@@ -20,8 +20,7 @@ from gpps._taichi import ti
 from gpps.kernels.poisson import ALPHA, PQ, RR, RZ, RZN, _jacobi_point, _mul, _neigh, _sq, div_mean_steps, pixel_steps
 
 
-def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspective: bool, block: bool = False,
-               block_threads: int = 512, block_cells: int = 4096):
+def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspective: bool):
     """Build the fused kernels over the fields ``F`` for the level geometry ``geo``.
 
     Args:
@@ -36,11 +35,6 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         omega: Jacobi damping.
         nc: active cells of the coarsest level.
         perspective: the unknown is log-depth (PPN gradients, depth = exp).
-        block: run every level of at most ``block_cells`` cells, down and up
-            with the coarsest solve, as *one* task of a single thread block
-            of ``block_threads`` threads that steps from pass to pass with
-            ``ti.simt.block.sync()`` (CUDA only: on the GPU each task is a
-            kernel launch of about 5 us, more than the small levels' work).
 
     Returns:
         dict of kernels: ``rhs(nrm, fx, fy, cx, cy, s, min_nz)``,
@@ -60,15 +54,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
     om = omega
 
     red, part, part2 = F["red"], F["part"], F["part2"]
-    NT = block_threads
-    fused = npairs == 1  # one task per level and direction (the on-the-fly sweeps below)
-    # first level handled inside the single block (CUDA): every level from K0 down
-    K0 = L
-    if block and fused:
-        for k in range(L):
-            if geo[k][1] * geo[k][2] <= block_cells:
-                K0 = k
-                break
+    fold0 = npairs == 1 and L > 1  # level 0's last sweep computed by its consumer
     CH = 32  # rows per chunk of the two-stage reductions
     NCH = (h0 + CH - 1) // CH
 
@@ -155,29 +141,29 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         return v
 
     @ti.func
-    def _corr(i, j, off, offc, src: ti.template()):
+    def _corr(i, j, off, offc):
         """The level's iterate (in t) plus the prolonged (injected) coarse correction (in src, coarse level)."""
         v = t[i, off + j] * 0
         if dg[i, off + j] > 0:
-            v = t[i, off + j] + src[i // 2, offc + j // 2]
+            v = t[i, off + j] + t[i // 2, offc + j // 2]
         return v
 
     @ti.func
-    def _post_first(i, j, off, h, w, offc, src: ti.template()):
+    def _post_first(i, j, off, h, w, offc):
         """One damped Jacobi sweep applied to (iterate + coarse correction), computed on the fly."""
         d = dg[i, off + j]
         v = f[i, off + j] * 0
         if d > 0:
             nb = f[i, off + j] * 0
             if j > 0:
-                nb += wx[i, off + j - 1] * _corr(i, j - 1, off, offc, src)
+                nb += wx[i, off + j - 1] * _corr(i, j - 1, off, offc)
             if j < w - 1:
-                nb += wx[i, off + j] * _corr(i, j + 1, off, offc, src)
+                nb += wx[i, off + j] * _corr(i, j + 1, off, offc)
             if i > 0:
-                nb += wy[i - 1, off + j] * _corr(i - 1, j, off, offc, src)
+                nb += wy[i - 1, off + j] * _corr(i - 1, j, off, offc)
             if i < h - 1:
-                nb += wy[i, off + j] * _corr(i + 1, j, off, offc, src)
-            v = (1 - om) * _corr(i, j, off, offc, src) + om * (f[i, off + j] + nb) / d
+                nb += wy[i, off + j] * _corr(i + 1, j, off, offc)
+            v = (1 - om) * _corr(i, j, off, offc) + om * (f[i, off + j] + nb) / d
         return v
 
     @ti.func
@@ -210,16 +196,10 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             _coarse_cell(kk)
 
     @ti.func
-    def vcycle_tasks():
-        """t_0 = M f_0: one V-cycle from zero, every level unrolled (the general form, any ``npairs``).
-
-        Per level on the way down, two tasks: the pre-smoothing pair (from zero,
-        fused) and residual + restriction (fused); on the way up two: the first
-        post-smoothing sweep with the coarse correction added on the fly, and the
-        second.  Each level's iterate ends in ``t``.  Same operator as
-        :func:`gpps.kernels.poisson.down` / ``up`` (2x2 aggregation, injection,
-        damped Jacobi), with ``npairs - 1`` further plain sweep pairs.
-        """
+    def vcycle_levels():
+        """Every pass of one V-cycle from zero on level 0's f (``vcycle_tasks``) except, with
+        ``npairs == 1``, level 0's last sweep: its consumer computes it (``_mf0``) in the pass
+        that uses it (the depth update, or the copy into t), one level-0 pass fewer."""
         for k in ti.static(range(L - 1)):
             off, h, w = ti.static(geo[k])
             offc, hc, wc = ti.static(geo[k + 1])
@@ -238,206 +218,33 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             off, h, w = ti.static(geo[k])
             offc = ti.static(geo[k + 1][0])
             for i, j in ti.ndrange(h, w):
-                e[i, off + j] = _post_first(i, j, off, h, w, offc, t)
-            for i, j in ti.ndrange(h, w):
-                t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, om)
-            for _ in ti.static(range(npairs - 1)):
-                for i, j in ti.ndrange(h, w):
-                    e[i, off + j] = _jacobi_point(t, f, wx, wy, dg, i, j, off, h, w, om)
+                e[i, off + j] = _post_first(i, j, off, h, w, offc)
+            if ti.static(k > 0 or not fold0):
                 for i, j in ti.ndrange(h, w):
                     t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, om)
-
-    # ---------------------------------------------------------------- fewer tasks (npairs == 1)
-    # The same V(2, 2)-cycle as vcycle_tasks.  Down, each level's two passes are
-    # one task: the 8 pre-smoothed values around a 2x2 block are recomputed
-    # rather than read after a task boundary (launches, not arithmetic, bound
-    # these passes on a GPU).  Up stays two tasks per level: fusing it the same
-    # way recomputes 25 stencils per pixel and made Taichi's compile 15x longer.
-    # Level 0's last sweep is computed where it is consumed (``_mf0``).
-
-    @ti.func
-    def _pre_at(i, j, k: ti.template()):
-        """``_pre`` at level k, 0 off the level."""
-        off, h, w = ti.static(geo[k])
-        v = f[0, 0] * 0
-        if i >= 0 and i < h and j >= 0 and j < w:
-            v = _pre(i, j, off, h, w)
-        return v
-
-    @ti.func
-    def _res_vals(i, j, k: ti.template(), tc, tl, tr, tu, td):
-        """Residual f - A t at level k's pixel (i, j) from the given centre / left / right / up / down t."""
-        off, h, w = ti.static(geo[k])
-        rr = f[0, 0] * 0
-        if i < h and j < w:
-            d = dg[i, off + j]
-            if d > 0:
-                nb = f[0, 0] * 0
-                if j > 0:
-                    nb += wx[i, off + j - 1] * tl
-                if j < w - 1:
-                    nb += wx[i, off + j] * tr
-                if i > 0:
-                    nb += wy[i - 1, off + j] * tu
-                if i < h - 1:
-                    nb += wy[i, off + j] * td
-                rr = f[i, off + j] - d * tc + nb
-        return rr
-
-    @ti.func
-    def _down_cell(ci, cj, k: ti.template()):
-        """Level k's pre-smoothing at the 2x2 block of coarse cell (ci, cj), written to t, and the
-        block's summed residual, written to level k+1's f.  The pre-smoothed values of the 4x4 patch
-        around the block are computed here (a loop, so the stencil is compiled once) rather than read
-        after a task boundary."""
-        off, h, w = ti.static(geo[k])
-        offc = ti.static(geo[k + 1][0])
-        i0 = 2 * ci
-        j0 = 2 * cj
-        pv = ti.Vector([f[0, 0] * 0 for _ in ti.static(range(16))])  # patch rows i0-1..i0+2, cols j0-1..j0+2
-        for q in range(16):
-            a = q // 4
-            c = q % 4
-            if (a == 0 or a == 3) and (c == 0 or c == 3):
-                continue  # the corners are not needed
-            pv[q] = _pre_at(i0 - 1 + a, j0 - 1 + c, k)
-        t[i0, off + j0] = pv[5]  # (i0, j0) is on the level: hc = ceil(h / 2), wc = ceil(w / 2)
-        if j0 + 1 < w:
-            t[i0, off + j0 + 1] = pv[6]
-        if i0 + 1 < h:
-            t[i0 + 1, off + j0] = pv[9]
-            if j0 + 1 < w:
-                t[i0 + 1, off + j0 + 1] = pv[10]
-        f[ci, offc + cj] = (_res_vals(i0, j0, k, pv[5], pv[4], pv[6], pv[1], pv[9])
-                            + _res_vals(i0, j0 + 1, k, pv[6], pv[5], pv[7], pv[2], pv[10])
-                            + _res_vals(i0 + 1, j0, k, pv[9], pv[8], pv[10], pv[5], pv[13])
-                            + _res_vals(i0 + 1, j0 + 1, k, pv[10], pv[9], pv[11], pv[6], pv[14]))
-
-    @ti.func
-    def block_part():
-        """Levels K0 .. L-1 as one task of one thread block (CUDA): per level down, the pre-smoothing
-        pass and the residual restriction; the dense coarsest solve; per level up (but level 0), the
-        two post-smoothing sweeps; a block barrier after each pass (as a task boundary would be)."""
-        ti.loop_config(block_dim=NT)
-        for tid in range(NT):
-            for k in ti.static(range(K0, L - 1)):
-                off, h, w = ti.static(geo[k])
-                offc, hc, wc = ti.static(geo[k + 1])
-                for it in range((h * w + NT - 1) // NT):
-                    cc = it * NT + tid
-                    if cc < h * w:
-                        t[cc // w, off + cc % w] = _pre(cc // w, cc % w, off, h, w)
-                ti.simt.block.sync()
-                for it in range((hc * wc + NT - 1) // NT):
-                    cc = it * NT + tid
-                    if cc < hc * wc:
-                        ci = cc // wc
-                        cj = cc % wc
-                        f[ci, offc + cj] = (_res(2 * ci, 2 * cj, off, h, w) + _res(2 * ci, 2 * cj + 1, off, h, w)
-                                            + _res(2 * ci + 1, 2 * cj, off, h, w)
-                                            + _res(2 * ci + 1, 2 * cj + 1, off, h, w))
-                ti.simt.block.sync()
-            for it in range((nc + NT - 1) // NT):
-                kk = it * NT + tid
-                if kk < nc:
-                    _coarse_cell(kk)
-            ti.simt.block.sync()
-            for k in ti.static(range(L - 2, max(K0, 1) - 1, -1)):
-                off, h, w = ti.static(geo[k])
-                offc = ti.static(geo[k + 1][0])
-                for it in range((h * w + NT - 1) // NT):
-                    cc = it * NT + tid
-                    if cc < h * w:
-                        e[cc // w, off + cc % w] = _post_first(cc // w, cc % w, off, h, w, offc, t)
-                ti.simt.block.sync()
-                for it in range((h * w + NT - 1) // NT):
-                    cc = it * NT + tid
-                    if cc < h * w:
-                        t[cc // w, off + cc % w] = _jacobi_point(e, f, wx, wy, dg, cc // w, cc % w, off, h, w, om)
-                ti.simt.block.sync()
-
-    @ti.func
-    def _up_point(i, j, k: ti.template(), src: ti.template()):
-        """Level k's two post-smoothing sweeps at (i, j) in one pass: the first sweep at the pixel
-        and its 4 neighbours in a loop (so the stencil is compiled once), then the second."""
-        off, h, w = ti.static(geo[k])
-        offc = ti.static(geo[k + 1][0])
-        v = f[0, 0] * 0
-        d = dg[i, off + j]
-        if d > 0:
-            ev = ti.Vector([f[0, 0] * 0 for _ in ti.static(range(5))])  # centre, left, right, up, down
-            for q in range(5):
-                ii = i
-                jj = j
-                if q == 1:
-                    jj = j - 1
-                elif q == 2:
-                    jj = j + 1
-                elif q == 3:
-                    ii = i - 1
-                elif q == 4:
-                    ii = i + 1
-                if ii >= 0 and ii < h and jj >= 0 and jj < w:
-                    ev[q] = _post_first(ii, jj, off, h, w, offc, src)
-            nb = f[0, 0] * 0
-            if j > 0:
-                nb += wx[i, off + j - 1] * ev[1]
-            if j < w - 1:
-                nb += wx[i, off + j] * ev[2]
-            if i > 0:
-                nb += wy[i - 1, off + j] * ev[3]
-            if i < h - 1:
-                nb += wy[i, off + j] * ev[4]
-            v = (1 - om) * ev[0] + om * (f[i, off + j] + nb) / d
-        return v
-
-    TOP = min(K0, L - 1)  # levels below TOP descend as tasks; from K0 on, in the block (or as tasks)
-
-    def _src(k):
-        """Where level k+1's corrected iterate lives when level k ascends: e for a level that
-        ascended as one fused task (1 <= k+1 < TOP), t for the coarsest and the block's levels."""
-        return e if 1 <= k + 1 < TOP else t
-
-    @ti.func
-    def vcycle_levels():
-        """Every pass of one V-cycle from zero on level 0's f except level 0's ascent (``_mf0``).
-
-        Down, one task per level (``_down_cell``); the levels from K0 and the
-        coarsest solve in one single-block task (CUDA) or as tasks; up, one task
-        per level (``_up_point``, into e), level 0's left to the consumer.
-        """
-        if ti.static(not fused):
-            vcycle_tasks()
-        else:
-            for k in ti.static(range(TOP)):
-                hc, wc = ti.static(geo[k + 1][1], geo[k + 1][2])
-                for ci, cj in ti.ndrange(hc, wc):
-                    _down_cell(ci, cj, k)
-            if ti.static(K0 < L):
-                block_part()
-            else:
-                coarse_solve()
-            for k in ti.static(range(TOP - 1, 0, -1)):
-                off, h, w = ti.static(geo[k])
-                for i, j in ti.ndrange(h, w):
-                    e[i, off + j] = _up_point(i, j, k, ti.static(_src(k)))
+                for _ in ti.static(range(npairs - 1)):
+                    for i, j in ti.ndrange(h, w):
+                        e[i, off + j] = _jacobi_point(t, f, wx, wy, dg, i, j, off, h, w, om)
+                    for i, j in ti.ndrange(h, w):
+                        t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, om)
 
     @ti.func
     def _mf0(i, j):
         """``(M f_0)[i, j]``: level 0's result of the V-cycle run by ``vcycle_levels``."""
         v = t[0, 0] * 0
-        if ti.static(fused and L > 1):
-            v = _up_point(i, j, 0, ti.static(_src(0)))
+        if ti.static(fold0):
+            v = _jacobi_point(e, f, wx, wy, dg, i, j, 0, h0, w0, om)
         else:
             v = t[i, j]
         return v
 
     @ti.func
     def vcycle():
-        """e_0 = M f_0 (one V-cycle from zero on level 0's f)."""
+        """t_0 = M f_0 (one V-cycle from zero on level 0's f)."""
         vcycle_levels()
-        for i, j in ti.ndrange(h0, w0):
-            e[i, j] = _mf0(i, j)
+        if ti.static(fold0):
+            for i, j in ti.ndrange(h0, w0):
+                t[i, j] = _mf0(i, j)
 
     @ti.func
     def _rhs(nrm: ti.template(), fx, fy, cx, cy, s, min_nz, norm: ti.template(), res: ti.template()):
@@ -497,8 +304,8 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             for ii in range(CH):
                 i = c * CH + ii
                 if i < h0:
-                    p[i, j] = e[i, j]
-                    acc += _mul(r[i, j], e[i, j])
+                    p[i, j] = t[i, j]
+                    acc += _mul(r[i, j], t[i, j])
             part[c, j] = acc
         stage2(RZ)
 
@@ -559,7 +366,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             for ii in range(CH):
                 i = c * CH + ii
                 if i < h0:
-                    acc += _mul(r[i, j], e[i, j])
+                    acc += _mul(r[i, j], t[i, j])
             part[c, j] = acc
         stage2(RZN)
         beta = sc[RZN] * 0
@@ -568,7 +375,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         sc[RZ] = sc[RZN]
         sc[5] = beta
         for i, j in ti.ndrange(h0, w0):
-            p[i, j] = e[i, j] + ti.cast(sc[5], p.dtype) * p[i, j]
+            p[i, j] = t[i, j] + ti.cast(sc[5], p.dtype) * p[i, j]
 
     @ti.kernel
     def mg_step():

@@ -44,14 +44,8 @@ class StreamIntegratorConfig:
             cells).  Each level costs a few parallel tasks (about 6 us each on
             an H100, launch-bound at the small levels), the dense solve grows
             as ``coarsest^4``: 16 was the faster of 16 and 32 at 1024^2.
-        block_cells: on CUDA, every level of at most this many cells (and the
-            coarsest solve) runs as one task of a single thread block that
-            steps from level to level with block barriers, instead of two
-            tasks (kernel launches) per level; 0 turns it off.  Ignored on CPU.
-        block_threads: threads of that block.
         smooth_pairs: Jacobi sweep pairs before and after each coarse
-            correction; with 1 (the default) each level is one task per
-            direction (the two sweeps fused, see :mod:`gpps.kernels.poisson_fused`).
+            correction.
         omega: Jacobi damping.
         min_nz: floor on ``n_z`` (orthographic) or ``-m`` (perspective).
         dtype: field precision.
@@ -68,8 +62,6 @@ class StreamIntegratorConfig:
     """
 
     coarsest: int = 16
-    block_cells: int = 4096
-    block_threads: int = 512
     smooth_pairs: int = 1
     omega: float = 0.8
     min_nz: float = 1e-3
@@ -84,10 +76,6 @@ class StreamIntegratorConfig:
             raise ValueError(f"dtype: expected one of {get_args(DType)}, got {self.dtype!r}")
         check_number("coarsest", self.coarsest, lo=2, hi=48, integer=True)
         check_number("smooth_pairs", self.smooth_pairs, lo=1, hi=8, integer=True)
-        check_number("block_cells", self.block_cells, lo=0, hi=65536, integer=True)
-        check_number("block_threads", self.block_threads, lo=32, hi=1024, integer=True)
-        if self.block_threads % 32:
-            raise ValueError(f"block_threads: expected a multiple of 32 (a warp), got {self.block_threads}")
         check_number("omega", self.omega, lo=0.0, hi=1.0, lo_open=True)
         check_number("min_nz", self.min_nz, lo=0.0, hi=1.0, lo_open=True)
         check_number("check_every", self.check_every, lo=1, integer=True)
@@ -202,9 +190,7 @@ class StreamIntegrator:
         self.levels = [(int(offs[k]), s[0], s[1]) for k, s in enumerate(shapes)]
         from gpps.kernels.poisson_fused import make_fused
 
-        self._K = make_fused(F, self.levels, cfg.smooth_pairs, cfg.omega, nc, camera.is_perspective,
-                             block=self.device.startswith("cuda") and cfg.block_cells > 0,
-                             block_threads=cfg.block_threads, block_cells=cfg.block_cells)
+        self._K = make_fused(F, self.levels, cfg.smooth_pairs, cfg.omega, nc, camera.is_perspective)
         if camera.is_perspective:
             cx, cy = camera.principal_point(self.shape)
             self._cam = (float(camera.fx), float(camera.fy), float(cx), float(cy), 1.0)
