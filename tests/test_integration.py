@@ -327,37 +327,47 @@ def test_rhs_is_compatible():
     assert abs(b.sum()) < 1e-9 and np.all(b[~mask] == 0)
 
 
+def _small_bumps(camera_kind):
+    """The bumps at 96x96 (every other pixel of the middle), full mask: depth, normals, camera, mask, persp."""
+    depth, n, cam = scene("bumps", camera_kind)
+    sl = (slice(32, 224, 2), slice(32, 224, 2))
+    depth, n = depth[sl], n[sl].copy()
+    cam = Orthographic(2 * cam.pixel_size) if camera_kind == "orthographic" else \
+        Perspective(np.array([[300.0, 0, 47.5], [0, 300.0, 47.5], [0, 0, 1]]))
+    return depth, n, cam, np.ones(depth.shape, bool), camera_kind == "perspective"
+
+
+def _spoil_one_percent(n, mask):
+    """Replace 1 % of the normals (seeded) by random visible ones, in place."""
+    rng = np.random.default_rng(0)
+    bad = rng.random(mask.shape) < 0.01
+    v = rng.normal(size=(int(bad.sum()), 3))
+    v[:, 2] = np.abs(v[:, 2]) + 0.05
+    n[bad] = v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _mean_error(est, depth, mask, persp):
+    """Mean |error| / range over the mask, after the offset (perspective: scale) alignment."""
+    e = est.astype(np.float64)[mask]
+    t = depth[mask]
+    e = e * (e @ t) / (e @ e) if persp else e + np.mean(t - e)
+    return float(np.mean(np.abs(e - t)) / np.ptp(t))
+
+
 @pytest.mark.parametrize("camera_kind", ["orthographic", "perspective"])
 def test_robust_loss_ignores_a_few_wrong_normals(camera_kind):
     """1 % of the normals replaced by random visible ones: the plain least squares bends the whole
     surface toward them, the Cauchy IRLS (IntegratorConfig.robust) recovers it; on clean normals it
     changes nothing measurable (same 1e-3 bound as the analytic tests).  Measured when written (mean
     |error| / range): orthographic 9.2e-3 plain -> 4.1e-4 robust, perspective 1.16e-2 -> 1.56e-3."""
-    depth, n, cam = scene("bumps", camera_kind)
-    sl = (slice(32, 224, 2), slice(32, 224, 2))
-    depth, n = depth[sl], n[sl].copy()
-    cam = Orthographic(2 * cam.pixel_size) if camera_kind == "orthographic" else \
-        Perspective(np.array([[300.0, 0, 47.5], [0, 300.0, 47.5], [0, 0, 1]]))
-    mask = np.ones(depth.shape, bool)
-    persp = camera_kind == "perspective"
+    depth, n, cam, mask, persp = _small_bumps(camera_kind)
     clean = integrate_normals(n, mask, camera=cam, solver="direct", robust="cauchy")
     assert clean.outer_iterations == 9
     assert aligned_error(clean.depth, depth, mask, persp) < 1e-3
-    rng = np.random.default_rng(0)
-    bad = rng.random(mask.shape) < 0.01
-    v = rng.normal(size=(int(bad.sum()), 3))
-    v[:, 2] = np.abs(v[:, 2]) + 0.05
-    n[bad] = v / np.linalg.norm(v, axis=-1, keepdims=True)
+    _spoil_one_percent(n, mask)
     plain = integrate_normals(n, mask, camera=cam, solver="direct")
     rob = integrate_normals(n, mask, camera=cam, solver="direct", robust="cauchy")
-
-    def mean_error(est):  # mean |error| / range over all pixels, after the offset (scale) alignment
-        e = est.astype(np.float64)[mask]
-        t = depth[mask]
-        e = e * (e @ t) / (e @ e) if persp else e + np.mean(t - e)
-        return float(np.mean(np.abs(e - t)) / np.ptp(t))
-
-    e_plain, e_rob = mean_error(plain.depth), mean_error(rob.depth)
+    e_plain, e_rob = _mean_error(plain.depth, depth, mask, persp), _mean_error(rob.depth, depth, mask, persp)
     assert e_plain > 5e-3, e_plain
     assert e_rob < 2e-3 and e_rob < 0.2 * e_plain, (e_rob, e_plain)
 
@@ -410,32 +420,15 @@ def test_curl_weights_ignore_a_few_wrong_normals(camera_kind, device):
     device): clean normals stay within the analytic 1e-3 bound; with 1 % wrong normals the plain
     least squares is bent, the curl weights are not.  Measured when written (mean |error| / range):
     orthographic 9.2e-3 plain -> 1.2e-4 curl, perspective 1.16e-2 -> 1.3e-3 (Cauchy IRLS: 4.1e-4, 1.56e-3)."""
-    depth, n, cam = scene("bumps", camera_kind)
-    sl = (slice(32, 224, 2), slice(32, 224, 2))
-    depth, n = depth[sl], n[sl].copy()
-    cam = Orthographic(2 * cam.pixel_size) if camera_kind == "orthographic" else \
-        Perspective(np.array([[300.0, 0, 47.5], [0, 300.0, 47.5], [0, 0, 1]]))
-    mask = np.ones(depth.shape, bool)
-    persp = camera_kind == "perspective"
+    depth, n, cam, mask, persp = _small_bumps(camera_kind)
     kw = dict(camera=cam, solver="multigrid", device=device, tol=1e-9, dtype="float64")
     clean = integrate_normals(n, mask, robust="curl", **kw)
     assert clean.outer_iterations == 0 and clean.residual < 1e-8
     assert aligned_error(clean.depth, depth, mask, persp) < 1e-3
-    rng = np.random.default_rng(0)
-    bad = rng.random(mask.shape) < 0.01
-    v = rng.normal(size=(int(bad.sum()), 3))
-    v[:, 2] = np.abs(v[:, 2]) + 0.05
-    n[bad] = v / np.linalg.norm(v, axis=-1, keepdims=True)
+    _spoil_one_percent(n, mask)
     plain = integrate_normals(n, mask, **kw)
     curl = integrate_normals(n, mask, robust="curl", **kw)
-
-    def mean_error(est):
-        e = est.astype(np.float64)[mask]
-        t = depth[mask]
-        e = e * (e @ t) / (e @ e) if persp else e + np.mean(t - e)
-        return float(np.mean(np.abs(e - t)) / np.ptp(t))
-
-    e_plain, e_curl = mean_error(plain.depth), mean_error(curl.depth)
+    e_plain, e_curl = _mean_error(plain.depth, depth, mask, persp), _mean_error(curl.depth, depth, mask, persp)
     assert e_plain > 5e-3, e_plain
     assert e_curl < 2e-3 and e_curl < 0.2 * e_plain, (e_curl, e_plain)
 
