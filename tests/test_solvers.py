@@ -57,15 +57,21 @@ def test_warm_start_fixed_iterations_and_reuse(device):
         ps.solve(img, sc.mask[:-1])
 
 
-def test_robust_loss_rejects_outliers():
-    """A Lambertian pixel set with a few gross outliers among 12 lights: Cauchy IRLS recovers the normals."""
-    rng = np.random.default_rng(3)
+def _ring_of_twelve(seed):
+    """12 lights on a 60-degree cone and 6x6 random near-frontal normals, Lambertian RGB images (12, 6, 6, 3)."""
+    rng = np.random.default_rng(seed)
     az = np.linspace(0, 2 * np.pi, 12, endpoint=False)
     dirs = np.stack([0.5 * np.cos(az), 0.5 * np.sin(az), np.full(12, np.sqrt(0.75))], 1)
-    h = w = 6
-    nrm = rng.normal(size=(h, w, 3)) * [0.3, 0.3, 0] + [0, 0, 1]
+    nrm = rng.normal(size=(6, 6, 3)) * [0.3, 0.3, 0] + [0, 0, 1]
     nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
     img = np.clip(np.einsum("kc,hwc->khw", dirs, nrm), 0, None)[..., None] * np.array([0.6, 0.5, 0.4])
+    return rng, dirs, nrm, img
+
+
+def test_robust_loss_rejects_outliers():
+    """A Lambertian pixel set with a few gross outliers among 12 lights: Cauchy IRLS recovers the normals."""
+    rng, dirs, nrm, img = _ring_of_twelve(3)
+    h = w = 6
     out = rng.random((12, h, w)) < 0.15
     img[out] += 0.8  # specular-like spikes
     mask = np.ones((h, w), bool)
@@ -476,13 +482,8 @@ def test_dark_observations_are_one_sided(device):
 
 def test_robust_loss_rejects_cast_shadows():
     """Zeros where the model predicts light (cast shadows) are dark one-sided terms; Cauchy IRLS still rejects them."""
-    rng = np.random.default_rng(4)
-    az = np.linspace(0, 2 * np.pi, 12, endpoint=False)
-    dirs = np.stack([0.5 * np.cos(az), 0.5 * np.sin(az), np.full(12, np.sqrt(0.75))], 1)
+    rng, dirs, nrm, img = _ring_of_twelve(4)
     h = w = 6
-    nrm = rng.normal(size=(h, w, 3)) * [0.3, 0.3, 0] + [0, 0, 1]
-    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
-    img = np.clip(np.einsum("kc,hwc->khw", dirs, nrm), 0, None)[..., None] * np.array([0.6, 0.5, 0.4])
     img[rng.random((12, h, w)) < 0.15] = 0.0  # cast shadows
     img = img.astype(np.float32)
     mask = np.ones((h, w), bool)

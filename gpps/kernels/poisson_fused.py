@@ -142,7 +142,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
 
     @ti.func
     def _corr(i, j, off, offc):
-        """The level's iterate (in t) plus the prolonged (injected) coarse correction (in src, coarse level)."""
+        """The level's iterate (in t) plus the prolonged (injected) coarse correction (in t, coarse level)."""
         v = t[i, off + j] * 0
         if dg[i, off + j] > 0:
             v = t[i, off + j] + t[i // 2, offc + j // 2]
@@ -177,29 +177,32 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         return rr
 
     @ti.func
-    def _coarse_cell(kk):
-        """t = (pinv f)[kk] at the coarsest level's active cell kk.
+    def coarse_solve():
+        """t = pinv f on the coarsest level's active cells (one thread per cell).
 
         ``pinv`` is symmetric (the pseudo-inverse of a symmetric matrix), so
         thread ``kk`` reads column ``kk``: neighbouring threads read
         neighbouring addresses (coalesced) instead of rows ``nc`` apart.
         """
-        s = f[cidx[kk, 0], cidx[kk, 1]] * 0
-        for m in range(nc):
-            s += pinv[m, kk] * f[cidx[m, 0], cidx[m, 1]]
-        t[cidx[kk, 0], cidx[kk, 1]] = s
-
-    @ti.func
-    def coarse_solve():
-        """t = pinv f on the coarsest level's active cells (one thread per cell)."""
         for kk in range(nc):
-            _coarse_cell(kk)
+            s = f[cidx[kk, 0], cidx[kk, 1]] * 0
+            for m in range(nc):
+                s += pinv[m, kk] * f[cidx[m, 0], cidx[m, 1]]
+            t[cidx[kk, 0], cidx[kk, 1]] = s
 
     @ti.func
     def vcycle_levels():
-        """Every pass of one V-cycle from zero on level 0's f (``vcycle_tasks``) except, with
-        ``npairs == 1``, level 0's last sweep: its consumer computes it (``_mf0``) in the pass
-        that uses it (the depth update, or the copy into t), one level-0 pass fewer."""
+        """One V-cycle from zero on level 0's f, every level unrolled, except (with ``npairs == 1``)
+        level 0's last sweep: its consumer computes it (``_mf0``) in the pass that uses it (the depth
+        update, or the copy into t), one level-0 pass fewer.
+
+        Per level on the way down, two tasks: the pre-smoothing pair (from zero,
+        fused) and residual + restriction (fused); on the way up two: the first
+        post-smoothing sweep with the coarse correction added on the fly, and the
+        second.  Each level's iterate ends in ``t``.  Same operator as
+        :func:`gpps.kernels.poisson.down` / ``up`` (2x2 aggregation, injection,
+        damped Jacobi), with ``npairs - 1`` further plain sweep pairs.
+        """
         for k in ti.static(range(L - 1)):
             off, h, w = ti.static(geo[k])
             offc, hc, wc = ti.static(geo[k + 1])

@@ -320,12 +320,21 @@ def robust_edge_weights(u, ex, ey, tx, ty, scale: float, floor: float = 1e-6):
         edge) and the ``sigma`` used.
     """
     rx, ry = edge_residuals(u, tx, ty)
-    r = np.abs(np.concatenate([rx[ex], ry[ey]]))
-    sigma = float(scale * 1.4826 * np.median(r)) if r.size else 0.0
+    return _cauchy_edge_weights(rx, ry, ex, ey, np.concatenate([rx[ex], ry[ey]]), scale, floor)
+
+
+def _cauchy_edge_weights(cx, cy, ex, ey, sample, scale: float, floor: float):
+    """``1 / (1 + (c / sigma)^2)`` per existing edge (at least ``floor``, 0 where no edge), with
+    ``sigma = scale * 1.4826 * median |sample|``; all 1 when ``sigma`` is 0 (nothing to down-weight).
+
+    Returns:
+        ``(rwx, rwy, sigma)``.
+    """
+    sigma = float(scale * 1.4826 * np.median(np.abs(sample))) if sample.size else 0.0
     if not sigma > 0:
         return ex.astype(np.float64), ey.astype(np.float64), sigma
-    rwx = np.where(ex, np.maximum(1.0 / (1.0 + (rx / sigma) ** 2), floor), 0.0)
-    rwy = np.where(ey, np.maximum(1.0 / (1.0 + (ry / sigma) ** 2), floor), 0.0)
+    rwx = np.where(ex, np.maximum(1.0 / (1.0 + (cx / sigma) ** 2), floor), 0.0)
+    rwy = np.where(ey, np.maximum(1.0 / (1.0 + (cy / sigma) ** 2), floor), 0.0)
     return rwx, rwy, sigma
 
 
@@ -385,12 +394,7 @@ def curl_edge_weights(ex, ey, tx, ty, scale: float, floor: float = 1e-6):
     cx[1:, :] = np.maximum(cx[1:, :], a[:-1, :])
     cy = a.copy()
     cy[:, 1:] = np.maximum(cy[:, 1:], a[:, :-1])
-    sigma = float(scale * 1.4826 * np.median(a[ok])) if ok.any() else 0.0
-    if not sigma > 0:
-        return ex.astype(np.float64), ey.astype(np.float64), sigma
-    rwx = np.where(ex, np.maximum(1.0 / (1.0 + (cx / sigma) ** 2), floor), 0.0)
-    rwy = np.where(ey, np.maximum(1.0 / (1.0 + (cy / sigma) ** 2), floor), 0.0)
-    return rwx, rwy, sigma
+    return _cauchy_edge_weights(cx, cy, ex, ey, a[ok], scale, floor)
 
 
 def divergence_rhs(wx, wy, tx, ty) -> np.ndarray:
