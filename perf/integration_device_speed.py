@@ -70,6 +70,9 @@ def main(argv=None) -> int:
     ap.add_argument("--accuracy", type=float, default=1e-4)
     ap.add_argument("--coarsest", default="16,32")
     ap.add_argument("--methods", default="pcg,multigrid")
+    ap.add_argument("--launches", default="tasks,persistent:2:256",
+                    help="multigrid frame launch forms, comma-separated: tasks, or "
+                         "persistent:<blocks per SM>:<largest level side in the persistent task>")
     ap.add_argument("--max-cold", type=int, default=10, help="cold runs of 1..N iterations (each N <= 4 compiles a kernel)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
@@ -140,9 +143,18 @@ def main(argv=None) -> int:
         ref.close()
         rng = float(np.ptp(refs["A"]))
         nAd, nBd = dev(nA), dev(nB)
+        combos = []
         for coarsest in map(int, a.coarsest.split(",")):
             for method in a.methods.split(","):
-                cfg = StreamIntegratorConfig(coarsest=coarsest, method=method)
+                for launch in (a.launches.split(",") if method == "multigrid" else ["tasks"]):
+                    if launch.startswith("persistent") and not cuda:
+                        continue
+                    kind, bps, psize = (launch.split(":") + ["2", "256"])[:3]
+                    combos.append((coarsest, method, kind, int(bps), int(psize)))
+        if True:
+            for coarsest, method, launch, bps, psize in combos:
+                cfg = StreamIntegratorConfig(coarsest=coarsest, method=method, launch=launch, blocks_per_sm=bps,
+                                             persistent_size=psize)
                 si = StreamIntegrator(mask, cam, cfg, device=a.device)
                 K = si._K
                 out = dev(np.zeros((n, n), np.float32))
@@ -151,7 +163,10 @@ def main(argv=None) -> int:
                 step = K["mg_step"] if method == "multigrid" else K["pcg_iteration"]
                 rhs = (lambda: K["rhs_only"](nAd, *si._cam, cfg.min_nz)) if method == "multigrid" else \
                     (lambda: K["rhs_begin"](nAd, *si._cam, cfg.min_nz))
-                row = {"size": n, "coarsest": coarsest, "method": method, "levels": len(si.levels),
+                row = {"size": n, "coarsest": coarsest, "method": method, "launch": si.launch,
+                       "blocks_per_sm": si._bps if si.launch == "persistent" else None,
+                       "persistent_levels": [f"{hh}x{ww}" for (_, hh, ww) in si.levels[si._top:]]
+                       if si.launch == "persistent" else [], "levels": len(si.levels),
                        "coarsest_cells": int(si._F["cidx"].shape[0])}
                 row["pieces_us"] = {
                     "noop_launch": 1e6 * med(K["noop"], a.repeat, 10),
@@ -230,18 +245,76 @@ def main(argv=None) -> int:
                     stream.append({"iterations": k, "ms_per_frame": 1e3 * statistics.median(ts),
                                    "max_depth_error": max(errs), "frames": nfr})
                 row["warm_stream"] = stream
+                if cuda:
+                    # device time of a streamed warm frame: the GPU is put to sleep while the host queues
+                    # the 20 frames, then two events around them time the device alone
+                    hs, ds = [], []
+                    for _ in range(5):
+                        si.reset()
+                        si.integrate(nAd, out, iterations=12)
+                        torch.cuda.synchronize()
+                        e0, e1 = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+                        torch.cuda._sleep(int(40e6))
+                        e0.record()
+                        t0 = time.perf_counter()
+                        for x in seq:
+                            si.integrate(x, out, iterations=1)
+                        t1 = time.perf_counter()
+                        e1.record()
+                        torch.cuda.synchronize()
+                        hs.append(1e3 * (t1 - t0) / nfr)
+                        ds.append(e0.elapsed_time(e1) / nfr)
+                    row["warm_1_cycle_queued"] = {"host_ms_per_frame": statistics.median(hs),
+                                                  "device_ms_per_frame": statistics.median(ds)}
+                    # the same frames with the normals and the depth in Taichi ndarrays (which Warp can
+                    # write in place through their device pointers) instead of torch tensors: Taichi's
+                    # host-side argument handling is the cheaper one
+                    tA, tB, tO = ti.ndarray(ti.f32, (n, n, 3)), ti.ndarray(ti.f32, (n, n, 3)), ti.ndarray(ti.f32, (n, n))
+                    tA.from_numpy(nA)
+                    tB.from_numpy(nB)
+                    tsq = [tB, tA] * (nfr // 2)
+                    iso, st = [], []
+                    for _ in range(max(5, a.repeat // 2)):
+                        si.reset()
+                        si.integrate(tA, tO, iterations=12)
+                        ti.sync()
+                        t0 = time.perf_counter()
+                        si.integrate(tB, tO, iterations=1)
+                        ti.sync()
+                        iso.append(time.perf_counter() - t0)
+                    d = tO.to_numpy().astype(np.float64)
+                    d = d - d.mean() + refs["B"].mean()
+                    iso_err = float(np.abs(d - refs["B"]).mean() / rng)
+                    for _ in range(max(5, a.repeat // 3)):
+                        si.reset()
+                        si.integrate(tA, tO, iterations=12)
+                        ti.sync()
+                        t0 = time.perf_counter()
+                        for x in tsq:
+                            si.integrate(x, tO, iterations=1)
+                        ti.sync()
+                        st.append((time.perf_counter() - t0) / nfr)
+                    row["warm_1_cycle_taichi_ndarrays"] = {"isolated_ms": 1e3 * statistics.median(iso),
+                                                           "isolated_depth_error": iso_err,
+                                                           "streamed_ms_per_frame": 1e3 * statistics.median(st)}
                 ok = [w for w in stream if w["max_depth_error"] <= a.accuracy]
                 row["warm_stream_to_accuracy"] = ok[0] if ok else None
                 if bandwidth and method == "multigrid":
                     by = frame_bytes([(hh, ww) for (_, hh, ww) in si.levels])
                     w1 = warm[0]["ms"] * 1e-3
+                    wd = row["warm_1_cycle_queued"]["device_ms_per_frame"] * 1e-3
                     row["warm_1_cycle_roofline"] = {"bytes": by, "bandwidth_Bps": bandwidth,
                                                     "bound_ms": 1e3 * by / bandwidth,
-                                                    "roofline_ratio": w1 / (by / bandwidth)}
+                                                    "roofline_ratio": w1 / (by / bandwidth),
+                                                    "device_roofline_ratio": wd / (by / bandwidth)}
                 si.close()
                 rows.append(row)
                 p = row["pieces_us"]
                 ca, wa = row["cold_to_accuracy"], row["warm_to_accuracy"]
+                q = row.get("warm_1_cycle_queued", {})
+                print(f"{n:5d} coarsest {coarsest:2d} {method:9s} {si.launch}:{row['blocks_per_sm']}:{psize} | warm 1-cycle queued: "
+                      f"host {q.get('host_ms_per_frame', float('nan')):.3f} device {q.get('device_ms_per_frame', float('nan')):.3f} "
+                      f"ms/frame; Taichi ndarrays: {row.get('warm_1_cycle_taichi_ndarrays')}", flush=True)
                 print(f"{n:5d} coarsest {coarsest:2d} {method:9s} | noop {p['noop_launch']:6.1f} coarse {p['coarse_solve']:6.1f} "
                       f"vcycle {p['vcycle']:7.1f} iter {p['iteration']:7.1f} rhs {p['rhs']:6.1f} finish {p['finish']:6.1f} "
                       f"read {p['read_scalars']:6.1f} us | cold {ca['iterations'] if ca else '-'} it "

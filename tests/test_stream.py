@@ -213,12 +213,16 @@ def _numpy_vcycle(levels, f0, omega, keep, pairs=1):
     return solve(0, f0)
 
 
+@pytest.mark.parametrize("launch, psize", [("tasks", 256), ("persistent", 256), ("persistent", 40)])
 @pytest.mark.parametrize("shape, smooth_pairs", [((75, 90), 1), ((128, 128), 1), ((75, 90), 2)])
-def test_stream_integrator_vcycle_matches_numpy_reference(shape, smooth_pairs):
+def test_stream_integrator_vcycle_matches_numpy_reference(shape, smooth_pairs, launch, psize):
     """The fused frame kernel (right-hand side with the first residual, the V-cycle with level 0's
     last sweep folded into the depth update, the one-component finish) equals a numpy V-cycle
     written from the definitions: one frame from u = 0 gives u = M b, centred (float64 fields,
-    orthographic); odd sizes, a hole, and extra smoothing pairs."""
+    orthographic); odd sizes, a hole, and extra smoothing pairs.  Every launch form: one task per
+    phase; the whole frame in the persistent task (on CUDA its blocks meet at grid barriers, on
+    the CPU it runs as one thread); the levels of at most 40 pixels a side in it, the larger ones
+    as tasks."""
     from gpps.camera import Orthographic
     from gpps.pipeline.integration import _diag, build_levels, divergence_rhs, edge_system, pixel_gradients
     from gpps.pipeline.integration_device import StreamIntegrator, StreamIntegratorConfig
@@ -232,8 +236,9 @@ def test_stream_integrator_vcycle_matches_numpy_reference(shape, smooth_pairs):
     n = np.stack([-hx, -hy, np.ones_like(hx)], -1)
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
     cam = Orthographic(1.0)
-    cfg = StreamIntegratorConfig(dtype="float64", smooth_pairs=smooth_pairs)
+    cfg = StreamIntegratorConfig(dtype="float64", smooth_pairs=smooth_pairs, launch=launch, persistent_size=psize)
     si = StreamIntegrator(m, cam, cfg)
+    assert si.launch == launch and (launch == "tasks" or si._top == (0 if psize == 256 else 2))
     si.reset()
     out = np.zeros(shape, np.float32)
     si.integrate(np.ascontiguousarray(n), out, iterations=1)
@@ -252,3 +257,64 @@ def test_stream_integrator_vcycle_matches_numpy_reference(shape, smooth_pairs):
     np.testing.assert_allclose(got[v], want[v], rtol=0, atol=1e-9 * scale)
     np.testing.assert_allclose(out[v], want[v], rtol=0, atol=2e-6 * scale)  # float32 depth
     assert _diag(wx, wy)[v].min() > 0
+
+
+def _two_component_case(camera, size=64):
+    from gpps.scenes import make_scene
+
+    sc = make_scene("bumps", size, camera)
+    m = sc.mask.copy()
+    m[:, 28:31] = False  # two components
+    m[40:44, 10:20] = False  # a hole
+    return sc, m, np.ascontiguousarray(sc.normals, np.float32)
+
+
+@pytest.mark.parametrize("camera, psize", [("orthographic", 256), ("perspective", 256), ("perspective", 40)])
+def test_stream_integrator_persistent_kernel_equals_task_frame(camera, psize):
+    """The persistent task (grid barriers between phases: the whole frame, or the levels of at most
+    40 pixels a side) gives the task-per-phase frame's depth and warm start: two mask components
+    and a hole, 1 and 3 cycles, a reference depth, and a second (warm) frame from each one's own
+    previous solution."""
+    from gpps.pipeline.integration_device import StreamIntegrator, StreamIntegratorConfig
+
+    sc, m, nrm = _two_component_case(camera)
+    a = StreamIntegrator(m, sc.camera, StreamIntegratorConfig(launch="tasks"))
+    b = StreamIntegrator(m, sc.camera, StreamIntegratorConfig(launch="persistent", persistent_size=psize))
+    assert a.n_components == b.n_components == 2 and b._top == (0 if psize == 256 else 1)
+    oa = np.zeros(m.shape, np.float32)
+    ob = np.zeros(m.shape, np.float32)
+    for cycles in (1, 3):
+        a.reset()
+        b.reset()
+        for _ in range(2):
+            a.integrate(nrm, oa, iterations=cycles, reference=10.0)
+            b.integrate(nrm, ob, iterations=cycles, reference=10.0)
+            scale = np.abs(oa).max()
+            np.testing.assert_allclose(ob, oa, rtol=0, atol=2e-6 * scale)
+            za, zb = a._F["z"].to_numpy(), b._F["z"].to_numpy()
+            np.testing.assert_allclose(zb, za, rtol=0, atol=2e-6 * max(np.abs(za).max(), 1e-3))
+    assert b.launch == "persistent" and np.all(ob[~m] == 0)
+
+
+def test_stream_integrator_persistent_falls_back_when_blocks_do_not_fit():
+    """Asking for more resident blocks than a multiprocessor holds (8 of 256 threads: 2048 threads
+    at most 32 registers each) trips the barrier's timeout on the first frame: the integrator
+    restores the warm start, halves the blocks until they fit (or falls back to tasks) and still
+    returns the right depth, without hanging."""
+    from gpps import _taichi
+    from gpps.pipeline.integration_device import StreamIntegrator, StreamIntegratorConfig
+
+    _taichi.init("auto")
+    if not _taichi.current_device().startswith("cuda"):
+        pytest.skip("block residency is a CUDA matter")
+    sc, m, nrm = _two_component_case("orthographic", size=640)  # 1600 blocks wanted: 8 per SM on a 132-SM H100
+    a = StreamIntegrator(m, sc.camera, StreamIntegratorConfig(launch="tasks"))
+    b = StreamIntegrator(m, sc.camera, StreamIntegratorConfig(launch="persistent", blocks_per_sm=8,
+                                                                            persistent_size=1024))
+    oa = np.zeros(m.shape, np.float32)
+    ob = np.zeros(m.shape, np.float32)
+    for _ in range(2):
+        a.integrate(nrm, oa, iterations=2)
+        b.integrate(nrm, ob, iterations=2)
+    np.testing.assert_allclose(ob, oa, rtol=0, atol=2e-6 * np.abs(oa).max())
+    print(f"blocks per SM used: {b._bps}, launch {b.launch}")

@@ -54,6 +54,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
     om = omega
 
     red, part, part2 = F["red"], F["part"], F["part2"]
+    bar, geof, cmap, fcv = F["bar"], F["geo"], F["cmap"], F["fcv"]
     fold0 = npairs == 1 and L > 1  # level 0's last sweep computed by its consumer
     CH = 32  # rows per chunk of the two-stage reductions
     NCH = (h0 + CH - 1) // CH
@@ -203,7 +204,16 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         :func:`gpps.kernels.poisson.down` / ``up`` (2x2 aggregation, injection,
         damped Jacobi), with ``npairs - 1`` further plain sweep pairs.
         """
-        for k in ti.static(range(L - 1)):
+        vdown(L - 1)
+        coarse_solve()
+        vup(L - 1)
+
+    @ti.func
+    def vdown(top: ti.template()):
+        """The descent of ``vcycle_levels`` on levels ``0 .. top - 1`` (two tasks each): f restricted to level ``top``.
+        Below the coarsest (``top < L - 1``) the restriction into level ``top`` also zeroes the grid-barrier
+        counter of the persistent task that takes over there."""
+        for k in ti.static(range(top)):
             off, h, w = ti.static(geo[k])
             offc, hc, wc = ti.static(geo[k + 1])
             for i, j in ti.ndrange(h, w):
@@ -216,8 +226,14 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             for ci, cj in ti.ndrange(hc, wc):
                 f[ci, offc + cj] = (_res(2 * ci, 2 * cj, off, h, w) + _res(2 * ci, 2 * cj + 1, off, h, w)
                                     + _res(2 * ci + 1, 2 * cj, off, h, w) + _res(2 * ci + 1, 2 * cj + 1, off, h, w))
-        coarse_solve()
-        for k in ti.static(range(L - 2, -1, -1)):
+                if ti.static(k == top - 1 and top < L - 1):
+                    if ci == 0 and cj == 0:
+                        bar[0] = 0
+
+    @ti.func
+    def vup(top: ti.template()):
+        """The ascent of ``vcycle_levels`` on levels ``top - 1 .. 0`` (level ``top``'s iterate in t)."""
+        for k in ti.static(range(top - 1, -1, -1)):
             off, h, w = ti.static(geo[k])
             offc = ti.static(geo[k + 1][0])
             for i, j in ti.ndrange(h, w):
@@ -556,6 +572,319 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             frames[cycles] = _frame
         return frames[cycles]
 
+    pframes = {}
+    LIMIT = 1 << 20  # polls before a grid barrier gives up (a block that never became resident)
+
+    def _grid_parts(nblocks: int, bd: int):
+        """The grid barrier and the persistent levels for ``nblocks x bd`` threads (see :func:`persistent`)."""
+        cuda = ti.lang.impl.current_cfg().arch == ti.cuda
+        if not cuda and nblocks * bd != 1:
+            raise ValueError(f"nblocks, bd: off CUDA the persistent kernel runs as one thread (1, 1), got ({nblocks}, {bd})")
+        NT = nblocks * bd
+
+        @ti.func
+        def gsync(tid, gen):
+            """Grid barrier number ``gen`` of this task (``bar[0]`` zeroed before it); returns ``gen + 1``."""
+            if ti.static(cuda):
+                ti.simt.grid.memfence()
+                ti.simt.block.sync()
+            if tid % bd == 0:
+                ti.atomic_add(bar[0], 1)
+                target = gen * nblocks
+                k = 0
+                while True:
+                    if ti.atomic_or(bar[0], 0) >= target:
+                        break
+                    k += 1
+                    if k >= LIMIT:
+                        ti.atomic_or(bar[1], 1)
+                    if k % 1024 == 0:
+                        if ti.atomic_or(bar[1], 0) != 0:
+                            break
+            if ti.static(cuda):
+                ti.simt.block.sync()
+                ti.simt.grid.memfence()
+            return gen + 1
+
+        @ti.func
+        def plevels(tid, gen, top: ti.template()):
+            """The V-cycle from level ``top`` down (its f restricted already) and back up to level
+            ``top``, a phase per grid barrier: t on level ``top`` = its V-cycle result (level 0's
+            last sweep left to ``_mf0`` when ``top == 0``).  Returns the next barrier number."""
+            g = gen
+            # descent: pre-smoothing pair from zero, residual restricted to the next level
+            for k in range(top, L - 1):
+                off, h, w = geof[k, 0], geof[k, 1], geof[k, 2]
+                n = h * w
+                for kk in range((n + NT - 1) // NT):
+                    cc = tid + kk * NT
+                    if cc < n:
+                        t[cc // w, off + cc % w] = _pre(cc // w, cc % w, off, h, w)
+                g = gsync(tid, g)
+                for _ in ti.static(range(npairs - 1)):
+                    for kk in range((n + NT - 1) // NT):
+                        cc = tid + kk * NT
+                        if cc < n:
+                            e[cc // w, off + cc % w] = _jacobi_point(t, f, wx, wy, dg, cc // w, cc % w, off, h, w, om)
+                    g = gsync(tid, g)
+                    for kk in range((n + NT - 1) // NT):
+                        cc = tid + kk * NT
+                        if cc < n:
+                            t[cc // w, off + cc % w] = _jacobi_point(e, f, wx, wy, dg, cc // w, cc % w, off, h, w, om)
+                    g = gsync(tid, g)
+                offc, wc = geof[k + 1, 0], geof[k + 1, 2]
+                ncl = geof[k + 1, 1] * wc
+                for kk in range((ncl + NT - 1) // NT):
+                    cc = tid + kk * NT
+                    if cc < ncl:
+                        ci = cc // wc
+                        cj = cc % wc
+                        v = (_res(2 * ci, 2 * cj, off, h, w) + _res(2 * ci, 2 * cj + 1, off, h, w)
+                             + _res(2 * ci + 1, 2 * cj, off, h, w) + _res(2 * ci + 1, 2 * cj + 1, off, h, w))
+                        f[ci, offc + cj] = v
+                        if k == L - 2:
+                            m = cmap[ci, cj]
+                            if m >= 0:
+                                fcv[m] = v
+                g = gsync(tid, g)
+            # coarsest level: t = pinv f (f gathered into fcv by the last restriction)
+            for kk in range((nc + NT - 1) // NT):
+                cc = tid + kk * NT
+                if cc < nc:
+                    acc = fcv[0] * 0
+                    for m in range(nc):
+                        acc += pinv[m, cc] * fcv[m]
+                    t[cidx[cc, 0], cidx[cc, 1]] = acc
+            g = gsync(tid, g)
+            # ascent: first sweep on (iterate + prolonged correction), then the second
+            for kq in range(L - 1 - top):
+                k = L - 2 - kq
+                off, h, w = geof[k, 0], geof[k, 1], geof[k, 2]
+                offc = geof[k + 1, 0]
+                n = h * w
+                for kk in range((n + NT - 1) // NT):
+                    cc = tid + kk * NT
+                    if cc < n:
+                        e[cc // w, off + cc % w] = _post_first(cc // w, cc % w, off, h, w, offc)
+                g = gsync(tid, g)
+                second = 1  # level 0's second sweep is folded into the z update (_mf0)
+                if ti.static(fold0 and top == 0):
+                    second = ti.select(k > 0, 1, 0)
+                if second:
+                    for kk in range((n + NT - 1) // NT):
+                        cc = tid + kk * NT
+                        if cc < n:
+                            t[cc // w, off + cc % w] = _jacobi_point(e, f, wx, wy, dg, cc // w, cc % w, off, h, w, om)
+                    g = gsync(tid, g)
+                    for _ in ti.static(range(npairs - 1)):
+                        for kk in range((n + NT - 1) // NT):
+                            cc = tid + kk * NT
+                            if cc < n:
+                                e[cc // w, off + cc % w] = _jacobi_point(t, f, wx, wy, dg, cc // w, cc % w, off, h, w, om)
+                        g = gsync(tid, g)
+                        for kk in range((n + NT - 1) // NT):
+                            cc = tid + kk * NT
+                            if cc < n:
+                                t[cc // w, off + cc % w] = _jacobi_point(e, f, wx, wy, dg, cc // w, cc % w, off, h, w, om)
+                        g = gsync(tid, g)
+            return g
+
+        return NT, gsync, plevels
+
+    def persistent(nblocks: int, bd: int):
+        """The per-frame integration as *one* CUDA task of ``nblocks x bd`` threads whose
+        phases are separated by software grid barriers (the frame of :func:`frame`,
+        same arithmetic, without ~30 task launches: each costs the device about 3 us and
+        the host about 5 us, a barrier about 2 us).
+
+        ``persistent(nblocks, bd)(nrm, out, fx, fy, cx, cy, s, min_nz, reference, cycles)``
+        runs the right-hand side, ``cycles >= 1`` V-cycle corrections and the depth write.
+        The levels are a dynamic loop over the geometry field ``geo`` (one copy of each
+        stencil in the code: it compiles in seconds); each phase visits its cells with a
+        stride of ``nblocks * bd`` (neighbouring threads, neighbouring pixels).
+
+        The barrier needs every block resident at once: ``nblocks`` must not exceed what the
+        GPU holds (SMs times the blocks per SM that the kernel's registers allow).  A block
+        that waits more than ``LIMIT`` polls sets ``bar[1]`` and lets the frame finish with
+        wrong values instead of hanging; :class:`StreamIntegrator` checks the flag on its
+        first frame and falls back to fewer blocks, then to :func:`frame`.  On the CPU
+        (whose thread pool gives no such residency) it runs only as one thread,
+        ``persistent(1, 1)``: every phase in order, which tests its arithmetic.
+        """
+        key = (nblocks, bd)
+        if key in pframes:
+            return pframes[key]
+        NT, gsync, plevels = _grid_parts(nblocks, bd)
+        n0 = h0 * w0
+        NIT = NCH * w0
+
+        @ti.kernel
+        def _pframe(nrm: ti.types.ndarray(), out: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64,
+                    cy: ti.f64, s: ti.f64, min_nz: ti.f64, reference: ti.f64, cycles: ti.i32):
+            bar[0] = 0
+            ti.loop_config(block_dim=bd)
+            for tid in range(NT):
+                gen = 1
+                # steps of u along j and i (q, r); zero the per-component sums of the finish
+                for kk in range((ncomp + NT - 1) // NT):
+                    c = tid + kk * NT
+                    if c < ncomp:
+                        csum[c] = 0
+                        cden[c] = 0
+                for kk in range((n0 + NT - 1) // NT):
+                    cc = tid + kk * NT
+                    if cc < n0:
+                        i = cc // w0
+                        j = cc % w0
+                        a = ti.cast(0, ti.f64)
+                        c = ti.cast(0, ti.f64)
+                        if dg[i, j] > 0:
+                            a, c = pixel_steps(nrm, i, j, ti.static(perspective), fx, fy, cx, cy, s, min_nz)
+                        q[i, j] = ti.cast(a, q.dtype)
+                        r[i, j] = ti.cast(c, r.dtype)
+                gen = gsync(tid, gen)
+                # b = -div of the mean steps; f = b - A z (the first correction's residual)
+                for kk in range((n0 + NT - 1) // NT):
+                    cc = tid + kk * NT
+                    if cc < n0:
+                        i = cc // w0
+                        j = cc % w0
+                        v = div_mean_steps(q, r, wx, wy, i, j, h0, w0)
+                        b[i, j] = v
+                        d = dg[i, j]
+                        fv = v * 0
+                        if d > 0:
+                            fv = v - d * z[i, j] + _neigh(z, wx, wy, i, j, 0, h0, w0)
+                        f[i, j] = fv
+                gen = gsync(tid, gen)
+                for cyc in range(cycles):
+                    if cyc > 0:
+                        for kk in range((n0 + NT - 1) // NT):
+                            cc = tid + kk * NT
+                            if cc < n0:
+                                f[cc // w0, cc % w0] = _res0(cc // w0, cc % w0)
+                        gen = gsync(tid, gen)
+                    gen = plevels(tid, gen, 0)
+                    # z += M f, per (row chunk, column); the last cycle also sums u and exp(u)
+                    last = cyc == cycles - 1
+                    for kk in range((NIT + NT - 1) // NT):
+                        it = tid + kk * NT
+                        if it < NIT:
+                            ch = it // w0
+                            j = it % w0
+                            a = ti.cast(0, ti.f64)
+                            x = ti.cast(0, ti.f64)
+                            cur = -1
+                            for ii in range(CH):
+                                i = ch * CH + ii
+                                if i < h0:
+                                    u = z[i, j] + _mf0(i, j)
+                                    z[i, j] = u
+                                    if last:
+                                        lc = lab[i, j]
+                                        if ti.static(ncomp == 1):
+                                            if lc >= 0:
+                                                a += ti.cast(u, ti.f64)
+                                                if ti.static(perspective):
+                                                    x += ti.exp(ti.cast(u, ti.f64))
+                                        else:
+                                            if lc != cur:
+                                                if cur >= 0:
+                                                    ti.atomic_add(csum[cur], a)
+                                                    ti.atomic_add(cden[cur], x)
+                                                cur = lc
+                                                a = 0.0
+                                                x = 0.0
+                                            if lc >= 0:
+                                                a += ti.cast(u, ti.f64)
+                                                if ti.static(perspective):
+                                                    x += ti.exp(ti.cast(u, ti.f64))
+                            if last:
+                                if ti.static(ncomp == 1):
+                                    part[ch, j] = a
+                                    part2[ch, j] = x
+                                else:
+                                    if cur >= 0:
+                                        ti.atomic_add(csum[cur], a)
+                                        ti.atomic_add(cden[cur], x)
+                    gen = gsync(tid, gen)
+                if ti.static(ncomp == 1):
+                    for kk in range((w0 + NT - 1) // NT):
+                        j = tid + kk * NT
+                        if j < w0:
+                            a = ti.cast(0, ti.f64)
+                            x = ti.cast(0, ti.f64)
+                            for ch in range(NCH):
+                                a += part[ch, j]
+                                x += part2[ch, j]
+                            ti.atomic_add(csum[0], a)
+                            ti.atomic_add(cden[0], x)
+                    gen = gsync(tid, gen)
+                # centre u per component (the next frame's warm start) and write the depth
+                for kk in range((n0 + NT - 1) // NT):
+                    cc = tid + kk * NT
+                    if cc < n0:
+                        i = cc // w0
+                        j = cc % w0
+                        lc = lab[i, j]
+                        v = ti.cast(0, ti.f64)
+                        if lc >= 0:
+                            m = csum[lc] / ccnt[lc]
+                            u = ti.cast(z[i, j], ti.f64) - m
+                            z[i, j] = ti.cast(u, z.dtype)
+                            if ti.static(perspective):
+                                v = ti.exp(u)
+                                if reference > 0:
+                                    v *= reference * ccnt[lc] / (cden[lc] * ti.exp(-m))
+                            else:
+                                v = u + ti.max(reference, 0.0)
+                        out[i, j] = ti.cast(v, ti.f32)
+
+        pframes[key] = _pframe
+        return _pframe
+
+    def hybrid(cycles: int, top: int, nblocks: int, bd: int):
+        """:func:`frame` with the small levels in one persistent task.
+
+        Levels ``0 .. top - 1`` (the large ones, memory-bound) run as in :func:`frame`, a
+        task per phase at full occupancy; levels ``top`` and below (launch-bound: a few
+        thousand cells or less, about 3 us of device time and 5 us of host time per task)
+        run as one task of ``nblocks x bd`` threads with a grid barrier between phases
+        (:func:`persistent`; the restriction into level ``top`` zeroes the barrier counter).
+        ``1 <= top <= L - 2``.  Same call as :func:`frame`; one kernel per argument set.
+        """
+        if not 1 <= top <= L - 2:
+            raise ValueError(f"top: expected 1 <= top <= {L - 2} (levels {L}), got {top}")
+        key = ("hybrid", cycles, top, nblocks, bd)
+        if key in pframes:
+            return pframes[key]
+        NT, gsync, plevels = _grid_parts(nblocks, bd)
+
+        @ti.func
+        def _hcorrect(res_ready: ti.template()):
+            """``_correct`` with levels ``top`` and below in the persistent task."""
+            if ti.static(not res_ready):
+                for i, j in ti.ndrange(h0, w0):
+                    f[i, j] = _res0(i, j)
+            vdown(top)
+            ti.loop_config(block_dim=bd)
+            for tid in range(NT):
+                plevels(tid, 1, top)
+            vup(top)
+            for i, j in ti.ndrange(h0, w0):
+                z[i, j] += _mf0(i, j)
+
+        @ti.kernel
+        def _hframe(nrm: ti.types.ndarray(), out: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64,
+                    cy: ti.f64, s: ti.f64, min_nz: ti.f64, reference: ti.f64):
+            _rhs(nrm, fx, fy, cx, cy, s, min_nz, False, cycles > 0)
+            for cyc in ti.static(range(cycles)):
+                _hcorrect(cyc == 0)
+            _finish(out, reference)
+
+        pframes[key] = _hframe
+        return _hframe
+
     @ti.kernel
     def scalars() -> ti.types.vector(8, ti.f64):
         """All of ``sc`` in one read (one launch and one copy instead of one per element)."""
@@ -563,4 +892,5 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
 
     return {"rhs": rhs, "pcg_begin": pcg_begin, "rhs_begin": rhs_begin, "pcg_iteration": pcg_iteration, "residual": residual,
             "finish": finish, "load": load, "mg_step": mg_step, "rhs_only": rhs_only, "vcycle_only": vcycle_only,
-            "coarse_only": coarse_only, "noop": noop, "scalars": scalars, "frame": frame}
+            "coarse_only": coarse_only, "noop": noop, "scalars": scalars, "frame": frame,
+            "persistent": persistent, "hybrid": hybrid}

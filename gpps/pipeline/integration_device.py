@@ -31,6 +31,8 @@ __all__ = ["StreamIntegratorConfig", "StreamIntegrator"]
 
 DType = Literal["float32", "float64"]
 Method = Literal["pcg", "multigrid"]
+Launch = Literal["auto", "tasks", "persistent"]
+_BLOCK = 256  # threads per block of the persistent frame kernel
 _FUSED_MAX = 4  # multigrid cycles fused into the one-launch frame kernel (the streaming and cold counts)
 
 
@@ -59,6 +61,22 @@ class StreamIntegratorConfig:
             (``perf/integration_device_speed.py``) the multigrid form reaches
             1e-4 of the depth range cold in 3 cycles and warm in 1, PCG in 2
             and 1, each PCG iteration costing about 1.3 cycles.
+        launch: how a multigrid frame with a fixed cycle count runs on the
+            device.  ``"tasks"``: one Taichi launch of about 30 parallel tasks
+            (one per phase; each task costs an H100 about 3 us of device time
+            and 5 us of host time).  ``"persistent"``: the levels no larger
+            than ``persistent_size`` run as one task whose phases are
+            separated by software grid barriers (about 2 us each), its blocks
+            all resident at once; the larger levels stay one task per phase,
+            where full occupancy pays (:func:`gpps.kernels.poisson_fused.make_fused`,
+            ``hybrid`` and ``persistent``).  ``"auto"``: persistent on CUDA,
+            tasks on CPU.  On the CPU ``"persistent"`` runs its task as one
+            thread, phase after phase (slow: it exists to test the arithmetic).
+        blocks_per_sm: resident blocks of 256 threads per multiprocessor of the
+            persistent task; if the GPU cannot hold them (the first frame's
+            barrier check), it halves them down to 1, then falls back to tasks.
+        persistent_size: levels whose larger side is at most this run in the
+            persistent task (an image no larger runs whole in it).
     """
 
     coarsest: int = 16
@@ -68,12 +86,19 @@ class StreamIntegratorConfig:
     dtype: DType = "float32"
     check_every: int = 2
     method: Method = "multigrid"
+    launch: Launch = "auto"
+    blocks_per_sm: int = 2
+    persistent_size: int = 256
 
     def __post_init__(self):
         if self.method not in get_args(Method):
             raise ValueError(f"method: expected one of {get_args(Method)}, got {self.method!r}")
         if self.dtype not in get_args(DType):
             raise ValueError(f"dtype: expected one of {get_args(DType)}, got {self.dtype!r}")
+        if self.launch not in get_args(Launch):
+            raise ValueError(f"launch: expected one of {get_args(Launch)}, got {self.launch!r}")
+        check_number("blocks_per_sm", self.blocks_per_sm, lo=1, hi=8, integer=True)
+        check_number("persistent_size", self.persistent_size, lo=1, integer=True)
         check_number("coarsest", self.coarsest, lo=2, hi=48, integer=True)
         check_number("smooth_pairs", self.smooth_pairs, lo=1, hi=8, integer=True)
         check_number("omega", self.omega, lo=0.0, hi=1.0, lo_open=True)
@@ -155,6 +180,14 @@ class StreamIntegrator:
             fb.dense(ti.ij, ((h + 31) // 32, w)).place(F[name])
         F["sc"] = ti.field(ti.f64)
         fb.dense(ti.i, 10).place(F["sc"])
+        F["bar"] = ti.field(ti.i32)  # grid-barrier arrivals, timeout flag (persistent kernel)
+        fb.dense(ti.i, 2).place(F["bar"])
+        F["geo"] = ti.field(ti.i32)  # (offset, height, width) per level
+        fb.dense(ti.ij, (len(shapes), 3)).place(F["geo"])
+        F["cmap"] = ti.field(ti.i32)  # coarsest cell -> index into cidx, -1 if inactive
+        fb.dense(ti.ij, shapes[-1]).place(F["cmap"])
+        F["fcv"] = ti.field(ft)  # the coarsest right-hand side, gathered
+        fb.dense(ti.i, max(nc, 1)).place(F["fcv"])
         F["pinv"] = ti.field(ft)
         fb.dense(ti.ij, (max(nc, 1), max(nc, 1))).place(F["pinv"])
         F["cidx"] = ti.field(ti.i32)
@@ -182,6 +215,12 @@ class StreamIntegrator:
             cidx[:nc, 1] = act[:, 1] + offs[len(levels) - 1]
         F["pinv"].from_numpy(pinv)
         F["cidx"].from_numpy(cidx)
+        cmap = -np.ones(shapes[-1], dtype=np.int32)
+        if nc:
+            cmap[act[:, 0], act[:, 1]] = np.arange(nc, dtype=np.int32)
+        F["cmap"].from_numpy(cmap)
+        F["geo"].from_numpy(np.array([[offs[k], s[0], s[1]] for k, s in enumerate(shapes)], dtype=np.int32))
+        F["bar"].fill(0)
         F["lab"].from_numpy((lab - 1).astype(np.int32))
         F["ccnt"].from_numpy(np.bincount(lab.ravel(), minlength=ncomp + 1)[1:].astype(np.float64).reshape(max(ncomp, 1)))
         for k in ("z", "e", "f", "t"):
@@ -198,6 +237,72 @@ class StreamIntegrator:
             self._cam = (1.0, 1.0, 0.0, 0.0, float(camera.pixel_size))
         self.last_iterations = 0
         self.last_residual = float("nan")
+        persistent = cfg.launch == "persistent" or (cfg.launch == "auto" and self.device.startswith("cuda"))
+        # the first level in the persistent task (0: all of them)
+        self._top = next(k for k, (hh, ww) in enumerate(shapes) if max(hh, ww) <= cfg.persistent_size or k == len(shapes) - 1)
+        if len(shapes) < 3 or self._top == len(shapes) - 1:
+            persistent = False  # nothing but the coarsest level would be in it
+        #: "persistent" or "tasks": how fixed-count multigrid frames run (see ``StreamIntegratorConfig.launch``)
+        self.launch = "persistent" if persistent and cfg.method == "multigrid" else "tasks"
+        self._bps = cfg.blocks_per_sm
+        self._ready = {}  # cycles -> (kernel, extra arguments) of a persistent frame whose barrier passed
+
+    # ------------------------------------------------------------------ persistent kernel
+
+    def _grid(self) -> tuple[int, int]:
+        """(blocks, threads per block) of the persistent task: on CUDA, ``blocks_per_sm``
+        per multiprocessor (no more than its largest level needs); on the CPU one thread."""
+        if not self.device.startswith("cuda"):
+            return 1, 1
+        from gpps._runtime import warp
+
+        sms = int(warp().get_device("cuda:0").sm_count)
+        _, hh, ww = self.levels[self._top]
+        return max(1, min(sms * self._bps, -(-hh * ww // _BLOCK))), _BLOCK
+
+    def _persistent_kernel(self, cycles: int):
+        """(kernel, extra arguments) of a frame of ``cycles`` corrections, or None (tasks)."""
+        if self._top == 0:
+            return self._K["persistent"](*self._grid()), (int(cycles),)
+        if cycles > _FUSED_MAX:
+            return None
+        return self._K["hybrid"](int(cycles), self._top, *self._grid()), ()
+
+    def _persistent(self, normals, out, cycles: int, ref: float) -> bool:
+        """Run a frame with the persistent task; False if this frame is for the tasks path (more
+        cycles than a fused frame holds, or a GPU that cannot hold the persistent blocks at all).
+
+        Each kernel's first frame checks the barrier's timeout flag (one host read) and, if some
+        block never became resident, restores the warm start and retries with half the
+        blocks per multiprocessor, down to 1.
+        """
+        ready = self._ready.get(cycles)
+        if ready is not None:  # the streaming path: one launch
+            ready[0](normals, out, *self._cam, self.config.min_nz, ref, *ready[1])
+            return True
+        F = self._F
+        while True:
+            got = self._persistent_kernel(cycles)
+            if got is None:
+                return False
+            kern, extra = got
+            F["p"].copy_from(F["z"])
+            F["bar"].fill(0)
+            kern(normals, out, *self._cam, self.config.min_nz, ref, *extra)
+            if int(F["bar"][1]) == 0:
+                self._ready[cycles] = got
+                return True
+            F["z"].copy_from(F["p"])
+            F["bar"].fill(0)
+            self._ready.clear()  # kernels of other cycle counts were checked with these blocks too
+            if self._bps == 1:
+                import warnings
+
+                warnings.warn("StreamIntegrator: the GPU cannot hold the persistent kernel's blocks; "
+                              "using one task per phase", RuntimeWarning, stacklevel=3)
+                self.launch = "tasks"
+                return False
+            self._bps //= 2
 
     # ------------------------------------------------------------------ per frame
 
@@ -233,6 +338,10 @@ class StreamIntegrator:
         K = self._K
         mg = self.config.method == "multigrid"
         ref = float(reference) if reference is not None else 0.0
+        if mg and iterations is not None and iterations >= 1 and self.launch == "persistent":
+            if self._persistent(normals, out, int(iterations), ref):
+                self.last_iterations = int(iterations)
+                return
         if mg and iterations is not None and iterations <= _FUSED_MAX:
             # the whole frame in one launch (right-hand side, corrections, depth); longer
             # runs launch per cycle (one kernel per count would compile a long unrolled chain)
