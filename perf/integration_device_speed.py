@@ -29,6 +29,16 @@ Per size and configuration (``coarsest`` x ``method``):
   time per frame = total / 20, and the largest depth error along the
   sequence (checked in an untimed pass).
 
+* warm, queued (CUDA): the same 20 one-cycle frames queued while the GPU sleeps
+  (``torch.cuda._sleep``), host time of queueing them and device time between two
+  events around them, per frame: the device's share alone;
+* warm with the normals and the depth in Taichi ndarrays instead of torch tensors
+  (isolated and streamed), since Taichi's host-side argument handling differs.
+
+Launch forms (``--launches``): ``tasks`` (one Taichi task per phase) and
+``persistent:<blocks per SM>:<size>`` (levels of at most ``size`` pixels a side in one
+persistent task with grid barriers; see ``StreamIntegratorConfig.launch``).
+
 Roofline: the copy bandwidth is measured in the same run (torch device copy
 of 256 MiB, read + write); the warm one-cycle frame's DRAM traffic is counted
 from its passes (float32 fields, per pixel: normals to steps 24 B,
@@ -40,7 +50,9 @@ measured warm time / (bytes / bandwidth).  At these sizes the frame is bound
 by launches, not memory: the ratio says how far.
 
 Usage:  python perf/integration_device_speed.py [--device cuda:0] [--sizes 256,1024] [--repeat 20]
-Writes perf/results/integration_device_speed_<device>.json.
+            [--launches tasks,persistent:2:256] [--out FILE]
+Writes perf/results/integration_device_speed_<device>.json (the H100 runs of this session:
+integration_device_speed_cuda0_H100_{tasks,persistent}.json, one launch form each).
 """
 
 from __future__ import annotations

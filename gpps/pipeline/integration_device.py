@@ -4,9 +4,11 @@
 :class:`gpps.pipeline.integration.Integrator` (uniform Poisson weights, 4.20):
 the mask, the multigrid hierarchy, the coarsest-level pseudo-inverse and the
 connected components are set up once; each frame then costs a few fused
-Taichi launches (:mod:`gpps.kernels.poisson_fused`): right-hand side from the
-normals, one launch per preconditioned-CG iteration, and the depth written
-straight into the caller's buffer.  The normals are read in place (a numpy
+Taichi launches (:mod:`gpps.kernels.poisson_fused`): with a fixed count of
+multigrid cycles (the streaming mode) one launch for the whole frame, whose
+small levels run in one persistent task with software grid barriers on CUDA
+(``StreamIntegratorConfig.launch``); with a tolerance, or PCG, a launch per
+iteration; the depth is written straight into the caller's buffer.  The normals are read in place (a numpy
 array, or on CUDA a Warp array through ``wp.to_torch``, zero-copy), and the
 previous solution stays in the fields as the next frame's warm start.
 
