@@ -51,8 +51,10 @@ by launches, not memory: the ratio says how far.
 
 Usage:  python perf/integration_device_speed.py [--device cuda:0] [--sizes 256,1024] [--repeat 20]
             [--launches tasks,persistent:2:256] [--out FILE]
-Writes perf/results/integration_device_speed_<device>.json (the H100 runs of this session:
-integration_device_speed_cuda0_H100_{tasks,persistent}.json, one launch form each).
+Writes perf/results/integration_device_speed_<device>.json.  Committed H100 runs:
+integration_device_speed_cuda0_H100.json (``--quick``, the three launch forms side by side,
+with the one-component sums fused into the last z update); ..._H100_{tasks,persistent}.json
+(full runs, one launch form each, before that fusion).
 """
 
 from __future__ import annotations
@@ -86,6 +88,9 @@ def main(argv=None) -> int:
                     help="multigrid frame launch forms, comma-separated: tasks, or "
                          "persistent:<blocks per SM>:<largest level side in the persistent task>")
     ap.add_argument("--max-cold", type=int, default=10, help="cold runs of 1..N iterations (each N <= 4 compiles a kernel)")
+    ap.add_argument("--quick", action="store_true",
+                    help="no per-piece timings and no tol mode; cold runs of --max-cold cycles only; warm and "
+                         "streamed runs of one cycle only (fewer kernels to compile on a fresh GPU machine)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
 
@@ -170,8 +175,9 @@ def main(argv=None) -> int:
                 si = StreamIntegrator(mask, cam, cfg, device=a.device)
                 K = si._K
                 out = dev(np.zeros((n, n), np.float32))
-                si.integrate(nAd, out, iterations=2)  # compile
-                K["vcycle_only"](), K["coarse_only"](), K["noop"](), K["scalars"]()
+                si.integrate(nAd, out, iterations=1)  # compile
+                if not a.quick:
+                    K["vcycle_only"](), K["coarse_only"](), K["noop"](), K["scalars"]()
                 step = K["mg_step"] if method == "multigrid" else K["pcg_iteration"]
                 rhs = (lambda: K["rhs_only"](nAd, *si._cam, cfg.min_nz)) if method == "multigrid" else \
                     (lambda: K["rhs_begin"](nAd, *si._cam, cfg.min_nz))
@@ -180,7 +186,7 @@ def main(argv=None) -> int:
                        "persistent_levels": [f"{hh}x{ww}" for (_, hh, ww) in si.levels[si._top:]]
                        if si.launch == "persistent" else [], "levels": len(si.levels),
                        "coarsest_cells": int(si._F["cidx"].shape[0])}
-                row["pieces_us"] = {
+                row["pieces_us"] = {} if a.quick else {
                     "noop_launch": 1e6 * med(K["noop"], a.repeat, 10),
                     "coarse_solve": 1e6 * med(K["coarse_only"], a.repeat, 10),
                     "vcycle": 1e6 * med(K["vcycle_only"], a.repeat, 10),
@@ -191,7 +197,7 @@ def main(argv=None) -> int:
                 }
                 # cold: k iterations, no host sync
                 cold = []
-                for k in range(1, a.max_cold + 1):
+                for k in ([a.max_cold] if a.quick else range(1, a.max_cold + 1)):
                     def run(k=k):
                         si.reset()
                         si.integrate(nAd, out, iterations=k)
@@ -206,11 +212,12 @@ def main(argv=None) -> int:
                 def run_tol():
                     si.reset()
                     si.integrate(nAd, out, tol=1e-3)
-                row["cold_tol_1e-3"] = {"ms": 1e3 * med(run_tol, max(5, a.repeat // 2)), "iterations": si.last_iterations,
-                                        "residual": si.last_residual}
+                if not a.quick:
+                    row["cold_tol_1e-3"] = {"ms": 1e3 * med(run_tol, max(5, a.repeat // 2)),
+                                            "iterations": si.last_iterations, "residual": si.last_residual}
                 # warm: converge on A, then k iterations on B from A's solution
                 warm = []
-                for k in range(1, 5):
+                for k in ((1,) if a.quick else range(1, 5)):
                     ts, errs = [], []
                     for _ in range(max(5, a.repeat // 2)):
                         si.reset()
@@ -234,7 +241,7 @@ def main(argv=None) -> int:
                 nfr = 20
                 seq = [nBd, nAd] * (nfr // 2)
                 stream = []
-                for k in (1, 2):
+                for k in ((1,) if a.quick else (1, 2)):
                     ts = []
                     for _ in range(max(5, a.repeat // 3)):
                         si.reset()
@@ -327,14 +334,13 @@ def main(argv=None) -> int:
                 print(f"{n:5d} coarsest {coarsest:2d} {method:9s} {si.launch}:{row['blocks_per_sm']}:{psize} | warm 1-cycle queued: "
                       f"host {q.get('host_ms_per_frame', float('nan')):.3f} device {q.get('device_ms_per_frame', float('nan')):.3f} "
                       f"ms/frame; Taichi ndarrays: {row.get('warm_1_cycle_taichi_ndarrays')}", flush=True)
-                print(f"{n:5d} coarsest {coarsest:2d} {method:9s} | noop {p['noop_launch']:6.1f} coarse {p['coarse_solve']:6.1f} "
-                      f"vcycle {p['vcycle']:7.1f} iter {p['iteration']:7.1f} rhs {p['rhs']:6.1f} finish {p['finish']:6.1f} "
-                      f"read {p['read_scalars']:6.1f} us | cold {ca['iterations'] if ca else '-'} it "
+                pieces = " ".join(f"{k} {v:.1f}" for k, v in p.items()) + " us | " if p else ""
+                tol = f" | tol1e-3 {row['cold_tol_1e-3']['ms']:.3f} ms" if "cold_tol_1e-3" in row else ""
+                sw = row["warm_stream_to_accuracy"]
+                print(f"{n:5d} coarsest {coarsest:2d} {method:9s} | {pieces}cold {ca['iterations'] if ca else '-'} it "
                       f"{ca['ms'] if ca else float('nan'):.3f} ms | warm {wa['iterations'] if wa else '-'} it "
-                      f"{wa['ms'] if wa else float('nan'):.3f} ms | streamed warm "
-                      f"{row['warm_stream_to_accuracy']['iterations'] if row['warm_stream_to_accuracy'] else '-'} it "
-                      f"{row['warm_stream_to_accuracy']['ms_per_frame'] if row['warm_stream_to_accuracy'] else float('nan'):.3f} "
-                      f"ms/frame | tol1e-3 {row['cold_tol_1e-3']['ms']:.3f} ms", flush=True)
+                      f"{wa['ms'] if wa else float('nan'):.3f} ms | streamed warm {sw['iterations'] if sw else '-'} it "
+                      f"{sw['ms_per_frame'] if sw else float('nan'):.3f} ms/frame{tol}", flush=True)
     from gpps.io import save_json
 
     out = Path(a.out) if a.out else ROOT / "perf" / "results" / f"integration_device_speed_{a.device.replace(':', '')}.json"

@@ -27,7 +27,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         F: Taichi fields: ``wx, wy, dg, e, f, t`` (packed levels, (H, sum W_k)),
             ``z, b, r, p, q`` (level 0, (H, W)), ``sc`` (f64 scalars), ``pinv``,
             ``cidx`` (coarsest level), ``red`` (level-0 scratch), ``part``
-            (f64, (ceil(H / 32), W): reduction partials), ``lab`` (component label per pixel, -1
+            (f64, (ceil(H / 8), W): reduction partials), ``lab`` (component label per pixel, -1
             outside), ``csum, cden`` (f64 per-component accumulators), ``ccnt``
             (pixels per component).
         geo: ``[(off, h, w), ...]`` per level, level 0 first.
@@ -56,7 +56,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
     red, part, part2 = F["red"], F["part"], F["part2"]
     bar, geof, cmap, fcv = F["bar"], F["geo"], F["cmap"], F["fcv"]
     fold0 = npairs == 1 and L > 1  # level 0's last sweep computed by its consumer
-    CH = 32  # rows per chunk of the two-stage reductions
+    CH = 8  # rows per chunk of the two-stage reductions (8: ~H W / 8 threads in the first stage)
     NCH = (h0 + CH - 1) // CH
 
     @ti.func
@@ -266,11 +266,14 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                 t[i, j] = _mf0(i, j)
 
     @ti.func
-    def _rhs(nrm: ti.template(), fx, fy, cx, cy, s, min_nz, norm: ti.template(), res: ti.template()):
+    def _rhs(nrm: ti.template(), fx: ti.template(), fy: ti.template(), cx: ti.template(), cy: ti.template(),
+             s: ti.template(), min_nz: ti.template(), norm: ti.template(), res: ti.template()):
         """b = -div of the mean steps of u (:func:`gpps.kernels.poisson.pixel_steps`,
         uniform weights); q and r hold the j- and i-steps meanwhile; with
         ``norm``, sc[7] = |b|^2; with ``res``, also f = b - A z (the first
-        correction's residual, in the same pass)."""
+        correction's residual, in the same pass).  The scalars are template
+        parameters: passed by value, Taichi would copy them into locals in a
+        serial task of their own (a launch)."""
         for i, j in ti.ndrange(h0, w0):
             a = ti.cast(0, ti.f64)
             c = ti.cast(0, ti.f64)
@@ -404,7 +407,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         launch, for warm-started frames whose error is already small and smooth.
         No reduction: the ``tol`` mode reads the true residual (``residual``).
         """
-        _correct(False)
+        _correct(False, False)
 
     @ti.kernel
     def rhs_only(nrm: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64, cy: ti.f64, s: ti.f64, min_nz: ti.f64):
@@ -450,26 +453,28 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             z[i, j] = ti.cast(v, z.dtype)
 
     @ti.func
-    def _finish1(out: ti.template(), reference):
+    def _finish1(out: ti.template(), reference: ti.template(), summed: ti.template()):
         """``_finish`` for one component in three tasks: the sums of u and exp(u) in one
         pass (sc[8], sc[9]; exp(u - m) sums to exp(-m) sum exp(u), so the perspective
-        scale needs no second pass over the centred u), their column totals, the write."""
-        for c, j in ti.ndrange(NCH, w0):
-            if c == 0 and j == 0:
-                sc[8] = 0
-                sc[9] = 0
-            a = ti.cast(0, ti.f64)
-            x = ti.cast(0, ti.f64)
-            for ii in range(CH):
-                i = c * CH + ii
-                if i < h0:
-                    if lab[i, j] >= 0:
-                        u = ti.cast(z[i, j], ti.f64)
-                        a += u
-                        if ti.static(perspective):
-                            x += ti.exp(u)
-            part[c, j] = a
-            part2[c, j] = x
+        scale needs no second pass over the centred u), their column totals, the write.
+        ``summed``: the first pass was done by the last z update (``_update_z``)."""
+        if ti.static(not summed):
+            for c, j in ti.ndrange(NCH, w0):
+                if c == 0 and j == 0:
+                    sc[8] = 0
+                    sc[9] = 0
+                a = ti.cast(0, ti.f64)
+                x = ti.cast(0, ti.f64)
+                for ii in range(CH):
+                    i = c * CH + ii
+                    if i < h0:
+                        if lab[i, j] >= 0:
+                            u = ti.cast(z[i, j], ti.f64)
+                            a += u
+                            if ti.static(perspective):
+                                x += ti.exp(u)
+                part[c, j] = a
+                part2[c, j] = x
         for j in range(w0):
             a = ti.cast(0, ti.f64)
             x = ti.cast(0, ti.f64)
@@ -493,21 +498,22 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             out[i, j] = ti.cast(v, ti.f32)
 
     @ti.func
-    def _finish(out: ti.template(), reference):
+    def _finish(out: ti.template(), reference: ti.template(), summed: ti.template()):
         """Fix each component's constant and write the depth.
 
         u's mean is set to 0 per component; orthographic depth = u + reference,
         perspective depth = exp(u) scaled so that each component's mean depth
         is ``reference`` (``reference <= 0``: left at exp(u), mean log-depth 0).
-        z keeps the centred u (the next frame's warm start).
+        z keeps the centred u (the next frame's warm start).  ``summed``: the
+        last z update left the one-component sums in ``part``/``part2``.
         """
         if ti.static(ncomp == 1):
-            _finish1(out, reference)
+            _finish1(out, reference, summed)
         else:
             _finish_components(out, reference)
 
     @ti.func
-    def _finish_components(out: ti.template(), reference):
+    def _finish_components(out: ti.template(), reference: ti.template()):
         """``_finish`` for any number of components (per-component sums, two passes)."""
         for i, j in ti.ndrange(h0, w0):
             red[i, j] = ti.select(lab[i, j] >= 0, z[i, j], 0.0)
@@ -539,18 +545,46 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
     @ti.kernel
     def finish(out: ti.types.ndarray(), reference: ti.f64):
         """Fix each component's constant and write the depth (see ``_finish``)."""
-        _finish(out, reference)
+        _finish(out, reference, False)
 
     @ti.func
-    def _correct(res_ready: ti.template()):
+    def _update_z(sums: ti.template()):
+        """z += M f_0 (level 0's V-cycle result, ``_mf0``).  With ``sums`` and one
+        component, per (row chunk, column) as in ``_finish1``'s first pass, whose
+        sums of the new u and exp(u) it leaves in ``part``/``part2`` (one level-0
+        pass and one task fewer; ``_mf0`` reads no z, so the update is in place)."""
+        if ti.static(sums and ncomp == 1):
+            for c, j in ti.ndrange(NCH, w0):
+                if c == 0 and j == 0:
+                    sc[8] = 0
+                    sc[9] = 0
+                a = ti.cast(0, ti.f64)
+                x = ti.cast(0, ti.f64)
+                for ii in range(CH):
+                    i = c * CH + ii
+                    if i < h0:
+                        u = z[i, j] + _mf0(i, j)
+                        z[i, j] = u
+                        if lab[i, j] >= 0:
+                            a += ti.cast(u, ti.f64)
+                            if ti.static(perspective):
+                                x += ti.exp(ti.cast(u, ti.f64))
+                part[c, j] = a
+                part2[c, j] = x
+        else:
+            for i, j in ti.ndrange(h0, w0):
+                z[i, j] += _mf0(i, j)
+
+    @ti.func
+    def _correct(res_ready: ti.template(), last: ti.template()):
         """z += M (b - A z): one V-cycle correction, no reductions (``res_ready``: f
-        already holds b - A z, written by ``_rhs``)."""
+        already holds b - A z, written by ``_rhs``; ``last``: the frame's last, see
+        ``_update_z``)."""
         if ti.static(not res_ready):
             for i, j in ti.ndrange(h0, w0):
                 f[i, j] = _res0(i, j)
         vcycle_levels()
-        for i, j in ti.ndrange(h0, w0):
-            z[i, j] += _mf0(i, j)
+        _update_z(last)
 
     frames = {}
 
@@ -566,8 +600,8 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                        cy: ti.f64, s: ti.f64, min_nz: ti.f64, reference: ti.f64):
                 _rhs(nrm, fx, fy, cx, cy, s, min_nz, False, cycles > 0)
                 for cyc in ti.static(range(cycles)):
-                    _correct(cyc == 0)
-                _finish(out, reference)
+                    _correct(cyc == 0, cyc == cycles - 1)
+                _finish(out, reference, cycles > 0)
 
             frames[cycles] = _frame
         return frames[cycles]
@@ -861,7 +895,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         NT, gsync, plevels = _grid_parts(nblocks, bd)
 
         @ti.func
-        def _hcorrect(res_ready: ti.template()):
+        def _hcorrect(res_ready: ti.template(), last: ti.template()):
             """``_correct`` with levels ``top`` and below in the persistent task."""
             if ti.static(not res_ready):
                 for i, j in ti.ndrange(h0, w0):
@@ -871,16 +905,15 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             for tid in range(NT):
                 plevels(tid, 1, top)
             vup(top)
-            for i, j in ti.ndrange(h0, w0):
-                z[i, j] += _mf0(i, j)
+            _update_z(last)
 
         @ti.kernel
         def _hframe(nrm: ti.types.ndarray(), out: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64,
                     cy: ti.f64, s: ti.f64, min_nz: ti.f64, reference: ti.f64):
             _rhs(nrm, fx, fy, cx, cy, s, min_nz, False, cycles > 0)
             for cyc in ti.static(range(cycles)):
-                _hcorrect(cyc == 0)
-            _finish(out, reference)
+                _hcorrect(cyc == 0, cyc == cycles - 1)
+            _finish(out, reference, cycles > 0)
 
         pframes[key] = _hframe
         return _hframe

@@ -1,0 +1,68 @@
+"""Device time per Taichi task of a warm 1024^2 stream-integration frame (issue 4).
+
+Runs Taichi's kernel profiler (``TI_KERNEL_PROFILER=1``, CUDA events around every task)
+over ``--frames`` warm one-cycle frames of :class:`gpps.pipeline.integration_device.StreamIntegrator`
+for each launch form, and prints its per-task table (name, count, mean and total device time):
+which phases of the frame cost what, against the counted bytes of
+``perf/integration_device_speed.py``.  Profiling adds host work per task, so only the
+device times mean anything here.
+
+Usage:  TI_KERNEL_PROFILER=1 python perf/integration_task_profile.py [--size 1024] [--frames 20]
+The H100 table (perf/results/integration_task_profile_H100.log, before the finish's first
+pass was fused into the z update and the scalar arguments became template parameters) showed
+the finish at 3 tasks + a serial task costing ~60 us and the persistent task ~74 us.
+"""
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "perf"))
+os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
+os.environ.setdefault("TI_KERNEL_PROFILER", "1")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", type=int, default=1024)
+    ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--launches", default="persistent,tasks")
+    a = ap.parse_args(argv)
+
+    import torch
+
+    from gpps import _taichi
+    from gpps.camera import Orthographic
+    from gpps.pipeline.integration_device import StreamIntegrator, StreamIntegratorConfig
+    from integration_speed import surface_normals
+
+    ti = _taichi.init("cuda:0")
+    n = a.size
+    nA = torch.from_numpy(surface_normals(n, 0.0).astype(np.float32)).cuda()
+    nB = torch.from_numpy(surface_normals(n, 0.002).astype(np.float32)).cuda()
+    out = torch.zeros((n, n), dtype=torch.float32, device="cuda")
+    for launch in a.launches.split(","):
+        si = StreamIntegrator(np.ones((n, n), bool), Orthographic(1.0 / n), StreamIntegratorConfig(launch=launch))
+        si.integrate(nA, out, iterations=1)  # compile, check
+        si.integrate(nA, out, iterations=12)
+        ti.sync()
+        ti.profiler.clear_kernel_profiler_info()
+        for k in range(a.frames):
+            si.integrate(nB if k % 2 == 0 else nA, out, iterations=1)
+        ti.sync()
+        print(f"== launch {si.launch}, {n}x{n}, {a.frames} warm one-cycle frames; "
+              f"levels {[f'{h}x{w}' for (_, h, w) in si.levels]}", flush=True)
+        ti.profiler.print_kernel_profiler_info("count")
+        print(f"total device time per frame: {ti.profiler.get_kernel_profiler_total_time() * 1e3 / a.frames:.3f} ms",
+              flush=True)
+        si.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
