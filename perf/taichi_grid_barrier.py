@@ -115,22 +115,24 @@ def main(argv=None) -> int:
         per = (h * w + NT - 1) // NT
 
         @ti.func
+        def avg5(src: ti.template(), i, j):
+            s = src[i, j]
+            if i > 0:
+                s += src[i - 1, j]
+            if i < h - 1:
+                s += src[i + 1, j]
+            if j > 0:
+                s += src[i, j - 1]
+            if j < w - 1:
+                s += src[i, j + 1]
+            return 0.2 * s
+
+        @ti.func
         def stencil(src: ti.template(), dst: ti.template(), tid):
             for kk in range(per):
                 c = tid + kk * NT
                 if c < h * w:
-                    i = c // w
-                    j = c % w
-                    s = src[i, j]
-                    if i > 0:
-                        s += src[i - 1, j]
-                    if i < h - 1:
-                        s += src[i + 1, j]
-                    if j > 0:
-                        s += src[i, j - 1]
-                    if j < w - 1:
-                        s += src[i, j + 1]
-                    dst[i, j] = 0.2 * s
+                    dst[c // w, c % w] = avg5(src, c // w, c % w)
 
         @ti.func
         def gsync(tid, gen):
@@ -168,16 +170,7 @@ def main(argv=None) -> int:
         @ti.kernel
         def sweep(src: ti.template(), dst: ti.template()):
             for i, j in ti.ndrange(h, w):
-                s = src[i, j]
-                if i > 0:
-                    s += src[i - 1, j]
-                if i < h - 1:
-                    s += src[i + 1, j]
-                if j > 0:
-                    s += src[i, j - 1]
-                if j < w - 1:
-                    s += src[i, j + 1]
-                dst[i, j] = 0.2 * s
+                dst[i, j] = avg5(src, i, j)
 
         return x, y, run, sweep
 

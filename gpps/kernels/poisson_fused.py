@@ -275,25 +275,33 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         parameters: passed by value, Taichi would copy them into locals in a
         serial task of their own (a launch)."""
         for i, j in ti.ndrange(h0, w0):
-            a = ti.cast(0, ti.f64)
-            c = ti.cast(0, ti.f64)
-            if dg[i, j] > 0:
-                a, c = pixel_steps(nrm, i, j, ti.static(perspective), fx, fy, cx, cy, s, min_nz)
-            q[i, j] = ti.cast(a, q.dtype)  # step along j
-            r[i, j] = ti.cast(c, r.dtype)  # step along i
+            _steps_at(nrm, i, j, fx, fy, cx, cy, s, min_nz)
         for i, j in ti.ndrange(h0, w0):
-            v = div_mean_steps(q, r, wx, wy, i, j, h0, w0)
-            b[i, j] = v
-            if ti.static(norm):
-                red[i, j] = ti.cast(_sq(v), red.dtype)
-            if ti.static(res):
-                d = dg[i, j]
-                fv = v * 0
-                if d > 0:
-                    fv = v - d * z[i, j] + _neigh(z, wx, wy, i, j, 0, h0, w0)
-                f[i, j] = fv
+            _rhs_at(i, j, norm, res)
         if ti.static(norm):
             reduce_into(7)  # |b|^2
+
+    @ti.func
+    def _steps_at(nrm: ti.template(), i, j, fx: ti.template(), fy: ti.template(), cx: ti.template(),
+                  cy: ti.template(), s: ti.template(), min_nz: ti.template()):
+        """q[i, j], r[i, j] = the steps of u along j and i at pixel (i, j) (0 outside the mask)."""
+        a = ti.cast(0, ti.f64)
+        c = ti.cast(0, ti.f64)
+        if dg[i, j] > 0:
+            a, c = pixel_steps(nrm, i, j, ti.static(perspective), fx, fy, cx, cy, s, min_nz)
+        q[i, j] = ti.cast(a, q.dtype)
+        r[i, j] = ti.cast(c, r.dtype)
+
+    @ti.func
+    def _rhs_at(i, j, norm: ti.template(), res: ti.template()):
+        """b[i, j] from the steps (q, r) of the pixel and its neighbours; ``norm``: red = b^2;
+        ``res``: f = b - A z (the value of b just written by this thread)."""
+        v = div_mean_steps(q, r, wx, wy, i, j, h0, w0)
+        b[i, j] = v
+        if ti.static(norm):
+            red[i, j] = ti.cast(_sq(v), red.dtype)
+        if ti.static(res):
+            f[i, j] = _res0(i, j)
 
     @ti.func
     def _res0(i, j):
@@ -453,6 +461,30 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             z[i, j] = ti.cast(v, z.dtype)
 
     @ti.func
+    def _chunk_sums(c, j, update: ti.template()):
+        """part[c, j], part2[c, j] = the sums of u and exp(u) over rows ``c * CH ..`` of
+        column j inside the mask, u = z (``update``: u = z + M f_0, written back); the
+        thread of (0, 0) zeroes sc[8], sc[9] for the column totals of the next task."""
+        if c == 0 and j == 0:
+            sc[8] = 0
+            sc[9] = 0
+        a = ti.cast(0, ti.f64)
+        x = ti.cast(0, ti.f64)
+        for ii in range(CH):
+            i = c * CH + ii
+            if i < h0:
+                u = z[i, j]
+                if ti.static(update):
+                    u += _mf0(i, j)
+                    z[i, j] = u
+                if lab[i, j] >= 0:
+                    a += ti.cast(u, ti.f64)
+                    if ti.static(perspective):
+                        x += ti.exp(ti.cast(u, ti.f64))
+        part[c, j] = a
+        part2[c, j] = x
+
+    @ti.func
     def _finish1(out: ti.template(), reference: ti.template(), summed: ti.template()):
         """``_finish`` for one component in three tasks: the sums of u and exp(u) in one
         pass (sc[8], sc[9]; exp(u - m) sums to exp(-m) sum exp(u), so the perspective
@@ -460,21 +492,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         ``summed``: the first pass was done by the last z update (``_update_z``)."""
         if ti.static(not summed):
             for c, j in ti.ndrange(NCH, w0):
-                if c == 0 and j == 0:
-                    sc[8] = 0
-                    sc[9] = 0
-                a = ti.cast(0, ti.f64)
-                x = ti.cast(0, ti.f64)
-                for ii in range(CH):
-                    i = c * CH + ii
-                    if i < h0:
-                        if lab[i, j] >= 0:
-                            u = ti.cast(z[i, j], ti.f64)
-                            a += u
-                            if ti.static(perspective):
-                                x += ti.exp(u)
-                part[c, j] = a
-                part2[c, j] = x
+                _chunk_sums(c, j, False)
         for j in range(w0):
             a = ti.cast(0, ti.f64)
             x = ti.cast(0, ti.f64)
@@ -555,22 +573,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         pass and one task fewer; ``_mf0`` reads no z, so the update is in place)."""
         if ti.static(sums and ncomp == 1):
             for c, j in ti.ndrange(NCH, w0):
-                if c == 0 and j == 0:
-                    sc[8] = 0
-                    sc[9] = 0
-                a = ti.cast(0, ti.f64)
-                x = ti.cast(0, ti.f64)
-                for ii in range(CH):
-                    i = c * CH + ii
-                    if i < h0:
-                        u = z[i, j] + _mf0(i, j)
-                        z[i, j] = u
-                        if lab[i, j] >= 0:
-                            a += ti.cast(u, ti.f64)
-                            if ti.static(perspective):
-                                x += ti.exp(ti.cast(u, ti.f64))
-                part[c, j] = a
-                part2[c, j] = x
+                _chunk_sums(c, j, True)
         else:
             for i, j in ti.ndrange(h0, w0):
                 z[i, j] += _mf0(i, j)
@@ -595,16 +598,21 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         (``frame(nrm, out, fx, fy, cx, cy, s, min_nz, reference)``).  One
         kernel per ``cycles``, built on first use."""
         if cycles not in frames:
-            @ti.kernel
-            def _frame(nrm: ti.types.ndarray(), out: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64,
-                       cy: ti.f64, s: ti.f64, min_nz: ti.f64, reference: ti.f64):
-                _rhs(nrm, fx, fy, cx, cy, s, min_nz, False, cycles > 0)
-                for cyc in ti.static(range(cycles)):
-                    _correct(cyc == 0, cyc == cycles - 1)
-                _finish(out, reference, cycles > 0)
-
-            frames[cycles] = _frame
+            frames[cycles] = _frame_kernel(cycles, _correct)
         return frames[cycles]
+
+    def _frame_kernel(cycles: int, correct):
+        """The frame kernel around a correction ``correct(res_ready, last)`` (a ti.func)."""
+
+        @ti.kernel
+        def _frame(nrm: ti.types.ndarray(), out: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64,
+                   cy: ti.f64, s: ti.f64, min_nz: ti.f64, reference: ti.f64):
+            _rhs(nrm, fx, fy, cx, cy, s, min_nz, False, cycles > 0)
+            for cyc in ti.static(range(cycles)):
+                correct(cyc == 0, cyc == cycles - 1)
+            _finish(out, reference, cycles > 0)
+
+        return _frame
 
     pframes = {}
     LIMIT = 1 << 20  # polls before a grid barrier gives up (a block that never became resident)
@@ -641,6 +649,25 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             return gen + 1
 
         @ti.func
+        def sweep(tid, gen, src: ti.template(), dst: ti.template(), off, h, w):
+            """One damped Jacobi sweep src -> dst on a level (cells strided over the threads), then a barrier."""
+            n = h * w
+            for kk in range((n + NT - 1) // NT):
+                cc = tid + kk * NT
+                if cc < n:
+                    dst[cc // w, off + cc % w] = _jacobi_point(src, f, wx, wy, dg, cc // w, cc % w, off, h, w, om)
+            return gsync(tid, gen)
+
+        @ti.func
+        def pairs(tid, gen, off, h, w):
+            """The ``npairs - 1`` further sweep pairs t -> e -> t of a level."""
+            g = gen
+            for _ in ti.static(range(npairs - 1)):
+                g = sweep(tid, g, t, e, off, h, w)
+                g = sweep(tid, g, e, t, off, h, w)
+            return g
+
+        @ti.func
         def plevels(tid, gen, top: ti.template()):
             """The V-cycle from level ``top`` down (its f restricted already) and back up to level
             ``top``, a phase per grid barrier: t on level ``top`` = its V-cycle result (level 0's
@@ -655,17 +682,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                     if cc < n:
                         t[cc // w, off + cc % w] = _pre(cc // w, cc % w, off, h, w)
                 g = gsync(tid, g)
-                for _ in ti.static(range(npairs - 1)):
-                    for kk in range((n + NT - 1) // NT):
-                        cc = tid + kk * NT
-                        if cc < n:
-                            e[cc // w, off + cc % w] = _jacobi_point(t, f, wx, wy, dg, cc // w, cc % w, off, h, w, om)
-                    g = gsync(tid, g)
-                    for kk in range((n + NT - 1) // NT):
-                        cc = tid + kk * NT
-                        if cc < n:
-                            t[cc // w, off + cc % w] = _jacobi_point(e, f, wx, wy, dg, cc // w, cc % w, off, h, w, om)
-                    g = gsync(tid, g)
+                g = pairs(tid, g, off, h, w)
                 offc, wc = geof[k + 1, 0], geof[k + 1, 2]
                 ncl = geof[k + 1, 1] * wc
                 for kk in range((ncl + NT - 1) // NT):
@@ -705,22 +722,8 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                 if ti.static(fold0 and top == 0):
                     second = ti.select(k > 0, 1, 0)
                 if second:
-                    for kk in range((n + NT - 1) // NT):
-                        cc = tid + kk * NT
-                        if cc < n:
-                            t[cc // w, off + cc % w] = _jacobi_point(e, f, wx, wy, dg, cc // w, cc % w, off, h, w, om)
-                    g = gsync(tid, g)
-                    for _ in ti.static(range(npairs - 1)):
-                        for kk in range((n + NT - 1) // NT):
-                            cc = tid + kk * NT
-                            if cc < n:
-                                e[cc // w, off + cc % w] = _jacobi_point(t, f, wx, wy, dg, cc // w, cc % w, off, h, w, om)
-                        g = gsync(tid, g)
-                        for kk in range((n + NT - 1) // NT):
-                            cc = tid + kk * NT
-                            if cc < n:
-                                t[cc // w, off + cc % w] = _jacobi_point(e, f, wx, wy, dg, cc // w, cc % w, off, h, w, om)
-                        g = gsync(tid, g)
+                    g = sweep(tid, g, e, t, off, h, w)
+                    g = pairs(tid, g, off, h, w)
             return g
 
         return NT, gsync, plevels
@@ -768,28 +771,13 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                 for kk in range((n0 + NT - 1) // NT):
                     cc = tid + kk * NT
                     if cc < n0:
-                        i = cc // w0
-                        j = cc % w0
-                        a = ti.cast(0, ti.f64)
-                        c = ti.cast(0, ti.f64)
-                        if dg[i, j] > 0:
-                            a, c = pixel_steps(nrm, i, j, ti.static(perspective), fx, fy, cx, cy, s, min_nz)
-                        q[i, j] = ti.cast(a, q.dtype)
-                        r[i, j] = ti.cast(c, r.dtype)
+                        _steps_at(nrm, cc // w0, cc % w0, fx, fy, cx, cy, s, min_nz)
                 gen = gsync(tid, gen)
                 # b = -div of the mean steps; f = b - A z (the first correction's residual)
                 for kk in range((n0 + NT - 1) // NT):
                     cc = tid + kk * NT
                     if cc < n0:
-                        i = cc // w0
-                        j = cc % w0
-                        v = div_mean_steps(q, r, wx, wy, i, j, h0, w0)
-                        b[i, j] = v
-                        d = dg[i, j]
-                        fv = v * 0
-                        if d > 0:
-                            fv = v - d * z[i, j] + _neigh(z, wx, wy, i, j, 0, h0, w0)
-                        f[i, j] = fv
+                        _rhs_at(cc // w0, cc % w0, False, True)
                 gen = gsync(tid, gen)
                 for cyc in range(cycles):
                     if cyc > 0:
@@ -907,16 +895,8 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             vup(top)
             _update_z(last)
 
-        @ti.kernel
-        def _hframe(nrm: ti.types.ndarray(), out: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64,
-                    cy: ti.f64, s: ti.f64, min_nz: ti.f64, reference: ti.f64):
-            _rhs(nrm, fx, fy, cx, cy, s, min_nz, False, cycles > 0)
-            for cyc in ti.static(range(cycles)):
-                _hcorrect(cyc == 0, cyc == cycles - 1)
-            _finish(out, reference, cycles > 0)
-
-        pframes[key] = _hframe
-        return _hframe
+        pframes[key] = _frame_kernel(cycles, _hcorrect)
+        return pframes[key]
 
     @ti.kernel
     def scalars() -> ti.types.vector(8, ti.f64):
