@@ -9,6 +9,10 @@ the V-cycle, the new direction) is *one* Taichi kernel: its top-level loops are
 unrolled with ``ti.static`` and run as consecutive parallel tasks of a single
 launch.  At real-time rates the Python launch (about 20-45 us a kernel on an
 H200, see ``../shared/device/README.md``) otherwise costs more than the work.
+Each task still costs about 3 us of device time and 5 us of host time, so on
+CUDA the small levels can run as *one* persistent task whose phases meet at
+software grid barriers (``persistent``, ``hybrid`` below; about 2 us a
+barrier on an H100, ``perf/taichi_grid_barrier.py``).
 
 :func:`make_fused` builds the kernels for one set of fields and one geometry;
 the fields are closed over (not passed), so each instance of
@@ -43,7 +47,13 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         ``mg_step()`` (one multigrid correction), ``rhs_only(...)``,
         ``scalars()`` (``sc`` as a vector), the builder ``frame(cycles)`` of
         the one-launch frame kernel (right-hand side, ``cycles`` corrections,
-        depth), and for profiling ``vcycle_only()``, ``coarse_only()``, ``noop()``.
+        depth), the builders ``persistent(nblocks, bd)`` (the whole frame in one
+        persistent task, ``cycles`` a runtime argument) and ``hybrid(cycles, top,
+        nblocks, bd)`` (levels ``top`` and below in one), and for profiling
+        ``vcycle_only()``, ``coarse_only()``, ``noop()``.  ``F`` also holds
+        ``bar`` (i32 (2,): barrier arrivals, timeout flag), ``geo`` (i32 (L, 3)),
+        ``cmap`` (coarsest cell to its index in ``cidx``, -1) and ``fcv`` (the
+        coarsest right-hand side, gathered) for them.
     """
     L = len(geo)
     h0, w0 = geo[0][1], geo[0][2]
