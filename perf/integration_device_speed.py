@@ -215,22 +215,47 @@ def main(argv=None) -> int:
                 if not a.quick:
                     row["cold_tol_1e-3"] = {"ms": 1e3 * med(run_tol, max(5, a.repeat // 2)),
                                             "iterations": si.last_iterations, "residual": si.last_residual}
+                nfr = 20
+
+                def rel_err(d, tag):
+                    """Mean depth error against reference ``tag``, after the offset, over the depth range."""
+                    d = d.astype(np.float64)
+                    d = d - d.mean() + refs[tag].mean()
+                    return float(np.abs(d - refs[tag]).mean() / rng)
+
+                def converge(A, O):
+                    si.reset()
+                    si.integrate(A, O, iterations=12)
+                    ti.sync()
+
+                def isolated(A, B, O, k):
+                    """Median seconds of k cycles on B from A's solution, synced before and after."""
+                    ts = []
+                    for _ in range(max(5, a.repeat // 2)):
+                        converge(A, O)
+                        t0 = time.perf_counter()
+                        si.integrate(B, O, iterations=k)
+                        ti.sync()
+                        ts.append(time.perf_counter() - t0)
+                    return statistics.median(ts)
+
+                def streamed(A, B, O, k):
+                    """Median seconds per frame of nfr frames B, A, B, ... of k cycles, back to back."""
+                    ts = []
+                    for _ in range(max(5, a.repeat // 3)):
+                        converge(A, O)
+                        t0 = time.perf_counter()
+                        for x in [B, A] * (nfr // 2):
+                            si.integrate(x, O, iterations=k)
+                        ti.sync()
+                        ts.append((time.perf_counter() - t0) / nfr)
+                    return statistics.median(ts)
+
                 # warm: converge on A, then k iterations on B from A's solution
                 warm = []
                 for k in ((1,) if a.quick else range(1, 5)):
-                    ts, errs = [], []
-                    for _ in range(max(5, a.repeat // 2)):
-                        si.reset()
-                        si.integrate(nAd, out, iterations=12)
-                        ti.sync()
-                        t0 = time.perf_counter()
-                        si.integrate(nBd, out, iterations=k)
-                        ti.sync()
-                        ts.append(time.perf_counter() - t0)
-                    d = host(out).astype(np.float64)
-                    d = d - d.mean() + refs["B"].mean()
-                    warm.append({"iterations": k, "ms": 1e3 * statistics.median(ts),
-                                 "depth_error": float(np.abs(d - refs["B"]).mean() / rng)})
+                    t = isolated(nAd, nBd, out, k)
+                    warm.append({"iterations": k, "ms": 1e3 * t, "depth_error": rel_err(host(out), "B")})
                 row["warm"] = warm
                 ok = [w for w in warm if w["depth_error"] <= a.accuracy]
                 row["warm_to_accuracy"] = ok[0] if ok else None
@@ -238,39 +263,24 @@ def main(argv=None) -> int:
                 # each, submitted back to back as a stream does (no host sync between frames, so the host's
                 # launch of frame i+1 overlaps the device's work on frame i); time per frame = total / frames.
                 # The accuracy is checked along the same sequence in an untimed pass with host copies.
-                nfr = 20
                 seq = [nBd, nAd] * (nfr // 2)
                 stream = []
                 for k in ((1,) if a.quick else (1, 2)):
-                    ts = []
-                    for _ in range(max(5, a.repeat // 3)):
-                        si.reset()
-                        si.integrate(nAd, out, iterations=12)
-                        ti.sync()
-                        t0 = time.perf_counter()
-                        for x in seq:
-                            si.integrate(x, out, iterations=k)
-                        ti.sync()
-                        ts.append((time.perf_counter() - t0) / nfr)
-                    si.reset()
-                    si.integrate(nAd, out, iterations=12)
+                    t = streamed(nAd, nBd, out, k)
+                    converge(nAd, out)
                     errs = []
                     for idx, x in enumerate(seq):
                         si.integrate(x, out, iterations=k)
-                        d = host(out).astype(np.float64)
-                        rf = refs["B" if idx % 2 == 0 else "A"]
-                        d = d - d.mean() + rf.mean()
-                        errs.append(float(np.abs(d - rf).mean() / rng))
-                    stream.append({"iterations": k, "ms_per_frame": 1e3 * statistics.median(ts),
-                                   "max_depth_error": max(errs), "frames": nfr})
+                        errs.append(rel_err(host(out), "B" if idx % 2 == 0 else "A"))
+                    stream.append({"iterations": k, "ms_per_frame": 1e3 * t, "max_depth_error": max(errs),
+                                   "frames": nfr})
                 row["warm_stream"] = stream
                 if cuda:
                     # device time of a streamed warm frame: the GPU is put to sleep while the host queues
                     # the 20 frames, then two events around them time the device alone
                     hs, ds = [], []
                     for _ in range(5):
-                        si.reset()
-                        si.integrate(nAd, out, iterations=12)
+                        converge(nAd, out)
                         torch.cuda.synchronize()
                         e0, e1 = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
                         torch.cuda._sleep(int(40e6))
@@ -291,31 +301,10 @@ def main(argv=None) -> int:
                     tA, tB, tO = ti.ndarray(ti.f32, (n, n, 3)), ti.ndarray(ti.f32, (n, n, 3)), ti.ndarray(ti.f32, (n, n))
                     tA.from_numpy(nA)
                     tB.from_numpy(nB)
-                    tsq = [tB, tA] * (nfr // 2)
-                    iso, st = [], []
-                    for _ in range(max(5, a.repeat // 2)):
-                        si.reset()
-                        si.integrate(tA, tO, iterations=12)
-                        ti.sync()
-                        t0 = time.perf_counter()
-                        si.integrate(tB, tO, iterations=1)
-                        ti.sync()
-                        iso.append(time.perf_counter() - t0)
-                    d = tO.to_numpy().astype(np.float64)
-                    d = d - d.mean() + refs["B"].mean()
-                    iso_err = float(np.abs(d - refs["B"]).mean() / rng)
-                    for _ in range(max(5, a.repeat // 3)):
-                        si.reset()
-                        si.integrate(tA, tO, iterations=12)
-                        ti.sync()
-                        t0 = time.perf_counter()
-                        for x in tsq:
-                            si.integrate(x, tO, iterations=1)
-                        ti.sync()
-                        st.append((time.perf_counter() - t0) / nfr)
-                    row["warm_1_cycle_taichi_ndarrays"] = {"isolated_ms": 1e3 * statistics.median(iso),
-                                                           "isolated_depth_error": iso_err,
-                                                           "streamed_ms_per_frame": 1e3 * statistics.median(st)}
+                    t_iso = isolated(tA, tB, tO, 1)
+                    row["warm_1_cycle_taichi_ndarrays"] = {"isolated_ms": 1e3 * t_iso,
+                                                           "isolated_depth_error": rel_err(tO.to_numpy(), "B"),
+                                                           "streamed_ms_per_frame": 1e3 * streamed(tA, tB, tO, 1)}
                 ok = [w for w in stream if w["max_depth_error"] <= a.accuracy]
                 row["warm_stream_to_accuracy"] = ok[0] if ok else None
                 if bandwidth and method == "multigrid":

@@ -41,10 +41,10 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         perspective: the unknown is log-depth (PPN gradients, depth = exp).
 
     Returns:
-        dict of kernels: ``rhs(nrm, fx, fy, cx, cy, s, min_nz)``,
+        dict of kernels: ``rhs_only(nrm, fx, fy, cx, cy, s, min_nz)`` (the right-hand side),
         ``pcg_begin()``, ``pcg_iteration()``, ``residual()``,
         ``finish(out, reference)``, ``load(depth)`` (warm start from a depth map),
-        ``mg_step()`` (one multigrid correction), ``rhs_only(...)``,
+        ``mg_step()`` (one multigrid correction), ``rhs_begin(...)`` (with ``pcg_begin``),
         ``scalars()`` (``sc`` as a vector), the builder ``frame(cycles)`` of
         the one-launch frame kernel (right-hand side, ``cycles`` corrections,
         depth), the builders ``persistent(nblocks, bd)`` (the whole frame in one
@@ -188,18 +188,36 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         return rr
 
     @ti.func
-    def coarse_solve():
-        """t = pinv f on the coarsest level's active cells (one thread per cell).
+    def _restrict_at(ci, cj, off, h, w, offc, last):
+        """f at coarse cell (ci, cj) = the sum of the fine 2x2 block's residuals; into the
+        coarsest level (``last``) also gathered into ``fcv`` (its active cells in order)."""
+        v = (_res(2 * ci, 2 * cj, off, h, w) + _res(2 * ci, 2 * cj + 1, off, h, w)
+             + _res(2 * ci + 1, 2 * cj, off, h, w) + _res(2 * ci + 1, 2 * cj + 1, off, h, w))
+        f[ci, offc + cj] = v
+        if last:
+            m = cmap[ci, cj]
+            if m >= 0:
+                fcv[m] = v
+
+    @ti.func
+    def _coarse_at(kk):
+        """t = (pinv f)[kk] at the coarsest level's active cell ``kk`` (f gathered in ``fcv``).
 
         ``pinv`` is symmetric (the pseudo-inverse of a symmetric matrix), so
         thread ``kk`` reads column ``kk``: neighbouring threads read
-        neighbouring addresses (coalesced) instead of rows ``nc`` apart.
+        neighbouring addresses (coalesced) instead of rows ``nc`` apart; every
+        thread reads the same ``fcv[m]`` (one broadcast, no index lookups).
         """
+        acc = fcv[0] * 0
+        for m in range(nc):
+            acc += pinv[m, kk] * fcv[m]
+        t[cidx[kk, 0], cidx[kk, 1]] = acc
+
+    @ti.func
+    def coarse_solve():
+        """t = pinv f on the coarsest level's active cells (one thread per cell)."""
         for kk in range(nc):
-            s = f[cidx[kk, 0], cidx[kk, 1]] * 0
-            for m in range(nc):
-                s += pinv[m, kk] * f[cidx[m, 0], cidx[m, 1]]
-            t[cidx[kk, 0], cidx[kk, 1]] = s
+            _coarse_at(kk)
 
     @ti.func
     def vcycle_levels():
@@ -234,8 +252,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                 for i, j in ti.ndrange(h, w):
                     t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, om)
             for ci, cj in ti.ndrange(hc, wc):
-                f[ci, offc + cj] = (_res(2 * ci, 2 * cj, off, h, w) + _res(2 * ci, 2 * cj + 1, off, h, w)
-                                    + _res(2 * ci + 1, 2 * cj, off, h, w) + _res(2 * ci + 1, 2 * cj + 1, off, h, w))
+                _restrict_at(ci, cj, off, h, w, offc, ti.static(k == L - 2))
                 if ti.static(k == top - 1 and top < L - 1):
                     if ci == 0 and cj == 0:
                         bar[0] = 0
@@ -350,18 +367,13 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         stage2(RZ)
 
     @ti.kernel
-    def rhs(nrm: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64, cy: ti.f64, s: ti.f64, min_nz: ti.f64):
-        """b = -div of the steps from the normals (see ``_rhs``), |b|^2 in sc[7]."""
-        _rhs(nrm, fx, fy, cx, cy, s, min_nz, True, False)
-
-    @ti.kernel
     def pcg_begin():
         """Start the CG from the current z (see ``_begin``)."""
         _begin()
 
     @ti.kernel
     def rhs_begin(nrm: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64, cy: ti.f64, s: ti.f64, min_nz: ti.f64):
-        """``rhs`` and ``pcg_begin`` in one launch (the per-frame path)."""
+        """``rhs_only`` and ``pcg_begin`` in one launch (the per-frame path)."""
         _rhs(nrm, fx, fy, cx, cy, s, min_nz, True, False)
         _begin()
 
@@ -429,7 +441,8 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
 
     @ti.kernel
     def rhs_only(nrm: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64, cy: ti.f64, s: ti.f64, min_nz: ti.f64):
-        """``rhs`` without starting the CG (the multigrid-correction path)."""
+        """b = -div of the steps from the normals (see ``_rhs``), |b|^2 in sc[7], without starting
+        the CG (the multigrid-correction path)."""
         _rhs(nrm, fx, fy, cx, cy, s, min_nz, True, False)
 
     @ti.kernel
@@ -698,24 +711,13 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                 for kk in range((ncl + NT - 1) // NT):
                     cc = tid + kk * NT
                     if cc < ncl:
-                        ci = cc // wc
-                        cj = cc % wc
-                        v = (_res(2 * ci, 2 * cj, off, h, w) + _res(2 * ci, 2 * cj + 1, off, h, w)
-                             + _res(2 * ci + 1, 2 * cj, off, h, w) + _res(2 * ci + 1, 2 * cj + 1, off, h, w))
-                        f[ci, offc + cj] = v
-                        if k == L - 2:
-                            m = cmap[ci, cj]
-                            if m >= 0:
-                                fcv[m] = v
+                        _restrict_at(cc // wc, cc % wc, off, h, w, offc, k == L - 2)
                 g = gsync(tid, g)
             # coarsest level: t = pinv f (f gathered into fcv by the last restriction)
             for kk in range((nc + NT - 1) // NT):
                 cc = tid + kk * NT
                 if cc < nc:
-                    acc = fcv[0] * 0
-                    for m in range(nc):
-                        acc += pinv[m, cc] * fcv[m]
-                    t[cidx[cc, 0], cidx[cc, 1]] = acc
+                    _coarse_at(cc)
             g = gsync(tid, g)
             # ascent: first sweep on (iterate + prolonged correction), then the second
             for kq in range(L - 1 - top):
@@ -913,7 +915,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         """All of ``sc`` in one read (one launch and one copy instead of one per element)."""
         return ti.Vector([sc[0], sc[1], sc[2], sc[3], sc[4], sc[5], sc[6], sc[7]], ti.f64)
 
-    return {"rhs": rhs, "pcg_begin": pcg_begin, "rhs_begin": rhs_begin, "pcg_iteration": pcg_iteration, "residual": residual,
+    return {"pcg_begin": pcg_begin, "rhs_begin": rhs_begin, "pcg_iteration": pcg_iteration, "residual": residual,
             "finish": finish, "load": load, "mg_step": mg_step, "rhs_only": rhs_only, "vcycle_only": vcycle_only,
             "coarse_only": coarse_only, "noop": noop, "scalars": scalars, "frame": frame,
             "persistent": persistent, "hybrid": hybrid}
