@@ -37,7 +37,9 @@ Per size and configuration (``coarsest`` x ``method``):
 
 Launch forms (``--launches``): ``tasks`` (one Taichi task per phase) and
 ``persistent:<blocks per SM>:<size>`` (levels of at most ``size`` pixels a side in one
-persistent task with grid barriers; see ``StreamIntegratorConfig.launch``).
+persistent task with grid barriers; see ``StreamIntegratorConfig.launch``); a trailing
+``:plain`` calls the frame kernel through Taichi's own argument handling instead of
+:class:`gpps._taichi.DirectLaunch` (``StreamIntegratorConfig.direct_launch``).
 
 Roofline: the copy bandwidth is measured in the same run (torch device copy
 of 256 MiB, read + write); the warm one-cycle frame's DRAM traffic is counted
@@ -166,12 +168,15 @@ def main(argv=None) -> int:
                 for launch in (a.launches.split(",") if method == "multigrid" else ["tasks"]):
                     if launch.startswith("persistent") and not cuda:
                         continue
-                    kind, bps, psize = (launch.split(":") + ["2", "256"])[:3]
-                    combos.append((coarsest, method, kind, int(bps), int(psize)))
+                    parts = launch.split(":")
+                    plain = parts[-1] == "plain"
+                    parts = parts[:-1] if plain else parts
+                    kind, bps, psize = (parts + ["2", "256"])[:3]
+                    combos.append((coarsest, method, kind, int(bps), int(psize), not plain))
         if True:
-            for coarsest, method, launch, bps, psize in combos:
+            for coarsest, method, launch, bps, psize, direct in combos:
                 cfg = StreamIntegratorConfig(coarsest=coarsest, method=method, launch=launch, blocks_per_sm=bps,
-                                             persistent_size=psize)
+                                             persistent_size=psize, direct_launch=direct)
                 si = StreamIntegrator(mask, cam, cfg, device=a.device)
                 K = si._K
                 out = dev(np.zeros((n, n), np.float32))
@@ -182,6 +187,7 @@ def main(argv=None) -> int:
                 rhs = (lambda: K["rhs_only"](nAd, *si._cam, cfg.min_nz)) if method == "multigrid" else \
                     (lambda: K["rhs_begin"](nAd, *si._cam, cfg.min_nz))
                 row = {"size": n, "coarsest": coarsest, "method": method, "launch": si.launch,
+                       "direct_launch": direct,
                        "blocks_per_sm": si._bps if si.launch == "persistent" else None,
                        "persistent_levels": [f"{hh}x{ww}" for (_, hh, ww) in si.levels[si._top:]]
                        if si.launch == "persistent" else [], "levels": len(si.levels),
@@ -320,7 +326,7 @@ def main(argv=None) -> int:
                 p = row["pieces_us"]
                 ca, wa = row["cold_to_accuracy"], row["warm_to_accuracy"]
                 q = row.get("warm_1_cycle_queued", {})
-                print(f"{n:5d} coarsest {coarsest:2d} {method:9s} {si.launch}:{row['blocks_per_sm']}:{psize} | warm 1-cycle queued: "
+                print(f"{n:5d} coarsest {coarsest:2d} {method:9s} {si.launch}:{row['blocks_per_sm']}:{psize}{'' if direct else ':plain'} | warm 1-cycle queued: "
                       f"host {q.get('host_ms_per_frame', float('nan')):.3f} device {q.get('device_ms_per_frame', float('nan')):.3f} "
                       f"ms/frame; Taichi ndarrays: {row.get('warm_1_cycle_taichi_ndarrays')}", flush=True)
                 pieces = " ".join(f"{k} {v:.1f}" for k, v in p.items()) + " us | " if p else ""

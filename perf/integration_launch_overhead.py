@@ -67,13 +67,25 @@ def main(argv=None) -> int:
             ts.append((time.perf_counter() - t0) / inner)
         return 1e6 * statistics.median(ts)
 
+    from gpps._taichi import DirectLaunch
+
     frame = K["frame"](1)
+    dnoop, dframe = DirectLaunch(noop_nd), DirectLaunch(frame)
+    args = (*si._cam, si.config.min_nz, 0.0)
     res = {
         "noop_fields_us": med(K["noop"]),
         "noop_two_torch_ndarrays_us": med(lambda: noop_nd(nrm, out)),
         "noop_two_taichi_ndarrays_us": med(lambda: noop_nd(nd_n, nd_o)),
         "frame1_kernel_torch_args_us": med(lambda: frame(nrm, out, *si._cam, si.config.min_nz, 0.0)),
         "frame1_kernel_taichi_ndarray_args_us": med(lambda: frame(nd_n, nd_o, *si._cam, si.config.min_nz, 0.0)),
+        "noop_two_torch_ndarrays_direct_us": med(lambda: dnoop(nrm, out)),
+        "noop_two_taichi_ndarrays_direct_us": med(lambda: dnoop(nd_n, nd_o)),
+        "frame1_kernel_torch_args_direct_us": med(lambda: dframe(nrm, out, *args)),
+        "frame1_kernel_taichi_ndarray_args_direct_us": med(lambda: dframe(nd_n, nd_o, *args)),
+        "frame1_isolated_torch_plain_us": med(lambda: frame(nrm, out, *args), 1),
+        "frame1_isolated_torch_direct_us": med(lambda: dframe(nrm, out, *args), 1),
+        "frame1_isolated_taichi_ndarray_plain_us": med(lambda: frame(nd_n, nd_o, *args), 1),
+        "frame1_isolated_taichi_ndarray_direct_us": med(lambda: dframe(nd_n, nd_o, *args), 1),
         "integrate_1_iteration_us": med(lambda: si.integrate(nrm, out, iterations=1)),
         "vcycle_only_us": med(K["vcycle_only"]),
     }

@@ -47,7 +47,9 @@ def main(argv=None) -> int:
     nB = torch.from_numpy(surface_normals(n, 0.002).astype(np.float32)).cuda()
     out = torch.zeros((n, n), dtype=torch.float32, device="cuda")
     for launch in a.launches.split(","):
-        si = StreamIntegrator(np.ones((n, n), bool), Orthographic(1.0 / n), StreamIntegratorConfig(launch=launch))
+        kind, bps, psize = (launch.split(":") + ["2", "256"])[:3]  # persistent:<blocks per SM>:<size>
+        cfg = StreamIntegratorConfig(launch=kind, blocks_per_sm=int(bps), persistent_size=int(psize))
+        si = StreamIntegrator(np.ones((n, n), bool), Orthographic(1.0 / n), cfg)
         si.integrate(nA, out, iterations=1)  # compile, check
         si.integrate(nA, out, iterations=12)
         ti.sync()
@@ -55,7 +57,7 @@ def main(argv=None) -> int:
         for k in range(a.frames):
             si.integrate(nB if k % 2 == 0 else nA, out, iterations=1)
         ti.sync()
-        print(f"== launch {si.launch}, {n}x{n}, {a.frames} warm one-cycle frames; "
+        print(f"== launch {launch} ({si.launch}), {n}x{n}, {a.frames} warm one-cycle frames; "
               f"levels {[f'{h}x{w}' for (_, h, w) in si.levels]}", flush=True)
         ti.profiler.print_kernel_profiler_info("count")
         print(f"total device time per frame: {ti.profiler.get_kernel_profiler_total_time() * 1e3 / a.frames:.3f} ms",

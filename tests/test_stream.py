@@ -318,3 +318,141 @@ def test_stream_integrator_persistent_falls_back_when_blocks_do_not_fit():
         b.integrate(nrm, ob, iterations=2)
     np.testing.assert_allclose(ob, oa, rtol=0, atol=2e-6 * np.abs(oa).max())
     print(f"blocks per SM used: {b._bps}, launch {b.launch}")
+
+
+def _arrays(kind, nrm, cuda):
+    """(normals, out) of one kind: numpy, a Taichi ndarray, or a torch tensor on Taichi's device."""
+    from gpps._taichi import ti
+
+    if kind == "numpy":
+        return nrm.copy(), np.zeros(nrm.shape[:2], np.float32)
+    if kind == "ndarray":
+        a, o = ti.ndarray(ti.f32, nrm.shape), ti.ndarray(ti.f32, nrm.shape[:2])
+        a.from_numpy(nrm)
+        return a, o
+    torch = pytest.importorskip("torch")
+    dev = "cuda" if cuda else "cpu"
+    return torch.from_numpy(nrm.copy()).to(dev), torch.zeros(nrm.shape[:2], dtype=torch.float32, device=dev)
+
+
+def _host(a):
+    return a if isinstance(a, np.ndarray) else (a.to_numpy() if hasattr(a, "to_numpy") else a.cpu().numpy())
+
+
+@pytest.mark.parametrize("kind", ["numpy", "ndarray", "torch"])
+@pytest.mark.parametrize("launch", ["tasks", "persistent"])
+def test_stream_integrator_direct_launch_equals_plain_call(kind, launch):
+    """Frames launched directly (Taichi's argument handling skipped on the same array objects) give
+    the plain call's depth over three frames, new normals written into the same input between them;
+    the launcher really took the direct path from the second frame on."""
+    from gpps import _taichi
+    from gpps.pipeline.integration_device import StreamIntegrator, StreamIntegratorConfig
+
+    _taichi.init("auto")
+    cuda = _taichi.current_device().startswith("cuda")
+    if kind == "numpy" and cuda:
+        pytest.skip("Taichi copies numpy arrays to the GPU: those frames take the plain path")
+    sc, m, nrm = _two_component_case("perspective")
+    shifted = np.ascontiguousarray(np.roll(nrm, 2, axis=1))
+    ia, oa = _arrays(kind, nrm, cuda)
+    ib, ob = _arrays(kind, nrm, cuda)
+    a = StreamIntegrator(m, sc.camera, StreamIntegratorConfig(launch=launch, direct_launch=False))
+    b = StreamIntegrator(m, sc.camera, StreamIntegratorConfig(launch=launch))
+    for k in range(3):
+        if k == 2:  # a new normal map in the same buffers
+            for x in (ia, ib):
+                if kind == "numpy":
+                    x[:] = shifted
+                elif kind == "ndarray":
+                    x.from_numpy(shifted)
+                else:
+                    x.copy_(x.new_tensor(shifted))
+        a.integrate(ia, oa, iterations=1, reference=10.0)
+        b.integrate(ib, ob, iterations=1, reference=10.0)
+        da, db = _host(oa), _host(ob)
+        np.testing.assert_allclose(db, da, rtol=0, atol=2e-6 * np.abs(da).max())
+    assert np.abs(da - _host(oa)).max() == 0 and np.abs(da[m]).min() > 0
+    run = b._ready[1][0] if b.launch == "persistent" else b._frames[1]
+    assert len(run._plans) == 1 and next(iter(run._plans.values()))[3][0][1] is ib
+
+
+def test_direct_launch_replans_on_new_arrays_and_rejects_resized_ones():
+    """DirectLaunch: the first call and a call on new array objects take Taichi's plain call (which
+    compiles a specialisation for a new dtype); the same objects take the direct path with the new
+    scalars; an array reshaped in place since is refused with a ValueError, not read out of bounds;
+    a kernel with a template argument is always called the plain way."""
+    from gpps import _taichi
+    from gpps._taichi import DirectLaunch
+
+    ti = _taichi.init("auto")
+    cuda = _taichi.current_device().startswith("cuda")
+
+    @ti.kernel
+    def axpy(x: ti.types.ndarray(), y: ti.types.ndarray(), a: ti.f64, n: ti.i32):
+        for i in range(n):
+            y[i] = a * x[i] + y[i]
+
+    @ti.kernel
+    def scale(x: ti.types.ndarray(), a: ti.template()):
+        for i in range(x.shape[0]):
+            x[i] *= a
+
+    run = DirectLaunch(axpy)
+    if cuda:
+        x, y = ti.ndarray(ti.f32, 8), ti.ndarray(ti.f32, 8)
+        x.from_numpy(np.arange(8, dtype=np.float32))
+        y.fill(1.0)
+    else:
+        x, y = np.arange(8, dtype=np.float32), np.ones(8, np.float32)
+    run(x, y, 2.0, 8)  # plain
+    assert len(run._plans) == 1
+    plan = next(iter(run._plans.values()))
+    run(x, y, 0.5, 4)  # direct: new scalars
+    assert list(run._plans.values()) == [plan]
+    np.testing.assert_allclose(_host(y), 1 + 2 * np.arange(8) + np.r_[0.5 * np.arange(4), np.zeros(4)])
+    x2 = np.arange(8, dtype=np.float64) if not cuda else ti.ndarray(ti.f64, 8)
+    if cuda:
+        x2.from_numpy(np.arange(8, dtype=np.float64))
+    y2 = np.zeros(8) if not cuda else ti.ndarray(ti.f64, 8)
+    run(x2, y2, 3.0, 8)  # new objects (float64): plain call, a second plan
+    assert len(run._plans) == 2 and list(run._plans.values())[1][3][0][1] is x2
+    np.testing.assert_allclose(_host(y2), 3 * np.arange(8))
+    run(x, y, 1.0, 8)  # back to the first set: direct
+    assert len(run._plans) == 2
+    np.testing.assert_allclose(_host(y), 1 + 3 * np.arange(8) + np.r_[0.5 * np.arange(4), np.zeros(4)])
+    if not cuda:
+        x2.shape = (2, 4)
+        with pytest.raises(ValueError, match="resized in place"):
+            run(x2, y2, 1.0, 8)
+    for _ in range(DirectLaunch.MAX_PLANS):  # new sets push the oldest out
+        run(np.arange(8.0) if not cuda else x, np.zeros(8) if not cuda else y, 0.0, 8)
+    assert len(run._plans) == (DirectLaunch.MAX_PLANS if not cuda else 2)
+    t = DirectLaunch(scale)
+    z = np.ones(4, np.float32) if not cuda else ti.ndarray(ti.f32, 4)
+    if cuda:
+        z.fill(1.0)
+    t(z, 2.0)
+    t(z, 2.0)
+    assert not t._plans
+    np.testing.assert_allclose(_host(z), 4.0)
+
+
+def test_stream_integrator_rejects_bad_frames_arrays():
+    from gpps.pipeline.integration_device import StreamIntegrator
+
+    sc, m, nrm = _two_component_case("orthographic", size=32)
+    si = StreamIntegrator(m, sc.camera)
+    out = np.zeros(m.shape, np.float32)
+    with pytest.raises(ValueError, match=r"normals: expected shape \(32, 32, 3\)"):
+        si.integrate(nrm[:, :, :2].copy(), out, iterations=1)
+    with pytest.raises(ValueError, match=r"out: expected shape \(32, 32\)"):
+        si.integrate(nrm, out[:5], iterations=1)
+    with pytest.raises(ValueError, match="out: expected a float32 array"):
+        si.integrate(nrm, np.zeros(m.shape), iterations=1)
+    with pytest.raises(ValueError, match="normals: expected a float32 or float64"):
+        si.integrate(nrm.astype(np.int32), out, iterations=1)
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="reference"):
+            si.integrate(nrm, out, iterations=1, reference=bad)
+    si.integrate(nrm, out, iterations=2)
+    assert np.isfinite(out).all() and np.abs(out[m]).max() > 0

@@ -84,6 +84,12 @@ class StreamIntegratorConfig:
             and the host 0.27-0.34 ms against 0.41 (14 tasks instead of 30);
             the whole frame in the persistent task cost 0.293 ms (level 0 at
             2 blocks per SM is latency-bound).
+        direct_launch: launch the per-frame kernel through
+            :class:`gpps._taichi.DirectLaunch` (Taichi's argument handling
+            skipped while the normals and output arrays are the same objects
+            as the previous frame's, as in a stream): about 30-90 us less host
+            time before a frame's first task reaches the GPU (measured in
+            ``perf/integration_device_speed.py``).  False: Taichi's plain call.
     """
 
     coarsest: int = 16
@@ -96,6 +102,7 @@ class StreamIntegratorConfig:
     launch: Launch = "auto"
     blocks_per_sm: int = 2
     persistent_size: int = 256
+    direct_launch: bool = True
 
     def __post_init__(self):
         if self.method not in get_args(Method):
@@ -111,6 +118,8 @@ class StreamIntegratorConfig:
         check_number("omega", self.omega, lo=0.0, hi=1.0, lo_open=True)
         check_number("min_nz", self.min_nz, lo=0.0, hi=1.0, lo_open=True)
         check_number("check_every", self.check_every, lo=1, integer=True)
+        if not isinstance(self.direct_launch, bool):
+            raise TypeError(f"direct_launch: expected bool, got {type(self.direct_launch).__name__}")
 
 
 class StreamIntegrator:
@@ -252,7 +261,9 @@ class StreamIntegrator:
         #: "persistent" or "tasks": how fixed-count multigrid frames run (see ``StreamIntegratorConfig.launch``)
         self.launch = "persistent" if persistent and cfg.method == "multigrid" else "tasks"
         self._bps = cfg.blocks_per_sm
-        self._ready = {}  # cycles -> (kernel, extra arguments) of a persistent frame whose barrier passed
+        self._ready = {}  # cycles -> (launcher, extra arguments) of a persistent frame whose barrier passed
+        self._frames = {}  # cycles -> launcher of the task frame kernel
+        self._io = (None, None)  # the (normals, out) objects last checked
 
     # ------------------------------------------------------------------ persistent kernel
 
@@ -297,7 +308,7 @@ class StreamIntegrator:
             F["bar"].fill(0)
             kern(normals, out, *self._cam, self.config.min_nz, ref, *extra)
             if int(F["bar"][1]) == 0:
-                self._ready[cycles] = got
+                self._ready[cycles] = (self._launcher(kern), extra)
                 return True
             F["z"].copy_from(F["p"])
             F["bar"].fill(0)
@@ -310,6 +321,31 @@ class StreamIntegrator:
                 self.launch = "tasks"
                 return False
             self._bps //= 2
+
+    def _launcher(self, kern):
+        """The per-frame call of ``kern``: direct (see ``StreamIntegratorConfig.direct_launch``) or plain."""
+        if not self.config.direct_launch:
+            return kern
+        from gpps._taichi import DirectLaunch
+
+        return DirectLaunch(kern)
+
+    def _check_io(self, normals, out) -> None:
+        """Shapes every frame; types and dtypes when the arrays are not the previous frame's."""
+        h, w = self.shape
+        if tuple(getattr(normals, "shape", ())) != (h, w, 3):
+            raise ValueError(f"normals: expected shape ({h}, {w}, 3), got {tuple(getattr(normals, 'shape', ()))}")
+        if tuple(getattr(out, "shape", ())) != (h, w):
+            raise ValueError(f"out: expected shape ({h}, {w}), got {tuple(getattr(out, 'shape', ()))}")
+        if normals is self._io[0] and out is self._io[1]:
+            return
+        for name, arr, ok in (("normals", normals, ("float32", "float64")), ("out", out, ("float32",))):
+            dt = str(getattr(arr, "dtype", "")).replace("torch.", "")
+            dt = {"f32": "float32", "f64": "float64"}.get(dt, dt)
+            if dt not in ok:
+                raise ValueError(f"{name}: expected a {' or '.join(ok)} array (numpy, torch or Taichi ndarray), "
+                                 f"got {type(arr).__name__} of dtype {dt or 'none'}")
+        self._io = (normals, out)
 
     # ------------------------------------------------------------------ per frame
 
@@ -326,15 +362,21 @@ class StreamIntegrator:
         """Integrate one normal map into ``out``, warm-started from the previous frame.
 
         Args:
-            normals: (H, W, 3) unit normals (numpy, or on CUDA a torch tensor
-                view of a Warp array); read where the mask is set.
-            out: (H, W) float32 array written with the depth (0 outside the mask).
+            normals: (H, W, 3) float32 or float64 unit normals (numpy, a Taichi
+                ndarray, or on CUDA a torch tensor view of a Warp array); read
+                where the mask is set.
+            out: (H, W) float32 array (same kinds) written with the depth (0
+                outside the mask).
             iterations: run exactly this many iterations (no host sync): PCG
                 iterations or V-cycle corrections (``config.method``).
             tol: else iterate until ``|b - A u| <= tol |b|`` (checked every
                 ``config.check_every`` iterations) or ``max_iterations``.
-            reference: mean depth per component (None: orthographic mean 0,
-                perspective mean log-depth 0).
+            reference: mean depth per component, >= 0 (None or 0: orthographic
+                mean 0, perspective mean log-depth 0).
+
+        Raises:
+            ValueError: arrays of another shape or dtype, a negative or
+                non-finite ``reference``, bad ``iterations``/``tol``.
         """
         if (iterations is None) == (tol is None):
             raise ValueError("iterations, tol: expected exactly one of them")
@@ -342,9 +384,10 @@ class StreamIntegrator:
             check_number("iterations", iterations, lo=0, integer=True)
         else:
             check_number("tol", tol, lo=0.0, hi=1.0, lo_open=True)
+        self._check_io(normals, out)
         K = self._K
         mg = self.config.method == "multigrid"
-        ref = float(reference) if reference is not None else 0.0
+        ref = check_number("reference", reference, lo=0.0) if reference is not None else 0.0
         if mg and iterations is not None and iterations >= 1 and self.launch == "persistent":
             if self._persistent(normals, out, int(iterations), ref):
                 self.last_iterations = int(iterations)
@@ -352,7 +395,10 @@ class StreamIntegrator:
         if mg and iterations is not None and iterations <= _FUSED_MAX:
             # the whole frame in one launch (right-hand side, corrections, depth); longer
             # runs launch per cycle (one kernel per count would compile a long unrolled chain)
-            K["frame"](int(iterations))(normals, out, *self._cam, self.config.min_nz, ref)
+            run = self._frames.get(int(iterations))
+            if run is None:
+                run = self._frames[int(iterations)] = self._launcher(K["frame"](int(iterations)))
+            run(normals, out, *self._cam, self.config.min_nz, ref)
             self.last_iterations = int(iterations)
             return
         if mg:
