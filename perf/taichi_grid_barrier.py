@@ -37,6 +37,11 @@ def main(argv=None) -> int:
     ap.add_argument("--size", type=int, default=1024)
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--block", type=int, default=256)
+    ap.add_argument("--barriers", default="count:1",
+                    help="barrier variants <kind>:<blocks per SM>, kind 'count' (spin on the arrival "
+                         "counter) or 'flag' (the last arrival sets a release flag that the others spin on)")
+    ap.add_argument("--skip-launch", action="store_true", help="only part 2 (the barriers)")
+    ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
 
     import torch
@@ -96,7 +101,7 @@ def main(argv=None) -> int:
         "integrate_1": lambda: si.integrate(nrm, out, iterations=1),
     }
     res["queued"] = {}
-    for k, fn in probes.items():
+    for k, fn in ({} if a.skip_launch else probes).items():
         h, d = queued(fn)
         res["queued"][k] = {"host_us": h, "device_us": d}
         print(f"{k:28s} host {h:8.1f} us  device {d:8.1f} us", flush=True)
@@ -104,12 +109,12 @@ def main(argv=None) -> int:
 
     # ---- grid barrier in one task
     BD = a.block
-    G = sms
-    NT = G * BD
     LIMIT = 1 << 22
     bar = ti.field(ti.i32, shape=2)
+    flag = ti.field(ti.i32, shape=1)  # a separate allocation: spinning does not contend with arrivals
 
-    def build(h, w):
+    def build(h, w, kind, G):
+        NT = G * BD
         x = ti.field(ti.f32, shape=(h, w))
         y = ti.field(ti.f32, shape=(h, w))
         per = (h * w + NT - 1) // NT
@@ -139,11 +144,18 @@ def main(argv=None) -> int:
             ti.simt.grid.memfence()
             ti.simt.block.sync()
             if tid % BD == 0:
-                ti.atomic_add(bar[0], 1)
+                old = ti.atomic_add(bar[0], 1)
                 target = gen * G
+                if ti.static(kind == "flag"):
+                    if old == target - 1:
+                        ti.atomic_max(flag[0], gen)
                 k = 0
                 while True:
-                    v = ti.atomic_or(bar[0], 0)
+                    v = 0
+                    if ti.static(kind == "flag"):
+                        v = ti.atomic_or(flag[0], 0) * G
+                    else:
+                        v = ti.atomic_or(bar[0], 0)
                     if v >= target:
                         break
                     k += 1
@@ -158,6 +170,7 @@ def main(argv=None) -> int:
         @ti.kernel
         def run(phases: ti.i32):
             bar[0] = 0
+            flag[0] = 0
             ti.loop_config(block_dim=BD, block_dim_adaptive=False)
             for tid in range(NT):
                 for p in range(phases):
@@ -183,42 +196,45 @@ def main(argv=None) -> int:
 
     rng = np.random.default_rng(0)
     res["barrier"] = []
-    for (h, w) in ((n, n), (37, 29), (16, 16)):
-        x, y, run, sweep = build(h, w)
-        x0 = rng.random((h, w)).astype(np.float32)
-        errs = []
-        for phases in (1, 2, 7, 40):
-            x.from_numpy(x0)
-            y.fill(0)
-            bar.fill(0)
-            run(phases)
-            got = (y if phases % 2 else x).to_numpy()
-            errs.append(float(np.abs(got - ref(x0, phases)).max()))
-        timeout = int(bar.to_numpy()[1])
-        P = 20 if h * w > 4096 else 200
+    for variant in a.barriers.split(","):
+        kind, bps = variant.split(":")
+        for (h, w) in ((n, n), (37, 29), (16, 16), (256, 256)):
+            x, y, run, sweep = build(h, w, kind, sms * int(bps))
+            x0 = rng.random((h, w)).astype(np.float32)
+            errs = []
+            for phases in (1, 2, 7, 40):
+                x.from_numpy(x0)
+                y.fill(0)
+                bar.fill(0)
+                run(phases)
+                got = (y if phases % 2 else x).to_numpy()
+                errs.append(float(np.abs(got - ref(x0, phases)).max()))
+            timeout = int(bar.to_numpy()[1])
+            P = 20 if h * w > 4096 else 200
 
-        def launch():
-            run(P)
+            def launch():
+                run(P)
 
-        hst, dev = queued(launch, frames=5)
+            hst, dev = queued(launch, frames=5)
 
-        def seq():
-            for p in range(P):
-                if p % 2 == 0:
-                    sweep(x, y)
-                else:
-                    sweep(y, x)
+            def seq():
+                for p in range(P):
+                    if p % 2 == 0:
+                        sweep(x, y)
+                    else:
+                        sweep(y, x)
 
-        hs2, dv2 = queued(seq, frames=2)
-        row = {"shape": [h, w], "max_abs_error_vs_numpy": errs, "timeout_flag": timeout, "phases": P,
-               "one_task_device_us_per_phase": dev / P, "one_task_host_us_per_launch": hst,
-               "separate_kernels_device_us_per_sweep": dv2 / P, "separate_kernels_host_us_per_sweep": hs2 / P}
-        res["barrier"].append(row)
-        print(row, flush=True)
+            hs2, dv2 = queued(seq, frames=2)
+            row = {"barrier": kind, "blocks_per_sm": int(bps), "shape": [h, w], "max_abs_error_vs_numpy": errs,
+                   "timeout_flag": timeout, "phases": P,
+                   "one_task_device_us_per_phase": dev / P, "one_task_host_us_per_launch": hst,
+                   "separate_kernels_device_us_per_sweep": dv2 / P, "separate_kernels_host_us_per_sweep": hs2 / P}
+            res["barrier"].append(row)
+            print(row, flush=True)
 
     from gpps.io import save_json
 
-    path = ROOT / "perf" / "results" / "taichi_grid_barrier_cuda0.json"
+    path = Path(a.out) if a.out else ROOT / "perf" / "results" / "taichi_grid_barrier_cuda0.json"
     save_json(path, res)
     print(f"wrote {path}")
     return 0

@@ -21,7 +21,7 @@ Only device code lives here.
 """
 
 from gpps._taichi import ti
-from gpps.kernels.poisson import ALPHA, PQ, RR, RZ, RZN, _jacobi_point, _mul, _neigh, _sq, div_mean_steps, pixel_steps
+from gpps.kernels.poisson import ALPHA, PQ, RR, RZ, RZN, _jacobi_point, _mul, _neigh, _sq, pixel_steps
 
 
 def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspective: bool):
@@ -53,7 +53,9 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         ``vcycle_only()``, ``coarse_only()``, ``noop()``.  ``F`` also holds
         ``bar`` (i32 (2,): barrier arrivals, timeout flag), ``geo`` (i32 (L, 3)),
         ``cmap`` (coarsest cell to its index in ``cidx``, -1) and ``fcv`` (the
-        coarsest right-hand side, gathered) for them.
+        coarsest right-hand side, gathered) for them, and may hold ``slot`` (f64
+        (2, NSLOT)) and ``wcnt`` (i32 (1,)), zeroed: on CUDA the last z update of a
+        one-component frame then totals the finish's sums itself (``_warp_total``).
     """
     L = len(geo)
     h0, w0 = geo[0][1], geo[0][2]
@@ -68,6 +70,15 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
     fold0 = npairs == 1 and L > 1  # level 0's last sweep computed by its consumer
     CH = 8  # rows per chunk of the two-stage reductions (8: ~H W / 8 threads in the first stage)
     NCH = (h0 + CH - 1) // CH
+    NIT = NCH * w0  # (row chunk, column) items of the chunked passes
+    cuda = ti.lang.impl.current_cfg().arch == ti.cuda
+    slot, wcnt = F.get("slot"), F.get("wcnt")
+    # on CUDA, the last z update of a one-component frame also totals its sums: a warp
+    # reduction, one atomic per warp into NSLOT slots, the last warp folds them (no task)
+    wsums = cuda and ncomp == 1 and slot is not None
+    NSLOT = slot.shape[1] if slot is not None else 1
+    NPAD = (NIT + 31) // 32 * 32  # whole warps
+    NW = NPAD // 32
 
     @ti.func
     def stage2(idx: ti.template()):
@@ -296,34 +307,47 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
     def _rhs(nrm: ti.template(), fx: ti.template(), fy: ti.template(), cx: ti.template(), cy: ti.template(),
              s: ti.template(), min_nz: ti.template(), norm: ti.template(), res: ti.template()):
         """b = -div of the mean steps of u (:func:`gpps.kernels.poisson.pixel_steps`,
-        uniform weights); q and r hold the j- and i-steps meanwhile; with
+        uniform weights), in one pass over the normals (``_rhs_at``); with
         ``norm``, sc[7] = |b|^2; with ``res``, also f = b - A z (the first
         correction's residual, in the same pass).  The scalars are template
         parameters: passed by value, Taichi would copy them into locals in a
         serial task of their own (a launch)."""
         for i, j in ti.ndrange(h0, w0):
-            _steps_at(nrm, i, j, fx, fy, cx, cy, s, min_nz)
-        for i, j in ti.ndrange(h0, w0):
-            _rhs_at(i, j, norm, res)
+            _rhs_at(nrm, i, j, fx, fy, cx, cy, s, min_nz, norm, res)
         if ti.static(norm):
             reduce_into(7)  # |b|^2
 
     @ti.func
-    def _steps_at(nrm: ti.template(), i, j, fx: ti.template(), fy: ti.template(), cx: ti.template(),
-                  cy: ti.template(), s: ti.template(), min_nz: ti.template()):
-        """q[i, j], r[i, j] = the steps of u along j and i at pixel (i, j) (0 outside the mask)."""
+    def _steps(nrm: ti.template(), i, j, fx: ti.template(), fy: ti.template(), cx: ti.template(),
+               cy: ti.template(), s: ti.template(), min_nz: ti.template()):
+        """The steps of u along j and i at pixel (i, j) in the field precision (0 outside the mask)."""
         a = ti.cast(0, ti.f64)
         c = ti.cast(0, ti.f64)
         if dg[i, j] > 0:
             a, c = pixel_steps(nrm, i, j, ti.static(perspective), fx, fy, cx, cy, s, min_nz)
-        q[i, j] = ti.cast(a, q.dtype)
-        r[i, j] = ti.cast(c, r.dtype)
+        return ti.cast(a, b.dtype), ti.cast(c, b.dtype)
 
     @ti.func
-    def _rhs_at(i, j, norm: ti.template(), res: ti.template()):
-        """b[i, j] from the steps (q, r) of the pixel and its neighbours; ``norm``: red = b^2;
+    def _rhs_at(nrm: ti.template(), i, j, fx: ti.template(), fy: ti.template(), cx: ti.template(),
+                cy: ti.template(), s: ti.template(), min_nz: ti.template(), norm: ti.template(), res: ti.template()):
+        """b[i, j] = :func:`gpps.kernels.poisson.div_mean_steps` of the steps, those of the pixel
+        and its four neighbours computed here from the normals (cached reads; a steps pass
+        would write and read 8 bytes a pixel more and cost a task); ``norm``: red = b^2;
         ``res``: f = b - A z (the value of b just written by this thread)."""
-        v = div_mean_steps(q, r, wx, wy, i, j, h0, w0)
+        a0, c0 = _steps(nrm, i, j, fx, fy, cx, cy, s, min_nz)
+        v = a0 * 0
+        if j > 0:
+            al, _cl = _steps(nrm, i, j - 1, fx, fy, cx, cy, s, min_nz)
+            v += wx[i, j - 1] * 0.5 * (al + a0)
+        if j < w0 - 1:
+            ar, _cr = _steps(nrm, i, j + 1, fx, fy, cx, cy, s, min_nz)
+            v -= wx[i, j] * 0.5 * (a0 + ar)
+        if i > 0:
+            _au, cu = _steps(nrm, i - 1, j, fx, fy, cx, cy, s, min_nz)
+            v += wy[i - 1, j] * 0.5 * (cu + c0)
+        if i < h0 - 1:
+            _ad, cd = _steps(nrm, i + 1, j, fx, fy, cx, cy, s, min_nz)
+            v -= wy[i, j] * 0.5 * (c0 + cd)
         b[i, j] = v
         if ti.static(norm):
             red[i, j] = ti.cast(_sq(v), red.dtype)
@@ -491,6 +515,55 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         if c == 0 and j == 0:
             sc[8] = 0
             sc[9] = 0
+        a, x = _chunk_acc(c, j, update)
+        part[c, j] = a
+        part2[c, j] = x
+
+    @ti.func
+    def _wsum(v):
+        """The f64 sum of ``v`` over the warp, in lane 0 (shuffled as two f32 halves, hi and
+        lo, re-split after every step: about 48 bits kept)."""
+        acc = v
+        for k in ti.static([16, 8, 4, 2, 1]):
+            hi = ti.cast(acc, ti.f32)
+            lo = ti.cast(acc - ti.cast(hi, ti.f64), ti.f32)
+            acc += (ti.cast(ti.simt.warp.shfl_down_f32(ti.u32(0xFFFFFFFF), hi, k), ti.f64)
+                    + ti.cast(ti.simt.warp.shfl_down_f32(ti.u32(0xFFFFFFFF), lo, k), ti.f64))
+        return acc
+
+    @ti.func
+    def _warp_total(it, a, x):
+        """sc[8], sc[9] = the totals of ``a`` and ``x`` over the items ``it < NPAD`` of this task
+        (CUDA, every lane of every warp calls it once per item): a warp sum, one atomic per warp
+        into slot ``warp % NSLOT``; the warp that arrives last (counted in ``wcnt``) folds the slots
+        into sc and zeroes the slots and the count for the next frame."""
+        ta = _wsum(a)
+        tx = ta * 0
+        if ti.static(perspective):
+            tx = _wsum(x)
+        if it % 32 == 0:
+            sl = (it // 32) % NSLOT
+            ti.atomic_add(slot[0, sl], ta)
+            if ti.static(perspective):
+                ti.atomic_add(slot[1, sl], tx)
+            ti.simt.grid.memfence()
+            if ti.atomic_add(wcnt[0], 1) == NW - 1:
+                ti.simt.grid.memfence()
+                sa = ti.cast(0, ti.f64)
+                sx = ti.cast(0, ti.f64)
+                for k in range(NSLOT):
+                    sa += ti.atomic_add(slot[0, k], 0.0)
+                    sx += ti.atomic_add(slot[1, k], 0.0)
+                    slot[0, k] = 0
+                    slot[1, k] = 0
+                sc[8] = sa
+                sc[9] = sx
+                wcnt[0] = 0
+
+    @ti.func
+    def _chunk_acc(c, j, update: ti.template()):
+        """(sum u, sum exp(u)) over rows ``c * CH ..`` of column j inside the mask, u = z
+        (``update``: u = z + M f_0, written back)."""
         a = ti.cast(0, ti.f64)
         x = ti.cast(0, ti.f64)
         for ii in range(CH):
@@ -504,8 +577,7 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
                     a += ti.cast(u, ti.f64)
                     if ti.static(perspective):
                         x += ti.exp(ti.cast(u, ti.f64))
-        part[c, j] = a
-        part2[c, j] = x
+        return a, x
 
     @ti.func
     def _finish1(out: ti.template(), reference: ti.template(), summed: ti.template()):
@@ -516,14 +588,15 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         if ti.static(not summed):
             for c, j in ti.ndrange(NCH, w0):
                 _chunk_sums(c, j, False)
-        for j in range(w0):
-            a = ti.cast(0, ti.f64)
-            x = ti.cast(0, ti.f64)
-            for c in range(NCH):
-                a += part[c, j]
-                x += part2[c, j]
-            sc[8] += a
-            sc[9] += x
+        if ti.static(not (summed and wsums)):
+            for j in range(w0):
+                a = ti.cast(0, ti.f64)
+                x = ti.cast(0, ti.f64)
+                for c in range(NCH):
+                    a += part[c, j]
+                    x += part2[c, j]
+                sc[8] += a
+                sc[9] += x
         for i, j in ti.ndrange(h0, w0):
             v = ti.cast(0, ti.f64)
             if lab[i, j] >= 0:
@@ -593,8 +666,19 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         """z += M f_0 (level 0's V-cycle result, ``_mf0``).  With ``sums`` and one
         component, per (row chunk, column) as in ``_finish1``'s first pass, whose
         sums of the new u and exp(u) it leaves in ``part``/``part2`` (one level-0
-        pass and one task fewer; ``_mf0`` reads no z, so the update is in place)."""
-        if ti.static(sums and ncomp == 1):
+        pass and one task fewer; ``_mf0`` reads no z, so the update is in place).
+        On CUDA it also totals them into sc[8], sc[9] (``_warp_total``: a warp
+        reduction and a slot atomic per warp), and the finish skips its column-totals
+        task."""
+        if ti.static(sums and wsums):
+            ti.loop_config(block_dim=256)
+            for it in range(NPAD):
+                a = ti.cast(0, ti.f64)
+                x = ti.cast(0, ti.f64)
+                if it < NIT:
+                    a, x = _chunk_acc(it // w0, it % w0, True)
+                _warp_total(it, a, x)
+        elif ti.static(sums and ncomp == 1):
             for c, j in ti.ndrange(NCH, w0):
                 _chunk_sums(c, j, True)
         else:
@@ -765,7 +849,6 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             return pframes[key]
         NT, gsync, plevels = _grid_parts(nblocks, bd)
         n0 = h0 * w0
-        NIT = NCH * w0
 
         @ti.kernel
         def _pframe(nrm: ti.types.ndarray(), out: ti.types.ndarray(), fx: ti.f64, fy: ti.f64, cx: ti.f64,
@@ -774,22 +857,17 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
             ti.loop_config(block_dim=bd)
             for tid in range(NT):
                 gen = 1
-                # steps of u along j and i (q, r); zero the per-component sums of the finish
+                # zero the per-component sums of the finish
                 for kk in range((ncomp + NT - 1) // NT):
                     c = tid + kk * NT
                     if c < ncomp:
                         csum[c] = 0
                         cden[c] = 0
-                for kk in range((n0 + NT - 1) // NT):
-                    cc = tid + kk * NT
-                    if cc < n0:
-                        _steps_at(nrm, cc // w0, cc % w0, fx, fy, cx, cy, s, min_nz)
-                gen = gsync(tid, gen)
                 # b = -div of the mean steps; f = b - A z (the first correction's residual)
                 for kk in range((n0 + NT - 1) // NT):
                     cc = tid + kk * NT
                     if cc < n0:
-                        _rhs_at(cc // w0, cc % w0, False, True)
+                        _rhs_at(nrm, cc // w0, cc % w0, fx, fy, cx, cy, s, min_nz, False, True)
                 gen = gsync(tid, gen)
                 for cyc in range(cycles):
                     if cyc > 0:

@@ -19,7 +19,6 @@ checks the residual every ``check_every`` iterations (one 8-byte read each).
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from typing import Literal, get_args
 
@@ -196,6 +195,10 @@ class StreamIntegrator:
             fb.dense(ti.ij, ((h + 7) // 8, w)).place(F[name])  # chunks of poisson_fused's CH rows
         F["sc"] = ti.field(ti.f64)
         fb.dense(ti.i, 10).place(F["sc"])
+        F["slot"] = ti.field(ti.f64)  # per-warp totals of the last z update (CUDA, one component)
+        fb.dense(ti.ij, (2, 32)).place(F["slot"])
+        F["wcnt"] = ti.field(ti.i32)  # warps of that update arrived
+        fb.dense(ti.i, 1).place(F["wcnt"])
         F["bar"] = ti.field(ti.i32)  # grid-barrier arrivals, timeout flag (persistent kernel)
         fb.dense(ti.i, 2).place(F["bar"])
         F["geo"] = ti.field(ti.i32)  # (offset, height, width) per level
@@ -237,6 +240,8 @@ class StreamIntegrator:
         F["cmap"].from_numpy(cmap)
         F["geo"].from_numpy(np.array([[offs[k], s[0], s[1]] for k, s in enumerate(shapes)], dtype=np.int32))
         F["bar"].fill(0)
+        F["slot"].fill(0)
+        F["wcnt"].fill(0)
         F["lab"].from_numpy((lab - 1).astype(np.int32))
         F["ccnt"].from_numpy(np.bincount(lab.ravel(), minlength=ncomp + 1)[1:].astype(np.float64).reshape(max(ncomp, 1)))
         for k in ("z", "e", "f", "t"):
