@@ -520,15 +520,20 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         part2[c, j] = x
 
     @ti.func
+    def _shfl64(v, k):
+        """``v`` of the lane ``k`` above (CUDA warp shuffle), moved exactly as two 32-bit halves
+        (Taichi 1.7's f32 shuffle result cannot be cast to f64: its LLVM cast asserts)."""
+        bits = ti.bit_cast(v, ti.i64)
+        hi = ti.simt.warp.shfl_down_i32(ti.u32(0xFFFFFFFF), ti.cast(bits >> 32, ti.i32), k)
+        lo = ti.simt.warp.shfl_down_i32(ti.u32(0xFFFFFFFF), ti.cast(bits & ti.i64(0xFFFFFFFF), ti.i32), k)
+        return ti.bit_cast((ti.cast(hi, ti.i64) << 32) | (ti.cast(lo, ti.i64) & ti.i64(0xFFFFFFFF)), ti.f64)
+
+    @ti.func
     def _wsum(v):
-        """The f64 sum of ``v`` over the warp, in lane 0 (shuffled as two f32 halves, hi and
-        lo, re-split after every step: about 48 bits kept)."""
-        acc = v
+        """The f64 sum of ``v`` over the warp, in lane 0 (a shuffle-down tree)."""
+        acc = ti.cast(v, ti.f64)
         for k in ti.static([16, 8, 4, 2, 1]):
-            hi = ti.cast(acc, ti.f32)
-            lo = ti.cast(acc - ti.cast(hi, ti.f64), ti.f32)
-            acc += (ti.cast(ti.simt.warp.shfl_down_f32(ti.u32(0xFFFFFFFF), hi, k), ti.f64)
-                    + ti.cast(ti.simt.warp.shfl_down_f32(ti.u32(0xFFFFFFFF), lo, k), ti.f64))
+            acc += _shfl64(acc, k)
         return acc
 
     @ti.func
