@@ -53,10 +53,14 @@ by launches, not memory: the ratio says how far.
 
 Usage:  python perf/integration_device_speed.py [--device cuda:0] [--sizes 256,1024] [--repeat 20]
             [--launches tasks,persistent:2:256] [--out FILE]
-Writes perf/results/integration_device_speed_<device>.json.  Committed H100 runs:
-integration_device_speed_cuda0_H100.json (``--quick``, the three launch forms side by side,
-with the one-component sums fused into the last z update); ..._H100_{tasks,persistent}.json
-(full runs, one launch form each, before that fusion).
+Writes perf/results/integration_device_speed_<device>.json.  Committed H100 runs (all ``--quick``,
+``--sizes 1024 --coarsest 16 --methods multigrid --max-cold 3``):
+integration_device_speed_cuda0_H100.json (``--launches persistent:2:256,persistent:2:512``: the
+default and the level-1-inside form, with the one-pass right-hand side and the CUDA warp sums);
+..._H100_direct.json (``persistent:2:256,persistent:2:256:plain``: the frame launched through
+``DirectLaunch`` against Taichi's own call, before those two); ..._H100_p512.json (``persistent:2:512``,
+same commit as _direct); ..._H100_{tasks,persistent}.json (full runs of an earlier session, one
+launch form each, plain calls).
 """
 
 from __future__ import annotations

@@ -14,8 +14,16 @@ Taichi task with software grid barriers replace the ~30 tasks of a frame? (issue
    between two fields, checked against numpy, and timed per phase at 1024^2 and at 16^2
    (there the barrier alone).
 
-Usage:  python perf/taichi_grid_barrier.py [--size 1024] [--frames 20]
-Writes perf/results/taichi_grid_barrier_cuda0.json (the committed H100 run: taichi_grid_barrier_cuda0_H100.json).
+   ``--barriers count:2,flag:2`` compares that barrier (spinning on the arrival counter) with
+   one whose last arrival raises a release flag in a separate allocation that the others spin
+   on, at 2 blocks per SM: on the H100 the flag was slower (2.3 against 2.0 us a phase at 16^2,
+   3.0 against 2.7 at 256^2; taichi_grid_barrier_flag_H100.json), so the library keeps the
+   counter.
+
+Usage:  python perf/taichi_grid_barrier.py [--size 1024] [--frames 20] [--barriers count:1]
+            [--skip-launch] [--out FILE]
+Writes perf/results/taichi_grid_barrier_cuda0.json (the committed H100 runs: taichi_grid_barrier_cuda0_H100.json,
+part 1 and the counter barrier at 1 block per SM; taichi_grid_barrier_flag_H100.json).
 """
 
 import argparse

@@ -78,17 +78,22 @@ class StreamIntegratorConfig:
             barrier check), it halves them down to 1, then falls back to tasks.
         persistent_size: levels whose larger side is at most this run in the
             persistent task (an image no larger runs whole in it).  On an H100
-            at 1024^2 (``perf/integration_device_speed.py``) a warm one-cycle
-            frame costs the device 0.186 ms this way against 0.196 as tasks,
-            and the host 0.27-0.34 ms against 0.41 (14 tasks instead of 30);
-            the whole frame in the persistent task cost 0.293 ms (level 0 at
-            2 blocks per SM is latency-bound).
+            at 1024^2 (``perf/integration_device_speed.py``, before the fused
+            right-hand side and the warp sums) a warm one-cycle frame cost the
+            device 0.186 ms this way against 0.196 as tasks, and the host
+            0.27-0.34 ms against 0.41 (14 tasks instead of 30); the whole frame
+            in the persistent task cost 0.293 ms (level 0 at 2 blocks per SM is
+            latency-bound).  Now a frame is 11 tasks: 0.199 ms of device time
+            and 0.09 ms of host time; 512 (7 tasks) gave 0.210 and 0.06.
         direct_launch: launch the per-frame kernel through
             :class:`gpps._taichi.DirectLaunch` (Taichi's argument handling
             skipped while the normals and output arrays are the same objects
-            as the previous frame's, as in a stream): about 30-90 us less host
-            time before a frame's first task reaches the GPU (measured in
-            ``perf/integration_device_speed.py``).  False: Taichi's plain call.
+            as the previous frame's, as in a stream; the last four sets of
+            arrays are remembered, for buffers used in turn).  On an H100 at
+            1024^2 with torch tensors an isolated warm frame took 0.283 ms this
+            way against 0.403 with Taichi's plain call, a streamed one 0.196
+            against 0.312 (``perf/integration_device_speed.py``).  False:
+            Taichi's plain call.
     """
 
     coarsest: int = 16
