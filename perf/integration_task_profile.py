@@ -8,9 +8,11 @@ which phases of the frame cost what, against the counted bytes of
 device times mean anything here.
 
 Usage:  TI_KERNEL_PROFILER=1 python perf/integration_task_profile.py [--size 1024] [--frames 20]
-The H100 table (perf/results/integration_task_profile_H100.log, before the finish's first
-pass was fused into the z update and the scalar arguments became template parameters) showed
-the finish at 3 tasks + a serial task costing ~60 us and the persistent task ~74 us.
+            [--launches persistent:2:256,persistent:2:512,tasks]
+The H100 table (perf/results/integration_task_profile_H100.log, at 600c7d4, before the one-pass
+right-hand side and the warp sums) shows 13 tasks for the default form, the persistent task of the
+small levels ~75 us of them, and 9 tasks with ``persistent:2:512`` (its task ~107 us); the
+earlier table (git history, before the fused finish) had the finish at 3 tasks + a serial one.
 """
 
 import argparse
