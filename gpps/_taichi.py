@@ -104,10 +104,10 @@ class DirectLaunch:
 
     Taichi 1.7's ``kernel(*args)`` re-derives every argument's template
     features and converts every array in Python on each call: on the H100
-    machine's host an empty kernel took 34 us with no arguments, 66 us with two
-    Taichi ndarrays and 123 us with two torch CUDA tensors
-    (``perf/integration_launch_overhead.py``), time that a streamed frame waits
-    before its first task reaches the GPU.
+    machine's host an empty kernel took 41 us with no arguments, 67 us with two
+    Taichi ndarrays (31 launched this way) and 110 us with two torch CUDA
+    tensors (61 this way; ``perf/integration_launch_overhead.py``), time that a
+    streamed frame waits before its first task reaches the GPU.
 
     The first call on a set of array objects goes through ``kernel(*args)``
     (Taichi checks the arguments and compiles).  It then records the compiled
@@ -155,10 +155,6 @@ class DirectLaunch:
                 if len(self._plans) >= self.MAX_PLANS:
                     self._plans.pop(next(iter(self._plans)))
                 self._plans[tuple(id(a) for _, a in plan[3])] = plan
-
-    def clear(self) -> None:
-        """Forget the remembered argument sets (and release their arrays)."""
-        self._plans.clear()
 
     def _make_plan(self, args):
         import numpy as np

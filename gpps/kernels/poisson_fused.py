@@ -53,9 +53,9 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
         ``vcycle_only()``, ``coarse_only()``, ``noop()``.  ``F`` also holds
         ``bar`` (i32 (2,): barrier arrivals, timeout flag), ``geo`` (i32 (L, 3)),
         ``cmap`` (coarsest cell to its index in ``cidx``, -1) and ``fcv`` (the
-        coarsest right-hand side, gathered) for them, and may hold ``slot`` (f64
-        (2, NSLOT)) and ``wcnt`` (i32 (1,)), zeroed: on CUDA the last z update of a
-        one-component frame then totals the finish's sums itself (``_warp_total``).
+        coarsest right-hand side, gathered) for them, and ``slot`` (f64 (2, NSLOT))
+        and ``wcnt`` (i32 (1,)), zeroed: with them, on CUDA, the last z update of a
+        one-component frame totals the finish's sums itself (``_warp_total``).
     """
     L = len(geo)
     h0, w0 = geo[0][1], geo[0][2]
@@ -72,11 +72,11 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
     NCH = (h0 + CH - 1) // CH
     NIT = NCH * w0  # (row chunk, column) items of the chunked passes
     cuda = ti.lang.impl.current_cfg().arch == ti.cuda
-    slot, wcnt = F.get("slot"), F.get("wcnt")
+    slot, wcnt = F["slot"], F["wcnt"]
     # on CUDA, the last z update of a one-component frame also totals its sums: a warp
     # reduction, one atomic per warp into NSLOT slots, the last warp folds them (no task)
-    wsums = cuda and ncomp == 1 and slot is not None
-    NSLOT = slot.shape[1] if slot is not None else 1
+    wsums = cuda and ncomp == 1
+    NSLOT = slot.shape[1]
     NPAD = (NIT + 31) // 32 * 32  # whole warps
     NW = NPAD // 32
 
@@ -731,7 +731,6 @@ def make_fused(F: dict, geo: list, npairs: int, omega: float, nc: int, perspecti
 
     def _grid_parts(nblocks: int, bd: int):
         """The grid barrier and the persistent levels for ``nblocks x bd`` threads (see :func:`persistent`)."""
-        cuda = ti.lang.impl.current_cfg().arch == ti.cuda
         if not cuda and nblocks * bd != 1:
             raise ValueError(f"nblocks, bd: off CUDA the persistent kernel runs as one thread (1, 1), got ({nblocks}, {bd})")
         NT = nblocks * bd

@@ -451,7 +451,9 @@ class StreamIntegrator:
         return float(np.sqrt(float(sc[2]) / bb)) if bb > 0 else 0.0
 
     def close(self) -> None:
-        """Free the fields."""
+        """Free the fields and the per-frame launchers (which hold the last frames' arrays)."""
+        self._ready.clear()
+        self._frames.clear()
         if self._tree is not None:
             self._tree.destroy()
             self._tree = None
