@@ -2,7 +2,22 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
+
+
+class GppsWarning(UserWarning):
+    """A result gpps computed but does not trust fully (lights behind the object, an estimate on its
+    search bound, rounds that did not converge, many undetermined pixels).  Also listed in the result's
+    ``warnings`` and in the CLI's report.json."""
+
+
+def warn(message: str, sink: list | None = None, stacklevel: int = 3) -> None:
+    """Issue a :class:`GppsWarning` and append its message to ``sink`` (a result's ``warnings`` list)."""
+    if sink is not None:
+        sink.append(message)
+    warnings.warn(message, GppsWarning, stacklevel=stacklevel)
 
 
 def as_array(name, a, *, ndim=None, shape=None, dtype=np.float32, finite=True) -> np.ndarray:

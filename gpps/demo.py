@@ -18,18 +18,22 @@ from pathlib import Path
 import numpy as np
 
 from gpps.evaluation import depth_error
-from gpps.io import atomic_dir, save_json, save_npy, save_png, write_dataset
+from gpps.io import atomic_dir, check_output_dir, save_json, save_npy, save_png, write_dataset
 from gpps.material import Material
 from gpps.metrics import angular_error
 from gpps.scenes import make_scene
 from gpps.synthetic import default_lights, render_dataset
 
 
-def run_demo(out: Path, *, size: int = 256, device=None, progress=None) -> dict:
+def run_demo(out: Path, *, size: int = 256, device=None, progress=None, overwrite: bool = False) -> dict:
     """Render the demo scene into ``out/capture`` and write the reconstruction beside it.
+
+    ``out`` must be new, empty, or an earlier gpps output (with ``overwrite``):
+    checked before anything is computed (:func:`gpps.io.check_output_dir`).
 
     Returns the report (also written to ``out/report.json``).
     """
+    check_output_dir(out, overwrite=overwrite, name="out")
     step = progress or (lambda *a, **k: None)
     t0 = time.perf_counter()
     scene = make_scene("bumps", size, "perspective", albedo="texture")
@@ -38,7 +42,7 @@ def run_demo(out: Path, *, size: int = 256, device=None, progress=None) -> dict:
     ds = render_dataset(scene, material, lights, bits=16, device=device)
     t_render = time.perf_counter() - t0
     step(1, 4, "rendered")
-    with atomic_dir(out) as tmp:
+    with atomic_dir(out, overwrite=overwrite, name="out") as tmp:
         write_dataset(tmp / "capture", ds)
         step(2, 4, "written")
         from gpps.lights import PointLights

@@ -22,6 +22,10 @@ from pathlib import Path
 import numpy as np
 
 __all__ = [
+    "MARKER",
+    "OutputError",
+    "check_output_dir",
+    "read_marker",
     "atomic_write",
     "atomic_dir",
     "save_npy",
@@ -45,9 +49,116 @@ def _cv2():
     return cv2
 
 
+MARKER = ".gpps-output.json"
+"""Name of the marker file that gpps writes into every output folder (its manifest)."""
+
+
+class OutputError(ValueError):
+    """An output path gpps refuses to write (it would lose a user's data); raised before any computing."""
+
+
+def _umask() -> int:
+    """The process's umask, read without changing it where the platform allows."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except OSError:
+        pass
+    old = os.umask(0o022)  # no /proc: set and restore (not thread-safe, rarely reached)
+    os.umask(old)
+    return old
+
+
+def _chmod_default(path: Path, directory: bool) -> None:
+    """Give a temporary file (0600) or folder (0700) the permissions a plain ``open``/``mkdir`` would."""
+    with contextlib.suppress(OSError):
+        os.chmod(path, (0o777 if directory else 0o666) & ~_umask())
+
+
+def read_marker(path) -> dict | None:
+    """The manifest of a folder gpps wrote (``{"gpps": version, "files": [...]}``), or None."""
+    f = Path(path) / MARKER
+    if not f.is_file():
+        return None
+    try:
+        d = json.loads(f.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(d, dict) or not isinstance(d.get("files"), list):
+        return None
+    return d
+
+
+def check_output_dir(path, *, inputs=(), overwrite: bool = False, name: str = "--out") -> Path:
+    """Check an output folder before any computing; return its resolved path.
+
+    gpps writes a whole output folder at once (a temporary sibling renamed into
+    place) and never deletes or overwrites what it did not write.  Refused, with
+    an :class:`OutputError` naming ``name``:
+
+    * a path that is an existing file, or whose parent is a file;
+    * one of ``inputs``, or a folder containing one of them;
+    * a non-empty folder without gpps's marker (:data:`MARKER`), or one with the
+      marker that also holds files gpps did not write;
+    * an earlier gpps output folder unless ``overwrite`` is True;
+    * a place whose first existing parent is not writable.
+
+    Args:
+        path: the output folder.
+        inputs: paths (files or folders) the command reads.
+        overwrite: allow replacing an earlier gpps output folder (only that).
+        name: the argument's name in messages.
+
+    Raises:
+        OutputError: as above.
+    """
+    if path is None or str(path) == "":
+        raise OutputError(f"{name}: expected a folder path, got {path!r}")
+    p = Path(path).expanduser()
+    real = p.resolve()
+    for anc in (real, *real.parents):
+        if anc.exists() or anc.is_symlink():
+            if not anc.is_dir():
+                what = "is an existing file" if anc == real else f"has a parent that is a file ({anc})"
+                raise OutputError(f"{name}: {p} {what}; expected a folder (new, empty, or an earlier gpps output)")
+            if not os.access(anc, os.W_OK | os.X_OK):
+                raise OutputError(f"{name}: cannot write in {anc} (permission denied)")
+            break
+    if real.parent == real:
+        raise OutputError(f"{name}: expected a folder below the file-system root, got {p}")
+    for inp in inputs:
+        if inp is None:
+            continue
+        r = Path(inp).expanduser().resolve()
+        if r == real:
+            raise OutputError(f"{name}: {p} is an input of this command; choose another output folder")
+        if real in r.parents:
+            raise OutputError(f"{name}: {p} contains an input of this command ({inp}); choose another output folder")
+    if real.is_dir():
+        entries = sorted(e.name for e in real.iterdir())
+        if entries:
+            manifest = read_marker(real)
+            if manifest is None:
+                raise OutputError(
+                    f"{name}: {p} is a non-empty folder that gpps did not write; expected a new or empty folder "
+                    "or an earlier gpps output (gpps never replaces other files)")
+            foreign = sorted(set(entries) - set(manifest["files"]) - {MARKER})
+            if foreign:
+                shown = ", ".join(foreign[:3]) + (" ..." if len(foreign) > 3 else "")
+                raise OutputError(f"{name}: {p} is an earlier gpps output but also holds files gpps did not write "
+                                  f"({shown}); gpps will not replace it")
+            if not overwrite:
+                raise OutputError(f"{name}: {p} holds an earlier gpps output; pass --overwrite to replace it")
+    return real
+
+
 @contextlib.contextmanager
 def atomic_write(path, suffix: str | None = None):
     """Yield a temporary path beside ``path``; rename it onto ``path`` on success.
+
+    The file gets the permissions of a plain ``open`` (``0666`` less the umask).
 
     Args:
         path: final file name.
@@ -61,6 +172,7 @@ def atomic_write(path, suffix: str | None = None):
     os.close(fd)
     try:
         yield Path(tmp)
+        _chmod_default(Path(tmp), directory=False)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
@@ -69,27 +181,83 @@ def atomic_write(path, suffix: str | None = None):
 
 
 @contextlib.contextmanager
-def atomic_dir(path):
-    """Yield a temporary folder beside ``path``; on success it replaces ``path``.
+def atomic_dir(path, *, overwrite: bool = False, inputs=(), name: str = "out"):
+    """Yield a temporary folder beside ``path``; on success it becomes ``path``.
 
-    An existing folder at ``path`` is replaced as a whole (moved aside, then
-    removed), so readers never see a mix of old and new files.
+    The target is checked first (:func:`check_output_dir`: never a file, an
+    input, or a folder gpps did not write; an earlier gpps output only with
+    ``overwrite``).  On success the manifest (:data:`MARKER`) is written, the
+    folder gets the permissions of a plain ``mkdir`` (``0777`` less the umask)
+    and is renamed into place; an earlier output is moved aside first and then
+    removed, so readers never see a mix of old and new files.  On any failure,
+    ``KeyboardInterrupt`` included, the temporary folder is removed and the
+    target is left as it was.
+
+    Args:
+        path: the output folder.
+        overwrite: replace an earlier gpps output folder.
+        inputs: paths the computation read (refused as targets).
+        name: the argument's name in messages.
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    real = check_output_dir(path, inputs=inputs, overwrite=overwrite, name=name)
+    real.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{real.name}.", suffix=".tmp", dir=real.parent))
+    old = None
     try:
         yield tmp
+        files = sorted(e.name for e in tmp.iterdir() if e.name != MARKER)
+        from gpps import __version__
+
+        (tmp / MARKER).write_text(json.dumps({"gpps": __version__, "files": files}, indent=1) + "\n")
+        _chmod_default(tmp, directory=True)
+        # the target may have changed while we computed: check again just before the rename
+        check_output_dir(real, inputs=inputs, overwrite=overwrite, name=name)
+        if real.is_dir():
+            old = Path(tempfile.mkdtemp(prefix=f".{real.name}.", suffix=".old", dir=real.parent))
+            _swap_into(tmp, real, old)
+        else:
+            os.replace(tmp, real)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
         raise
-    old = None
-    if path.exists():
-        old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
-        os.replace(path, old / "x")
-    os.replace(tmp, path)
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
+
+
+def _swap_into(tmp: Path, real: Path, old: Path) -> None:
+    """Replace the contents of the existing folder ``real`` by those of ``tmp``, keeping ``real`` itself.
+
+    The folder is kept (it may be a shell's working directory, ``--out .``):
+    its entries (the marker first) move aside into ``old``, then the new ones
+    move in (the marker last, so a reader sees a complete output or none).  On
+    failure the earlier entries are put back.
+    """
+    def entries(d, marker_first):
+        names = sorted(e.name for e in d.iterdir())
+        if MARKER in names:
+            names.remove(MARKER)
+            names = [MARKER, *names] if marker_first else [*names, MARKER]
+        return names
+
+    out_old, in_new = [], []
+    try:
+        for nm in entries(real, marker_first=True):
+            os.replace(real / nm, old / nm)
+            out_old.append(nm)
+        for nm in entries(tmp, marker_first=False):
+            os.replace(tmp / nm, real / nm)
+            in_new.append(nm)
+    except BaseException:
+        for nm in reversed(in_new):
+            with contextlib.suppress(OSError):
+                os.replace(real / nm, tmp / nm)
+        for nm in reversed(out_old):
+            with contextlib.suppress(OSError):
+                os.replace(old / nm, real / nm)
+        raise
+    tmp.rmdir()
 
 
 def save_npy(path, array) -> None:
@@ -320,12 +488,13 @@ def read_dataset(root, *, normalise: bool = True, indices=None) -> Dataset:
     )
 
 
-def write_dataset(root, ds: Dataset, *, bits: int = 16) -> Path:
+def write_dataset(root, ds: Dataset, *, bits: int = 16, overwrite: bool = False) -> Path:
     """Write a :class:`Dataset` as a DiLiGenT-style folder, atomically.
 
     Images are written as they are (they should already be in [0, 1]); the
     light intensities are written to ``light_intensities.txt`` so that a
-    reader divides by them.
+    reader divides by them.  ``root`` follows :func:`check_output_dir` (new,
+    empty, or an earlier gpps output with ``overwrite``).
     """
     root = Path(root)
     images = np.asarray(ds.images)
@@ -333,7 +502,7 @@ def write_dataset(root, ds: Dataset, *, bits: int = 16) -> Path:
         raise ValueError(f"images: expected (N, H, W, 3), got shape {images.shape}")
     n = images.shape[0]
     names = ds.filenames or [f"{i + 1:03d}.png" for i in range(n)]
-    with atomic_dir(root) as tmp:
+    with atomic_dir(root, overwrite=overwrite, name="root") as tmp:
         for name, img in zip(names, images):
             save_png(tmp / name, img, bits=bits)
         (tmp / "filenames.txt").write_text("\n".join(names) + "\n")

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import time
-from pathlib import Path
+
+from gpps.cli._output import prepare_out
 
 
 def register(sub):
     p = sub.add_parser("demo", help="render an embedded perspective Cook-Torrance scene under near point lights and reconstruct it with the pipeline")
-    p.add_argument("--out", default="gpps_demo", help="output folder")
+    p.add_argument("--out", default="gpps_demo", help="output folder (default gpps_demo); must be new, empty, or an "
+                                                      "earlier gpps output (with --overwrite)")
+    p.add_argument("--overwrite", action="store_true", help="replace --out when it holds an earlier gpps output")
     p.add_argument("--size", type=int, default=256)
     p.set_defaults(func=run)
 
@@ -19,7 +22,8 @@ def run(args) -> int:
     from gpps.cli._progress import bar
 
     t0 = time.perf_counter()
-    report = run_demo(Path(args.out), size=args.size, device=args.device, progress=bar("demo"))
+    out = prepare_out(args)
+    report = run_demo(out, size=args.size, device=args.device, progress=bar("demo"), overwrite=args.overwrite)
     for k, v in report["summary"].items():
         print(f"{k:>28}: {v}")
     print(f"wrote {args.out} in {time.perf_counter() - t0:.1f} s")

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from gpps.cli._output import add_output_args, prepare_out, warning_messages
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -29,7 +31,7 @@ def register(subparsers) -> None:
                         "edges weighted by the integrability of their loops, one solve: the mode for measured "
                         "normal maps) or 'cauchy' (IRLS on the edge residuals)")
     p.add_argument("--reference-depth", type=float, default=None, help="mean depth per component (scene units)")
-    p.add_argument("--out", required=True, help="output folder")
+    add_output_args(p, "output folder (depth.npy, depth.tiff, mesh.ply, view.png, report.json)")
     p.set_defaults(func=run)
 
 
@@ -55,9 +57,10 @@ def run(args) -> int:
     from gpps.camera import Orthographic, Perspective
     from gpps.cli._progress import bar
     from gpps.integrate import integrate_normals
-    from gpps.io import read_K, read_mask, save_json, save_npy, save_tiff
-    from gpps.mesh import depth_to_mesh, render_view, save_mesh
+    from gpps.io import atomic_dir, read_K, read_mask
 
+    inputs = [args.normals, args.mask, args.K]
+    out = prepare_out(args, inputs=inputs)
     normals = _read_normals(Path(args.normals))
     mask = read_mask(args.mask)
     if mask.shape != normals.shape[:2]:
@@ -68,8 +71,17 @@ def run(args) -> int:
         robust=args.robust,
         reference_depth=args.reference_depth, device=args.device, progress=bar("integrate"),
     )
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    with atomic_dir(out, overwrite=args.overwrite, inputs=inputs, name="--out") as tmp:
+        _write(tmp, res, camera, args)
+    print(f"integrate: {int(res.mask.sum())} pixels, {res.iterations} iterations, residual {res.residual:.2e}, "
+          f"{res.timings.get('total', 0):.2f} s -> {args.out}")
+    return 0
+
+
+def _write(out, res, camera, args) -> None:
+    from gpps.io import save_json, save_npy, save_tiff
+    from gpps.mesh import depth_to_mesh, render_view, save_mesh
+
     save_npy(out / "depth.npy", res.depth)
     save_tiff(out / "depth.tiff", res.depth)
     save_mesh(depth_to_mesh(res.depth, res.mask, camera), out / "mesh.ply")
@@ -83,7 +95,5 @@ def run(args) -> int:
     }
     if "reason" in view:
         report["view_fallback_reason"] = view["reason"]
+    report["warnings"] = warning_messages(args)
     save_json(out / "report.json", report)
-    print(f"integrate: {int(res.mask.sum())} pixels, {res.iterations} iterations, residual {res.residual:.2e}, "
-          f"{res.timings.get('total', 0):.2f} s -> {out}")
-    return 0

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import json
 import time
-from pathlib import Path
+
+from gpps.cli._output import add_output_args, prepare_out, warning_messages
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("reconstruct", help="normals, albedo, depth and material from a calibrated photometric-stereo folder")
     p.add_argument("dir", help="DiLiGenT-style folder (images, light_directions.txt or light_positions.txt, light_intensities.txt, mask.png, K.txt)")
-    p.add_argument("--out", required=True, help="output folder (normals.npy, albedo.png, normals.png, depth.npy, depth.tiff, mesh.ply, view.png, report.json)")
+    add_output_args(p, "output folder (normals.npy, albedo.png, normals.png, depth.npy, depth.tiff, mesh.ply, view.png, report.json)")
     p.add_argument("--method", default="ron", choices=["ron", "ppn", "pps"],
                    help="ron (default): the pipeline: least squares, DGMC starts, RON rounds of normals/albedo/depth/material; "
                         "ppn: one per-pixel solve (known material) then integration; pps: perspective Blinn-Phong in log depth")
@@ -48,6 +49,7 @@ def run(args) -> int:
     t0 = time.perf_counter()
     if args.rounds < 1:
         raise ValueError(f"--rounds: expected an integer >= 1, got {args.rounds}")
+    out = prepare_out(args, inputs=[args.dir])
     ds = read_dataset(args.dir)
     n, h, w = ds.images.shape[:3]
     camera = camera_from_K(ds.K) if ds.K is not None else Orthographic()
@@ -148,8 +150,7 @@ def run(args) -> int:
     if ds.normal_gt is not None:
         report["errors"] = normal_errors(normals, ds.normal_gt, ds.mask)
         report["maen_deg"] = report["errors"]["mean"]
-    out = Path(args.out)
-    with atomic_dir(out) as tmp:
+    with atomic_dir(out, overwrite=args.overwrite, inputs=[args.dir], name="--out") as tmp:
         save_npy(tmp / "normals.npy", normals)
         a = albedo / max(float(np.percentile(albedo[ds.mask], 99)), 1e-12)
         save_png(tmp / "albedo.png", np.clip(a, 0, 1), bits=8)
@@ -163,6 +164,7 @@ def run(args) -> int:
             view = render_view(depth, dmask, camera, tmp / "view.png")
             report["view"] = view["method"]
         report["timings"]["total"] = time.perf_counter() - t0
+        report["warnings"] = warning_messages(args)
         save_json(tmp / "report.json", report)
     if args.json:
         print(json.dumps(report, indent=2, default=float))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 
+from gpps.cli._output import add_output_args, prepare_out
 from gpps.material import BRDF_NAMES, Material
 from gpps.scenes import SCENE_NAMES
 
@@ -24,7 +25,7 @@ def register(sub):
     p.add_argument("--seed", type=int, default=0)
     for name in ("ks", "shininess", "roughness", "f0", "eta_u", "eta_v"):
         p.add_argument(f"--{name.replace('_', '-')}", type=float, default=None, help=f"material {name} (default: per model)")
-    p.add_argument("--out", required=True, help="output folder (replaced atomically)")
+    add_output_args(p, "output folder (DiLiGenT-style capture with ground truth)")
     p.set_defaults(func=run)
 
 
@@ -43,9 +44,10 @@ def run(args) -> int:
     from gpps.synthetic import default_lights, render_dataset
 
     t0 = time.perf_counter()
+    out = prepare_out(args)
     scene = make_scene(args.scene, args.size, args.camera, albedo=args.albedo, seed=args.seed)
     lights = default_lights(args.lights, args.n_lights, slant_deg=args.slant, layout=args.layout)
     ds = render_dataset(scene, material_from_args(args), lights, noise=args.noise, bits=args.bits, seed=args.seed, device=args.device)
-    write_dataset(args.out, ds, bits=args.bits)
+    write_dataset(out, ds, bits=args.bits, overwrite=args.overwrite)
     print(f"wrote {len(ds.images)} images of {args.scene} ({args.size}x{args.size}, {args.camera}, {args.lights} lights, {args.brdf}) to {args.out} in {time.perf_counter() - t0:.2f} s")
     return 0

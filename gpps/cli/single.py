@@ -14,13 +14,15 @@ from pathlib import Path
 
 import numpy as np
 
+from gpps.cli._output import add_output_args, prepare_out, warning_messages
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("single", help="normals, depth, mesh from one or three images (network + cuckoo search)",
                               description=__doc__.splitlines()[0])
     p.add_argument("images", nargs="+", help="IMAGE [IMAGE2 IMAGE3]: the same object under other (unknown) lights")
     p.add_argument("--mask", default=None, help="mask image (non-zero = object); default: every lit pixel")
-    p.add_argument("--out", required=True, help="output folder")
+    add_output_args(p, "output folder")
     p.add_argument("--rounds", type=int, default=1, help="light-estimation / cuckoo rounds (0: network only)")
     p.add_argument("--generations", type=int, default=80, help="cuckoo generations per round")
     p.add_argument("--nests", type=int, default=12, help="nests (habitats) per pixel")
@@ -55,6 +57,8 @@ def run(args) -> int:
 
     if len(args.images) not in (1, 2, 3):
         raise ValueError(f"images: expected 1 to 3 images, got {len(args.images)}")
+    inputs = [*args.images, args.mask]
+    out_dir = prepare_out(args, inputs=inputs)
     imgs = [_read(p) for p in args.images]
     if any(i.shape[:2] != imgs[0].shape[:2] for i in imgs):
         raise ValueError(f"images: expected one size, got {[i.shape[:2] for i in imgs]}")
@@ -77,7 +81,7 @@ def run(args) -> int:
     res = reconstruct_single(imgs, mask, config=cfg, device=device, progress=bar("single"))
     m = res.mask
     depth = np.where(m, res.depth - res.depth[m].min() + 1.0, 0.0).astype(np.float32) if res.depth is not None else None
-    with atomic_dir(Path(args.out)) as out:
+    with atomic_dir(out_dir, overwrite=args.overwrite, inputs=inputs, name="--out") as out:
         save_npy(out / "normals.npy", res.normals)
         save_png(out / "normals.png", _normal_png(res.normals, m), bits=8)
         save_npy(out / "normals_net.npy", res.normals_net)
@@ -101,6 +105,7 @@ def run(args) -> int:
         }
         if "reason" in view:
             report["view_fallback_reason"] = view["reason"]
+        report["warnings"] = warning_messages(args)
         save_json(out / "report.json", report)
     print(f"single: {int(m.sum())} pixels, {len(imgs)} image(s), {res.timings.get('total', 0):.1f} s -> {args.out}")
     return 0

@@ -13,6 +13,9 @@ Sources:
 Every ``--save-every``-th result is written to ``OUT/frame_<index>/``
 (``normals.npy``, ``albedo.npy``, ``depth.npy``, ``normals.png``); a
 ``report.json`` ends the run (frames, errors with their indices, frames per second).
+The output folder is written as a temporary sibling and renamed when the stream
+ends; Ctrl-C ends a live stream normally (``"interrupted": true`` in the report),
+any other failure leaves nothing behind.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gpps.cli._output import add_output_args, prepare_out, warning_messages
 from gpps.material import BRDF_NAMES
 
 
@@ -37,7 +41,7 @@ def register(sub):
     p.add_argument("--integration-iterations", type=int, default=2, help="PCG iterations per frame")
     p.add_argument("--reference-depth", type=float, default=None, help="mean depth (scene units); needed for point lights")
     p.add_argument("--save-every", type=int, default=0, help="save every k-th result (0: none)")
-    p.add_argument("--out", required=True, help="output folder")
+    add_output_args(p, "output folder (report.json, frame_<index>/ with --save-every)")
     p.set_defaults(func=run)
 
 
@@ -143,30 +147,40 @@ def run(args) -> int:
 
     if args.synthetic == (args.source is not None):
         raise ValueError("source: expected either SOURCE or --synthetic")
+    if args.save_every < 0:
+        raise ValueError(f"--save-every: expected an integer >= 0, got {args.save_every}")
+    inputs = [args.source]
+    out = prepare_out(args, inputs=inputs)
     shape, cam, L, mat, mask, frames = _synthetic(args) if args.synthetic else _folder(args)
     cfg = StreamConfig(iterations=args.iterations, integration_iterations=args.integration_iterations,
                        reference_depth=args.reference_depth, output="numpy" if args.save_every else "device")
     st = Stream(shape, cam, L, mat, mask=mask, config=cfg, device=None if args.device == "auto" else args.device)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     errors, n, t0, last = [], 0, time.perf_counter(), time.perf_counter()
-    for r in st.run(frames):
-        n += 1
-        if not r.ok:
-            errors.append({"index": r.index, "error": r.error})
-        elif args.save_every and r.index % args.save_every == 0:
-            with atomic_dir(out / f"frame_{r.index:06d}") as d:
-                save_npy(d / "normals.npy", r.normals)
-                save_npy(d / "albedo.npy", r.albedo)
-                if r.depth is not None:
-                    save_npy(d / "depth.npy", r.depth)
-                save_png(d / "normals.png", np.where(mask[..., None], (r.normals + 1) / 2, 0), bits=8)
-        now = time.perf_counter()
-        if now - last > 0.5:
-            print(f"\rframe {n}  {n / (now - t0):7.1f} frames/s  errors {len(errors)}", end="", flush=True)
-            last = now
-    dt = time.perf_counter() - t0
-    print(f"\rframes {n}  {n / max(dt, 1e-9):.1f} frames/s (wall, including reading)  errors {len(errors)}")
-    save_json(out / "report.json", {"frames": n, "seconds": dt, "frames_per_s": n / max(dt, 1e-9), "errors": errors,
-                                     "stream_seconds": st.stats["seconds"], "device": st.device})
+    interrupted = False
+    with atomic_dir(out, overwrite=args.overwrite, inputs=inputs, name="--out") as tmp:
+        try:
+            for r in st.run(frames):
+                n += 1
+                if not r.ok:
+                    errors.append({"index": r.index, "error": r.error})
+                elif args.save_every and r.index % args.save_every == 0:
+                    d = tmp / f"frame_{r.index:06d}"
+                    save_npy(d / "normals.npy", r.normals)
+                    save_npy(d / "albedo.npy", r.albedo)
+                    if r.depth is not None:
+                        save_npy(d / "depth.npy", r.depth)
+                    save_png(d / "normals.png", np.where(mask[..., None], (r.normals + 1) / 2, 0), bits=8)
+                now = time.perf_counter()
+                if now - last > 0.5:
+                    print(f"\rframe {n}  {n / (now - t0):7.1f} frames/s  errors {len(errors)}", end="", flush=True)
+                    last = now
+        except KeyboardInterrupt:  # the normal end of a live stream: keep what was streamed
+            interrupted = True
+        dt = time.perf_counter() - t0
+        print(f"\rframes {n}  {n / max(dt, 1e-9):.1f} frames/s (wall, including reading)  errors {len(errors)}"
+              + ("  (interrupted)" if interrupted else ""))
+        save_json(tmp / "report.json", {"frames": n, "seconds": dt, "frames_per_s": n / max(dt, 1e-9),
+                                        "errors": errors, "interrupted": interrupted,
+                                        "stream_seconds": st.stats["seconds"], "device": st.device,
+                                        "warnings": warning_messages(args)})
     return 0
