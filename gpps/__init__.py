@@ -7,6 +7,7 @@ perspective cameras and near lights, on CPU or GPU (NVIDIA Warp + Taichi).
 The coordinate frame is described once, in :mod:`gpps.camera`.
 """
 
+from gpps._check import GppsWarning
 from gpps.camera import Orthographic, Perspective, camera_from_K
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import BRDF_NAMES, Material
@@ -33,6 +34,7 @@ def __getattr__(name):
 
 
 __all__ = [
+    "GppsWarning",
     "Orthographic",
     "Perspective",
     "camera_from_K",

@@ -20,16 +20,57 @@ def warn(message: str, sink: list | None = None, stacklevel: int = 3) -> None:
     warnings.warn(message, GppsWarning, stacklevel=stacklevel)
 
 
-def as_array(name, a, *, ndim=None, shape=None, dtype=np.float32, finite=True) -> np.ndarray:
-    """``a`` as a numpy array of ``dtype``, checked for dimension, shape and finiteness.
+#: Full scale of the integer image types: the one rule for images everywhere in gpps.  uint8 and uint16
+#: images are divided by it (0..1); floating-point images are taken as they are (linear, 1 = full scale);
+#: any other dtype (int32, complex, bool, object, ...) is a TypeError naming the argument.
+IMAGE_FULL_SCALE = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}
 
-    ``shape`` may hold None for free axes.
-    """
+_NOT_NUMBERS = "cbOUSVMm"  # complex, bool, object, strings, void, datetimes: never silently cast to floats
+
+
+def _source(name, a):
+    """``a`` as a numpy array as given (no cast), refusing what is not an array of real numbers."""
     if hasattr(a, "numpy") and not isinstance(a, np.ndarray):  # warp / torch arrays
         a = a.numpy()
     try:
-        arr = np.asarray(a, dtype=dtype)
+        src = np.asarray(a)
     except (TypeError, ValueError):
+        raise TypeError(f"{name}: expected an array of real numbers, got {type(a).__name__}") from None
+    if src.dtype.kind in _NOT_NUMBERS:
+        raise TypeError(f"{name}: expected an array of real numbers (float or integer), got dtype {src.dtype}")
+    return src
+
+
+def as_images(name, a, *, dtype=np.float32) -> np.ndarray:
+    """Images as floats by the one rule of :data:`IMAGE_FULL_SCALE` (no shape check).
+
+    Raises:
+        TypeError: complex, bool, object or integer types other than uint8 / uint16.
+        ValueError: NaN, inf or negative values.
+    """
+    src = _source(name, a)
+    if src.dtype.kind in "iu" and src.dtype not in IMAGE_FULL_SCALE:
+        raise TypeError(f"{name}: expected uint8, uint16 (scaled by full scale) or floating-point images "
+                        f"(linear, 1 = full scale), got dtype {src.dtype}")
+    scale = IMAGE_FULL_SCALE.get(src.dtype)
+    arr = src.astype(dtype) / dtype(scale) if scale else np.asarray(src, dtype=dtype)
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name}: expected finite values, got NaN or inf")
+    if np.any(arr < 0):
+        raise ValueError(f"{name}: expected values >= 0, got a minimum of {float(arr.min()):.6g}")
+    return arr
+
+
+def as_array(name, a, *, ndim=None, shape=None, dtype=np.float32, finite=True) -> np.ndarray:
+    """``a`` as a numpy array of ``dtype``, checked for dimension, shape and finiteness.
+
+    ``shape`` may hold None for free axes.  Complex, bool, object and string
+    arrays are a TypeError (never cast silently).
+    """
+    src = _source(name, a)
+    try:
+        arr = np.asarray(src, dtype=dtype)
+    except (TypeError, ValueError, OverflowError):
         raise TypeError(f"{name}: expected an array of numbers, got {type(a).__name__}") from None
     if ndim is not None and arr.ndim != ndim:
         want = shape if shape is not None else f"{ndim} dimensions"

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gpps._check import as_array, as_mask
+from gpps._check import IMAGE_FULL_SCALE, as_array, as_images, as_mask
 from gpps.camera import Orthographic, Perspective
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
@@ -54,6 +54,8 @@ class PSResult:
         timings: seconds: ``setup``, ``solve`` (device), ``total``.
         config: the solver settings used.
         material: the reflectance model used.
+        determined: (H, W) bool pixels with 3 or more usable (lit, unsaturated) observations.
+        warnings: messages of the :class:`gpps.GppsWarning` warnings issued.
     """
 
     normals: np.ndarray
@@ -67,6 +69,15 @@ class PSResult:
     timings: dict = field(default_factory=dict)
     config: SolverConfig | None = None
     material: Material | None = None
+    determined: np.ndarray | None = None
+    warnings: list = field(default_factory=list)
+
+
+def input_saturation(images, saturation=None):
+    """The saturation level of the check: ``saturation``, else full scale (1.0) for uint8/uint16 input, else None."""
+    if saturation is not None:
+        return float(saturation)
+    return 1.0 if getattr(images, "dtype", None) in IMAGE_FULL_SCALE else None
 
 
 def check_inputs(images, mask, lights, camera=None):
@@ -77,7 +88,7 @@ def check_inputs(images, mask, lights, camera=None):
         (N, H, W, 3) or (N, H, W), the (H, W) bool mask, the lights, and the
         camera (orthographic when None).
     """
-    img = as_array("images", images)
+    img = as_images("images", images)
     if img.ndim not in (3, 4) or (img.ndim == 4 and img.shape[-1] not in (1, 3)):
         raise ValueError(f"images: expected shape (N, H, W, 3) or (N, H, W), got {img.shape}")
     n, h, w = img.shape[:3]
@@ -90,6 +101,86 @@ def check_inputs(images, mask, lights, camera=None):
     if not isinstance(camera, (Orthographic, Perspective)):
         raise TypeError(f"camera: expected gpps.camera.Orthographic or Perspective, got {type(camera).__name__}")
     return img, m, lights, camera
+
+
+#: Observations at or below this fraction of the mask's brightest (99.9th percentile) grey value are unlit.
+UNLIT_FRACTION = 1e-3
+#: Below this share of determined mask pixels the input is degenerate (an error); below WARN_DETERMINED a warning.
+MIN_DETERMINED = 0.2
+WARN_DETERMINED = 0.5
+
+
+def check_observations(images, mask, lights, *, valid=None, saturation=None, reference_depth=None,
+                       sink: list | None = None) -> np.ndarray:
+    """Refuse degenerate input and warn about doubtful input, before any solve.
+
+    A pixel is *determined* when it has at least 3 usable observations: lit
+    (grey value above :data:`UNLIT_FRACTION` of the mask's 99.9th percentile)
+    and not saturated (no channel at or above ``saturation``, and ``valid``
+    where given).  Errors (ValueError naming the cause): every observation in
+    the mask black; fewer than :data:`MIN_DETERMINED` of the mask pixels
+    determined (all dark, all saturated, or the mask outside the lit area).
+    Warnings (:class:`gpps.GppsWarning`, messages appended to ``sink``): fewer
+    than :data:`WARN_DETERMINED` determined; a directional light behind the
+    object (``z <= 0``: it lights only surfaces that face away from the camera)
+    or a point light at or beyond the object's mean depth.
+
+    Args:
+        images: (N, H, W, 3) or (N, H, W) float images (checked).
+        mask: (H, W) bool.
+        lights: the lights.
+        valid: optional (N, H, W) bool observations to use.
+        saturation: raw level at or above which a channel is saturated (None: unknown).
+        reference_depth: the object's mean depth (scene units), for point lights.
+        sink: list that collects the warning messages.
+
+    Returns:
+        (H, W) bool: the determined pixels.
+    """
+    from gpps._check import warn
+
+    img = images if images.ndim == 4 else images[..., None]
+    grey = img.mean(axis=-1)[:, mask]  # (N, P)
+    scale = float(np.percentile(grey, 99.9)) if grey.size else 0.0
+    if not scale > 0.0:
+        outside = img.mean(axis=-1)[:, ~mask]
+        where = (" while pixels outside it are lit: the mask lies outside the lit area"
+                 if outside.size and float(outside.max()) > 0 else "")
+        raise ValueError(f"images: every observation inside the mask is black (0){where}; nothing is lit")
+    lit = grey > UNLIT_FRACTION * scale
+    sat = np.zeros_like(lit)
+    if saturation is not None:
+        sat |= img.max(axis=-1)[:, mask] >= saturation
+    if valid is not None:
+        sat |= ~np.asarray(valid, bool)[:, mask]
+    determined = np.zeros(mask.shape, bool)
+    determined[mask] = np.count_nonzero(lit & ~sat, axis=0) >= 3
+    frac = float(determined[mask].mean())
+    if frac < MIN_DETERMINED:
+        if sat.mean() > 0.5:
+            cause = f"{100 * sat.mean():.0f}% of the observations are saturated (over-exposed)"
+        elif lit.mean() < 0.5:
+            cause = (f"{100 * (1 - lit.mean()):.0f}% of the observations are dark: under-exposed images, lights "
+                     "that missed the object, or a mask outside the lit area")
+        else:
+            cause = "too few lights reach each pixel"
+        raise ValueError(f"images: only {100 * frac:.1f}% of the mask pixels have 3 or more usable (lit, "
+                         f"unsaturated) observations; {cause}")
+    if frac < WARN_DETERMINED:
+        warn(f"images: {100 * (1 - frac):.0f}% of the mask pixels have fewer than 3 usable (lit, unsaturated) "
+             "observations; their normals rest on neighbours and priors", sink)
+    if isinstance(lights, DirectionalLights):
+        behind = np.nonzero(np.asarray(lights.directions)[:, 2] <= 0.0)[0]
+        if behind.size:
+            warn(f"lights: {behind.size} of {len(lights)} directional lights point away from the camera side "
+                 f"(z <= 0; lights {(behind + 1).tolist()[:8]}): they light only surfaces facing away from the camera",
+                 sink)
+    elif reference_depth is not None:
+        behind = np.nonzero(np.asarray(lights.positions)[:, 2] <= -float(reference_depth))[0]
+        if behind.size:
+            warn(f"lights: {behind.size} of {len(lights)} point lights are at or beyond the object's mean depth "
+                 f"{float(reference_depth):g} (lights {(behind + 1).tolist()[:8]}): they light it from behind", sink)
+    return determined
 
 
 def solve_normals(
@@ -147,6 +238,15 @@ def solve_normals(
         raise ValueError("config: pass either config or solver/robust/options, not both")
     img, m, lights, camera = check_inputs(images, mask, lights, camera)
     n, h, w = img.shape[:3]
+    if valid is not None and np.shape(valid) != (n, h, w):
+        raise ValueError(f"valid: expected shape ({n}, {h}, {w}), got {np.shape(valid)}")
+    notes: list[str] = []
+    ref = None
+    if depth is not None:
+        dep = as_array("depth", depth, shape=(h, w))
+        ref = float(np.mean(dep[m]))
+    determined = check_observations(img, m, lights, valid=valid, saturation=input_saturation(images, config.saturation),
+                                    reference_depth=ref, sink=notes)
     material = Material("lambertian", ks=0.0) if material is None else material
     if not isinstance(material, Material):
         raise TypeError(f"material: expected gpps.material.Material, got {type(material).__name__}")
@@ -178,6 +278,8 @@ def solve_normals(
         timings={"setup": t1 - t0, "solve": t2 - t1, "total": t3 - t0},
         config=config,
         material=material,
+        determined=determined,
+        warnings=notes,
     )
 
 

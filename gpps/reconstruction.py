@@ -30,7 +30,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from gpps.material import BRDF_NAMES, Material
-from gpps.photometric import check_inputs
+from gpps._check import as_array
+from gpps.photometric import check_inputs, check_observations, input_saturation
 from gpps.pipeline.ron import RON, LOBE_PARAMETERS, RONConfig
 
 __all__ = ["reconstruct", "Reconstruction", "RONConfig"]
@@ -58,6 +59,9 @@ class Reconstruction:
         highlight: (H, W) bool DGMC highlight pixels.
         details: the full :class:`gpps.pipeline.ron.RONResult`.
         timings: seconds per stage and ``total``.
+        determined: (H, W) bool pixels with 3 or more usable (lit, unsaturated) observations.
+        warnings: messages of the :class:`gpps.GppsWarning` warnings issued (doubtful
+            input, an estimate on its search bound, rounds that did not converge).
     """
 
     normals: np.ndarray
@@ -77,6 +81,8 @@ class Reconstruction:
     highlight: np.ndarray
     details: object = None
     timings: dict = field(default_factory=dict)
+    determined: np.ndarray | None = None
+    warnings: list = field(default_factory=list)
 
 
 def _material(material, estimate) -> tuple[Material, tuple[str, ...], dict]:
@@ -173,6 +179,12 @@ def reconstruct(
         val = np.asarray(valid)
         if val.shape != (n, h, w):
             raise ValueError(f"valid: expected shape ({n}, {h}, {w}), got {val.shape}")
+    ref = reference_depth
+    if ref is None and depth is not None:
+        ref = float(np.mean(as_array("depth", depth, shape=(h, w))[m]))
+    notes: list[str] = []
+    determined = check_observations(img, m, lights, valid=val, saturation=input_saturation(images, saturation),
+                                    reference_depth=ref, sink=notes)
     ron = RON((n, h, w), camera, lights, mat, m, cfg, device=device)
     try:
         res = ron.run(img, depth=depth, reference_depth=reference_depth, valid=val, progress=progress)
@@ -182,5 +194,6 @@ def reconstruct(
         normals=res.normals, albedo=res.albedo, depth=res.depth, mask=m, depth_mask=res.depth_mask,
         material=res.material, estimated=res.estimated, fixed=fixed, energy=res.energy, rounds=res.rounds,
         converged=res.converged, residual=res.residual, iterations=res.iterations, flags=res.flags,
-        highlight=res.highlight, details=res, timings=res.timings,
+        highlight=res.highlight, details=res, timings=res.timings, determined=determined,
+        warnings=notes + list(res.warnings),
     )

@@ -70,7 +70,7 @@ from typing import Literal, get_args
 
 import numpy as np
 
-from gpps._check import as_array, as_mask
+from gpps._check import as_images, as_mask
 from gpps.camera import Orthographic, Perspective
 
 Cue = Literal["intensity", "entropy", "ldr"]
@@ -772,7 +772,7 @@ def _factorisation_channel(rgb, cfg):
 
 
 def _prepare(images, mask, dark_fraction: float = 0.0):
-    imgs = as_array("images", images)
+    imgs = as_images("images", images)
     if imgs.ndim == 3:
         imgs = imgs[..., None]
     if imgs.ndim != 4 or imgs.shape[-1] not in (1, 3):

@@ -83,10 +83,10 @@ def run(args) -> int:
             raise ValueError("--reference-depth: expected the object's distance for point lights (light_positions.txt), got none")
     if reference is None and camera.is_perspective:
         reference = float(np.sqrt(camera.fx * camera.fy))  # unknown scale: one pixel ~ one unit at the mean depth
-    valid = None
+    raw = ds.images
     if ds.light_intensities is not None and ds.normalised:
         raw = ds.images * np.asarray(ds.light_intensities, np.float32)[:, None, None, :]
-        valid = ~np.any(raw >= 0.995, axis=-1)  # saturated in the file
+    valid = ~np.any(raw >= 0.995, axis=-1)  # saturated in the file (the images were read as 0..full scale)
     robust = args.robust or ("cauchy" if n > 6 else "none")
     device = None if args.device == "auto" else args.device
     report = {"dir": str(args.dir), "images": n, "shape": [h, w], "camera": camera.kind, "lights": lights.kind,

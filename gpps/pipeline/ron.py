@@ -52,7 +52,7 @@ from typing import Callable, Literal, get_args
 
 import numpy as np
 
-from gpps._check import as_array, as_mask, check_number
+from gpps._check import as_array, as_mask, check_number, warn
 from gpps.lights import PointLights
 from gpps.material import Material
 from gpps.pipeline.dgmc import DGMCConfig, dgmc_start, propagate_front
@@ -211,6 +211,8 @@ class RONResult:
             and ``identifiable`` (the energy's relative spread over the grid > 1e-3).
         integration_residual: relative residual of the last integration.
         timings: seconds per stage (summed over rounds) and ``total``.
+        warnings: messages of the :class:`gpps.GppsWarning` warnings issued
+            (an estimate on its search bound, rounds that did not converge).
     """
 
     normals: np.ndarray
@@ -231,6 +233,18 @@ class RONResult:
     material_fit: list = field(default_factory=list)
     integration_residual: float | None = None
     timings: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
+
+
+def estimate_on_bound(name: str, value: float, rel: float = 0.01) -> str | None:
+    """A warning message when ``value`` lies within ``rel`` of its log search range from a bound of it."""
+    lo, hi = _RANGES[name]
+    t = (np.log(value) - np.log(lo)) / (np.log(hi) - np.log(lo))
+    if t <= rel or t >= 1.0 - rel:
+        side = "lower" if t <= rel else "upper"
+        return (f"material: the estimated {name} {value:.4g} is at the {side} bound of its search range "
+                f"[{lo:g}, {hi:g}]: the images do not determine it (or it lies outside); treat it as unreliable")
+    return None
 
 
 def depth_rms_roughness(depth, mask, camera, *, window: float = 4.0) -> float:
@@ -567,12 +581,21 @@ class RON:
         step(total, total, "done")
         timings["total"] = time.perf_counter() - t_all
         estimated = {k: _get(material, k) for k in c.estimate}
+        notes: list[str] = []
+        for k, v in estimated.items():
+            msg = estimate_on_bound(k, v)
+            if msg:
+                warn(msg, notes)
+        if not converged and c.rounds > 1:
+            warn(f"rounds: RON stopped at its cap of {c.rounds} rounds before meeting its tolerances "
+                 f"(energy change {c.tol:g}, normal change {c.tol_normals_deg:g} deg); more rounds may change the result",
+                 notes)
         return RONResult(
             normals=np.where(m[..., None], out["normals"], 0.0).astype(np.float32),
             albedo=out["albedo"], depth=depth_out, depth_mask=depth_mask, material=material, estimated=estimated,
             energy=energies, normal_change_deg=changes, rounds=r, converged=converged,
             residual=out["residual"], iterations=out["iterations"], flags=out["flags"], highlight=highlight,
-            start_normals=start, material_fit=fits, integration_residual=ires, timings=timings,
+            start_normals=start, material_fit=fits, integration_residual=ires, timings=timings, warnings=notes,
         )
 
     def _fill_depth(self, depth, dmask, reference_depth) -> np.ndarray:

@@ -35,7 +35,7 @@ from typing import Literal, get_args
 
 import numpy as np
 
-from gpps._check import check_number
+from gpps._check import as_images, check_number
 from gpps._runtime import resolve_device, warp
 from gpps.pipeline.cuckoo import CuckooConfig, CuckooSearch
 
@@ -162,13 +162,13 @@ def prepare_images(images, mask=None) -> tuple[np.ndarray, np.ndarray]:
     ``images``: one (H, W) / (H, W, 3) image, or a sequence / array of N of them.
     """
     if isinstance(images, (list, tuple)):
-        items = [np.asarray(i, np.float32) for i in images]
+        items = [as_images(f"images[{k}]", i) for k, i in enumerate(images)]
         items = [i[..., None] if i.ndim == 2 else i for i in items]
         if not items or any(i.ndim != 3 or i.shape != items[0].shape for i in items):
             raise ValueError(f"images: expected (H, W) or (H, W, 3) images of one shape, got {[i.shape for i in items]}")
         a = np.stack(items)
     else:
-        a = np.asarray(images, np.float32)
+        a = as_images("images", images)
         if a.ndim == 2:
             a = a[None, ..., None]
         elif a.ndim == 3:  # one RGB image (H, W, 3), else N grey images (N, H, W)

@@ -13,7 +13,7 @@ from typing import Literal, get_args
 
 import numpy as np
 
-from gpps._check import check_number, as_array, as_mask
+from gpps._check import as_array, as_images, as_mask, check_number
 from gpps._runtime import resolve_device, warp
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
@@ -405,7 +405,7 @@ class PixelSolver:
 
     def _images(self, images) -> np.ndarray:
         n, h, w = self.shape
-        arr = as_array("images", images)
+        arr = as_images("images", images)
         if arr.shape == (n, h, w):
             arr = np.repeat(arr[..., None], 3, axis=-1)
         elif arr.shape == (n, h, w, 1):

@@ -1,0 +1,164 @@
+"""Degenerate and doubtful input: clear errors, warnings in results, report.json and stderr; types at the boundary."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+import gpps
+from gpps import GppsWarning
+from gpps.cli import main
+from gpps.io import Dataset, write_dataset
+from gpps.photometric import solve_normals
+from gpps.scenes import make_scene
+from gpps.synthetic import default_lights, render
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    sc = make_scene("sphere", 24, "orthographic")
+    L = default_lights("directional", 3)
+    img = render(sc, gpps.Material("lambertian", ks=0.0), L, bits=16) / L.intensities[:, None, None, :]
+    return sc, gpps.DirectionalLights(L.directions), img.astype(np.float32)
+
+
+def _capture(root, images, sc, lights):
+    write_dataset(root, Dataset(images=images, mask=sc.mask, light_directions=lights.directions,
+                                normal_gt=sc.normals))
+    return root
+
+
+# ------------------------------------------------------------------ errors
+
+
+def test_all_black_is_an_error(sphere, device):
+    sc, L, img = sphere
+    with pytest.raises(ValueError, match="images: every observation inside the mask is black"):
+        solve_normals(np.zeros_like(img), sc.mask, L, device=device)
+    with pytest.raises(ValueError, match="images: every observation inside the mask is black"):
+        gpps.reconstruct(np.zeros_like(img), sc.mask, L, device=device)
+
+
+def test_all_saturated_is_an_error(sphere, device):
+    sc, L, img = sphere
+    full = np.full(img.shape, 65535, np.uint16)  # integer images: full scale is saturated
+    with pytest.raises(ValueError, match="saturated"):
+        solve_normals(full, sc.mask, L, device=device)
+    with pytest.raises(ValueError, match="saturated"):
+        gpps.reconstruct(np.ones_like(img), sc.mask, L, saturation=1.0, device=device)
+
+
+def test_mask_outside_the_lit_area(sphere):
+    sc, L, img = sphere
+    outside = ~sc.mask
+    with pytest.raises(ValueError, match="mask lies outside the lit area"):
+        solve_normals(img, outside, L, device="cpu")
+
+
+@pytest.mark.parametrize("kind", ["black", "saturated"])
+def test_cli_refuses_degenerate_captures(sphere, tmp_path, capsys, kind):
+    sc, L, img = sphere
+    images = np.zeros_like(img) if kind == "black" else np.ones_like(img)
+    cap = _capture(tmp_path / "cap", images, sc, L)
+    rc = main(["--device", "cpu", "reconstruct", str(cap), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "Traceback" not in err
+    assert ("black" if kind == "black" else "saturated") in err
+    assert not (tmp_path / "out").exists()
+
+
+# ------------------------------------------------------------------ warnings
+
+
+def test_lights_behind_the_object_warn(sphere, tmp_path, capsys):
+    sc, L, img = sphere
+    d = L.directions.copy()
+    d[0, 2] = -abs(d[0, 2])  # light 1 behind the object
+    behind = gpps.DirectionalLights(d / np.linalg.norm(d, axis=1, keepdims=True))
+    lit = render(sc, gpps.Material("lambertian", ks=0.0), default_lights("directional", 3), bits=16)
+    with pytest.warns(GppsWarning, match="point away from the camera"):
+        res = solve_normals(lit, sc.mask, behind, device="cpu")
+    assert any("away from the camera" in w for w in res.warnings)
+    cap = _capture(tmp_path / "cap", lit, sc, behind)
+    assert main(["--device", "cpu", "reconstruct", str(cap), "--method", "ppn", "--no-integrate",
+                 "--out", str(tmp_path / "out")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: lights: 1 of 3 directional lights point away" in err
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert any("away from the camera" in w for w in report["warnings"])
+
+
+def test_point_light_behind_warns(sphere):
+    sc, _, img = sphere
+    pos = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, -20.0]])
+    with pytest.warns(GppsWarning, match="beyond the object's mean depth"):
+        solve_normals(img, sc.mask, gpps.PointLights(pos), depth=np.full(sc.mask.shape, 10.0), device="cpu")
+
+
+def test_estimate_on_its_bound_and_unconverged_rounds_warn(sphere):
+    sc, L, img = sphere  # a matte sphere: a specular lobe cannot be estimated, ks goes to its lower bound
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rec = gpps.reconstruct(img, sc.mask, L, material="blinn-phong", device="cpu",
+                               config=gpps.RONConfig(rounds=2))
+    msgs = [str(w.message) for w in caught if issubclass(w.category, GppsWarning)]
+    assert msgs == rec.warnings
+    assert any("estimated ks" in m and "bound of its search range" in m for m in msgs), msgs
+    if not rec.converged:
+        assert any("RON stopped at its cap of 2 rounds" in m for m in msgs)
+    from gpps.pipeline.ron import estimate_on_bound
+
+    assert estimate_on_bound("shininess", 500.0) is not None and estimate_on_bound("shininess", 40.0) is None
+
+
+def test_many_undetermined_pixels_warn(sphere):
+    sc, L, img = sphere
+    half = img.copy()
+    half[:, :, : sc.mask.shape[1] // 2] = 0.0  # the left half unlit in every image
+    with pytest.warns(GppsWarning, match="fewer than 3 usable"):
+        solve_normals(half, sc.mask, L, device="cpu")
+
+
+def test_clean_input_gives_no_warning(sphere):
+    sc, L, img = sphere
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", GppsWarning)
+        res = solve_normals(img, sc.mask, L, device="cpu")
+    assert res.warnings == [] and res.determined[sc.mask].mean() > 0.5
+
+
+# ------------------------------------------------------------------ types at the boundary
+
+
+@pytest.mark.parametrize("bad", ["complex", "bool", "object", "int32", "str"])
+def test_image_types_refused(sphere, bad):
+    sc, L, img = sphere
+    arr = {"complex": img.astype(np.complex64), "bool": img > 0.5, "object": img.astype(object),
+           "int32": (img * 1000).astype(np.int32), "str": img.astype(str)}[bad]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no ComplexWarning: refused before any cast
+        with pytest.raises(TypeError, match="images"):
+            solve_normals(arr, sc.mask, L, device="cpu")
+        with pytest.raises(TypeError, match="images"):
+            gpps.reconstruct(arr, sc.mask, L, device="cpu")
+
+
+def test_integer_images_by_full_scale(sphere):
+    sc, L, img = sphere
+    u16 = np.round(np.clip(img, 0, 1) * 65535).astype(np.uint16)
+    u8 = np.round(np.clip(img, 0, 1) * 255).astype(np.uint8)
+    ref = solve_normals(u16.astype(np.float32) / 65535, sc.mask, L, solver="none", device="cpu")
+    a = solve_normals(u16, sc.mask, L, solver="none", device="cpu")
+    b = solve_normals(u8, sc.mask, L, solver="none", device="cpu")
+    np.testing.assert_allclose(a.albedo[sc.mask], ref.albedo[sc.mask], rtol=1e-5)
+    np.testing.assert_allclose(b.albedo[sc.mask], ref.albedo[sc.mask], rtol=0.05, atol=0.01)
+    assert a.albedo[sc.mask].max() < 2.0  # 0..1 images, not 0..65535
+
+
+def test_negative_images_refused(sphere):
+    sc, L, img = sphere
+    with pytest.raises(ValueError, match="images: expected values >= 0"):
+        solve_normals(img - 0.5, sc.mask, L, device="cpu")
