@@ -228,7 +228,7 @@ def _numpy_setter(shape):
     def setter(ctx, k, v):
         if v.shape != shape or not v.flags.c_contiguous:
             raise _shape_changed(k, shape, v)
-        ctx.set_arg_external_array_with_shape((k,), int(v.ctypes.data), v.nbytes, shape, 0)
+        ctx.set_arg_external_array_with_shape((k,), v.__array_interface__["data"][0], v.nbytes, shape, 0)
 
     return setter
 

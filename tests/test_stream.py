@@ -93,15 +93,17 @@ def test_stream_memory_stays_flat(device):
 
     sc, mat, L, img, frame = _scene(size=16, camera="orthographic")
     st = Stream(sc.mask.shape, sc.camera, L, mat, mask=sc.mask, config=StreamConfig(integration_iterations=1), device=device)
-    for r in st.run([frame] * 20):
-        assert r.ok
     tracemalloc.start()
+    # Python keeps up to 2000 freed tuples per size in free lists, which tracemalloc counts as allocated:
+    # the first ~2000 frames fill them (a few hundred kB, bounded); after that nothing may grow
+    for r in st.run([frame] * 2400):
+        assert r.ok
     base = tracemalloc.get_traced_memory()[0]
     for r in st.run([frame] * 400):
         pass
     grown = tracemalloc.get_traced_memory()[0] - base
     tracemalloc.stop()
-    assert grown < 200_000, grown
+    assert grown < 20_000, grown
 
 
 def test_cli_stream_synthetic(tmp_path, device):

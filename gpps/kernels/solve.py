@@ -112,6 +112,7 @@ class SolverParams:
     dogleg_radius: wp.float32
     lit_threshold: wp.float32
     lit_sigmas: wp.float32
+    keep_unmasked: wp.int32  # 1: pixels outside the mask keep their outputs (a re-solve of a subset)
 
 
 @wp.struct
@@ -1116,6 +1117,8 @@ def _make_kernels(method, brdf, robust, module_name: str, sfx: str):
         i, j = wp.tid()
         nl_ = lights.count
         if mask[i, j] == wp.uint8(0):
+            if prm.keep_unmasked != 0:
+                return
             normals[i, j] = wp.vec3(0.0)
             albedo[i, j] = wp.vec3(0.0)
             residual[i, j] = 0.0

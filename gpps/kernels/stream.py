@@ -33,10 +33,109 @@ convert_float32 = _make_convert(wp.float32, "float32")
 
 
 @wp.kernel(enable_backward=False)
-def count_nonfinite(raw: wp.array4d(dtype=wp.float32), count: wp.array(dtype=wp.int32)):
-    """count[0] += number of NaN / inf values in raw."""
+def count_invalid(raw: wp.array4d(dtype=wp.float32), count: wp.array(dtype=wp.int32)):
+    """count[0] += number of NaN / inf values in raw, count[1] += number of negative values."""
     k, i, j = wp.tid()
     for c in range(raw.shape[3]):
         v = raw[k, i, j, c]
         if not wp.isfinite(v):
             wp.atomic_add(count, 0, 1)
+        elif v < 0.0:
+            wp.atomic_add(count, 1, 1)
+
+
+# slots of the per-frame statistics (float32 sums, zeroed before each frame)
+STAT_LIT = 0  # observations (light, pixel in the mask) whose grey value is lit
+STAT_SATURATED = 1  # observations with a channel at or above the saturation level
+STAT_GREY = 2  # sum of grey values (solver units) over the mask
+STAT_HF = 3  # sum of |Immerkaer Laplacian| of the grey values over interior mask pixels
+STAT_HF_GREY = 4  # sum of grey values over the same interior pixels
+STAT_RESIDUAL = 5  # sum of the per-pixel residual after the solve
+STAT_REDONE = 6  # pixels re-solved cold
+N_STATS = 8
+
+
+@wp.func
+def _grey(v: wp.vec3) -> float:
+    return (v[0] + v[1] + v[2]) / 3.0
+
+
+@wp.kernel(enable_backward=False)
+def frame_stats(images: wp.array3d(dtype=wp.vec3), mask: wp.array2d(dtype=wp.uint8),
+                intensity: wp.array2d(dtype=wp.float32), lit_level: float, saturation: float,
+                stats: wp.array(dtype=wp.float32)):
+    """Cheap sanity statistics of one converted frame (one thread per light and pixel).
+
+    An observation is lit when its grey value exceeds ``lit_level`` of full
+    scale, saturated when a channel reaches ``saturation`` of full scale
+    (both as fractions of full scale: ``images * intensity``).  The high-frequency ratio
+    ``STAT_HF / (6 STAT_HF_GREY)`` is the Immerkaer noise estimate relative to
+    the signal (see :func:`gpps.pipeline.solver.estimate_noise`): about 0.01
+    for a smooth lit object, 0.3-0.5 for a frame of noise.
+
+    Args:
+        images: (N, H, W) converted observations (solver units).
+        mask: (H, W) 1 inside the mask.
+        intensity: (N, 3) the light intensities the conversion divided by.
+        lit_level, saturation: fractions of full scale.
+        stats: (N_STATS,) sums (accumulated with atomics).
+    """
+    k, i, j = wp.tid()
+    if mask[i, j] == 0:
+        return
+    g = intensity[k]
+    v = images[k, i, j]
+    raw = wp.vec3(v[0] * g[0], v[1] * g[1], v[2] * g[2])
+    if _grey(raw) > lit_level:
+        wp.atomic_add(stats, STAT_LIT, 1.0)
+    if wp.max(raw[0], wp.max(raw[1], raw[2])) >= saturation:
+        wp.atomic_add(stats, STAT_SATURATED, 1.0)
+    gv = _grey(v)
+    wp.atomic_add(stats, STAT_GREY, gv)
+    h = images.shape[1]
+    w = images.shape[2]
+    if i < 1 or j < 1 or i >= h - 1 or j >= w - 1:
+        return
+    lap = float(0.0)
+    for di in range(-1, 2):
+        for dj in range(-1, 2):
+            if mask[i + di, j + dj] == 0:
+                return
+            c = float(1.0)
+            if di == 0:
+                c = c * 2.0
+            if dj == 0:
+                c = c * 2.0
+            if (di + dj) % 2 != 0:
+                c = -c
+            lap += c * _grey(images[k, i + di, j + dj])
+    wp.atomic_add(stats, STAT_HF, wp.abs(lap))
+    wp.atomic_add(stats, STAT_HF_GREY, gv)
+
+
+@wp.kernel(enable_backward=False)
+def residual_sum(residual: wp.array2d(dtype=wp.float32), mask: wp.array2d(dtype=wp.uint8),
+                 stats: wp.array(dtype=wp.float32)):
+    """stats[STAT_RESIDUAL] += the residual summed over the mask."""
+    i, j = wp.tid()
+    if mask[i, j] != 0:
+        wp.atomic_add(stats, STAT_RESIDUAL, residual[i, j])
+
+
+@wp.kernel(enable_backward=False)
+def mark_jumps(residual: wp.array2d(dtype=wp.float32), mask: wp.array2d(dtype=wp.uint8),
+               threshold: wp.array(dtype=wp.float32), redo: wp.array2d(dtype=wp.uint8), stats: wp.array(dtype=wp.float32)):
+    """redo[i, j] = 1 where a warm-started pixel's residual exceeds ``threshold[0]``.
+
+    The host sets the threshold from the running levels of the accepted frames
+    (0 before the first: nothing is marked); it lives on the device so that a
+    captured graph reads the current value.  Counts the marked pixels in
+    ``stats[STAT_REDONE]``.
+    """
+    i, j = wp.tid()
+    r = wp.uint8(0)
+    if mask[i, j] != 0 and threshold[0] > 0.0:
+        if residual[i, j] > threshold[0]:
+            r = wp.uint8(1)
+            wp.atomic_add(stats, STAT_REDONE, 1.0)
+    redo[i, j] = r

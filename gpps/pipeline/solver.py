@@ -370,7 +370,18 @@ class PixelSolver:
         p.dogleg_radius = float(c.dogleg_radius)
         p.lit_threshold = float(c.lit_threshold)
         p.lit_sigmas = float(c.lit_sigmas)
+        p.keep_unmasked = 0
         return p
+
+    def _params_for(self, c: SolverConfig):
+        """The device parameter struct of ``c`` for a subset re-solve (pixels outside the mask keep their
+        outputs), built once per config."""
+        cache = self.__dict__.setdefault("_prm_cache", {})
+        if c not in cache:
+            p = self._params(c)
+            p.keep_unmasked = 1
+            cache[c] = p
+        return cache[c]
 
     def _select_kernels(self) -> None:
         """Pick the kernels specialised for the current solver, reflectance model and robust loss.
@@ -395,11 +406,13 @@ class PixelSolver:
         self.config = config
         self.prm = self._params(config)
         self._select_kernels()
+        self.__dict__.pop("_cmds", None)
 
     def set_material(self, material: Material) -> None:
         self.material = material
         self.mp = material_params(material)
         self._select_kernels()
+        self.__dict__.pop("_cmds", None)
 
     # ------------------------------------------------------------------ per frame
 
@@ -465,27 +478,52 @@ class PixelSolver:
         self.depth.assign(dep)
         self.valid.assign(val)
 
+    def launch_solve(self, mask, config: SolverConfig) -> None:
+        """Only the pixelwise solve kernel, on another (H, W) uint8 mask buffer and with ``config``'s settings
+        (same solver, model and robust loss as the current config: the same compiled kernel); pixels outside
+        ``mask`` keep their current outputs.  Graph-capturable.
+
+        The stream re-solves the pixels whose warm start failed this way, cold, inside the frame.
+        """
+        if (config.solver, config.robust if config.irls_rounds > 0 else "none") != (
+                self.config.solver, self.config.robust if self.config.irls_rounds > 0 else "none"):
+            raise ValueError("config: expected the current solver and robust loss (the same kernel)")
+        if tuple(mask.shape) != tuple(self.shape[1:]):
+            raise ValueError(f"mask: expected shape {self.shape[1:]}, got {tuple(mask.shape)}")
+        self._recorded(("subset", id(mask), config), self._solve_kernel,
+                       [self.images, mask, self.valid, self.depth, self.noise, self.cam, self.lp, self.mp,
+                        self._params_for(config)],
+                       [self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags,
+                        self.cond]).launch()
+
+    def _recorded(self, key, kernel, inputs, outputs):
+        """A recorded launch (``wp.launch(..., record_cmd=True)``) of ``kernel`` over the pixels, kept per ``key``
+        until the config or material changes: the arguments are packed once (a plain CPU launch re-packs its
+        struct arguments every time, and Warp keeps a cache entry per packing: memory grows per frame)."""
+        cmds = self.__dict__.setdefault("_cmds", {})
+        cmd = cmds.get(key)
+        if cmd is None:
+            cmd = warp().launch(kernel, dim=self.shape[1:], inputs=inputs, outputs=outputs, device=self.device,
+                                record_cmd=True)
+            cmds[key] = cmd
+        return cmd
+
     def launch(self) -> None:
         """Solve all pixels from the current buffers, no host sync (graph-capturable).
 
         Two kernel launches (pixelwise solve, under-determined pixels), then
         ``2 * smoothing_sweeps`` red-black half-sweeps when ``smoothness > 0``.
         """
-        warp().launch(
-            self._solve_kernel,
-            dim=self.shape[1:],
-            inputs=[self.images, self.mask, self.valid, self.depth, self.noise, self.cam, self.lp, self.mp, self.prm],
-            outputs=[self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags, self.cond],
-            device=self.device,
-        )
+        self._recorded(("solve",), self._solve_kernel,
+                       [self.images, self.mask, self.valid, self.depth, self.noise, self.cam, self.lp, self.mp, self.prm],
+                       [self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags,
+                        self.cond]).launch()
         if self.config.neighbour_radius > 0 and self._underdetermined_kernel is not None:
-            warp().launch(
-                self._underdetermined_kernel,
-                dim=self.shape[1:],
-                inputs=[self.images, self.mask, self.depth, self.cam, self.lp, self.mp, self.prm, int(self.config.neighbour_radius), int(self._sk.NEIGHBOUR_MIN_COUNT)],
-                outputs=[self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags],
-                device=self.device,
-            )
+            self._recorded(("underdetermined",), self._underdetermined_kernel,
+                           [self.images, self.mask, self.depth, self.cam, self.lp, self.mp, self.prm,
+                            int(self.config.neighbour_radius), int(self._sk.NEIGHBOUR_MIN_COUNT)],
+                           [self.weights, self.normals, self.albedo, self.residual, self.iterations,
+                            self.flags]).launch()
         c = self.config
         if c.smoothness > 0.0 and c.smoothing_sweeps > 0 and self._smooth_kernel is not None:
             strength = float(c.smoothness * self.intensity_scale**2)

@@ -22,14 +22,23 @@ On CUDA steps 2-3 are captured in CUDA graphs after ``capture_after`` frames
 is a few fused Taichi launches.  Warp and Taichi share the buffers in place
 (``wp.to_torch`` views); nothing returns to the host unless asked for.
 
-Bad frames (wrong shape or dtype, NaN/inf) yield a :class:`StreamResult` with
-``error`` set and leave the state (warm starts) untouched; the stream goes on.
+Bad frames yield a :class:`StreamResult` with ``error`` set and leave the state
+(warm starts, running levels) untouched; the stream goes on.  A frame is bad
+when it has the wrong shape or dtype, NaN/inf or negative values, or fails the
+per-frame sanity check (``StreamConfig.check``): too few lit observations (a
+black frame, lights that did not fire), too many saturated ones, a
+high-frequency (noise) ratio far above the running level, or a residual after
+the solve far above the running level.  The statistics come from one small
+kernel over the converted frame and one over the residual, read back at the
+frame's one synchronisation point.  On a warm-started frame, the pixels whose
+residual jumps above ``jump_factor`` times the running level are re-solved cold
+(multi-start) within the frame, so a scene change or a bad start heals at once.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Iterable, Iterator, Literal, get_args
 
 import numpy as np
@@ -73,6 +82,25 @@ class StreamConfig:
         ring: output slots (device output).
         saturation: raw observations at or above this fraction of full scale
             are dropped from the fit (None: keep all).
+        check: run the per-frame sanity check and the cold re-solve of
+            jumped pixels (see the module docstring).
+        min_lit_fraction: a frame with fewer lit observations (grey above
+            1e-3 of full scale) than this share, or than half the running
+            share, is rejected.
+        max_saturated_fraction: a frame with more observations at full scale
+            (any channel) than this share, or 0.25 more than the running share,
+            is rejected.
+        max_noise_ratio: a frame whose high-frequency ratio (the Immerkaer noise
+            estimate over the mean grey value: about 0.01 for a smooth object,
+            0.3-0.5 for noise) exceeds this, or ``noise_factor`` times the
+            running ratio (and 0.05), is rejected.
+        noise_factor: see ``max_noise_ratio``.
+        residual_factor: a frame whose mean residual (after the cold re-solve
+            of jumped pixels) exceeds this many times the running level, and 2 %
+            of its mean grey value, is rejected (the first frame: 50 %).
+        jump_factor: warm-started pixels whose residual exceeds this many times
+            the running mean residual (and 0.1 % of the mean grey value) are
+            re-solved cold within the frame.
     """
 
     solver: StreamSolver = "lm"
@@ -88,6 +116,13 @@ class StreamConfig:
     output: Output = "device"
     ring: int = 2
     saturation: float | None = None
+    check: bool = True
+    min_lit_fraction: float = 0.05
+    max_saturated_fraction: float = 0.5
+    max_noise_ratio: float = 0.25
+    noise_factor: float = 3.0
+    residual_factor: float = 4.0
+    jump_factor: float = 8.0
 
     def __post_init__(self):
         if self.solver not in get_args(StreamSolver):
@@ -107,6 +142,13 @@ class StreamConfig:
             check_number("reference_depth", self.reference_depth, lo=0.0, lo_open=True)
         if self.saturation is not None:
             check_number("saturation", self.saturation, lo=0.0, hi=1.0, lo_open=True)
+        if not isinstance(self.check, bool):
+            raise TypeError(f"check: expected True or False, got {self.check!r}")
+        check_number("min_lit_fraction", self.min_lit_fraction, lo=0.0, hi=1.0)
+        check_number("max_saturated_fraction", self.max_saturated_fraction, lo=0.0, hi=1.0)
+        check_number("max_noise_ratio", self.max_noise_ratio, lo=0.0, lo_open=True)
+        for name in ("noise_factor", "residual_factor", "jump_factor"):
+            check_number(name, getattr(self, name), lo=1.0)
 
 
 @dataclass
@@ -121,6 +163,9 @@ class StreamResult:
             lights; see :class:`StreamConfig.reference_depth`), None without integration.
         error: None, or why the frame was rejected (then the arrays are None).
         seconds: host wall time of :meth:`Stream.process` for this frame.
+        checks: the frame's sanity statistics (``lit_fraction``,
+            ``saturated_fraction``, ``noise_ratio``, ``residual``, ``redone``
+            pixels), when the check ran.
     """
 
     index: int
@@ -129,15 +174,29 @@ class StreamResult:
     depth: Any = None
     error: str | None = None
     seconds: float = 0.0
+    checks: dict | None = None
 
     @property
     def ok(self) -> bool:
         return self.error is None
 
     def numpy(self) -> "StreamResult":
-        """A copy with numpy arrays (a no-op for numpy results)."""
-        cv = lambda a: a.numpy() if hasattr(a, "numpy") and not isinstance(a, np.ndarray) else a  # noqa: E731
-        return StreamResult(self.index, cv(self.normals), cv(self.albedo), cv(self.depth), self.error, self.seconds)
+        """A copy with numpy arrays owned by the caller (never views of the stream's buffers)."""
+        return StreamResult(self.index, _copy(self.normals), _copy(self.albedo), _copy(self.depth), self.error,
+                            self.seconds, None if self.checks is None else dict(self.checks))
+
+
+def _copy(a):
+    """A numpy copy of a Warp or numpy array (Warp's ``numpy()`` on the CPU is a view of the live buffer)."""
+    if a is None:
+        return None
+    if hasattr(a, "numpy") and not isinstance(a, np.ndarray):
+        a = a.numpy()
+    return np.array(a, copy=True)
+
+
+class _BadFrame(Exception):
+    """A frame that failed the sanity check (internal: becomes an error result)."""
 
 
 class Stream:
@@ -208,7 +267,7 @@ class Stream:
         self._slot = 0
         self._pending = None
         self._graphs: dict = {}
-        self._count = wp.zeros(1, dtype=wp.int32, device=d)
+        self._count = wp.zeros(2, dtype=wp.int32, device=d)
         self.index = 0
         self.frames_done = 0
         self._warm_frames = 0
@@ -234,7 +293,17 @@ class Stream:
             for _ in range(cfg.ring if cfg.output == "device" else 0)
         ]
         self._upload_stream = wp.Stream(d) if self.is_cuda else None
-        self.stats = {"frames": 0, "errors": 0, "seconds": 0.0}
+        self.stats = {"frames": 0, "errors": 0, "seconds": 0.0, "redone_pixels": 0}
+        # sanity check: per-frame sums, the running residual level (read by mark_jumps on the device),
+        # the pixels to re-solve cold, and the last accepted frame's normals (restored after a bad frame)
+        self._fstats = wp.zeros(ks.N_STATS, dtype=wp.float32, device=d)
+        self._inten_dev = wp.array(inten.astype(np.float32), dtype=wp.float32, device=d)
+        self._level = wp.zeros(1, dtype=wp.float32, device=d)
+        self._redo = wp.zeros((h, w), dtype=wp.uint8, device=d)
+        self._kept = wp.zeros((h, w), dtype=wp.vec3, device=d)
+        self._mask_n = float(self.mask.sum())
+        self._levels: dict | None = None  # running lit share, saturated share, noise ratio, residual
+        self._cmds: dict = {}
 
     def _taichi_device(self):
         return "cuda:0" if self.is_cuda else "cpu"
@@ -253,7 +322,8 @@ class Stream:
             dt = frame.dtype
             shp = frame.shape
         if dt not in _DTYPES:
-            raise ValueError(f"frame: expected dtype uint8, uint16 or float32, got {dt}")
+            raise ValueError(f"frame: expected dtype uint8, uint16 or float32 (integers by full scale, floats "
+                             f"with 1 = full scale), got {dt}")
         if shp == (n, h, w):
             c = 1
         elif shp == (n, h, w, 3):
@@ -265,6 +335,8 @@ class Stream:
         if dt == np.float32 and not isinstance(frame, wp.array):
             if not np.isfinite(frame).all():
                 raise ValueError("frame: expected finite values, got NaN or inf")
+            if (frame < 0).any():
+                raise ValueError("frame: expected values >= 0, got negative values")
         return dt, c, frame
 
     def _buffers(self, dt, c):
@@ -294,10 +366,13 @@ class Stream:
         if isinstance(arr, wp.array):
             if dt == np.float32:
                 self._count.zero_()
-                wp.launch(self._ks.count_nonfinite, dim=(self.n, *self.shape),
+                wp.launch(self._ks.count_invalid, dim=(self.n, *self.shape),
                           inputs=[arr.reshape((self.n, *self.shape, c))], outputs=[self._count], device=self.device)
-                if int(self._count.numpy()[0]) > 0:
+                bad = self._count.numpy()
+                if int(bad[0]) > 0:
                     raise ValueError("frame: expected finite values, got NaN or inf")
+                if int(bad[1]) > 0:
+                    raise ValueError("frame: expected values >= 0, got negative values")
             wp.copy(raw[slot], arr.reshape((self.n, *self.shape, c)))
             return key, slot, None
         host = arr.reshape((self.n, *self.shape, c))
@@ -312,14 +387,88 @@ class Stream:
 
     # ------------------------------------------------------------------ compute
 
-    def _launch_solve(self, key, slot):
+    def _launch_solve(self, key, slot, warm: bool):
+        """Convert, check and solve one frame on the device (graph-capturable: no host sync)."""
         wp = warp()
+        ks = self._ks
         raw = self._raw[key][slot]
-        kern = {np.dtype(np.uint8): self._ks.convert_uint8, np.dtype(np.uint16): self._ks.convert_uint16,
-                np.dtype(np.float32): self._ks.convert_float32}[key[0]]
+        kern = {np.dtype(np.uint8): ks.convert_uint8, np.dtype(np.uint16): ks.convert_uint16,
+                np.dtype(np.float32): ks.convert_float32}[key[0]]
         wp.launch(kern, dim=(self.n, *self.shape), inputs=[raw, self._gain[key]], outputs=[self.solver.images],
                   device=self.device)
+        check = self.config.check
+        if check:
+            self._fstats.zero_()
+            self._cmd("stats", key).launch()
         self.solver.launch()
+        if check:
+            if warm:  # pixels whose warm start failed (scene change, bad start): cold, multi-start, in this frame
+                self._cmd("jumps").launch()
+                self.solver.launch_solve(self._redo, self._cold_cfg)
+            self._cmd("residual").launch()
+
+    def _cmd(self, name, key=None):
+        """The recorded launch of a check kernel (arguments packed once; the buffers never change)."""
+        wp = warp()
+        ks = self._ks
+        cmd = self._cmds.get((name, key))
+        if cmd is None:
+            if name == "stats":
+                args = dict(kernel=ks.frame_stats, dim=(self.n, *self.shape),
+                            inputs=[self.solver.images, self.solver.mask, self._inten_dev, 1e-3,
+                                    1.0 if key[0] == np.float32 else 0.999])
+            elif name == "jumps":
+                args = dict(kernel=ks.mark_jumps, dim=self.shape,
+                            inputs=[self.solver.residual, self.solver.mask, self._level], outputs=[self._redo])
+            else:
+                args = dict(kernel=ks.residual_sum, dim=self.shape, inputs=[self.solver.residual, self.solver.mask])
+            args["outputs"] = [*args.get("outputs", []), self._fstats]
+            cmd = wp.launch(**args, device=self.device, record_cmd=True)
+            self._cmds[(name, key)] = cmd
+        return cmd
+
+    def _judge(self, cold: bool) -> dict:
+        """The frame's statistics (one small read-back); raises :class:`_BadFrame` when it fails the check."""
+        ks = self._ks
+        s = np.array(self._fstats.numpy(), dtype=np.float64, copy=True)
+        nobs = self.n * self._mask_n
+        grey = s[ks.STAT_GREY] / max(nobs, 1.0)
+        got = {
+            "lit_fraction": s[ks.STAT_LIT] / max(nobs, 1.0),
+            "saturated_fraction": s[ks.STAT_SATURATED] / max(nobs, 1.0),
+            "noise_ratio": s[ks.STAT_HF] / (6.0 * s[ks.STAT_HF_GREY]) if s[ks.STAT_HF_GREY] > 0 else 0.0,
+            "residual": s[ks.STAT_RESIDUAL] / max(self._mask_n, 1.0),
+            "grey": grey,
+            "redone": int(s[ks.STAT_REDONE]),
+        }
+        c, lv = self.config, self._levels
+        lit, sat, hf, res = got["lit_fraction"], got["saturated_fraction"], got["noise_ratio"], got["residual"]
+        why = None
+        if lit < c.min_lit_fraction or (lv is not None and lit < 0.5 * lv["lit_fraction"]):
+            why = f"only {100 * lit:.1f}% of the observations are lit (a dark frame, or lights that did not fire)"
+        elif sat > c.max_saturated_fraction or (lv is not None and sat > lv["saturated_fraction"] + 0.25):
+            why = f"{100 * sat:.1f}% of the observations are saturated (over-exposed)"
+        elif hf > c.max_noise_ratio or (lv is not None and hf > max(c.noise_factor * lv["noise_ratio"], 0.05)):
+            why = f"the frame is mostly noise (high-frequency ratio {hf:.3f})"
+        elif res > (0.5 if lv is None else 0.02) * grey and (lv is None or res > c.residual_factor * lv["residual"]):
+            why = f"the model does not fit the frame (mean residual {res:.3g}, {100 * res / max(grey, 1e-30):.0f}% of the signal)"
+        if why is not None:
+            raise _BadFrame(f"frame: rejected by the sanity check: {why}")
+        return got
+
+    def _accept(self, got: dict) -> None:
+        """Fold an accepted frame's statistics into the running levels (exponential, 1/10)."""
+        if self._levels is None:
+            self._levels = {k: got[k] for k in ("lit_fraction", "saturated_fraction", "noise_ratio", "residual", "grey")}
+        else:
+            for k in self._levels:
+                self._levels[k] = 0.9 * self._levels[k] + 0.1 * got[k]
+        # re-solve a warm pixel cold when its residual jumps above jump_factor x the running mean residual
+        # (and 0.1 % of the mean signal: noiseless renders fit to ~1e-6, where quantisation alone would trip it)
+        lv = self._levels
+        thr = max(self.config.jump_factor * lv["residual"], 1e-3 * lv["grey"])
+        self._level.assign(np.array([thr], np.float32))
+        self.stats["redone_pixels"] += got["redone"]
 
     def _compute(self, key, slot, ev):
         wp = warp()
@@ -329,9 +478,9 @@ class Stream:
             wp.get_stream(self.device).wait_event(ev)
         if cold:
             self.solver.set_config(self._cold_cfg)
-            self._launch_solve(key, slot)
+            self._launch_solve(key, slot, warm=False)
         else:
-            if self._warm_frames == 0:
+            if self.solver.config is not self._warm_cfg:
                 self.solver.set_config(self._warm_cfg)
             use_graph = self.is_cuda and cfg.graph == "auto" and self._warm_frames >= cfg.capture_after
             if use_graph:
@@ -339,14 +488,22 @@ class Stream:
                 if g is None:
                     wp.capture_begin(device=self.device)
                     try:
-                        self._launch_solve(key, slot)
+                        self._launch_solve(key, slot, warm=True)
                     finally:
                         g = wp.capture_end(device=self.device)
                     self._graphs[(key, slot)] = g
                 wp.capture_launch(g)
             else:
-                self._launch_solve(key, slot)
+                self._launch_solve(key, slot, warm=True)
             self._warm_frames += 1
+        checks = None
+        if cfg.check:
+            try:
+                checks = self._judge(cold)
+            except _BadFrame:
+                if not cold:  # the next frame warm-starts from the last accepted one
+                    wp.copy(self.solver.normals, self._kept)
+                raise
         if self.integrator is not None:
             if self.is_cuda:
                 wp.synchronize_device(self.device)
@@ -364,15 +521,18 @@ class Stream:
             if self.point:
                 # the next frame's per-pixel light directions and fall-off come from this depth
                 wp.copy(self.solver.depth, self.depth)
+        if cfg.check:
+            wp.copy(self._kept, self.solver.normals)
+            self._accept(checks)
         self.frames_done += 1
+        return checks
 
-    def _result(self, index, t0):
+    def _result(self, index, t0, checks=None):
         wp = warp()
         cfg = self.config
         dep = self.depth if self.integrator is not None else None
-        if cfg.output == "numpy":
-            res = StreamResult(index, self.solver.normals.numpy(), self.solver.albedo.numpy(),
-                               None if dep is None else dep.numpy())
+        if cfg.output == "numpy":  # copies: on the CPU Warp's numpy() is a view of the live buffer
+            res = StreamResult(index, _copy(self.solver.normals), _copy(self.solver.albedo), _copy(dep))
         else:
             nr, ab, dp = self._ring[index % len(self._ring)]
             wp.copy(nr, self.solver.normals)
@@ -380,6 +540,7 @@ class Stream:
             if dep is not None:
                 wp.copy(dp, dep)
             res = StreamResult(index, nr, ab, dp if dep is not None else None)
+        res.checks = checks
         res.seconds = time.perf_counter() - t0
         self.stats["frames"] += 1
         self.stats["seconds"] += res.seconds
@@ -398,11 +559,15 @@ class Stream:
     def _finish(self, started) -> StreamResult:
         """Compute a started frame (or report its error) and return its result."""
         idx, t0, up, err = started
+        if err is None:
+            try:
+                checks = self._compute(*up)
+            except _BadFrame as e:
+                err = str(e)
         if err is not None:
             self.stats["errors"] += 1
             return StreamResult(idx, error=err, seconds=time.perf_counter() - t0)
-        self._compute(*up)
-        return self._result(idx, t0)
+        return self._result(idx, t0, checks)
 
     def process(self, frame) -> StreamResult:
         """Reconstruct one frame (normals, albedo, depth); a bad frame gives an error result."""
