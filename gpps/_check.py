@@ -136,14 +136,18 @@ def albedo_map(name, a, shape) -> np.ndarray:
 
 def check_number(name, v, lo=None, hi=None, integer=False, lo_open=False):
     """``v`` as a finite float (or int), checked against ``lo`` / ``hi``; ValueError/TypeError naming ``name``."""
-    try:
-        x = int(v) if integer else float(v)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name}: expected a {'integer' if integer else 'number'}, got {v!r}") from None
-    if integer and x != v:
-        raise TypeError(f"{name}: expected an integer, got {v!r}")
-    if not np.isfinite(x):
+    if isinstance(v, np.ndarray) and v.ndim == 0:
+        v = v.item()
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{name}: expected a{'n integer' if integer else ' number'}, got {v!r}")
+    if not np.isfinite(float(v)):
         raise ValueError(f"{name}: expected a finite number, got {v!r}")
+    if integer:
+        if float(v) != int(v):
+            raise TypeError(f"{name}: expected an integer, got {v!r}")
+        x = int(v)
+    else:
+        x = float(v)
     if lo is not None and (x < lo or (lo_open and x == lo)):
         raise ValueError(f"{name}: expected {'>' if lo_open else '>='} {lo}, got {v!r}")
     if hi is not None and x > hi:

@@ -23,7 +23,7 @@ log-depth gradient the integrator needs is :func:`gpps.perspective.normals_to_gr
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -230,6 +230,9 @@ def solve_normals(
             collinear/coplanar light directions (before any solve).
     """
     t0 = time.perf_counter()
+    unknown = sorted(set(options) - {f.name for f in fields(SolverConfig)})
+    if unknown:
+        raise TypeError(f"options: unexpected keyword(s) {unknown}; expected fields of gpps.SolverConfig")
     if config is None:
         config = SolverConfig(solver=solver, robust=robust or "none", **options)
     elif not isinstance(config, SolverConfig):

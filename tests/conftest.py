@@ -15,6 +15,12 @@ SHARED = ROOT.parent / "shared"
 DATA = Path(os.environ.get("GPPS_DATA", SHARED / "data"))
 
 
+def pytest_configure(config):
+    # `pytest -m fuzz`: the property tests of tests/test_fuzz_api.py run their large profile (10,000 inputs)
+    if "fuzz" in (config.getoption("markexpr", "") or ""):
+        os.environ["GPPS_FUZZ"] = "1"
+
+
 def _devices():
     from gpps._runtime import available_devices
 

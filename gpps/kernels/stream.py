@@ -53,6 +53,9 @@ STAT_HF_GREY = 4  # sum of grey values over the same interior pixels
 STAT_RESIDUAL = 5  # sum of the per-pixel residual after the solve
 STAT_REDONE = 6  # pixels re-solved cold
 N_STATS = 8
+# the sums are spread over this many slots (rows of the (STAT_SLOTS, N_STATS) array, picked by pixel) so that
+# a frame's atomics do not all hit one address: the host adds the slots up after its one read-back
+STAT_SLOTS = 256
 
 
 @wp.func
@@ -63,7 +66,7 @@ def _grey(v: wp.vec3) -> float:
 @wp.kernel(enable_backward=False)
 def frame_stats(images: wp.array3d(dtype=wp.vec3), mask: wp.array2d(dtype=wp.uint8),
                 intensity: wp.array2d(dtype=wp.float32), lit_level: float, saturation: float,
-                stats: wp.array(dtype=wp.float32)):
+                stats: wp.array2d(dtype=wp.float32)):
     """Cheap sanity statistics of one converted frame (one thread per light and pixel).
 
     An observation is lit when its grey value exceeds ``lit_level`` of full
@@ -78,20 +81,21 @@ def frame_stats(images: wp.array3d(dtype=wp.vec3), mask: wp.array2d(dtype=wp.uin
         mask: (H, W) 1 inside the mask.
         intensity: (N, 3) the light intensities the conversion divided by.
         lit_level, saturation: fractions of full scale.
-        stats: (N_STATS,) sums (accumulated with atomics).
+        stats: (STAT_SLOTS, N_STATS) partial sums (atomics spread over the slots).
     """
     k, i, j = wp.tid()
     if mask[i, j] == 0:
         return
+    slot = ((k * images.shape[1] + i) * images.shape[2] + j) % STAT_SLOTS
     g = intensity[k]
     v = images[k, i, j]
     raw = wp.vec3(v[0] * g[0], v[1] * g[1], v[2] * g[2])
     if _grey(raw) > lit_level:
-        wp.atomic_add(stats, STAT_LIT, 1.0)
+        wp.atomic_add(stats, slot, STAT_LIT, 1.0)
     if wp.max(raw[0], wp.max(raw[1], raw[2])) >= saturation:
-        wp.atomic_add(stats, STAT_SATURATED, 1.0)
+        wp.atomic_add(stats, slot, STAT_SATURATED, 1.0)
     gv = _grey(v)
-    wp.atomic_add(stats, STAT_GREY, gv)
+    wp.atomic_add(stats, slot, STAT_GREY, gv)
     h = images.shape[1]
     w = images.shape[2]
     if i < 1 or j < 1 or i >= h - 1 or j >= w - 1:
@@ -109,33 +113,34 @@ def frame_stats(images: wp.array3d(dtype=wp.vec3), mask: wp.array2d(dtype=wp.uin
             if (di + dj) % 2 != 0:
                 c = -c
             lap += c * _grey(images[k, i + di, j + dj])
-    wp.atomic_add(stats, STAT_HF, wp.abs(lap))
-    wp.atomic_add(stats, STAT_HF_GREY, gv)
+    wp.atomic_add(stats, slot, STAT_HF, wp.abs(lap))
+    wp.atomic_add(stats, slot, STAT_HF_GREY, gv)
 
 
 @wp.kernel(enable_backward=False)
 def residual_sum(residual: wp.array2d(dtype=wp.float32), mask: wp.array2d(dtype=wp.uint8),
-                 stats: wp.array(dtype=wp.float32)):
-    """stats[STAT_RESIDUAL] += the residual summed over the mask."""
+                 stats: wp.array2d(dtype=wp.float32)):
+    """stats[:, STAT_RESIDUAL] += the residual summed over the mask (slotted)."""
     i, j = wp.tid()
     if mask[i, j] != 0:
-        wp.atomic_add(stats, STAT_RESIDUAL, residual[i, j])
+        slot = (i * mask.shape[1] + j) % STAT_SLOTS
+        wp.atomic_add(stats, slot, STAT_RESIDUAL, residual[i, j])
 
 
 @wp.kernel(enable_backward=False)
 def mark_jumps(residual: wp.array2d(dtype=wp.float32), mask: wp.array2d(dtype=wp.uint8),
-               threshold: wp.array(dtype=wp.float32), redo: wp.array2d(dtype=wp.uint8), stats: wp.array(dtype=wp.float32)):
+               threshold: wp.array(dtype=wp.float32), redo: wp.array2d(dtype=wp.uint8), stats: wp.array2d(dtype=wp.float32)):
     """redo[i, j] = 1 where a warm-started pixel's residual exceeds ``threshold[0]``.
 
     The host sets the threshold from the running levels of the accepted frames
     (0 before the first: nothing is marked); it lives on the device so that a
     captured graph reads the current value.  Counts the marked pixels in
-    ``stats[STAT_REDONE]``.
+    ``stats[:, STAT_REDONE]``.
     """
     i, j = wp.tid()
     r = wp.uint8(0)
     if mask[i, j] != 0 and threshold[0] > 0.0:
         if residual[i, j] > threshold[0]:
             r = wp.uint8(1)
-            wp.atomic_add(stats, STAT_REDONE, 1.0)
+            wp.atomic_add(stats, (i * mask.shape[1] + j) % STAT_SLOTS, STAT_REDONE, 1.0)
     redo[i, j] = r

@@ -296,7 +296,7 @@ class Stream:
         self.stats = {"frames": 0, "errors": 0, "seconds": 0.0, "redone_pixels": 0}
         # sanity check: per-frame sums, the running residual level (read by mark_jumps on the device),
         # the pixels to re-solve cold, and the last accepted frame's normals (restored after a bad frame)
-        self._fstats = wp.zeros(ks.N_STATS, dtype=wp.float32, device=d)
+        self._fstats = wp.zeros((ks.STAT_SLOTS, ks.N_STATS), dtype=wp.float32, device=d)
         self._inten_dev = wp.array(inten.astype(np.float32), dtype=wp.float32, device=d)
         self._level = wp.zeros(1, dtype=wp.float32, device=d)
         self._redo = wp.zeros((h, w), dtype=wp.uint8, device=d)
@@ -430,7 +430,7 @@ class Stream:
     def _judge(self, cold: bool) -> dict:
         """The frame's statistics (one small read-back); raises :class:`_BadFrame` when it fails the check."""
         ks = self._ks
-        s = np.array(self._fstats.numpy(), dtype=np.float64, copy=True)
+        s = self._fstats.numpy().astype(np.float64).sum(axis=0)  # add up the slots
         nobs = self.n * self._mask_n
         grey = s[ks.STAT_GREY] / max(nobs, 1.0)
         got = {
