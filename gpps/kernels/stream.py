@@ -128,19 +128,22 @@ def residual_sum(residual: wp.array2d(dtype=wp.float32), mask: wp.array2d(dtype=
 
 
 @wp.kernel(enable_backward=False)
-def mark_jumps(residual: wp.array2d(dtype=wp.float32), mask: wp.array2d(dtype=wp.uint8),
-               threshold: wp.array(dtype=wp.float32), redo: wp.array2d(dtype=wp.uint8), stats: wp.array2d(dtype=wp.float32)):
-    """redo[i, j] = 1 where a warm-started pixel's residual exceeds ``threshold[0]``.
+def mark_jumps(residual: wp.array2d(dtype=wp.float32), previous: wp.array2d(dtype=wp.float32),
+               mask: wp.array2d(dtype=wp.uint8), threshold: wp.array(dtype=wp.float32), factor: float,
+               redo: wp.array2d(dtype=wp.uint8), stats: wp.array2d(dtype=wp.float32)):
+    """redo[i, j] = 1 where a warm-started pixel's residual jumped: above ``factor`` times its residual in the
+    last accepted frame (``previous``) and above ``threshold[0]``.
 
     The host sets the threshold from the running levels of the accepted frames
     (0 before the first: nothing is marked); it lives on the device so that a
-    captured graph reads the current value.  Counts the marked pixels in
-    ``stats[:, STAT_REDONE]``.
+    captured graph reads the current value.  Pixels that always fit poorly
+    (rims, cast shadows) do not jump, so they are not re-solved every frame.
+    Counts the marked pixels in ``stats[:, STAT_REDONE]``.
     """
     i, j = wp.tid()
     r = wp.uint8(0)
     if mask[i, j] != 0 and threshold[0] > 0.0:
-        if residual[i, j] > threshold[0]:
+        if residual[i, j] > wp.max(threshold[0], factor * previous[i, j]):
             r = wp.uint8(1)
             wp.atomic_add(stats, (i * mask.shape[1] + j) % STAT_SLOTS, STAT_REDONE, 1.0)
     redo[i, j] = r

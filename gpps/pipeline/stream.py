@@ -99,8 +99,10 @@ class StreamConfig:
             of jumped pixels) exceeds this many times the running level, and 2 %
             of its mean grey value, is rejected (the first frame: 50 %).
         jump_factor: warm-started pixels whose residual exceeds this many times
-            the running mean residual (and 0.1 % of the mean grey value) are
-            re-solved cold within the frame.
+            both their own residual in the last accepted frame and the running
+            mean residual (and 0.1 % of the mean grey value) are re-solved cold
+            within the frame (``redo_starts`` starts of ``redo_iterations``).
+        redo_starts, redo_iterations: the cold re-solve of jumped pixels.
     """
 
     solver: StreamSolver = "lm"
@@ -123,6 +125,8 @@ class StreamConfig:
     noise_factor: float = 3.0
     residual_factor: float = 4.0
     jump_factor: float = 8.0
+    redo_starts: int = 4
+    redo_iterations: int = 20
 
     def __post_init__(self):
         if self.solver not in get_args(StreamSolver):
@@ -149,6 +153,8 @@ class StreamConfig:
         check_number("max_noise_ratio", self.max_noise_ratio, lo=0.0, lo_open=True)
         for name in ("noise_factor", "residual_factor", "jump_factor"):
             check_number(name, getattr(self, name), lo=1.0)
+        check_number("redo_starts", self.redo_starts, lo=1, integer=True)
+        check_number("redo_iterations", self.redo_iterations, lo=1, integer=True)
 
 
 @dataclass
@@ -259,6 +265,7 @@ class Stream:
         self._warm_cfg = SolverConfig(solver=cfg.solver, max_iters=cfg.iterations, starts=1, warm_start=True,
                                       early_exit=False, neighbour_radius=0)
         self._cold_cfg = SolverConfig(solver=cfg.solver, max_iters=cfg.first_iterations, starts=cfg.first_starts)
+        self._redo_cfg = SolverConfig(solver=cfg.solver, max_iters=cfg.redo_iterations, starts=cfg.redo_starts)
         self.solver = PixelSolver((n, h, w), camera, unit, material, self._cold_cfg, device=self.device)
         d = self.device
         self._gain = {}
@@ -301,6 +308,7 @@ class Stream:
         self._level = wp.zeros(1, dtype=wp.float32, device=d)
         self._redo = wp.zeros((h, w), dtype=wp.uint8, device=d)
         self._kept = wp.zeros((h, w), dtype=wp.vec3, device=d)
+        self._kept_res = wp.zeros((h, w), dtype=wp.float32, device=d)
         self._mask_n = float(self.mask.sum())
         self._levels: dict | None = None  # running lit share, saturated share, noise ratio, residual
         self._cmds: dict = {}
@@ -404,7 +412,7 @@ class Stream:
         if check:
             if warm:  # pixels whose warm start failed (scene change, bad start): cold, multi-start, in this frame
                 self._cmd("jumps").launch()
-                self.solver.launch_solve(self._redo, self._cold_cfg)
+                self.solver.launch_solve(self._redo, self._redo_cfg)
             self._cmd("residual").launch()
 
     def _cmd(self, name, key=None):
@@ -419,7 +427,8 @@ class Stream:
                                     1.0 if key[0] == np.float32 else 0.999])
             elif name == "jumps":
                 args = dict(kernel=ks.mark_jumps, dim=self.shape,
-                            inputs=[self.solver.residual, self.solver.mask, self._level], outputs=[self._redo])
+                            inputs=[self.solver.residual, self._kept_res, self.solver.mask, self._level,
+                                    float(self.config.jump_factor)], outputs=[self._redo])
             else:
                 args = dict(kernel=ks.residual_sum, dim=self.shape, inputs=[self.solver.residual, self.solver.mask])
             args["outputs"] = [*args.get("outputs", []), self._fstats]
@@ -463,8 +472,9 @@ class Stream:
         else:
             for k in self._levels:
                 self._levels[k] = 0.9 * self._levels[k] + 0.1 * got[k]
-        # re-solve a warm pixel cold when its residual jumps above jump_factor x the running mean residual
-        # (and 0.1 % of the mean signal: noiseless renders fit to ~1e-6, where quantisation alone would trip it)
+        # re-solve a warm pixel cold when its residual jumps above jump_factor x its own last residual and
+        # x the running mean residual (and 0.1 % of the mean signal: noiseless renders fit to ~1e-6, where
+        # quantisation alone would trip it)
         lv = self._levels
         thr = max(self.config.jump_factor * lv["residual"], 1e-3 * lv["grey"])
         self._level.assign(np.array([thr], np.float32))
@@ -523,6 +533,7 @@ class Stream:
                 wp.copy(self.solver.depth, self.depth)
         if cfg.check:
             wp.copy(self._kept, self.solver.normals)
+            wp.copy(self._kept_res, self.solver.residual)
             self._accept(checks)
         self.frames_done += 1
         return checks
