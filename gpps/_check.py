@@ -134,6 +134,13 @@ def albedo_map(name, a, shape) -> np.ndarray:
     return np.ascontiguousarray(arr, dtype=np.float32)
 
 
+def check_bool(name, v) -> bool:
+    """``v`` as a bool (True/False or numpy bools only); TypeError naming ``name``."""
+    if not isinstance(v, (bool, np.bool_)):
+        raise TypeError(f"{name}: expected True or False, got {v!r}")
+    return bool(v)
+
+
 def check_number(name, v, lo=None, hi=None, integer=False, lo_open=False):
     """``v`` as a finite float (or int), checked against ``lo`` / ``hi``; ValueError/TypeError naming ``name``."""
     if isinstance(v, np.ndarray) and v.ndim == 0:

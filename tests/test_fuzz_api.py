@@ -58,7 +58,7 @@ NAME = re.compile(r"^[A-Za-z_][\w\[\]\.\-]*(?: [\w\-]+)?: ")
 
 def _call(name, fn):
     """Run fn(); return its result, or None after a clean gpps error. Fails on anything else."""
-    c = COUNTS.setdefault(name, {"inputs": 0, "errors": 0, "results": 0, "seconds": 0.0})
+    c = COUNTS.setdefault(name, {"inputs": 0, "errors": 0, "results": 0, "error results": 0, "seconds": 0.0})
     c["inputs"] += 1
     t = time.perf_counter()
     try:
@@ -76,6 +76,8 @@ def _call(name, fn):
             f"{type(e).__name__} raised outside gpps ({inner}:{tb[-1].lineno}): {e}\n"
             + "".join(traceback.format_tb(e.__traceback__)[-3:]))
         assert NAME.match(str(e)), f"message does not name the argument: {e!r}"
+        c.setdefault("by_argument", {}).setdefault(str(e).split(":")[0], 0)
+        c["by_argument"][str(e).split(":")[0]] += 1
         return None
     finally:
         c["seconds"] += time.perf_counter() - t
@@ -94,7 +96,9 @@ def _finite(*arrays):
 # ------------------------------------------------------------------ strategies
 
 SPECIAL = [0.0, 1.0, -1.0, 1e-30, 1e30, np.nan, np.inf, -np.inf, 0.5, 65535.0]
-DTYPES = ["float32", "float64", "uint8", "uint16", "int32", "int64", "complex64", "bool", "object", "float16"]
+# the valid types more often than the invalid ones, so that the success path is exercised too
+DTYPES = ["float32"] * 6 + ["float64", "float64", "uint8", "uint8", "uint16", "uint16"] + [
+    "int32", "int64", "complex64", "bool", "object", "float16"]
 
 
 @st.composite
@@ -149,8 +153,10 @@ def lights(draw, n):
     inten = draw(st.sampled_from([None, None, np.ones((m, 3)), np.zeros((m, 3)), -np.ones((m, 3)),
                                   np.full((m, 3), np.nan)]))
     if kind == "directional":
-        return lambda: gpps.DirectionalLights(draw(directions(m)), inten)
+        d = draw(directions(m))
+        return lambda: gpps.DirectionalLights(d, inten)
     pos = draw(arrays((m, 3), -50, 50, dtype="float64", special=0.2))
+    pos[:, 2] = -np.abs(pos[:, 2]) if draw(st.booleans()) else pos[:, 2]
     return lambda: gpps.PointLights(pos, inten)
 
 
@@ -169,7 +175,8 @@ def cameras(draw):
     if kind == "persp-bad":
         K = draw(arrays((3, 3), -10, 10, dtype="float64", special=0.3))
         return lambda: gpps.camera_from_K(K)
-    return lambda: draw(st.sampled_from(["perspective", np.eye(3), 1]))
+    bad = draw(st.sampled_from(["perspective", np.eye(3), 1]))
+    return lambda: bad
 
 
 @st.composite
@@ -177,13 +184,15 @@ def materials(draw):
     kind = draw(st.sampled_from(["none", "named", "params", "bad"]))
     if kind == "none":
         return lambda: None
+    brdf = draw(st.sampled_from(list(gpps.BRDF_NAMES)))
     if kind == "named":
-        return lambda: gpps.Material(draw(st.sampled_from(list(gpps.BRDF_NAMES))))
+        return lambda: gpps.Material(brdf)
     if kind == "params":
-        vals = {k: draw(st.sampled_from([v, 0.0, -1.0, np.nan, 1e6])) for k, v in
+        vals = {k: draw(st.sampled_from([v, v, 0.0, -1.0, np.nan, 1e6])) for k, v in
                 (("ks", 0.5), ("shininess", 30.0), ("roughness", 0.3), ("f0", 0.5))}
-        return lambda: gpps.Material(draw(st.sampled_from(list(gpps.BRDF_NAMES))), **vals)
-    return lambda: draw(st.sampled_from(["glass", 3, {"brdf": "phong"}]))
+        return lambda: gpps.Material(brdf, **vals)
+    bad = draw(st.sampled_from(["glass", 3, {"brdf": "phong"}]))
+    return lambda: bad
 
 
 @st.composite
@@ -212,18 +221,51 @@ def images_and_mask(draw, n_lo=1, n_hi=6, hw_hi=10):
 # ------------------------------------------------------------------ the properties
 
 
+def _good_lights(n, rng):
+    slant = rng.uniform(0.2, 1.0, n)
+    az = np.linspace(0, 2 * np.pi, n, endpoint=False) + rng.uniform(0, 0.5)
+    return gpps.DirectionalLights(np.stack([np.sin(slant) * np.cos(az), np.sin(slant) * np.sin(az), np.cos(slant)], -1))
+
+
+# which argument keeps its drawn (possibly bad) value; every other one is replaced by a valid value, so that
+# the success path and each argument's errors are both exercised ("all": every argument as drawn)
+KEEP = ["all", "all", "none", "none", "images", "mask", "lights", "camera", "material", "solver", "depth", "opts"]
+
+
 @_settings("solve_normals")
 @given(data=images_and_mask(), lt=st.data(), cam=cameras(), mat=materials(),
        solver=st.sampled_from(["lm", "dogleg", "bfgs", "none", "newton"]),
        robust=st.sampled_from([None, "none", "huber", "cauchy", "l1"]),
        depth=st.sampled_from([None, "ones", "zeros", "nan", "shape"]),
        opts=st.sampled_from([{}, {"starts": 1}, {"starts": 0}, {"max_iters": -1}, {"shadow_threshold": 0.5},
-                             {"saturation": 0.9}, {"smoothness": 0.3}, {"bogus": 1}]))
-def test_solve_normals(data, lt, cam, mat, solver, robust, depth, opts):
+                             {"saturation": 0.9}, {"smoothness": 0.3}, {"bogus": 1}]),
+       keep=st.sampled_from(KEEP), seed=st.integers(0, 2**31 - 1))
+def test_solve_normals(data, lt, cam, mat, solver, robust, depth, opts, keep, seed):
     from gpps.photometric import solve_normals
 
     n, img, m = data
     L = lt.draw(lights(n))
+    rng = np.random.default_rng(seed)
+    if keep != "all":
+        good_n = max(n, 3)
+        hw = (rng.integers(2, 10), rng.integers(2, 10))
+        if keep != "images":
+            img = rng.uniform(0, 1, (good_n, *hw, 3)).astype(np.float32)
+        n, hw = img.shape[0], img.shape[1:3] if np.ndim(img) >= 3 else hw
+        if keep != "mask":
+            m = rng.random(hw) > 0.2 if np.ndim(img) >= 3 else np.ones((2, 2), bool)
+        if keep != "lights":
+            L = _good_lights(n, rng)
+        if keep != "camera":
+            cam = lambda: None  # noqa: E731
+        if keep != "material":
+            mat = lambda: gpps.Material("blinn-phong")  # noqa: E731
+        if keep != "solver":
+            solver, robust = "lm", None
+        if keep != "depth":
+            depth = None
+        if keep != "opts":
+            opts = {}
     hw = np.shape(img)[1:3] if np.ndim(img) >= 3 else (1, 1)
     dep = {None: None, "ones": np.ones(hw) * 10, "zeros": np.zeros(hw), "nan": np.full(hw, np.nan),
            "shape": np.ones((2, 3))}[depth]
@@ -304,7 +346,16 @@ def test_stream_frames(n, integ, fr):
     s = _stream(n, shape, integ)
     fshape = fr.draw(st.sampled_from([(n, 8, 8, 3), (n, 8, 8, 3), (n, 8, 8), (n, 8, 8, 1), (n - 1, 8, 8, 3),
                                       (n, 8, 9, 3), (8, 8)]))
-    frame = fr.draw(arrays(fshape, 0, fr.draw(st.sampled_from([1.0, 1.0, 0.0, 2.0, 1e-4]))))
+    if fr.draw(st.booleans()):  # a plausible frame: a lit smooth surface, noise, quantisation
+        rng = np.random.default_rng(fr.draw(st.integers(0, 2**31 - 1)))
+        yy, xx = np.mgrid[0:8, 0:8] / 8.0
+        base = 0.2 + 0.5 * (0.5 + 0.5 * np.sin(3 * xx + rng.uniform(0, 6)) * np.cos(2 * yy))
+        f = np.clip(base[None, ..., None] * rng.uniform(0.3, 1.0, (n, 1, 1, 3)) + rng.normal(0, 0.01, (n, 8, 8, 3)), 0, 1)
+        dt = fr.draw(st.sampled_from(["uint8", "uint16", "float32"]))
+        frame = (np.round(f * {"uint8": 255, "uint16": 65535}[dt]).astype(dt) if dt != "float32"
+                 else f.astype(np.float32))
+    else:
+        frame = fr.draw(arrays(fshape, 0, fr.draw(st.sampled_from([1.0, 1.0, 0.0, 2.0, 1e-4]))))
 
     def run():
         r = s.process(frame)
@@ -315,6 +366,8 @@ def test_stream_frames(n, integ, fr):
     r = _call("stream_frames", run)
     if r is not None and r.ok:
         _finite(r.normals, r.albedo, r.depth)
+    elif r is not None:
+        COUNTS["stream_frames"]["error results"] += 1
 
 
 @_settings("value_types")
@@ -360,6 +413,9 @@ def test_solve_uncalibrated(data):
 def teardown_module(module):
     if FUZZ:
         total = sum(c["inputs"] for c in COUNTS.values())
-        lines = [f"{k:>16}: {c['inputs']:6d} inputs, {c['errors']:6d} clean errors, {c['results']:6d} finite results, "
-                 f"{c['seconds']:8.1f} s" for k, c in COUNTS.items()]
+        lines = [f"{k:>16}: {c['inputs']:6d} inputs, {c['errors']:6d} clean errors, {c['results']:6d} results "
+                 f"({c['error results']} of them error results), {c['seconds']:8.1f} s" for k, c in COUNTS.items()]
         print("\nfuzz profile:\n" + "\n".join(lines) + f"\n{'total':>16}: {total} inputs")
+        for k, c in COUNTS.items():
+            top = sorted(c.get("by_argument", {}).items(), key=lambda kv: -kv[1])[:8]
+            print(f"{k:>16}: errors by argument {top}")

@@ -150,3 +150,61 @@ def test_negative_device_frame_is_an_error(device):
     r = st.process(wp.array(f, dtype=wp.float32, device=device))
     assert not r.ok and ">= 0" in r.error
     assert st.process(frames[0]).ok
+
+
+def _numpy_stats(images, mask, inten, lit_level, saturation):
+    """The frame statistics from their definitions (gpps.kernels.stream.frame_stats)."""
+    raw = images * inten[:, None, None, :]
+    m = mask.astype(bool)
+    lit = (raw.mean(-1) > lit_level)[:, m].sum()
+    sat = (raw.max(-1) >= saturation)[:, m].sum()
+    grey = images.mean(-1)
+    K = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float64)
+    h, w = m.shape
+    hf = hfg = 0.0
+    for i in range(1, h - 1):
+        for j in range(1, w - 1):
+            if m[i - 1:i + 2, j - 1:j + 2].all():
+                hf += np.abs((grey[:, i - 1:i + 2, j - 1:j + 2] * K).sum(axis=(1, 2))).sum()
+                hfg += grey[:, i, j].sum()
+    return {"lit": lit, "sat": sat, "grey": grey[:, m].sum(), "hf": hf, "hf_grey": hfg}
+
+
+@pytest.mark.parametrize("shape", [(3, 13, 21), (4, 9, 8)])
+def test_frame_stats_kernel_matches_numpy(device, shape):
+    from gpps._runtime import warp
+    from gpps.kernels import stream as ks
+
+    wp = warp()
+    rng = np.random.default_rng(3)
+    n, h, w = shape
+    images = rng.uniform(0, 1.2, (n, h, w, 3)).astype(np.float32)
+    images[0, :3] = 0.0  # unlit
+    mask = (rng.random((h, w)) > 0.15).astype(np.uint8)
+    inten = rng.uniform(0.5, 1.5, (n, 3)).astype(np.float32)
+    stats = wp.zeros((ks.STAT_SLOTS, ks.N_STATS), dtype=wp.float32, device=device)
+    wp.launch(ks.frame_stats, dim=(h, -(-w // ks.STAT_CHUNK)),
+              inputs=[wp.array(images, dtype=wp.vec3, device=device), wp.array(mask, dtype=wp.uint8, device=device),
+                      wp.array(inten, dtype=wp.float32, device=device), 0.05, 0.999],
+              outputs=[stats], device=device)
+    got = stats.numpy().astype(np.float64).sum(axis=0)
+    ref = _numpy_stats(images.astype(np.float64), mask, inten.astype(np.float64), 0.05, 0.999)
+    assert got[ks.STAT_LIT] == ref["lit"] and got[ks.STAT_SATURATED] == ref["sat"]
+    for slot, key in ((ks.STAT_GREY, "grey"), (ks.STAT_HF, "hf"), (ks.STAT_HF_GREY, "hf_grey")):
+        np.testing.assert_allclose(got[slot], ref[key], rtol=1e-5)
+    # the residual sum and the jump marks
+    res = rng.uniform(0, 1, (h, w)).astype(np.float32)
+    prev = rng.uniform(0, 0.2, (h, w)).astype(np.float32)
+    thr, factor = 0.3, 3.0
+    stats.zero_()
+    redo = wp.zeros((h, w), dtype=wp.uint8, device=device)
+    r_d, m_d = wp.array(res, device=device), wp.array(mask, dtype=wp.uint8, device=device)
+    wp.launch(ks.residual_sum, dim=(h, w), inputs=[r_d, m_d], outputs=[stats], device=device)
+    wp.launch(ks.mark_jumps, dim=(h, w), inputs=[r_d, wp.array(prev, device=device), m_d,
+                                                wp.array([thr], dtype=wp.float32, device=device), factor],
+              outputs=[redo, stats], device=device)
+    got = stats.numpy().astype(np.float64).sum(axis=0)
+    want = (mask > 0) & (res > np.maximum(thr, factor * prev))
+    np.testing.assert_allclose(got[ks.STAT_RESIDUAL], res[mask > 0].sum(), rtol=1e-5)
+    np.testing.assert_array_equal(redo.numpy() > 0, want)
+    assert got[ks.STAT_REDONE] == want.sum()

@@ -63,58 +63,82 @@ def _grey(v: wp.vec3) -> float:
     return (v[0] + v[1] + v[2]) / 3.0
 
 
+STAT_CHUNK = 8  # pixels of a row per thread of frame_stats (local sums: one atomic per statistic and thread)
+
+
 @wp.kernel(enable_backward=False)
 def frame_stats(images: wp.array3d(dtype=wp.vec3), mask: wp.array2d(dtype=wp.uint8),
                 intensity: wp.array2d(dtype=wp.float32), lit_level: float, saturation: float,
                 stats: wp.array2d(dtype=wp.float32)):
-    """Cheap sanity statistics of one converted frame (one thread per light and pixel).
+    """Cheap sanity statistics of one converted frame; one thread per ``STAT_CHUNK`` pixels of a row, all lights.
 
     An observation is lit when its grey value exceeds ``lit_level`` of full
     scale, saturated when a channel reaches ``saturation`` of full scale
-    (both as fractions of full scale: ``images * intensity``).  The high-frequency ratio
-    ``STAT_HF / (6 STAT_HF_GREY)`` is the Immerkaer noise estimate relative to
-    the signal (see :func:`gpps.pipeline.solver.estimate_noise`): about 0.01
-    for a smooth lit object, 0.3-0.5 for a frame of noise.
+    (both as fractions of full scale: ``images * intensity``).  The
+    high-frequency ratio ``STAT_HF / (6 STAT_HF_GREY)`` is the Immerkaer noise
+    estimate relative to the signal (see :func:`gpps.pipeline.solver.estimate_noise`):
+    about 0.01 for a smooth lit object, 0.3-0.5 for a frame of noise.  Each
+    thread sums its pixels locally and adds each statistic once (atomics
+    spread over ``STAT_SLOTS`` rows).
 
     Args:
         images: (N, H, W) converted observations (solver units).
         mask: (H, W) 1 inside the mask.
         intensity: (N, 3) the light intensities the conversion divided by.
         lit_level, saturation: fractions of full scale.
-        stats: (STAT_SLOTS, N_STATS) partial sums (atomics spread over the slots).
+        stats: (STAT_SLOTS, N_STATS) partial sums.
     """
-    k, i, j = wp.tid()
-    if mask[i, j] == 0:
-        return
-    slot = ((k * images.shape[1] + i) * images.shape[2] + j) % STAT_SLOTS
-    g = intensity[k]
-    v = images[k, i, j]
-    raw = wp.vec3(v[0] * g[0], v[1] * g[1], v[2] * g[2])
-    if _grey(raw) > lit_level:
-        wp.atomic_add(stats, slot, STAT_LIT, 1.0)
-    if wp.max(raw[0], wp.max(raw[1], raw[2])) >= saturation:
-        wp.atomic_add(stats, slot, STAT_SATURATED, 1.0)
-    gv = _grey(v)
-    wp.atomic_add(stats, slot, STAT_GREY, gv)
+    i, jc = wp.tid()
     h = images.shape[1]
     w = images.shape[2]
-    if i < 1 or j < 1 or i >= h - 1 or j >= w - 1:
-        return
-    lap = float(0.0)
-    for di in range(-1, 2):
-        for dj in range(-1, 2):
-            if mask[i + di, j + dj] == 0:
-                return
-            c = float(1.0)
-            if di == 0:
-                c = c * 2.0
-            if dj == 0:
-                c = c * 2.0
-            if (di + dj) % 2 != 0:
-                c = -c
-            lap += c * _grey(images[k, i + di, j + dj])
-    wp.atomic_add(stats, slot, STAT_HF, wp.abs(lap))
-    wp.atomic_add(stats, slot, STAT_HF_GREY, gv)
+    n_lit = float(0.0)
+    n_sat = float(0.0)
+    grey = float(0.0)
+    hf = float(0.0)
+    hf_grey = float(0.0)
+    for jj in range(STAT_CHUNK):
+        j = jc * STAT_CHUNK + jj
+        if j < w:
+            if mask[i, j] != 0:
+                interior = i >= 1 and j >= 1 and i < h - 1 and j < w - 1
+                if interior:
+                    for di in range(-1, 2):
+                        for dj in range(-1, 2):
+                            if mask[i + di, j + dj] == 0:
+                                interior = False
+                for k in range(images.shape[0]):
+                    g = intensity[k]
+                    v = images[k, i, j]
+                    if _grey(wp.vec3(v[0] * g[0], v[1] * g[1], v[2] * g[2])) > lit_level:
+                        n_lit += 1.0
+                    if wp.max(v[0] * g[0], wp.max(v[1] * g[1], v[2] * g[2])) >= saturation:
+                        n_sat += 1.0
+                    gv = _grey(v)
+                    grey += gv
+                    if interior:
+                        lap = float(0.0)
+                        for di in range(-1, 2):
+                            for dj in range(-1, 2):
+                                c = float(1.0)
+                                if di == 0:
+                                    c = c * 2.0
+                                if dj == 0:
+                                    c = c * 2.0
+                                if (di + dj) % 2 != 0:
+                                    c = -c
+                                lap += c * _grey(images[k, i + di, j + dj])
+                        hf += wp.abs(lap)
+                        hf_grey += gv
+    slot = (i * ((w + STAT_CHUNK - 1) // STAT_CHUNK) + jc) % STAT_SLOTS
+    if n_lit > 0.0:
+        wp.atomic_add(stats, slot, STAT_LIT, n_lit)
+    if n_sat > 0.0:
+        wp.atomic_add(stats, slot, STAT_SATURATED, n_sat)
+    if grey > 0.0:
+        wp.atomic_add(stats, slot, STAT_GREY, grey)
+    if hf_grey > 0.0:
+        wp.atomic_add(stats, slot, STAT_HF, hf)
+        wp.atomic_add(stats, slot, STAT_HF_GREY, hf_grey)
 
 
 @wp.kernel(enable_backward=False)

@@ -40,6 +40,7 @@ from typing import Callable, Literal, get_args
 
 import numpy as np
 
+from gpps._check import check_bool, check_number
 from gpps.camera import Orthographic, Perspective
 
 __all__ = [
@@ -153,9 +154,10 @@ class IntegratorConfig:
             raise ValueError(f"tol: expected a number in (0, 1), got {self.tol!r}")
         if self.max_iter is not None and (not isinstance(self.max_iter, int) or self.max_iter < 1):
             raise ValueError(f"max_iter: expected an integer >= 1 or None, got {self.max_iter!r}")
-        if not 0 < self.omega <= 1:
-            raise ValueError(f"omega: expected 0 < omega <= 1, got {self.omega!r}")
-        if not 0 < self.min_nz < 1:
+        check_bool("bilateral", self.bilateral)
+        check_number("omega", self.omega, lo=0.0, hi=1.0, lo_open=True)
+        check_number("min_nz", self.min_nz, lo=0.0, hi=1.0, lo_open=True)
+        if self.min_nz >= 1:
             raise ValueError(f"min_nz: expected 0 < min_nz < 1, got {self.min_nz!r}")
         if not (isinstance(self.robust_scale, (int, float)) and not isinstance(self.robust_scale, bool)
                 and 0 < self.robust_scale < float("inf")):
@@ -169,8 +171,7 @@ class IntegratorConfig:
                 raise ValueError(f"{name}: expected an integer >= 1, got {v!r}")
         if self.coarsest > 16:
             raise ValueError(f"coarsest: expected <= 16, got {self.coarsest}")
-        if not self.bilateral_k > 0:
-            raise ValueError(f"bilateral_k: expected > 0, got {self.bilateral_k!r}")
+        check_number("bilateral_k", self.bilateral_k, lo=0.0, lo_open=True)
         for name in ("bilateral_tol", "bilateral_inner_tol"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and 0 < v < 1):

@@ -52,7 +52,7 @@ from typing import Callable, Literal, get_args
 
 import numpy as np
 
-from gpps._check import as_array, as_mask, check_number, warn
+from gpps._check import as_array, as_mask, check_bool, check_number, warn
 from gpps.lights import PointLights
 from gpps.material import Material
 from gpps.pipeline.dgmc import DGMCConfig, dgmc_start, propagate_front
@@ -154,11 +154,14 @@ class RONConfig:
 
     def __post_init__(self):
         check_number("rounds", self.rounds, lo=1, integer=True)
+        check_bool("dgmc", self.dgmc)
+        check_bool("integrate", self.integrate)
+        check_number("seed", self.seed, lo=0, integer=True)
         check_number("tol", self.tol, lo=0.0)
         check_number("tol_normals_deg", self.tol_normals_deg, lo=0.0)
         if self.material_rule not in get_args(MaterialRule):
             raise ValueError(f"material_rule: expected one of {list(get_args(MaterialRule))}, got {self.material_rule!r}")
-        if isinstance(self.estimate, str) or not all(isinstance(e, str) for e in self.estimate):
+        if not isinstance(self.estimate, (tuple, list)) or not all(isinstance(e, str) for e in self.estimate):
             raise TypeError(f"estimate: expected a tuple of parameter names, got {self.estimate!r}")
         object.__setattr__(self, "estimate", tuple(self.estimate))
         bad = [e for e in self.estimate if e not in _RANGES]

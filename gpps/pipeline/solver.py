@@ -13,7 +13,7 @@ from typing import Literal, get_args
 
 import numpy as np
 
-from gpps._check import as_array, as_images, as_mask, check_number
+from gpps._check import as_array, as_images, as_mask, check_bool, check_number
 from gpps._runtime import resolve_device, warp
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
@@ -167,6 +167,8 @@ class SolverConfig:
             raise ValueError(f"robust: expected one of {list(ROBUST_NAMES)}, got {self.robust!r}")
         if self.albedo not in get_args(AlbedoMode):
             raise ValueError(f"albedo: expected one of {list(get_args(AlbedoMode))}, got {self.albedo!r}")
+        check_bool("early_exit", self.early_exit)
+        check_bool("warm_start", self.warm_start)
         check_number("max_iters", self.max_iters, lo=1, integer=True)
         check_number("starts", self.starts, lo=1, integer=True)
         check_number("irls_rounds", self.irls_rounds, lo=0, integer=True)

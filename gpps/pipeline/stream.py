@@ -43,7 +43,7 @@ from typing import Any, Iterable, Iterator, Literal, get_args
 
 import numpy as np
 
-from gpps._check import as_mask, check_number
+from gpps._check import as_mask, check_bool, check_number
 from gpps._runtime import resolve_device, warp
 from gpps.camera import Orthographic, Perspective
 from gpps.lights import DirectionalLights, PointLights
@@ -135,6 +135,7 @@ class StreamConfig:
             raise ValueError(f"graph: expected 'auto' or 'off', got {self.graph!r}")
         if self.output not in get_args(Output):
             raise ValueError(f"output: expected one of {get_args(Output)}, got {self.output!r}")
+        check_bool("integrate", self.integrate)
         check_number("iterations", self.iterations, lo=1, integer=True)
         check_number("first_starts", self.first_starts, lo=1, integer=True)
         check_number("first_iterations", self.first_iterations, lo=1, integer=True)
@@ -146,8 +147,7 @@ class StreamConfig:
             check_number("reference_depth", self.reference_depth, lo=0.0, lo_open=True)
         if self.saturation is not None:
             check_number("saturation", self.saturation, lo=0.0, hi=1.0, lo_open=True)
-        if not isinstance(self.check, bool):
-            raise TypeError(f"check: expected True or False, got {self.check!r}")
+        check_bool("check", self.check)
         check_number("min_lit_fraction", self.min_lit_fraction, lo=0.0, hi=1.0)
         check_number("max_saturated_fraction", self.max_saturated_fraction, lo=0.0, hi=1.0)
         check_number("max_noise_ratio", self.max_noise_ratio, lo=0.0, lo_open=True)
@@ -422,7 +422,7 @@ class Stream:
         cmd = self._cmds.get((name, key))
         if cmd is None:
             if name == "stats":
-                args = dict(kernel=ks.frame_stats, dim=(self.n, *self.shape),
+                args = dict(kernel=ks.frame_stats, dim=(self.shape[0], -(-self.shape[1] // ks.STAT_CHUNK)),
                             inputs=[self.solver.images, self.solver.mask, self._inten_dev, 1e-3,
                                     1.0 if key[0] == np.float32 else 0.999])
             elif name == "jumps":
