@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gpps._check import as_array, as_mask
+from gpps._check import as_array, as_images, as_mask
 
 __all__ = ["angular_error", "slant_tilt", "normal_errors", "reprojection_error"]
 
@@ -88,8 +88,8 @@ def reprojection_error(images, rendered, mask, valid=None) -> dict:
         dict with ``rmse``, ``mae`` (all valid observations and channels) and
         ``mse_per_image`` (list of N).
     """
-    x = as_array("images", images, dtype=np.float64)
-    y = as_array("rendered", rendered, dtype=np.float64)
+    x = as_images("images", images, dtype=np.float64)
+    y = as_images("rendered", rendered, dtype=np.float64)
     if x.shape != y.shape:
         raise ValueError(f"rendered: expected shape {x.shape}, got {y.shape}")
     if x.ndim == 3:

@@ -254,9 +254,9 @@ def estimate_distance(images, mask, camera, lights: PointLights, candidates, *, 
     Returns:
         ``(best distance, {distance: score})``.
     """
-    from gpps._check import as_array, as_mask
+    from gpps._check import as_images, as_mask
 
-    img = as_array("images", images)
+    img = as_images("images", images)
     if img.ndim == 4:
         img = img.mean(axis=-1)
     if img.ndim != 3:

@@ -31,7 +31,7 @@ from typing import Literal
 
 import numpy as np
 
-from gpps._check import as_array, as_mask
+from gpps._check import as_array, as_images, as_mask
 from gpps.camera import Orthographic, Perspective
 from gpps.lights import DirectionalLights
 
@@ -119,7 +119,7 @@ def gradient_to_normals(gradient, mask, camera) -> np.ndarray:
 
 
 def _grey_images(images, n=None):
-    x = as_array("images", images, dtype=np.float64)
+    x = as_images("images", images, dtype=np.float64)
     if x.ndim == 4:
         x = x.mean(-1)
     if x.ndim != 3:

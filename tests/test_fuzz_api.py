@@ -221,6 +221,20 @@ def images_and_mask(draw, n_lo=1, n_hi=6, hw_hi=10):
 # ------------------------------------------------------------------ the properties
 
 
+def _lambertian(n, h, w, rng):
+    """Plausible images: a Lambertian bump field under n good lights (float32), and those lights."""
+    L = _good_lights(n, rng)
+    yy, xx = np.mgrid[0:h, 0:w]
+    z = 0.3 * np.sin(xx / max(w, 2) * rng.uniform(1, 4)) * np.cos(yy / max(h, 2) * rng.uniform(1, 4))
+    gy, gx = np.gradient(z) if min(h, w) > 1 else (np.zeros((h, w)), np.zeros((h, w)))
+    nrm = np.stack([-gx, gy, np.ones_like(z)], -1)
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+    shade = np.clip(np.einsum("hwc,nc->nhw", nrm, L.directions), 0, None)
+    albedo = rng.uniform(0.3, 0.9, (h, w, 3))
+    img = shade[..., None] * albedo[None] + rng.normal(0, 0.002, (n, h, w, 3))
+    return np.clip(img, 0, None).astype(np.float32), L
+
+
 def _good_lights(n, rng):
     slant = rng.uniform(0.2, 1.0, n)
     az = np.linspace(0, 2 * np.pi, n, endpoint=False) + rng.uniform(0, 0.5)
@@ -249,13 +263,14 @@ def test_solve_normals(data, lt, cam, mat, solver, robust, depth, opts, keep, se
     if keep != "all":
         good_n = max(n, 3)
         hw = (rng.integers(2, 10), rng.integers(2, 10))
+        good_img, good_L = _lambertian(good_n, *hw, rng)
         if keep != "images":
-            img = rng.uniform(0, 1, (good_n, *hw, 3)).astype(np.float32)
-        n, hw = img.shape[0], img.shape[1:3] if np.ndim(img) >= 3 else hw
+            img = good_img
+        n, hw = (img.shape[0], img.shape[1:3]) if np.ndim(img) >= 3 else (good_n, hw)
         if keep != "mask":
             m = rng.random(hw) > 0.2 if np.ndim(img) >= 3 else np.ones((2, 2), bool)
         if keep != "lights":
-            L = _good_lights(n, rng)
+            L = good_L if keep != "images" else _good_lights(n, rng)
         if keep != "camera":
             cam = lambda: None  # noqa: E731
         if keep != "material":
@@ -282,10 +297,28 @@ def test_solve_normals(data, lt, cam, mat, solver, robust, depth, opts, keep, se
 @_settings("reconstruct")
 @given(data=images_and_mask(n_lo=2, n_hi=5, hw_hi=8), lt=st.data(), cam=cameras(),
        mat=st.sampled_from(["blinn-phong", "lambertian", "cook-torrance", "metal"]),
-       rounds=st.sampled_from([1, 2, 0]))
-def test_reconstruct(data, lt, cam, mat, rounds):
+       rounds=st.sampled_from([1, 2, 0]), keep=st.sampled_from(["all", "none", "none", "images", "mask", "lights",
+                                                                "camera", "material", "rounds"]),
+       seed=st.integers(0, 2**31 - 1))
+def test_reconstruct(data, lt, cam, mat, rounds, keep, seed):
     n, img, m = data
     L = lt.draw(lights(n))
+    if keep != "all":
+        rng = np.random.default_rng(seed)
+        hw = (int(rng.integers(6, 12)), int(rng.integers(6, 12)))
+        good_img, good_L = _lambertian(max(n, 3), *hw, rng)
+        if keep != "images":
+            img, n = good_img, good_img.shape[0]
+        if keep != "mask":
+            m = np.ones(np.shape(img)[1:3], bool) if np.ndim(img) >= 3 else np.ones((2, 2), bool)
+        if keep != "lights":
+            L = good_L if keep != "images" else _good_lights(max(n, 1), rng)
+        if keep != "camera":
+            cam = lambda: None  # noqa: E731
+        if keep != "material":
+            mat = "blinn-phong"
+        if keep != "rounds":
+            rounds = 2
 
     def run():
         return gpps.reconstruct(img, m, L() if callable(L) else L, camera=cam(), material=mat,
@@ -311,8 +344,10 @@ def test_integrate(h, w, nd, cam, solver, robust, bilateral, ref):
         rng = np.random.default_rng(nd.draw(st.integers(0, 2**31 - 1)))
         v = rng.normal(size=(h, w, 3)) * 0.3 + (0, 0, 1 if mode == "unit" else -1)
         normals = v / np.linalg.norm(v, axis=-1, keepdims=True)
-    m = nd.draw(st.sampled_from([np.ones((h, w), bool), np.zeros((h, w), bool), np.ones((w, h), bool),
-                                 np.random.default_rng(1).random((h, w)) > 0.3]))
+    m = nd.draw(st.sampled_from([np.ones((h, w), bool), np.ones((h, w), bool), np.zeros((h, w), bool),
+                                 np.ones((w, h), bool), np.random.default_rng(1).random((h, w)) > 0.3]))
+    if nd.draw(st.booleans()):  # the other arguments valid: exercise the success path
+        cam, solver, robust, ref = (lambda: None), "multigrid", "none", None
 
     def run():
         return integrate_normals(normals, m, camera=cam(), solver=solver, robust=robust, bilateral=bilateral,
@@ -400,11 +435,15 @@ def test_configs(which, kv):
 
 
 @_settings("uncalibrated")
-@given(data=images_and_mask(n_lo=2, n_hi=6, hw_hi=12))
+@given(data=images_and_mask(n_lo=2, n_hi=7, hw_hi=14))
 def test_solve_uncalibrated(data):
     from gpps.uncalibrated import solve_uncalibrated
 
     n, img, m = data
+    if np.ndim(img) == 4 and img.shape[0] >= 3 and np.ndim(m) == 2 and np.shape(m) == img.shape[1:3] \
+            and np.size(m) >= 64 and data[0] % 2 == 1:  # plausible images of the same size (success path)
+        img, _ = _lambertian(img.shape[0], *img.shape[1:3], np.random.default_rng(int(img.size)))
+        m = np.ones(img.shape[1:3], bool)
     res = _call("uncalibrated", lambda: solve_uncalibrated(img, m, device="cpu"))
     if res is not None:
         _finite(res.normals, res.albedo)
