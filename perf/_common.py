@@ -45,3 +45,38 @@ def write_results(name: str, device: str, payload: dict) -> Path:
     payload = {"device": device, "device_name": device_label(device), "host": platform.node(), **payload}
     path.write_text(json.dumps(payload, indent=2) + "\n")
     return path
+
+
+def rss_mb() -> float:
+    """Resident set size of this process (MB), from /proc/self/statm."""
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def moving_bumps(size: int, device: str, positions: int = 8):
+    """The stream benchmarks' scene: Blinn-Phong bumps, perspective, 3 directional lights, moved sideways.
+
+    Returns:
+        ``(scene, material, lights, frames, truth, mask)``: ``positions`` uint16 RGB
+        frames (N, H, W, 3) of the object moved by 0..positions-1 pixels, their true
+        normals, and the mask of the pixels inside the object at every position.
+    """
+    import numpy as np
+
+    from gpps.material import Material
+    from gpps.scenes import make_scene
+    from gpps.synthetic import default_lights, render
+
+    mat = Material.default_for("blinn-phong")
+    L = default_lights("directional", 3)
+    sc = make_scene("bumps", size, "perspective")
+    frames, truth = [], []
+    mask = sc.mask.copy()
+    for k in range(positions):
+        moved = type(sc)(**{n: (np.roll(v, k, axis=1) if isinstance(v, np.ndarray) and v.ndim >= 2 else v)
+                            for n, v in sc.__dict__.items()})
+        img = render(moved, mat, L, bits=16, device=device)
+        frames.append(np.ascontiguousarray(np.round(np.clip(img, 0, 1) * 65535).astype(np.uint16)))
+        truth.append(moved.normals.astype(np.float32))
+        mask &= np.roll(sc.mask, k, axis=1)
+    return sc, mat, L, frames, truth, mask

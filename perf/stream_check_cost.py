@@ -21,9 +21,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "perf"))
 os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 
-import numpy as np  # noqa: E402
 
 
 def main():
@@ -33,25 +33,16 @@ def main():
     ap.add_argument("--frames", type=int, default=400)
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
+    from _common import moving_bumps
+
     from gpps._runtime import resolve_device, warp
-    from gpps.material import Material
     from gpps.pipeline.stream import Stream, StreamConfig
-    from gpps.scenes import make_scene
-    from gpps.synthetic import default_lights, render
 
     wp = warp()
     dev = resolve_device(a.device)
-    mat = Material.default_for("blinn-phong")
-    L = default_lights("directional", 3)
-    sc = make_scene("bumps", a.size, "perspective")
-    frames = []
-    for k in range(8):
-        img = np.roll(render(sc, mat, L, bits=16, device=dev), k, axis=2)
-        f = np.ascontiguousarray(np.round(np.clip(img, 0, 1) * 65535).astype(np.uint16))
-        frames.append(wp.array(f, dtype=wp.uint16, device=dev) if dev.startswith("cuda") else f)
-    mask = sc.mask.copy()
-    for k in range(8):
-        mask &= np.roll(sc.mask, k, axis=1)
+    sc, mat, L, frames, truth, mask = moving_bumps(a.size, dev)
+    if dev.startswith("cuda"):
+        frames = [wp.array(f, dtype=wp.uint16, device=dev) for f in frames]
     streams = {c: Stream(sc.mask.shape, sc.camera, L, mat, mask=mask, config=StreamConfig(check=c), device=dev)
                for c in (True, False)}
     times = {True: [], False: []}

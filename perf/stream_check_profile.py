@@ -15,6 +15,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "perf"))
 os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 
 import numpy as np  # noqa: E402
@@ -26,21 +27,16 @@ def main():
     ap.add_argument("--size", type=int, default=1024)
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
+    from _common import moving_bumps
+
     from gpps._runtime import resolve_device, warp
-    from gpps.material import Material
     from gpps.pipeline.stream import Stream, StreamConfig
-    from gpps.scenes import make_scene
-    from gpps.synthetic import default_lights, render
 
     wp = warp()
     dev = resolve_device(a.device)
-    mat = Material.default_for("blinn-phong")
-    L = default_lights("directional", 3)
-    sc = make_scene("bumps", a.size, "perspective")
-    frames = [wp.array(np.ascontiguousarray(np.round(np.clip(np.roll(render(sc, mat, L, bits=16, device=dev), k, axis=2),
-                                                             0, 1) * 65535).astype(np.uint16)), dtype=wp.uint16, device=dev)
-              for k in range(4)]
-    s = Stream(sc.mask.shape, sc.camera, L, mat, mask=sc.mask, config=StreamConfig(), device=dev)
+    sc, mat, L, frames, truth, mask = moving_bumps(a.size, dev, positions=4)
+    frames = [wp.array(f, dtype=wp.uint16, device=dev) for f in frames]
+    s = Stream(sc.mask.shape, sc.camera, L, mat, mask=mask, config=StreamConfig(), device=dev)
     for i in range(20):
         r = s.process(frames[i % 4])
         assert r.ok, r.error

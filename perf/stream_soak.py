@@ -46,11 +46,6 @@ EXPECT = {"nan": "NaN", "shape": "shape", "dtype": "dtype", "black": "lit", "noi
           "grey-noise": "noise", "saturated": "saturated", "negative": ">= 0"}
 
 
-def rss_mb() -> float:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--device", default="cpu")
@@ -63,30 +58,16 @@ def main():
     a = ap.parse_args()
 
     import _soak_kernels as sk
+    from _common import moving_bumps, rss_mb
 
     from gpps._runtime import resolve_device, warp
-    from gpps.material import Material
     from gpps.pipeline.stream import Stream, StreamConfig
-    from gpps.scenes import make_scene
-    from gpps.synthetic import default_lights, render
 
     wp = warp()
     dev = resolve_device(a.device)
     cuda = dev.startswith("cuda")
-    mat = Material.default_for("blinn-phong")
-    L = default_lights("directional", 3)
-    sc = make_scene("bumps", a.size, "perspective")
     npos = 8
-    frames, truth = [], []
-    for k in range(npos):
-        moved = type(sc)(**{n: (np.roll(v, k, axis=1) if isinstance(v, np.ndarray) and v.ndim >= 2 else v)
-                            for n, v in sc.__dict__.items()})
-        img = render(moved, mat, L, bits=16, device=dev)
-        frames.append(np.ascontiguousarray(np.round(np.clip(img, 0, 1) * 65535).astype(np.uint16)))
-        truth.append(moved.normals.astype(np.float32))
-    mask = sc.mask.copy()
-    for k in range(npos):
-        mask &= np.roll(sc.mask, k, axis=1)
+    sc, mat, L, frames, truth, mask = moving_bumps(a.size, dev, npos)
     rng = np.random.default_rng(0)
     f0 = frames[0].astype(np.float32) / 65535
     bad = {
@@ -113,8 +94,6 @@ def main():
     dirty = Stream(sc.mask.shape, sc.camera, L, mat, mask=mask, config=cfg, device=dev)
     mdev = wp.array(mask.astype(np.uint8), dtype=wp.uint8, device=dev)
     worst = wp.zeros(1, dtype=wp.float32, device=dev)
-    truth_dev = [wp.array(t, dtype=wp.vec3, device=dev) for t in truth]
-    err = wp.zeros(1, dtype=wp.float32, device=dev)
 
     reported = {k: 0 for k in KINDS}
     misreported, rejected_good, max_dev, samples = [], [], 0.0, []
