@@ -224,7 +224,7 @@ def test_failed_write_leaves_nothing(tmp_path, monkeypatch):
 
     monkeypatch.setattr(gio, "save_png", flaky)
     with pytest.raises(OSError, match="disk full"):
-        write_dataset(out, ds)
+        write_dataset(out, ds, overwrite=True)  # replacing an earlier gpps output needs overwrite=True
     assert sorted(p.name for p in out.iterdir()) == before
     assert [p.name for p in tmp_path.iterdir()] == ["cap"]  # no temporary left behind
 
