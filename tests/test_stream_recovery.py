@@ -122,6 +122,30 @@ def test_a_scene_change_heals_within_the_frame(device):
             assert np.percentile(off, 95) > 2.0, np.percentile(off, 95)
 
 
+def test_textured_frames_pass_and_noise_does_not(device):
+    """Albedo texture down to single pixels cancels in the shading ratios; noise does not."""
+    from gpps.material import Material
+    from gpps.pipeline.stream import Stream, StreamConfig
+    from gpps.scenes import make_scene
+    from gpps.synthetic import default_lights, render
+
+    sc = make_scene("bumps", 48, "perspective")
+    checker = np.where((np.indices(sc.mask.shape).sum(0) % 2) == 0, 0.15, 0.95)
+    sc.albedo[:] = checker[..., None] * np.array([1.0, 0.8, 0.6])
+    mat = Material.default_for("lambertian")
+    L = default_lights("directional", 3)
+    st = Stream(sc.mask.shape, sc.camera, L, mat, mask=sc.mask, config=StreamConfig(output="numpy"), device=device)
+    for bits in (8, 16):
+        full = 2**bits - 1
+        f = np.round(np.clip(render(sc, mat, L, bits=bits), 0, 1) * full).astype(np.uint8 if bits == 8 else np.uint16)
+        r = st.process(f)
+        assert r.ok, r.error
+        assert r.checks["noise_ratio"] < 0.03, r.checks
+    rng = np.random.default_rng(0)
+    r = st.process(rng.integers(0, 65536, f.shape[:3]).astype(np.uint16))
+    assert not r.ok and "noise" in r.error
+
+
 def test_numpy_output_is_a_copy(device):
     from gpps.pipeline.stream import Stream, StreamConfig
 
@@ -156,17 +180,22 @@ def _numpy_stats(images, mask, inten, lit_level, saturation):
     """The frame statistics from their definitions (gpps.kernels.stream.frame_stats)."""
     raw = images * inten[:, None, None, :]
     m = mask.astype(bool)
+    n = images.shape[0]
     lit = (raw.mean(-1) > lit_level)[:, m].sum()
     sat = (raw.max(-1) >= saturation)[:, m].sum()
     grey = images.mean(-1)
+    tot = grey.sum(0)
     K = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float64)
     h, w = m.shape
     hf = hfg = 0.0
     for i in range(1, h - 1):
         for j in range(1, w - 1):
-            if m[i - 1:i + 2, j - 1:j + 2].all():
-                hf += np.abs((grey[:, i - 1:i + 2, j - 1:j + 2] * K).sum(axis=(1, 2))).sum()
-                hfg += grey[:, i, j].sum()
+            win = (slice(i - 1, i + 2), slice(j - 1, j + 2))
+            if m[win].all() and (tot[win] > lit_level * n).all():
+                r = n * grey[:, win[0], win[1]] / tot[win]  # shading ratios: the albedo cancels
+                wgt = tot[i, j] / n
+                hf += wgt * np.abs((r * K).sum(axis=(1, 2))).sum()
+                hfg += wgt * n
     return {"lit": lit, "sat": sat, "grey": grey[:, m].sum(), "hf": hf, "hf_grey": hfg}
 
 

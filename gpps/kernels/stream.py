@@ -74,12 +74,20 @@ def frame_stats(images: wp.array3d(dtype=wp.vec3), mask: wp.array2d(dtype=wp.uin
 
     An observation is lit when its grey value exceeds ``lit_level`` of full
     scale, saturated when a channel reaches ``saturation`` of full scale
-    (both as fractions of full scale: ``images * intensity``).  The
-    high-frequency ratio ``STAT_HF / (6 STAT_HF_GREY)`` is the Immerkaer noise
-    estimate relative to the signal (see :func:`gpps.pipeline.solver.estimate_noise`):
-    about 0.01 for a smooth lit object, 0.3-0.5 for a frame of noise.  Each
-    thread sums its pixels locally and adds each statistic once (atomics
-    spread over ``STAT_SLOTS`` rows).
+    (both as fractions of full scale: ``images * intensity``).
+
+    The high-frequency ratio ``STAT_HF / (6 STAT_HF_GREY)`` is the Immerkaer
+    noise estimate (see :func:`gpps.pipeline.solver.estimate_noise`) of the
+    *shading ratios* ``r_k = N I_k / sum_l I_l`` relative to their level,
+    weighted by the pixel's brightness: the albedo (any texture, down to single
+    pixels) cancels in the ratio, which is a smooth function of the normal on a
+    lit surface, while noise does not cancel.  Measured on gpps renders
+    (sphere, bumps, microprint; smooth, textured and pixel-checkerboard
+    albedo; 8 and 16 bit): 0.0001-0.008; uniform noise frames: 0.22 (RGB) and
+    0.43 (grey).  Pixels whose 3x3
+    neighbourhood leaves the mask or is dark (mean grey below ``lit_level`` of
+    full scale, in solver units) are left out.  Each thread sums its pixels
+    locally and adds each statistic once (atomics spread over ``STAT_SLOTS`` rows).
 
     Args:
         images: (N, H, W) converted observations (solver units).
@@ -91,6 +99,7 @@ def frame_stats(images: wp.array3d(dtype=wp.vec3), mask: wp.array2d(dtype=wp.uin
     i, jc = wp.tid()
     h = images.shape[1]
     w = images.shape[2]
+    nl = images.shape[0]
     n_lit = float(0.0)
     n_sat = float(0.0)
     grey = float(0.0)
@@ -100,22 +109,31 @@ def frame_stats(images: wp.array3d(dtype=wp.vec3), mask: wp.array2d(dtype=wp.uin
         j = jc * STAT_CHUNK + jj
         if j < w:
             if mask[i, j] != 0:
-                interior = i >= 1 and j >= 1 and i < h - 1 and j < w - 1
-                if interior:
-                    for di in range(-1, 2):
-                        for dj in range(-1, 2):
-                            if mask[i + di, j + dj] == 0:
-                                interior = False
-                for k in range(images.shape[0]):
+                mc = float(0.0)
+                for k in range(nl):
                     g = intensity[k]
                     v = images[k, i, j]
                     if _grey(wp.vec3(v[0] * g[0], v[1] * g[1], v[2] * g[2])) > lit_level:
                         n_lit += 1.0
                     if wp.max(v[0] * g[0], wp.max(v[1] * g[1], v[2] * g[2])) >= saturation:
                         n_sat += 1.0
-                    gv = _grey(v)
-                    grey += gv
-                    if interior:
+                    mc += _grey(v)
+                grey += mc
+                interior = i >= 1 and j >= 1 and i < h - 1 and j < w - 1
+                if interior:
+                    for di in range(-1, 2):
+                        for dj in range(-1, 2):
+                            if mask[i + di, j + dj] == 0:
+                                interior = False
+                            else:
+                                s = float(0.0)
+                                for k in range(nl):
+                                    s += _grey(images[k, i + di, j + dj])
+                                if s <= lit_level * float(nl):
+                                    interior = False
+                if interior:
+                    wgt = mc / float(nl)
+                    for k in range(nl):
                         lap = float(0.0)
                         for di in range(-1, 2):
                             for dj in range(-1, 2):
@@ -126,9 +144,12 @@ def frame_stats(images: wp.array3d(dtype=wp.vec3), mask: wp.array2d(dtype=wp.uin
                                     c = c * 2.0
                                 if (di + dj) % 2 != 0:
                                     c = -c
-                                lap += c * _grey(images[k, i + di, j + dj])
-                        hf += wp.abs(lap)
-                        hf_grey += gv
+                                s = float(0.0)
+                                for l in range(nl):
+                                    s += _grey(images[l, i + di, j + dj])
+                                lap += c * float(nl) * _grey(images[k, i + di, j + dj]) / s
+                        hf += wgt * wp.abs(lap)
+                    hf_grey += wgt * float(nl)
     slot = (i * ((w + STAT_CHUNK - 1) // STAT_CHUNK) + jc) % STAT_SLOTS
     if n_lit > 0.0:
         wp.atomic_add(stats, slot, STAT_LIT, n_lit)

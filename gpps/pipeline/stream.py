@@ -90,10 +90,13 @@ class StreamConfig:
         max_saturated_fraction: a frame with more observations at full scale
             (any channel) than this share, or 0.25 more than the running share,
             is rejected.
-        max_noise_ratio: a frame whose high-frequency ratio (the Immerkaer noise
-            estimate over the mean grey value: about 0.01 for a smooth object,
-            0.3-0.5 for noise) exceeds this, or ``noise_factor`` times the
-            running ratio (and 0.05), is rejected.
+        max_noise_ratio: a frame whose high-frequency ratio exceeds this, or
+            ``noise_factor`` times the running ratio (and 0.05), is rejected.  The
+            ratio is the Immerkaer noise estimate of the shading ratios
+            ``N I_k / sum_l I_l`` (the albedo cancels, so texture does not
+            count): 0.0001-0.008 for lit renders (textured, 8 or 16 bit), 0.22 for
+            an RGB noise frame, 0.43 for a grey one
+            (:func:`gpps.kernels.stream.frame_stats`).
         noise_factor: see ``max_noise_ratio``.
         residual_factor: a frame whose mean residual (after the cold re-solve
             of jumped pixels) exceeds this many times the running level, and 2 %
@@ -121,7 +124,7 @@ class StreamConfig:
     check: bool = True
     min_lit_fraction: float = 0.05
     max_saturated_fraction: float = 0.5
-    max_noise_ratio: float = 0.25
+    max_noise_ratio: float = 0.1
     noise_factor: float = 3.0
     residual_factor: float = 4.0
     jump_factor: float = 8.0
