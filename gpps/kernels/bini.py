@@ -1,0 +1,243 @@
+"""Taichi device math of bilateral normal integration (BiNI, Cao et al., ECCV 2022).
+
+The unknown ``u`` (depth, or log-depth under the perspective camera) lives on
+the ``n`` valid pixels in a compact layout: pixel ``p`` has the neighbour
+indices ``nb[p, 0..3]`` = right (j+1), left (j-1), down (i+1), up (i-1), -1
+where there is none.  Each pixel owns BiNI's four one-sided equations in the
+multiplied form (the residual is ``N D - m``, no division by ``N``):
+
+    j:  N_j (u_right - u_p) - m_j,    N_j (u_p - u_left) - m_j
+    i:  N_i (u_down  - u_p) - m_i,    N_i (u_p - u_up)   - m_i
+
+with weights ``w_j, 1 - w_j`` and ``w_i, 1 - w_i``; a missing neighbour's
+difference is 0 (its equation is the constant ``m^2``, as in BiNI's matrices).
+IRLS re-weighting (BiNI eq. (20)): ``w_j = sigmoid(k ((N_j D_left)^2 -
+(N_j D_right)^2))`` from the current ``u``, so the side with the smaller jump
+gets the weight.  For fixed weights, the normal equations are the weighted
+graph Laplacian ``A u = b`` with edge weight ``W = N_a^2 w+_a + N_b^2 w-_b``
+on the edge ``a -> b`` and flux ``F = N_a m_a w+_a + N_b m_b w-_b``; they are
+solved by BiNI's Jacobi-preconditioned conjugate gradient (diagonal clipped
+at 1e-5), warm-started from the previous iterate.
+
+Every reduction is accumulated in float64 in the scalar field ``sc``; the CG
+iteration is gated on the device by ``sc[DONE]``, so one launch runs several
+iterations (unrolled, ``ti.static``) and the host checks once per launch without
+ever overshooting BiNI's stopping rule.  :func:`make_bini` builds the kernels
+over one set of fields (closed over, not passed: a launch has no per-argument
+cost).
+
+Only device code lives here; allocation and orchestration are in
+:mod:`gpps.pipeline.integration_bini`.
+"""
+
+from gpps._taichi import ti
+
+# indices into the scalar field ``sc``
+RZ, PQ, RR, BB, ALPHA, ENERGY, DONE, ITS, RZN, TOTAL = range(10)
+NSC = 10
+
+
+@ti.func
+def _sigmoid(x):
+    """Logistic ``1 / (1 + exp(-x))`` without overflow (float64)."""
+    v = ti.cast(0.0, ti.f64)
+    if x >= 0:
+        v = 1.0 / (1.0 + ti.exp(-x))
+    else:
+        e = ti.exp(x)
+        v = e / (1.0 + e)
+    return v
+
+
+@ti.func
+def _diffs(x: ti.template(), nb: ti.template(), p):
+    """One-sided differences (right, left, down, up) of ``x`` at compact pixel ``p`` (0 where no neighbour)."""
+    xp = x[p]
+    dr = xp * 0
+    dl = xp * 0
+    dd = xp * 0
+    du = xp * 0
+    if nb[p, 0] >= 0:
+        dr = x[nb[p, 0]] - xp
+    if nb[p, 1] >= 0:
+        dl = xp - x[nb[p, 1]]
+    if nb[p, 2] >= 0:
+        dd = x[nb[p, 2]] - xp
+    if nb[p, 3] >= 0:
+        du = xp - x[nb[p, 3]]
+    return dr, dl, dd, du
+
+
+def make_bini(F: dict, unroll: int = 8, serial: bool = False):
+    """Build the BiNI kernels over the fields ``F``.
+
+    Args:
+        F: Taichi fields, float64 of length ``capacity`` unless noted: ``x`` (the
+            unknown), ``b, r, z, p, q`` (CG), ``Nj, Ni, mj, mi`` (equations),
+            ``wj, wi`` (forward weights), ``Wr, Wd, Fr, Fd`` (edge weights and
+            fluxes to the right / down neighbour), ``dinv`` (Jacobi), ``nb`` (i32
+            (capacity, 4): right, left, down, up, -1 none), ``pix`` (i32
+            (capacity, 2): row, column), ``sc`` (f64 (NSC,): scalars), ``lim``
+            (i32 (1,): the loop length of the gated CG loops).
+        unroll: CG iterations per launch of ``cg``.
+        serial: run the CG loops on one thread (CPU: Taichi's thread-pool
+            dispatch of a loop costs more than a loop over ~1e5 pixels).
+
+    Returns:
+        dict of kernels, each taking the pixel count ``n`` first:
+        ``energy(n)`` (``sc[ENERGY]`` of ``x`` under the current weights),
+        ``reweight(n, k)`` (BiNI's weight update, then ``sc[ENERGY]``),
+        ``begin(n)`` (assemble the system from the weights, CG start: ``r = b - A x``,
+        ``z = p = D^-1 r``; DONE = ITS = 0), ``cg(n, tol2, maxit)`` (``unroll``
+        gated Jacobi-PCG iterations), ``scatter(n, out)`` (``out[i, j] = x[p]``).
+    """
+    x, b, r, z, pd, q = F["x"], F["b"], F["r"], F["z"], F["p"], F["q"]
+    Nj, Ni, mj, mi, wj, wi = F["Nj"], F["Ni"], F["mj"], F["mi"], F["wj"], F["wi"]
+    Wr, Wd, Fr, Fd, dinv, nb, pix, sc = F["Wr"], F["Wd"], F["Fr"], F["Fd"], F["dinv"], F["nb"], F["pix"], F["sc"]
+    lim = F["lim"]
+
+    @ti.func
+    def _residuals(p):
+        dr, dl, dd, du = _diffs(x, nb, p)
+        a, c = Nj[p], Ni[p]
+        return a * dr, a * dl, c * dd, c * du
+
+    @ti.kernel
+    def energy(n: ti.i32):
+        sc[ENERGY] = 0
+        for p in range(n):
+            er, el, ed, eu = _residuals(p)
+            rr, rl, rd, ru = er - mj[p], el - mj[p], ed - mi[p], eu - mi[p]
+            w1, w2 = wj[p], wi[p]
+            sc[ENERGY] += w1 * rr * rr + (1 - w1) * rl * rl + w2 * rd * rd + (1 - w2) * ru * ru
+
+    @ti.kernel
+    def reweight(n: ti.i32, k: ti.f64):
+        sc[ENERGY] = 0
+        for p in range(n):
+            er, el, ed, eu = _residuals(p)
+            rr, rl, rd, ru = er - mj[p], el - mj[p], ed - mi[p], eu - mi[p]
+            w1 = _sigmoid(k * (el * el - er * er))
+            w2 = _sigmoid(k * (eu * eu - ed * ed))
+            wj[p] = w1
+            wi[p] = w2
+            sc[ENERGY] += w1 * rr * rr + (1 - w1) * rl * rl + w2 * rd * rd + (1 - w2) * ru * ru
+
+    @ti.func
+    def _apply(v: ti.template(), p):
+        """(A v)_p = sum_e W_e (v_p - v_q) over the edges of p."""
+        vp = v[p]
+        s = vp * 0
+        o = nb[p, 0]
+        if o >= 0:
+            s += Wr[p] * (vp - v[o])
+        o = nb[p, 1]
+        if o >= 0:
+            s += Wr[o] * (vp - v[o])
+        o = nb[p, 2]
+        if o >= 0:
+            s += Wd[p] * (vp - v[o])
+        o = nb[p, 3]
+        if o >= 0:
+            s += Wd[o] * (vp - v[o])
+        return s
+
+    @ti.kernel
+    def begin(n: ti.i32):
+        for p in range(n):
+            W1 = Wr[p] * 0
+            F1 = Wr[p] * 0
+            W2 = Wr[p] * 0
+            F2 = Wr[p] * 0
+            o = nb[p, 0]
+            if o >= 0:
+                W1 = Nj[p] * Nj[p] * wj[p] + Nj[o] * Nj[o] * (1 - wj[o])
+                F1 = Nj[p] * mj[p] * wj[p] + Nj[o] * mj[o] * (1 - wj[o])
+            o = nb[p, 2]
+            if o >= 0:
+                W2 = Ni[p] * Ni[p] * wi[p] + Ni[o] * Ni[o] * (1 - wi[o])
+                F2 = Ni[p] * mi[p] * wi[p] + Ni[o] * mi[o] * (1 - wi[o])
+            Wr[p] = W1
+            Fr[p] = F1
+            Wd[p] = W2
+            Fd[p] = F2
+        for p in range(n):
+            d = Wr[p] + Wd[p]
+            v = -Fr[p] - Fd[p]
+            o = nb[p, 1]
+            if o >= 0:
+                d += Wr[o]
+                v += Fr[o]
+            o = nb[p, 3]
+            if o >= 0:
+                d += Wd[o]
+                v += Fd[o]
+            b[p] = v
+            dinv[p] = 1.0 / ti.max(d, 1e-5)
+        sc[RZ] = 0
+        sc[BB] = 0
+        sc[RR] = 0
+        sc[DONE] = 0
+        sc[ITS] = 0
+        for p in range(n):
+            rv = b[p] - _apply(x, p)
+            zv = dinv[p] * rv
+            r[p] = rv
+            z[p] = zv
+            pd[p] = zv
+            sc[RZ] += rv * zv
+            sc[BB] += b[p] * b[p]
+            sc[RR] += rv * rv
+
+    @ti.kernel
+    def cg(n: ti.i32, tol2: ti.f64, maxit: ti.i32):
+        # the loops run over lim[0] pixels: n while the solve goes on, 0 once DONE (a gated no-op);
+        # the float64 sums stay plain loop-level reductions (thread-local on the CPU, warp-level on CUDA)
+        for _ in ti.static(range(unroll)):
+            lim[0] = 0
+            if sc[DONE] == 0:
+                lim[0] = n
+                sc[PQ] = 0
+            ti.loop_config(serialize=serial)
+            for p in range(lim[0]):
+                v = _apply(pd, p)
+                q[p] = v
+                sc[PQ] += pd[p] * v
+            if sc[DONE] == 0:
+                if sc[PQ] == 0:
+                    sc[DONE] = 1
+                    lim[0] = 0
+                else:
+                    sc[ALPHA] = sc[RZ] / sc[PQ]
+                    sc[ITS] += 1
+                    sc[TOTAL] += 1
+            if sc[DONE] == 0:
+                sc[RR] = 0
+                sc[RZN] = 0
+            ti.loop_config(serialize=serial)
+            for p in range(lim[0]):
+                a = sc[ALPHA]
+                x[p] += a * pd[p]
+                rv = r[p] - a * q[p]
+                r[p] = rv
+                zv = dinv[p] * rv
+                z[p] = zv
+                sc[RR] += rv * rv
+                sc[RZN] += rv * zv
+            if sc[DONE] == 0:
+                if sc[RR] <= tol2 * sc[BB] or sc[ITS] >= maxit:
+                    sc[DONE] = 1
+                    lim[0] = 0
+                else:
+                    sc[ALPHA] = sc[RZN] / sc[RZ]  # beta
+                    sc[RZ] = sc[RZN]
+            ti.loop_config(serialize=serial)
+            for p in range(lim[0]):
+                pd[p] = z[p] + sc[ALPHA] * pd[p]
+
+    @ti.kernel
+    def scatter(n: ti.i32, out: ti.types.ndarray()):
+        for p in range(n):
+            out[pix[p, 0], pix[p, 1]] = x[p]
+
+    return {"energy": energy, "reweight": reweight, "begin": begin, "cg": cg, "scatter": scatter}
