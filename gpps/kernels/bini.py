@@ -19,10 +19,16 @@ on the edge ``a -> b`` and flux ``F = N_a m_a w+_a + N_b m_b w-_b``; they are
 solved by BiNI's Jacobi-preconditioned conjugate gradient (diagonal clipped
 at 1e-5), warm-started from the previous iterate.
 
-Every reduction is accumulated in float64 in the scalar field ``sc``; the CG
-iteration is gated on the device by ``sc[DONE]``, so one launch runs several
-iterations (unrolled, ``ti.static``) and the host checks once per launch without
-ever overshooting BiNI's stopping rule.  :func:`make_bini` builds the kernels
+Every reduction is accumulated in float64.  The CG iteration is two parallel
+loops and nothing serial: the direction update ``p = z + beta p`` is fused into
+the next ``A p`` (each pixel forms its own and its neighbours' new ``p``; the
+directions ping-pong between two buffers), and the scalars live in three
+columns of ``cs`` (the iteration modulo 3), so a loop only reads the columns
+the previous loops finished and zeroes the column the next loop accumulates
+into.  The stopping test (``|r|^2 <= tol^2 |b|^2``, at least one iteration, as
+BiNI) is made by every pixel alike from the finished column, so one launch runs
+several iterations (unrolled, ``ti.static``) and turns into no-ops once the
+solve is done: the host checks once per launch and never overshoots.  :func:`make_bini` builds the kernels
 over one set of fields (closed over, not passed: a launch has no per-argument
 cost).
 
@@ -33,8 +39,10 @@ Only device code lives here; allocation and orchestration are in
 from gpps._taichi import ti
 
 # indices into the scalar field ``sc``
-RZ, PQ, RR, BB, ALPHA, ENERGY, DONE, ITS, RZN, TOTAL = range(10)
-NSC = 10
+BB, ENERGY, ITS, TOTAL = range(4)
+NSC = 4
+# rows of ``cs`` (one column per iteration modulo 3: the conjugate gradient below has no serial step)
+CS_RR, CS_RZ, CS_PQ, CS_DONE = range(4)
 
 
 @ti.func
@@ -73,13 +81,13 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
 
     Args:
         F: Taichi fields, float64 of length ``capacity`` unless noted: ``x`` (the
-            unknown), ``b, r, z, p, q`` (CG), ``Nj, Ni, mj, mi`` (equations),
+            unknown), ``b, r, z, p0, p1, q`` (CG), ``Nj, Ni, mj, mi`` (equations),
             ``wj, wi`` (forward weights), ``Wr, Wd, Fr, Fd`` (edge weights and
             fluxes to the right / down neighbour), ``dinv`` (Jacobi), ``nb`` (i32
             (capacity, 4): right, left, down, up, -1 none), ``pix`` (i32
-            (capacity, 2): row, column), ``sc`` (f64 (NSC,): scalars), ``lim``
-            (i32 (1,): the loop length of the gated CG loops).
-        unroll: CG iterations per launch of ``cg``.
+            (capacity, 2): row, column), ``sc`` (f64 (NSC,): scalars), ``cs``
+            (f64 (4, 3): the CG scalars by iteration modulo 3).
+        unroll: CG iterations per launch of ``cg`` (a multiple of 6).
         serial: run the CG loops on one thread (CPU: Taichi's thread-pool
             dispatch of a loop costs more than a loop over ~1e5 pixels).
 
@@ -88,13 +96,17 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
         ``energy(n)`` (``sc[ENERGY]`` of ``x`` under the current weights),
         ``reweight(n, k)`` (BiNI's weight update, then ``sc[ENERGY]``),
         ``begin(n)`` (assemble the system from the weights, CG start: ``r = b - A x``,
-        ``z = p = D^-1 r``; DONE = ITS = 0), ``cg(n, tol2, maxit)`` (``unroll``
-        gated Jacobi-PCG iterations), ``scatter(n, out)`` (``out[i, j] = x[p]``).
+        ``z = D^-1 r``), ``cg(n, tol2, maxit)`` (``unroll`` gated Jacobi-PCG
+        iterations; ``cs[CS_DONE, (unroll - 1) % 3]`` tells the host it is done,
+        ``cs[CS_RR, (sc[ITS] - 1) % 3]`` is the last ``|r|^2``),
+        ``scatter(n, out)`` (``out[i, j] = x[p]``).
     """
-    x, b, r, z, pd, q = F["x"], F["b"], F["r"], F["z"], F["p"], F["q"]
+    x, b, r, z, p0, p1, q = F["x"], F["b"], F["r"], F["z"], F["p0"], F["p1"], F["q"]
     Nj, Ni, mj, mi, wj, wi = F["Nj"], F["Ni"], F["mj"], F["mi"], F["wj"], F["wi"]
     Wr, Wd, Fr, Fd, dinv, nb, pix, sc = F["Wr"], F["Wd"], F["Fr"], F["Fd"], F["dinv"], F["nb"], F["pix"], F["sc"]
-    lim = F["lim"]
+    cs = F["cs"]
+    if unroll % 6:
+        raise ValueError(f"unroll: expected a multiple of 6 (direction buffers by 2, scalar columns by 3), got {unroll}")
 
     @ti.func
     def _residuals(p):
@@ -174,66 +186,80 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
                 v += Fd[o]
             b[p] = v
             dinv[p] = 1.0 / ti.max(d, 1e-5)
-        sc[RZ] = 0
         sc[BB] = 0
-        sc[RR] = 0
-        sc[DONE] = 0
-        sc[ITS] = 0
+        cs[CS_RZ, 2] = 0
         for p in range(n):
             rv = b[p] - _apply(x, p)
             zv = dinv[p] * rv
             r[p] = rv
             z[p] = zv
-            pd[p] = zv
-            sc[RZ] += rv * zv
+            p0[p] = 0  # the "previous direction" of iteration 0: p_0 = z_0
+            cs[CS_RZ, 2] += rv * zv  # iteration -1's column: r_0 . z_0
             sc[BB] += b[p] * b[p]
-            sc[RR] += rv * rv
+        cs[CS_RZ, 1] = 1.0  # iteration -2's r.z: any nonzero value (it multiplies p = 0)
+        cs[CS_RR, 2] = 1e300  # BiNI always runs at least one iteration
+        cs[CS_DONE, 2] = 0
+        cs[CS_PQ, 0] = 0
+        sc[ITS] = 0
 
     @ti.kernel
     def cg(n: ti.i32, tol2: ti.f64, maxit: ti.i32):
-        # the loops run over lim[0] pixels: n while the solve goes on, 0 once DONE (a gated no-op);
-        # the float64 sums stay plain loop-level reductions (thread-local on the CPU, warp-level on CUDA)
-        for _ in ti.static(range(unroll)):
-            lim[0] = 0
-            if sc[DONE] == 0:
-                lim[0] = n
-                sc[PQ] = 0
+        for t in ti.static(range(unroll)):
+            c, c1, c2 = ti.static(t % 3, (t + 2) % 3, (t + 1) % 3)  # columns of iterations t, t-1, t-2
+            pold, pnew = ti.static((p0, p1) if t % 2 == 0 else (p1, p0))
+            # (1) p_t = z_t + beta_t p_{t-1} (fused), q = A p_t, p_t . q; the stopping test of iteration t-1
             ti.loop_config(serialize=serial)
-            for p in range(lim[0]):
-                v = _apply(pd, p)
-                q[p] = v
-                sc[PQ] += pd[p] * v
-            if sc[DONE] == 0:
-                if sc[PQ] == 0:
-                    sc[DONE] = 1
-                    lim[0] = 0
-                else:
-                    sc[ALPHA] = sc[RZ] / sc[PQ]
-                    sc[ITS] += 1
-                    sc[TOTAL] += 1
-            if sc[DONE] == 0:
-                sc[RR] = 0
-                sc[RZN] = 0
+            for p in range(n):
+                done = cs[CS_DONE, c1] != 0 or cs[CS_RR, c1] <= tol2 * sc[BB] or sc[ITS] >= maxit
+                beta = cs[CS_RZ, c1] / cs[CS_RZ, c2]
+                pq = x[p] * 0
+                if not done:
+                    pp = z[p] + beta * pold[p]
+                    s = pp * 0
+                    o = nb[p, 0]
+                    if o >= 0:
+                        s += Wr[p] * (pp - (z[o] + beta * pold[o]))
+                    o = nb[p, 1]
+                    if o >= 0:
+                        s += Wr[o] * (pp - (z[o] + beta * pold[o]))
+                    o = nb[p, 2]
+                    if o >= 0:
+                        s += Wd[p] * (pp - (z[o] + beta * pold[o]))
+                    o = nb[p, 3]
+                    if o >= 0:
+                        s += Wd[o] * (pp - (z[o] + beta * pold[o]))
+                    q[p] = s
+                    pnew[p] = pp
+                    pq = pp * s
+                cs[CS_PQ, c] += pq
+                if p == 0:
+                    cs[CS_DONE, c] = ti.cast(done, ti.f64)
+                    if not done:  # once done, the last iteration's column keeps its |r|^2
+                        cs[CS_RR, c] = 0
+                        cs[CS_RZ, c] = 0
+            # (2) alpha = r.z / p.q, x += alpha p, r -= alpha q, z = D^-1 r, |r|^2, r.z
             ti.loop_config(serialize=serial)
-            for p in range(lim[0]):
-                a = sc[ALPHA]
-                x[p] += a * pd[p]
-                rv = r[p] - a * q[p]
-                r[p] = rv
-                zv = dinv[p] * rv
-                z[p] = zv
-                sc[RR] += rv * rv
-                sc[RZN] += rv * zv
-            if sc[DONE] == 0:
-                if sc[RR] <= tol2 * sc[BB] or sc[ITS] >= maxit:
-                    sc[DONE] = 1
-                    lim[0] = 0
-                else:
-                    sc[ALPHA] = sc[RZN] / sc[RZ]  # beta
-                    sc[RZ] = sc[RZN]
-            ti.loop_config(serialize=serial)
-            for p in range(lim[0]):
-                pd[p] = z[p] + sc[ALPHA] * pd[p]
+            for p in range(n):
+                done = cs[CS_DONE, c] != 0
+                pq = cs[CS_PQ, c]
+                rr = x[p] * 0
+                rz = x[p] * 0
+                if not done and pq != 0:
+                    a = cs[CS_RZ, c1] / pq
+                    x[p] += a * pnew[p]
+                    rv = r[p] - a * q[p]
+                    r[p] = rv
+                    zv = dinv[p] * rv
+                    z[p] = zv
+                    rr = rv * rv
+                    rz = rv * zv
+                cs[CS_RR, c] += rr
+                cs[CS_RZ, c] += rz
+                if p == 0:
+                    cs[CS_PQ, (t + 1) % 3] = 0
+                    if not done:
+                        sc[ITS] += 1
+                        sc[TOTAL] += 1
 
     @ti.kernel
     def scatter(n: ti.i32, out: ti.types.ndarray()):

@@ -58,9 +58,9 @@ class BiniConfig:
         tol: relative energy change that stops the IRLS.
         cg_tol: relative residual ``|b - A u| / |b|`` of each inner solve.
         cg_max_iter: CG iterations per inner solve at most.
-        check_every: CG iterations per launch (unrolled on the device, gated
-            there by the stopping rule, so this never overshoots); the host
-            checks once per launch.
+        check_every: CG iterations per launch, a multiple of 6 (unrolled on the
+            device, gated there by the stopping rule, so this never overshoots);
+            the host checks once per launch.
     """
 
     k: float = 2.0
@@ -68,7 +68,7 @@ class BiniConfig:
     tol: float = 1e-4
     cg_tol: float = 1e-3
     cg_max_iter: int = 5000
-    check_every: int = 8
+    check_every: int = 6
 
     def __post_init__(self):
         for name in ("k",):
@@ -83,6 +83,8 @@ class BiniConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name}: expected an integer >= 1, got {v!r}")
+        if self.check_every % 6:
+            raise ValueError(f"check_every: expected a multiple of 6, got {self.check_every!r}")
 
 
 @dataclass
@@ -148,7 +150,7 @@ def bini_coefficients(normals: np.ndarray, valid: np.ndarray, camera):
 
 _POOL: dict = {}
 _POOL_LOCK = threading.Lock()
-_NAMES = ("x", "b", "r", "z", "p", "q", "Nj", "Ni", "mj", "mi", "wj", "wi", "Wr", "Wd", "Fr", "Fd", "dinv")
+_NAMES = ("x", "b", "r", "z", "p0", "p1", "q", "Nj", "Ni", "mj", "mi", "wj", "wi", "Wr", "Wd", "Fr", "Fd", "dinv")
 
 
 def _acquire(n: int, unroll: int) -> dict:
@@ -172,10 +174,10 @@ def _acquire(n: int, unroll: int) -> dict:
     fb.dense(ti.ij, (cap, 2)).place(F["pix"])
     F["sc"] = ti.field(ti.f64)
     fb.dense(ti.i, K.NSC).place(F["sc"])
-    F["lim"] = ti.field(ti.i32)
-    fb.dense(ti.i, 1).place(F["lim"])
+    F["cs"] = ti.field(ti.f64)
+    fb.dense(ti.ij, (4, 3)).place(F["cs"])
     F["tree"] = fb.finalize()
-    F["cap"], F["key"] = cap, key
+    F["cap"], F["key"], F["unroll"] = cap, key, unroll
     # on the CPU one thread: Taichi's parallel dispatch costs more than it gains at these sizes, the more so
     # on shared cores (bear, 40k pixels, 2 busy cores: 2.1 s on two threads, 1.1 s on one)
     serial = ti.lang.impl.current_cfg().arch == ti.cpu
@@ -290,6 +292,7 @@ class BilateralIntegrator:
         e_old = float(F["sc"][K.ENERGY])
         t1 = time.perf_counter()
         tol2 = cfg.cg_tol ** 2
+        last = (F["unroll"] - 1) % 3
         energies = []
         converged = False
         outer = 0
@@ -298,11 +301,12 @@ class BilateralIntegrator:
             kn["begin"](n)
             while True:
                 kn["cg"](n, tol2, cfg.cg_max_iter)
-                if F["sc"][K.DONE] != 0:  # the only sync of the inner solve: once per launch
+                if F["cs"][K.CS_DONE, last] != 0:  # the only sync of the inner solve: once per launch
                     break
             kn["reweight"](n, float(cfg.k))
             sc = F["sc"].to_numpy()
-            res = float(np.sqrt(sc[K.RR] / sc[K.BB])) if sc[K.BB] > 0 else 0.0
+            rr = float(F["cs"][K.CS_RR, (int(sc[K.ITS]) - 1) % 3])
+            res = float(np.sqrt(rr / sc[K.BB])) if sc[K.BB] > 0 else 0.0
             e = float(sc[K.ENERGY])
             energies.append(e)
             outer = it + 1
