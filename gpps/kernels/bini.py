@@ -22,10 +22,9 @@ at 1e-5), warm-started from the previous iterate.
 Every reduction is accumulated in float64.  The CG iteration is two parallel
 loops and nothing serial: the direction update ``p = z + beta p`` is fused into
 the next ``A p`` (each pixel forms its own and its neighbours' new ``p``; the
-directions ping-pong between two buffers), and the scalars live in three
-columns of ``cs`` (the iteration modulo 3), so a loop only reads the columns
-the previous loops finished and zeroes the column the next loop accumulates
-into.  The stopping test (``|r|^2 <= tol^2 |b|^2``, at least one iteration, as
+directions ping-pong between two buffers), and the scalars live in three sets
+of fields (the iteration modulo 3), so a loop only reads the sets the previous
+loops finished and zeroes the set the next loop accumulates into.  The stopping test (``|r|^2 <= tol^2 |b|^2``, at least one iteration, as
 BiNI) is made by every pixel alike from the finished column, so one launch runs
 several iterations (unrolled, ``ti.static``) and turns into no-ops once the
 solve is done: the host checks once per launch and never overshoots.  :func:`make_bini` builds the kernels
@@ -41,8 +40,7 @@ from gpps._taichi import ti
 # indices into the scalar field ``sc``
 BB, ENERGY, ITS, TOTAL = range(4)
 NSC = 4
-# rows of ``cs`` (one column per iteration modulo 3: the conjugate gradient below has no serial step)
-CS_RR, CS_RZ, CS_PQ, CS_DONE = range(4)
+
 
 
 @ti.func
@@ -85,8 +83,11 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
             ``wj, wi`` (forward weights), ``Wr, Wd, Fr, Fd`` (edge weights and
             fluxes to the right / down neighbour), ``dinv`` (Jacobi), ``nb`` (i32
             (capacity, 4): right, left, down, up, -1 none), ``pix`` (i32
-            (capacity, 2): row, column), ``sc`` (f64 (NSC,): scalars), ``cs``
-            (f64 (4, 3): the CG scalars by iteration modulo 3).
+            (capacity, 2): row, column), ``sc`` (f64 (NSC,): scalars), ``pq, rr,
+            rz, done``: lists of three f64 (1,) fields, the CG scalars of the
+            iterations ``t mod 3`` (separate fields, so that no loop reads or writes the
+            field it sums into and Taichi keeps its sums warp/thread-local instead of
+            one float64 atomic a pixel).
         unroll: CG iterations per launch of ``cg`` (a multiple of 6).
         serial: run the CG loops on one thread (CPU: Taichi's thread-pool
             dispatch of a loop costs more than a loop over ~1e5 pixels).
@@ -97,14 +98,14 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
         ``reweight(n, k)`` (BiNI's weight update, then ``sc[ENERGY]``),
         ``begin(n)`` (assemble the system from the weights, CG start: ``r = b - A x``,
         ``z = D^-1 r``), ``cg(n, tol2, maxit)`` (``unroll`` gated Jacobi-PCG
-        iterations; ``cs[CS_DONE, (unroll - 1) % 3]`` tells the host it is done,
-        ``cs[CS_RR, (sc[ITS] - 1) % 3]`` is the last ``|r|^2``),
+        iterations; ``done[(unroll - 1) % 3][0]`` tells the host it is done,
+        ``rr[(sc[ITS] - 1) % 3][0]`` is the last ``|r|^2``),
         ``scatter(n, out)`` (``out[i, j] = x[p]``).
     """
     x, b, r, z, p0, p1, q = F["x"], F["b"], F["r"], F["z"], F["p0"], F["p1"], F["q"]
     Nj, Ni, mj, mi, wj, wi = F["Nj"], F["Ni"], F["mj"], F["mi"], F["wj"], F["wi"]
     Wr, Wd, Fr, Fd, dinv, nb, pix, sc = F["Wr"], F["Wd"], F["Fr"], F["Fd"], F["dinv"], F["nb"], F["pix"], F["sc"]
-    cs = F["cs"]
+    pqf, rrf, rzf, dnf = F["pq"], F["rr"], F["rz"], F["done"]
     if unroll % 6:
         raise ValueError(f"unroll: expected a multiple of 6 (direction buffers by 2, scalar columns by 3), got {unroll}")
 
@@ -187,19 +188,19 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
             b[p] = v
             dinv[p] = 1.0 / ti.max(d, 1e-5)
         sc[BB] = 0
-        cs[CS_RZ, 2] = 0
+        ti.static(rzf[2])[0] = 0
         for p in range(n):
             rv = b[p] - _apply(x, p)
             zv = dinv[p] * rv
             r[p] = rv
             z[p] = zv
             p0[p] = 0  # the "previous direction" of iteration 0: p_0 = z_0
-            cs[CS_RZ, 2] += rv * zv  # iteration -1's column: r_0 . z_0
+            ti.static(rzf[2])[0] += rv * zv  # iteration -1's column: r_0 . z_0
             sc[BB] += b[p] * b[p]
-        cs[CS_RZ, 1] = 1.0  # iteration -2's r.z: any nonzero value (it multiplies p = 0)
-        cs[CS_RR, 2] = 1e300  # BiNI always runs at least one iteration
-        cs[CS_DONE, 2] = 0
-        cs[CS_PQ, 0] = 0
+        ti.static(rzf[1])[0] = 1.0  # iteration -2's r.z: any nonzero value (it multiplies p = 0)
+        ti.static(rrf[2])[0] = 1e300  # BiNI always runs at least one iteration
+        ti.static(dnf[2])[0] = 0
+        ti.static(pqf[0])[0] = 0
         sc[ITS] = 0
 
     @ti.kernel
@@ -210,8 +211,8 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
             # (1) p_t = z_t + beta_t p_{t-1} (fused), q = A p_t, p_t . q; the stopping test of iteration t-1
             ti.loop_config(serialize=serial)
             for p in range(n):
-                done = cs[CS_DONE, c1] != 0 or cs[CS_RR, c1] <= tol2 * sc[BB] or sc[ITS] >= maxit
-                beta = cs[CS_RZ, c1] / cs[CS_RZ, c2]
+                done = ti.static(dnf[c1])[0] != 0 or ti.static(rrf[c1])[0] <= tol2 * sc[BB] or sc[ITS] >= maxit
+                beta = ti.static(rzf[c1])[0] / ti.static(rzf[c2])[0]
                 pq = x[p] * 0
                 if not done:
                     pp = z[p] + beta * pold[p]
@@ -231,21 +232,21 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
                     q[p] = s
                     pnew[p] = pp
                     pq = pp * s
-                cs[CS_PQ, c] += pq
+                ti.static(pqf[c])[0] += pq
                 if p == 0:
-                    cs[CS_DONE, c] = ti.cast(done, ti.f64)
+                    ti.static(dnf[c])[0] = ti.cast(done, ti.f64)
                     if not done:  # once done, the last iteration's column keeps its |r|^2
-                        cs[CS_RR, c] = 0
-                        cs[CS_RZ, c] = 0
+                        ti.static(rrf[c])[0] = 0
+                        ti.static(rzf[c])[0] = 0
             # (2) alpha = r.z / p.q, x += alpha p, r -= alpha q, z = D^-1 r, |r|^2, r.z
             ti.loop_config(serialize=serial)
             for p in range(n):
-                done = cs[CS_DONE, c] != 0
-                pq = cs[CS_PQ, c]
+                done = ti.static(dnf[c])[0] != 0
+                pq = ti.static(pqf[c])[0]
                 rr = x[p] * 0
                 rz = x[p] * 0
                 if not done and pq != 0:
-                    a = cs[CS_RZ, c1] / pq
+                    a = ti.static(rzf[c1])[0] / pq
                     x[p] += a * pnew[p]
                     rv = r[p] - a * q[p]
                     r[p] = rv
@@ -253,10 +254,10 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
                     z[p] = zv
                     rr = rv * rv
                     rz = rv * zv
-                cs[CS_RR, c] += rr
-                cs[CS_RZ, c] += rz
+                ti.static(rrf[c])[0] += rr
+                ti.static(rzf[c])[0] += rz
                 if p == 0:
-                    cs[CS_PQ, (t + 1) % 3] = 0
+                    ti.static(pqf[(t + 1) % 3])[0] = 0
                     if not done:
                         sc[ITS] += 1
                         sc[TOTAL] += 1

@@ -174,8 +174,10 @@ def _acquire(n: int, unroll: int) -> dict:
     fb.dense(ti.ij, (cap, 2)).place(F["pix"])
     F["sc"] = ti.field(ti.f64)
     fb.dense(ti.i, K.NSC).place(F["sc"])
-    F["cs"] = ti.field(ti.f64)
-    fb.dense(ti.ij, (4, 3)).place(F["cs"])
+    for name in ("pq", "rr", "rz", "done"):
+        F[name] = [ti.field(ti.f64) for _ in range(3)]
+        for f in F[name]:
+            fb.dense(ti.i, 1).place(f)
     F["tree"] = fb.finalize()
     F["cap"], F["key"], F["unroll"] = cap, key, unroll
     # on the CPU one thread: Taichi's parallel dispatch costs more than it gains at these sizes, the more so
@@ -301,11 +303,11 @@ class BilateralIntegrator:
             kn["begin"](n)
             while True:
                 kn["cg"](n, tol2, cfg.cg_max_iter)
-                if F["cs"][K.CS_DONE, last] != 0:  # the only sync of the inner solve: once per launch
+                if F["done"][last][0] != 0:  # the only sync of the inner solve: once per launch
                     break
             kn["reweight"](n, float(cfg.k))
             sc = F["sc"].to_numpy()
-            rr = float(F["cs"][K.CS_RR, (int(sc[K.ITS]) - 1) % 3])
+            rr = float(F["rr"][(int(sc[K.ITS]) - 1) % 3][0])
             res = float(np.sqrt(rr / sc[K.BB])) if sc[K.BB] > 0 else 0.0
             e = float(sc[K.ENERGY])
             energies.append(e)
