@@ -254,7 +254,7 @@ def main(argv=None) -> int:
         row = dict(scene="overlap", camera="perspective", size=args.mp_size, pixels=int(mask.sum()), gpps_s=t_g,
                    gpps_runs_s=ts_g, outer_iterations=res.outer_iterations, cg_iterations=res.iterations,
                    gpps_timings=res.timings, target_s=0.020)
-        print(f"~1 MP ({row['pixels']} px): gpps {t_g * 1e3:.1f} ms, {res.outer_iterations} IRLS, {res.iterations} CG "
+        print(f"{args.mp_size}^2 map ({row['pixels']} px): gpps {t_g * 1e3:.1f} ms, {res.outer_iterations} IRLS, {res.iterations} CG "
               f"iterations ({(res.timings.get('solve', 0)) / max(res.iterations, 1) * 1e6:.1f} us per CG iteration)",
               flush=True)
         save_json(path, {**out, "mp": row})
