@@ -38,6 +38,8 @@ Only device code lives here; allocation and orchestration are in
 from gpps._taichi import ti
 
 # indices into the scalar field ``sc``
+BB, ENERGY, ITS, TOTAL = range(4)
+NSC = 4
 
 
 
@@ -81,31 +83,28 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
             ``wj, wi`` (forward weights), ``Wr, Wd, Fr, Fd`` (edge weights and
             fluxes to the right / down neighbour), ``dinv`` (Jacobi), ``nb`` (i32
             (capacity, 4): right, left, down, up, -1 none), ``pix`` (i32
-            (capacity, 2): row, column), 0-d f64 fields ``energy, bb`` (``|b|^2``),
-            ``its`` (CG iterations of the current solve), ``total`` (all of them),
-            and ``pq, rr, rz, done``: lists of three 0-d f64 fields, the CG
-            scalars of the iterations ``t mod 3``.  Every sum goes into a 0-d field:
-            Taichi 1.7 turns only those into thread-local (CPU) / warp (CUDA)
-            reductions; a sum into an element of a 1-d field stays one float64
-            atomic a pixel (measured: 258 us a CG iteration on 40k pixels on an H100).
+            (capacity, 2): row, column), ``sc`` (f64 (NSC,): scalars), ``pq, rr,
+            rz, done``: lists of three f64 (1,) fields, the CG scalars of the
+            iterations ``t mod 3`` (separate fields, so that no loop reads or writes the
+            field it sums into and Taichi keeps its sums warp/thread-local instead of
+            one float64 atomic a pixel).
         unroll: CG iterations per launch of ``cg`` (a multiple of 6).
         serial: run the CG loops on one thread (CPU: Taichi's thread-pool
             dispatch of a loop costs more than a loop over ~1e5 pixels).
 
     Returns:
         dict of kernels, each taking the pixel count ``n`` first:
-        ``energy(n)`` (``energy_[None]`` of ``x`` under the current weights),
-        ``reweight(n, k)`` (BiNI's weight update, then ``energy_[None]``),
+        ``energy(n)`` (``sc[ENERGY]`` of ``x`` under the current weights),
+        ``reweight(n, k)`` (BiNI's weight update, then ``sc[ENERGY]``),
         ``begin(n)`` (assemble the system from the weights, CG start: ``r = b - A x``,
         ``z = D^-1 r``), ``cg(n, tol2, maxit)`` (``unroll`` gated Jacobi-PCG
-        iterations; ``done[(unroll - 1) % 3]`` tells the host it is done,
-        ``rr[(its - 1) % 3]`` is the last ``|r|^2``),
+        iterations; ``done[(unroll - 1) % 3][0]`` tells the host it is done,
+        ``rr[(sc[ITS] - 1) % 3][0]`` is the last ``|r|^2``),
         ``scatter(n, out)`` (``out[i, j] = x[p]``).
     """
     x, b, r, z, p0, p1, q = F["x"], F["b"], F["r"], F["z"], F["p0"], F["p1"], F["q"]
     Nj, Ni, mj, mi, wj, wi = F["Nj"], F["Ni"], F["mj"], F["mi"], F["wj"], F["wi"]
-    Wr, Wd, Fr, Fd, dinv, nb, pix = F["Wr"], F["Wd"], F["Fr"], F["Fd"], F["dinv"], F["nb"], F["pix"]
-    energy_, bb, its, total = F["energy"], F["bb"], F["its"], F["total"]
+    Wr, Wd, Fr, Fd, dinv, nb, pix, sc = F["Wr"], F["Wd"], F["Fr"], F["Fd"], F["dinv"], F["nb"], F["pix"], F["sc"]
     pqf, rrf, rzf, dnf = F["pq"], F["rr"], F["rz"], F["done"]
     if unroll % 6:
         raise ValueError(f"unroll: expected a multiple of 6 (direction buffers by 2, scalar columns by 3), got {unroll}")
@@ -118,16 +117,16 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
 
     @ti.kernel
     def energy(n: ti.i32):
-        energy_[None] = 0
+        sc[ENERGY] = 0
         for p in range(n):
             er, el, ed, eu = _residuals(p)
             rr, rl, rd, ru = er - mj[p], el - mj[p], ed - mi[p], eu - mi[p]
             w1, w2 = wj[p], wi[p]
-            energy_[None] += w1 * rr * rr + (1 - w1) * rl * rl + w2 * rd * rd + (1 - w2) * ru * ru
+            sc[ENERGY] += w1 * rr * rr + (1 - w1) * rl * rl + w2 * rd * rd + (1 - w2) * ru * ru
 
     @ti.kernel
     def reweight(n: ti.i32, k: ti.f64):
-        energy_[None] = 0
+        sc[ENERGY] = 0
         for p in range(n):
             er, el, ed, eu = _residuals(p)
             rr, rl, rd, ru = er - mj[p], el - mj[p], ed - mi[p], eu - mi[p]
@@ -135,7 +134,7 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
             w2 = _sigmoid(k * (eu * eu - ed * ed))
             wj[p] = w1
             wi[p] = w2
-            energy_[None] += w1 * rr * rr + (1 - w1) * rl * rl + w2 * rd * rd + (1 - w2) * ru * ru
+            sc[ENERGY] += w1 * rr * rr + (1 - w1) * rl * rl + w2 * rd * rd + (1 - w2) * ru * ru
 
     @ti.func
     def _apply(v: ti.template(), p):
@@ -188,21 +187,21 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
                 v += Fd[o]
             b[p] = v
             dinv[p] = 1.0 / ti.max(d, 1e-5)
-        bb[None] = 0
-        ti.static(rzf[2])[None] = 0
+        sc[BB] = 0
+        ti.static(rzf[2])[0] = 0
         for p in range(n):
             rv = b[p] - _apply(x, p)
             zv = dinv[p] * rv
             r[p] = rv
             z[p] = zv
             p0[p] = 0  # the "previous direction" of iteration 0: p_0 = z_0
-            ti.static(rzf[2])[None] += rv * zv  # iteration -1's column: r_0 . z_0
-            bb[None] += b[p] * b[p]
-        ti.static(rzf[1])[None] = 1.0  # iteration -2's r.z: any nonzero value (it multiplies p = 0)
-        ti.static(rrf[2])[None] = 1e300  # BiNI always runs at least one iteration
-        ti.static(dnf[2])[None] = 0
-        ti.static(pqf[0])[None] = 0
-        its[None] = 0
+            ti.static(rzf[2])[0] += rv * zv  # iteration -1's column: r_0 . z_0
+            sc[BB] += b[p] * b[p]
+        ti.static(rzf[1])[0] = 1.0  # iteration -2's r.z: any nonzero value (it multiplies p = 0)
+        ti.static(rrf[2])[0] = 1e300  # BiNI always runs at least one iteration
+        ti.static(dnf[2])[0] = 0
+        ti.static(pqf[0])[0] = 0
+        sc[ITS] = 0
 
     @ti.kernel
     def cg(n: ti.i32, tol2: ti.f64, maxit: ti.i32):
@@ -212,8 +211,8 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
             # (1) p_t = z_t + beta_t p_{t-1} (fused), q = A p_t, p_t . q; the stopping test of iteration t-1
             ti.loop_config(serialize=serial)
             for p in range(n):
-                done = ti.static(dnf[c1])[None] != 0 or ti.static(rrf[c1])[None] <= tol2 * bb[None] or its[None] >= maxit
-                beta = ti.static(rzf[c1])[None] / ti.static(rzf[c2])[None]
+                done = ti.static(dnf[c1])[0] != 0 or ti.static(rrf[c1])[0] <= tol2 * sc[BB] or sc[ITS] >= maxit
+                beta = ti.static(rzf[c1])[0] / ti.static(rzf[c2])[0]
                 pq = x[p] * 0
                 if not done:
                     pp = z[p] + beta * pold[p]
@@ -233,21 +232,21 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
                     q[p] = s
                     pnew[p] = pp
                     pq = pp * s
-                ti.static(pqf[c])[None] += pq
+                ti.static(pqf[c])[0] += pq
                 if p == 0:
-                    ti.static(dnf[c])[None] = ti.cast(done, ti.f64)
+                    ti.static(dnf[c])[0] = ti.cast(done, ti.f64)
                     if not done:  # once done, the last iteration's column keeps its |r|^2
-                        ti.static(rrf[c])[None] = 0
-                        ti.static(rzf[c])[None] = 0
+                        ti.static(rrf[c])[0] = 0
+                        ti.static(rzf[c])[0] = 0
             # (2) alpha = r.z / p.q, x += alpha p, r -= alpha q, z = D^-1 r, |r|^2, r.z
             ti.loop_config(serialize=serial)
             for p in range(n):
-                done = ti.static(dnf[c])[None] != 0
-                pq = ti.static(pqf[c])[None]
+                done = ti.static(dnf[c])[0] != 0
+                pq = ti.static(pqf[c])[0]
                 rr = x[p] * 0
                 rz = x[p] * 0
                 if not done and pq != 0:
-                    a = ti.static(rzf[c1])[None] / pq
+                    a = ti.static(rzf[c1])[0] / pq
                     x[p] += a * pnew[p]
                     rv = r[p] - a * q[p]
                     r[p] = rv
@@ -255,13 +254,13 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
                     z[p] = zv
                     rr = rv * rv
                     rz = rv * zv
-                ti.static(rrf[c])[None] += rr
-                ti.static(rzf[c])[None] += rz
+                ti.static(rrf[c])[0] += rr
+                ti.static(rzf[c])[0] += rz
                 if p == 0:
-                    ti.static(pqf[(t + 1) % 3])[None] = 0
+                    ti.static(pqf[(t + 1) % 3])[0] = 0
                     if not done:
-                        its[None] += 1
-                        total[None] += 1
+                        sc[ITS] += 1
+                        sc[TOTAL] += 1
 
     @ti.kernel
     def scatter(n: ti.i32, out: ti.types.ndarray()):

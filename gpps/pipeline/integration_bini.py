@@ -172,13 +172,12 @@ def _acquire(n: int, unroll: int) -> dict:
     fb.dense(ti.ij, (cap, 4)).place(F["nb"])
     F["pix"] = ti.field(ti.i32)
     fb.dense(ti.ij, (cap, 2)).place(F["pix"])
-    for name in ("energy", "bb", "its", "total"):
-        F[name] = ti.field(ti.f64)
-        fb.place(F[name])
+    F["sc"] = ti.field(ti.f64)
+    fb.dense(ti.i, K.NSC).place(F["sc"])
     for name in ("pq", "rr", "rz", "done"):
         F[name] = [ti.field(ti.f64) for _ in range(3)]
         for f in F[name]:
-            fb.place(f)
+            fb.dense(ti.i, 1).place(f)
     F["tree"] = fb.finalize()
     F["cap"], F["key"], F["unroll"] = cap, key, unroll
     # on the CPU one thread: Taichi's parallel dispatch costs more than it gains at these sizes, the more so
@@ -290,9 +289,9 @@ class BilateralIntegrator:
         F["wj"].fill(0.5)
         F["wi"].fill(0.5)
         self._upload("x", 0.0 if u0 is None else np.asarray(u0, np.float64)[ii, jj])
-        F["total"][None] = 0
+        F["sc"].fill(0)
         kn["energy"](n)
-        e_old = float(F["energy"][None])
+        e_old = float(F["sc"][K.ENERGY])
         t1 = time.perf_counter()
         tol2 = cfg.cg_tol ** 2
         last = (F["unroll"] - 1) % 3
@@ -304,13 +303,13 @@ class BilateralIntegrator:
             kn["begin"](n)
             while True:
                 kn["cg"](n, tol2, cfg.cg_max_iter)
-                if F["done"][last][None] != 0:  # the only sync of the inner solve: once per launch
+                if F["done"][last][0] != 0:  # the only sync of the inner solve: once per launch
                     break
             kn["reweight"](n, float(cfg.k))
-            bb = float(F["bb"][None])
-            rr = float(F["rr"][(int(F["its"][None]) - 1) % 3][None])
-            res = float(np.sqrt(rr / bb)) if bb > 0 else 0.0
-            e = float(F["energy"][None])
+            sc = F["sc"].to_numpy()
+            rr = float(F["rr"][(int(sc[K.ITS]) - 1) % 3][0])
+            res = float(np.sqrt(rr / sc[K.BB])) if sc[K.BB] > 0 else 0.0
+            e = float(sc[K.ENERGY])
             energies.append(e)
             outer = it + 1
             rel = abs(e - e_old) / e_old if e_old > 0 else 0.0
@@ -320,7 +319,7 @@ class BilateralIntegrator:
                 converged = True
                 break
             e_old = e
-        total_cg = int(F["total"][None])
+        total_cg = int(F["sc"][K.TOTAL])
         t2 = time.perf_counter()
         u = np.zeros(self.shape)
         wjm = np.full(self.shape, 0.5)
