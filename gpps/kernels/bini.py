@@ -89,8 +89,9 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
             field it sums into and Taichi keeps its sums warp/thread-local instead of
             one float64 atomic a pixel).
         unroll: CG iterations per launch of ``cg`` (a multiple of 6).
-        serial: run the CG loops on one thread (CPU: Taichi's thread-pool
-            dispatch of a loop costs more than a loop over ~1e5 pixels).
+        serial: ``cg`` runs on one thread with local sums (the CPU build:
+            Taichi's thread-pool dispatch of a loop costs more than a loop over
+            ~1e5 pixels, and a sum into a field element is an atomic per pixel).
 
     Returns:
         dict of kernels, each taking the pixel count ``n`` first:
@@ -262,9 +263,64 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
                         sc[ITS] += 1
                         sc[TOTAL] += 1
 
+    @ti.func
+    def _ap_fused(p, beta, pold: ti.template()):
+        """(p_new, (A p_new)_p) with p_new = z + beta pold formed on the fly for p and its neighbours."""
+        pp = z[p] + beta * pold[p]
+        s = pp * 0
+        o = nb[p, 0]
+        if o >= 0:
+            s += Wr[p] * (pp - (z[o] + beta * pold[o]))
+        o = nb[p, 1]
+        if o >= 0:
+            s += Wr[o] * (pp - (z[o] + beta * pold[o]))
+        o = nb[p, 2]
+        if o >= 0:
+            s += Wd[p] * (pp - (z[o] + beta * pold[o]))
+        o = nb[p, 3]
+        if o >= 0:
+            s += Wd[o] * (pp - (z[o] + beta * pold[o]))
+        return pp, s
+
+    @ti.kernel
+    def cg_serial(n: ti.i32, tol2: ti.f64, maxit: ti.i32):
+        # the same iteration on one thread (the CPU build): the sums are plain local
+        # accumulators (no atomics), in pixel order, and a finished solve skips its loops
+        for t in ti.static(range(unroll)):
+            c, c1, c2 = ti.static(t % 3, (t + 2) % 3, (t + 1) % 3)
+            pold, pnew = ti.static((p0, p1) if t % 2 == 0 else (p1, p0))
+            done = ti.static(dnf[c1])[0] != 0 or ti.static(rrf[c1])[0] <= tol2 * sc[BB] or sc[ITS] >= maxit
+            ti.static(dnf[c])[0] = ti.cast(done, ti.f64)
+            if not done:
+                beta = ti.static(rzf[c1])[0] / ti.static(rzf[c2])[0]
+                pq = ti.cast(0, ti.f64)
+                for p in range(n):  # inside a branch: a serial loop
+                    pp, v = _ap_fused(p, beta, pold)
+                    q[p] = v
+                    pnew[p] = pp
+                    pq += pp * v
+                ti.static(pqf[c])[0] = pq
+                rr = ti.cast(0, ti.f64)
+                rz = ti.cast(0, ti.f64)
+                if pq != 0:
+                    a = ti.static(rzf[c1])[0] / pq
+                    for p in range(n):
+                        x[p] += a * pnew[p]
+                        rv = r[p] - a * q[p]
+                        r[p] = rv
+                        zv = dinv[p] * rv
+                        z[p] = zv
+                        rr += rv * rv
+                        rz += rv * zv
+                    sc[ITS] += 1
+                    sc[TOTAL] += 1
+                ti.static(rrf[c])[0] = rr
+                ti.static(rzf[c])[0] = rz
+
     @ti.kernel
     def scatter(n: ti.i32, out: ti.types.ndarray()):
         for p in range(n):
             out[pix[p, 0], pix[p, 1]] = x[p]
 
-    return {"energy": energy, "reweight": reweight, "begin": begin, "cg": cg, "scatter": scatter}
+    return {"energy": energy, "reweight": reweight, "begin": begin, "cg": cg_serial if serial else cg,
+            "scatter": scatter}
