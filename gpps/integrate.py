@@ -60,8 +60,14 @@ def integrate_normals(
             full rectangles only).
         tol: relative residual of the normal equations to reach.
         max_iter: iteration cap (``None``: solver default).
-        bilateral: discontinuity-preserving BiNI re-weighting.
-        weighting: ``"uniform"`` or ``"normal"`` (BiNI N_z^2 confidence);
+        bilateral: bilateral normal integration (BiNI, Cao et al. ECCV 2022) on
+            the device instead of the Poisson solve: keeps depth
+            discontinuities (occluding rims, overlapping objects); BiNI's
+            parameters (``bilateral_k=2``, energy tolerance ``1e-4``, inner CG
+            tolerance ``1e-3``, see :class:`IntegratorConfig`).  The mode for
+            measured normal maps (``gpps integrate``'s default); ``solver``,
+            ``tol``, ``max_iter`` and ``weighting`` then do not apply.
+        weighting: Poisson: ``"uniform"`` or ``"normal"`` (BiNI N_z^2 confidence);
             ``None`` = ``"normal"`` when ``bilateral`` else ``"uniform"``.
         reference_depth: mean depth per component (scene units); ``None``
             leaves orthographic depth with mean 0 and perspective depth with
@@ -69,9 +75,9 @@ def integrate_normals(
         warm_start: (H, W) depth to start from.
         device: ``"auto"``, ``"cpu"`` or ``"cuda:0"`` (Taichi solvers).
         progress: optional ``progress(done, total, message)`` callback.
-        **options: further :class:`IntegratorConfig` fields (``robust``:
-            ``"curl"`` for measured normal maps with a few wrong normals,
-            ``"cauchy"``; ``min_nz``, ``dtype``, ``bilateral_k`` ...).
+        **options: further :class:`IntegratorConfig` fields (Poisson:
+            ``robust`` ``"curl"`` or ``"cauchy"``, ``min_nz``, ``dtype`` ...;
+            BiNI: ``bilateral_k``, ``bilateral_tol`` ...).
 
     Returns:
         :class:`IntegrationResult`; ``depth`` is (H, W) float32 with 0 outside

@@ -4,12 +4,12 @@ For each object of ``<data>/integration/diligent`` integrates the ground-truth
 normal map (BiNI 16-bit colour coding) with the object's K in three modes:
 
 * ``poisson``: plain uniform log-depth Poisson (w = 1/2, no N_z weighting);
-* ``bilateral``: BiNI's IRLS (k = 2, N_z-multiplied one-sided equations,
-  first solve with w = 1/2, at most 100 outer iterations, relative energy
-  change 1e-4), every re-weighted solve warm-started, inner tolerance 1e-3,
-  last system finished to 1e-6;
-* ``bilateral_pinit``: the same with the first weights taken from the plain
-  Poisson solution;
+* ``bilateral``: BiNI (the default of ``gpps integrate``): its IRLS with its
+  defaults (k = 2, N-multiplied one-sided equations, first solve with
+  w = 1/2, relative energy change 1e-4, at most 150 iterations) and its inner
+  Jacobi-preconditioned CG to 1e-3, warm-started, on the device in float64
+  (gpps/pipeline/integration_bini.py; perf/integration_bini.py times it
+  against BiNI's reference code);
 * ``robust``: uniform Poisson with a Cauchy loss on the edge residuals
   (IntegratorConfig.robust, 8 re-weighted solves, sigma = 2 robust standard
   deviations): the few wrong normals of the maps stop bending the surface.
@@ -21,13 +21,13 @@ normal map (BiNI 16-bit colour coding) with the object's K in three modes:
 sigma (robust_scale) over the same objects, so that the default's margin is
 on record rather than picked from the table.
 
-All solves are Taichi multigrid-preconditioned CG in float64.  The error is
+The Poisson solves are Taichi multigrid-preconditioned CG in float64.  The error is
 the mean absolute depth error (MADE, mm) over mask & finite depth_gt after
 aligning the one free scale either by BiNI's rule (``median(gt / est)``, the
 published protocol: ``ratio`` uses it) or by least squares.
 
 Usage: python perf/integration_diligent.py [--device cpu] [--solver multigrid] [--objects bear,cow]
-       [--modes poisson,bilateral,bilateral_pinit,robust,curl] [--curl-scales 1,1.5,2,3,4]
+       [--modes poisson,bilateral,robust,curl] [--curl-scales 1,1.5,2,3,4]
 Writes perf/results/integration_diligent_<device>.json.
 """
 
@@ -49,8 +49,7 @@ BINI = {"bear": 0.334, "buddha": 1.098, "cow": 0.058, "goblet": 9.018, "pot1": 0
 SMOOTH = {"bear", "cow", "pot1", "pot2"}  # the issue's 1.2x target; buddha and goblet are reported
 MODES = {
     "poisson": dict(bilateral=False, weighting="uniform"),
-    "bilateral": dict(bilateral=True, weighting="normal", bilateral_init="bini"),
-    "bilateral_pinit": dict(bilateral=True, weighting="normal", bilateral_init="poisson"),
+    "bilateral": dict(bilateral=True),
     "robust": dict(robust="cauchy", weighting="uniform"),
     "curl": dict(robust="curl", weighting="uniform"),
 }

@@ -1,5 +1,9 @@
 """``gpps integrate``: integrate a normal map into depth, a mesh and a view.
 
+Default: bilateral normal integration (BiNI), which keeps depth discontinuities
+(occluding rims, overlapping objects); ``--method poisson`` (or any of
+``--solver``, ``--tol``, ``--robust``) is the plain least-squares solve.
+
 Writes ``depth.npy``, ``depth.tiff``, ``mesh.ply``, ``view.png`` and
 ``report.json`` (timings, iterations, residual) into ``--out``.
 """
@@ -23,13 +27,19 @@ def register(subparsers) -> None:
     p.add_argument("--mask", required=True, help="mask image (non-zero = integrate)")
     p.add_argument("--K", dest="K", default=None, help="3x3 intrinsics text file: perspective camera")
     p.add_argument("--pixel-size", type=float, default=1.0, help="orthographic pixel size (scene units; default 1)")
-    p.add_argument("--solver", choices=["multigrid", "jacobi", "direct"], default="multigrid")
-    p.add_argument("--tol", type=float, default=1e-5, help="relative residual to reach (default 1e-5)")
-    p.add_argument("--bilateral", action="store_true", help="discontinuity-preserving (BiNI) re-weighting")
-    p.add_argument("--robust", nargs="?", const="curl", default="none", choices=["none", "curl", "cauchy"],
-                   help="down-weight wrong normals so they stop bending the surface: 'curl' (bare --robust; "
-                        "edges weighted by the integrability of their loops, one solve: the mode for measured "
-                        "normal maps) or 'cauchy' (IRLS on the edge residuals)")
+    p.add_argument("--method", choices=["bini", "poisson"], default=None,
+                   help="'bini' (default): bilateral normal integration (Cao et al. 2022), discontinuity-preserving, "
+                        "BiNI's parameters (k=2, energy tolerance 1e-4, inner CG tolerance 1e-3): the mode for "
+                        "measured normal maps; 'poisson': one least-squares solve, for smooth surfaces (implied by "
+                        "--solver, --tol or --robust)")
+    p.add_argument("--k", type=float, default=2.0, help="BiNI's sigmoid sharpness (default 2, the paper's)")
+    p.add_argument("--bilateral", action="store_true", help="the same as --method bini")
+    p.add_argument("--solver", choices=["multigrid", "jacobi", "direct"], default=None,
+                   help="Poisson solver (default multigrid)")
+    p.add_argument("--tol", type=float, default=None, help="Poisson: relative residual to reach (default 1e-5)")
+    p.add_argument("--robust", nargs="?", const="curl", default=None, choices=["none", "curl", "cauchy"],
+                   help="Poisson: down-weight wrong normals: 'curl' (bare --robust; edges weighted by the "
+                        "integrability of their loops) or 'cauchy' (IRLS on the edge residuals)")
     p.add_argument("--reference-depth", type=float, default=None, help="mean depth per component (scene units)")
     add_output_args(p, "output folder (depth.npy, depth.tiff, mesh.ply, view.png, report.json)")
     p.set_defaults(func=run)
@@ -66,19 +76,30 @@ def run(args) -> int:
     if mask.shape != normals.shape[:2]:
         raise ValueError(f"mask: expected shape {normals.shape[:2]} matching the normals, got {mask.shape}")
     camera = Perspective(read_K(args.K)) if args.K else Orthographic(args.pixel_size)
-    res = integrate_normals(
-        normals, mask, camera=camera, solver=args.solver, tol=args.tol, bilateral=args.bilateral,
-        robust=args.robust,
-        reference_depth=args.reference_depth, device=args.device, progress=bar("integrate"),
-    )
+    poisson_opts = [f"--{k}" for k in ("solver", "tol", "robust") if getattr(args, k) is not None]
+    method = args.method or ("bini" if args.bilateral or not poisson_opts else "poisson")
+    if method == "bini" and poisson_opts:
+        raise ValueError(f"--method: {', '.join(poisson_opts)} set(s) the Poisson solve; expected --method poisson "
+                         f"with them, got --method bini")
+    if args.bilateral and method != "bini":
+        raise ValueError("--bilateral: expected no --method poisson with it")
+    if method == "bini":
+        res = integrate_normals(normals, mask, camera=camera, bilateral=True, bilateral_k=float(args.k),
+                                reference_depth=args.reference_depth, device=args.device, progress=bar("integrate"))
+    else:
+        res = integrate_normals(
+            normals, mask, camera=camera, solver=args.solver or "multigrid",
+            tol=1e-5 if args.tol is None else args.tol, robust=args.robust or "none",
+            reference_depth=args.reference_depth, device=args.device, progress=bar("integrate"),
+        )
     with atomic_dir(out, overwrite=args.overwrite, inputs=inputs, name="--out") as tmp:
-        _write(tmp, res, camera, args)
-    print(f"integrate: {int(res.mask.sum())} pixels, {res.iterations} iterations, residual {res.residual:.2e}, "
-          f"{res.timings.get('total', 0):.2f} s -> {args.out}")
+        _write(tmp, res, camera, args, method)
+    print(f"integrate ({method}): {int(res.mask.sum())} pixels, {res.outer_iterations} outer / {res.iterations} "
+          f"iterations, residual {res.residual:.2e}, {res.timings.get('total', 0):.2f} s -> {args.out}")
     return 0
 
 
-def _write(out, res, camera, args) -> None:
+def _write(out, res, camera, args, method) -> None:
     from gpps.io import save_json, save_npy, save_tiff
     from gpps.mesh import depth_to_mesh, render_view, save_mesh
 
@@ -91,9 +112,11 @@ def _write(out, res, camera, args) -> None:
         "residual": res.residual, "solver_residual": res.solver_residual, "converged": res.converged,
         "n_pixels": int(res.mask.sum()), "n_invalid": res.n_invalid, "n_components": res.n_components,
         "timings_s": res.timings, "camera": "perspective" if camera.is_perspective else "orthographic",
-        "bilateral": bool(args.bilateral), "robust": args.robust, "device": args.device, "view": view["method"],
+        "method": method, "robust": args.robust or "none", "device": args.device, "view": view["method"],
     }
     if "reason" in view:
         report["view_fallback_reason"] = view["reason"]
+    if method == "bini":
+        report.update(k=float(args.k), energy=res.energy)
     report["warnings"] = warning_messages(args)
     save_json(out / "report.json", report)

@@ -131,6 +131,11 @@ class RONConfig:
         integrator: settings of the Taichi integrator (step 3); None: multigrid
             to a relative residual of 1e-5, with the ``"normal"`` (n_z^2) weighting
             for perspective cameras and ``"uniform"`` for orthographic ones.
+        final_integrator: settings of the last integration, the depth that is
+            returned (an IntegratorConfig); None: ``integrator``'s.  ``gpps
+            reconstruct`` sets ``IntegratorConfig(bilateral=True)`` (BiNI, which
+            keeps depth discontinuities) while the rounds, whose depth only moves
+            point lights, keep the warm-started Poisson solve.
         seed: seed of the pixel sample (results are reproducible).
     """
 
@@ -150,6 +155,7 @@ class RONConfig:
     roughness_window: float = 4.0
     solver: SolverConfig = field(default_factory=SolverConfig)
     integrator: object = None  # gpps.pipeline.integration.IntegratorConfig (None: defaults)
+    final_integrator: object = None  # IntegratorConfig of the returned depth (None: integrator's)
     seed: int = 0
 
     def __post_init__(self):
@@ -184,6 +190,12 @@ class RONConfig:
 
             if not isinstance(self.integrator, IntegratorConfig):
                 raise TypeError(f"integrator: expected IntegratorConfig or None, got {type(self.integrator).__name__}")
+        if self.final_integrator is not None:
+            from gpps.pipeline.integration import IntegratorConfig
+
+            if not isinstance(self.final_integrator, IntegratorConfig):
+                raise TypeError(f"final_integrator: expected IntegratorConfig or None, got "
+                                f"{type(self.final_integrator).__name__}")
         if self.material_rule == "depth-rms" and any(e not in ("roughness",) for e in self.estimate):
             raise ValueError("material_rule: 'depth-rms' (4.19) estimates the Cook-Torrance roughness only; "
                              f"got estimate={self.estimate}")
@@ -578,7 +590,17 @@ class RON:
         depth_out, depth_mask, ires = None, np.zeros((h, w), bool), None
         if c.integrate:
             t = time.perf_counter()
-            integ = self.integrator.integrate(out["normals"], reference_depth=reference_depth)
+            if c.final_integrator is None or c.final_integrator == self.integrator.config:
+                integ = self.integrator.integrate(out["normals"], reference_depth=reference_depth)
+            else:
+                from gpps.pipeline.integration import Integrator
+
+                final = Integrator(self.mask, camera=self.camera, config=c.final_integrator,
+                                   device=self._taichi_device())
+                try:
+                    integ = final.integrate(out["normals"], reference_depth=reference_depth)
+                finally:
+                    final.close()
             depth_out, depth_mask, ires = integ.depth, integ.mask, float(integ.residual)
             timings["integration"] += time.perf_counter() - t
         step(total, total, "done")

@@ -1,0 +1,326 @@
+"""Taichi device math of bilateral normal integration (BiNI, Cao et al., ECCV 2022).
+
+The unknown ``u`` (depth, or log-depth under the perspective camera) lives on
+the ``n`` valid pixels in a compact layout: pixel ``p`` has the neighbour
+indices ``nb[p, 0..3]`` = right (j+1), left (j-1), down (i+1), up (i-1), -1
+where there is none.  Each pixel owns BiNI's four one-sided equations in the
+multiplied form (the residual is ``N D - m``, no division by ``N``):
+
+    j:  N_j (u_right - u_p) - m_j,    N_j (u_p - u_left) - m_j
+    i:  N_i (u_down  - u_p) - m_i,    N_i (u_p - u_up)   - m_i
+
+with weights ``w_j, 1 - w_j`` and ``w_i, 1 - w_i``; a missing neighbour's
+difference is 0 (its equation is the constant ``m^2``, as in BiNI's matrices).
+IRLS re-weighting (BiNI eq. (20)): ``w_j = sigmoid(k ((N_j D_left)^2 -
+(N_j D_right)^2))`` from the current ``u``, so the side with the smaller jump
+gets the weight.  For fixed weights, the normal equations are the weighted
+graph Laplacian ``A u = b`` with edge weight ``W = N_a^2 w+_a + N_b^2 w-_b``
+on the edge ``a -> b`` and flux ``F = N_a m_a w+_a + N_b m_b w-_b``; they are
+solved by BiNI's Jacobi-preconditioned conjugate gradient (diagonal clipped
+at 1e-5), warm-started from the previous iterate.
+
+Every reduction is accumulated in float64.  The CG iteration is two parallel
+loops and nothing serial: the direction update ``p = z + beta p`` is fused into
+the next ``A p`` (each pixel forms its own and its neighbours' new ``p``; the
+directions ping-pong between two buffers), and the scalars live in three sets
+of fields (the iteration modulo 3), so a loop only reads the sets the previous
+loops finished and zeroes the set the next loop accumulates into.  The stopping test (``|r|^2 <= tol^2 |b|^2``, at least one iteration, as
+BiNI) is made by every pixel alike from the finished column, so one launch runs
+several iterations (unrolled, ``ti.static``) and turns into no-ops once the
+solve is done: the host checks once per launch and never overshoots.  :func:`make_bini` builds the kernels
+over one set of fields (closed over, not passed: a launch has no per-argument
+cost).
+
+Only device code lives here; allocation and orchestration are in
+:mod:`gpps.pipeline.integration_bini`.
+"""
+
+from gpps._taichi import ti
+
+# indices into the scalar field ``sc``
+BB, ENERGY, ITS, TOTAL = range(4)
+NSC = 4
+
+
+
+@ti.func
+def _sigmoid(x):
+    """Logistic ``1 / (1 + exp(-x))`` without overflow (float64)."""
+    v = ti.cast(0.0, ti.f64)
+    if x >= 0:
+        v = 1.0 / (1.0 + ti.exp(-x))
+    else:
+        e = ti.exp(x)
+        v = e / (1.0 + e)
+    return v
+
+
+@ti.func
+def _diffs(x: ti.template(), nb: ti.template(), p):
+    """One-sided differences (right, left, down, up) of ``x`` at compact pixel ``p`` (0 where no neighbour)."""
+    xp = x[p]
+    dr = xp * 0
+    dl = xp * 0
+    dd = xp * 0
+    du = xp * 0
+    if nb[p, 0] >= 0:
+        dr = x[nb[p, 0]] - xp
+    if nb[p, 1] >= 0:
+        dl = xp - x[nb[p, 1]]
+    if nb[p, 2] >= 0:
+        dd = x[nb[p, 2]] - xp
+    if nb[p, 3] >= 0:
+        du = xp - x[nb[p, 3]]
+    return dr, dl, dd, du
+
+
+def make_bini(F: dict, unroll: int = 8, serial: bool = False):
+    """Build the BiNI kernels over the fields ``F``.
+
+    Args:
+        F: Taichi fields, float64 of length ``capacity`` unless noted: ``x`` (the
+            unknown), ``b, r, z, p0, p1, q`` (CG), ``Nj, Ni, mj, mi`` (equations),
+            ``wj, wi`` (forward weights), ``Wr, Wd, Fr, Fd`` (edge weights and
+            fluxes to the right / down neighbour), ``dinv`` (Jacobi), ``nb`` (i32
+            (capacity, 4): right, left, down, up, -1 none), ``pix`` (i32
+            (capacity, 2): row, column), ``sc`` (f64 (NSC,): scalars), ``pq, rr,
+            rz, done``: lists of three f64 (1,) fields, the CG scalars of the
+            iterations ``t mod 3`` (separate fields, so that no loop reads or writes the
+            field it sums into and Taichi keeps its sums warp/thread-local instead of
+            one float64 atomic a pixel).
+        unroll: CG iterations per launch of ``cg`` (a multiple of 6).
+        serial: ``cg`` runs on one thread with local sums (the CPU build:
+            Taichi's thread-pool dispatch of a loop costs more than a loop over
+            ~1e5 pixels, and a sum into a field element is an atomic per pixel).
+
+    Returns:
+        dict of kernels, each taking the pixel count ``n`` first:
+        ``energy(n)`` (``sc[ENERGY]`` of ``x`` under the current weights),
+        ``reweight(n, k)`` (BiNI's weight update, then ``sc[ENERGY]``),
+        ``begin(n)`` (assemble the system from the weights, CG start: ``r = b - A x``,
+        ``z = D^-1 r``), ``cg(n, tol2, maxit)`` (``unroll`` gated Jacobi-PCG
+        iterations; ``done[(unroll - 1) % 3][0]`` tells the host it is done,
+        ``rr[(sc[ITS] - 1) % 3][0]`` is the last ``|r|^2``),
+        ``scatter(n, out)`` (``out[i, j] = x[p]``).
+    """
+    x, b, r, z, p0, p1, q = F["x"], F["b"], F["r"], F["z"], F["p0"], F["p1"], F["q"]
+    Nj, Ni, mj, mi, wj, wi = F["Nj"], F["Ni"], F["mj"], F["mi"], F["wj"], F["wi"]
+    Wr, Wd, Fr, Fd, dinv, nb, pix, sc = F["Wr"], F["Wd"], F["Fr"], F["Fd"], F["dinv"], F["nb"], F["pix"], F["sc"]
+    pqf, rrf, rzf, dnf = F["pq"], F["rr"], F["rz"], F["done"]
+    if unroll % 6:
+        raise ValueError(f"unroll: expected a multiple of 6 (direction buffers by 2, scalar columns by 3), got {unroll}")
+
+    @ti.func
+    def _residuals(p):
+        dr, dl, dd, du = _diffs(x, nb, p)
+        a, c = Nj[p], Ni[p]
+        return a * dr, a * dl, c * dd, c * du
+
+    @ti.kernel
+    def energy(n: ti.i32):
+        sc[ENERGY] = 0
+        for p in range(n):
+            er, el, ed, eu = _residuals(p)
+            rr, rl, rd, ru = er - mj[p], el - mj[p], ed - mi[p], eu - mi[p]
+            w1, w2 = wj[p], wi[p]
+            sc[ENERGY] += w1 * rr * rr + (1 - w1) * rl * rl + w2 * rd * rd + (1 - w2) * ru * ru
+
+    @ti.kernel
+    def reweight(n: ti.i32, k: ti.f64):
+        sc[ENERGY] = 0
+        for p in range(n):
+            er, el, ed, eu = _residuals(p)
+            rr, rl, rd, ru = er - mj[p], el - mj[p], ed - mi[p], eu - mi[p]
+            w1 = _sigmoid(k * (el * el - er * er))
+            w2 = _sigmoid(k * (eu * eu - ed * ed))
+            wj[p] = w1
+            wi[p] = w2
+            sc[ENERGY] += w1 * rr * rr + (1 - w1) * rl * rl + w2 * rd * rd + (1 - w2) * ru * ru
+
+    @ti.func
+    def _apply(v: ti.template(), p):
+        """(A v)_p = sum_e W_e (v_p - v_q) over the edges of p."""
+        vp = v[p]
+        s = vp * 0
+        o = nb[p, 0]
+        if o >= 0:
+            s += Wr[p] * (vp - v[o])
+        o = nb[p, 1]
+        if o >= 0:
+            s += Wr[o] * (vp - v[o])
+        o = nb[p, 2]
+        if o >= 0:
+            s += Wd[p] * (vp - v[o])
+        o = nb[p, 3]
+        if o >= 0:
+            s += Wd[o] * (vp - v[o])
+        return s
+
+    @ti.kernel
+    def begin(n: ti.i32):
+        for p in range(n):
+            W1 = Wr[p] * 0
+            F1 = Wr[p] * 0
+            W2 = Wr[p] * 0
+            F2 = Wr[p] * 0
+            o = nb[p, 0]
+            if o >= 0:
+                W1 = Nj[p] * Nj[p] * wj[p] + Nj[o] * Nj[o] * (1 - wj[o])
+                F1 = Nj[p] * mj[p] * wj[p] + Nj[o] * mj[o] * (1 - wj[o])
+            o = nb[p, 2]
+            if o >= 0:
+                W2 = Ni[p] * Ni[p] * wi[p] + Ni[o] * Ni[o] * (1 - wi[o])
+                F2 = Ni[p] * mi[p] * wi[p] + Ni[o] * mi[o] * (1 - wi[o])
+            Wr[p] = W1
+            Fr[p] = F1
+            Wd[p] = W2
+            Fd[p] = F2
+        for p in range(n):
+            d = Wr[p] + Wd[p]
+            v = -Fr[p] - Fd[p]
+            o = nb[p, 1]
+            if o >= 0:
+                d += Wr[o]
+                v += Fr[o]
+            o = nb[p, 3]
+            if o >= 0:
+                d += Wd[o]
+                v += Fd[o]
+            b[p] = v
+            dinv[p] = 1.0 / ti.max(d, 1e-5)
+        sc[BB] = 0
+        ti.static(rzf[2])[0] = 0
+        for p in range(n):
+            rv = b[p] - _apply(x, p)
+            zv = dinv[p] * rv
+            r[p] = rv
+            z[p] = zv
+            p0[p] = 0  # the "previous direction" of iteration 0: p_0 = z_0
+            ti.static(rzf[2])[0] += rv * zv  # iteration -1's column: r_0 . z_0
+            sc[BB] += b[p] * b[p]
+        ti.static(rzf[1])[0] = 1.0  # iteration -2's r.z: any nonzero value (it multiplies p = 0)
+        ti.static(rrf[2])[0] = 1e300  # BiNI always runs at least one iteration
+        ti.static(dnf[2])[0] = 0
+        ti.static(pqf[0])[0] = 0
+        sc[ITS] = 0
+
+    @ti.kernel
+    def cg(n: ti.i32, tol2: ti.f64, maxit: ti.i32):
+        for t in ti.static(range(unroll)):
+            c, c1, c2 = ti.static(t % 3, (t + 2) % 3, (t + 1) % 3)  # columns of iterations t, t-1, t-2
+            pold, pnew = ti.static((p0, p1) if t % 2 == 0 else (p1, p0))
+            # (1) p_t = z_t + beta_t p_{t-1} (fused), q = A p_t, p_t . q; the stopping test of iteration t-1
+            ti.loop_config(serialize=serial)
+            for p in range(n):
+                done = ti.static(dnf[c1])[0] != 0 or ti.static(rrf[c1])[0] <= tol2 * sc[BB] or sc[ITS] >= maxit
+                beta = ti.static(rzf[c1])[0] / ti.static(rzf[c2])[0]
+                pq = x[p] * 0
+                if not done:
+                    pp = z[p] + beta * pold[p]
+                    s = pp * 0
+                    o = nb[p, 0]
+                    if o >= 0:
+                        s += Wr[p] * (pp - (z[o] + beta * pold[o]))
+                    o = nb[p, 1]
+                    if o >= 0:
+                        s += Wr[o] * (pp - (z[o] + beta * pold[o]))
+                    o = nb[p, 2]
+                    if o >= 0:
+                        s += Wd[p] * (pp - (z[o] + beta * pold[o]))
+                    o = nb[p, 3]
+                    if o >= 0:
+                        s += Wd[o] * (pp - (z[o] + beta * pold[o]))
+                    q[p] = s
+                    pnew[p] = pp
+                    pq = pp * s
+                ti.static(pqf[c])[0] += pq
+                if p == 0:
+                    ti.static(dnf[c])[0] = ti.cast(done, ti.f64)
+                    if not done:  # once done, the last iteration's column keeps its |r|^2
+                        ti.static(rrf[c])[0] = 0
+                        ti.static(rzf[c])[0] = 0
+            # (2) alpha = r.z / p.q, x += alpha p, r -= alpha q, z = D^-1 r, |r|^2, r.z
+            ti.loop_config(serialize=serial)
+            for p in range(n):
+                done = ti.static(dnf[c])[0] != 0
+                pq = ti.static(pqf[c])[0]
+                rr = x[p] * 0
+                rz = x[p] * 0
+                if not done and pq != 0:
+                    a = ti.static(rzf[c1])[0] / pq
+                    x[p] += a * pnew[p]
+                    rv = r[p] - a * q[p]
+                    r[p] = rv
+                    zv = dinv[p] * rv
+                    z[p] = zv
+                    rr = rv * rv
+                    rz = rv * zv
+                ti.static(rrf[c])[0] += rr
+                ti.static(rzf[c])[0] += rz
+                if p == 0:
+                    ti.static(pqf[(t + 1) % 3])[0] = 0
+                    if not done:
+                        sc[ITS] += 1
+                        sc[TOTAL] += 1
+
+    @ti.func
+    def _ap_fused(p, beta, pold: ti.template()):
+        """(p_new, (A p_new)_p) with p_new = z + beta pold formed on the fly for p and its neighbours."""
+        pp = z[p] + beta * pold[p]
+        s = pp * 0
+        o = nb[p, 0]
+        if o >= 0:
+            s += Wr[p] * (pp - (z[o] + beta * pold[o]))
+        o = nb[p, 1]
+        if o >= 0:
+            s += Wr[o] * (pp - (z[o] + beta * pold[o]))
+        o = nb[p, 2]
+        if o >= 0:
+            s += Wd[p] * (pp - (z[o] + beta * pold[o]))
+        o = nb[p, 3]
+        if o >= 0:
+            s += Wd[o] * (pp - (z[o] + beta * pold[o]))
+        return pp, s
+
+    @ti.kernel
+    def cg_serial(n: ti.i32, tol2: ti.f64, maxit: ti.i32):
+        # the same iteration on one thread (the CPU build): the sums are plain local
+        # accumulators (no atomics), in pixel order, and a finished solve skips its loops
+        for t in ti.static(range(unroll)):
+            c, c1, c2 = ti.static(t % 3, (t + 2) % 3, (t + 1) % 3)
+            pold, pnew = ti.static((p0, p1) if t % 2 == 0 else (p1, p0))
+            done = ti.static(dnf[c1])[0] != 0 or ti.static(rrf[c1])[0] <= tol2 * sc[BB] or sc[ITS] >= maxit
+            ti.static(dnf[c])[0] = ti.cast(done, ti.f64)
+            if not done:
+                beta = ti.static(rzf[c1])[0] / ti.static(rzf[c2])[0]
+                pq = ti.cast(0, ti.f64)
+                for p in range(n):  # inside a branch: a serial loop
+                    pp, v = _ap_fused(p, beta, pold)
+                    q[p] = v
+                    pnew[p] = pp
+                    pq += pp * v
+                ti.static(pqf[c])[0] = pq
+                rr = ti.cast(0, ti.f64)
+                rz = ti.cast(0, ti.f64)
+                if pq != 0:
+                    a = ti.static(rzf[c1])[0] / pq
+                    for p in range(n):
+                        x[p] += a * pnew[p]
+                        rv = r[p] - a * q[p]
+                        r[p] = rv
+                        zv = dinv[p] * rv
+                        z[p] = zv
+                        rr += rv * rv
+                        rz += rv * zv
+                    sc[ITS] += 1
+                    sc[TOTAL] += 1
+                ti.static(rrf[c])[0] = rr
+                ti.static(rzf[c])[0] = rz
+
+    @ti.kernel
+    def scatter(n: ti.i32, out: ti.types.ndarray()):
+        for p in range(n):
+            out[pix[p, 0], pix[p, 1]] = x[p]
+
+    return {"energy": energy, "reweight": reweight, "begin": begin, "cg": cg_serial if serial else cg,
+            "scatter": scatter}
