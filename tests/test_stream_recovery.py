@@ -178,6 +178,8 @@ def test_negative_device_frame_is_an_error(device):
 
 def _numpy_stats(images, mask, inten, lit_level, saturation):
     """The frame statistics from their definitions (gpps.kernels.stream.frame_stats)."""
+    from gpps.kernels import stream as ks
+
     raw = images * inten[:, None, None, :]
     m = mask.astype(bool)
     n = images.shape[0]
@@ -191,7 +193,7 @@ def _numpy_stats(images, mask, inten, lit_level, saturation):
     for i in range(1, h - 1):
         for j in range(1, w - 1):
             win = (slice(i - 1, i + 2), slice(j - 1, j + 2))
-            if m[win].all() and (tot[win] > lit_level * n).all():
+            if i % ks.HF_STEP_I == 0 and j % ks.HF_STEP_J == 0 and m[win].all() and (tot[win] > lit_level * n).all():
                 r = n * grey[:, win[0], win[1]] / tot[win]  # shading ratios: the albedo cancels
                 wgt = tot[i, j] / n
                 hf += wgt * np.abs((r * K).sum(axis=(1, 2))).sum()
