@@ -31,9 +31,40 @@ def warp():
                 wp.config.kernel_cache_dir = os.path.join(cache, "warp")
             elif os.environ.get("WARP_CACHE_PATH"):
                 wp.config.kernel_cache_dir = os.environ["WARP_CACHE_PATH"]
-            wp.init()
+            _init_quietly(wp)
             _wp = wp
     return _wp
+
+
+# printed by Warp's native library (fprintf to stderr, not Python's) on every machine without an NVIDIA driver:
+# not a problem there (gpps runs on the CPU), so it is dropped; anything else Warp prints is passed on
+_NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
+
+
+def _init_quietly(wp) -> None:
+    """``wp.init()`` with the native "no CUDA driver" warning filtered out of stderr (fd 2)."""
+    import sys
+    import tempfile
+
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):  # no real fd 2 (embedded interpreters)
+        wp.init()
+        return
+    with tempfile.TemporaryFile() as tmp:
+        try:
+            os.dup2(tmp.fileno(), 2)
+            wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        tmp.seek(0)
+        text = tmp.read().decode("utf-8", "replace")
+    rest = "".join(line for line in text.splitlines(keepends=True) if _NO_DRIVER not in line)
+    if rest:
+        sys.stderr.write(rest)
+        sys.stderr.flush()
 
 
 def available_devices() -> list[str]:

@@ -9,29 +9,58 @@ progress through callbacks, which :func:`gpps.cli._progress.bar` shows.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import io
 import sys
 import warnings
 
 # Subcommand modules, in the order they appear in --help.
-SUBCOMMANDS = ["render", "reconstruct", "integrate", "stream", "demo", "single"]
+SUBCOMMANDS = ["render", "reconstruct", "calibrate-lights", "integrate", "stream", "demo", "single"]
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows every option's default, except where the help text already states it, for flags
+    (store_true) and for ``None`` defaults (whose help says what happens then)."""
+
+    def _get_help_string(self, action):
+        h = action.help or ""
+        if "default" in h.lower() or action.default in (None, False, argparse.SUPPRESS) or isinstance(action, argparse._VersionAction):
+            return h
+        if action.option_strings or action.nargs in (argparse.OPTIONAL, argparse.ZERO_OR_MORE):
+            return h + " (default: %(default)s)"
+        return h
+
+
+class _Parser(argparse.ArgumentParser):
+    def __init__(self, *a, **k):
+        k.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*a, **k)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    from gpps import __version__
+
+    parser = _Parser(
         prog="gpps",
         description="Generalized perspective photometric stereo: normals, albedo and depth from a few images.",
     )
+    parser.add_argument("--version", action="version", version=f"gpps {__version__}", help="print the version and exit")
     parser.add_argument("--device", default="auto", help="Warp/Taichi device: auto (CUDA if present), cpu, cuda:0 ...")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    parser.add_argument("--quiet", "-q", action="store_true", help="no progress and no summary lines (errors, warnings and --json output still shown)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name in SUBCOMMANDS:
+        mod_name = name.replace("-", "_")
         try:
-            mod = importlib.import_module(f"gpps.cli.{name}")
+            mod = importlib.import_module(f"gpps.cli.{mod_name}")
         except ModuleNotFoundError as e:  # a subcommand not built yet
-            if e.name == f"gpps.cli.{name}":
+            if e.name == f"gpps.cli.{mod_name}":
                 continue
             raise
         mod.register(sub)
+    for p in sub.choices.values():  # also accepted after the command: gpps reconstruct DIR --quiet
+        p.add_argument("--quiet", "-q", action="store_true", default=argparse.SUPPRESS,
+                       help="no progress and no summary lines (errors, warnings and --json output still shown)")
     return parser
 
 
@@ -50,11 +79,16 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    from gpps.cli import _progress
+
+    _progress.configure(quiet=args.quiet)
+    quiet_out = args.quiet and not getattr(args, "json", False)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", GppsWarning)
         args.warnings = caught
         try:
-            status = int(args.func(args) or 0)
+            with contextlib.redirect_stdout(io.StringIO()) if quiet_out else contextlib.nullcontext():
+                status = int(args.func(args) or 0)
         except KeyboardInterrupt:
             print(f"gpps {args.command}: interrupted; nothing was written", file=sys.stderr)
             status = 130

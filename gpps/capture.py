@@ -1,0 +1,248 @@
+"""Photometric-stereo folders as users have them.
+
+:func:`read_capture` reads a folder of images taken by a fixed camera under
+different lights, in any format :mod:`gpps.formats` reads (PNG 8/16, PGM/PPM,
+JPEG, TIFF 8/16/32f, EXR, camera RAW), with whatever of the DiLiGenT-style
+side files is present:
+
+* ``filenames.txt``: the images, in order; without it, every image file of a
+  supported format in the folder, sorted by name (natural order: ``img2`` before
+  ``img10``), except the side images below.
+* ``light_directions.txt`` / ``light_positions.txt`` (N x 3, gpps frame),
+  ``light_intensities.txt`` (N x 3 RGB or N x 1): the lights; none of them
+  means uncalibrated.
+* ``mask.png`` (any supported format named ``mask.*``): the object; without
+  it an automatic mask (:func:`gpps.automask.automatic_mask`).
+* ``K.txt``: perspective camera (pixels), else orthographic.
+* an image named ``*ambient*`` (or ``ambient=`` a file): the scene with every
+  light off; it is subtracted from every image (negative values clipped to 0).
+* ``normal_gt.npy``, ``depth_gt.npy``, ``material.json``: optional.
+
+``max_size`` downscales images whose longer side exceeds it (area averaging;
+the mask by nearest neighbour; ``K`` scaled with the pixel grid: pixel
+centres at integers, so ``c' = (c + 0.5) s - 0.5``).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gpps.formats import IMAGE_EXTENSIONS, Transfer, read_image_file
+from gpps.io import Dataset, read_K, read_matrix
+
+__all__ = ["Capture", "read_capture", "list_images", "SIDE_IMAGE_STEMS"]
+
+#: image files that are not captures (compared on the lower-case stem)
+SIDE_IMAGE_STEMS = ("mask", "normal_gt", "normals", "albedo", "depth", "view", "normal", "chrome_mask", "matte_mask", "sphere_mask", "card_mask")
+
+
+def _natural_key(name: str):
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def _is_ambient(name: str) -> bool:
+    return "ambient" in Path(name).stem.lower()
+
+
+def list_images(root) -> list[str]:
+    """The capture images of a folder, in natural sorted order (no side images, no ambient image)."""
+    root = Path(root)
+    names = []
+    for p in root.iterdir():
+        if not p.is_file() or p.name.startswith("."):
+            continue
+        if p.suffix.lower() not in IMAGE_EXTENSIONS:
+            continue
+        stem = p.stem.lower()
+        if stem in SIDE_IMAGE_STEMS or stem.endswith("_gt") or _is_ambient(p.name):
+            continue
+        names.append(p.name)
+    return sorted(names, key=_natural_key)
+
+
+@dataclass
+class Capture:
+    """A folder read by :func:`read_capture`.
+
+    Attributes:
+        dataset: :class:`gpps.io.Dataset` (images divided by the light
+            intensities when those are given; ``light_intensities`` as read).
+        mask_source: "mask.png" (the file's name), "automatic" or "given".
+        automask: the automatic mask's info, when one was made.
+        formats: the image formats, bit depths and transfer curves seen.
+        ambient: the ambient image's file name, when one was subtracted.
+        scale: downscaling factor applied (1: none).
+        calibrated: whether the folder gives light directions or positions.
+    """
+
+    dataset: Dataset
+    mask_source: str
+    automask: dict | None = None
+    formats: list = field(default_factory=list)
+    ambient: str | None = None
+    scale: float = 1.0
+    calibrated: bool = True
+    saturated: np.ndarray | None = None
+
+
+def _find_side(root: Path, stem: str) -> Path | None:
+    for ext in IMAGE_EXTENSIONS:
+        for cand in (root / f"{stem}{ext}", root / f"{stem}{ext.upper()}"):
+            if cand.is_file():
+                return cand
+    return None
+
+
+def _resize(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    import cv2
+
+    out = cv2.resize(np.ascontiguousarray(img), size, interpolation=cv2.INTER_AREA)
+    return out[..., None] if out.ndim == 2 else out
+
+
+def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = None, ambient: str | None = "auto",
+                 mask=None, automask=None, normalise: bool = True, progress=None) -> Capture:
+    """Read a photometric-stereo folder as users have it.
+
+    Args:
+        root: the folder.
+        transfer: image transfer curve ("auto": sRGB decoded for JPEG only; see
+            :func:`gpps.formats.read_image_file`).
+        max_size: downscale so that the longer side is at most this (None: no).
+        ambient: "auto" (subtract an image named ``*ambient*`` if there is one),
+            None (never), or a file name (relative to ``root`` or absolute).
+        mask: None (``mask.*`` in the folder, else automatic), "auto" (always
+            automatic), or an (H, W) bool array / a mask file path.
+        automask: :class:`gpps.automask.AutoMaskConfig` for the automatic mask.
+        normalise: divide each image by its row of ``light_intensities.txt``.
+        progress: optional ``progress(done, total, message)`` while reading.
+
+    Returns:
+        :class:`Capture`.
+
+    Raises:
+        FileNotFoundError: no folder, or a named file is missing.
+        ValueError: no images, images of different sizes, side files of the
+            wrong shape, ``max_size`` < 8.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"dir: folder not found: {root}")
+    if max_size is not None and (int(max_size) != max_size or max_size < 8):
+        raise ValueError(f"max_size: expected an integer >= 8 or None, got {max_size!r}")
+    fn_file = root / "filenames.txt"
+    if fn_file.is_file():
+        names = [s.strip() for s in fn_file.read_text().splitlines() if s.strip() and not s.lstrip().startswith("#")]
+    else:
+        names = list_images(root)
+    if not names:
+        raise ValueError(f"dir: expected images ({', '.join(e[1:] for e in IMAGE_EXTENSIONS[:9])}, ...) or filenames.txt in {root}, found none")
+    n = len(names)
+    step = progress or (lambda *a, **k: None)
+
+    def opt(name, shape):
+        p = root / name
+        return read_matrix(p, shape=shape, name=name) if p.is_file() else None
+
+    ld = opt("light_directions.txt", (n, 3))
+    lp = opt("light_positions.txt", (n, 3))
+    li = opt("light_intensities.txt", (n, None))
+    if li is not None:
+        if li.shape[1] == 1:
+            li = np.repeat(li, 3, axis=1)
+        elif li.shape[1] != 3:
+            raise ValueError(f"light_intensities.txt: expected {n} rows of 1 or 3 values, got shape {li.shape}")
+    K = read_K(root / "K.txt") if (root / "K.txt").is_file() else None
+    imgs, formats = [], {}
+    for k, name in enumerate(names):
+        img, info = read_image_file(root / name, transfer=transfer)
+        imgs.append(img)
+        formats[(info["format"], info["bits"], info["transfer"])] = formats.get((info["format"], info["bits"], info["transfer"]), 0) + 1
+        step(k + 1, n, f"read {name}")
+    shapes = {im.shape[:2] for im in imgs}
+    if len(shapes) != 1:
+        raise ValueError(f"dir: expected images of one size, got {sorted(shapes)} in {root}")
+    chans = {im.shape[2] for im in imgs}
+    imgs = [np.repeat(im, 3, axis=-1) if im.shape[2] == 1 and chans != {1} else im for im in imgs]
+    images = np.stack(imgs)
+    if images.shape[-1] == 1:
+        images = np.repeat(images, 3, axis=-1)
+    amb_name = None
+    if ambient is not None:
+        if ambient == "auto":
+            cands = [p for p in sorted(root.iterdir()) if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS and _is_ambient(p.name) and p.name not in names]
+            amb_path = cands[0] if cands else None
+        else:
+            amb_path = Path(ambient) if Path(ambient).is_absolute() else root / ambient
+            if not amb_path.is_file():
+                raise FileNotFoundError(f"ambient: file not found: {amb_path}")
+        if amb_path is not None:
+            a, _ = read_image_file(amb_path, transfer=transfer)
+            if a.shape[:2] != images.shape[1:3]:
+                raise ValueError(f"ambient: expected shape {images.shape[1:3]}, got {a.shape[:2]} in {amb_path}")
+            images = np.clip(images - a[None], 0.0, None).astype(np.float32)
+            amb_name = amb_path.name
+    # saturation in the file (before any division), judged on the full-resolution values
+    saturated = None
+    h, w = images.shape[1:3]
+    mask_source = "given"
+    if mask is None:
+        mp = _find_side(root, "mask")
+        if mp is not None:
+            m_img, _ = read_image_file(mp, transfer="linear")
+            m = np.any(m_img > 0.5, axis=-1)
+            mask_source = mp.name
+        else:
+            m = None
+    elif isinstance(mask, str) and mask == "auto":
+        m = None
+    elif isinstance(mask, (str, Path)):
+        m_img, _ = read_image_file(mask, transfer="linear")
+        m = np.any(m_img > 0.5, axis=-1)
+        mask_source = str(mask)
+    else:
+        m = np.asarray(mask, bool)
+    if m is not None and m.shape != (h, w):
+        raise ValueError(f"mask: expected shape {(h, w)}, got {m.shape}")
+    scale = 1.0
+    if max_size is not None and max(h, w) > max_size:
+        scale = max_size / max(h, w)
+        size = (max(1, round(w * scale)), max(1, round(h * scale)))
+        images = np.stack([_resize(im, size) for im in images]).astype(np.float32)
+        if m is not None:
+            import cv2
+
+            m = cv2.resize(m.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+        sx, sy = size[0] / w, size[1] / h
+        if K is not None:
+            K = K.copy()
+            K[0, 0] *= sx
+            K[1, 1] *= sy
+            K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+            K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+        h, w = size[1], size[0]
+    am_info = None
+    if m is None:
+        from gpps.automask import automatic_mask
+
+        m, am_info = automatic_mask(images, automask)
+        mask_source = "automatic"
+    normalised = False
+    if normalise and li is not None:
+        if np.any(li <= 0):
+            raise ValueError("light_intensities.txt: expected positive intensities")
+        images = (images / li[:, None, None, :].astype(np.float32)).astype(np.float32)
+        normalised = True
+    ngt = np.load(root / "normal_gt.npy").astype(np.float32) if (root / "normal_gt.npy").is_file() and scale == 1.0 else None
+    dgt = np.load(root / "depth_gt.npy") if (root / "depth_gt.npy").is_file() and scale == 1.0 else None
+    mat = json.loads((root / "material.json").read_text()) if (root / "material.json").is_file() else None
+    ds = Dataset(images=images.astype(np.float32), mask=m, light_directions=ld, light_positions=lp, light_intensities=li,
+                 K=K, normal_gt=ngt, depth_gt=dgt, material=mat, filenames=list(names), normalised=normalised)
+    fmts = [{"format": f, "bits": b, "transfer": t, "images": c} for (f, b, t), c in formats.items()]
+    return Capture(dataset=ds, mask_source=mask_source, automask=am_info, formats=fmts, ambient=amb_name, scale=scale,
+                   calibrated=ld is not None or lp is not None, saturated=saturated)
