@@ -349,16 +349,19 @@ def highlight_centroid(image, region, *, min_contrast: float = 3.0) -> tuple[np.
     if vals.size == 0 or peak <= min_contrast * max(base, 1e-6) or peak <= 0:
         info["reason"] = "no highlight (peak not above the sphere's median)"
         return None, info
+    # the blob: pixels above half the way from the sphere's level to the peak, connected to the peak;
+    # the weights (intensity above the sphere's level) are taken over the blob grown by 2 pixels, so
+    # that the partly covered pixels at its edge (the sub-pixel information) count too
     thr = base + 0.5 * (peak - base)
-    blob = (g > thr) & r
-    lab, _ = ndimage.label(blob)
+    lab, _ = ndimage.label((g > thr) & r)
     ii, jj = np.unravel_index(np.argmax(np.where(r, g, -np.inf)), g.shape)
-    comp = lab == lab[ii, jj]
-    wts = (g - thr)[comp]
+    core = lab == lab[ii, jj]
+    comp = ndimage.binary_dilation(core, iterations=2) & r & (g > base + 0.02 * (peak - base))
+    wts = (g - base)[comp]
     ii, jj = np.nonzero(comp)
     u = float(np.sum(wts * jj) / np.sum(wts))
     v = float(np.sum(wts * ii) / np.sum(wts))
-    info.update(pixels=int(comp.sum()), saturated=bool(peak >= 0.99), others=int(lab.max() - 1),
+    info.update(pixels=int(core.sum()), saturated=bool(peak >= 0.99), others=int(lab.max() - 1),
                 blob_uv=np.stack([jj, ii], -1).astype(np.float64), blob_weights=wts)
     return np.array([u, v]), info
 

@@ -106,7 +106,7 @@ def _resize(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 
 def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = None, ambient: str | None = "auto",
-                 mask=None, automask=None, normalise: bool = True, progress=None) -> Capture:
+                 mask=None, automask=None, normalise: bool = True, lights=None, progress=None) -> Capture:
     """Read a photometric-stereo folder as users have it.
 
     Args:
@@ -117,9 +117,11 @@ def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = No
         ambient: "auto" (subtract an image named ``*ambient*`` if there is one),
             None (never), or a file name (relative to ``root`` or absolute).
         mask: None (``mask.*`` in the folder, else automatic), "auto" (always
-            automatic), or an (H, W) bool array / a mask file path.
+            automatic), "none" (every pixel), or an (H, W) bool array / a mask file path.
         automask: :class:`gpps.automask.AutoMaskConfig` for the automatic mask.
         normalise: divide each image by its row of ``light_intensities.txt``.
+        lights: another folder to read the light files from (e.g. the output of
+            ``gpps calibrate-lights``); its rows must be in the images' order.
         progress: optional ``progress(done, total, message)`` while reading.
 
     Returns:
@@ -145,9 +147,17 @@ def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = No
     n = len(names)
     step = progress or (lambda *a, **k: None)
 
+    lroot = root
+    if lights is not None:
+        lroot = Path(lights)
+        if not lroot.is_dir():
+            raise FileNotFoundError(f"lights: folder not found: {lroot}")
+        if not any((lroot / f).is_file() for f in ("light_directions.txt", "light_positions.txt")):
+            raise ValueError(f"lights: expected light_directions.txt or light_positions.txt in {lroot}")
+
     def opt(name, shape):
-        p = root / name
-        return read_matrix(p, shape=shape, name=name) if p.is_file() else None
+        p = lroot / name
+        return read_matrix(p, shape=shape, name=str(p)) if p.is_file() else None
 
     ld = opt("light_directions.txt", (n, 3))
     lp = opt("light_positions.txt", (n, 3))
@@ -201,6 +211,9 @@ def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = No
             m = None
     elif isinstance(mask, str) and mask == "auto":
         m = None
+    elif isinstance(mask, str) and mask == "none":
+        m = np.ones((h, w), bool)
+        mask_source = "none"
     elif isinstance(mask, (str, Path)):
         m_img, _ = read_image_file(mask, transfer="linear")
         m = np.any(m_img > 0.5, axis=-1)

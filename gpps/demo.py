@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from gpps.evaluation import depth_error
-from gpps.io import atomic_dir, check_output_dir, save_json, save_npy, save_png, write_dataset
+from gpps.io import atomic_dir, check_output_dir, save_json, write_dataset
 from gpps.material import Material
 from gpps.metrics import angular_error
 from gpps.scenes import make_scene
@@ -46,7 +46,6 @@ def run_demo(out: Path, *, size: int = 256, device=None, progress=None, overwrit
         write_dataset(tmp / "capture", ds)
         step(2, 4, "written")
         from gpps.lights import PointLights
-        from gpps.mesh import depth_to_mesh, render_view, save_mesh
         from gpps.photometric import solve_normals
         from gpps.reconstruction import reconstruct
 
@@ -64,12 +63,13 @@ def run_demo(out: Path, *, size: int = 256, device=None, progress=None, overwrit
         err = angular_error(rec.normals, scene.normals, scene.mask)[scene.mask]
         err_ls = angular_error(ls.normals, scene.normals, scene.mask)[scene.mask]
         depth_err = depth_error(rec.depth, rec.depth_mask, scene)  # perspective: up to one scale
-        save_npy(tmp / "normals.npy", rec.normals)
-        save_npy(tmp / "depth.npy", rec.depth)
-        save_png(tmp / "normals.png", (rec.normals + 1) / 2 * scene.mask[..., None], bits=8)
-        save_png(tmp / "albedo.png", np.clip(rec.albedo, 0, 1), bits=8)
-        save_mesh(depth_to_mesh(rec.depth, rec.depth_mask, scene.camera), tmp / "mesh.ply")
-        view = render_view(rec.depth, rec.depth_mask, scene.camera, tmp / "view.png")
+        from gpps.outputs import apply_depth_convention, depth_convention, write_outputs
+
+        conv = depth_convention(scene.camera, known_scale="the scene's working distance (demo: the object's distance is known)")
+        written = write_outputs(tmp, normals=rec.normals, albedo=rec.albedo, mask=scene.mask,
+                                depth=apply_depth_convention(rec.depth, rec.depth_mask, conv), depth_mask=rec.depth_mask,
+                                camera=scene.camera, depth_info=conv)
+        view = {"method": written.get("view")}
         report = {
             "scene": {"name": "bumps", "size": size, "camera": "perspective", "lights": "3 point lights",
                       "material": material.to_dict()},
@@ -78,6 +78,8 @@ def run_demo(out: Path, *, size: int = 256, device=None, progress=None, overwrit
             "estimated": rec.estimated,
             "energy_per_round": rec.energy,
             "view": view["method"],
+            "depth": conv,
+            "outputs": written["files"],
             "timings_s": {"render": t_render, "reconstruct": t_rec, **rec.timings},
             "summary": {
                 "MAEN, gpps (deg)": round(float(err.mean()), 3),

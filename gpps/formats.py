@@ -175,8 +175,10 @@ def save_float_tiff(path, array) -> None:
 
     from gpps.io import atomic_write
 
+    a = np.ascontiguousarray(np.asarray(array, dtype=np.float32))
+    photometric = "rgb" if a.ndim == 3 and a.shape[2] == 3 else "minisblack"
     with atomic_write(path) as tmp:
-        tifffile.imwrite(tmp, np.ascontiguousarray(np.asarray(array, dtype=np.float32)))
+        tifffile.imwrite(tmp, a, photometric=photometric)
 
 
 def save_exr(path, array, *, channels: str | None = None) -> None:

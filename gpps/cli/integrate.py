@@ -4,8 +4,10 @@ Default: bilateral normal integration (BiNI), which keeps depth discontinuities
 (occluding rims, overlapping objects); ``--method poisson`` (or any of
 ``--solver``, ``--tol``, ``--robust``) is the plain least-squares solve.
 
-Writes ``depth.npy``, ``depth.tiff``, ``mesh.ply``, ``view.png`` and
-``report.json`` (timings, iterations, residual) into ``--out``.
+Writes the output set of :mod:`gpps.outputs` (``depth.npy``, ``depth.tiff``,
+``depth.exr``, ``mesh.ply``, ``mesh.obj``, ``view.png``, ``normals.npy``,
+``normals.png``, ``mask.png``) and ``report.json`` (timings, iterations,
+residual, the depth convention) into ``--out``.
 """
 
 from __future__ import annotations
@@ -40,8 +42,9 @@ def register(subparsers) -> None:
     p.add_argument("--robust", nargs="?", const="curl", default=None, choices=["none", "curl", "cauchy"],
                    help="Poisson: down-weight wrong normals: 'curl' (bare --robust; edges weighted by the "
                         "integrability of their loops) or 'cauchy' (IRLS on the edge residuals)")
-    p.add_argument("--reference-depth", type=float, default=None, help="mean depth per component (scene units)")
-    add_output_args(p, "output folder (depth.npy, depth.tiff, mesh.ply, view.png, report.json)")
+    p.add_argument("--reference-depth", type=float, default=None, help="mean depth per component (scene units): a metric depth; "
+                                                                      "default: relative (perspective: mean 1; orthographic: pixels, mean 0)")
+    add_output_args(p, "output folder (the output set of gpps.outputs and report.json)")
     p.set_defaults(func=run)
 
 
@@ -93,29 +96,32 @@ def run(args) -> int:
             reference_depth=args.reference_depth, device=args.device, progress=bar("integrate"),
         )
     with atomic_dir(out, overwrite=args.overwrite, inputs=inputs, name="--out") as tmp:
-        _write(tmp, res, camera, args, method)
+        _write(tmp, res, camera, args, method, normals, mask)
     print(f"integrate ({method}): {int(res.mask.sum())} pixels, {res.outer_iterations} outer / {res.iterations} "
           f"iterations, residual {res.residual:.2e}, {res.timings.get('total', 0):.2f} s -> {args.out}")
     return 0
 
 
-def _write(out, res, camera, args, method) -> None:
-    from gpps.io import save_json, save_npy, save_tiff
-    from gpps.mesh import depth_to_mesh, render_view, save_mesh
+def _write(out, res, camera, args, method, normals, mask) -> None:
+    """The output set (:mod:`gpps.outputs`, depth in its convention) and report.json into the temporary folder ``out``."""
+    from gpps.io import save_json
+    from gpps.outputs import apply_depth_convention, depth_convention, write_outputs
 
-    save_npy(out / "depth.npy", res.depth)
-    save_tiff(out / "depth.tiff", res.depth)
-    save_mesh(depth_to_mesh(res.depth, res.mask, camera), out / "mesh.ply")
-    view = render_view(res.depth, res.mask, camera, out / "view.png")
+    conv = depth_convention(camera, known_scale="--reference-depth" if args.reference_depth is not None else None)
+    depth = apply_depth_convention(res.depth, res.mask, conv)
+    nn = normals / np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
+    written = write_outputs(out, normals=nn, albedo=None, mask=mask, depth=depth, depth_mask=res.mask,
+                            camera=camera, depth_info=conv)
     report = {
         "solver": res.solver, "iterations": res.iterations, "outer_iterations": res.outer_iterations,
         "residual": res.residual, "solver_residual": res.solver_residual, "converged": res.converged,
         "n_pixels": int(res.mask.sum()), "n_invalid": res.n_invalid, "n_components": res.n_components,
         "timings_s": res.timings, "camera": "perspective" if camera.is_perspective else "orthographic",
-        "method": method, "robust": args.robust or "none", "device": args.device, "view": view["method"],
+        "method": method, "robust": args.robust or "none", "device": args.device, "view": written.get("view"),
+        "depth": conv, "outputs": written["files"],
     }
-    if "reason" in view:
-        report["view_fallback_reason"] = view["reason"]
+    if "view_fallback_reason" in written:
+        report["view_fallback_reason"] = written["view_fallback_reason"]
     if method == "bini":
         report.update(k=float(args.k), energy=res.energy)
     report["warnings"] = warning_messages(args)

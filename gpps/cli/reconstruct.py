@@ -24,6 +24,8 @@ def register(subparsers) -> None:
                                                 "view.png, mask.png, report.json; uncalibrated: lights_estimated.txt, light_intensities_estimated.txt)")
     p.add_argument("--uncalibrated", action="store_true", help="estimate the lights from the images even when light files are present "
                                                                "(without light files this is automatic)")
+    p.add_argument("--lights", default=None, help="folder with the light files (e.g. from gpps calibrate-lights), rows in the images' order; "
+                                                  "default: the light files in DIR")
     p.add_argument("--mask", default=None, help="mask image (non-zero = object); default: DIR/mask.* if present, else an automatic mask "
                                                 "(pixels lit in enough images), written to the outputs; 'auto' forces the automatic mask")
     p.add_argument("--max-size", type=int, default=None, help="downscale images whose longer side exceeds this many pixels "
@@ -116,7 +118,7 @@ def run(args) -> int:
     prog = bar("reconstruct")
     cap = read_capture(args.dir, transfer=args.transfer, max_size=args.max_size,
                        ambient=None if args.ambient == "none" else args.ambient,
-                       mask=args.mask, normalise=not args.uncalibrated, progress=bar("read"))
+                       mask=args.mask, normalise=not args.uncalibrated, lights=args.lights, progress=bar("read"))
     ds = cap.dataset
     n, h, w = ds.images.shape[:3]
     camera = camera_from_K(ds.K) if ds.K is not None else Orthographic(args.pixel_size or 1.0)

@@ -2,10 +2,12 @@
 
 The shipped network predicts normals and depth; with the images' lights
 estimated jointly, a cuckoo search refines each pixel's normal and albedo on the
-Blinn-Phong reprojection error (seed ch. 6).  Writes ``normals.npy``,
-``normals.png``, ``normals_net.npy``, ``normals_net.png``, ``height_net.npy``,
-``albedo.png``, ``depth.npy``, ``mesh.ply``, ``view.png`` and ``report.json``
-into ``--out`` (atomically: the folder appears complete or not at all).
+Blinn-Phong reprojection error (seed ch. 6).  Writes the output set of
+:mod:`gpps.outputs` (normals, albedo, depth as npy/TIFF/EXR, mesh as PLY/OBJ,
+view, mask), ``normals_net.npy``, ``normals_net.png``, ``height_net.npy`` and
+``report.json`` into ``--out`` (atomically: the folder appears complete or not
+at all).  Nothing is known about the camera: orthographic, depth in pixels
+(relative, mean 0).
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ def register(subparsers) -> None:
     p.add_argument("--beta", type=float, default=0.01, help="Levy step size (seed 6.2.5: 0.01)")
     p.add_argument("--pc", type=float, default=0.4, help="abandonment probability p_c (seed 6.2.5: 0.4)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the search")
-    p.add_argument("--prior-weight", type=float, default=None, help="pull toward the network's normals")
+    p.add_argument("--prior-weight", type=float, default=None, help="pull toward the network's normals (None: the search's default)")
     p.add_argument("--max-size", type=int, default=512, help="downscale images whose longer side exceeds this")
     p.set_defaults(func=run)
 
@@ -51,7 +53,6 @@ def run(args) -> int:
 
     from gpps.cli._progress import bar
     from gpps.io import atomic_dir, read_mask, save_json, save_npy, save_png
-    from gpps.mesh import depth_to_mesh, render_view, save_mesh
     from gpps.pipeline.cuckoo import CuckooConfig
     from gpps.pipeline.single import SingleConfig, reconstruct_single
 
@@ -80,31 +81,30 @@ def run(args) -> int:
     device = None if args.device == "auto" else args.device
     res = reconstruct_single(imgs, mask, config=cfg, device=device, progress=bar("single"))
     m = res.mask
-    depth = np.where(m, res.depth - res.depth[m].min() + 1.0, 0.0).astype(np.float32) if res.depth is not None else None
-    with atomic_dir(out_dir, overwrite=args.overwrite, inputs=inputs, name="--out") as out:
-        save_npy(out / "normals.npy", res.normals)
-        save_png(out / "normals.png", _normal_png(res.normals, m), bits=8)
-        save_npy(out / "normals_net.npy", res.normals_net)
-        save_png(out / "normals_net.png", _normal_png(res.normals_net, m), bits=8)
-        save_npy(out / "height_net.npy", res.height_net)
-        a = res.albedo / max(float(np.percentile(res.albedo[m], 99)), 1e-6)
-        save_png(out / "albedo.png", np.clip(a, 0, 1), bits=8)
-        from gpps.camera import Orthographic
+    from gpps.camera import Orthographic
+    from gpps.outputs import apply_depth_convention, depth_convention, write_outputs
 
-        cam = Orthographic(pixel_size=2.0 / max(m.shape))
-        save_npy(out / "depth.npy", depth)
-        save_mesh(depth_to_mesh(depth, m, cam), out / "mesh.ply")
-        view = render_view(depth, m, cam, out / "view.png")
+    cam = Orthographic(1.0)
+    conv = depth_convention(cam)
+    depth = None
+    if res.depth is not None:  # the network's depth is in units of half the longer image side: to pixels
+        depth = apply_depth_convention(np.asarray(res.depth, np.float64) * (max(m.shape) / 2.0), m, conv)
+    with atomic_dir(out_dir, overwrite=args.overwrite, inputs=inputs, name="--out") as out:
+        written = write_outputs(out, normals=res.normals, albedo=res.albedo, mask=m, depth=depth, depth_mask=m,
+                                camera=cam, depth_info=conv)
+        save_npy(out / "normals_net.npy", res.normals_net)
+        save_png(out / "normals_net.png", _normal_png(res.normals_net, m), bits=16)
+        save_npy(out / "height_net.npy", res.height_net)
         report = {
             "images": [str(p) for p in args.images], "shape": list(m.shape), "pixels": int(m.sum()),
             "config": {"rounds": cfg.rounds, "nests": args.nests, "generations": args.generations, "beta": args.beta,
                        "p_c": args.pc, "seed": args.seed, "prior_weight": cfg.prior_weight},
             "light_directions": res.light_directions, "light_intensities": res.light_intensities, "ks": res.ks,
-            "shininess": res.shininess, "highlights": res.highlights, "objective": res.objective, "timings_s": res.timings, "view": view["method"],
-            "depth_unit": "half the longer image side (orthographic, nothing known about the camera)",
+            "shininess": res.shininess, "highlights": res.highlights, "objective": res.objective, "timings_s": res.timings,
+            "view": written.get("view"), "depth": conv, "outputs": written["files"] + ["normals_net.npy", "normals_net.png", "height_net.npy"],
         }
-        if "reason" in view:
-            report["view_fallback_reason"] = view["reason"]
+        if "view_fallback_reason" in written:
+            report["view_fallback_reason"] = written["view_fallback_reason"]
         report["warnings"] = warning_messages(args)
         save_json(out / "report.json", report)
     print(f"single: {int(m.sum())} pixels, {len(imgs)} image(s), {res.timings.get('total', 0):.1f} s -> {args.out}")
