@@ -19,7 +19,7 @@ import numpy as np
 
 from gpps._check import as_array
 
-__all__ = ["AutoMaskConfig", "automatic_mask"]
+__all__ = ["AutoMaskConfig", "automatic_mask", "lit_pixels"]
 
 
 @dataclass(frozen=True)
@@ -54,6 +54,33 @@ class AutoMaskConfig:
             raise ValueError(f"opening: expected an integer >= 0, got {self.opening!r}")
 
 
+def _grey(images):
+    imgs = as_array("images", images)
+    if imgs.ndim == 4:
+        grey = imgs.mean(-1)
+    elif imgs.ndim == 3:
+        grey = imgs
+    else:
+        raise ValueError(f"images: expected (N, H, W) or (N, H, W, C), got shape {imgs.shape}")
+    if grey.shape[0] < 1:
+        raise ValueError("images: expected at least one image")
+    return np.nan_to_num(grey.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def lit_pixels(images, config: AutoMaskConfig | None = None) -> np.ndarray:
+    """(H, W) bool: pixels lit (above ``level`` x the image's 99th percentile) in at least ``fraction`` of the images.
+
+    The raw criterion of :func:`automatic_mask`, before any cleaning: the
+    pixels that carry photometric evidence (a pixel dark in nearly every image,
+    such as a pupil, says nothing about the lights).
+    """
+    cfg = config or AutoMaskConfig()
+    grey = _grey(images)
+    n = grey.shape[0]
+    bright = np.percentile(grey.reshape(n, -1), 99, axis=1)
+    return (grey > cfg.level * np.maximum(bright, 1e-12)[:, None, None]).sum(0) >= max(1, int(np.ceil(cfg.fraction * n)))
+
+
 def automatic_mask(images, config: AutoMaskConfig | None = None) -> tuple[np.ndarray, dict]:
     """Object mask from images under different lights.
 
@@ -71,19 +98,7 @@ def automatic_mask(images, config: AutoMaskConfig | None = None) -> tuple[np.nda
     from scipy import ndimage
 
     cfg = config or AutoMaskConfig()
-    imgs = as_array("images", images)
-    if imgs.ndim == 4:
-        grey = imgs.mean(-1)
-    elif imgs.ndim == 3:
-        grey = imgs
-    else:
-        raise ValueError(f"images: expected (N, H, W) or (N, H, W, C), got shape {imgs.shape}")
-    n = grey.shape[0]
-    if n < 1:
-        raise ValueError("images: expected at least one image")
-    grey = np.nan_to_num(grey.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    bright = np.percentile(grey.reshape(n, -1), 99, axis=1)
-    lit = (grey > cfg.level * np.maximum(bright, 1e-12)[:, None, None]).sum(0) >= max(1, int(np.ceil(cfg.fraction * n)))
+    lit = lit_pixels(images, cfg)
     raw_count = int(lit.sum())
     m = lit
     if cfg.opening > 0:

@@ -9,10 +9,10 @@ from gpps.cli._output import prepare_out
 
 def register(sub):
     p = sub.add_parser("demo", help="render an embedded perspective Cook-Torrance scene under near point lights and reconstruct it with the pipeline")
-    p.add_argument("--out", default="gpps_demo", help="output folder (default gpps_demo); must be new, empty, or an "
-                                                      "earlier gpps output (with --overwrite)")
+    p.add_argument("--out", default="gpps_demo", help="output folder: the capture, the outputs, report.json (default gpps_demo); "
+                                                      "must be new, empty, or an earlier gpps output (with --overwrite)")
     p.add_argument("--overwrite", action="store_true", help="replace --out when it holds an earlier gpps output")
-    p.add_argument("--size", type=int, default=256)
+    p.add_argument("--size", type=int, default=256, help="image size of the rendered scene (pixels)")
     p.set_defaults(func=run)
 
 

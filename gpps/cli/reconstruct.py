@@ -146,16 +146,34 @@ def run(args) -> int:
         keep = [k for k in range(n) if k not in drop]
         used = [ds.filenames[k] for k in keep]
         t = time.perf_counter()
-        res = solve_uncalibrated(ds.images[keep], ds.mask, camera=camera if camera.is_perspective else None, config=cfg,
+        # the lights are estimated from the pixels that carry evidence: lit in enough images (a pupil or a
+        # hole dark in nearly every image says nothing about them); the rest of the mask is then solved
+        # with the estimated lights (Lambertian least squares)
+        from gpps.automask import lit_pixels
+
+        imgs_used = ds.images[keep]
+        evidence = ds.mask & lit_pixels(imgs_used)
+        if evidence.sum() < 0.5 * ds.mask.sum():
+            evidence = ds.mask
+        res = solve_uncalibrated(imgs_used, evidence, camera=camera if camera.is_perspective else None, config=cfg,
                                  device=device, progress=prog)
-        flip, decision = _flip_decision(res, ds.mask, camera)
+        flip, decision = _flip_decision(res, evidence, camera)
         F = np.diag([-1.0, -1.0, 1.0])
         normals, ldirs = (res.normals @ F, res.light_directions @ F) if flip else (res.normals, res.light_directions)
         albedo = res.albedo
         intens = np.repeat(np.asarray(res.light_intensities, np.float64)[:, None], 3, 1)
+        rest = ds.mask & ~evidence
+        if rest.any():
+            from gpps.photometric import solve_normals
+
+            ls = solve_normals(imgs_used / intens[:, None, None, :].astype(np.float32), rest, DirectionalLights(ldirs),
+                               camera=camera, solver="none", device=device)
+            normals = np.where(rest[..., None], ls.normals, normals)
+            albedo = np.where(rest[..., None], ls.albedo, albedo)
         report.update(method="uncalibrated", lights="estimated (directional)", convex_concave=decision,
                       images_used=used, images_left_out=[ds.filenames[k] for k in drop],
-                      material=res.material, gbr=res.gbr, timings={"uncalibrated": time.perf_counter() - t, **res.timings})
+                      light_evidence_pixels=int(evidence.sum()), material=res.material, gbr=res.gbr,
+                      timings={"uncalibrated": time.perf_counter() - t, **res.timings})
         lights = DirectionalLights(ldirs)
     else:
         report["method"] = args.method

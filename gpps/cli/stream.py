@@ -36,7 +36,7 @@ def register(sub):
     p.add_argument("--synthetic", action="store_true", help="stream a moving synthetic scene instead of SOURCE")
     p.add_argument("--frames", type=int, default=100, help="synthetic frames")
     p.add_argument("--size", type=int, default=256, help="synthetic frame size")
-    p.add_argument("--brdf", choices=BRDF_NAMES, default="blinn-phong")
+    p.add_argument("--brdf", choices=BRDF_NAMES, default="blinn-phong", help="reflectance model of the solve")
     p.add_argument("--iterations", type=int, default=3, help="solver iterations per frame")
     p.add_argument("--integration-iterations", type=int, default=2, help="PCG iterations per frame")
     p.add_argument("--reference-depth", type=float, default=None, help="mean depth (scene units); needed for point lights")
