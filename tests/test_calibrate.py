@@ -161,3 +161,45 @@ def test_calibrate_lights_cli_errors(tmp_path, capsys):
     assert "outline" in capsys.readouterr().err
     assert main(["calibrate-lights", str(tmp_path), "--chrome", "10", "10", "5", "--out", str(tmp_path / "o")]) == 2
     assert "no highlight" in capsys.readouterr().err
+
+
+def test_card_intensities_formula():
+    from gpps.calibrate import card_intensities
+
+    L = _lights(6, 50, seed=5)
+    E = np.random.default_rng(6).uniform(0.5, 1.5, (6, 3))
+    nc = np.array([0.2, -0.1, 1.0]) / np.linalg.norm([0.2, -0.1, 1.0])
+    region = np.zeros((10, 12), bool)
+    region[2:7, 3:9] = True
+    imgs = np.zeros((6, 10, 12, 3))
+    imgs[:, region] = (0.6 * E * (L @ nc)[:, None])[:, None, :]
+    est, _ = card_intensities(imgs, region, L, nc)
+    assert np.allclose(est, E / E.mean(), rtol=1e-12)
+    with pytest.raises(ValueError, match="faces away"):
+        card_intensities(imgs, region, L, (0.0, 0.0, -1.0))
+
+
+def test_calibrate_lights_cli_two_spheres_positions(tmp_path):
+    """Two mirror spheres in a mask with two blobs, their radius given: light_positions.txt by triangulation."""
+    from gpps.cli import main
+    from gpps.io import save_png, save_txt
+
+    camera = Perspective(np.array([[300.0, 0, 79.5], [0, 300.0, 59.5], [0, 0, 1]]))
+    spheres = [{"center": (-1.3, 0.0, -10.0), "radius": 0.9, "kind": "chrome"}, {"center": (1.3, 0.0, -10.0), "radius": 0.9, "kind": "chrome"}]
+    P = np.array([[3.0, 4.0, -2.0], [-4.0, 2.0, -1.0], [0.5, -4.0, 0.0], [-2.0, -3.0, -3.0]])
+    imgs = np.clip(render_spheres((120, 160), camera, spheres, PointLights(P), source_deg=2.0), 0, 1)
+    for k, im in enumerate(imgs):
+        save_png(tmp_path / f"{k}.png", im, bits=16)
+    m = render_spheres((120, 160), camera, [{**s, "kind": "matte", "albedo": (1, 1, 1)} for s in spheres],
+                       DirectionalLights(np.array([[0, 0, 1.0]]), intensities=np.full((1, 3), 1e6)), supersample=1)[0, ..., 0] > 0
+    save_png(tmp_path / "chrome_mask.png", m.astype(np.uint8) * 255)
+    save_txt(tmp_path / "K.txt", camera.K)
+    out = tmp_path / "lights"
+    assert main(["--device", "cpu", "--quiet", "calibrate-lights", str(tmp_path), "--sphere-radius", "0.9", "--out", str(out)]) == 0
+    pos = np.loadtxt(out / "light_positions.txt")
+    err = np.linalg.norm(pos - P, axis=1) / np.linalg.norm(P - np.array([0, 0, -10.0]), axis=1)
+    assert err.max() < 0.05, (pos, err)
+    rep = json.loads((out / "calibration.json").read_text())
+    assert len(rep["spheres"]) == 2 and rep["spheres"][0]["outline"].startswith("mask")
+    d = np.loadtxt(out / "light_directions.txt")
+    assert d.shape == (4, 3) and np.allclose(np.linalg.norm(d, axis=1), 1)

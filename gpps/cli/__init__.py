@@ -19,9 +19,9 @@ import warnings
 SUBCOMMANDS = ["render", "reconstruct", "calibrate-lights", "integrate", "stream", "demo", "single"]
 
 
-class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
-    """Shows every option's default, except where the help text already states it, for flags
-    (store_true) and for ``None`` defaults (whose help says what happens then)."""
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """Shows every option's default (except where the help text already states it, for flags
+    (store_true) and for ``None`` defaults, whose help says what happens then); descriptions and epilogs keep their lines."""
 
     def _get_help_string(self, action):
         h = action.help or ""
