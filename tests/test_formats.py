@@ -220,3 +220,29 @@ def test_automatic_mask_fills_holes_and_drops_speckle():
         AutoMaskConfig(level=0)
     with pytest.raises(ValueError, match="lit in enough"):
         automatic_mask(np.zeros((3, 8, 8)))
+
+
+def test_raw_goes_through_rawpy_linear(tmp_path, monkeypatch):
+    """Camera RAW: rawpy's demosaic with gamma 1, no auto-brightening, 16 bits (a stand-in for rawpy.imread:
+    no RAW file can be written here)."""
+    rawpy = pytest.importorskip("rawpy")
+    seen = {}
+    data = np.random.default_rng(0).integers(0, 65535, (6, 7, 3)).astype(np.uint16)
+
+    class Fake:
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *a):
+            return False
+
+        def postprocess(self, **kw):
+            seen.update(kw)
+            return data
+
+    monkeypatch.setattr(rawpy, "imread", lambda path: Fake())
+    (tmp_path / "a.dng").write_bytes(b"x")
+    got, info = read_image_file(tmp_path / "a.dng")
+    assert info == {"format": "raw", "bits": 16, "transfer": "linear"}
+    assert seen["gamma"] == (1, 1) and seen["no_auto_bright"] and seen["output_bps"] == 16
+    assert np.allclose(got, data / 65535.0, atol=1e-7)
