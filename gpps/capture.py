@@ -87,7 +87,6 @@ class Capture:
     ambient: str | None = None
     scale: float = 1.0
     calibrated: bool = True
-    saturated: np.ndarray | None = None
 
 
 def _find_side(root: Path, stem: str) -> Path | None:
@@ -197,8 +196,6 @@ def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = No
                 raise ValueError(f"ambient: expected shape {images.shape[1:3]}, got {a.shape[:2]} in {amb_path}")
             images = np.clip(images - a[None], 0.0, None).astype(np.float32)
             amb_name = amb_path.name
-    # saturation in the file (before any division), judged on the full-resolution values
-    saturated = None
     h, w = images.shape[1:3]
     mask_source = "given"
     if mask is None:
@@ -258,4 +255,4 @@ def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = No
                  K=K, normal_gt=ngt, depth_gt=dgt, material=mat, filenames=list(names), normalised=normalised)
     fmts = [{"format": f, "bits": b, "transfer": t, "images": c} for (f, b, t), c in formats.items()]
     return Capture(dataset=ds, mask_source=mask_source, automask=am_info, formats=fmts, ambient=amb_name, scale=scale,
-                   calibrated=ld is not None or lp is not None, saturated=saturated)
+                   calibrated=ld is not None or lp is not None)

@@ -342,8 +342,11 @@ def test_cli_single(tmp_path):
     rc = main(["--device", "cpu", "single", *paths, "--mask", str(tmp_path / "mask.png"), "--out", str(out),
                "--generations", "5", "--nests", "4"])
     assert rc == 0
-    for f in ("normals.npy", "normals.png", "depth.npy", "mesh.ply", "view.png", "report.json", "albedo.png"):
+    from gpps.outputs import OUTPUT_FILES
+
+    for f in ("report.json", "normals_net.npy", *OUTPUT_FILES):  # the output set every command writes
         assert (out / f).is_file(), f
     rep = json.loads((out / "report.json").read_text())
+    assert rep["depth"]["scale"] == "relative" and rep["depth"]["unit"] == "pixel"
     assert rep["pixels"] == int(sc.mask.sum()) and len(rep["light_directions"]) == 3
     assert main(["single", str(tmp_path / "missing.png"), "--out", str(out)]) == 2
