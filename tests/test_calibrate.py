@@ -203,3 +203,20 @@ def test_calibrate_lights_cli_two_spheres_positions(tmp_path):
     assert len(rep["spheres"]) == 2 and rep["spheres"][0]["outline"].startswith("mask")
     d = np.loadtxt(out / "light_directions.txt")
     assert d.shape == (4, 3) and np.allclose(np.linalg.norm(d, axis=1), 1)
+
+
+def test_calibrate_lights_follows_the_output_rules(tmp_path, capsys):
+    """--out is checked before computing (issue 18's rules): not the input folder, not a foreign non-empty folder."""
+    from gpps.cli import main
+    from gpps.io import MARKER
+
+    for k in range(3):
+        (tmp_path / f"{k}.png").write_bytes(b"")
+    assert main(["calibrate-lights", str(tmp_path), "--out", str(tmp_path)]) == 2
+    assert "input" in capsys.readouterr().err
+    foreign = tmp_path.parent / (tmp_path.name + "_foreign")
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    assert main(["calibrate-lights", str(tmp_path), "--out", str(foreign)]) == 2
+    assert "did not write" in capsys.readouterr().err and (foreign / "notes.txt").read_text() == "mine"
+    assert not (foreign / MARKER).exists()

@@ -28,13 +28,15 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from gpps.cli._output import add_output_args, prepare_out, warning_messages
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("calibrate-lights", help="light directions/intensities/positions from images of a mirror sphere (+ matte sphere or grey card)",
                               description=__doc__.splitlines()[0], epilog="\n".join(__doc__.splitlines()[2:]),
                               )
     p.add_argument("dir", help="folder of calibration images, one per light (and K.txt for a perspective camera)")
-    p.add_argument("--out", required=True, help="output folder for the light files and calibration.json")
+    add_output_args(p, "output folder for the light files and calibration.json")
     p.add_argument("--chrome", nargs=3, type=float, action="append", metavar=("CX", "CY", "R"), default=None,
                    help="mirror sphere outline as a circle in pixels (repeat for a second sphere); default: chrome_mask.* in DIR, else found in the images")
     p.add_argument("--chrome-mask", default=None, help="mask image of the mirror sphere(s) (one blob each); default: DIR/chrome_mask.* if present")
@@ -89,6 +91,8 @@ def run(args) -> int:
     from gpps.io import atomic_dir, read_K, save_json, save_txt
 
     root = Path(args.dir)
+    inputs = [args.dir, args.chrome_mask, args.K]
+    out = prepare_out(args, inputs=inputs)
     # no object here: read with the mask "none" (no mask file, no automatic mask)
     cap = read_capture(root, transfer=args.transfer, ambient=None if args.ambient == "none" else args.ambient,
                        mask="none", normalise=False, progress=bar("read"))
@@ -195,8 +199,8 @@ def run(args) -> int:
     report["light_intensities"] = intens
     if positions is not None:
         report["light_positions"] = positions
-    out = Path(args.out)
-    with atomic_dir(out) as tmp:
+    report["warnings"] = warning_messages(args)
+    with atomic_dir(out, overwrite=args.overwrite, inputs=[i for i in inputs if i is not None], name="--out") as tmp:
         save_txt(tmp / "light_directions.txt", mean_dir)
         save_txt(tmp / "light_intensities.txt", intens)
         if positions is not None:

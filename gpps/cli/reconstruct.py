@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import json
 import time
-from pathlib import Path
+
+from gpps.cli._output import add_output_args, prepare_out, warning_messages
 
 
 def register(subparsers) -> None:
@@ -20,8 +21,8 @@ def register(subparsers) -> None:
                               description=__doc__.splitlines()[0])
     p.add_argument("dir", help="folder of images (PNG 8/16, JPEG, TIFF 8/16/32f, EXR, PGM, camera RAW); optional: filenames.txt, "
                                "light_directions.txt or light_positions.txt, light_intensities.txt, mask.png, K.txt, an *ambient* image")
-    p.add_argument("--out", required=True, help="output folder (normals.npy/.png, albedo.npy/.png, depth.npy/.tiff/.exr, mesh.ply/.obj, "
-                                                "view.png, mask.png, report.json; uncalibrated: lights_estimated.txt, light_intensities_estimated.txt)")
+    add_output_args(p, "output folder (normals.npy/.png, albedo.npy/.png, depth.npy/.tiff/.exr, mesh.ply/.obj, view.png, mask.png, "
+                       "report.json; uncalibrated: lights_estimated.txt, light_intensities_estimated.txt)")
     p.add_argument("--uncalibrated", action="store_true", help="estimate the lights from the images even when light files are present "
                                                                "(without light files this is automatic)")
     p.add_argument("--lights", default=None, help="folder with the light files (e.g. from gpps calibrate-lights), rows in the images' order; "
@@ -115,6 +116,7 @@ def run(args) -> int:
         raise ValueError(f"--rounds: expected an integer >= 1, got {args.rounds}")
     if args.pixel_size is not None and not args.pixel_size > 0:
         raise ValueError(f"--pixel-size: expected a number > 0, got {args.pixel_size}")
+    out = prepare_out(args, inputs=[args.dir, args.lights, args.mask if args.mask not in (None, "auto", "none") else None])
     prog = bar("reconstruct")
     cap = read_capture(args.dir, transfer=args.transfer, max_size=args.max_size,
                        ambient=None if args.ambient == "none" else args.ambient,
@@ -142,7 +144,10 @@ def run(args) -> int:
         if drop:
             import warnings
 
-            warnings.warn(f"left out {len(drop)} nearly dark image(s) (failed captures?): {', '.join(ds.filenames[k] for k in drop)}", stacklevel=1)
+            from gpps._check import GppsWarning
+
+            warnings.warn(f"left out {len(drop)} nearly dark image(s) (failed captures?): {', '.join(ds.filenames[k] for k in drop)}",
+                          GppsWarning, stacklevel=1)
         keep = [k for k in range(n) if k not in drop]
         used = [ds.filenames[k] for k in keep]
         t = time.perf_counter()
@@ -210,9 +215,11 @@ def run(args) -> int:
             internal_reference = float(np.sqrt(camera.fx * camera.fy))  # any scale: the shape does not depend on it
         valid = None
         integer_input = all(f["format"] not in ("exr",) and not (f["format"] == "tiff" and f["bits"] == 32) for f in cap.formats)
-        if ds.light_intensities is not None and ds.normalised and integer_input:
-            raw = ds.images * np.asarray(ds.light_intensities, np.float32)[:, None, None, :]
-            valid = ~np.any(raw >= 0.995, axis=-1)  # saturated in the file
+        if integer_input:  # saturated in the file (integer images were read as 0..full scale; float ones have no ceiling)
+            raw = ds.images
+            if ds.light_intensities is not None and ds.normalised:
+                raw = ds.images * np.asarray(ds.light_intensities, np.float32)[:, None, None, :]
+            valid = ~np.any(raw >= 0.995, axis=-1)
         robust = args.robust or ("cauchy" if n > 6 else "none")
         if args.method == "pps":
             from gpps.perspective import pps_blinn_phong
@@ -278,8 +285,8 @@ def run(args) -> int:
     if ds.normal_gt is not None and ds.normal_gt.shape[:2] == (h, w):
         report["errors"] = normal_errors(normals, ds.normal_gt, ds.mask)
         report["maen_deg"] = report["errors"]["mean"]
-    out = Path(args.out)
-    with atomic_dir(out) as tmp:
+    inputs = [args.dir, args.lights, args.mask if args.mask not in (None, "auto", "none") else None]
+    with atomic_dir(out, overwrite=args.overwrite, inputs=[i for i in inputs if i is not None], name="--out") as tmp:
         written = write_outputs(tmp, normals=normals, albedo=albedo, mask=ds.mask, depth=depth, depth_mask=dmask,
                                 camera=camera, depth_info=conv if depth is not None else None)
         if uncalibrated:
@@ -293,6 +300,7 @@ def run(args) -> int:
         if "view" in written:
             report["view"] = written["view"]
         report.setdefault("timings", {})["total"] = time.perf_counter() - t0
+        report["warnings"] = warning_messages(args)
         save_json(tmp / "report.json", report)
     if args.json:
         print(json.dumps(report, indent=2, default=_json_default))
