@@ -21,6 +21,7 @@ any other failure leaves nothing behind.
 from __future__ import annotations
 
 import re
+import sys
 import time
 from pathlib import Path
 
@@ -157,6 +158,10 @@ def run(args) -> int:
     st = Stream(shape, cam, L, mat, mask=mask, config=cfg, device=None if args.device == "auto" else args.device)
     errors, n, t0, last = [], 0, time.perf_counter(), time.perf_counter()
     interrupted = False
+    from gpps.cli._progress import quiet
+
+    tty = bool(getattr(sys.stderr, "isatty", lambda: False)())
+    lead, tail = ("\r", "") if tty else ("", "\n")
     with atomic_dir(out, overwrite=args.overwrite, inputs=inputs, name="--out") as tmp:
         try:
             for r in st.run(frames):
@@ -171,13 +176,16 @@ def run(args) -> int:
                         save_npy(d / "depth.npy", r.depth)
                     save_png(d / "normals.png", np.where(mask[..., None], (r.normals + 1) / 2, 0), bits=8)
                 now = time.perf_counter()
-                if now - last > 0.5:
-                    print(f"\rframe {n}  {n / (now - t0):7.1f} frames/s  errors {len(errors)}", end="", flush=True)
+                if not quiet() and now - last > (0.5 if tty else 5.0):  # progress on stderr: redrawn on a terminal, lines in logs
+                    sys.stderr.write(f"{lead}frame {n}  {n / (now - t0):7.1f} frames/s  errors {len(errors)}{tail}")
+                    sys.stderr.flush()
                     last = now
         except KeyboardInterrupt:  # the normal end of a live stream: keep what was streamed
             interrupted = True
         dt = time.perf_counter() - t0
-        print(f"\rframes {n}  {n / max(dt, 1e-9):.1f} frames/s (wall, including reading)  errors {len(errors)}"
+        if tty and not quiet() and n:
+            sys.stderr.write("\n")
+        print(f"frames {n}  {n / max(dt, 1e-9):.1f} frames/s (wall, including reading)  errors {len(errors)}"
               + ("  (interrupted)" if interrupted else ""))
         save_json(tmp / "report.json", {"frames": n, "seconds": dt, "frames_per_s": n / max(dt, 1e-9),
                                         "errors": errors, "interrupted": interrupted,
