@@ -16,6 +16,11 @@ view axis; 20 random within 70 deg) and bit depth (8, 16):
    light files and with ``--lights`` the calibrated folder of step 2; MAEN of
    each against the ground truth and their difference.
 
+4. *near lights* (``--near``): two mirror spheres of known radius, a perspective
+   camera, 12 point lights 6-12 units from the spheres; ``gpps calibrate-lights
+   --sphere-radius`` triangulates ``light_positions.txt``; error relative to the
+   light's distance from the spheres.
+
 Directions: angle to the true directions (deg).  Intensities: relative error
 after the common scale.  Writes perf/results/calibrate_spheres.json.
 
@@ -98,7 +103,10 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="one light set, 16 bit only")
     ap.add_argument("--no-reconstruct", action="store_true")
     ap.add_argument("--keep", default=None)
+    ap.add_argument("--near", action="store_true", help="only the near-light (two-sphere) positions")
     a = ap.parse_args(argv)
+    if a.near:
+        return near_lights(Path(a.keep) if a.keep else Path(tempfile.mkdtemp(prefix="gpps_near_")))
 
     from gpps.calibrate import render_spheres
     from gpps.lights import DirectionalLights
@@ -171,6 +179,34 @@ def main(argv=None):
                     "worst_mean_direction_deg": max(max(r["found_outline"]["mean_deg"], r["masks"]["mean_deg"]) for r in rows),
                     "worst_maen_difference": max((abs(r["reconstruct"]["difference"]) for r in rows if "reconstruct" in r), default=None)})
     print(f"wrote {out}")
+
+
+def near_lights(work: Path):
+    from gpps.calibrate import render_spheres
+    from gpps.lights import PointLights
+    from gpps.scenes import default_camera
+
+    cam = default_camera("perspective", SIZE)
+    rng = np.random.default_rng(7)
+    centre = np.array([0.0, 0.0, -10.0])
+    dirs = light_sets()["random12_60deg"]
+    P = centre + dirs * rng.uniform(6, 12, (len(dirs), 1))
+    spheres = [{"center": (-1.2, 0.9, -10.0), "radius": 1.0, "kind": "chrome"}, {"center": (1.2, -0.9, -10.0), "radius": 1.0, "kind": "chrome"}]
+    imgs = render_spheres((SIZE, SIZE), cam, spheres, PointLights(P), source_deg=2.0)
+    mask = sphere_mask((SIZE, SIZE), cam, spheres[0]["center"], 1.0) | sphere_mask((SIZE, SIZE), cam, spheres[1]["center"], 1.0)
+    rows = []
+    for bits in (8, 16):
+        d = work / f"near_{bits}"
+        write_folder(d, imgs, bits, np.asarray(cam.K), {"chrome_mask.png": mask})
+        gpps("calibrate-lights", d, "--sphere-radius", "1.0", "--out", work / f"near_{bits}_cal", "--quiet")
+        est = np.loadtxt(work / f"near_{bits}_cal" / "light_positions.txt")
+        rel = np.linalg.norm(est - P, axis=1) / np.linalg.norm(P - centre, axis=1)
+        rows.append({"bits": bits, "mean_relative_error": float(rel.mean()), "max_relative_error": float(rel.max())})
+        print(f"near lights, two spheres of radius 1 (~{cam.fx / 10:.0f} px), {bits} bit: position error {100 * rel.mean():.2f}% "
+              f"(max {100 * rel.max():.2f}%) of the light's distance", flush=True)
+    from gpps.io import save_json
+
+    save_json(ROOT / "perf" / "results" / "calibrate_near_lights.json", {"size": SIZE, "lights": len(P), "rows": rows})
 
 
 if __name__ == "__main__":
