@@ -49,6 +49,10 @@ def register(subparsers) -> None:
     p.add_argument("--known-material", action="store_true", help="use material.json's parameters as known (no estimation)")
     p.add_argument("--no-dgmc", action="store_true", help="RON: no DGMC starts for highlight pixels")
     p.add_argument("--no-integrate", action="store_true", help="no depth (no integration, no mesh)")
+    p.add_argument("--integration", default="bini", choices=["bini", "poisson"],
+                   help="the returned depth: 'bini' (default): bilateral normal integration of the final normals "
+                        "(keeps depth discontinuities; BiNI's k=2 and tolerances); 'poisson': one least-squares solve "
+                        "(smooth surfaces). RON's rounds move point lights with a Poisson depth either way")
     p.add_argument("--no-estimate", action="store_true", help="RON: do not estimate the material (defaults for what is not given)")
     p.add_argument("--rounds", type=int, default=5, help="RON: round cap")
     p.add_argument("--material-rule", default="photometric", choices=["photometric", "depth-rms"], help="RON material update (depth-rms: the seed's 4.19)")
@@ -127,6 +131,7 @@ def run(args) -> int:
     uncalibrated = args.uncalibrated or not cap.calibrated
     device = None if args.device == "auto" else args.device
     report = {"dir": str(args.dir), "images": n, "shape": [h, w], "camera": camera.kind,
+              "integration": None if args.no_integrate else args.integration,
               "input": {"formats": cap.formats, "mask": cap.mask_source, "ambient_subtracted": cap.ambient,
                         "downscale": cap.scale, "filenames": ds.filenames}}
     if cap.automask is not None:
@@ -250,8 +255,11 @@ def run(args) -> int:
             from gpps.pipeline.ron import RONConfig
             from gpps.reconstruction import reconstruct
 
+            from gpps.pipeline.integration import IntegratorConfig
+
             cfg = RONConfig(rounds=args.rounds, dgmc=not args.no_dgmc, integrate=not args.no_integrate,
-                            material_rule=args.material_rule)
+                            material_rule=args.material_rule,
+                            final_integrator=IntegratorConfig(bilateral=True) if args.integration == "bini" else None)
             solver = replace(cfg.solver, solver=args.solver, robust=robust)
             if n > 6:
                 solver = replace(solver, shadow_threshold=0.02, starts=4)
@@ -273,7 +281,8 @@ def run(args) -> int:
 
         t = time.perf_counter()
         ref_i = reference if reference is not None else (float(np.sqrt(camera.fx * camera.fy)) if camera.is_perspective else None)
-        ir = integrate_normals(normals, ds.mask, camera=camera, reference_depth=ref_i, device=args.device)
+        ir = integrate_normals(normals, ds.mask, camera=camera, reference_depth=ref_i, device=args.device,
+                               bilateral=args.integration == "bini")
         depth, dmask = ir.depth, ir.mask
         report.setdefault("timings", {})["integration"] = time.perf_counter() - t
     conv = depth_convention(camera, known_scale=scale_source)
