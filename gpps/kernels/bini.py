@@ -216,20 +216,7 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
                 beta = ti.static(rzf[c1])[0] / ti.static(rzf[c2])[0]
                 pq = x[p] * 0
                 if not done:
-                    pp = z[p] + beta * pold[p]
-                    s = pp * 0
-                    o = nb[p, 0]
-                    if o >= 0:
-                        s += Wr[p] * (pp - (z[o] + beta * pold[o]))
-                    o = nb[p, 1]
-                    if o >= 0:
-                        s += Wr[o] * (pp - (z[o] + beta * pold[o]))
-                    o = nb[p, 2]
-                    if o >= 0:
-                        s += Wd[p] * (pp - (z[o] + beta * pold[o]))
-                    o = nb[p, 3]
-                    if o >= 0:
-                        s += Wd[o] * (pp - (z[o] + beta * pold[o]))
+                    pp, s = _ap_fused(p, beta, pold)
                     q[p] = s
                     pnew[p] = pp
                     pq = pp * s
