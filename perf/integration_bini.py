@@ -47,20 +47,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "perf"))
 os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 
+from integration_diligent import load  # noqa: E402  (one reader of the BiNI-coded DiLiGenT maps)
+
 BINI_MM = {"bear": 0.334, "buddha": 1.098, "cow": 0.058, "goblet": 9.018, "pot1": 0.635, "pot2": 0.220}
-
-
-def load(folder: Path):
-    import cv2
-
-    raw = cv2.imread(str(folder / "normal_map.png"), cv2.IMREAD_UNCHANGED)
-    n = raw[..., ::-1].astype(np.float64) / 65535.0 * 2.0 - 1.0  # BGR -> (x, y, z), gpps frame
-    mask = cv2.imread(str(folder / "mask.png"), cv2.IMREAD_GRAYSCALE) > 0
-    K = np.loadtxt(folder / "K.txt")
-    gt = np.load(folder / "depth_gt.npz")["depth_gt"].astype(np.float64)
-    return n, mask, K, gt
 
 
 def made(depth, valid, gt):
