@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import functools
 import warnings
+from dataclasses import fields
+from types import UnionType
+from typing import Literal, Union, get_args, get_origin, get_type_hints
 
 import numpy as np
 
@@ -160,3 +164,49 @@ def check_number(name, v, lo=None, hi=None, integer=False, lo_open=False):
     if hi is not None and x > hi:
         raise ValueError(f"{name}: expected <= {hi}, got {v!r}")
     return x
+
+
+def check_choice(name: str, value, choices, *, allow_none: bool = False):
+    """``value`` if it is one of ``choices`` (a tuple or a ``Literal[...]`` type), else ValueError naming ``name``.
+
+    The one choice check of gpps: every config field and string argument with a fixed set of values
+    goes through it, so the message is the same everywhere ("name: expected one of [...], got ...").
+    """
+    options = tuple(get_args(choices)) if get_origin(choices) is Literal else tuple(choices)
+    if value is None and allow_none:
+        return value
+    if not isinstance(value, str) or value not in options:
+        extra = " or None" if allow_none else ""
+        raise ValueError(f"{name}: expected one of {list(options)}{extra}, got {value!r}")
+    return value
+
+
+def _literal_options(annotation):
+    """(choices, allow_none) of a ``Literal[...]`` or ``Literal[...] | None`` annotation, else None."""
+    if get_origin(annotation) is Literal:
+        return get_args(annotation), False
+    if get_origin(annotation) in (Union, UnionType):
+        args = get_args(annotation)
+        lits = [a for a in args if get_origin(a) is Literal]
+        if len(lits) == 1 and len(args) == 2 and type(None) in args:
+            return get_args(lits[0]), True
+    return None
+
+
+def check_choices(config) -> None:
+    """Check every ``Literal``-annotated field of a dataclass instance with :func:`check_choice`.
+
+    Called first in each config's ``__post_init__``: the allowed values are read from the field's
+    annotation, so a new choice is declared in one place (the ``Literal`` in :mod:`gpps.names` or the
+    config) and checked everywhere.
+    """
+    hints = _hints(type(config))
+    for f in fields(config):
+        spec = _literal_options(hints.get(f.name))
+        if spec is not None:
+            check_choice(f.name, getattr(config, f.name), spec[0], allow_none=spec[1])
+
+
+@functools.lru_cache(maxsize=None)
+def _hints(cls):
+    return get_type_hints(cls)

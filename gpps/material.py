@@ -8,9 +8,7 @@ from typing import Literal, get_args
 
 from gpps._check import check_number
 
-BRDF = Literal["lambertian", "phong", "blinn-phong", "cook-torrance", "ashikhmin-shirley"]
-BRDF_NAMES: tuple[str, ...] = get_args(BRDF)
-_DEVICE_TAG = {name: i for i, name in enumerate(BRDF_NAMES)}  # matches gpps.kernels.brdf constants
+from gpps.names import BRDF, BRDF_NAMES, BRDF_TAG as _DEVICE_TAG
 
 __all__ = ["Material", "BRDF", "BRDF_NAMES"]
 

@@ -21,16 +21,18 @@ solvers) can use the linearity in ``kd``.
 
 import warp as wp
 
-# Device-side tags of the reflectance models.  Public code names models by
-# their strings (gpps.material.BRDF); these are only the switch inside kernels.
-LAMBERTIAN = wp.constant(0)
-PHONG = wp.constant(1)
-BLINN_PHONG = wp.constant(2)
-COOK_TORRANCE = wp.constant(3)
-ASHIKHMIN_SHIRLEY = wp.constant(4)
+from gpps import names
 
-DIRECTIONAL = wp.constant(0)
-POINT = wp.constant(1)
+# Device-side tags of the reflectance models.  Public code names models by
+# their strings (gpps.names.BRDF); these are only the switch inside kernels.
+LAMBERTIAN = wp.constant(names.LAMBERTIAN)
+PHONG = wp.constant(names.PHONG)
+BLINN_PHONG = wp.constant(names.BLINN_PHONG)
+COOK_TORRANCE = wp.constant(names.COOK_TORRANCE)
+ASHIKHMIN_SHIRLEY = wp.constant(names.ASHIKHMIN_SHIRLEY)
+
+DIRECTIONAL = wp.constant(names.LIGHT_DIRECTIONAL)
+POINT = wp.constant(names.LIGHT_POINT)
 
 PI = wp.constant(3.14159265358979323846)
 

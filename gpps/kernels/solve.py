@@ -52,6 +52,8 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from gpps import names
+
 from gpps.kernels.brdf import CameraParams, LightParams, MaterialParams, light_dir, light_radiance, pixel_point, view_dir
 from gpps.kernels.jacobians import (
     ashikhmin_shirley_value_grad,
@@ -66,22 +68,21 @@ from gpps.kernels.jacobians import (
     tangent_basis_t1,
 )
 
-# solver tags (public code uses the strings of gpps.pipeline.solver.SolverName)
-NONE = wp.constant(0)
-LM = wp.constant(1)
-DOGLEG = wp.constant(2)
-BFGS = wp.constant(3)
+# solver, robust-loss tags and flag bits: the integers of gpps.names (the public code uses its strings)
+NONE = wp.constant(names.SOLVER_TAG["none"])
+LM = wp.constant(names.SOLVER_TAG["lm"])
+DOGLEG = wp.constant(names.SOLVER_TAG["dogleg"])
+BFGS = wp.constant(names.SOLVER_TAG["bfgs"])
 
-ROBUST_NONE = wp.constant(0)
-ROBUST_HUBER = wp.constant(1)
-ROBUST_CAUCHY = wp.constant(2)
+ROBUST_NONE = wp.constant(names.ROBUST_TAG["none"])
+ROBUST_HUBER = wp.constant(names.ROBUST_TAG["huber"])
+ROBUST_CAUCHY = wp.constant(names.ROBUST_TAG["cauchy"])
 
-# bits of the per-pixel flags
-FLAG_ILL_CONDITIONED = wp.constant(1)  # light matrix of the pixel's valid lights is (nearly) singular (3.13)
-FLAG_FEW_OBSERVATIONS = wp.constant(2)  # fewer than 3 valid observations
-FLAG_NOT_CONVERGED = wp.constant(4)  # the best start hit the iteration cap
-FLAG_WOODHAM_FALLBACK = wp.constant(8)  # weighted least squares was singular; all observations used
-FLAG_ALBEDO_FROM_NEIGHBOURS = wp.constant(16)  # under-determined pixel solved with its neighbours' albedo
+FLAG_ILL_CONDITIONED = wp.constant(names.FLAG_ILL_CONDITIONED)
+FLAG_FEW_OBSERVATIONS = wp.constant(names.FLAG_FEW_OBSERVATIONS)
+FLAG_NOT_CONVERGED = wp.constant(names.FLAG_NOT_CONVERGED)
+FLAG_WOODHAM_FALLBACK = wp.constant(names.FLAG_WOODHAM_FALLBACK)
+FLAG_ALBEDO_FROM_NEIGHBOURS = wp.constant(names.FLAG_ALBEDO_FROM_NEIGHBOURS)
 
 NEIGHBOUR_MIN_COUNT = 16  # well-determined pixels the neighbour pass gathers (before its 2 extra rings)
 WEISZFELD_ITERS = wp.constant(8)  # iterations of the neighbours' geometric median
@@ -531,9 +532,9 @@ def store_least_squares(
 
 # --------------------------------------------------------------------------- specialisation
 
-METHODS = ("none", "lm", "dogleg", "bfgs")
-BRDFS = ("lambertian", "phong", "blinn-phong", "cook-torrance", "ashikhmin-shirley")  # as gpps.material.BRDF_NAMES
-ROBUST = ("none", "huber", "cauchy")
+METHODS = names.SOLVER_NAMES
+BRDFS = names.BRDF_NAMES
+ROBUST = names.ROBUST_NAMES
 
 
 def _specular_value_grad_for(brdf, module, sfx: str):

@@ -19,21 +19,21 @@ from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
 from gpps.pipeline.params import camera_params, light_params, material_params
 
-SolverName = Literal["none", "lm", "dogleg", "bfgs"]
-RobustName = Literal["none", "huber", "cauchy"]
+from gpps.names import (
+    FLAG_ALBEDO_FROM_NEIGHBOURS,
+    FLAG_FEW_OBSERVATIONS,
+    FLAG_ILL_CONDITIONED,
+    FLAG_NOT_CONVERGED,
+    FLAG_WOODHAM_FALLBACK,
+    ROBUST_NAMES,
+    SOLVER_NAMES,
+    RobustName,
+    SolverName,
+)
+from gpps.names import ROBUST_TAG as _ROBUST_TAG
+from gpps.names import SOLVER_TAG as _SOLVER_TAG
+
 AlbedoMode = Literal["rgb", "grey"]
-SOLVER_NAMES: tuple[str, ...] = get_args(SolverName)
-ROBUST_NAMES: tuple[str, ...] = get_args(RobustName)
-
-_SOLVER_TAG = {"none": 0, "lm": 1, "dogleg": 2, "bfgs": 3}
-_ROBUST_TAG = {"none": 0, "huber": 1, "cauchy": 2}
-
-# flag bits (same values as gpps.kernels.solve.FLAG_*)
-FLAG_ILL_CONDITIONED = 1
-FLAG_FEW_OBSERVATIONS = 2
-FLAG_NOT_CONVERGED = 4
-FLAG_WOODHAM_FALLBACK = 8
-FLAG_ALBEDO_FROM_NEIGHBOURS = 16
 
 __all__ = [
     "PixelSolver",

@@ -1,0 +1,42 @@
+"""Every name list and constant that more than one layer uses, in one place.
+
+The public API speaks in strings (``Literal`` types, checked by :func:`gpps._check.check_choice`);
+the device kernels speak in small integers.  Both come from here: the kernels wrap the integers in
+``wp.constant`` and the stages map strings to them with the ``*_TAG`` dictionaries, so the two sides
+cannot drift apart.
+"""
+
+from __future__ import annotations
+
+from typing import Literal, get_args
+
+# ---------------------------------------------------------------- reflectance models (seed ch. 2, 5)
+BRDF = Literal["lambertian", "phong", "blinn-phong", "cook-torrance", "ashikhmin-shirley"]
+BRDF_NAMES: tuple[str, ...] = get_args(BRDF)
+BRDF_TAG = {name: i for i, name in enumerate(BRDF_NAMES)}  # device tags of gpps.kernels.brdf
+LAMBERTIAN, PHONG, BLINN_PHONG, COOK_TORRANCE, ASHIKHMIN_SHIRLEY = range(5)
+
+# ---------------------------------------------------------------- lights
+LIGHT_DIRECTIONAL, LIGHT_POINT = 0, 1  # device tags of gpps.kernels.brdf.LightParams.kind
+
+# ---------------------------------------------------------------- per-pixel solver (seed ch. 3)
+SolverName = Literal["none", "lm", "dogleg", "bfgs"]
+RobustName = Literal["none", "huber", "cauchy"]
+SOLVER_NAMES: tuple[str, ...] = get_args(SolverName)
+ROBUST_NAMES: tuple[str, ...] = get_args(RobustName)
+SOLVER_TAG = {name: i for i, name in enumerate(SOLVER_NAMES)}  # none 0, lm 1, dogleg 2, bfgs 3
+ROBUST_TAG = {name: i for i, name in enumerate(ROBUST_NAMES)}  # none 0, huber 1, cauchy 2
+
+# bits of the solver's per-pixel ``flags`` (int32)
+FLAG_ILL_CONDITIONED = 1  # light matrix of the pixel's valid lights is (nearly) singular (3.13)
+FLAG_FEW_OBSERVATIONS = 2  # fewer than 3 valid observations
+FLAG_NOT_CONVERGED = 4  # the best start hit the iteration cap
+FLAG_WOODHAM_FALLBACK = 8  # weighted least squares was singular; all observations used
+FLAG_ALBEDO_FROM_NEIGHBOURS = 16  # under-determined pixel solved with its neighbours' albedo
+FLAG_NAMES = {
+    FLAG_ILL_CONDITIONED: "ill_conditioned",
+    FLAG_FEW_OBSERVATIONS: "few_observations",
+    FLAG_NOT_CONVERGED: "not_converged",
+    FLAG_WOODHAM_FALLBACK: "woodham_fallback",
+    FLAG_ALBEDO_FROM_NEIGHBOURS: "albedo_from_neighbours",
+}
