@@ -15,9 +15,9 @@ from gpps.material import BRDF_NAMES, Material
 __version__ = "0.1.0"
 
 _LAZY = {
-    "reconstruct": "gpps.reconstruction",
-    "Reconstruction": "gpps.reconstruction",
-    "RONConfig": "gpps.pipeline.ron",
+    "reconstruct": "gpps.flows.reconstruction",
+    "Reconstruction": "gpps.flows.reconstruction",
+    "RONConfig": "gpps.flows.ron",
     "SolverConfig": "gpps.pipeline.solver",
     "Stream": "gpps.pipeline.stream",
     "StreamConfig": "gpps.pipeline.stream",

@@ -64,8 +64,8 @@ def moving_bumps(size: int, device: str, positions: int = 8):
     import numpy as np
 
     from gpps.material import Material
-    from gpps.scenes import make_scene
-    from gpps.synthetic import default_lights, render
+    from gpps.host.scenes import make_scene
+    from gpps.flows.synthetic import default_lights, render
 
     mat = Material.default_for("blinn-phong")
     L = default_lights("directional", 3)

@@ -116,8 +116,8 @@ def bench_size(size, device, repeat, bw, peak, log):
     from gpps.pipeline.render import Renderer
     from gpps.pipeline.solver import PixelSolver, SolverConfig
     from gpps.pipeline.stream import Stream, StreamConfig
-    from gpps.scenes import make_scene
-    from gpps.synthetic import default_lights
+    from gpps.host.scenes import make_scene
+    from gpps.flows.synthetic import default_lights
 
     wp = warp()
     sync = lambda: wp.synchronize_device(device)  # noqa: E731
@@ -252,7 +252,7 @@ def bench_size(size, device, repeat, bw, peak, log):
     sync()
     trun = (time.perf_counter() - t) / nres
     row("frame_host_pipelined", trun, extra={"triples_per_s": 1.0 / trun, "note": "Stream.run: next upload overlaps"})
-    from gpps.metrics import normal_errors
+    from gpps.host.metrics import normal_errors
 
     rr = st.process(fdev).numpy()
     rows[-1]["maen_stream"] = normal_errors(rr.normals, sc.normals, sc.mask)["mean"]

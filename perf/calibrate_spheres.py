@@ -4,7 +4,7 @@ For each camera (orthographic, perspective: the default scene cameras at
 200 px), light set (8 lights on a 30 deg ring; 12 random within 60 deg of the
 view axis; 20 random within 70 deg) and bit depth (8, 16):
 
-1. *found outline*: a mirror sphere alone in view (``gpps.calibrate.render_spheres``:
+1. *found outline*: a mirror sphere alone in view (``gpps.host.calibrate.render_spheres``:
    a 3 deg source disc, a dim room reflected at 0.05, highlights saturating,
    4x4 anti-aliasing), written as PNGs (+ K.txt); ``gpps calibrate-lights DIR``
    finds the outline itself.
@@ -75,7 +75,7 @@ def write_folder(path: Path, images, bits, K=None, extra=None):
 
 
 def sphere_mask(shape, camera, center, radius):
-    from gpps.calibrate import render_spheres
+    from gpps.host.calibrate import render_spheres
     from gpps.lights import DirectionalLights
 
     im = render_spheres(shape, camera, [{"center": center, "radius": radius, "kind": "matte", "albedo": (1, 1, 1)}],
@@ -108,11 +108,11 @@ def main(argv=None):
     if a.near:
         return near_lights(Path(a.keep) if a.keep else Path(tempfile.mkdtemp(prefix="gpps_near_")))
 
-    from gpps.calibrate import render_spheres
+    from gpps.host.calibrate import render_spheres
     from gpps.lights import DirectionalLights
     from gpps.material import Material
-    from gpps.scenes import default_camera, make_scene
-    from gpps.synthetic import render
+    from gpps.host.scenes import default_camera, make_scene
+    from gpps.flows.synthetic import render
 
     work = Path(a.keep) if a.keep else Path(tempfile.mkdtemp(prefix="gpps_cal_"))
     sets = light_sets()
@@ -182,9 +182,9 @@ def main(argv=None):
 
 
 def near_lights(work: Path):
-    from gpps.calibrate import render_spheres
+    from gpps.host.calibrate import render_spheres
     from gpps.lights import PointLights
-    from gpps.scenes import default_camera
+    from gpps.host.scenes import default_camera
 
     cam = default_camera("perspective", SIZE)
     rng = np.random.default_rng(7)

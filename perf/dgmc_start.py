@@ -12,10 +12,10 @@ evaluations per highlight pixel and its MAEN there:
   multi-start (``SolverConfig()``, 10 starts), as RON does;
 * ``multistart``: the pipeline's default multi-start without DGMC (10 starts).
 
-Scenes: gpps.evaluation.make_case sphere and bumps, Blinn-Phong and Cook-Torrance
+Scenes: cases.make_case sphere and bumps, Blinn-Phong and Cook-Torrance
 (Material.default_for), orthographic and perspective, 3 directional lights,
 16-bit.  For each: the Lambertian least-squares normals (solve_normals,
-solver="none"), DGMC starts from them (gpps.pipeline.dgmc.dgmc_start, default
+solver="none"), DGMC starts from them (gpps.host.dgmc.dgmc_start, default
 DGMCConfig), then one PixelSolver with SolverConfig(solver="lm", warm_start=True,
 starts=1) run twice, with init_normals = (a) the Lambertian normals and (b) the
 DGMC normals.  Reported on the DGMC highlight pixels: MAEN of the starts, MAEN
@@ -38,14 +38,15 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))  # tests/cases.py: the evaluation cases shared with the tests
 os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 
 import numpy as np  # noqa: E402
 
-from gpps.evaluation import make_case  # noqa: E402
-from gpps.metrics import angular_error  # noqa: E402
-from gpps.photometric import solve_normals  # noqa: E402
-from gpps.pipeline.dgmc import DGMCConfig, dgmc_start, propagate_front  # noqa: E402
+from cases import make_case  # noqa: E402
+from gpps.host.metrics import angular_error  # noqa: E402
+from gpps.flows.photometric import solve_normals  # noqa: E402
+from gpps.host.dgmc import DGMCConfig, dgmc_start, propagate_front  # noqa: E402
 from gpps.pipeline.solver import PixelSolver, SolverConfig  # noqa: E402
 
 

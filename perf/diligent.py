@@ -48,7 +48,7 @@ REAL_SOLVER = {"robust": "cauchy", "robust_scale": 0.1, "irls_rounds": 3, "shado
 
 
 def ron_config(a, *, many: bool):
-    from gpps.pipeline.ron import RONConfig
+    from gpps.flows.ron import RONConfig
     from gpps.pipeline.solver import SolverConfig
 
     solver = SolverConfig(**REAL_SOLVER) if many else SolverConfig()
@@ -57,7 +57,7 @@ def ron_config(a, *, many: bool):
 
 
 def summary(rec, gt, mask, seconds) -> dict:
-    from gpps.metrics import normal_errors
+    from gpps.host.metrics import normal_errors
 
     e = normal_errors(rec.normals, gt, mask)
     fit = rec.details.material_fit if rec.details is not None else []
@@ -75,9 +75,9 @@ def run_object(name, a, log) -> dict:
     from gpps.io import read_dataset
     from gpps.lights import DirectionalLights
     from gpps.material import Material
-    from gpps.metrics import normal_errors
-    from gpps.photometric import solve_normals
-    from gpps.reconstruction import reconstruct
+    from gpps.host.metrics import normal_errors
+    from gpps.flows.photometric import solve_normals
+    from gpps.flows.reconstruction import reconstruct
 
     ds = read_dataset(Path(a.data) / name)
     camera = camera_from_K(ds.K)

@@ -65,7 +65,7 @@ def saturated(ds) -> np.ndarray:
 def fit_material(ds, lights, camera, valid, device, log):
     """Grid over ks x shininess (Blinn-Phong) on a pixel subset; lowest median robust residual wins."""
     from gpps.material import Material
-    from gpps.photometric import solve_normals
+    from gpps.flows.photometric import solve_normals
 
     sub = np.zeros_like(ds.mask)
     sub[::4, ::4] = True
@@ -85,8 +85,8 @@ def run_object(name, data, device, log):
     from gpps.camera import camera_from_K
     from gpps.io import read_dataset
     from gpps.lights import DirectionalLights
-    from gpps.metrics import normal_errors
-    from gpps.photometric import solve_normals
+    from gpps.host.metrics import normal_errors
+    from gpps.flows.photometric import solve_normals
 
     ds = read_dataset(Path(data) / name)
     camera = camera_from_K(ds.K)

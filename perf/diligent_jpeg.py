@@ -39,7 +39,7 @@ DATA = ROOT.parent / "shared" / "data" / "diligent"
 def make_jpeg_folder(src: Path, dst: Path, quality: int = 95, indices=None):
     import cv2
 
-    from gpps.formats import linear_to_srgb
+    from gpps.io.formats import linear_to_srgb
 
     dst.mkdir(parents=True, exist_ok=True)
     names = [s.strip() for s in (src / "filenames.txt").read_text().split() if s.strip()]
@@ -68,7 +68,7 @@ def subset_png_folder(src: Path, dst: Path, indices):
 
 
 def score(normals, gt, gt_mask, auto_mask):
-    from gpps.metrics import angular_error
+    from gpps.host.metrics import angular_error
 
     both = gt_mask & auto_mask
     e = angular_error(normals, gt, both)[both]

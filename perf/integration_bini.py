@@ -138,7 +138,7 @@ def main(argv=None) -> int:
 
     from gpps import _taichi
     from gpps.camera import Orthographic, Perspective
-    from gpps.integrate import integrate_normals
+    from gpps.flows.integrate import integrate_normals
 
     _taichi.init(args.device)
     bini = Bini(args.bini_path) if args.bini_path else None

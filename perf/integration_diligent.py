@@ -89,7 +89,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from gpps.camera import Perspective
-    from gpps.integrate import integrate_normals
+    from gpps.flows.integrate import integrate_normals
 
     modes = args.modes.split(",")
     for m in modes:

@@ -1,10 +1,10 @@
 """gpps.reconstruct on the real near-light LED capture ../shared/data/nearlight/hehe12 (no ground truth).
 
-Reads the capture with gpps.nearlight.read_nearlight (ambient subtracted,
+Reads the capture with gpps.io.nearlight.read_nearlight (ambient subtracted,
 images divided by Phi / mean(Phi), LED positions and axes converted from the
 capture's computer-vision frame to gpps's, K un-transposed), block-averages it
 by ``--downsample`` (default 4: 1920x1200 -> 480x300) for CPU time, estimates
-the object's distance (gpps.nearlight.estimate_distance: the flat distance
+the object's distance (gpps.io.nearlight.estimate_distance: the flat distance
 whose Lambertian point-light fit leaves the lowest relative residual, over a
 log grid of 100-1000 mm), and runs gpps.reconstruct with point lights and a
 flat initial depth at that distance; each RON round re-derives the LED
@@ -72,11 +72,11 @@ def main(argv=None):
 
 
     from gpps.io import atomic_dir, save_json, save_npy, save_png
-    from gpps.mesh import depth_to_mesh, render_view, save_mesh
-    from gpps.nearlight import estimate_distance, read_nearlight
-    from gpps.pipeline.ron import RONConfig
+    from gpps.io.mesh import depth_to_mesh, render_view, save_mesh
+    from gpps.io.nearlight import estimate_distance, read_nearlight
+    from gpps.flows.ron import RONConfig
     from gpps.pipeline.solver import SolverConfig
-    from gpps.reconstruction import reconstruct
+    from gpps.flows.reconstruction import reconstruct
 
     t0 = time.perf_counter()
     cap = read_nearlight(a.root, downsample=a.downsample)

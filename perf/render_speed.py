@@ -11,8 +11,8 @@ from _common import timeit, write_results
 from gpps._runtime import resolve_device, warp
 from gpps.material import Material
 from gpps.pipeline.render import Renderer
-from gpps.scenes import make_scene
-from gpps.synthetic import default_lights
+from gpps.host.scenes import make_scene
+from gpps.flows.synthetic import default_lights
 
 
 def main():

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "training"))  # training/shapes.py: the training scenes
 from _common import write_results  # noqa: E402
 
 
@@ -48,12 +49,12 @@ def main():
 
     from gpps.lights import DirectionalLights, ring_directions
     from gpps.material import Material
-    from gpps.metrics import normal_errors
+    from gpps.host.metrics import normal_errors
     from gpps.nn.model import SingleNet
-    from gpps.nn.shapes import TEST_SEED_BASE, RandomScene, SceneRenderer, random_scene
+    from shapes import TEST_SEED_BASE, RandomScene, SceneRenderer, random_scene
     from gpps.pipeline.cuckoo import CuckooConfig
-    from gpps.pipeline.single import SingleConfig, reconstruct_single
-    from gpps.scenes import D0, HALF_EXTENT, make_scene
+    from gpps.flows.single import SingleConfig, reconstruct_single
+    from gpps.host.scenes import D0, HALF_EXTENT, make_scene
 
     S = args.size
     rend = SceneRenderer(args.device)
@@ -87,7 +88,7 @@ def main():
         res = reconstruct_single(imgs, m, config=cfg, net=net, device=args.device)
         row = {
             "scene": name, "family": sc.family, "brdf": sc.material.brdf, "camera": sc.camera_kind,
-            "albedo": sc.info.get("albedo", "sinusoid texture (gpps.scenes)"), "pixels": int(m.sum()),
+            "albedo": sc.info.get("albedo", "sinusoid texture (gpps.host.scenes)"), "pixels": int(m.sum()),
             "flat_maen": normal_errors(flat, n_gt, m)["mean"],
             "net_maen": normal_errors(n1, n_gt, m)["mean"],
             "net3_avg_maen": normal_errors(res.normals_net, n_gt, m)["mean"],

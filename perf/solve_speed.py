@@ -34,7 +34,7 @@ def main(argv=None):
 
     from gpps._runtime import warp
     from gpps.io import save_json
-    from gpps.metrics import normal_errors
+    from gpps.host.metrics import normal_errors
     from gpps.pipeline.solver import PixelSolver, SolverConfig
 
     wp = warp()

@@ -49,8 +49,8 @@ def main():
     from gpps._runtime import warp
     from gpps.material import Material
     from gpps.pipeline.stream import Stream, StreamConfig
-    from gpps.scenes import make_scene
-    from gpps.synthetic import default_lights, render
+    from gpps.host.scenes import make_scene
+    from gpps.flows.synthetic import default_lights, render
 
     wp = warp()
     mat = Material.default_for("blinn-phong")

@@ -1,7 +1,7 @@
 """MAEN of calibrated per-pixel PS on rendered scenes: every BRDF x camera x light kind.
 
-Scenes: gpps.scenes.make_scene sphere and bumps (uniform albedo), 3 lights from
-gpps.synthetic.default_lights, 16-bit quantised (render(..., bits=16)), noise-free
+Scenes: gpps.host.scenes.make_scene sphere and bumps (uniform albedo), 3 lights from
+gpps.flows.synthetic.default_lights, 16-bit quantised (render(..., bits=16)), noise-free
 and with 1% Gaussian noise.  Point lights use the true depth as the solver's
 depth estimate.  Images are divided by the light intensities (as gpps.io.read_dataset
 does) and solved with unit-intensity lights.
@@ -24,10 +24,11 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))  # tests/cases.py: the evaluation cases shared with the tests
 os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 
 
-from gpps.evaluation import BRDFS, make_case, run_case  # noqa: E402,F401
+from cases import BRDFS, make_case, run_case  # noqa: E402,F401
 
 
 def main(argv=None):

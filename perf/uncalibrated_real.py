@@ -18,7 +18,7 @@ Yale B (``--subjects``, Extended Yale B cropped, 64 lights + an ambient image a 
 * Mask (none is given): pixels brighter than 0.1 (after the ambient subtraction) in at least
   a third of the images; it drops the pupils, nostrils and dark eyebrows.
 * Failed captures are left out, by the rule solve_uncalibrated enforces
-  (``gpps.uncalibrated.dark_images``: 99th percentile below 0.1 x the median image's):
+  (``gpps.flows.uncalibrated.dark_images``: 99th percentile below 0.1 x the median image's):
   yaleB02's ``A+095E+00`` (0.01; the flash did not fire) and ``A-130E+20`` (0.05; the same
   light gives 0.30-0.35 for the other subjects).  Kept, they came out 97 and 123 deg off.
 * Score: mean angle between the estimated and the nominal light directions.  The only
@@ -32,7 +32,7 @@ light directions *and intensities* are withheld from the uncalibrated method (th
 baseline divides by the intensities, as perf/diligent_calibrated.py does).  The perspective
 camera of ``K.txt`` is passed (the flip is decided by the perspective curl when it can be).
 MAEN against ``normal_gt.npy`` after only the flip, beside Woodham least squares with the true
-lights (``gpps.photometric.solve_normals(..., solver="none")``) on the same images.
+lights (``gpps.flows.photometric.solve_normals(..., solver="none")``) on the same images.
 
 Baseline = factorisation + integrability + GBR (no refinement); it is
 ``UncalibratedResult.baseline`` of the refined run, which is exactly what
@@ -161,7 +161,7 @@ def check_convention(d: dict, mask) -> dict:
 
 def light_scores(est, true, flip_status: str) -> dict:
     """Light-direction errors after only the flip (when the method left it ambiguous)."""
-    from gpps.uncalibrated import light_direction_errors
+    from gpps.flows.uncalibrated import light_direction_errors
 
     cands = {"as returned": est}
     if flip_status != "resolved":
@@ -176,7 +176,7 @@ def oracle_errors(est, true) -> dict:
     """Diagnostics (never the score): errors after the best GBR (+flip, sign) and the best 3x3 fitted to the true lights."""
     from scipy.optimize import least_squares
 
-    from gpps.uncalibrated import gbr, light_direction_errors
+    from gpps.flows.uncalibrated import gbr, light_direction_errors
 
     def unit(a):
         return a / np.linalg.norm(a, axis=1, keepdims=True)
@@ -211,7 +211,7 @@ def normal_view(path, panels, mask):
 
 
 def run_yale(subject, data, cfg, device, views, log):
-    from gpps.uncalibrated import dark_images, solve_uncalibrated
+    from gpps.flows.uncalibrated import dark_images, solve_uncalibrated
 
     d = read_yale(Path(data) / subject)
     mask = yale_mask(d["images"])
@@ -236,7 +236,7 @@ def run_yale(subject, data, cfg, device, views, log):
     out["oracle_refined"] = oracle_errors(res.light_directions, true)
     nb = flip_normals(res.baseline["normals"], out["baseline_light"]["flip_applied"])
     nr = flip_normals(res.normals, out["refined_light"]["flip_applied"])
-    from gpps.metrics import normal_errors
+    from gpps.host.metrics import normal_errors
 
     # not ground truth: the agreement with calibrated Lambertian least squares (true lights)
     out["baseline_vs_calibrated_ls_deg"] = normal_errors(nb, calib, mask)["mean"]
@@ -256,9 +256,9 @@ def run_diligent(name, data, cfg, device, views, log):
     from gpps.camera import camera_from_K
     from gpps.io import read_dataset
     from gpps.lights import DirectionalLights
-    from gpps.metrics import normal_errors
-    from gpps.photometric import solve_normals
-    from gpps.uncalibrated import solve_uncalibrated
+    from gpps.host.metrics import normal_errors
+    from gpps.flows.photometric import solve_normals
+    from gpps.flows.uncalibrated import solve_uncalibrated
 
     raw = read_dataset(Path(data) / name, normalise=False)
     ds = read_dataset(Path(data) / name)
@@ -295,7 +295,7 @@ def run_diligent(name, data, cfg, device, views, log):
 
 
 def _best_maen(n, gt, mask, flip_status):
-    from gpps.metrics import normal_errors
+    from gpps.host.metrics import normal_errors
 
     cands = {"as returned": n}
     if flip_status != "resolved":
@@ -317,7 +317,7 @@ def main(argv=None):
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
 
-    from gpps.uncalibrated import UncalibratedConfig
+    from gpps.flows.uncalibrated import UncalibratedConfig
 
     subjects = a.subjects if a.subjects is not None else (SUBJECTS[:1] if a.quick else SUBJECTS)
     objects = a.objects if a.objects is not None else (OBJECTS[:1] if a.quick else OBJECTS)

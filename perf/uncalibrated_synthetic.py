@@ -42,7 +42,7 @@ def maen(n, gt, mask):
 
 def score(normals, lights, flip_status, scene, true_dirs):
     """(light error, MAEN, which flip) with only the flip as alignment (when ambiguous)."""
-    from gpps.uncalibrated import light_direction_errors
+    from gpps.flows.uncalibrated import light_direction_errors
 
     cands = [("as returned", normals, lights)]
     if flip_status == "ambiguous":
@@ -58,9 +58,9 @@ def score(normals, lights, flip_status, scene, true_dirs):
 
 def run(scene_name, size, camera, brdf, n_lights, *, device="cpu", config=None):
     from gpps.material import Material
-    from gpps.scenes import make_scene
-    from gpps.synthetic import default_lights, render
-    from gpps.uncalibrated import UncalibratedConfig, solve_uncalibrated
+    from gpps.host.scenes import make_scene
+    from gpps.flows.synthetic import default_lights, render
+    from gpps.flows.uncalibrated import UncalibratedConfig, solve_uncalibrated
 
     sc = make_scene(scene_name, size, camera, albedo="texture" if scene_name == "bumps" else "uniform")
     L = default_lights("directional", n_lights, layout="spiral")

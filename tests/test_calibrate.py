@@ -1,11 +1,11 @@
-"""Light calibration from sphere images (gpps.calibrate, gpps calibrate-lights) on renders with known lights."""
+"""Light calibration from sphere images (gpps.host.calibrate, gpps calibrate-lights) on renders with known lights."""
 
 import json
 
 import numpy as np
 import pytest
 
-from gpps.calibrate import (_disc_mask, circle_points, find_outline, fit_sphere, highlight_direction, mask_outline,
+from gpps.host.calibrate import (_disc_mask, circle_points, find_outline, fit_sphere, highlight_direction, mask_outline,
                             matte_intensities, mirror_directions, render_spheres, sphere_normals, triangulate_lights)
 from gpps.camera import Orthographic, Perspective
 from gpps.lights import DirectionalLights, PointLights
@@ -104,8 +104,8 @@ def test_calibrate_lights_cli_then_reconstruct(tmp_path):
     from gpps.cli import main
     from gpps.io import Dataset, save_png, save_txt, write_dataset
     from gpps.material import Material
-    from gpps.scenes import make_scene
-    from gpps.synthetic import render
+    from gpps.host.scenes import make_scene
+    from gpps.flows.synthetic import render
 
     camera = Perspective(np.array([[240.0, 0, 79.5], [0, 240.0, 79.5], [0, 0, 1]]))
     S = 160
@@ -164,7 +164,7 @@ def test_calibrate_lights_cli_errors(tmp_path, capsys):
 
 
 def test_card_intensities_formula():
-    from gpps.calibrate import card_intensities
+    from gpps.host.calibrate import card_intensities
 
     L = _lights(6, 50, seed=5)
     E = np.random.default_rng(6).uniform(0.5, 1.5, (6, 3))

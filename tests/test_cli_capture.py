@@ -76,8 +76,8 @@ def _raw_folder(tmp_path, n=8, size=48, fmt="png"):
     """A rendered capture as a user has it: images only (and K for perspective)."""
     from gpps.io import save_png
     from gpps.material import Material
-    from gpps.scenes import make_scene
-    from gpps.synthetic import default_lights, render
+    from gpps.host.scenes import make_scene
+    from gpps.flows.synthetic import default_lights, render
 
     sc = make_scene("bumps", size, "orthographic", albedo="texture")
     lights = default_lights("directional", n, layout="spiral", slant_deg=40)
@@ -105,10 +105,10 @@ def test_reconstruct_uncalibrated_from_a_raw_folder(tmp_path, capsys):
     assert used == [f"shot_{k + 1}.png" for k in range(8)]
     e = np.degrees(np.arccos(np.clip(np.sum(est * lights.directions, 1), -1, 1)))
     assert e.mean() < 6.0, e  # the method's accuracy is tested in test_uncalibrated.py; here: the CLI is the API
-    from gpps.capture import read_capture
-    from gpps.uncalibrated import solve_uncalibrated
+    from gpps.io.capture import read_capture
+    from gpps.flows.uncalibrated import solve_uncalibrated
 
-    from gpps.automask import lit_pixels
+    from gpps.host.automask import lit_pixels
 
     cap_ = read_capture(raw)
     ev = cap_.dataset.mask & lit_pixels(cap_.dataset.images)
@@ -147,7 +147,7 @@ def test_diligent_jpegs_without_mask_match_pngs_with_mask(tmp_path, data_root):
 
     import cv2
 
-    from gpps.formats import linear_to_srgb
+    from gpps.io.formats import linear_to_srgb
 
     src = data_root / "diligent" / "ball"
     if not src.is_dir():

@@ -12,9 +12,9 @@ import gpps
 from gpps import GppsWarning
 from gpps.cli import main
 from gpps.io import Dataset, write_dataset
-from gpps.photometric import solve_normals
-from gpps.scenes import make_scene
-from gpps.synthetic import default_lights, render
+from gpps.flows.photometric import solve_normals
+from gpps.host.scenes import make_scene
+from gpps.flows.synthetic import default_lights, render
 
 
 @pytest.fixture(scope="module")
@@ -109,7 +109,7 @@ def test_estimate_on_its_bound_and_unconverged_rounds_warn(sphere):
     assert any("estimated ks" in m and "bound of its search range" in m for m in msgs), msgs
     if not rec.converged:
         assert any("RON stopped at its cap of 2 rounds" in m for m in msgs)
-    from gpps.pipeline.ron import estimate_on_bound
+    from gpps.flows.ron import estimate_on_bound
 
     assert estimate_on_bound("shininess", 500.0) is not None and estimate_on_bound("shininess", 40.0) is None
 

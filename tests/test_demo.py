@@ -16,7 +16,7 @@ def test_demo_cli(tmp_path):
     for f in ["normals.npy", "depth.npy", "normals.png", "albedo.png", "mesh.ply", "view.png", "capture/001.png",
               "capture/mask.png"]:
         assert (out / f).is_file(), f
-    from gpps.outputs import OUTPUT_FILES
+    from gpps.io.outputs import OUTPUT_FILES
 
     for f in OUTPUT_FILES:  # the output set every command writes
         assert (out / f).is_file(), f

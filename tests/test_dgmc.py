@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gpps.lights import DirectionalLights, ring_directions
-from gpps.pipeline.dgmc import (
+from gpps.host.dgmc import (
     DGMCConfig,
     detect_highlights,
     dgmc_start,
@@ -430,9 +430,9 @@ def test_region_without_boundary_keeps_the_given_normals():
     [("sphere", "orthographic", 0.6), ("sphere", "perspective", 1.4), ("bumps", "orthographic", 3.0)],
 )
 def test_dgmc_starts_beat_lambertian_on_highlights(scene, camera, min_gain):
-    from gpps.evaluation import make_case
-    from gpps.metrics import angular_error
-    from gpps.photometric import solve_normals
+    from cases import make_case
+    from gpps.host.metrics import angular_error
+    from gpps.flows.photometric import solve_normals
 
     img, L, sc, mat = make_case(scene, 128, camera, "directional", "blinn-phong", device="cpu")
     ls = solve_normals(img, sc.mask, L, camera=sc.camera, material=mat, solver="none", device="cpu")
@@ -457,8 +457,8 @@ def test_dgmc_starts_beat_lambertian_on_highlights(scene, camera, min_gain):
 
 
 def _front_case(device, size=96, brdf="blinn-phong", camera="orthographic"):
-    from gpps.evaluation import make_case
-    from gpps.photometric import solve_normals
+    from cases import make_case
+    from gpps.flows.photometric import solve_normals
     from gpps.pipeline.solver import PixelSolver, SolverConfig
 
     img, L, sc, mat = make_case("sphere", size, camera, "directional", brdf, device=device)
@@ -476,8 +476,8 @@ def _front_case(device, size=96, brdf="blinn-phong", camera="orthographic"):
 # the solved front 0.001 deg in ~4.3 evaluations (perf/dgmc_start.py: the same at 256^2 on 8 scenes).
 @pytest.mark.parametrize("camera", ["orthographic", "perspective"])
 def test_front_converges_in_fewer_evaluations_to_the_right_normals(device, camera):
-    from gpps.metrics import angular_error
-    from gpps.pipeline.dgmc import propagate_front
+    from gpps.host.metrics import angular_error
+    from gpps.host.dgmc import propagate_front
 
     img, sc, ls, dg, sources, one = _front_case(device, camera=camera)
     hm = dg.highlight
@@ -499,7 +499,7 @@ def test_front_converges_in_fewer_evaluations_to_the_right_normals(device, camer
 def test_front_rings_follow_the_solved_neighbours(device):
     """Ring k pixels start from an 8-neighbour that is outside the highlights (k = 1) or in ring k - 1,
     an edge neighbour whenever one is solved (no curvature test), with that neighbour's final normal."""
-    from gpps.pipeline.dgmc import propagate_front
+    from gpps.host.dgmc import propagate_front
 
     img, sc, ls, dg, sources, one = _front_case(device, size=48)
     hm = dg.highlight
@@ -521,7 +521,7 @@ def test_front_rings_follow_the_solved_neighbours(device):
 
 
 def test_front_keep_better_never_raises_the_residual(device):
-    from gpps.pipeline.dgmc import propagate_front
+    from gpps.host.dgmc import propagate_front
 
     img, sc, ls, dg, sources, one = _front_case(device, size=48)
     hm = dg.highlight
@@ -533,7 +533,7 @@ def test_front_keep_better_never_raises_the_residual(device):
 
 def test_front_island_without_boundary_is_left_alone(device):
     """A highlight region with no solved pixel next to it is not reached: ring -1, no evaluations."""
-    from gpps.pipeline.dgmc import propagate_front
+    from gpps.host.dgmc import propagate_front
 
     img, sc, ls, dg, sources, one = _front_case(device, size=48)
     hm = dg.highlight.copy()
@@ -551,7 +551,7 @@ def test_front_island_without_boundary_is_left_alone(device):
 
 
 def test_front_bad_input(device):
-    from gpps.pipeline.dgmc import propagate_front
+    from gpps.host.dgmc import propagate_front
 
     img, sc, ls, dg, sources, one = _front_case(device, size=32)
     hm = dg.highlight

@@ -7,8 +7,8 @@ from gpps.camera import camera_from_K
 from gpps.io import read_dataset
 from gpps.lights import DirectionalLights
 from gpps.material import Material
-from gpps.metrics import normal_errors
-from gpps.photometric import solve_normals
+from gpps.host.metrics import normal_errors
+from gpps.flows.photometric import solve_normals
 
 OPTS = dict(shadow_threshold=0.02, robust="cauchy", robust_scale=0.1, irls_rounds=3, starts=4, max_iters=30)
 

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from gpps.formats import (linear_to_srgb, read_exr, read_image_file, read_mesh_file, read_tiff, save_exr,
+from gpps.io.formats import (linear_to_srgb, read_exr, read_image_file, read_mesh_file, read_tiff, save_exr,
                           save_float_tiff, save_mesh_file, srgb_to_linear)
 
 
@@ -101,8 +101,8 @@ def test_write_outputs_every_format_read_back(tmp_path):
     import cv2
 
     from gpps.camera import Perspective
-    from gpps.outputs import OUTPUT_FILES, apply_depth_convention, depth_convention, write_outputs
-    from gpps.scenes import make_scene
+    from gpps.io.outputs import OUTPUT_FILES, apply_depth_convention, depth_convention, write_outputs
+    from gpps.host.scenes import make_scene
 
     sc = make_scene("sphere", 32, "perspective")
     m = sc.mask
@@ -125,7 +125,7 @@ def test_write_outputs_every_format_read_back(tmp_path):
         assert np.array_equal(np.isnan(got), ~m) and np.array_equal(got[m], d[m])
     assert np.array_equal(cv2.imread(str(tmp_path / "mask.png"), cv2.IMREAD_UNCHANGED) > 0, m)
     pts = Perspective(sc.camera.K).backproject(np.where(m, d, 0.0))[m]
-    from gpps.outputs import _albedo_colors
+    from gpps.io.outputs import _albedo_colors
 
     cols = np.round(_albedo_colors(alb, m)[m] * 255).astype(np.uint8)
     for name in ("mesh.ply", "mesh.obj"):
@@ -137,7 +137,7 @@ def test_write_outputs_every_format_read_back(tmp_path):
 
 def test_depth_convention_orthographic_and_metric():
     from gpps.camera import Orthographic
-    from gpps.outputs import apply_depth_convention, depth_convention
+    from gpps.io.outputs import apply_depth_convention, depth_convention
 
     m = np.ones((4, 4), bool)
     d = np.arange(16.0).reshape(4, 4) + 100
@@ -154,8 +154,8 @@ def test_depth_convention_orthographic_and_metric():
 
 def _scene_images(n=8, size=48, camera="orthographic"):
     from gpps.material import Material
-    from gpps.scenes import make_scene
-    from gpps.synthetic import default_lights, render
+    from gpps.host.scenes import make_scene
+    from gpps.flows.synthetic import default_lights, render
 
     sc = make_scene("sphere", size, camera)
     lights = default_lights("directional", n)
@@ -164,7 +164,7 @@ def _scene_images(n=8, size=48, camera="orthographic"):
 
 
 def test_read_capture_sorted_names_ambient_automask_max_size(tmp_path):
-    from gpps.capture import list_images, read_capture
+    from gpps.io.capture import list_images, read_capture
     from gpps.io import save_png, save_txt
 
     sc, lights, imgs = _scene_images(n=10)
@@ -189,7 +189,7 @@ def test_read_capture_sorted_names_ambient_automask_max_size(tmp_path):
 
 
 def test_read_capture_errors(tmp_path):
-    from gpps.capture import read_capture
+    from gpps.io.capture import read_capture
     from gpps.io import save_png
 
     with pytest.raises(FileNotFoundError):
@@ -203,7 +203,7 @@ def test_read_capture_errors(tmp_path):
 
 
 def test_automatic_mask_fills_holes_and_drops_speckle():
-    from gpps.automask import AutoMaskConfig, automatic_mask
+    from gpps.host.automask import AutoMaskConfig, automatic_mask
 
     h = w = 40
     yy, xx = np.mgrid[:h, :w]

@@ -255,7 +255,7 @@ KEEP = ["all", "all", "none", "none", "images", "mask", "lights", "camera", "mat
                              {"saturation": 0.9}, {"smoothness": 0.3}, {"bogus": 1}]),
        keep=st.sampled_from(KEEP), seed=st.integers(0, 2**31 - 1))
 def test_solve_normals(data, lt, cam, mat, solver, robust, depth, opts, keep, seed):
-    from gpps.photometric import solve_normals
+    from gpps.flows.photometric import solve_normals
 
     n, img, m = data
     L = lt.draw(lights(n))
@@ -335,7 +335,7 @@ def test_reconstruct(data, lt, cam, mat, rounds, keep, seed):
        robust=st.sampled_from(["none", "curl", "cauchy", "bogus"]), bilateral=st.booleans(),
        ref=st.sampled_from([None, 5.0, 0.0, -1.0, np.nan]))
 def test_integrate(h, w, nd, cam, solver, robust, bilateral, ref):
-    from gpps.integrate import integrate_normals
+    from gpps.flows.integrate import integrate_normals
 
     mode = nd.draw(st.sampled_from(["unit", "raw", "back"]))
     if mode == "raw":
@@ -363,7 +363,7 @@ _STREAMS: dict = {}
 
 def _stream(n, shape, c):
     from gpps.pipeline.stream import Stream, StreamConfig
-    from gpps.synthetic import default_lights
+    from gpps.flows.synthetic import default_lights
 
     key = (n, shape, c)
     if key not in _STREAMS:
@@ -437,7 +437,7 @@ def test_configs(which, kv):
 @_settings("uncalibrated")
 @given(data=images_and_mask(n_lo=2, n_hi=7, hw_hi=14))
 def test_solve_uncalibrated(data):
-    from gpps.uncalibrated import solve_uncalibrated
+    from gpps.flows.uncalibrated import solve_uncalibrated
 
     n, img, m = data
     if np.ndim(img) == 4 and img.shape[0] >= 3 and np.ndim(m) == 2 and np.shape(m) == img.shape[1:3] \

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from gpps.camera import Orthographic, Perspective
-from gpps.integrate import IntegratorConfig, integrate_normals
+from gpps.flows.integrate import IntegratorConfig, integrate_normals
 from gpps.pipeline.integration import (
     Integrator,
     curl_edge_weights,

@@ -16,7 +16,7 @@ import scipy.sparse as sp
 
 from discontinuity_scenes import SCENES, render_scene, surface_errors
 from gpps.camera import Orthographic, Perspective
-from gpps.integrate import IntegratorConfig, integrate_normals
+from gpps.flows.integrate import IntegratorConfig, integrate_normals
 from gpps.pipeline.integration_bini import BilateralIntegrator, BiniConfig, bini_coefficients
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from gpps.camera import Orthographic, Perspective
-from gpps.mesh import depth_to_mesh, render_view, save_mesh
+from gpps.io.mesh import depth_to_mesh, render_view, save_mesh
 
 
 def _plane(h=12, w=10):
@@ -86,7 +86,7 @@ def test_cli_integrate(tmp_path, fmt):
     rep = json.loads((out / "report.json").read_text())
     assert rep["residual"] < 1e-6 and rep["n_pixels"] == mask.sum()
     d = np.load(out / "depth.npy")
-    assert abs(d[mask].mean() - 10) < 1e-3 and np.all(np.isnan(d[~mask]))  # NaN outside the mask (gpps.outputs)
+    assert abs(d[mask].mean() - 10) < 1e-3 and np.all(np.isnan(d[~mask]))  # NaN outside the mask (gpps.io.outputs)
 
 
 def test_cli_bad_input(tmp_path, capsys):

@@ -144,7 +144,7 @@ def test_lights_match_numpy(device, kind):
 
 @pytest.mark.parametrize("cam", ["orthographic", "perspective"])
 def test_pixel_points_match_camera(device, cam):
-    from gpps.scenes import default_camera
+    from gpps.host.scenes import default_camera
 
     wp = warp()
     import _brdf_kernels as tk

@@ -1,11 +1,11 @@
-"""The near-light capture reader (gpps.nearlight) on the real hehe12 capture, and a smoke reconstruction."""
+"""The near-light capture reader (gpps.io.nearlight) on the real hehe12 capture, and a smoke reconstruction."""
 
 import numpy as np
 import pytest
 
 from gpps.camera import Perspective
 from gpps.lights import PointLights
-from gpps.nearlight import aim_distance, estimate_distance, read_nearlight
+from gpps.io.nearlight import aim_distance, estimate_distance, read_nearlight
 
 # a window on the object (full-resolution pixels: rows 300-620, columns 760-1180), 8x smaller
 CROP = (300, 620, 760, 1180)
@@ -84,9 +84,9 @@ def test_aim_distance_and_bad_input(capture, tmp_path):
 
 def test_smoke_reconstruct_on_a_downsampled_crop(capture):
     from gpps.material import Material
-    from gpps.pipeline.ron import RONConfig
+    from gpps.flows.ron import RONConfig
     from gpps.pipeline.solver import SolverConfig
-    from gpps.reconstruction import reconstruct
+    from gpps.flows.reconstruction import reconstruct
 
     _, root = capture
     cap = read_nearlight(root, downsample=8, crop=CROP)

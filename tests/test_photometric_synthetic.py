@@ -5,7 +5,7 @@ perf/synthetic_calibrated.py gives the 256^2 table)."""
 import numpy as np
 import pytest
 
-from gpps.evaluation import BRDFS, run_case  # noqa: E402
+from cases import BRDFS, run_case  # noqa: E402
 
 SIZE = 128
 
@@ -46,10 +46,10 @@ def test_noisy_sphere_with_attached_shadows(device, camera, light_kind):
 
 
 def test_pps_and_ppn_perspective():
-    from gpps.evaluation import make_case
+    from cases import make_case
 
-    from gpps.metrics import normal_errors
-    from gpps.perspective import gradient_to_normals, lambertian_closed_form, normals_to_gradient, pps_blinn_phong
+    from gpps.host.metrics import normal_errors
+    from gpps.host.perspective import gradient_to_normals, lambertian_closed_form, normals_to_gradient, pps_blinn_phong
 
     img, L, sc, mat = make_case("bumps", 48, "perspective", "directional", "blinn-phong")
     g = normals_to_gradient(sc.normals, sc.mask, sc.camera)

@@ -10,8 +10,8 @@ from gpps.io import read_dataset, write_dataset
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
 from gpps.pipeline.render import Renderer, quantise
-from gpps.scenes import make_scene
-from gpps.synthetic import default_lights, render, render_dataset
+from gpps.host.scenes import make_scene
+from gpps.flows.synthetic import default_lights, render, render_dataset
 
 
 @pytest.mark.parametrize("camera", ["orthographic", "perspective"])

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 
 import gpps
-from gpps.evaluation import depth_error
+from cases import depth_error
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
-from gpps.metrics import angular_error
-from gpps.pipeline.ron import RON, RONConfig, depth_rms_roughness, estimable_parameters
-from gpps.scenes import make_scene
-from gpps.synthetic import default_lights, render
+from gpps.host.metrics import angular_error
+from gpps.flows.ron import RON, RONConfig, depth_rms_roughness, estimable_parameters
+from gpps.host.scenes import make_scene
+from gpps.flows.synthetic import default_lights, render
 
 TRUE = {
     "blinn-phong": Material("blinn-phong", ks=0.7, shininess=60.0),
@@ -38,7 +38,7 @@ def _case(brdf, camera, kind, size=64, scene="sphere", noise=0.0):
 
 def _depth_floor(sc, ref, device="cpu"):
     """The integrator's discretisation error from the exact normals (about 1.3 % of the range at 64^2, 0.3 % at 256^2)."""
-    from gpps.integrate import integrate_normals
+    from gpps.flows.integrate import integrate_normals
 
     ir = integrate_normals(sc.normals, sc.mask, camera=sc.camera, reference_depth=ref, device=device)
     return depth_error(ir.depth, ir.mask, sc)
@@ -115,8 +115,8 @@ def test_reconstruct_unknown_material(brdf, camera, kind, device):
 
 def test_reconstruct_known_material_is_solve_then_integrate(device):
     """Known material and directional lights: one round, equal to solve_normals + integrate_normals."""
-    from gpps.integrate import integrate_normals
-    from gpps.photometric import solve_normals
+    from gpps.flows.integrate import integrate_normals
+    from gpps.flows.photometric import solve_normals
 
     img, L, sc, sat = _case("blinn-phong", "perspective", "directional", size=48)
     cfg = RONConfig(dgmc=False)
@@ -132,7 +132,7 @@ def test_reconstruct_known_material_is_solve_then_integrate(device):
 
 def test_dgmc_starts_used_on_highlight_pixels():
     """Round 1 starts from least squares, replaced by DGMC normals on highlight pixels only."""
-    from gpps.photometric import solve_normals
+    from gpps.flows.photometric import solve_normals
 
     img, L, sc, sat = _case("cook-torrance", "orthographic", "directional")
     rec = gpps.reconstruct(img, sc.mask, L, camera=sc.camera, material=TRUE["cook-torrance"], saturation=sat,

@@ -111,8 +111,8 @@ def test_prepare_input_scale_free():
 def _sphere_capture(size=64, brdf="lambertian"):
     from gpps.lights import DirectionalLights, ring_directions
     from gpps.material import Material
-    from gpps.scenes import make_scene
-    from gpps.synthetic import render
+    from gpps.host.scenes import make_scene
+    from gpps.flows.synthetic import render
 
     sc = make_scene("sphere", size, "orthographic", albedo="texture", seed=5)
     lights = DirectionalLights(ring_directions(3, 35.0), np.full((3, 3), 0.8))
@@ -121,7 +121,7 @@ def _sphere_capture(size=64, brdf="lambertian"):
 
 
 def test_network_beats_flat_plane_on_a_sphere():
-    from gpps.metrics import normal_errors
+    from gpps.host.metrics import normal_errors
 
     sc, _, imgs = _sphere_capture(64)
     n, h = SingleNet.load().predict(imgs[0], sc.mask)
@@ -179,7 +179,7 @@ def test_photometric_objective_against_numpy(device):
 
 
 def test_estimate_lights_exact_normals():
-    from gpps.pipeline.single import estimate_lights, prepare_images
+    from gpps.flows.single import estimate_lights, prepare_images
 
     sc, lights, imgs = _sphere_capture(48)
     I, m = prepare_images(imgs, sc.mask)
@@ -191,9 +191,9 @@ def test_estimate_lights_exact_normals():
 
 
 def test_reconstruct_single_refines_and_is_reproducible(device):
-    from gpps.metrics import normal_errors
+    from gpps.host.metrics import normal_errors
     from gpps.pipeline.cuckoo import CuckooConfig
-    from gpps.pipeline.single import SingleConfig, reconstruct_single
+    from gpps.flows.single import SingleConfig, reconstruct_single
 
     sc, _, imgs = _sphere_capture(48)
     cfg = SingleConfig(cuckoo=CuckooConfig(nests=8, generations=30, seed=2), integrate=False)
@@ -212,7 +212,7 @@ def _gbr_setup(brdf, size=40, lam=0.75, mu=0.06, nu=-0.04):
     """Sphere normals and Blinn-Phong / Lambertian intensities (numpy), and the same normals and lights
     moved along a bas-relief (what a flattening prior and lights fitted to it look like)."""
     from gpps.lights import ring_directions
-    from gpps.pipeline.single import _through_gbr
+    from gpps.flows.single import _through_gbr
 
     u = (np.arange(size) + 0.5) / size * 2 - 1
     x, y = np.meshgrid(u, -u)
@@ -246,7 +246,7 @@ def _deg(a, b):
 
 
 def test_fit_highlights_undoes_a_bas_relief():
-    from gpps.pipeline.single import fit_highlights
+    from gpps.flows.single import fit_highlights
 
     I, n, L, v, n_b, l_b, rgb_b, kd_b = _gbr_setup("blinn-phong")
     assert _deg(l_b, L).min() > 5 and _deg(n_b, n).mean() > 4  # the start is well off
@@ -264,7 +264,7 @@ def test_fit_highlights_undoes_a_bas_relief():
 
 
 def test_fit_highlights_without_highlights_changes_nothing():
-    from gpps.pipeline.single import fit_highlights
+    from gpps.flows.single import fit_highlights
 
     I, _, _, v, n_b, l_b, rgb_b, kd_b = _gbr_setup("lambertian")
     I = I + np.random.default_rng(0).normal(0, 0.01, I.shape)  # shading noise, no highlight
@@ -284,10 +284,10 @@ def test_fit_highlights_without_highlights_changes_nothing():
 def test_refinement_beats_the_network_on_a_blinn_phong_sphere(device):
     """Issue 8 regression: lights fitted to the network's (flattened) normals were ~10 deg too oblique
     and the refinement of a Blinn-Phong sphere ended worse than the network (64^2: 8.2 -> 9.0 deg)."""
-    from gpps.metrics import normal_errors
+    from gpps.host.metrics import normal_errors
     from gpps.pipeline.cuckoo import CuckooConfig
     from gpps.pipeline.render import quantise
-    from gpps.pipeline.single import SingleConfig, estimate_lights, prepare_images, reconstruct_single
+    from gpps.flows.single import SingleConfig, estimate_lights, prepare_images, reconstruct_single
 
     sc, lights, imgs = _sphere_capture(64, "blinn-phong")
     cfg = SingleConfig(cuckoo=CuckooConfig(nests=8, generations=30, seed=2), integrate=False)
@@ -306,7 +306,7 @@ def test_refinement_beats_the_network_on_a_blinn_phong_sphere(device):
 
 
 def test_single_config_validation():
-    from gpps.pipeline.single import SingleConfig
+    from gpps.flows.single import SingleConfig
 
     with pytest.raises(ValueError, match="albedo"):
         SingleConfig(albedo="guess")
@@ -342,7 +342,7 @@ def test_cli_single(tmp_path):
     rc = main(["--device", "cpu", "single", *paths, "--mask", str(tmp_path / "mask.png"), "--out", str(out),
                "--generations", "5", "--nests", "4"])
     assert rc == 0
-    from gpps.outputs import OUTPUT_FILES
+    from gpps.io.outputs import OUTPUT_FILES
 
     for f in ("report.json", "normals_net.npy", *OUTPUT_FILES):  # the output set every command writes
         assert (out / f).is_file(), f

@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 
 from gpps.lights import DirectionalLights, PointLights
-from gpps.metrics import normal_errors, slant_tilt
-from gpps.photometric import solve_normals
+from gpps.host.metrics import normal_errors, slant_tilt
+from gpps.flows.photometric import solve_normals
 from gpps.pipeline.solver import FLAG_FEW_OBSERVATIONS, PixelSolver, SolverConfig, check_light_configuration
 
 
 def _case(brdf="blinn-phong", size=48, camera="perspective", lights="directional", noise=0.0):
-    from gpps.evaluation import make_case
+    from cases import make_case
 
     return make_case("sphere", size, camera, lights, brdf, noise=noise)
 
@@ -198,7 +198,7 @@ def test_specialised_kernels_match_generic(device, brdf, solver, robust):
 
 def test_smoothness_term_suppresses_noise(device):
     """The red-black smoothness sweeps lower the error of a noisy specular fit and barely move a clean one."""
-    from gpps.evaluation import make_case
+    from cases import make_case
 
     # the bias of a first-order term grows with the normal change per pixel: a 64^2 sphere, weight 0.3
     img, L, sc, mat = make_case("sphere", 64, "perspective", "directional", "blinn-phong", noise=0.01, device=device)
@@ -378,7 +378,7 @@ def test_rim_albedo_from_neighbours_under_noise(device):
     Without the noise test (``lit_sigmas=0``) shadowed observations whose noise
     exceeds 5 % of a dim rim pixel's brightest pass as lit: wrong albedos spread.
     """
-    from gpps.evaluation import make_case
+    from cases import make_case
     from gpps.pipeline.solver import FLAG_ALBEDO_FROM_NEIGHBOURS
 
     img, L, sc, mat = make_case("sphere", 64, "orthographic", "point", "lambertian", noise=0.01, device=device)

@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from gpps.metrics import normal_errors
+from gpps.host.metrics import normal_errors
 
 
 def _scene(size=48, camera="perspective"):
     from gpps.material import Material
-    from gpps.scenes import make_scene
-    from gpps.synthetic import default_lights, render
+    from gpps.host.scenes import make_scene
+    from gpps.flows.synthetic import default_lights, render
 
     sc = make_scene("bumps", size, camera)
     mat = Material.default_for("blinn-phong")
@@ -36,7 +36,7 @@ def test_stream_matches_batch_and_reports_bad_frames(device):
     # batch reference: gpps.reconstruct on the same (quantised) frame, the material known (nothing to estimate)
     import gpps
 
-    from gpps.pipeline.ron import RONConfig
+    from gpps.flows.ron import RONConfig
 
     same = RONConfig(integrator=IntegratorConfig(tol=1e-5, weighting="uniform"))  # the stream's plain Poisson integration
     rec = gpps.reconstruct(frame.astype(np.float32) / 65535 / np.asarray(L.intensities, np.float32)[:, None, None, :],
@@ -77,7 +77,7 @@ def test_stream_device_output_ring_and_config_errors(device):
         StreamConfig(iterations=0)
     with pytest.raises(ValueError, match="output"):
         StreamConfig(output="gpu")
-    from gpps.synthetic import default_lights
+    from gpps.flows.synthetic import default_lights
 
     with pytest.raises(ValueError, match="reference_depth"):
         Stream(sc.mask.shape, sc.camera, default_lights("point", 3), mat, mask=sc.mask, device=device)
@@ -126,7 +126,7 @@ def test_stream_integrator_several_components_matches_direct(camera):
     """Each mask component gets its own constant (mean depth = reference), as the direct solver gives."""
     from gpps.pipeline.integration import Integrator, IntegratorConfig
     from gpps.pipeline.integration_device import StreamIntegrator
-    from gpps.scenes import make_scene
+    from gpps.host.scenes import make_scene
 
     sc = make_scene("bumps", 64, camera)
     m = sc.mask.copy()
@@ -147,7 +147,7 @@ def test_stream_integrator_fixed_iterations_converge_and_warm_start(method, came
     solution, and one iteration from a perturbed previous depth removes most of the perturbation."""
     from gpps.pipeline.integration import Integrator, IntegratorConfig
     from gpps.pipeline.integration_device import StreamIntegrator, StreamIntegratorConfig
-    from gpps.scenes import make_scene
+    from gpps.host.scenes import make_scene
 
     sc = make_scene("bumps", 64, camera)
     m = sc.mask
@@ -262,7 +262,7 @@ def test_stream_integrator_vcycle_matches_numpy_reference(shape, smooth_pairs, l
 
 
 def _two_component_case(camera, size=64):
-    from gpps.scenes import make_scene
+    from gpps.host.scenes import make_scene
 
     sc = make_scene("bumps", size, camera)
     m = sc.mask.copy()

@@ -6,14 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpps.metrics import angular_error, normal_errors
+from gpps.host.metrics import angular_error, normal_errors
 
 
 def _frames(size=32, n=6, seed=0):
     """A slowly moving perspective Blinn-Phong scene as uint16 RGB frames, with ground truth."""
     from gpps.material import Material
-    from gpps.scenes import make_scene
-    from gpps.synthetic import default_lights, render
+    from gpps.host.scenes import make_scene
+    from gpps.flows.synthetic import default_lights, render
 
     sc = make_scene("bumps", size, "perspective")
     mat = Material.default_for("blinn-phong")
@@ -126,8 +126,8 @@ def test_textured_frames_pass_and_noise_does_not(device):
     """Albedo texture down to single pixels cancels in the shading ratios; noise does not."""
     from gpps.material import Material
     from gpps.pipeline.stream import Stream, StreamConfig
-    from gpps.scenes import make_scene
-    from gpps.synthetic import default_lights, render
+    from gpps.host.scenes import make_scene
+    from gpps.flows.synthetic import default_lights, render
 
     sc = make_scene("bumps", 48, "perspective")
     checker = np.where((np.indices(sc.mask.shape).sum(0) % 2) == 0, 0.15, 0.95)

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from gpps.material import Material
-from gpps.scenes import make_scene
-from gpps.synthetic import default_lights, render
-from gpps.uncalibrated import (
+from gpps.host.scenes import make_scene
+from gpps.flows.synthetic import default_lights, render
+from gpps.flows.uncalibrated import (
     UncalibratedConfig,
     _als,
     _start_fill,
@@ -300,7 +300,7 @@ def test_failure_modes_are_explicit(lambertian_capture):
 def test_specular_free_is_the_diffuse_chroma():
     """Dichromatic model: the part of the RGB orthogonal to the (white) source colour is the Lambertian
     shading times the albedo's chromatic part, whatever the specular lobe; a grey albedo has none."""
-    from gpps.uncalibrated import specular_free
+    from gpps.flows.uncalibrated import specular_free
 
     scene = make_scene("bumps", 48, "orthographic", albedo="texture")
     lights = default_lights("directional", 4, layout="spiral")

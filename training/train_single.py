@@ -4,7 +4,7 @@ Runs on the GPU machine (PyTorch + the Warp kit; see /work/shared/device/README.
 
     source .device/b/install.sh && python3 training/train_single.py --out $OUT --minutes 5
 
-Data recipe (:mod:`gpps.nn.shapes`): ``--train`` random scenes of seeds ``0..train-1`` (height
+Data recipe (:mod:`shapes`): ``--train`` random scenes of seeds ``0..train-1`` (height
 fields, surfaces of revolution, smooth-union blobs; uniform / noise / cell / stripe / mixed RGB
 albedo, grey a third of the time; the five reflectance models with random parameters; directional
 or point lights; orthographic or perspective camera; noise, ambient, 8-bit quantisation), each
@@ -40,7 +40,7 @@ if str(ROOT) not in sys.path:  # a script run from a checkout, not an installed 
     sys.path.insert(0, str(ROOT))
 
 from gpps.nn.model import ARCH, DEC, ENC, GLOBAL, HEAD, prepare_input  # noqa: E402
-from gpps.nn.shapes import TRAIN_SEED_LIMIT, SceneRenderer, random_scene, render_random_sample  # noqa: E402
+from shapes import TRAIN_SEED_LIMIT, SceneRenderer, random_scene, render_random_sample  # noqa: E402
 
 
 def _scene(args):
@@ -315,7 +315,7 @@ def main(argv=None):
     np.savez(out / "single_net.npz", meta=np.array(json.dumps(meta)), **{k: v.astype(np.float32) for k, v in params.items()})
     report = {
         "recipe": {
-            "generator": "gpps.nn.shapes.render_random_sample (gpps Warp Renderer, device %s)" % warp_device,
+            "generator": "shapes.render_random_sample (gpps Warp Renderer, device %s)" % warp_device,
             "size": args.size, "train_scenes": args.train, "renders_per_train_scene": args.lights,
             "train_seeds": [0, int(args.train) - 1], "val_seeds": [int(va_seeds[-1]), int(va_seeds[0])],
             "val_scenes": args.val, "counts": stats,

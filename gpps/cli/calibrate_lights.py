@@ -57,7 +57,7 @@ def register(subparsers) -> None:
 
 
 def _mask_file(root: Path, stem: str, given: str | None):
-    from gpps.capture import _find_side
+    from gpps.io.capture import _find_side
 
     if given:
         p = Path(given)
@@ -70,7 +70,7 @@ def _mask_file(root: Path, stem: str, given: str | None):
 def _read_mask(path, shape):
     import numpy as np
 
-    from gpps.formats import read_image_file
+    from gpps.io.formats import read_image_file
 
     m, _ = read_image_file(path, transfer="linear")
     m = np.any(m > 0.5, axis=-1)
@@ -83,10 +83,10 @@ def run(args) -> int:
     import numpy as np
     from scipy import ndimage
 
-    from gpps.calibrate import (_disc_mask, card_intensities, circle_points, find_outline, fit_sphere,
+    from gpps.host.calibrate import (_disc_mask, card_intensities, circle_points, find_outline, fit_sphere,
                                 highlight_direction, mask_outline, matte_intensities, triangulate_lights)
     from gpps.camera import Orthographic, camera_from_K
-    from gpps.capture import read_capture
+    from gpps.io.capture import read_capture
     from gpps.cli._progress import bar
     from gpps.io import atomic_dir, read_K, save_json, save_txt
 

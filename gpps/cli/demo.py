@@ -17,7 +17,7 @@ def register(sub):
 
 
 def run(args) -> int:
-    from gpps.demo import run_demo
+    from gpps.flows.demo import run_demo
 
     from gpps.cli._progress import bar
 

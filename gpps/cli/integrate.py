@@ -4,7 +4,7 @@ Default: bilateral normal integration (BiNI), which keeps depth discontinuities
 (occluding rims, overlapping objects); ``--method poisson`` (or any of
 ``--solver``, ``--tol``, ``--robust``) is the plain least-squares solve.
 
-Writes the output set of :mod:`gpps.outputs` (``depth.npy``, ``depth.tiff``,
+Writes the output set of :mod:`gpps.io.outputs` (``depth.npy``, ``depth.tiff``,
 ``depth.exr``, ``mesh.ply``, ``mesh.obj``, ``view.png``, ``normals.npy``,
 ``normals.png``, ``mask.png``) and ``report.json`` (timings, iterations,
 residual, the depth convention) into ``--out``.
@@ -44,7 +44,7 @@ def register(subparsers) -> None:
                         "integrability of their loops) or 'cauchy' (IRLS on the edge residuals)")
     p.add_argument("--reference-depth", type=float, default=None, help="mean depth per component (scene units): a metric depth; "
                                                                       "default: relative (perspective: mean 1; orthographic: pixels, mean 0)")
-    add_output_args(p, "output folder (the output set of gpps.outputs and report.json)")
+    add_output_args(p, "output folder (the output set of gpps.io.outputs and report.json)")
     p.set_defaults(func=run)
 
 
@@ -69,7 +69,7 @@ def _read_normals(path: Path) -> np.ndarray:
 def run(args) -> int:
     from gpps.camera import Orthographic, Perspective
     from gpps.cli._progress import bar
-    from gpps.integrate import integrate_normals
+    from gpps.flows.integrate import integrate_normals
     from gpps.io import atomic_dir, read_K, read_mask
 
     inputs = [args.normals, args.mask, args.K]
@@ -103,9 +103,9 @@ def run(args) -> int:
 
 
 def _write(out, res, camera, args, method, normals, mask) -> None:
-    """The output set (:mod:`gpps.outputs`, depth in its convention) and report.json into the temporary folder ``out``."""
+    """The output set (:mod:`gpps.io.outputs`, depth in its convention) and report.json into the temporary folder ``out``."""
     from gpps.io import save_json
-    from gpps.outputs import apply_depth_convention, depth_convention, write_outputs
+    from gpps.io.outputs import apply_depth_convention, depth_convention, write_outputs
 
     conv = depth_convention(camera, known_scale="--reference-depth" if args.reference_depth is not None else None)
     depth = apply_depth_convention(res.depth, res.mask, conv)

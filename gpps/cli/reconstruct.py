@@ -2,10 +2,10 @@
 
 With light files (``light_directions.txt`` or ``light_positions.txt``) the
 calibrated pipeline runs; without them (or with ``--uncalibrated``) the lights
-are estimated (:func:`gpps.uncalibrated.solve_uncalibrated`) and written to
+are estimated (:func:`gpps.flows.uncalibrated.solve_uncalibrated`) and written to
 ``lights_estimated.txt`` / ``light_intensities_estimated.txt``.  The folder is
-read by :func:`gpps.capture.read_capture` (any image format, no filenames.txt
-or mask.png needed); the outputs are :data:`gpps.outputs.OUTPUT_FILES`.
+read by :func:`gpps.io.capture.read_capture` (any image format, no filenames.txt
+or mask.png needed); the outputs are :data:`gpps.io.outputs.OUTPUT_FILES`.
 """
 
 from __future__ import annotations
@@ -106,14 +106,14 @@ def run(args) -> int:
     import numpy as np
 
     from gpps.camera import Orthographic, camera_from_K
-    from gpps.capture import read_capture
+    from gpps.io.capture import read_capture
     from gpps.cli._progress import bar
     from gpps.io import atomic_dir, save_json
     from gpps.lights import DirectionalLights, PointLights
     from gpps.material import Material
-    from gpps.metrics import normal_errors
-    from gpps.outputs import apply_depth_convention, depth_convention, write_outputs
-    from gpps.pipeline.ron import LOBE_PARAMETERS
+    from gpps.host.metrics import normal_errors
+    from gpps.io.outputs import apply_depth_convention, depth_convention, write_outputs
+    from gpps.flows.ron import LOBE_PARAMETERS
 
     t0 = time.perf_counter()
     if args.rounds < 1:
@@ -142,7 +142,7 @@ def run(args) -> int:
     reference = args.reference_depth
     scale_source = "--reference-depth" if reference is not None else None
     if uncalibrated:
-        from gpps.uncalibrated import UncalibratedConfig, dark_images, solve_uncalibrated
+        from gpps.flows.uncalibrated import UncalibratedConfig, dark_images, solve_uncalibrated
 
         cfg = UncalibratedConfig()
         drop = dark_images(ds.images, ds.mask, cfg.dark_fraction) if cfg.dark_fraction > 0 else []
@@ -159,7 +159,7 @@ def run(args) -> int:
         # the lights are estimated from the pixels that carry evidence: lit in enough images (a pupil or a
         # hole dark in nearly every image says nothing about them); the rest of the mask is then solved
         # with the estimated lights (Lambertian least squares)
-        from gpps.automask import lit_pixels
+        from gpps.host.automask import lit_pixels
 
         imgs_used = ds.images[keep]
         evidence = ds.mask & lit_pixels(imgs_used)
@@ -174,7 +174,7 @@ def run(args) -> int:
         intens = np.repeat(np.asarray(res.light_intensities, np.float64)[:, None], 3, 1)
         rest = ds.mask & ~evidence
         if rest.any():
-            from gpps.photometric import solve_normals
+            from gpps.flows.photometric import solve_normals
 
             ls = solve_normals(imgs_used / intens[:, None, None, :].astype(np.float32), rest, DirectionalLights(ldirs),
                                camera=camera, solver="none", device=device)
@@ -227,7 +227,7 @@ def run(args) -> int:
             valid = ~np.any(raw >= 0.995, axis=-1)
         robust = args.robust or ("cauchy" if n > 6 else "none")
         if args.method == "pps":
-            from gpps.perspective import pps_blinn_phong
+            from gpps.host.perspective import pps_blinn_phong
 
             if not camera.is_perspective or not isinstance(lights, DirectionalLights):
                 raise ValueError("--method pps: expected a perspective camera (K.txt) and directional lights")
@@ -237,7 +237,7 @@ def run(args) -> int:
             report["timings"] = {"solve": time.perf_counter() - t}
             report["material"] = material.to_dict()
         elif args.method == "ppn" or args.solver == "none":
-            from gpps.photometric import solve_normals
+            from gpps.flows.photometric import solve_normals
 
             opts = {"shadow_threshold": 0.02, "starts": 4} if n > 6 else {}
             res = solve_normals(
@@ -252,8 +252,8 @@ def run(args) -> int:
         else:
             from dataclasses import replace
 
-            from gpps.pipeline.ron import RONConfig
-            from gpps.reconstruction import reconstruct
+            from gpps.flows.ron import RONConfig
+            from gpps.flows.reconstruction import reconstruct
 
             from gpps.pipeline.integration import IntegratorConfig
 
@@ -277,7 +277,7 @@ def run(args) -> int:
                           flagged_pixels=int(np.count_nonzero(rec.flags[ds.mask])))
     normals = np.where(ds.mask[..., None], normals, 0.0).astype(np.float32)
     if depth is None and not args.no_integrate:
-        from gpps.integrate import integrate_normals
+        from gpps.flows.integrate import integrate_normals
 
         t = time.perf_counter()
         ref_i = reference if reference is not None else (float(np.sqrt(camera.fx * camera.fy)) if camera.is_perspective else None)

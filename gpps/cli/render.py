@@ -6,7 +6,7 @@ import time
 
 from gpps.cli._output import add_output_args, prepare_out
 from gpps.material import BRDF_NAMES, Material
-from gpps.scenes import SCENE_NAMES
+from gpps.host.scenes import SCENE_NAMES
 
 
 def register(sub):
@@ -40,8 +40,8 @@ def material_from_args(args) -> Material:
 
 def run(args) -> int:
     from gpps.io import write_dataset
-    from gpps.scenes import make_scene
-    from gpps.synthetic import default_lights, render_dataset
+    from gpps.host.scenes import make_scene
+    from gpps.flows.synthetic import default_lights, render_dataset
 
     t0 = time.perf_counter()
     out = prepare_out(args)

@@ -3,7 +3,7 @@
 The shipped network predicts normals and depth; with the images' lights
 estimated jointly, a cuckoo search refines each pixel's normal and albedo on the
 Blinn-Phong reprojection error (seed ch. 6).  Writes the output set of
-:mod:`gpps.outputs` (normals, albedo, depth as npy/TIFF/EXR, mesh as PLY/OBJ,
+:mod:`gpps.io.outputs` (normals, albedo, depth as npy/TIFF/EXR, mesh as PLY/OBJ,
 view, mask), ``normals_net.npy``, ``normals_net.png``, ``height_net.npy`` and
 ``report.json`` into ``--out`` (atomically: the folder appears complete or not
 at all).  Nothing is known about the camera: orthographic, depth in pixels
@@ -54,7 +54,7 @@ def run(args) -> int:
     from gpps.cli._progress import bar
     from gpps.io import atomic_dir, read_mask, save_json, save_npy, save_png
     from gpps.pipeline.cuckoo import CuckooConfig
-    from gpps.pipeline.single import SingleConfig, reconstruct_single
+    from gpps.flows.single import SingleConfig, reconstruct_single
 
     if len(args.images) not in (1, 2, 3):
         raise ValueError(f"images: expected 1 to 3 images, got {len(args.images)}")
@@ -82,7 +82,7 @@ def run(args) -> int:
     res = reconstruct_single(imgs, mask, config=cfg, device=device, progress=bar("single"))
     m = res.mask
     from gpps.camera import Orthographic
-    from gpps.outputs import apply_depth_convention, depth_convention, write_outputs
+    from gpps.io.outputs import apply_depth_convention, depth_convention, write_outputs
 
     cam = Orthographic(1.0)
     conv = depth_convention(cam)

@@ -48,8 +48,8 @@ def register(sub):
 
 def _synthetic(args):
     from gpps.material import Material
-    from gpps.scenes import make_scene
-    from gpps.synthetic import default_lights, render
+    from gpps.host.scenes import make_scene
+    from gpps.flows.synthetic import default_lights, render
 
     sc = make_scene("bumps", args.size, "perspective")
     mat = Material.default_for(args.brdf)

@@ -564,7 +564,7 @@ class PixelSolver:
 
         The images, depth, observation mask and noise levels of the last
         :meth:`upload` stay; only ``mask`` and the start normals change, so a
-        sequence of small solves (the DGMC front, :func:`gpps.pipeline.dgmc.propagate_front`)
+        sequence of small solves (the DGMC front, :func:`gpps.host.dgmc.propagate_front`)
         does not copy the frame each time.  Needs ``config.warm_start``.
 
         Args:

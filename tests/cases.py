@@ -6,15 +6,18 @@ import time
 
 import numpy as np
 
-BRDFS = ["lambertian", "phong", "blinn-phong", "cook-torrance", "ashikhmin-shirley"]
+from gpps.host.metrics import depth_error  # noqa: F401  (re-exported for the tests and perf scripts)
+from gpps.names import BRDF_NAMES
+
+BRDFS = list(BRDF_NAMES)
 
 
 def make_case(scene_name, size, camera, light_kind, brdf, noise=0.0, device=None):
     """(images divided by intensities, unit-intensity lights, scene, material)."""
     from gpps.lights import DirectionalLights, PointLights
     from gpps.material import Material
-    from gpps.scenes import make_scene
-    from gpps.synthetic import default_lights, render
+    from gpps.host.scenes import make_scene
+    from gpps.flows.synthetic import default_lights, render
 
     sc = make_scene(scene_name, size, camera)
     mat = Material.default_for(brdf)
@@ -25,27 +28,10 @@ def make_case(scene_name, size, camera, light_kind, brdf, noise=0.0, device=None
     return img, Lu, sc, mat
 
 
-def depth_error(depth, depth_mask, scene) -> float:
-    """Mean absolute depth error as a fraction of the true depth range, after alignment.
-
-    Orthographic depth is known up to an offset (the means are matched),
-    perspective depth up to a scale (the median ratio is matched).
-
-    Args:
-        depth: (H, W) estimated depth.
-        depth_mask: (H, W) bool pixels with an estimate.
-        scene: the :class:`gpps.scenes.Scene` with the true ``depth``, ``mask`` and ``camera``.
-    """
-    m = depth_mask & scene.mask
-    d, g = depth[m].astype(np.float64), scene.depth[m].astype(np.float64)
-    d = d * np.median(g / d) if scene.camera.is_perspective else d - np.mean(d - g)
-    return float(np.mean(np.abs(d - g)) / (g.max() - g.min()))
-
-
 def run_case(scene_name, size, camera, light_kind, brdf, *, noise=0.0, solver="lm", device=None, **options):
     """Solve one rendered case with least squares and ``solver`` (``options``: further SolverConfig fields); errors and time."""
-    from gpps.metrics import normal_errors
-    from gpps.photometric import solve_normals
+    from gpps.host.metrics import normal_errors
+    from gpps.flows.photometric import solve_normals
 
     img, L, sc, mat = make_case(scene_name, size, camera, light_kind, brdf, noise, device)
     depth = sc.depth if light_kind == "point" else None

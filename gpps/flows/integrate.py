@@ -7,7 +7,7 @@ are allocated once, the previous depth can warm-start the next solve).
 Example::
 
     from gpps.camera import Perspective
-    from gpps.integrate import integrate_normals
+    from gpps.flows.integrate import integrate_normals
     res = integrate_normals(normals, mask, camera=Perspective(K), reference_depth=1500.0)
     res.depth   # (H, W) float32, 0 outside res.mask
 """

@@ -16,7 +16,7 @@ Methods (seed chapters 3-4):
   better conditioned than solving for it jointly).
 
 For a perspective camera the normal is the same unknown; the perspective
-log-depth gradient the integrator needs is :func:`gpps.perspective.normals_to_gradient`
+log-depth gradient the integrator needs is :func:`gpps.host.perspective.normals_to_gradient`
 (PPN, 3.2-3.3).  Near point lights need a depth estimate (2.30-2.31).
 """
 

@@ -1,7 +1,7 @@
 """Photometric-stereo folders as users have them.
 
 :func:`read_capture` reads a folder of images taken by a fixed camera under
-different lights, in any format :mod:`gpps.formats` reads (PNG 8/16, PGM/PPM,
+different lights, in any format :mod:`gpps.io.formats` reads (PNG 8/16, PGM/PPM,
 JPEG, TIFF 8/16/32f, EXR, camera RAW), with whatever of the DiLiGenT-style
 side files is present:
 
@@ -12,7 +12,7 @@ side files is present:
   ``light_intensities.txt`` (N x 3 RGB or N x 1): the lights; none of them
   means uncalibrated.
 * ``mask.png`` (any supported format named ``mask.*``): the object; without
-  it an automatic mask (:func:`gpps.automask.automatic_mask`).
+  it an automatic mask (:func:`gpps.host.automask.automatic_mask`).
 * ``K.txt``: perspective camera (pixels), else orthographic.
 * an image named ``*ambient*`` (or ``ambient=`` a file): the scene with every
   light off; it is subtracted from every image (negative values clipped to 0).
@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpps.formats import IMAGE_EXTENSIONS, Transfer, read_image_file
+from gpps.io.formats import IMAGE_EXTENSIONS, Transfer, read_image_file
 from gpps.io import Dataset, read_K, read_matrix
 
 __all__ = ["Capture", "read_capture", "list_images", "SIDE_IMAGE_STEMS"]
@@ -111,13 +111,13 @@ def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = No
     Args:
         root: the folder.
         transfer: image transfer curve ("auto": sRGB decoded for JPEG only; see
-            :func:`gpps.formats.read_image_file`).
+            :func:`gpps.io.formats.read_image_file`).
         max_size: downscale so that the longer side is at most this (None: no).
         ambient: "auto" (subtract an image named ``*ambient*`` if there is one),
             None (never), or a file name (relative to ``root`` or absolute).
         mask: None (``mask.*`` in the folder, else automatic), "auto" (always
             automatic), "none" (every pixel), or an (H, W) bool array / a mask file path.
-        automask: :class:`gpps.automask.AutoMaskConfig` for the automatic mask.
+        automask: :class:`gpps.host.automask.AutoMaskConfig` for the automatic mask.
         normalise: divide each image by its row of ``light_intensities.txt``.
         lights: another folder to read the light files from (e.g. the output of
             ``gpps calibrate-lights``); its rows must be in the images' order.
@@ -238,7 +238,7 @@ def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = No
         h, w = size[1], size[0]
     am_info = None
     if m is None:
-        from gpps.automask import automatic_mask
+        from gpps.host.automask import automatic_mask
 
         m, am_info = automatic_mask(images, automask)
         mask_source = "automatic"

@@ -12,7 +12,7 @@ Shapes are height maps on the pixel grid in normalised image coordinates
 ``X = (u - cx) / (S/2)``, ``Y = -(v - cy) / (S/2)`` (``S`` the longer side), so
 the object spans about ``[-1, 1]^2``; the height ``H(X, Y)`` is in the same
 unit and the depth is ``d = d0 - HALF_EXTENT * H`` (scene units, see
-:mod:`gpps.scenes`).  Normals are those of the depth map as the camera sees it
+:mod:`gpps.host.scenes`).  Normals are those of the depth map as the camera sees it
 (``Renderer.normals_from_depth`` in the recipe), so the ground truth matches
 the rendered shading for both cameras.  The network's depth target is the
 relative height ``H - mean(H)`` over the mask (offset-free, image-width units).
@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gpps.material import BRDF_NAMES, Material
-from gpps.scenes import D0, HALF_EXTENT, default_camera
+from gpps.host.scenes import D0, HALF_EXTENT, default_camera
 
 __all__ = ["RandomScene", "random_shape", "random_albedo", "random_material", "random_light", "random_scene",
            "SHAPE_FAMILIES", "TRAIN_SEED_LIMIT", "TEST_SEED_BASE"]

@@ -39,7 +39,7 @@ Pipeline (:func:`solve_uncalibrated`):
    lights stay as found; the shared material (``ks`` and the lobe's exponent)
    is the one whose calibrated per-pixel fit leaves the smallest residual
    (:func:`estimate_material`), and the normals and RGB albedo are that fit
-   on every pixel (:func:`gpps.photometric.solve_normals`, Levenberg-Marquardt
+   on every pixel (:func:`gpps.flows.photometric.solve_normals`, Levenberg-Marquardt
    with the specular model).  With a perspective camera both members of the
    flip pair are fitted: the lobe depends on the view vectors, which the flip
    leaves alone, so the residuals decide the flip.
@@ -793,7 +793,7 @@ def _prepare(images, mask, dark_fraction: float = 0.0):
     if dim:
         raise ValueError(
             f"images: image(s) {dim} are nearly dark (99th percentile below {dark_fraction} x the median image's): "
-            "too little signal to estimate their lights; leave them out (gpps.uncalibrated.dark_images finds them)"
+            "too little signal to estimate their lights; leave them out (gpps.flows.uncalibrated.dark_images finds them)"
         )
     return imgs.astype(np.float32), m
 
@@ -1031,7 +1031,7 @@ def estimate_material(images, mask, lights, brdf: str, *, camera=None, pixels: i
     """The shared specular parameters that best explain the images with the lights fixed.
 
     The objective of a candidate ``(ks, exponent)`` is the mean squared residual
-    of the calibrated per-pixel fit (:func:`gpps.photometric.solve_normals`,
+    of the calibrated per-pixel fit (:func:`gpps.flows.photometric.solve_normals`,
     Levenberg-Marquardt; normals and RGB albedo free per pixel) on a random
     subset of ``pixels`` pixels: the residual of the true material is at the
     quantisation level, a wrong lobe leaves highlights unexplained.  A 3 x 3 grid
@@ -1054,7 +1054,7 @@ def estimate_material(images, mask, lights, brdf: str, *, camera=None, pixels: i
 
     from gpps.lights import DirectionalLights
     from gpps.material import Material
-    from gpps.photometric import solve_normals
+    from gpps.flows.photometric import solve_normals
 
     if brdf not in ("blinn-phong", "ashikhmin-shirley"):
         raise ValueError(f"brdf: expected 'blinn-phong' or 'ashikhmin-shirley', got {brdf!r}")
@@ -1091,11 +1091,11 @@ def estimate_material(images, mask, lights, brdf: str, *, camera=None, pixels: i
 
 
 def _calibrated_pass(imgs, mask, lights, material, camera, robust, device):
-    """Normals and RGB albedo per pixel by the calibrated solver (:func:`gpps.photometric.solve_normals`,
+    """Normals and RGB albedo per pixel by the calibrated solver (:func:`gpps.flows.photometric.solve_normals`,
     Levenberg-Marquardt with the specular model) with the estimated lights and material."""
     from gpps.lights import DirectionalLights
     from gpps.material import Material
-    from gpps.photometric import solve_normals
+    from gpps.flows.photometric import solve_normals
 
     e = np.linalg.norm(lights, axis=1)
     L = DirectionalLights(lights / e[:, None], np.repeat(e[:, None], 3, 1))

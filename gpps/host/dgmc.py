@@ -104,7 +104,7 @@ class DGMCConfig:
         widen_factor: the tolerance is multiplied by this (> 1) when no candidate
             qualifies ...
         widen_steps: ... up to this many times; then the nearest boundary pixel wins.
-        start: how the pipeline (:class:`gpps.pipeline.ron.RON`) uses the rule:
+        start: how the pipeline (:class:`gpps.flows.ron.RON`) uses the rule:
             ``"front"`` (default): :func:`propagate_front`, sources on the solved
             front moving inward ring by ring (4.1-4.6 cost evaluations per
             highlight pixel and under 0.01 deg on ``perf/dgmc_start.py``'s

@@ -6,7 +6,7 @@ import numpy as np
 
 from gpps._check import as_array, as_images, as_mask
 
-__all__ = ["angular_error", "slant_tilt", "normal_errors", "reprojection_error"]
+__all__ = ["angular_error", "slant_tilt", "normal_errors", "reprojection_error", "depth_error"]
 
 
 def _normals_pair(est, gt, mask):
@@ -106,3 +106,20 @@ def reprojection_error(images, rendered, mask, valid=None) -> dict:
     d = (x - y)[sel]
     per = [float(np.mean((x[k] - y[k])[sel[k]] ** 2)) if sel[k].any() else 0.0 for k in range(x.shape[0])]
     return {"rmse": float(np.sqrt(np.mean(d**2))), "mae": float(np.mean(np.abs(d))), "mse_per_image": per}
+
+
+def depth_error(depth, depth_mask, scene) -> float:
+    """Mean absolute depth error as a fraction of the true depth range, after alignment.
+
+    Orthographic depth is known up to an offset (the means are matched),
+    perspective depth up to a scale (the median ratio is matched).
+
+    Args:
+        depth: (H, W) estimated depth.
+        depth_mask: (H, W) bool pixels with an estimate.
+        scene: a :class:`gpps.host.scenes.Scene` (or anything) with the true ``depth``, ``mask`` and ``camera``.
+    """
+    m = depth_mask & scene.mask
+    d, g = depth[m].astype(np.float64), scene.depth[m].astype(np.float64)
+    d = d * np.median(g / d) if scene.camera.is_perspective else d - np.mean(d - g)
+    return float(np.mean(np.abs(d - g)) / (g.max() - g.min()))

@@ -20,7 +20,7 @@ camera, no scene), :func:`reconstruct_single`
    plus ``prior_weight |n - n_prior|^2`` (``n_prior``: the network's normals
    through the bas-relief of step 2), nests started around the current
    normals; steps 2-3 repeat ``rounds`` times;
-4. integrates the refined normals into depth (:func:`gpps.integrate.integrate_normals`).
+4. integrates the refined normals into depth (:func:`gpps.flows.integrate.integrate_normals`).
 
 Scale: images are divided by one common 99th percentile, so light
 intensities and albedos are relative.  Without a camera the view is
@@ -474,7 +474,7 @@ def integrable_normals(I, prior, mask, *, smooth: float = 1.0, irls: int = 2):
     """Uncalibrated Lambertian normals from N >= 3 images: factorisation, integrability, GBR from a prior.
 
     Rank-3 factorisation of the grey intensities, the 3x3 ambiguity reduced to a GBR by
-    integrability (:func:`gpps.uncalibrated.integrability_gbr`), and the GBR
+    integrability (:func:`gpps.flows.uncalibrated.integrability_gbr`), and the GBR
     ``b -> (b_x + a b_z, b_y + c b_z, d b_z)`` fitted to the ``prior`` normals by robust least
     squares (three parameters, linear; Cauchy-like weights at 15 deg).
 
@@ -484,7 +484,7 @@ def integrable_normals(I, prior, mask, *, smooth: float = 1.0, irls: int = 2):
     Returns:
         (P, 3) unit normals.
     """
-    from gpps.uncalibrated import integrability_gbr
+    from gpps.flows.uncalibrated import integrability_gbr
 
     g = np.asarray(I, np.float64).sum(-1)
     n = np.asarray(prior, np.float64)
@@ -665,7 +665,7 @@ def reconstruct_single(images, mask=None, *, camera=None, config: SingleConfig |
     depth = None
     if cfg.integrate:
         from gpps.camera import Orthographic
-        from gpps.integrate import integrate_normals
+        from gpps.flows.integrate import integrate_normals
 
         t2 = time.perf_counter()
         cam = camera or Orthographic(pixel_size=2.0 / max(h, w))

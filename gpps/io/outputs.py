@@ -85,7 +85,7 @@ def _albedo_colors(albedo, mask):
     ok = np.asarray(mask, bool) & np.all(np.isfinite(a), -1)
     top = float(np.percentile(a[ok], 99)) if ok.any() else 1.0
     a = np.clip(np.nan_to_num(a / max(top, 1e-12)), 0.0, 1.0)
-    from gpps.formats import linear_to_srgb
+    from gpps.io.formats import linear_to_srgb
 
     return linear_to_srgb(a)
 
@@ -108,7 +108,7 @@ def write_outputs(folder, *, normals, albedo, mask, depth=None, depth_mask=None,
     Returns:
         dict: ``files`` written and ``view`` (the renderer used, or why none).
     """
-    from gpps.formats import save_exr, save_float_tiff, save_mesh_file
+    from gpps.io.formats import save_exr, save_float_tiff, save_mesh_file
     from gpps.io import save_npy, save_png
 
     folder = Path(folder)
@@ -132,7 +132,7 @@ def write_outputs(folder, *, normals, albedo, mask, depth=None, depth_mask=None,
     out = {"files": files}
     if depth is not None:
         if depth_info is None:
-            raise ValueError("depth_info: expected the depth convention (gpps.outputs.depth_convention) with a depth map")
+            raise ValueError("depth_info: expected the depth convention (gpps.io.outputs.depth_convention) with a depth map")
         d = np.asarray(depth, np.float32)
         dm = (mask & np.isfinite(d)) if depth_mask is None else (np.asarray(depth_mask, bool) & np.isfinite(d))
         d = np.where(dm, d, np.nan).astype(np.float32)
@@ -140,7 +140,7 @@ def write_outputs(folder, *, normals, albedo, mask, depth=None, depth_mask=None,
         save_float_tiff(folder / "depth.tiff", d)
         save_exr(folder / "depth.exr", d, channels="Z")
         files += ["depth.npy", "depth.tiff", "depth.exr"]
-        from gpps.mesh import _mesh_arrays, render_view
+        from gpps.io.mesh import _mesh_arrays, render_view
 
         pts, faces = _mesh_arrays(np.where(dm, d, 0.0), dm, camera)
         vcol = None if colors is None else colors[dm]

@@ -8,14 +8,14 @@ images with known lights::
     rec.normals, rec.albedo, rec.depth, rec.material, rec.estimated
 
 Stages (each in :mod:`gpps.pipeline`, each usable alone): Lambertian least
-squares, DGMC starts for highlight pixels (:mod:`gpps.pipeline.dgmc`), then the
-RON alternation (:mod:`gpps.pipeline.ron`: per-pixel normals and albedo by
+squares, DGMC starts for highlight pixels (:mod:`gpps.host.dgmc`), then the
+RON alternation (:mod:`gpps.flows.ron`: per-pixel normals and albedo by
 Levenberg-Marquardt / dog leg / BFGS, Taichi Poisson integration, material
 update; point-light directions recomputed from the depth every round).
 
 Which material parameters are estimated: pass ``material`` as a model name
 (``"blinn-phong"``) and every scene parameter of that model
-(:data:`gpps.pipeline.ron.LOBE_PARAMETERS`: ``ks`` and the lobe width) is
+(:data:`gpps.flows.ron.LOBE_PARAMETERS`: ``ks`` and the lobe width) is
 estimated from the images; pass a :class:`gpps.material.Material` and its
 parameters are used as known, unless ``estimate`` names some of them.  The
 Cook-Torrance Fresnel ``f0`` is never estimated (it trades off against ``ks``
@@ -31,8 +31,8 @@ import numpy as np
 
 from gpps.material import BRDF_NAMES, Material
 from gpps._check import as_array
-from gpps.photometric import check_inputs, check_observations, input_saturation
-from gpps.pipeline.ron import RON, LOBE_PARAMETERS, RONConfig
+from gpps.flows.photometric import check_inputs, check_observations, input_saturation
+from gpps.flows.ron import RON, LOBE_PARAMETERS, RONConfig
 
 __all__ = ["reconstruct", "Reconstruction", "RONConfig"]
 
@@ -57,7 +57,7 @@ class Reconstruction:
         rounds, converged: RON rounds run, and whether it stopped on its tolerance.
         residual, iterations, flags: per pixel, from the final normal solve.
         highlight: (H, W) bool DGMC highlight pixels.
-        details: the full :class:`gpps.pipeline.ron.RONResult`.
+        details: the full :class:`gpps.flows.ron.RONResult`.
         timings: seconds per stage and ``total``.
         determined: (H, W) bool pixels with 3 or more usable (lit, unsaturated) observations.
         warnings: messages of the :class:`gpps.GppsWarning` warnings issued (doubtful

@@ -4,7 +4,7 @@ The seed's real-time method is a loop, not one solve.  Each round of
 :class:`RON` runs the steps of Algorithm 2::
 
     start: Lambertian least squares (Woodham); DGMC start normals on highlight
-           pixels (4.16-4.18, gpps.pipeline.dgmc)
+           pixels (4.16-4.18, gpps.host.dgmc)
     repeat
       1. normals, per pixel, with the current material (and, for point lights,
          the light directions and 1/r^2 falloff from the current depth, 2.30-2.31):
@@ -55,7 +55,7 @@ import numpy as np
 from gpps._check import as_array, as_mask, check_bool, check_number, warn
 from gpps.lights import PointLights
 from gpps.material import Material
-from gpps.pipeline.dgmc import DGMCConfig, dgmc_start, propagate_front
+from gpps.host.dgmc import DGMCConfig, dgmc_start, propagate_front
 from gpps.pipeline.solver import PixelSolver, SolverConfig, ranks_better
 
 __all__ = [

@@ -10,7 +10,7 @@ from gpps.io import Dataset
 from gpps.lights import DirectionalLights, PointLights, ring_directions, ring_positions, spiral_directions
 from gpps.material import Material
 from gpps.pipeline.render import Renderer, add_noise, quantise
-from gpps.scenes import D0, Scene
+from gpps.host.scenes import D0, Scene
 
 __all__ = ["default_lights", "render", "render_dataset"]
 
@@ -47,7 +47,7 @@ def render(scene: Scene, material: Material, lights, *, noise: float = 0.0, bits
     """Render ``scene`` under ``lights``: (N, H, W, 3) float32.
 
     Args:
-        scene: a :class:`gpps.scenes.Scene` (exact normals are used).
+        scene: a :class:`gpps.host.scenes.Scene` (exact normals are used).
         material: reflectance model and parameters.
         lights: :class:`DirectionalLights` or :class:`PointLights`.
         noise: standard deviation of additive Gaussian noise (image units, 1 = white).
