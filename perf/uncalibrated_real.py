@@ -18,7 +18,7 @@ Yale B (``--subjects``, Extended Yale B cropped, 64 lights + an ambient image a 
 * Mask (none is given): pixels brighter than 0.1 (after the ambient subtraction) in at least
   a third of the images; it drops the pupils, nostrils and dark eyebrows.
 * Failed captures are left out, by the rule solve_uncalibrated enforces
-  (``gpps.flows.uncalibrated.dark_images``: 99th percentile below 0.1 x the median image's):
+  (``gpps.host.gbr.dark_images``: 99th percentile below 0.1 x the median image's):
   yaleB02's ``A+095E+00`` (0.01; the flash did not fire) and ``A-130E+20`` (0.05; the same
   light gives 0.30-0.35 for the other subjects).  Kept, they came out 97 and 123 deg off.
 * Score: mean angle between the estimated and the nominal light directions.  The only
@@ -161,7 +161,7 @@ def check_convention(d: dict, mask) -> dict:
 
 def light_scores(est, true, flip_status: str) -> dict:
     """Light-direction errors after only the flip (when the method left it ambiguous)."""
-    from gpps.flows.uncalibrated import light_direction_errors
+    from gpps.host.gbr import light_direction_errors
 
     cands = {"as returned": est}
     if flip_status != "resolved":
@@ -176,7 +176,7 @@ def oracle_errors(est, true) -> dict:
     """Diagnostics (never the score): errors after the best GBR (+flip, sign) and the best 3x3 fitted to the true lights."""
     from scipy.optimize import least_squares
 
-    from gpps.flows.uncalibrated import gbr, light_direction_errors
+    from gpps.host.gbr import gbr, light_direction_errors
 
     def unit(a):
         return a / np.linalg.norm(a, axis=1, keepdims=True)
@@ -211,7 +211,8 @@ def normal_view(path, panels, mask):
 
 
 def run_yale(subject, data, cfg, device, views, log):
-    from gpps.flows.uncalibrated import dark_images, solve_uncalibrated
+    from gpps.flows.uncalibrated import solve_uncalibrated
+    from gpps.host.gbr import dark_images
 
     d = read_yale(Path(data) / subject)
     mask = yale_mask(d["images"])

@@ -42,7 +42,7 @@ def maen(n, gt, mask):
 
 def score(normals, lights, flip_status, scene, true_dirs):
     """(light error, MAEN, which flip) with only the flip as alignment (when ambiguous)."""
-    from gpps.flows.uncalibrated import light_direction_errors
+    from gpps.host.gbr import light_direction_errors
 
     cands = [("as returned", normals, lights)]
     if flip_status == "ambiguous":

@@ -6,22 +6,9 @@ import pytest
 from gpps.material import Material
 from gpps.host.scenes import make_scene
 from gpps.flows.synthetic import default_lights, render
-from gpps.flows.uncalibrated import (
-    UncalibratedConfig,
-    _als,
-    _start_fill,
-    _weighted_rms,
-    dark_images,
-    factorize,
-    gbr,
-    integrability_gbr,
-    ldr_candidates,
-    light_direction_errors,
-    pca_merge,
-    resolve_gbr,
-    restore_gauge,
-    solve_uncalibrated,
-)
+from gpps.flows.uncalibrated import UncalibratedConfig, solve_uncalibrated
+from gpps.host.gbr import _als, _start_fill, _weighted_rms
+from gpps.host.gbr import dark_images, factorize, gbr, integrability_gbr, ldr_candidates, light_direction_errors, pca_merge, resolve_gbr, restore_gauge
 
 FLIP = np.diag([-1.0, -1.0, 1.0])
 
@@ -300,7 +287,7 @@ def test_failure_modes_are_explicit(lambertian_capture):
 def test_specular_free_is_the_diffuse_chroma():
     """Dichromatic model: the part of the RGB orthogonal to the (white) source colour is the Lambertian
     shading times the albedo's chromatic part, whatever the specular lobe; a grey albedo has none."""
-    from gpps.flows.uncalibrated import specular_free
+    from gpps.host.gbr import specular_free
 
     scene = make_scene("bumps", 48, "orthographic", albedo="texture")
     lights = default_lights("directional", 4, layout="spiral")

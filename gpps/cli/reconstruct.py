@@ -142,7 +142,8 @@ def run(args) -> int:
     reference = args.reference_depth
     scale_source = "--reference-depth" if reference is not None else None
     if uncalibrated:
-        from gpps.flows.uncalibrated import UncalibratedConfig, dark_images, solve_uncalibrated
+        from gpps.flows.uncalibrated import UncalibratedConfig, solve_uncalibrated
+        from gpps.host.gbr import dark_images
 
         cfg = UncalibratedConfig()
         drop = dark_images(ds.images, ds.mask, cfg.dark_fraction) if cfg.dark_fraction > 0 else []

@@ -474,7 +474,7 @@ def integrable_normals(I, prior, mask, *, smooth: float = 1.0, irls: int = 2):
     """Uncalibrated Lambertian normals from N >= 3 images: factorisation, integrability, GBR from a prior.
 
     Rank-3 factorisation of the grey intensities, the 3x3 ambiguity reduced to a GBR by
-    integrability (:func:`gpps.flows.uncalibrated.integrability_gbr`), and the GBR
+    integrability (:func:`gpps.host.gbr.integrability_gbr`), and the GBR
     ``b -> (b_x + a b_z, b_y + c b_z, d b_z)`` fitted to the ``prior`` normals by robust least
     squares (three parameters, linear; Cauchy-like weights at 15 deg).
 
@@ -484,7 +484,7 @@ def integrable_normals(I, prior, mask, *, smooth: float = 1.0, irls: int = 2):
     Returns:
         (P, 3) unit normals.
     """
-    from gpps.flows.uncalibrated import integrability_gbr
+    from gpps.host.gbr import integrability_gbr
 
     g = np.asarray(I, np.float64).sum(-1)
     n = np.asarray(prior, np.float64)
