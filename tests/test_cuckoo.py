@@ -114,9 +114,10 @@ def test_sphere_minimum(device):
     data = _shift_data(centres, device)
     s = CuckooSearch(n_search, objective=sphere_objective, data_type=ShiftData,
                      config=CuckooConfig(nests=k, generations=600, seed=3), device=device)
-    s.init(centres[:, None, :] + _start(rng, n_search, k, 2.0))
-    s.run(data)
-    x, f = s.best()
+    s.upload(centres[:, None, :] + _start(rng, n_search, k, 2.0))
+    s.upload(data=data)
+    s.step()
+    x, f = s.fetch()
     err = np.linalg.norm(x - centres, axis=1)
     assert np.all(f >= 0)
     assert np.median(err) < 1e-4, np.median(err)  # measured 1e-4 at 500, 1e-6 at 750 generations
@@ -134,9 +135,10 @@ def test_random_egg_target_collapses(device):
     for target in ("own", "random"):
         s = CuckooSearch(n_search, objective=sphere_objective, data_type=ShiftData,
                          config=CuckooConfig(nests=k, generations=200, seed=3, egg_target=target), device=device)
-        s.init(start)
-        s.run(_shift_data(centres, device))
-        errs[target] = np.median(np.linalg.norm(s.best()[0] - centres, axis=1))
+        s.upload(start)
+        s.upload(data=_shift_data(centres, device))
+        s.step()
+        errs[target] = np.median(np.linalg.norm(s.fetch()[0] - centres, axis=1))
     assert errs["own"] < 0.1 < errs["random"], errs
 
 
@@ -147,9 +149,10 @@ def test_rosenbrock_minimum(device):
     data = _shift_data(centres, device)
     s = CuckooSearch(n_search, objective=rosenbrock_objective, data_type=ShiftData,
                      config=CuckooConfig(nests=k, generations=1500, seed=3), device=device)
-    s.init(centres[:, None, :] + _start(rng, n_search, k, 2.0))
-    s.run(data)
-    x, f = s.best()
+    s.upload(centres[:, None, :] + _start(rng, n_search, k, 2.0))
+    s.upload(data=data)
+    s.step()
+    x, f = s.fetch()
     err = np.linalg.norm(x - (centres + 1.0), axis=1)
     # the narrow curved valley: every search reaches the minimum (measured max error 1e-5 at 1500)
     assert np.median(f) < 1e-8, np.median(f)
@@ -166,12 +169,14 @@ def test_reproducible_and_seed_dependent(device):
     def run(seed, gens=40, split=False):
         s = CuckooSearch(n_search, objective=sphere_objective, data_type=ShiftData,
                          config=CuckooConfig(nests=k, generations=gens, seed=seed), device=device)
-        s.init(start)
+        s.upload(start)
         if split:  # the same generations in two runs continue the same random stream
-            s.run(data, gens // 2)
-            s.run(data, gens - gens // 2)
+            s.upload(data=data)
+            s.step(gens // 2)
+            s.step(gens - gens // 2)
         else:
-            s.run(data)
+            s.upload(data=data)
+            s.step()
         return s.nests.numpy()
 
     a, b, c, d = run(9), run(9), run(10), run(9, split=True)

@@ -179,7 +179,7 @@ def test_photometric_objective_against_numpy(device):
 
 
 def test_estimate_lights_exact_normals():
-    from gpps.flows.single import estimate_lights, prepare_images
+    from gpps.host.single import estimate_lights, prepare_images
 
     sc, lights, imgs = _sphere_capture(48)
     I, m = prepare_images(imgs, sc.mask)
@@ -212,7 +212,7 @@ def _gbr_setup(brdf, size=40, lam=0.75, mu=0.06, nu=-0.04):
     """Sphere normals and Blinn-Phong / Lambertian intensities (numpy), and the same normals and lights
     moved along a bas-relief (what a flattening prior and lights fitted to it look like)."""
     from gpps.lights import ring_directions
-    from gpps.flows.single import _through_gbr
+    from gpps.host.single import through_gbr as _through_gbr
 
     u = (np.arange(size) + 0.5) / size * 2 - 1
     x, y = np.meshgrid(u, -u)
@@ -246,7 +246,7 @@ def _deg(a, b):
 
 
 def test_fit_highlights_undoes_a_bas_relief():
-    from gpps.flows.single import fit_highlights
+    from gpps.host.single import fit_highlights
 
     I, n, L, v, n_b, l_b, rgb_b, kd_b = _gbr_setup("blinn-phong")
     assert _deg(l_b, L).min() > 5 and _deg(n_b, n).mean() > 4  # the start is well off
@@ -264,7 +264,7 @@ def test_fit_highlights_undoes_a_bas_relief():
 
 
 def test_fit_highlights_without_highlights_changes_nothing():
-    from gpps.flows.single import fit_highlights
+    from gpps.host.single import fit_highlights
 
     I, _, _, v, n_b, l_b, rgb_b, kd_b = _gbr_setup("lambertian")
     I = I + np.random.default_rng(0).normal(0, 0.01, I.shape)  # shading noise, no highlight
@@ -287,7 +287,8 @@ def test_refinement_beats_the_network_on_a_blinn_phong_sphere(device):
     from gpps.host.metrics import normal_errors
     from gpps.pipeline.cuckoo import CuckooConfig
     from gpps.pipeline.render import quantise
-    from gpps.flows.single import SingleConfig, estimate_lights, prepare_images, reconstruct_single
+    from gpps.flows.single import SingleConfig, reconstruct_single
+    from gpps.host.single import estimate_lights, prepare_images
 
     sc, lights, imgs = _sphere_capture(64, "blinn-phong")
     cfg = SingleConfig(cuckoo=CuckooConfig(nests=8, generations=30, seed=2), integrate=False)

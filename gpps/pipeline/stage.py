@@ -1,0 +1,47 @@
+"""The one protocol of every stage: ``upload`` / ``step`` / ``fetch`` / ``close`` (and ``run``, the three in one).
+
+A stage allocates its device buffers once, for one problem size, in ``__init__``; after that:
+
+* ``upload(...)``: copy the inputs into the stage's buffers, checking their shapes against the size the
+  stage was built for ("expected ..., got ...");
+* ``step(...)``: launch the work on the stage's device; nothing is copied back and the host does not wait
+  (a step can be captured in a CUDA graph where the stage says so);
+* ``fetch(...)``: copy the results the caller asks for to the host (numpy) and return them;
+* ``close()``: release the device buffers (also on leaving a ``with`` block); a closed stage refuses work;
+* ``run(...)``: ``upload(...)``, ``step()``, ``fetch()`` in one call, for callers that do not keep data on
+  the device between calls.
+
+Stages hold no numpy algorithms (those live in :mod:`gpps.host`) and no whole flows (:mod:`gpps.flows`).
+"""
+
+from __future__ import annotations
+
+__all__ = ["Stage"]
+
+
+class Stage:
+    """Base class of the stages: the protocol above, with ``run`` and the context manager written once."""
+
+    def upload(self, *args, **kwargs) -> None:  # pragma: no cover - every stage defines it
+        raise NotImplementedError
+
+    def step(self, *args, **kwargs) -> None:  # pragma: no cover - every stage defines it
+        raise NotImplementedError
+
+    def fetch(self, *args, **kwargs):  # pragma: no cover - every stage defines it
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Release the device buffers (the base class holds none)."""
+
+    def run(self, *args, **kwargs):
+        """``upload(*args, **kwargs)``, ``step()`` and ``fetch()``: the stage's one-shot form."""
+        self.upload(*args, **kwargs)
+        self.step()
+        return self.fetch()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
