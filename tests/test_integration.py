@@ -12,15 +12,8 @@ import pytest
 
 from gpps.camera import Orthographic, Perspective
 from gpps.flows.integrate import IntegratorConfig, integrate_normals
-from gpps.pipeline.integration import (
-    Integrator,
-    curl_edge_weights,
-    divergence_rhs,
-    edge_system,
-    loop_curl,
-    ls_energy,
-    pixel_gradients,
-)
+from gpps.pipeline.integration import Integrator
+from gpps.host.poisson import curl_edge_weights, divergence_rhs, edge_system, loop_curl, ls_energy, pixel_gradients
 
 N = 256
 Z0 = 10.0
@@ -231,7 +224,7 @@ def test_normal_weighting_is_binis_multiplied_form_and_exact_on_analytic_surface
 
 
 def test_bilateral_weights_favour_the_smaller_jump():
-    from gpps.pipeline.integration import bilateral_weights
+    from gpps.host.poisson import bilateral_weights
 
     u = np.array([[0.0, 0.1, 5.0, 5.1]])
     valid = np.ones_like(u, bool)

@@ -183,7 +183,7 @@ def _numpy_vcycle(levels, f0, omega, keep, pairs=1):
     Taichi kernels): damped Jacobi ``x <- keep x + omega (f + sum_b w_ab x_b) / dg`` (``keep = 1 -
     omega``), restriction = sum of the 2x2 block's residuals, prolongation = injection, the coarsest
     level solved by the pseudo-inverse."""
-    from gpps.pipeline.integration import _diag, apply_laplacian, laplacian
+    from gpps.host.poisson import diagonal, apply_laplacian, laplacian
 
     def jacobi(x, f, wx, wy, d):
         nb = d * x - apply_laplacian(x, wx, wy)
@@ -191,7 +191,7 @@ def _numpy_vcycle(levels, f0, omega, keep, pairs=1):
 
     def solve(k, f):
         wx, wy = levels[k]
-        d = _diag(wx, wy)
+        d = diagonal(wx, wy)
         if k == len(levels) - 1:
             A, idx = laplacian(wx, wy, d > 0)
             x = np.zeros(f.size)
@@ -226,7 +226,7 @@ def test_stream_integrator_vcycle_matches_numpy_reference(shape, smooth_pairs, l
     the CPU it runs as one thread); the levels of at most 40 pixels a side in it, the larger ones
     as tasks."""
     from gpps.camera import Orthographic
-    from gpps.pipeline.integration import _diag, build_levels, divergence_rhs, edge_system, pixel_gradients
+    from gpps.host.poisson import diagonal, build_levels, divergence_rhs, edge_system, pixel_gradients
     from gpps.pipeline.integration_device import StreamIntegrator, StreamIntegratorConfig
 
     h, w = shape
@@ -258,7 +258,7 @@ def test_stream_integrator_vcycle_matches_numpy_reference(shape, smooth_pairs, l
     scale = np.abs(want[v]).max()
     np.testing.assert_allclose(got[v], want[v], rtol=0, atol=1e-9 * scale)
     np.testing.assert_allclose(out[v], want[v], rtol=0, atol=2e-6 * scale)  # float32 depth
-    assert _diag(wx, wy)[v].min() > 0
+    assert diagonal(wx, wy)[v].min() > 0
 
 
 def _two_component_case(camera, size=64):

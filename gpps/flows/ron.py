@@ -56,7 +56,8 @@ from gpps._check import as_array, as_mask, check_bool, check_number, warn
 from gpps.lights import PointLights
 from gpps.material import Material
 from gpps.host.dgmc import DGMCConfig, dgmc_start, propagate_front
-from gpps.pipeline.solver import PixelSolver, SolverConfig, ranks_better
+from gpps.pipeline.solver import PixelSolver, SolverConfig
+from gpps.host.merge import ranks_better
 
 __all__ = [
     "RON",

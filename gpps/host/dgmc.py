@@ -31,7 +31,7 @@ Conventions: pixel ``(i, j)`` = (row, column); geodesic distances are in pixels
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal, get_args
 
 import numpy as np
@@ -40,6 +40,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from gpps._check import as_array, as_mask, check_number
+from gpps.host.merge import ranks_better
 from gpps.lights import DirectionalLights, PointLights
 
 __all__ = [
@@ -854,10 +855,6 @@ def propagate_front(solver, images, mask, highlight, solution: dict, *, gaussian
     Returns:
         :class:`FrontResult`.
     """
-    from dataclasses import replace
-
-    from gpps.pipeline.solver import ranks_better
-
     cfg = _check_config(config)
     n_img, h, w = solver.shape
     m = as_mask("mask", mask, (h, w))

@@ -14,7 +14,7 @@ at column ``off_k``), so each kernel is compiled once per field set and takes
 the level geometry ``(off, h, w)`` as scalar arguments.  Coarsening is
 aggregation of 2x2 blocks (restriction = sum, prolongation = injection), the
 coarse operator is rediscretised from the fine edge weights (see
-:func:`gpps.pipeline.integration.build_levels`).  Several Jacobi sweeps are
+:func:`gpps.host.poisson.build_levels`).  Several Jacobi sweeps are
 unrolled per kernel (``ti.static``) to keep launches few; the conjugate
 gradient scalars live in a small float64 device field (dot products are
 accumulated in float64 whatever the field precision) so the solve runs without

@@ -26,7 +26,7 @@ import numpy as np
 
 from gpps._check import check_number
 from gpps.camera import Orthographic, Perspective
-from gpps.pipeline.integration import _diag, build_levels, laplacian, level_shapes
+from gpps.host.poisson import diagonal, build_levels, laplacian, level_shapes
 
 __all__ = ["StreamIntegratorConfig", "StreamIntegrator"]
 
@@ -168,7 +168,7 @@ class StreamIntegrator:
         wx[:, :-1] = (m[:, :-1] & m[:, 1:]).astype(float)
         wy[:-1, :] = (m[:-1, :] & m[1:, :]).astype(float)
         # pixels with no edge cannot be integrated: drop them from the mask
-        dgl = _diag(wx, wy)
+        dgl = diagonal(wx, wy)
         valid = m & (dgl > 0)
         if valid.sum() < 2:
             raise ValueError("mask: expected at least 2 pixels with a 4-neighbour in the mask")
@@ -182,7 +182,7 @@ class StreamIntegrator:
         npd = np.dtype(cfg.dtype)
         levels = build_levels(wx, wy, cfg.coarsest)
         lx, ly = levels[-1]
-        dgc = _diag(lx, ly)
+        dgc = diagonal(lx, ly)
         act = np.argwhere(dgc > 0)
         nc = len(act)
         fb = ti.FieldsBuilder()
@@ -227,7 +227,7 @@ class StreamIntegrator:
             o = offs[k]
             P["wx"][:hh, o:o + ww] = ax
             P["wy"][:hh, o:o + ww] = ay
-            P["dg"][:hh, o:o + ww] = _diag(ax, ay)
+            P["dg"][:hh, o:o + ww] = diagonal(ax, ay)
         for k in ("wx", "wy", "dg"):
             F[k].from_numpy(P[k])
         pinv = np.zeros((max(nc, 1), max(nc, 1)), dtype=npd)

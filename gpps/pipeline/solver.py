@@ -46,18 +46,8 @@ __all__ = [
     "FLAG_WOODHAM_FALLBACK",
     "FLAG_ALBEDO_FROM_NEIGHBOURS",
     "check_light_configuration",
-    "ranks_better",
     "estimate_noise",
 ]
-
-
-
-
-def ranks_better(new_residual, new_flags, old_residual):
-    """Where another start's solution beats the current one: a lower residual, on a pixel
-    with 3 lit observations (an under-determined pixel fits a family of normals, so its
-    residual cannot rank starts).  Element-wise over matching arrays; returns bool."""
-    return (np.asarray(new_residual) < np.asarray(old_residual)) & ((np.asarray(new_flags) & FLAG_FEW_OBSERVATIONS) == 0)
 
 
 @dataclass(frozen=True)
