@@ -145,7 +145,9 @@ def bench_size(size, device, repeat, bw, peak, log):
 
     # ---- BRDF evaluation
     rd = Renderer((size, size), sc.camera, L, mat, device=device)
-    images = rd.render(sc.depth, sc.mask, sc.albedo, normals=sc.normals)
+    rd.upload(sc.depth, sc.mask, sc.albedo, normals=sc.normals)
+    rd.step()
+    images = rd.images
     from gpps.kernels import render as rk
 
     def launch_render():
@@ -163,7 +165,7 @@ def bench_size(size, device, repeat, bw, peak, log):
     Lu = DirectionalLights(L.directions)
     ps = PixelSolver((N_LIGHTS, size, size), sc.camera, Lu, mat, SolverConfig(), device=device)
     ps.upload(img_np, sc.mask)
-    ps.launch()
+    ps.step()
     sync()
     from _bench_kernels import evaluate_kernel
 
@@ -206,19 +208,19 @@ def bench_size(size, device, repeat, bw, peak, log):
     from gpps import _taichi
 
     tsync = _taichi.ti.sync
-    si.integrate(nrm, dep, tol=1e-4)
+    si.step(nrm, dep, tol=1e-4)
     tsync()
     K = si._K
     row("pcg_iteration", _median_time(K["pcg_iteration"], tsync, repeat, inner=10), "pcg_iteration")
 
     def cold():
         si.reset()
-        si.integrate(nrm, dep, tol=1e-4)
+        si.step(nrm, dep, tol=1e-4)
 
     tcold = _median_time(cold, tsync, max(3, repeat // 4), warmup=1)
     its = si.last_iterations
     row("integration_cold", tcold, extra={"iterations": its, "tol": 1e-4, "residual": si.last_residual})
-    tw = _median_time(lambda: si.integrate(nrm, dep, iterations=2), tsync, repeat)
+    tw = _median_time(lambda: si.step(nrm, dep, iterations=2), tsync, repeat)
     row("integration_warm", tw, extra={"iterations": 2, "residual_after": si.residual()})
     # accuracy of the cold solution against the true depth (scale-aligned)
     d = dep.cpu().numpy() if hasattr(dep, "cpu") else dep
@@ -231,30 +233,30 @@ def bench_size(size, device, repeat, bw, peak, log):
     st = Stream((size, size), sc.camera, L, mat, mask=sc.mask, config=StreamConfig(), device=device)
     fdev = wp.array(frame16, dtype=wp.uint16, device=device)
     for _ in range(4):
-        r = st.process(fdev)
+        r = st.run(fdev)
         assert r.ok, r.error
     sync()
-    tdev = _median_time(lambda: st.process(fdev), sync, repeat)
+    tdev = _median_time(lambda: st.run(fdev), sync, repeat)
     row("frame_device", tdev, extra={"triples_per_s": 1.0 / tdev})
-    thost = _median_time(lambda: st.process(frame16), sync, repeat)
+    thost = _median_time(lambda: st.run(frame16), sync, repeat)
     row("frame_host", thost, extra={"triples_per_s": 1.0 / thost, "frame_bytes": int(frame16.nbytes)})
     st1 = Stream((size, size), sc.camera, L, mat, mask=sc.mask, config=StreamConfig(integration_iterations=1),
                  device=device)
     for _ in range(4):
-        st1.process(fdev)
+        st1.run(fdev)
     sync()
-    t1 = _median_time(lambda: st1.process(fdev), sync, repeat)
+    t1 = _median_time(lambda: st1.run(fdev), sync, repeat)
     row("frame_device_1pcg", t1, extra={"triples_per_s": 1.0 / t1, "note": "1 PCG iteration per frame"})
     frames = [frame16] * max(repeat, 10)
     sync()
     t = time.perf_counter()
-    nres = sum(1 for _ in st.run(frames))
+    nres = sum(1 for _ in st.iterate(frames))
     sync()
     trun = (time.perf_counter() - t) / nres
     row("frame_host_pipelined", trun, extra={"triples_per_s": 1.0 / trun, "note": "Stream.run: next upload overlaps"})
     from gpps.host.metrics import normal_errors
 
-    rr = st.process(fdev).numpy()
+    rr = st.run(fdev).numpy()
     rows[-1]["maen_stream"] = normal_errors(rr.normals, sc.normals, sc.mask)["mean"]
     return rows
 

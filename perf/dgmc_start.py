@@ -73,7 +73,7 @@ def run(scene, size, camera, brdf, device, cfg: DGMCConfig, max_iters: int) -> d
     # the pipeline's multi-start (no DGMC): its non-highlight pixels are the front's sources
     multi = PixelSolver(img.shape[:3], sc.camera, L, mat, SolverConfig(max_iters=max_iters), device=device)
     t0 = time.perf_counter()
-    ms = multi.solve(img, m)
+    ms = multi.run(img, m)
     t_ms = time.perf_counter() - t0
     t0 = time.perf_counter()
     fr = propagate_front(solver, img, m, hm, ms, gaussian=dg.gaussian, mean=dg.mean, config=cfg, keep_better=False)
@@ -89,7 +89,7 @@ def run(scene, size, camera, brdf, device, cfg: DGMCConfig, max_iters: int) -> d
                     "maen_all_pixels": float(e[m].mean()), "seconds": dt}
     for tag, init in (("lambertian", ls.normals), ("dgmc", dg.normals)):
         t0 = time.perf_counter()
-        out = solver.solve(img, m, init_normals=init)
+        out = solver.run(img, m, init_normals=init)
         dt = time.perf_counter() - t0
         e0 = angular_error(init, sc.normals, m)[hm]
         e = angular_error(out["normals"], sc.normals, m)

@@ -161,7 +161,7 @@ def main(argv=None) -> int:
         for tag, nn in (("A", nA), ("B", nB)):
             o = dev(np.zeros((n, n), np.float32))
             ref.reset()
-            ref.integrate(dev(nn), o, tol=1e-10, max_iterations=400)
+            ref.step(dev(nn), o, tol=1e-10, max_iterations=400)
             refs[tag] = host(o).astype(np.float64)
         ref.close()
         rng = float(np.ptp(refs["A"]))
@@ -184,7 +184,7 @@ def main(argv=None) -> int:
                 si = StreamIntegrator(mask, cam, cfg, device=a.device)
                 K = si._K
                 out = dev(np.zeros((n, n), np.float32))
-                si.integrate(nAd, out, iterations=1)  # compile
+                si.step(nAd, out, iterations=1)  # compile
                 if not a.quick:
                     K["vcycle_only"](), K["coarse_only"](), K["noop"](), K["scalars"]()
                 step = K["mg_step"] if method == "multigrid" else K["pcg_iteration"]
@@ -210,7 +210,7 @@ def main(argv=None) -> int:
                 for k in ([a.max_cold] if a.quick else range(1, a.max_cold + 1)):
                     def run(k=k):
                         si.reset()
-                        si.integrate(nAd, out, iterations=k)
+                        si.step(nAd, out, iterations=k)
                     t = med(run, max(5, a.repeat // 2))
                     d = host(out).astype(np.float64)
                     d = d - d.mean() + refs["A"].mean()
@@ -221,7 +221,7 @@ def main(argv=None) -> int:
                 # the tol mode (host checks of the residual)
                 def run_tol():
                     si.reset()
-                    si.integrate(nAd, out, tol=1e-3)
+                    si.step(nAd, out, tol=1e-3)
                 if not a.quick:
                     row["cold_tol_1e-3"] = {"ms": 1e3 * med(run_tol, max(5, a.repeat // 2)),
                                             "iterations": si.last_iterations, "residual": si.last_residual}
@@ -235,7 +235,7 @@ def main(argv=None) -> int:
 
                 def converge(A, O):
                     si.reset()
-                    si.integrate(A, O, iterations=12)
+                    si.step(A, O, iterations=12)
                     ti.sync()
 
                 def isolated(A, B, O, k):
@@ -244,7 +244,7 @@ def main(argv=None) -> int:
                     for _ in range(max(5, a.repeat // 2)):
                         converge(A, O)
                         t0 = time.perf_counter()
-                        si.integrate(B, O, iterations=k)
+                        si.step(B, O, iterations=k)
                         ti.sync()
                         ts.append(time.perf_counter() - t0)
                     return statistics.median(ts)
@@ -256,7 +256,7 @@ def main(argv=None) -> int:
                         converge(A, O)
                         t0 = time.perf_counter()
                         for x in [B, A] * (nfr // 2):
-                            si.integrate(x, O, iterations=k)
+                            si.step(x, O, iterations=k)
                         ti.sync()
                         ts.append((time.perf_counter() - t0) / nfr)
                     return statistics.median(ts)
@@ -280,7 +280,7 @@ def main(argv=None) -> int:
                     converge(nAd, out)
                     errs = []
                     for idx, x in enumerate(seq):
-                        si.integrate(x, out, iterations=k)
+                        si.step(x, out, iterations=k)
                         errs.append(rel_err(host(out), "B" if idx % 2 == 0 else "A"))
                     stream.append({"iterations": k, "ms_per_frame": 1e3 * t, "max_depth_error": max(errs),
                                    "frames": nfr})
@@ -297,7 +297,7 @@ def main(argv=None) -> int:
                         e0.record()
                         t0 = time.perf_counter()
                         for x in seq:
-                            si.integrate(x, out, iterations=1)
+                            si.step(x, out, iterations=1)
                         t1 = time.perf_counter()
                         e1.record()
                         torch.cuda.synchronize()

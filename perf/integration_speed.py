@@ -55,22 +55,22 @@ def main(argv=None) -> int:
         runs = {}
         for name, cfg in (("multigrid", IntegratorConfig(tol=args.tol)), ("dct (scipy)", IntegratorConfig(solver="dct"))):
             integ = Integrator(mask, cam, cfg, device=args.device)
-            integ.integrate(frames[0])  # warm-up (compilation, allocation)
+            integ.run(frames[0])  # warm-up (compilation, allocation)
             tot, sol, its, res = [], [], [], []
             for f in frames[1:-1]:
                 t0 = time.perf_counter()
-                r = integ.integrate(f)
+                r = integ.run(f)
                 tot.append(time.perf_counter() - t0)
                 sol.append(r.timings["solve"] + r.timings.get("rhs", 0))
                 its.append(r.iterations)
                 res.append(r.solver_residual)
             runs[name] = (tot, sol, its, res)
             if name == "multigrid":
-                prev = integ.integrate(frames[0]).depth
+                prev = integ.run(frames[0]).depth
                 wt, ws, wi, wr = [], [], [], []
                 for f in frames[1:-1]:
                     t0 = time.perf_counter()
-                    r = integ.integrate(f, warm_start=prev)
+                    r = integ.run(f, warm_start=prev)
                     wt.append(time.perf_counter() - t0)
                     ws.append(r.timings["solve"] + r.timings.get("rhs", 0))
                     wi.append(r.iterations)

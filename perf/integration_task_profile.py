@@ -52,12 +52,12 @@ def main(argv=None) -> int:
         kind, bps, psize = (launch.split(":") + ["2", "256"])[:3]  # persistent:<blocks per SM>:<size>
         cfg = StreamIntegratorConfig(launch=kind, blocks_per_sm=int(bps), persistent_size=int(psize))
         si = StreamIntegrator(np.ones((n, n), bool), Orthographic(1.0 / n), cfg)
-        si.integrate(nA, out, iterations=1)  # compile, check
-        si.integrate(nA, out, iterations=12)
+        si.step(nA, out, iterations=1)  # compile, check
+        si.step(nA, out, iterations=12)
         ti.sync()
         ti.profiler.clear_kernel_profiler_info()
         for k in range(a.frames):
-            si.integrate(nB if k % 2 == 0 else nA, out, iterations=1)
+            si.step(nB if k % 2 == 0 else nA, out, iterations=1)
         ti.sync()
         print(f"== launch {launch} ({si.launch}), {n}x{n}, {a.frames} warm one-cycle frames; "
               f"levels {[f'{h}x{w}' for (_, h, w) in si.levels]}", flush=True)

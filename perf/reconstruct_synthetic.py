@@ -103,13 +103,13 @@ def dgmc_row(scene, size, camera, brdf, device):
     }
     for name, (cfg, init) in variants.items():
         ps.set_config(cfg)
-        out = ps.solve(img, hl, init_normals=init)
+        out = ps.run(img, hl, init_normals=init)
         e = angular_error(out["normals"], sc.normals, hl)[hl]
         row[name] = {"evaluations_per_pixel": float(out["iterations"][hl].mean()), "maen": float(e.mean()),
                      "median": float(np.median(e)), "over_5deg": float(np.mean(e > 5.0))}
     # the pipeline's default: DGMC on the solved front, sources = the multi-start solution of the mask
     ps.set_config(base)
-    src = ps.solve(img, m)
+    src = ps.run(img, m)
     ps.set_config(replace(base, warm_start=True, starts=1))
     fr = propagate_front(ps, img, m, hl, src, gaussian=dg.gaussian, mean=dg.mean, keep_better=False)
     e = angular_error(fr.normals, sc.normals, hl)[hl]

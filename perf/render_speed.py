@@ -28,7 +28,7 @@ def main():
         scene = make_scene("sphere", size, "perspective")
         for brdf in ["blinn-phong", "cook-torrance"]:
             r = Renderer(scene.shape, scene.camera, default_lights("point", args.n_lights), Material.default_for(brdf), device=device)
-            r.render(scene.depth, scene.mask, scene.albedo, scene.normals)  # uploads + compile
+            r.run(scene.depth, scene.mask, scene.albedo, scene.normals)  # uploads + compile
             from gpps.kernels.render import render_kernel
 
             def launch():

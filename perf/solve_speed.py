@@ -1,6 +1,6 @@
 """Per-pixel solve time of each solver at 256^2, 512^2, 1024^2 (sphere, Blinn-Phong, 3 directional lights).
 
-Times one PixelSolver.launch() + device synchronise (compilation and upload excluded,
+Times one PixelSolver.step() + device synchronise (compilation and upload excluded,
 one warm-up solve first); reports seconds, microseconds per masked pixel and the
 mean number of cost evaluations.  JSON to perf/results/solve_speed_<device>.json.
 
@@ -45,12 +45,12 @@ def main(argv=None):
         for solver in a.solvers:
             ps = PixelSolver(img.shape[:3], sc.camera, L, mat, SolverConfig(solver=solver), device=a.device)
             ps.upload(img, sc.mask)
-            ps.launch()
+            ps.step()
             wp.synchronize_device(ps.device)
             times = []
             for _ in range(max(1, a.repeat)):
                 t = time.perf_counter()
-                ps.launch()
+                ps.step()
                 wp.synchronize_device(ps.device)
                 times.append(time.perf_counter() - t)
             out = ps.fetch()

@@ -48,14 +48,14 @@ def main():
     times = {True: [], False: []}
     for c, s in streams.items():  # warm-up: compile, capture graphs
         for i in range(20):
-            assert s.process(frames[i % 8]).ok
+            assert s.run(frames[i % 8]).ok
     block = 20
     for b in range(a.frames // block):
         for c in ((True, False) if b % 2 == 0 else (False, True)):
             s = streams[c]
             for i in range(block):
                 t = time.perf_counter()
-                r = s.process(frames[(b * block + i) // 2 % 8])
+                r = s.run(frames[(b * block + i) // 2 % 8])
                 times[c].append(time.perf_counter() - t)
                 assert r.ok
     med = {c: statistics.median(v) for c, v in times.items()}

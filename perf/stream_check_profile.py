@@ -38,7 +38,7 @@ def main():
     frames = [wp.array(f, dtype=wp.uint16, device=dev) for f in frames]
     s = Stream(sc.mask.shape, sc.camera, L, mat, mask=mask, config=StreamConfig(), device=dev)
     for i in range(20):
-        r = s.process(frames[i % 4])
+        r = s.run(frames[i % 4])
         assert r.ok, r.error
     key = (np.dtype(np.uint16), 3)
 
@@ -61,11 +61,11 @@ def main():
 
     res = {
         "device_name": wp.get_device(dev).name, "size": a.size,
-        "process_ms": t(lambda: s.process(frames[1])),
-        "solve_warm_ms": t(lambda: s.solver.launch()),
+        "process_ms": t(lambda: s.run(frames[1])),
+        "solve_warm_ms": t(lambda: s.solver.step()),
         "frame_stats_ms": t(lambda: (s._fstats.zero_(), s._cmd("stats", key).launch())),
         "mark_jumps_ms": t(lambda: s._cmd("jumps").launch()),
-        "redo_solve_ms": t(lambda: s.solver.launch_solve(s._redo, s._redo_cfg)),
+        "redo_solve_ms": t(lambda: s.solver.step_subset(s._redo, s._redo_cfg)),
         "residual_sum_ms": t(lambda: s._cmd("residual").launch()),
         "judge_readback_ms": t(lambda: quiet(s._judge)),
         "kept_copies_ms": t(lambda: (wp.copy(s._kept, s.solver.normals), wp.copy(s._kept_res, s.solver.residual))),

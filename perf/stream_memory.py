@@ -80,7 +80,7 @@ def main():
 
     samples, errors = [], 0
     t0 = time.perf_counter()
-    for r in st.run(source()):
+    for r in st.iterate(source()):
         errors += not r.ok
         i = r.index + 1
         if i == 200:

@@ -105,7 +105,7 @@ def main():
         kind = plan.get(i)
         if kind is not None:
             t = time.perf_counter()
-            r = dirty.process(bad[kind])
+            r = dirty.run(bad[kind])
             t_dirty += time.perf_counter() - t
             if r.ok or EXPECT[kind] not in (r.error or ""):
                 misreported.append({"index": i, "kind": kind, "error": r.error})
@@ -115,9 +115,9 @@ def main():
         pos = (good_i // 2) % npos
         good_i += 1
         t = time.perf_counter()
-        rd = dirty.process(frames[pos])
+        rd = dirty.run(frames[pos])
         t_dirty += time.perf_counter() - t
-        rc = clean.process(frames[pos])
+        rc = clean.run(frames[pos])
         if not (rd.ok and rc.ok):
             rejected_good.append({"index": i, "dirty": rd.error, "clean": rc.error})
             continue

@@ -106,7 +106,7 @@ def main(argv=None) -> int:
         "noop_two_torch_ndarrays": lambda: noop_nd(nrm, out),
         "vcycle_fields": K["vcycle_only"],
         "frame1_torch_args": lambda: frame(nrm, out, *si._cam, si.config.min_nz, 0.0),
-        "integrate_1": lambda: si.integrate(nrm, out, iterations=1),
+        "integrate_1": lambda: si.step(nrm, out, iterations=1),
     }
     res["queued"] = {}
     for k, fn in ({} if a.skip_launch else probes).items():

@@ -465,7 +465,7 @@ def _front_case(device, size=96, brdf="blinn-phong", camera="orthographic"):
     ls = solve_normals(img, sc.mask, L, camera=sc.camera, material=mat, solver="none", device=device)
     dg = dgmc_start(img, sc.mask, ls.normals, lights=L)
     multi = PixelSolver(img.shape[:3], sc.camera, L, mat, SolverConfig(), device=device)
-    sources = multi.solve(img, sc.mask)
+    sources = multi.run(img, sc.mask)
     one = PixelSolver(img.shape[:3], sc.camera, L, mat, SolverConfig(warm_start=True, starts=1, neighbour_radius=0),
                       device=device)
     return img, sc, ls, dg, sources, one
@@ -482,7 +482,7 @@ def test_front_converges_in_fewer_evaluations_to_the_right_normals(device, camer
     img, sc, ls, dg, sources, one = _front_case(device, camera=camera)
     hm = dg.highlight
     assert hm.sum() > 500
-    base = one.solve(img, sc.mask, init_normals=ls.normals)
+    base = one.run(img, sc.mask, init_normals=ls.normals)
     fr = propagate_front(one, img, sc.mask, hm, sources, gaussian=dg.gaussian, mean=dg.mean, keep_better=False)
     e_base = angular_error(base["normals"], sc.normals, sc.mask)[hm]
     e_front = angular_error(fr.normals, sc.normals, sc.mask)[hm]

@@ -393,7 +393,7 @@ def test_stream_frames(n, integ, fr):
         frame = fr.draw(arrays(fshape, 0, fr.draw(st.sampled_from([1.0, 1.0, 0.0, 2.0, 1e-4]))))
 
     def run():
-        r = s.process(frame)
+        r = s.run(frame)
         if not r.ok:
             assert NAME.match(r.error), r.error  # an error result names what was wrong
         return r

@@ -149,12 +149,12 @@ def test_warm_start_and_reuse(device):
     depth, n, cam = scene("bumps", "orthographic")
     mask = masks()["ring"]
     integ = Integrator(mask, cam, IntegratorConfig(tol=1e-6, dtype="float64"), device=device)
-    cold = integ.integrate(n)
-    warm = integ.integrate(n, warm_start=cold.depth)
+    cold = integ.run(n)
+    warm = integ.run(n, warm_start=cold.depth)
     assert warm.iterations < cold.iterations  # (the warm start is the float32-rounded solution)
     assert np.allclose(warm.depth, cold.depth, atol=1e-5 * np.ptp(depth[mask]))
     with pytest.raises(ValueError, match=r"warm_start: expected .*got"):
-        integ.integrate(n, warm_start=np.zeros((3, 3)))
+        integ.run(n, warm_start=np.zeros((3, 3)))
     integ.close()
 
 

@@ -142,7 +142,7 @@ def test_device_bini_follows_the_reference_trajectory(name, camera, device):
     cam = _camera(sc)
     ref, outer, its = bini_reference(sc["normals"], sc["mask"], cam)
     with BilateralIntegrator(sc["mask"], cam, device=device) as bi:
-        res = bi.solve(sc["normals"])
+        res = bi.run(sc["normals"])
     assert res.converged and res.outer_iterations == outer and res.cg_iterations == its
     u = res.u - res.u[sc["mask"]].mean()
     r = ref - ref[sc["mask"]].mean()
@@ -186,11 +186,11 @@ def test_config_pool_and_progress(device):
     cam = _camera(sc)
     calls = []
     with BilateralIntegrator(sc["mask"], cam, device=device) as a:
-        ra = a.solve(sc["normals"], progress=lambda d, t, msg: calls.append((d, t)))
+        ra = a.run(sc["normals"], progress=lambda d, t, msg: calls.append((d, t)))
         fa = a._F
     assert [d for d, _ in calls] == list(range(1, ra.outer_iterations + 1)) and calls[0][1] == 150
     with BilateralIntegrator(sc["mask"] & (np.arange(24) > 2)[:, None], cam, device=device) as b:
-        b.solve(sc["normals"])
+        b.run(sc["normals"])
         assert b._F is fa  # the buffers (and compiled kernels) of the same size class are reused
     for kw in (dict(k=0), dict(tol=1.0), dict(cg_tol=0), dict(max_iter=0), dict(cg_max_iter=1.5), dict(k=True)):
         with pytest.raises(ValueError, match=next(iter(kw))):

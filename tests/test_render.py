@@ -52,7 +52,7 @@ def test_point_light_inverse_square(device):
     vals = []
     for zl in (0.0, -4.0, -7.0):
         lights = PointLights([[0.0, 0.0, zl]], [[100.0, 100.0, 100.0]])
-        img = Renderer((h, w), cam, lights, mat, device=device).render(depth, mask, 0.5, normals=normals).numpy()[0, ..., 0]
+        img = Renderer((h, w), cam, lights, mat, device=device).run(depth, mask, 0.5, normals=normals)[0, ..., 0]
         d = np.array([0.0, 0.0, zl]) - pts
         r = np.linalg.norm(d, axis=-1)
         want = 0.5 * 100.0 * (d[..., 2] / r) / r**2
@@ -70,8 +70,8 @@ def test_led_anisotropy(device):
     nrm = np.zeros((21, 21, 3), np.float32)
     nrm[..., 2] = 1
     mat = Material("lambertian", ks=0)
-    iso = Renderer((21, 21), cam, PointLights([[0, 0, 0]]), mat, device=device).render(depth, mask, 1.0, nrm).numpy()[0, ..., 0]
-    led = Renderer((21, 21), cam, PointLights([[0, 0, 0]], axes=[[0, 0, -1]], mu=[2.0]), mat, device=device).render(depth, mask, 1.0, nrm).numpy()[0, ..., 0]
+    iso = Renderer((21, 21), cam, PointLights([[0, 0, 0]]), mat, device=device).run(depth, mask, 1.0, nrm)[0, ..., 0]
+    led = Renderer((21, 21), cam, PointLights([[0, 0, 0]], axes=[[0, 0, -1]], mu=[2.0]), mat, device=device).run(depth, mask, 1.0, nrm)[0, ..., 0]
     p = cam.backproject(depth)
     cosang = 5.0 / np.linalg.norm(p, axis=-1)
     np.testing.assert_allclose(led, iso * cosang**2, rtol=1e-5)
@@ -146,23 +146,23 @@ def test_bad_inputs_raise_value_errors(device):
     nrm = np.zeros((16, 16, 3))
     nrm[..., 2] = 1
     with pytest.raises(ValueError, match="depth: expected shape"):
-        r.render(depth[:8], mask, 0.5, nrm)
+        r.run(depth[:8], mask, 0.5, nrm)
     bad = depth.copy()
     bad[3, 3] = np.nan
     with pytest.raises(ValueError, match="depth: expected finite"):
-        r.render(bad, mask, 0.5, nrm)
+        r.run(bad, mask, 0.5, nrm)
     with pytest.raises(ValueError, match="depth: expected values > 0"):
-        r.render(-depth, mask, 0.5, nrm)
+        r.run(-depth, mask, 0.5, nrm)
     with pytest.raises(ValueError, match="mask: expected at least one pixel"):
-        r.render(depth, np.zeros((16, 16), bool), 0.5, nrm)
+        r.run(depth, np.zeros((16, 16), bool), 0.5, nrm)
     with pytest.raises(ValueError, match="normals: expected unit"):
-        r.render(depth, mask, 0.5, nrm * 2)
+        r.run(depth, mask, 0.5, nrm * 2)
     with pytest.raises(ValueError, match="normals: expected shape"):
-        r.render(depth, mask, 0.5, nrm[..., :2])
+        r.run(depth, mask, 0.5, nrm[..., :2])
     with pytest.raises(ValueError, match="albedo"):
-        r.render(depth, mask, np.ones((3, 3)), nrm)
+        r.run(depth, mask, np.ones((3, 3)), nrm)
     with pytest.raises(ValueError, match="albedo: expected values >= 0"):
-        r.render(depth, mask, -1.0, nrm)
+        r.run(depth, mask, -1.0, nrm)
 
 
 def test_bad_configuration_raises():

@@ -46,15 +46,15 @@ def test_least_squares_is_woodham_on_lambertian_all_lit():
 def test_warm_start_fixed_iterations_and_reuse(device):
     img, L, sc, mat = _case(size=32)
     ps = PixelSolver(img.shape[:3], sc.camera, L, mat, SolverConfig(), device=device)
-    a = ps.solve(img, sc.mask)
+    a = ps.run(img, sc.mask)
     ps.set_config(SolverConfig(warm_start=True, early_exit=False, max_iters=5, neighbour_radius=0))
-    b = ps.solve(img, sc.mask, init_normals=a["normals"])
+    b = ps.run(img, sc.mask, init_normals=a["normals"])
     assert np.all(b["iterations"][sc.mask] == 5)
     assert normal_errors(b["normals"], sc.normals, sc.mask)["mean"] < normal_errors(a["normals"], sc.normals, sc.mask)["mean"] + 0.05
     with pytest.raises(ValueError, match="images"):
-        ps.solve(img[:2], sc.mask)
+        ps.run(img[:2], sc.mask)
     with pytest.raises(ValueError, match="mask"):
-        ps.solve(img, sc.mask[:-1])
+        ps.run(img, sc.mask[:-1])
 
 
 def _ring_of_twelve(seed):
@@ -186,9 +186,9 @@ def test_specialised_kernels_match_generic(device, brdf, solver, robust):
     img, L, sc, mat = _case(brdf=brdf, size=16, noise=0.002)
     cfg = SolverConfig(solver=solver, robust=robust, starts=4, max_iters=20)
     ps = PixelSolver(img.shape[:3], sc.camera, L, mat, cfg, device=device)
-    spec = ps.solve(img, sc.mask)
+    spec = ps.run(img, sc.mask)
     ps._solve_kernel, ps._underdetermined_kernel, ps._smooth_kernel = sk.get_solve_kernels(None, None, None)
-    gen = ps.solve(img, sc.mask)
+    gen = ps.run(img, sc.mask)
     for k in spec:
         if device == "cpu":
             np.testing.assert_array_equal(spec[k], gen[k], err_msg=k)

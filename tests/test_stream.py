@@ -29,7 +29,7 @@ def test_stream_matches_batch_and_reports_bad_frames(device):
     bad_nan = (frame.astype(np.float32) / 65535).copy()
     bad_nan[0, 3, 3] = np.nan
     frames = [frame, frame, bad_nan, frame[:2], frame.astype(np.int32), frame, frame.astype(np.float32) / 65535, frame]
-    out = list(st.run(frames))
+    out = list(st.iterate(frames))
     assert [r.index for r in out] == list(range(len(frames)))
     assert [r.ok for r in out] == [True, True, False, False, False, True, True, True]
     assert "NaN" in out[2].error and "shape" in out[3].error and "dtype" in out[4].error
@@ -55,11 +55,11 @@ def test_stream_matches_batch_and_reports_bad_frames(device):
         assert dd.mean() < 1e-3 and dd.max() < 5e-3, (dd.mean(), dd.max())
     last = out[-1]
     assert normal_errors(last.normals, sc.normals, sc.mask)["mean"] < 0.1
-    dref = Integrator(sc.mask, sc.camera, IntegratorConfig(solver="direct")).integrate(last.normals).depth
+    dref = Integrator(sc.mask, sc.camera, IntegratorConfig(solver="direct")).run(last.normals).depth
     d = last.depth * np.exp(np.mean(np.log(dref[m])) - np.mean(np.log(last.depth[m])))
     assert np.abs(d - dref)[m].max() < 1e-3 * np.ptp(dref[m])
     # the rejected frames left the state alone: a process() after them is as good as before
-    again = st.process(frame)
+    again = st.run(frame)
     assert again.ok and np.abs(again.depth - last.depth)[m].max() < 1e-3 * np.ptp(last.depth[m])
     assert st.stats["errors"] == 3
 
@@ -69,8 +69,8 @@ def test_stream_device_output_ring_and_config_errors(device):
 
     sc, mat, L, img, frame = _scene(size=24, camera="orthographic")
     st = Stream(sc.mask.shape, sc.camera, L, mat, mask=sc.mask, config=StreamConfig(ring=2, integrate=False), device=device)
-    a = st.process(frame)
-    b = st.process(frame)
+    a = st.run(frame)
+    b = st.run(frame)
     assert a.depth is None and a.normals is not b.normals  # two ring slots
     assert np.allclose(a.numpy().normals, b.numpy().normals, atol=1e-4)
     with pytest.raises(ValueError, match="iterations"):
@@ -96,10 +96,10 @@ def test_stream_memory_stays_flat(device):
     tracemalloc.start()
     # Python keeps up to 2000 freed tuples per size in free lists, which tracemalloc counts as allocated:
     # the first ~2000 frames fill them (a few hundred kB, bounded); after that nothing may grow
-    for r in st.run([frame] * 2400):
+    for r in st.iterate([frame] * 2400):
         assert r.ok
     base = tracemalloc.get_traced_memory()[0]
-    for r in st.run([frame] * 400):
+    for r in st.iterate([frame] * 400):
         pass
     grown = tracemalloc.get_traced_memory()[0] - base
     tracemalloc.stop()
@@ -134,8 +134,8 @@ def test_stream_integrator_several_components_matches_direct(camera):
     si = StreamIntegrator(m, sc.camera)
     assert si.n_components == 2
     out = np.zeros(m.shape, np.float32)
-    si.integrate(np.ascontiguousarray(sc.normals, np.float32), out, tol=1e-5, reference=10.0)
-    ref = Integrator(m, sc.camera, IntegratorConfig(solver="direct")).integrate(sc.normals, reference_depth=10.0)
+    si.step(np.ascontiguousarray(sc.normals, np.float32), out, tol=1e-5, reference=10.0)
+    ref = Integrator(m, sc.camera, IntegratorConfig(solver="direct")).run(sc.normals, reference_depth=10.0)
     assert np.abs(out - ref.depth)[m].max() < 1e-4 * np.ptp(ref.depth[m])
     assert np.all(out[~m] == 0)
 
@@ -152,7 +152,7 @@ def test_stream_integrator_fixed_iterations_converge_and_warm_start(method, came
     sc = make_scene("bumps", 64, camera)
     m = sc.mask
     nrm = np.ascontiguousarray(sc.normals, np.float32)
-    ref = Integrator(m, sc.camera, IntegratorConfig(solver="direct")).integrate(sc.normals, reference_depth=10.0).depth
+    ref = Integrator(m, sc.camera, IntegratorConfig(solver="direct")).run(sc.normals, reference_depth=10.0).depth
     rng = np.ptp(ref[m])
     si = StreamIntegrator(m, sc.camera, StreamIntegratorConfig(method=method))
     out = np.zeros(m.shape, np.float32)
@@ -163,7 +163,7 @@ def test_stream_integrator_fixed_iterations_converge_and_warm_start(method, came
     errs = []
     for k in (1, 10):  # fused frame kernel (multigrid) and per-cycle launches
         si.reset()
-        si.integrate(nrm, out, iterations=k, reference=10.0)
+        si.step(nrm, out, iterations=k, reference=10.0)
         errs.append(err())
         assert np.all(out[~m] == 0) and np.isfinite(out).all()
     assert errs[1] < 1e-4 and errs[1] < 0.05 * errs[0], errs
@@ -173,8 +173,8 @@ def test_stream_integrator_fixed_iterations_converge_and_warm_start(method, came
     prev = np.where(m, ref * (1.0 + 0.01 * np.sin(2 * np.pi * xx) * np.cos(np.pi * yy)), 0.0).astype(np.float32)
     out[...] = prev
     e0 = err()
-    si.load(prev)
-    si.integrate(nrm, out, iterations=1, reference=10.0)
+    si.upload(prev)
+    si.step(nrm, out, iterations=1, reference=10.0)
     assert err() < 0.2 * e0, (err(), e0)
 
 
@@ -243,7 +243,7 @@ def test_stream_integrator_vcycle_matches_numpy_reference(shape, smooth_pairs, l
     assert si.launch == launch and (launch == "tasks" or si._top == (0 if psize == 256 else 2))
     si.reset()
     out = np.zeros(shape, np.float32)
-    si.integrate(np.ascontiguousarray(n), out, iterations=1)
+    si.step(np.ascontiguousarray(n), out, iterations=1)
     got = si._F["z"].to_numpy()
     # the reference, with the integrator's own mask (pixels with a 4-neighbour) and level weights
     v = si.valid
@@ -289,8 +289,8 @@ def test_stream_integrator_persistent_kernel_equals_task_frame(camera, psize):
         a.reset()
         b.reset()
         for _ in range(2):
-            a.integrate(nrm, oa, iterations=cycles, reference=10.0)
-            b.integrate(nrm, ob, iterations=cycles, reference=10.0)
+            a.step(nrm, oa, iterations=cycles, reference=10.0)
+            b.step(nrm, ob, iterations=cycles, reference=10.0)
             scale = np.abs(oa).max()
             np.testing.assert_allclose(ob, oa, rtol=0, atol=2e-6 * scale)
             za, zb = a._F["z"].to_numpy(), b._F["z"].to_numpy()
@@ -316,8 +316,8 @@ def test_stream_integrator_persistent_falls_back_when_blocks_do_not_fit():
     oa = np.zeros(m.shape, np.float32)
     ob = np.zeros(m.shape, np.float32)
     for _ in range(2):
-        a.integrate(nrm, oa, iterations=2)
-        b.integrate(nrm, ob, iterations=2)
+        a.step(nrm, oa, iterations=2)
+        b.step(nrm, ob, iterations=2)
     np.testing.assert_allclose(ob, oa, rtol=0, atol=2e-6 * np.abs(oa).max())
     print(f"blocks per SM used: {b._bps}, launch {b.launch}")
 
@@ -369,8 +369,8 @@ def test_stream_integrator_direct_launch_equals_plain_call(kind, launch):
                     x.from_numpy(shifted)
                 else:
                     x.copy_(x.new_tensor(shifted))
-        a.integrate(ia, oa, iterations=1, reference=10.0)
-        b.integrate(ib, ob, iterations=1, reference=10.0)
+        a.step(ia, oa, iterations=1, reference=10.0)
+        b.step(ib, ob, iterations=1, reference=10.0)
         da, db = _host(oa), _host(ob)
         np.testing.assert_allclose(db, da, rtol=0, atol=2e-6 * np.abs(da).max())
     assert np.abs(da - _host(oa)).max() == 0 and np.abs(da[m]).min() > 0
@@ -446,15 +446,15 @@ def test_stream_integrator_rejects_bad_frames_arrays():
     si = StreamIntegrator(m, sc.camera)
     out = np.zeros(m.shape, np.float32)
     with pytest.raises(ValueError, match=r"normals: expected shape \(32, 32, 3\)"):
-        si.integrate(nrm[:, :, :2].copy(), out, iterations=1)
+        si.step(nrm[:, :, :2].copy(), out, iterations=1)
     with pytest.raises(ValueError, match=r"out: expected shape \(32, 32\)"):
-        si.integrate(nrm, out[:5], iterations=1)
+        si.step(nrm, out[:5], iterations=1)
     with pytest.raises(ValueError, match="out: expected a float32 array"):
-        si.integrate(nrm, np.zeros(m.shape), iterations=1)
+        si.step(nrm, np.zeros(m.shape), iterations=1)
     with pytest.raises(ValueError, match="normals: expected a float32 or float64"):
-        si.integrate(nrm.astype(np.int32), out, iterations=1)
+        si.step(nrm.astype(np.int32), out, iterations=1)
     for bad in (-1.0, float("nan")):
         with pytest.raises(ValueError, match="reference"):
-            si.integrate(nrm, out, iterations=1, reference=bad)
-    si.integrate(nrm, out, iterations=2)
+            si.step(nrm, out, iterations=1, reference=bad)
+    si.step(nrm, out, iterations=2)
     assert np.isfinite(out).all() and np.abs(out[m]).max() > 0

@@ -69,8 +69,8 @@ def test_bad_frames_are_reported_and_never_warm_start(device):
         seq += [_bad(kind, frames[0], rng), frames[1 + k % (len(frames) - 1)]]
     good = [f for f in seq if f.dtype == np.uint16 and f.shape == frames[0].shape and f.any() and
             any(f is g for g in frames)]
-    ref = [r for r in clean.run(good)]
-    out = list(dirty.run(seq))
+    ref = [r for r in clean.iterate(good)]
+    out = list(dirty.iterate(seq))
     errs = [r for r in out if not r.ok]
     assert len(errs) == len(KINDS), [r.error for r in out]
     for r, kind in zip(errs, KINDS):
@@ -92,7 +92,7 @@ def test_a_bad_first_frame_leaves_the_next_one_cold(device):
 
     sc, mat, L, mask, frames, truth = _frames(n=2)
     st = Stream(sc.mask.shape, sc.camera, L, mat, mask=mask, config=StreamConfig(output="numpy"), device=device)
-    out = list(st.run([np.zeros_like(frames[0]), frames[0], frames[1]]))
+    out = list(st.iterate([np.zeros_like(frames[0]), frames[0], frames[1]]))
     assert [r.ok for r in out] == [False, True, True]
     assert normal_errors(out[1].normals, truth[0], mask)["mean"] < 0.1
     assert normal_errors(out[2].normals, truth[1], mask)["mean"] < 0.1
@@ -106,13 +106,13 @@ def test_a_scene_change_heals_within_the_frame(device):
     other = np.ascontiguousarray(frames[0][:, ::-1])  # the frame upside down: another scene, most normals change
     both = mask & mask[::-1]
     cold = Stream(sc.mask.shape, sc.camera, L, mat, mask=both, config=StreamConfig(output="numpy"), device=device)
-    ref = cold.process(other)  # a cold (multi-start) solve of the new scene
+    ref = cold.run(other)  # a cold (multi-start) solve of the new scene
     for check in (True, False):
         st = Stream(sc.mask.shape, sc.camera, L, mat, mask=both, config=StreamConfig(output="numpy", check=check),
                     device=device)
-        st.process(frames[0])
-        st.process(frames[0])
-        r = st.process(other)
+        st.run(frames[0])
+        st.run(frames[0])
+        r = st.run(other)
         assert r.ok
         off = angular_error(r.normals, ref.normals, both)[both]
         if check:
@@ -138,11 +138,11 @@ def test_textured_frames_pass_and_noise_does_not(device):
     for bits in (8, 16):
         full = 2**bits - 1
         f = np.round(np.clip(render(sc, mat, L, bits=bits), 0, 1) * full).astype(np.uint8 if bits == 8 else np.uint16)
-        r = st.process(f)
+        r = st.run(f)
         assert r.ok, r.error
         assert r.checks["noise_ratio"] < 0.03, r.checks
     rng = np.random.default_rng(0)
-    r = st.process(rng.integers(0, 65536, f.shape[:3]).astype(np.uint16))
+    r = st.run(rng.integers(0, 65536, f.shape[:3]).astype(np.uint16))
     assert not r.ok and "noise" in r.error
 
 
@@ -151,15 +151,15 @@ def test_numpy_output_is_a_copy(device):
 
     sc, mat, L, mask, frames, truth = _frames(n=4)
     st = Stream(sc.mask.shape, sc.camera, L, mat, mask=mask, config=StreamConfig(output="numpy"), device=device)
-    first = st.process(frames[0])
+    first = st.run(frames[0])
     kept = first.normals.copy()
-    st.process(frames[3])
+    st.run(frames[3])
     np.testing.assert_array_equal(first.normals, kept)
     dev = Stream(sc.mask.shape, sc.camera, L, mat, mask=mask, config=StreamConfig(output="device", ring=1),
                  device=device)
-    r0 = dev.process(frames[0]).numpy()
+    r0 = dev.run(frames[0]).numpy()
     kept = r0.normals.copy()
-    dev.process(frames[3])
+    dev.run(frames[3])
     np.testing.assert_array_equal(r0.normals, kept)
 
 
@@ -171,9 +171,9 @@ def test_negative_device_frame_is_an_error(device):
     sc, mat, L, mask, frames, truth = _frames(n=1)
     st = Stream(sc.mask.shape, sc.camera, L, mat, mask=mask, config=StreamConfig(output="numpy"), device=device)
     f = frames[0].astype(np.float32) / 65535 - 0.25
-    r = st.process(wp.array(f, dtype=wp.float32, device=device))
+    r = st.run(wp.array(f, dtype=wp.float32, device=device))
     assert not r.ok and ">= 0" in r.error
-    assert st.process(frames[0]).ok
+    assert st.run(frames[0]).ok
 
 
 def _numpy_stats(images, mask, inten, lit_level, saturation):

@@ -312,7 +312,7 @@ class SceneRenderer:
         from gpps.pipeline.render import quantise
 
         r = self._renderer(scene, lights)
-        img = r.render(scene.depth, scene.mask, scene.albedo, normals=normals).numpy()
+        img = r.run(scene.depth, scene.mask, scene.albedo, normals=normals)
         if ambient > 0:
             img = img + ambient * scene.albedo[None]
         if noise > 0:

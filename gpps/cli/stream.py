@@ -164,7 +164,7 @@ def run(args) -> int:
     lead, tail = ("\r", "") if tty else ("", "\n")
     with atomic_dir(out, overwrite=args.overwrite, inputs=inputs, name="--out") as tmp:
         try:
-            for r in st.run(frames):
+            for r in st.iterate(frames):
                 n += 1
                 if not r.ok:
                     errors.append({"index": r.index, "error": r.error})

@@ -92,6 +92,6 @@ def integrate_normals(
                            **options)
     integ = Integrator(mask, camera=camera, config=cfg, device=device)
     try:
-        return integ.integrate(normals, warm_start=warm_start, reference_depth=reference_depth, progress=progress)
+        return integ.run(normals, warm_start=warm_start, reference_depth=reference_depth, progress=progress)
     finally:
         integ.close()

@@ -260,7 +260,7 @@ def solve_normals(
     t1 = time.perf_counter()
     if progress:
         progress(1, 3, "solve")
-    ps.launch()
+    ps.step()
     from gpps._runtime import warp
 
     warp().synchronize_device(ps.device)
@@ -304,4 +304,4 @@ def reproject(result: PSResult, lights, *, camera=None, depth=None, device=None)
     nrm = result.normals.copy()
     bad = result.mask & (np.linalg.norm(nrm, axis=-1) < 0.5)
     nrm[bad] = (0.0, 0.0, 1.0)
-    return r.render(np.where(result.mask, dep, 1.0), result.mask, np.maximum(result.albedo, 0.0), normals=nrm).numpy()
+    return r.run(np.where(result.mask, dep, 1.0), result.mask, np.maximum(result.albedo, 0.0), normals=nrm)

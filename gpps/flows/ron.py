@@ -363,12 +363,12 @@ class RON:
         m = self.mask if mask is None else mask
         s.set_material(material)
         s.set_config(cfg if starts is None else replace(cfg, starts=starts))
-        out = s.solve(images, m, depth=depth, valid=valid)
+        out = s.run(images, m, depth=depth, valid=valid)
         if init is not None:
             im = m if init_mask is None else (init_mask & m)
             if im.any():
                 s.set_config(replace(cfg, warm_start=True, starts=1, neighbour_radius=0, smoothness=0.0))
-                warm = s.solve(images, im, depth=depth, valid=valid, init_normals=init)
+                warm = s.run(images, im, depth=depth, valid=valid, init_normals=init)
                 # under-determined pixels keep the neighbour pass of the cold solve
                 better = im & ranks_better(warm["residual"], warm["flags"], out["residual"])
                 for k in ("normals", "albedo", "residual", "flags", "cond"):
@@ -401,7 +401,7 @@ class RON:
                           smoothness=0.0, warm_start=False)
             self._fit_solver = PixelSolver(self.shape, self.camera, self.lights, material, cfg, device=self.device)
         self._fit_solver.set_material(material)
-        out = self._fit_solver.solve(images, sample, depth=depth, valid=valid)
+        out = self._fit_solver.run(images, sample, depth=depth, valid=valid)
         r = np.sort(out["residual"][sample].astype(np.float64) ** 2)
         keep = max(1, int(round(r.size * (1.0 - self.config.material_trim))))
         return float(np.mean(r[:keep]))
@@ -495,7 +495,7 @@ class RON:
         t = time.perf_counter()
         s = self.solver
         s.set_config(replace(c.solver, solver="none", smoothness=0.0))
-        ls = s.solve(images, m, depth=solve_depth, valid=valid)
+        ls = s.run(images, m, depth=solve_depth, valid=valid)
         s.set_config(c.solver)
         timings["least_squares"] += time.perf_counter() - t
         start = ls["normals"]
@@ -565,7 +565,7 @@ class RON:
             # step 3: depth
             if c.integrate:
                 t = time.perf_counter()
-                integ = self.integrator.integrate(out["normals"], reference_depth=reference_depth)
+                integ = self.integrator.run(out["normals"], reference_depth=reference_depth)
                 cur_depth = self._fill_depth(integ.depth, integ.mask, reference_depth)
                 if self.point:
                     solve_depth = cur_depth
@@ -592,14 +592,14 @@ class RON:
         if c.integrate:
             t = time.perf_counter()
             if c.final_integrator is None or c.final_integrator == self.integrator.config:
-                integ = self.integrator.integrate(out["normals"], reference_depth=reference_depth)
+                integ = self.integrator.run(out["normals"], reference_depth=reference_depth)
             else:
                 from gpps.pipeline.integration import Integrator
 
                 final = Integrator(self.mask, camera=self.camera, config=c.final_integrator,
                                    device=self._taichi_device())
                 try:
-                    integ = final.integrate(out["normals"], reference_depth=reference_depth)
+                    integ = final.run(out["normals"], reference_depth=reference_depth)
                 finally:
                     final.close()
             depth_out, depth_mask, ires = integ.depth, integ.mask, float(integ.residual)

@@ -56,7 +56,7 @@ def render(scene: Scene, material: Material, lights, *, noise: float = 0.0, bits
         device: Warp device (None: CUDA when present).
     """
     r = Renderer(scene.shape, scene.camera, lights, material, device=device)
-    img = r.render(scene.depth, scene.mask, scene.albedo, normals=scene.normals).numpy()
+    img = r.run(scene.depth, scene.mask, scene.albedo, normals=scene.normals)
     img = add_noise(img, noise, seed)
     img[:, ~scene.mask] = 0.0
     return quantise(img, bits)

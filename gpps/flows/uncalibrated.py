@@ -456,7 +456,7 @@ def solve_uncalibrated(images, mask, *, camera=None, config: UncalibratedConfig 
     if cfg.refine != "none":
         from gpps.pipeline.uncalibrated import Refiner
 
-        spec = {"lambertian": 0, "ashikhmin-shirley": 1, "blinn-phong": 2}[cfg.refine]
+        spec = cfg.refine  # the lobe of the refinement's model (a Refiner Lobe name)
         Wrgb = W_obs
         rng = np.random.default_rng(cfg.seed)
         sub = rng.choice(P, min(P, cfg.refine_pixels), replace=False) if cfg.refine_pixels and cfg.refine_pixels < P else np.arange(P)
@@ -487,7 +487,7 @@ def solve_uncalibrated(images, mask, *, camera=None, config: UncalibratedConfig 
         step(3, 5, "lights refined")
         if final == "lm":
             material = {"brdf": cfg.refine}
-            if spec:
+            if spec != "lambertian":
                 # with a perspective camera the view vectors are not symmetric under the flip, so the
                 # specular lobe tells the two members of the pair apart: fit both, keep the better
                 cands = [lights, lights @ flip_m] if isinstance(camera, Perspective) else [lights]

@@ -23,7 +23,7 @@ Pure numpy/scipy on the host (no Warp)::
     ls = solve_normals(images, mask, lights, camera=cam, solver="none")
     res = dgmc_start(images, mask, ls.normals, lights=lights)
     solver = PixelSolver(..., config=SolverConfig(warm_start=True, starts=1))
-    solver.solve(images, mask, init_normals=res.normals)
+    solver.run(images, mask, init_normals=res.normals)
 
 Conventions: pixel ``(i, j)`` = (row, column); geodesic distances are in pixels
 (edge lengths 1 and sqrt(2)); ``source`` holds ``(row, column)``.

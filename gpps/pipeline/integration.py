@@ -56,6 +56,7 @@ from gpps.host.poisson import (
     pixel_gradients,
     robust_edge_weights,
 )
+from gpps.pipeline.stage import Stage
 
 __all__ = ["IntegratorConfig", "IntegrationResult", "Integrator", "Solver"]
 
@@ -229,7 +230,7 @@ class IntegrationResult:
 # ============================================================================ the stage
 
 
-class Integrator:
+class Integrator(Stage):
     """Integrates normal maps over one mask with one camera.
 
     Configured once (mask, camera, options); Taichi fields are allocated once
@@ -270,6 +271,7 @@ class Integrator:
         self._bini_key = None
         self._levels_key = None
         self._labels_key = None
+        self._job = None  # the uploaded normal map's system, then its solution
 
     # ------------------------------------------------------------------ checks
 
@@ -329,9 +331,8 @@ class Integrator:
 
     # ------------------------------------------------------------------ main entry
 
-    def integrate(self, normals, warm_start=None, *, reference_depth: float | None = None,
-                  progress: Progress | None = None) -> IntegrationResult:
-        """Integrate one normal map.
+    def upload(self, normals, warm_start=None, *, reference_depth: float | None = None) -> None:
+        """Check one normal map and set up its system (gradients, weights, warm start) for :meth:`step`.
 
         Args:
             normals: (H, W, 3) normals in the gpps frame (need not be unit; NaN,
@@ -342,10 +343,9 @@ class Integrator:
             reference_depth: if given (> 0), each component's mean depth is set
                 to it; otherwise orthographic depth has mean 0 and perspective
                 log-depth has mean 0 (depth ~ 1) per component.
-            progress: optional ``progress(done, total, message)``.
 
-        Returns:
-            :class:`IntegrationResult`.
+        ``run(normals, warm_start, reference_depth=..., progress=...)`` integrates and returns the
+        :class:`IntegrationResult` in one call.
         """
         t0 = time.perf_counter()
         cfg = self.config
@@ -369,12 +369,26 @@ class Integrator:
                 u0 = np.where(valid & np.isfinite(warm), warm, 0.0)
             u0 = np.where(valid, u0 - self._comp_mean(u0, valid), 0.0)
         timings = {"setup": time.perf_counter() - t0}
+        self._job = {"t0": t0, "n": n, "valid": valid, "n_invalid": n_invalid, "u0": u0, "timings": timings,
+                     "reference_depth": reference_depth, "system": (gj, gi, nzj, nzi, cj, ci)}
 
+    def step(self, progress: Progress | None = None) -> None:
+        """Solve the uploaded system (BiNI's IRLS on the device, or the plain Poisson solve).
+
+        Args:
+            progress: optional ``progress(done, total, message)``.
+        """
+        job = self._job
+        if job is None:
+            raise ValueError("normals: expected upload(normals) before step(), got nothing uploaded")
+        cfg = self.config
+        n, valid, u0, timings = job["n"], job["valid"], job["u0"], job["timings"]
+        gj, gi, nzj, nzi, cj, ci = job["system"]
         outer = 0
         total_it = 0
         energy_log = None
         if cfg.bilateral:
-            bres = self._bini(valid).solve(n, u0, progress)
+            bres = self._bini(valid).run(n, u0, progress=progress)
             u = bres.u
             total_it, outer, energy_log = bres.cg_iterations, bres.outer_iterations, bres.energy
             true_res = solver_res = bres.residual
@@ -385,6 +399,17 @@ class Integrator:
             u, total_it, outer, true_res, solver_res = self._poisson(n, valid, gj, gi, nzj, nzi, cj, ci, u0,
                                                                       timings, progress)
             converged = bool(solver_res <= cfg.tol)
+        job.update(u=u, total_it=total_it, outer=outer, energy=energy_log, true_res=true_res, solver_res=solver_res,
+                   converged=converged, progress=progress)
+
+    def fetch(self) -> IntegrationResult:
+        """The depth of the last :meth:`step` with its diagnostics (:class:`IntegrationResult`)."""
+        job = self._job
+        if job is None or "u" not in job:
+            raise ValueError("normals: expected upload(normals) and step() before fetch(), got no solve")
+        cfg = self.config
+        valid, timings, reference_depth, t0 = job["valid"], job["timings"], job["reference_depth"], job["t0"]
+        u, true_res = job["u"], job["true_res"]
         t2 = time.perf_counter()
         u = np.where(valid, u - self._comp_mean(u, valid), 0.0)
         log_depth = None
@@ -398,15 +423,22 @@ class Integrator:
         depth = np.where(valid, depth, 0.0).astype(np.float32)
         timings["post"] = time.perf_counter() - t2
         timings["total"] = time.perf_counter() - t0
-        if progress is not None:
-            progress(1, 1, f"residual {true_res:.2e}")
+        if job["progress"] is not None:
+            job["progress"](1, 1, f"residual {true_res:.2e}")
         _, ncomp = self._components(valid)
         return IntegrationResult(
-            depth=depth, mask=valid, iterations=total_it, residual=true_res, solver_residual=solver_res,
-            converged=converged,
-            n_invalid=n_invalid, n_components=int(ncomp), outer_iterations=outer, timings=timings,
-            solver="bini" if cfg.bilateral else cfg.solver, log_depth=log_depth, energy=energy_log,
+            depth=depth, mask=valid, iterations=job["total_it"], residual=true_res, solver_residual=job["solver_res"],
+            converged=job["converged"], n_invalid=job["n_invalid"], n_components=int(ncomp),
+            outer_iterations=job["outer"], timings=timings, solver="bini" if cfg.bilateral else cfg.solver,
+            log_depth=log_depth, energy=job["energy"],
         )
+
+    def run(self, normals, warm_start=None, *, reference_depth: float | None = None,
+            progress: Progress | None = None) -> IntegrationResult:
+        """:meth:`upload`, :meth:`step` (with ``progress``) and :meth:`fetch`: one normal map to depth."""
+        self.upload(normals, warm_start, reference_depth=reference_depth)
+        self.step(progress)
+        return self.fetch()
 
     # ------------------------------------------------------------------ solvers
 

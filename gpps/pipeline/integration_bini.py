@@ -53,6 +53,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from gpps import _taichi
+from gpps._taichi import ti
+from gpps.kernels import bini as K
+from gpps.pipeline.stage import Stage
+
 __all__ = ["BiniConfig", "BiniResult", "BilateralIntegrator", "bini_coefficients"]
 
 
@@ -162,8 +167,6 @@ _NAMES = ("x", "b", "r", "z", "p0", "p1", "q", "Nj", "Ni", "mj", "mi", "wj", "wi
 
 
 def _acquire(n: int, unroll: int) -> dict:
-    from gpps._taichi import ti
-    from gpps.kernels import bini as K
 
     cap = 1 << max(10, int(n - 1).bit_length())
     key = (cap, unroll)
@@ -200,7 +203,7 @@ def _release(F: dict) -> None:
         _POOL.setdefault(F["key"], []).append(F)
 
 
-class BilateralIntegrator:
+class BilateralIntegrator(Stage):
     """BiNI over one set of valid pixels, with its device buffers.
 
     Args:
@@ -224,14 +227,13 @@ class BilateralIntegrator:
         self.device = device
         self.n = int(v.sum())
         self._F = None
+        self._state = None  # the uploaded map's start energy, then the solve's diagnostics
 
     # ------------------------------------------------------------------ buffers
 
     def _ensure(self):
         if self._F is not None:
             return self._F
-        from gpps import _taichi
-
         _taichi.init(self.device)
         n = self.n
         h, w = self.shape
@@ -265,31 +267,17 @@ class BilateralIntegrator:
             _release(self._F)
             self._F = None
 
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-
     # ------------------------------------------------------------------ solve
 
-    def solve(self, normals, u0=None, progress=None) -> BiniResult:
-        """Run BiNI's IRLS on one normal map.
+    def upload(self, normals, u0=None) -> None:
+        """Upload one normal map's coefficients and the start, and evaluate the start's energy.
 
         Args:
             normals: (H, W, 3) unit normals in the gpps frame (valid where ``self.valid``).
             u0: optional (H, W) starting ``u`` (depth, or log-depth); ``None`` = 0 as BiNI.
-            progress: optional ``progress(done, total, message)`` per IRLS iteration.
-
-        Returns:
-            :class:`BiniResult`.
         """
-        from gpps.kernels import bini as K
-
-        cfg = self.config
         t0 = time.perf_counter()
         F = self._ensure()
-        kn = F["kernels"]
         n = self.n
         ii, jj = self._ij
         for name, a in zip(("Nj", "Ni", "mj", "mi"), bini_coefficients(normals, self.valid, self.camera)):
@@ -298,9 +286,23 @@ class BilateralIntegrator:
         F["wi"].fill(0.5)
         self._upload("x", 0.0 if u0 is None else np.asarray(u0, np.float64)[ii, jj])
         F["sc"].fill(0)
-        kn["energy"](n)
-        e_old = float(F["sc"][K.ENERGY])
-        t1 = time.perf_counter()
+        F["kernels"]["energy"](n)
+        self._state = {"e0": float(F["sc"][K.ENERGY]), "t0": t0, "t1": time.perf_counter()}
+
+    def step(self, progress=None) -> None:
+        """BiNI's IRLS from the uploaded start: inner Jacobi-PCG solves on the device, one host check per
+        launch, stop on the relative energy change.
+
+        Args:
+            progress: optional ``progress(done, total, message)`` per IRLS iteration.
+        """
+        if self._state is None:
+            raise ValueError("normals: expected upload(normals) before step(), got nothing uploaded")
+        cfg = self.config
+        F = self._F
+        kn = F["kernels"]
+        n = self.n
+        e_old = self._state["e0"]
         tol2 = cfg.cg_tol ** 2
         last = (F["unroll"] - 1) % 3
         energies = []
@@ -327,8 +329,15 @@ class BilateralIntegrator:
                 converged = True
                 break
             e_old = e
-        total_cg = int(F["sc"][K.TOTAL])
-        t2 = time.perf_counter()
+        self._state.update(energies=energies, converged=converged, outer=outer, res=res,
+                           total_cg=int(F["sc"][K.TOTAL]), t2=time.perf_counter())
+
+    def fetch(self) -> BiniResult:
+        """The solution and diagnostics of the last :meth:`step` (:class:`BiniResult`)."""
+        st = self._state
+        if st is None or "t2" not in st:
+            raise ValueError("normals: expected upload(normals) and step() before fetch(), got no solve")
+        ii, jj = self._ij
         u = np.zeros(self.shape)
         wjm = np.full(self.shape, 0.5)
         wim = np.full(self.shape, 0.5)
@@ -336,6 +345,12 @@ class BilateralIntegrator:
         wjm[ii, jj] = self._fetch("wj")
         wim[ii, jj] = self._fetch("wi")
         t3 = time.perf_counter()
-        return BiniResult(u=u, outer_iterations=outer, cg_iterations=total_cg, energy=energies,
-                          converged=converged, residual=res, wj=wjm, wi=wim,
-                          timings={"upload": t1 - t0, "solve": t2 - t1, "fetch": t3 - t2})
+        return BiniResult(u=u, outer_iterations=st["outer"], cg_iterations=st["total_cg"], energy=st["energies"],
+                          converged=st["converged"], residual=st["res"], wj=wjm, wi=wim,
+                          timings={"upload": st["t1"] - st["t0"], "solve": st["t2"] - st["t1"], "fetch": t3 - st["t2"]})
+
+    def run(self, normals, u0=None, *, progress=None) -> BiniResult:
+        """:meth:`upload`, :meth:`step` (with ``progress``) and :meth:`fetch`: BiNI on one normal map."""
+        self.upload(normals, u0)
+        self.step(progress)
+        return self.fetch()

@@ -26,7 +26,8 @@ import numpy as np
 
 from gpps._check import check_number
 from gpps.camera import Orthographic, Perspective
-from gpps.host.poisson import diagonal, build_levels, laplacian, level_shapes
+from gpps.host.poisson import build_levels, diagonal, laplacian, level_shapes
+from gpps.pipeline.stage import Stage
 
 __all__ = ["StreamIntegratorConfig", "StreamIntegrator"]
 
@@ -126,7 +127,7 @@ class StreamIntegratorConfig:
             raise TypeError(f"direct_launch: expected bool, got {type(self.direct_launch).__name__}")
 
 
-class StreamIntegrator:
+class StreamIntegrator(Stage):
     """Integrate many normal maps over one fixed mask on the Taichi device.
 
     Args:
@@ -359,16 +360,19 @@ class StreamIntegrator:
 
     # ------------------------------------------------------------------ per frame
 
-    def load(self, depth) -> None:
-        """Warm start from a depth map (H, W) (numpy, or a CUDA tensor Taichi accepts)."""
+    def upload(self, depth) -> None:
+        """Warm start from a depth map (H, W) (numpy, or a CUDA tensor Taichi accepts).
+
+        The normal maps themselves are not copied: :meth:`step` reads them where they are (another
+        stage's device buffer)."""
         self._K["load"](depth)
 
     def reset(self) -> None:
         """Forget the previous solution (the next frame starts from u = 0)."""
         self._F["z"].fill(0)
 
-    def integrate(self, normals, out, *, iterations: int | None = None, tol: float | None = None,
-                  max_iterations: int = 200, reference: float | None = None) -> None:
+    def step(self, normals, out, *, iterations: int | None = None, tol: float | None = None,
+             max_iterations: int = 200, reference: float | None = None) -> None:
         """Integrate one normal map into ``out``, warm-started from the previous frame.
 
         Args:
@@ -442,6 +446,16 @@ class StreamIntegrator:
             self.last_iterations = its
             self.last_residual = float(np.sqrt(rr / bb)) if bb > 0 else 0.0
         K["finish"](out, ref)
+
+    def fetch(self) -> dict:
+        """``iterations`` of the last :meth:`step` and the ``residual`` ``|b - A u| / |b|`` of the current
+        solution (a host sync); the depth itself is in the ``out`` array the step wrote."""
+        return {"iterations": int(self.last_iterations), "residual": self.residual()}
+
+    def run(self, normals, out, **kwargs) -> dict:
+        """:meth:`step` then :meth:`fetch` (the normals are read in place: nothing to upload)."""
+        self.step(normals, out, **kwargs)
+        return self.fetch()
 
     def residual(self) -> float:
         """Relative residual ``|b - A u| / |b|`` of the current solution (host sync)."""

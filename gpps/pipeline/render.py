@@ -7,9 +7,10 @@ import numpy as np
 from gpps._check import albedo_map, as_array, as_mask, unit_normals
 from gpps._runtime import resolve_device, warp
 from gpps.pipeline.params import camera_params, light_params, material_params
+from gpps.pipeline.stage import Stage
 
 
-class Renderer:
+class Renderer(Stage):
     """Renders images of a scene under N lights; buffers are allocated once.
 
     Args:
@@ -19,7 +20,8 @@ class Renderer:
         material: :class:`gpps.material.Material`.
         device: Warp device (None: CUDA if present, else CPU).
 
-    Calling :meth:`render` re-checks the shapes of its inputs ("expected ..., got ...").
+    :meth:`upload` re-checks the shapes of its inputs ("expected ..., got ..."); ``run(depth, mask, albedo,
+    normals)`` renders and returns the images (N, H, W, 3).
     """
 
     def __init__(self, shape, camera, lights, material, device=None):
@@ -65,8 +67,8 @@ class Renderer:
         wp.launch(self._rk.normals_from_depth_kernel, dim=self.shape, inputs=[self.depth, self.mask, self.cam], outputs=[self.normals], device=self.device)
         return self.normals.numpy()
 
-    def render(self, depth, mask, albedo, normals=None):
-        """Render the N images.
+    def upload(self, depth, mask, albedo, normals=None) -> None:
+        """Check and copy the scene into the device buffers.
 
         Args:
             depth: (H, W) depth > 0 inside the mask (scene units).
@@ -74,11 +76,7 @@ class Renderer:
             albedo: (H, W, 3), (H, W) or (3,) RGB diffuse colour >= 0.
             normals: (H, W, 3) unit normals in the gpps frame; None derives them
                 from ``depth`` (finite differences).
-
-        Returns:
-            The device array (N, H, W) of vec3 (RGB), valid until the next call.
         """
-        wp = warp()
         mask = as_mask("mask", mask, self.shape)
         depth = as_array("depth", depth, shape=self.shape)
         if np.any(depth[mask] <= 0):
@@ -91,14 +89,20 @@ class Renderer:
         self.depth.assign(depth)
         self.mask.assign(mask.astype(np.uint8))
         self.albedo.assign(albedo_map("albedo", albedo, self.shape))
-        wp.launch(
+
+    def step(self) -> None:
+        """Render the N images into :attr:`images`, the device array (N, H, W) of vec3 (RGB)."""
+        warp().launch(
             self._rk.render_kernel,
             dim=self.shape,
             inputs=[self.depth, self.normals, self.mask, self.albedo, self.cam, self.lp, self.mp],
             outputs=[self.images],
             device=self.device,
         )
-        return self.images
+
+    def fetch(self) -> np.ndarray:
+        """The rendered images (N, H, W, 3) float32, a copy owned by the caller."""
+        return np.array(self.images.numpy(), copy=True)
 
 
 def quantise(images: np.ndarray, bits: int | None) -> np.ndarray:

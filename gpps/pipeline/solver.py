@@ -2,7 +2,7 @@
 
 One Warp launch solves every pixel (the iteration loop, the multi-start and
 the IRLS rounds all run inside the kernel, see :mod:`gpps.kernels.solve`), so
-a solve needs no host synchronisation and :meth:`PixelSolver.launch` can be
+a solve needs no host synchronisation and :meth:`PixelSolver.step` can be
 captured in a CUDA graph.  Buffers are allocated once for ``(N, H, W)``.
 """
 
@@ -18,6 +18,7 @@ from gpps._runtime import resolve_device, warp
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
 from gpps.pipeline.params import camera_params, light_params, material_params
+from gpps.pipeline.stage import Stage
 
 from gpps.names import (
     FLAG_ALBEDO_FROM_NEIGHBOURS,
@@ -93,7 +94,7 @@ class SolverConfig:
             3 lit observations get the neighbour pass above.  Unlit observations
             stay in the fit (unless ``shadow_threshold`` drops them); the dark
             ones as the one-sided terms of ``lit_sigmas``.
-        warm_start: start from the normals passed to :meth:`PixelSolver.solve`
+        warm_start: start from the normals passed to :meth:`PixelSolver.upload`
             (one start per pixel) instead of the least-squares solution.
         lm_tau: initial LM damping ``tau * max(diag J^T J)`` (Algorithm 4).
         dogleg_radius: initial trust radius of the dog leg (radians).
@@ -270,7 +271,7 @@ def check_light_configuration(lights, point=None, *, tol: float = 1e-3) -> float
     return float(s[0] / s[-1])
 
 
-class PixelSolver:
+class PixelSolver(Stage):
     """Per-pixel calibrated photometric stereo on N images; buffers allocated once.
 
     Args:
@@ -389,7 +390,7 @@ class PixelSolver:
 
     @property
     def kernels(self) -> tuple:
-        """``(solve_kernel, underdetermined_kernel, smooth_kernel)`` that :meth:`launch` uses (the last two None for solver "none")."""
+        """``(solve_kernel, underdetermined_kernel, smooth_kernel)`` that :meth:`step` uses (the last two None for solver "none")."""
         return self._solve_kernel, self._underdetermined_kernel, self._smooth_kernel
 
     def set_config(self, config: SolverConfig) -> None:
@@ -424,6 +425,15 @@ class PixelSolver:
     def upload(self, images, mask, *, depth=None, valid=None, init_normals=None) -> None:
         """Check and copy one frame's inputs into the device buffers.
 
+        Args:
+            images: (N, H, W, 3) RGB or (N, H, W) grey observations >= 0.
+            mask: (H, W) bool, not empty.
+            depth: (H, W) depth estimate (> 0 inside the mask, scene units);
+                required for point lights (per-pixel direction and 1/r^2), optional otherwise.
+            valid: optional (N, H, W) bool: observations to use (e.g. unsaturated).
+            init_normals: (H, W, 3) warm-start normals (with ``config.warm_start``).
+
+        ``run(images, mask, ...)`` (:meth:`Stage.run`) is ``upload``, :meth:`step` and :meth:`fetch` in one.
         Also sets the per-image noise levels (:attr:`noise`, :attr:`noise_level`):
         ``config.noise_level`` or, when that is None, :func:`estimate_noise` of the frame.
         """
@@ -470,7 +480,7 @@ class PixelSolver:
         self.depth.assign(dep)
         self.valid.assign(val)
 
-    def launch_solve(self, mask, config: SolverConfig) -> None:
+    def step_subset(self, mask, config: SolverConfig) -> None:
         """Only the pixelwise solve kernel, on another (H, W) uint8 mask buffer and with ``config``'s settings
         (same solver, model and robust loss as the current config: the same compiled kernel); pixels outside
         ``mask`` keep their current outputs.  Graph-capturable.
@@ -500,7 +510,7 @@ class PixelSolver:
             cmds[key] = cmd
         return cmd
 
-    def launch(self) -> None:
+    def step(self) -> None:
         """Solve all pixels from the current buffers, no host sync (graph-capturable).
 
         Two kernel launches (pixelwise solve, under-determined pixels), then
@@ -529,26 +539,6 @@ class PixelSolver:
                         device=self.device,
                     )
 
-    def solve(self, images, mask, *, depth=None, valid=None, init_normals=None) -> dict:
-        """Solve one frame.
-
-        Args:
-            images: (N, H, W, 3) RGB or (N, H, W) grey observations >= 0.
-            mask: (H, W) bool, not empty.
-            depth: (H, W) depth estimate (> 0 inside the mask, scene units);
-                required for point lights (per-pixel direction and 1/r^2), optional otherwise.
-            valid: optional (N, H, W) bool: observations to use (e.g. unsaturated).
-            init_normals: (H, W, 3) warm-start normals (with ``config.warm_start``).
-
-        Returns:
-            dict of numpy arrays: ``normals`` (H, W, 3), ``albedo`` (H, W, 3),
-            ``residual`` (H, W), ``iterations`` (H, W), ``flags`` (H, W),
-            ``cond`` (H, W), ``weights`` (N, H, W).
-        """
-        self.upload(images, mask, depth=depth, valid=valid, init_normals=init_normals)
-        self.launch()
-        return self.fetch()
-
     def resolve(self, mask, init_normals, *, names=("normals", "albedo", "residual", "iterations", "flags")) -> dict:
         """Solve the uploaded frame again on another mask from other start normals.
 
@@ -573,11 +563,13 @@ class PixelSolver:
         self.mask.assign(m.astype(np.uint8))
         self.normals.assign(nrm)
         if m.any():
-            self.launch()
+            self.step()
         return self.fetch(names)
 
     def fetch(self, names=("normals", "albedo", "residual", "iterations", "flags", "cond", "weights")) -> dict:
-        """The current results as numpy arrays owned by the caller.
+        """The current results as numpy arrays owned by the caller: ``normals`` (H, W, 3), ``albedo``
+        (H, W, 3), ``residual`` (H, W), ``iterations`` (H, W), ``flags`` (H, W) (bits of
+        :mod:`gpps.names`), ``cond`` (H, W), ``weights`` (N, H, W).
 
         Copies: on the CPU, Warp's ``numpy()`` is a view of the device buffer,
         which the next solve would overwrite under the caller's feet.

@@ -49,6 +49,7 @@ from gpps.camera import Orthographic, Perspective
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
 from gpps.pipeline.solver import PixelSolver, SolverConfig
+from gpps.pipeline.stage import Stage
 
 __all__ = ["StreamConfig", "StreamResult", "Stream"]
 
@@ -212,7 +213,7 @@ class _BadFrame(Exception):
     """A frame that failed the sanity check (internal: becomes an error result)."""
 
 
-class Stream:
+class Stream(Stage):
     """Photometric stereo on a stream of N-image frames, buffers allocated once.
 
     Args:
@@ -224,8 +225,9 @@ class Stream:
         config: :class:`StreamConfig`.
         device: Warp device (None: CUDA if present).
 
-    Use :meth:`process` per frame, or :meth:`run` over any iterable of frames
-    (it prefetches the next frame's upload while the current one computes).
+    A stage (:mod:`gpps.pipeline.stage`): ``run(frame)`` reconstructs one frame (:meth:`upload`,
+    :meth:`step`, :meth:`fetch`); :meth:`iterate` goes over any iterable of frames (it prefetches the
+    next frame's upload while the current one computes).
     Each frame is an (N, H, W) or (N, H, W, 3) uint8 / uint16 / float32 array
     (numpy, or a Warp array already on the device); float32 is taken as
     0..1, integers as 0..full scale.
@@ -283,6 +285,7 @@ class Stream:
         self._graphs: dict = {}
         self._count = wp.zeros(2, dtype=wp.int32, device=d)
         self.index = 0
+        self._started = self._done = None  # the frame between upload, step and fetch
         self.frames_done = 0
         self._warm_frames = 0
         self.solver.mask.assign(self.mask.astype(np.uint8))
@@ -415,11 +418,11 @@ class Stream:
         if check:
             self._fstats.zero_()
             self._cmd("stats", key).launch()
-        self.solver.launch()
+        self.solver.step()
         if check:
             if warm:  # pixels whose warm start failed (scene change, bad start): cold, multi-start, in this frame
                 self._cmd("jumps").launch()
-                self.solver.launch_solve(self._redo, self._redo_cfg)
+                self.solver.step_subset(self._redo, self._redo_cfg)
             self._cmd("residual").launch()
 
     def _cmd(self, name, key=None):
@@ -527,9 +530,9 @@ class Stream:
             ref = cfg.reference_depth
             if cold:
                 self.integrator.reset()
-                self.integrator.integrate(self._nrm_view, self._dep_view, tol=cfg.first_tol, reference=ref)
+                self.integrator.step(self._nrm_view, self._dep_view, tol=cfg.first_tol, reference=ref)
             else:
-                self.integrator.integrate(self._nrm_view, self._dep_view, iterations=cfg.integration_iterations,
+                self.integrator.step(self._nrm_view, self._dep_view, iterations=cfg.integration_iterations,
                                           reference=ref)
             if self.is_cuda:
                 from gpps import _taichi
@@ -576,22 +579,40 @@ class Stream:
 
     def _finish(self, started) -> StreamResult:
         """Compute a started frame (or report its error) and return its result."""
-        idx, t0, up, err = started
+        self._started = started
+        self.step()
+        return self.fetch()
+
+    def upload(self, frame) -> None:
+        """Number one frame and start its upload (checked; a bad frame is reported by :meth:`fetch`)."""
+        self._started = self._start(frame)
+        self._done = None
+
+    def step(self) -> None:
+        """Solve, check and integrate the uploaded frame on the device (a bad frame is kept as an error)."""
+        if self._started is None:
+            raise ValueError("frame: expected upload(frame) before step(), got nothing uploaded")
+        idx, t0, up, err = self._started
+        self._started = None
+        checks = None
         if err is None:
             try:
                 checks = self._compute(*up)
             except _BadFrame as e:
                 err = str(e)
+        self._done = (idx, t0, checks, err)
+
+    def fetch(self) -> StreamResult:
+        """The last stepped frame's :class:`StreamResult` (an error result for a bad frame)."""
+        if self._done is None:
+            raise ValueError("frame: expected upload(frame) and step() before fetch(), got no frame")
+        idx, t0, checks, err = self._done
         if err is not None:
             self.stats["errors"] += 1
             return StreamResult(idx, error=err, seconds=time.perf_counter() - t0)
         return self._result(idx, t0, checks)
 
-    def process(self, frame) -> StreamResult:
-        """Reconstruct one frame (normals, albedo, depth); a bad frame gives an error result."""
-        return self._finish(self._start(frame))
-
-    def run(self, frames: Iterable) -> Iterator[StreamResult]:
+    def iterate(self, frames: Iterable) -> Iterator[StreamResult]:
         """Yield one :class:`StreamResult` per frame of ``frames``, in order.
 
         The next frame's upload is started before the current frame computes
