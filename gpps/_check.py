@@ -175,7 +175,12 @@ def check_choice(name: str, value, choices, *, allow_none: bool = False):
     options = tuple(get_args(choices)) if get_origin(choices) is Literal else tuple(choices)
     if value is None and allow_none:
         return value
-    if not isinstance(value, str) or value not in options:
+    try:
+        ok = not isinstance(value, (bool, np.bool_)) and any(value == o and isinstance(value, str) == isinstance(o, str)
+                                                              for o in options)
+    except (TypeError, ValueError):  # arrays and other values without a plain ==
+        ok = False
+    if not ok:
         extra = " or None" if allow_none else ""
         raise ValueError(f"{name}: expected one of {list(options)}{extra}, got {value!r}")
     return value

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 
-from gpps._check import check_number
+from gpps._check import check_choice, check_choices, check_number
 
 from gpps.names import BRDF, BRDF_NAMES, BRDF_TAG as _DEVICE_TAG
 
@@ -36,8 +36,7 @@ class Material:
     eta_v: float = 10.0
 
     def __post_init__(self):
-        if self.brdf not in BRDF_NAMES:
-            raise ValueError(f"brdf: expected one of {list(BRDF_NAMES)}, got {self.brdf!r}")
+        check_choices(self)
         object.__setattr__(self, "ks", check_number("ks", self.ks, lo=0.0))
         object.__setattr__(self, "shininess", check_number("shininess", self.shininess, lo=0.0, lo_open=True))
         object.__setattr__(self, "roughness", check_number("roughness", self.roughness, lo=0.0, lo_open=True))
@@ -62,8 +61,7 @@ class Material:
     @classmethod
     def default_for(cls, brdf: str) -> "Material":
         """Parameters that give visible, in-range highlights for each model."""
-        if brdf not in BRDF_NAMES:
-            raise ValueError(f"brdf: expected one of {list(BRDF_NAMES)}, got {brdf!r}")
+        check_choice("brdf", brdf, BRDF)
         return {
             "lambertian": cls("lambertian", ks=0.0),
             "phong": cls("phong", ks=0.5, shininess=30.0),

@@ -48,11 +48,11 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable, Literal, get_args
+from typing import Callable, Literal
 
 import numpy as np
 
-from gpps._check import as_array, as_mask, check_bool, check_number, warn
+from gpps._check import as_array, as_mask, check_bool, check_choice, check_choices, check_number, warn
 from gpps.lights import PointLights
 from gpps.material import Material
 from gpps.host.dgmc import DGMCConfig, dgmc_start, propagate_front
@@ -86,8 +86,7 @@ _RANGES = {"ks": (0.02, 3.0), "shininess": (2.0, 500.0), "roughness": (0.03, 0.8
 
 def estimable_parameters(brdf: str) -> tuple[str, ...]:
     """Names of the scene parameters :class:`RON` can estimate for a reflectance model."""
-    if brdf not in LOBE_PARAMETERS:
-        raise ValueError(f"brdf: expected one of {list(LOBE_PARAMETERS)}, got {brdf!r}")
+    check_choice("brdf", brdf, LOBE_PARAMETERS)
     return LOBE_PARAMETERS[brdf]
 
 
@@ -160,14 +159,13 @@ class RONConfig:
     seed: int = 0
 
     def __post_init__(self):
+        check_choices(self)
         check_number("rounds", self.rounds, lo=1, integer=True)
         check_bool("dgmc", self.dgmc)
         check_bool("integrate", self.integrate)
         check_number("seed", self.seed, lo=0, integer=True)
         check_number("tol", self.tol, lo=0.0)
         check_number("tol_normals_deg", self.tol_normals_deg, lo=0.0)
-        if self.material_rule not in get_args(MaterialRule):
-            raise ValueError(f"material_rule: expected one of {list(get_args(MaterialRule))}, got {self.material_rule!r}")
         if not isinstance(self.estimate, (tuple, list)) or not all(isinstance(e, str) for e in self.estimate):
             raise TypeError(f"estimate: expected a tuple of parameter names, got {self.estimate!r}")
         object.__setattr__(self, "estimate", tuple(self.estimate))

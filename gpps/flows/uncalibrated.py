@@ -70,7 +70,7 @@ from typing import Literal, get_args
 
 import numpy as np
 
-from gpps._check import as_images, as_mask
+from gpps._check import as_images, as_mask, check_choices
 from gpps.camera import Orthographic, Perspective
 from gpps.host.gbr import (
     albedo_ls,
@@ -219,18 +219,15 @@ class UncalibratedConfig:
     seed: int = 0
 
     def __post_init__(self):
+        check_choices(self)
         self.cues = tuple(self.cues)
         if not self.cues or any(c not in get_args(Cue) for c in self.cues):
             raise ValueError(f"cues: expected a non-empty subset of {list(get_args(Cue))}, got {self.cues!r}")
-        if self.channel not in get_args(Channel):
-            raise ValueError(f"channel: expected one of {list(get_args(Channel))}, got {self.channel!r}")
         self.source_color = tuple(float(v) for v in np.ravel(self.source_color))
         if len(self.source_color) != 3 or not np.all(np.isfinite(self.source_color)) or min(self.source_color) < 0 or max(self.source_color) <= 0:
             raise ValueError(f"source_color: expected 3 finite values >= 0, not all 0, got {self.source_color!r}")
         if not 0 <= self.chroma_min <= 1:
             raise ValueError(f"chroma_min: expected a value in [0, 1], got {self.chroma_min!r}")
-        if self.refine not in get_args(Refine):
-            raise ValueError(f"refine: expected one of {list(get_args(Refine))}, got {self.refine!r}")
         if not 0 <= self.dark_fraction < 1:
             raise ValueError(f"dark_fraction: expected a value in [0, 1), got {self.dark_fraction!r}")
         if not 0 <= self.shadow_fraction < 1:
@@ -247,12 +244,6 @@ class UncalibratedConfig:
             v = getattr(self, name)
             if int(v) != v or v < 0:
                 raise ValueError(f"{name}: expected an integer >= 0, got {v!r}")
-        if self.refine_lights not in get_args(LightFit):
-            raise ValueError(f"refine_lights: expected one of {list(get_args(LightFit))}, got {self.refine_lights!r}")
-        if self.final_solver not in get_args(Final):
-            raise ValueError(f"final_solver: expected one of {list(get_args(Final))}, got {self.final_solver!r}")
-        if self.refine_gauge not in get_args(Gauge):
-            raise ValueError(f"refine_gauge: expected one of {list(get_args(Gauge))}, got {self.refine_gauge!r}")
         if not self.flip_min_curl >= 0:
             raise ValueError(f"flip_min_curl: expected a value >= 0, got {self.flip_min_curl!r}")
         if not self.flip_specular_ratio >= 1:

@@ -32,14 +32,14 @@ Conventions: pixel ``(i, j)`` = (row, column); geodesic distances are in pixels
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Literal, get_args
+from typing import Literal
 
 import numpy as np
 from scipy import ndimage as ndi
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from gpps._check import as_array, as_mask, check_number
+from gpps._check import as_array, as_mask, check_choice, check_choices, check_number
 from gpps.host.merge import ranks_better
 from gpps.lights import DirectionalLights, PointLights
 
@@ -130,16 +130,7 @@ class DGMCConfig:
     start: StartMode = "front"
 
     def __post_init__(self):
-        if self.rule not in get_args(HighlightRule):
-            raise ValueError(f"rule: expected one of {list(get_args(HighlightRule))}, got {self.rule!r}")
-        if self.start not in get_args(StartMode):
-            raise ValueError(f"start: expected one of {list(get_args(StartMode))}, got {self.start!r}")
-        if self.curvature_field not in get_args(CurvatureField):
-            raise ValueError(
-                f"curvature_field: expected one of {list(get_args(CurvatureField))}, got {self.curvature_field!r}"
-            )
-        if isinstance(self.connectivity, bool) or self.connectivity not in get_args(Connectivity):
-            raise ValueError(f"connectivity: expected one of {list(get_args(Connectivity))}, got {self.connectivity!r}")
+        check_choices(self)
         check_number("ratio", self.ratio, lo=1.0)
         check_number("margin", self.margin, lo=0.0)
         check_number("percentile", self.percentile, lo=0.0, hi=100.0)
@@ -629,7 +620,7 @@ def hessian_curvatures(field, mask, *, sigma: float = 2.0, kind: CurvatureField 
         a = -ndi.gaussian_filter(q, sigma, order=(1, 0))  # q_y
         b = 0.5 * (-ndi.gaussian_filter(p, sigma, order=(1, 0)) + ndi.gaussian_filter(q, sigma, order=(0, 1)))
     else:
-        raise ValueError(f"kind: expected one of {list(get_args(CurvatureField))}, got {kind!r}")
+        check_choice("kind", kind, CurvatureField)
     half_tr = 0.5 * (a + c)
     root = np.sqrt(0.25 * (a - c) ** 2 + b * b)
     k1, k2 = half_tr - root, half_tr + root

@@ -22,6 +22,7 @@ from typing import Callable, Literal, get_args
 
 import numpy as np
 
+from gpps._check import check_choice
 from gpps.camera import Orthographic, Perspective
 
 SceneName = Literal["sphere", "bumps", "microprint"]
@@ -226,8 +227,7 @@ def make_scene(
         seed: seed of the texture.
         text: the micro-print text.
     """
-    if name not in SCENE_NAMES:
-        raise ValueError(f"scene: expected one of {list(SCENE_NAMES)}, got {name!r}")
+    check_choice("scene", name, SCENE_NAMES)
     h, w = (size, size) if np.isscalar(size) else tuple(size)
     if int(h) != h or int(w) != w or h < 8 or w < 8:
         raise ValueError(f"size: expected an integer >= 8 or (H, W) of such, got {size!r}")
@@ -236,8 +236,7 @@ def make_scene(
         camera = default_camera(camera, (h, w))
     if not isinstance(camera, (Orthographic, Perspective)):
         raise TypeError(f"camera: expected 'orthographic', 'perspective' or a camera object, got {camera!r}")
-    if albedo not in get_args(AlbedoKind):
-        raise ValueError(f"albedo: expected one of {list(get_args(AlbedoKind))}, got {albedo!r}")
+    check_choice("albedo", albedo, AlbedoKind)
     o, d = camera.rays((h, w))
     o = o.reshape(-1, 3)
     d = d.reshape(-1, 3)

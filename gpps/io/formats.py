@@ -27,9 +27,11 @@ per-vertex RGB colours).  Every writer writes to a temporary name and renames
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal, get_args
+from typing import Literal
 
 import numpy as np
+
+from gpps._check import check_choice
 
 __all__ = [
     "IMAGE_EXTENSIONS",
@@ -108,8 +110,7 @@ def read_image_file(path, *, transfer: Transfer = "auto", dtype=np.float32) -> t
         ValueError: unknown extension, unreadable file, or ``transfer`` not one of its values.
         ImportError: a RAW file without rawpy installed (``pip install gpps[raw]``).
     """
-    if transfer not in get_args(Transfer):
-        raise ValueError(f"transfer: expected one of {list(get_args(Transfer))}, got {transfer!r}")
+    check_choice("transfer", transfer, Transfer)
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"image not found: {path}")

@@ -38,11 +38,11 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Literal, get_args
+from typing import Callable, Literal
 
 import numpy as np
 
-from gpps._check import check_bool, check_number
+from gpps._check import check_bool, check_choices, check_number
 from gpps.camera import Orthographic, Perspective
 from gpps.host.poisson import (
     build_levels,
@@ -142,10 +142,7 @@ class IntegratorConfig:
     coarsest: int = 8
 
     def __post_init__(self):
-        for name, lit in (("solver", Solver), ("weighting", Weighting), ("dtype", DType),
-                          ("robust", Robust)):
-            if getattr(self, name) not in get_args(lit):
-                raise ValueError(f"{name}: expected one of {get_args(lit)}, got {getattr(self, name)!r}")
+        check_choices(self)
         if not (isinstance(self.tol, (int, float)) and 0 < self.tol < 1):
             raise ValueError(f"tol: expected a number in (0, 1), got {self.tol!r}")
         if self.max_iter is not None and (not isinstance(self.max_iter, int) or self.max_iter < 1):

@@ -20,11 +20,11 @@ checks the residual every ``check_every`` iterations (one 8-byte read each).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import Literal
 
 import numpy as np
 
-from gpps._check import check_number
+from gpps._check import check_choices, check_number
 from gpps.camera import Orthographic, Perspective
 from gpps.host.poisson import build_levels, diagonal, laplacian, level_shapes
 from gpps.pipeline.stage import Stage
@@ -110,12 +110,7 @@ class StreamIntegratorConfig:
     direct_launch: bool = True
 
     def __post_init__(self):
-        if self.method not in get_args(Method):
-            raise ValueError(f"method: expected one of {get_args(Method)}, got {self.method!r}")
-        if self.dtype not in get_args(DType):
-            raise ValueError(f"dtype: expected one of {get_args(DType)}, got {self.dtype!r}")
-        if self.launch not in get_args(Launch):
-            raise ValueError(f"launch: expected one of {get_args(Launch)}, got {self.launch!r}")
+        check_choices(self)
         check_number("blocks_per_sm", self.blocks_per_sm, lo=1, hi=8, integer=True)
         check_number("persistent_size", self.persistent_size, lo=1, integer=True)
         check_number("coarsest", self.coarsest, lo=2, hi=48, integer=True)

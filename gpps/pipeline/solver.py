@@ -9,11 +9,11 @@ captured in a CUDA graph.  Buffers are allocated once for ``(N, H, W)``.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import Literal
 
 import numpy as np
 
-from gpps._check import as_array, as_images, as_mask, check_bool, check_number
+from gpps._check import as_array, as_images, as_mask, check_bool, check_choices, check_number
 from gpps._runtime import resolve_device, warp
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
@@ -152,12 +152,7 @@ class SolverConfig:
     lit_sigmas: float = 3.0
 
     def __post_init__(self):
-        if self.solver not in SOLVER_NAMES:
-            raise ValueError(f"solver: expected one of {list(SOLVER_NAMES)}, got {self.solver!r}")
-        if self.robust not in ROBUST_NAMES:
-            raise ValueError(f"robust: expected one of {list(ROBUST_NAMES)}, got {self.robust!r}")
-        if self.albedo not in get_args(AlbedoMode):
-            raise ValueError(f"albedo: expected one of {list(get_args(AlbedoMode))}, got {self.albedo!r}")
+        check_choices(self)
         check_bool("early_exit", self.early_exit)
         check_bool("warm_start", self.warm_start)
         check_number("max_iters", self.max_iters, lo=1, integer=True)

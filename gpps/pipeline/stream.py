@@ -39,11 +39,11 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any, Iterable, Iterator, Literal, get_args
+from typing import Any, Iterable, Iterator, Literal
 
 import numpy as np
 
-from gpps._check import as_mask, check_bool, check_number
+from gpps._check import as_mask, check_bool, check_choices, check_number
 from gpps._runtime import resolve_device, warp
 from gpps.camera import Orthographic, Perspective
 from gpps.lights import DirectionalLights, PointLights
@@ -137,12 +137,7 @@ class StreamConfig:
     redo_iterations: int = 50
 
     def __post_init__(self):
-        if self.solver not in get_args(StreamSolver):
-            raise ValueError(f"solver: expected one of {get_args(StreamSolver)}, got {self.solver!r}")
-        if self.graph not in ("auto", "off"):
-            raise ValueError(f"graph: expected 'auto' or 'off', got {self.graph!r}")
-        if self.output not in get_args(Output):
-            raise ValueError(f"output: expected one of {get_args(Output)}, got {self.output!r}")
+        check_choices(self)
         check_bool("integrate", self.integrate)
         check_number("iterations", self.iterations, lo=1, integer=True)
         check_number("first_starts", self.first_starts, lo=1, integer=True)
