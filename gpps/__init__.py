@@ -8,11 +8,10 @@ The coordinate frame is described once, in :mod:`gpps.camera`.
 """
 
 from gpps._check import GppsWarning
+from gpps._version import __version__  # noqa: F401  (gpps.__version__)
 from gpps.camera import Orthographic, Perspective, camera_from_K
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import BRDF_NAMES, Material
-
-__version__ = "0.1.0"
 
 _LAZY = {
     "reconstruct": "gpps.flows.reconstruction",

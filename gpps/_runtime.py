@@ -9,6 +9,8 @@ the kernel cache folder first.  The cache folder is taken, in order, from
 from __future__ import annotations
 
 import os
+import sys
+import tempfile
 import threading
 
 _lock = threading.Lock()
@@ -22,7 +24,7 @@ def warp():
         return _wp
     with _lock:
         if _wp is None:
-            import warp as wp
+            import warp as wp  # lazy by design: `import gpps` stays cheap and callers set the cache folder first
 
             wp.config.log_level = wp.LOG_WARNING
             wp.config.quiet = True
@@ -43,9 +45,6 @@ _NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
 
 def _init_quietly(wp) -> None:
     """``wp.init()`` with the native "no CUDA driver" warning filtered out of stderr (fd 2)."""
-    import sys
-    import tempfile
-
     try:
         sys.stderr.flush()
         saved = os.dup(2)

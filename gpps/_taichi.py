@@ -18,13 +18,22 @@ import io
 import os
 import threading
 
+import numpy as np
+
+from gpps._runtime import resolve_device
+
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
 os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
 os.environ.setdefault("TI_LOG_LEVEL", "warn")
 if os.environ.get("GPPS_CACHE_DIR") and "TI_OFFLINE_CACHE_FILE_PATH" not in os.environ:
     os.environ["TI_OFFLINE_CACHE_FILE_PATH"] = os.path.join(os.environ["GPPS_CACHE_DIR"], "taichi")
 
-import taichi as ti  # noqa: E402
+import taichi as ti  # noqa: E402  (after the environment above: Taichi reads it at import)
+from taichi.lang import impl  # noqa: E402
+from taichi.lang._ndarray import Ndarray  # noqa: E402
+from taichi.lang.util import cook_dtype  # noqa: E402
+from taichi.types import ndarray_type, primitive_types  # noqa: E402
+from taichi.types.utils import is_signed  # noqa: E402
 
 __all__ = ["ti", "init", "current_device", "taichi_device", "DirectLaunch"]
 
@@ -51,7 +60,6 @@ def taichi_device(device: str | None = "auto") -> str:
         # Once Taichi runs, "auto" means whatever it runs on.
         if _device is not None:
             return _device
-    from gpps._runtime import resolve_device
 
     dev = resolve_device(device)
     if dev.startswith("cuda") and dev != "cuda:0":
@@ -157,13 +165,6 @@ class DirectLaunch:
                 self._plans[tuple(id(a) for _, a in plan[3])] = plan
 
     def _make_plan(self, args):
-        import numpy as np
-        from taichi.lang import impl
-        from taichi.lang._ndarray import Ndarray
-        from taichi.lang.util import cook_dtype
-        from taichi.types import ndarray_type, primitive_types
-        from taichi.types.utils import is_signed
-
         kern = self._kernel._primal
         if kern.return_type is not None or getattr(kern, "has_print", False):
             return None

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-
 from gpps._check import check_choice, check_choices, check_number
-
-from gpps.names import BRDF, BRDF_NAMES, BRDF_TAG as _DEVICE_TAG
+from gpps.names import BRDF, BRDF_NAMES
+from gpps.names import BRDF_TAG as _DEVICE_TAG
 
 __all__ = ["Material", "BRDF", "BRDF_NAMES"]
 

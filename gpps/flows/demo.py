@@ -17,12 +17,15 @@ from pathlib import Path
 
 import numpy as np
 
-from gpps.host.metrics import depth_error
-from gpps.io import atomic_dir, check_output_dir, save_json, write_dataset
-from gpps.material import Material
-from gpps.host.metrics import angular_error
-from gpps.host.scenes import make_scene
+from gpps.flows.photometric import solve_normals
+from gpps.flows.reconstruction import reconstruct
 from gpps.flows.synthetic import default_lights, render_dataset
+from gpps.host.metrics import angular_error, depth_error
+from gpps.host.scenes import make_scene
+from gpps.io import atomic_dir, check_output_dir, save_json, write_dataset
+from gpps.io.outputs import apply_depth_convention, depth_convention, write_outputs
+from gpps.lights import PointLights
+from gpps.material import Material
 
 
 def run_demo(out: Path, *, size: int = 256, device=None, progress=None, overwrite: bool = False) -> dict:
@@ -45,9 +48,6 @@ def run_demo(out: Path, *, size: int = 256, device=None, progress=None, overwrit
     with atomic_dir(out, overwrite=overwrite, name="out") as tmp:
         write_dataset(tmp / "capture", ds)
         step(2, 4, "written")
-        from gpps.lights import PointLights
-        from gpps.flows.photometric import solve_normals
-        from gpps.flows.reconstruction import reconstruct
 
         inten = np.asarray(lights.intensities, np.float32)
         images = ds.images / inten[:, None, None, :]
@@ -63,7 +63,6 @@ def run_demo(out: Path, *, size: int = 256, device=None, progress=None, overwrit
         err = angular_error(rec.normals, scene.normals, scene.mask)[scene.mask]
         err_ls = angular_error(ls.normals, scene.normals, scene.mask)[scene.mask]
         depth_err = depth_error(rec.depth, rec.depth_mask, scene)  # perspective: up to one scale
-        from gpps.io.outputs import apply_depth_convention, depth_convention, write_outputs
 
         conv = depth_convention(scene.camera, known_scale="the scene's working distance (demo: the object's distance is known)")
         written = write_outputs(tmp, normals=rec.normals, albedo=rec.albedo, mask=scene.mask,

@@ -1,12 +1,10 @@
 """Calibrated photometric stereo on arrays: normals and albedo from N >= 3 images.
 
 Thin API over :class:`gpps.pipeline.solver.PixelSolver`::
-
     res = solve_normals(images, mask, lights, camera=cam, material=mat, solver="lm")
     res.normals  # (H, W, 3) unit normals in the gpps frame, 0 outside the mask
 
 Methods (seed chapters 3-4):
-
 * ``solver="none"``: Woodham's Lambertian least squares (the baseline).
 * ``solver="lm" | "dogleg" | "bfgs"``: per-pixel nonlinear least squares on
   ``f_h = I_h - model`` (4.2) for the material's reflectance model
@@ -27,10 +25,12 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from gpps._check import IMAGE_FULL_SCALE, as_array, as_images, as_mask
+from gpps._check import IMAGE_FULL_SCALE, as_array, as_images, as_mask, warn
+from gpps._runtime import warp
 from gpps.camera import Orthographic, Perspective
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
+from gpps.pipeline.render import Renderer
 from gpps.pipeline.solver import PixelSolver, SolverConfig
 
 __all__ = ["PSResult", "solve_normals", "reproject", "SolverConfig"]
@@ -137,7 +137,6 @@ def check_observations(images, mask, lights, *, valid=None, saturation=None, ref
     Returns:
         (H, W) bool: the determined pixels.
     """
-    from gpps._check import warn
 
     img = images if images.ndim == 4 else images[..., None]
     grey = img.mean(axis=-1)[:, mask]  # (N, P)
@@ -261,7 +260,6 @@ def solve_normals(
     if progress:
         progress(1, 3, "solve")
     ps.step()
-    from gpps._runtime import warp
 
     warp().synchronize_device(ps.device)
     t2 = time.perf_counter()
@@ -295,7 +293,6 @@ def reproject(result: PSResult, lights, *, camera=None, depth=None, device=None)
         camera: the camera used (default orthographic).
         depth: (H, W) depth (needed for point lights; default ones).
     """
-    from gpps.pipeline.render import Renderer
 
     h, w = result.mask.shape
     camera = Orthographic() if camera is None else camera

@@ -2,7 +2,6 @@
 
 Normals, RGB albedo, depth and the unknown material parameters from N >= 3
 images with known lights::
-
     import gpps
     rec = gpps.reconstruct(images, mask, lights, camera=cam, material="cook-torrance")
     rec.normals, rec.albedo, rec.depth, rec.material, rec.estimated
@@ -29,10 +28,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from gpps.material import BRDF_NAMES, Material
 from gpps._check import as_array
 from gpps.flows.photometric import check_inputs, check_observations, input_saturation
-from gpps.flows.ron import RON, LOBE_PARAMETERS, RONConfig
+from gpps.flows.ron import LOBE_PARAMETERS, RON, RONConfig
+from gpps.material import BRDF_NAMES, Material
 
 __all__ = ["reconstruct", "Reconstruction", "RONConfig"]
 

@@ -2,7 +2,6 @@
 
 The seed's real-time method is a loop, not one solve.  Each round of
 :class:`RON` runs the steps of Algorithm 2::
-
     start: Lambertian least squares (Woodham); DGMC start normals on highlight
            pixels (4.16-4.18, gpps.host.dgmc)
     repeat
@@ -51,13 +50,25 @@ from dataclasses import dataclass, field, replace
 from typing import Callable, Literal
 
 import numpy as np
+from scipy.ndimage import gaussian_filter
+from scipy.optimize import minimize
 
-from gpps._check import as_array, as_mask, check_bool, check_choice, check_choices, check_number, warn
+from gpps._check import (
+    as_array,
+    as_mask,
+    check_bool,
+    check_choice,
+    check_choices,
+    check_number,
+    warn,
+)
+from gpps._runtime import resolve_device
+from gpps.host.dgmc import DGMCConfig, dgmc_start, propagate_front
+from gpps.host.merge import ranks_better
 from gpps.lights import PointLights
 from gpps.material import Material
-from gpps.host.dgmc import DGMCConfig, dgmc_start, propagate_front
+from gpps.pipeline.integration import Integrator, IntegratorConfig
 from gpps.pipeline.solver import PixelSolver, SolverConfig
-from gpps.host.merge import ranks_better
 
 __all__ = [
     "RON",
@@ -185,13 +196,9 @@ class RONConfig:
         if self.solver.solver == "none":
             raise ValueError("solver: expected a nonlinear solver ('lm', 'dogleg' or 'bfgs') for RON, got 'none'")
         if self.integrator is not None:
-            from gpps.pipeline.integration import IntegratorConfig
-
             if not isinstance(self.integrator, IntegratorConfig):
                 raise TypeError(f"integrator: expected IntegratorConfig or None, got {type(self.integrator).__name__}")
         if self.final_integrator is not None:
-            from gpps.pipeline.integration import IntegratorConfig
-
             if not isinstance(self.final_integrator, IntegratorConfig):
                 raise TypeError(f"final_integrator: expected IntegratorConfig or None, got "
                                 f"{type(self.final_integrator).__name__}")
@@ -280,7 +287,6 @@ def depth_rms_roughness(depth, mask, camera, *, window: float = 4.0) -> float:
     Returns:
         m (>= 0).
     """
-    from scipy.ndimage import gaussian_filter
 
     m = as_mask("mask", mask)
     z = as_array("depth", depth, shape=m.shape).astype(np.float64)
@@ -308,8 +314,6 @@ class RON:
     """
 
     def __init__(self, shape, camera, lights, material: Material, mask, config: RONConfig | None = None, device=None):
-        from gpps._runtime import resolve_device
-
         self.config = RONConfig() if config is None else config
         if not isinstance(self.config, RONConfig):
             raise TypeError(f"config: expected RONConfig, got {type(self.config).__name__}")
@@ -333,8 +337,6 @@ class RON:
         self._fit_solver = None
         self.integrator = None
         if self.config.integrate:
-            from gpps.pipeline.integration import Integrator, IntegratorConfig
-
             # default, perspective: BiNI's n_z^2 confidence weighting: grazing rim normals (a few degrees off
             # with 3 images) otherwise dominate the log-depth (sphere 64^2: 2.6 % -> 0.2 % of the range).
             # Orthographic: uniform (with n_z^2 weights a 256^2 sphere under point lights came out 10 % off)
@@ -406,7 +408,6 @@ class RON:
 
     def _fit_material(self, images, depth, valid, material, sample, *, grid: bool) -> tuple[Material, dict]:
         """Step 4, photometric: the estimated parameters minimising the sampled energy."""
-        from scipy.optimize import minimize
 
         c = self.config
         names = c.estimate
@@ -592,8 +593,6 @@ class RON:
             if c.final_integrator is None or c.final_integrator == self.integrator.config:
                 integ = self.integrator.run(out["normals"], reference_depth=reference_depth)
             else:
-                from gpps.pipeline.integration import Integrator
-
                 final = Integrator(self.mask, camera=self.camera, config=c.final_integrator,
                                    device=self._taichi_device())
                 try:

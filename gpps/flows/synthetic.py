@@ -6,11 +6,17 @@ from typing import Literal
 
 import numpy as np
 
+from gpps.host.scenes import D0, Scene
 from gpps.io import Dataset
-from gpps.lights import DirectionalLights, PointLights, ring_directions, ring_positions, spiral_directions
+from gpps.lights import (
+    DirectionalLights,
+    PointLights,
+    ring_directions,
+    ring_positions,
+    spiral_directions,
+)
 from gpps.material import Material
 from gpps.pipeline.render import Renderer, add_noise, quantise
-from gpps.host.scenes import D0, Scene
 
 __all__ = ["default_lights", "render", "render_dataset"]
 

@@ -1,7 +1,6 @@
 """Uncalibrated photometric stereo: normals, albedo and lights from images alone (seed ch. 5).
 
 Pipeline (:func:`solve_uncalibrated`):
-
 0. **Channel** (``UncalibratedConfig.channel``): with colour images the stages
    1-3 see the *specular-free* magnitude (:func:`specular_free`, the S-U-V
    space of Mallick et al. 2005): the part of the RGB orthogonal to the light's
@@ -69,9 +68,11 @@ from dataclasses import dataclass, field
 from typing import Literal, get_args
 
 import numpy as np
+from scipy.optimize import minimize
 
 from gpps._check import as_images, as_mask, check_choices
 from gpps.camera import Orthographic, Perspective
+from gpps.flows.photometric import solve_normals
 from gpps.host.gbr import (
     albedo_ls,
     dark_images,
@@ -86,6 +87,9 @@ from gpps.host.gbr import (
     specular_free,
     to_map,
 )
+from gpps.lights import DirectionalLights
+from gpps.material import Material
+from gpps.pipeline.uncalibrated import Refiner
 
 Cue = Literal["intensity", "entropy", "ldr"]
 Refine = Literal["ashikhmin-shirley", "blinn-phong", "lambertian", "none"]
@@ -445,8 +449,6 @@ def solve_uncalibrated(images, mask, *, camera=None, config: UncalibratedConfig 
     losses: list = []
     spec_flip = False  # the flip decided by the specular fit (perspective camera)
     if cfg.refine != "none":
-        from gpps.pipeline.uncalibrated import Refiner
-
         spec = cfg.refine  # the lobe of the refinement's model (a Refiner Lobe name)
         Wrgb = W_obs
         rng = np.random.default_rng(cfg.seed)
@@ -583,11 +585,7 @@ def estimate_material(images, mask, lights, brdf: str, *, camera=None, pixels: i
     Returns:
         (material fields for :class:`gpps.material.Material`, info with the evaluations).
     """
-    from scipy.optimize import minimize
 
-    from gpps.lights import DirectionalLights
-    from gpps.material import Material
-    from gpps.flows.photometric import solve_normals
 
     if brdf not in ("blinn-phong", "ashikhmin-shirley"):
         raise ValueError(f"brdf: expected 'blinn-phong' or 'ashikhmin-shirley', got {brdf!r}")
@@ -626,9 +624,6 @@ def estimate_material(images, mask, lights, brdf: str, *, camera=None, pixels: i
 def _calibrated_pass(imgs, mask, lights, material, camera, robust, device):
     """Normals and RGB albedo per pixel by the calibrated solver (:func:`gpps.flows.photometric.solve_normals`,
     Levenberg-Marquardt with the specular model) with the estimated lights and material."""
-    from gpps.lights import DirectionalLights
-    from gpps.material import Material
-    from gpps.flows.photometric import solve_normals
 
     e = np.linalg.norm(lights, axis=1)
     L = DirectionalLights(lights / e[:, None], np.repeat(e[:, None], 3, 1))

@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 from gpps._check import as_array
 
@@ -95,7 +96,6 @@ def automatic_mask(images, config: AutoMaskConfig | None = None) -> tuple[np.nda
     Raises:
         ValueError: bad shapes, or no pixel lit in enough images.
     """
-    from scipy import ndimage
 
     cfg = config or AutoMaskConfig()
     lit = lit_pixels(images, cfg)

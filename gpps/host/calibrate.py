@@ -1,7 +1,6 @@
 """Light calibration from images of spheres: a mirror (chrome) sphere for directions, a matte sphere or grey card for intensities.
 
 Geometry (gpps frame, :mod:`gpps.camera`):
-
 * **Outline** (:func:`fit_sphere`): sub-pixel points of the sphere's silhouette
   (found in the images, :func:`find_outline`, or from a given circle or mask).
   With a perspective camera the silhouette is the cone of rays tangent to the
@@ -38,9 +37,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
+from scipy import ndimage
+from scipy.optimize import least_squares
 
 from gpps.camera import Orthographic, Perspective
+from gpps.lights import PointLights
 
 __all__ = ["SphereFit", "fit_sphere", "circle_points", "mask_outline", "find_outline", "highlight_centroid",
            "mirror_directions", "highlight_direction", "sphere_normals", "matte_intensities", "card_intensities", "triangulate_lights",
@@ -110,7 +113,6 @@ def fit_sphere(points, camera=None, *, radius: float | None = None, outlier_k: f
     Raises:
         ValueError: too few points, or a degenerate fit.
     """
-    from scipy.optimize import least_squares
 
     camera = camera if camera is not None else Orthographic()
     uv = np.asarray(points, np.float64)
@@ -217,8 +219,6 @@ def find_outline(images, *, region=None) -> tuple[np.ndarray, np.ndarray]:
     Raises:
         ValueError: no round component found (give the outline: a circle or a mask).
     """
-    import cv2
-    from scipy import ndimage
 
     imgs = np.asarray(images, np.float64)
     grey = imgs.mean(-1) if imgs.ndim == 4 else imgs
@@ -337,7 +337,6 @@ def highlight_centroid(image, region, *, min_contrast: float = 3.0) -> tuple[np.
     Returns:
         ``((u, v) or None, info)`` with the peak, the blob's pixels, whether it is saturated.
     """
-    from scipy import ndimage
 
     g = np.asarray(image, np.float64)
     g = g.mean(-1) if g.ndim == 3 else g
@@ -502,7 +501,6 @@ def render_spheres(shape, camera, spheres, lights, *, intensities=None, source_d
     Returns:
         (N, H, W, 3) linear images (not clipped).
     """
-    from gpps.lights import PointLights
 
     h, w = shape
     s = int(supersample)

@@ -13,6 +13,8 @@ ambiguity and the evidence that resolves it.  numpy / scipy only; the whole flow
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import binary_erosion, gaussian_filter, maximum_filter
+from scipy.optimize import minimize
 
 from gpps.camera import Perspective
 
@@ -134,8 +136,6 @@ def integrability_gbr(Bmap: np.ndarray, valid: np.ndarray, smooth: float = 0.0, 
     """
     valid = np.asarray(valid, bool)
     if smooth > 0:
-        from scipy.ndimage import gaussian_filter
-
         m = valid.astype(np.float64)
         den = np.maximum(gaussian_filter(m, smooth), 1e-12)
         Bmap = np.stack([gaussian_filter(Bmap[..., c] * m, smooth) / den for c in range(3)], -1)
@@ -211,7 +211,6 @@ def ldr_candidates(M: np.ndarray, W: np.ndarray, mask: np.ndarray, *, sigma: flo
     Returns:
         ``(k, p)``: image and pixel (index into the mask's pixels) arrays.
     """
-    from scipy.ndimage import binary_erosion, gaussian_filter, maximum_filter
 
     mask = np.asarray(mask, bool)
     idx = np.full(mask.shape, -1)
@@ -252,7 +251,6 @@ def resolve_gbr(B: np.ndarray, L: np.ndarray, cues=("intensity", "ldr", "entropy
     """Choose the GBR ``(alpha, beta, gamma > 0)`` by the given cues.
 
     Cues (each a value to minimise):
-
     * ``"intensity"``: lights of equal brightness; a Cauchy loss (scale 0.1)
       of ``log |s_k|`` about its median, so that a few badly conditioned
       lights (lit in few pixels) do not decide it.  Combined with other cues
@@ -280,7 +278,6 @@ def resolve_gbr(B: np.ndarray, L: np.ndarray, cues=("intensity", "ldr", "entropy
             local-maximum pairs; needed for the ``"ldr"`` cue, which is left
             out (``info["cues"]`` says so) when fewer than ``min_ldr`` pairs.
     """
-    from scipy.optimize import minimize
 
     cues = tuple(cues)
     if "ldr" in cues and (ldr is None or len(ldr[0]) < min_ldr):

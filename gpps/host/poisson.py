@@ -7,8 +7,8 @@ system on the device is :class:`gpps.pipeline.integration.Integrator`, whose doc
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.special import expit
-
 
 __all__ = ["pixel_gradients", "edge_system", "divergence_rhs", "laplacian", "apply_laplacian", "build_levels", "level_shapes",
            "diagonal", "normal_equation_residual", "edge_residuals", "ls_energy", "bilateral_weights", "loop_curl",
@@ -204,7 +204,6 @@ def laplacian(wx, wy, valid):
         ``(A, idx)``: CSR matrix (n x n, float64) and the flat indices of the
         n valid pixels in row-major order.
     """
-    import scipy.sparse as sp
 
     h, w = valid.shape
     lab = -np.ones(h * w, dtype=np.int64)

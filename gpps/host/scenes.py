@@ -20,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Callable, Literal, get_args
 
+import cv2
 import numpy as np
 
 from gpps._check import check_choice
@@ -168,7 +169,6 @@ def lattice_bumps(cells: np.ndarray, pitch: float, amplitude: float, sigma: floa
 
 def text_cells(text: str = "GPPS", height: int = 16) -> np.ndarray:
     """Rasterise ``text`` (OpenCV Hershey font) into a bool cell grid about ``height`` rows high."""
-    import cv2
 
     scale = height / 22.0
     (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)

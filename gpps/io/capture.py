@@ -4,7 +4,6 @@
 different lights, in any format :mod:`gpps.io.formats` reads (PNG 8/16, PGM/PPM,
 JPEG, TIFF 8/16/32f, EXR, camera RAW), with whatever of the DiLiGenT-style
 side files is present:
-
 * ``filenames.txt``: the images, in order; without it, every image file of a
   supported format in the folder, sorted by name (natural order: ``img2`` before
   ``img10``), except the side images below.
@@ -30,10 +29,12 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
-from gpps.io.formats import IMAGE_EXTENSIONS, Transfer, read_image_file
+from gpps.host.automask import automatic_mask
 from gpps.io import Dataset, read_K, read_matrix
+from gpps.io.formats import IMAGE_EXTENSIONS, Transfer, read_image_file
 
 __all__ = ["Capture", "read_capture", "list_images", "SIDE_IMAGE_STEMS"]
 
@@ -98,8 +99,6 @@ def _find_side(root: Path, stem: str) -> Path | None:
 
 
 def _resize(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    import cv2
-
     out = cv2.resize(np.ascontiguousarray(img), size, interpolation=cv2.INTER_AREA)
     return out[..., None] if out.ndim == 2 else out
 
@@ -225,8 +224,6 @@ def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = No
         size = (max(1, round(w * scale)), max(1, round(h * scale)))
         images = np.stack([_resize(im, size) for im in images]).astype(np.float32)
         if m is not None:
-            import cv2
-
             m = cv2.resize(m.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
         sx, sy = size[0] / w, size[1] / h
         if K is not None:
@@ -238,8 +235,6 @@ def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = No
         h, w = size[1], size[0]
     am_info = None
     if m is None:
-        from gpps.host.automask import automatic_mask
-
         m, am_info = automatic_mask(images, automask)
         mask_source = "automatic"
     normalised = False

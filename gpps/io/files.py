@@ -19,7 +19,11 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
+import tifffile
+
+from gpps._version import __version__
 
 __all__ = [
     "MARKER",
@@ -44,8 +48,6 @@ __all__ = [
 
 
 def _cv2():
-    import cv2
-
     return cv2
 
 
@@ -97,7 +99,6 @@ def check_output_dir(path, *, inputs=(), overwrite: bool = False, name: str = "-
     gpps writes a whole output folder at once (a temporary sibling renamed into
     place) and never deletes or overwrites what it did not write.  Refused, with
     an :class:`OutputError` naming ``name``:
-
     * a path that is an existing file, or whose parent is a file;
     * one of ``inputs``, or a folder containing one of them;
     * a non-empty folder without gpps's marker (:data:`MARKER`), or one with the
@@ -206,7 +207,6 @@ def atomic_dir(path, *, overwrite: bool = False, inputs=(), name: str = "out"):
     try:
         yield tmp
         files = sorted(e.name for e in tmp.iterdir() if e.name != MARKER)
-        from gpps import __version__
 
         (tmp / MARKER).write_text(json.dumps({"gpps": __version__, "files": files}, indent=1) + "\n")
         _chmod_default(tmp, directory=True)
@@ -317,7 +317,6 @@ def save_png(path, image, bits: int = 16) -> None:
 
 def save_tiff(path, array) -> None:
     """Write a float32 array (e.g. depth) as a single-channel TIFF."""
-    import tifffile
 
     with atomic_write(path) as tmp:
         tifffile.imwrite(tmp, np.asarray(array, dtype=np.float32))

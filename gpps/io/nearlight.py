@@ -1,7 +1,6 @@
 """Real near-light (LED) captures: the reader and a working-distance estimate.
 
 The layout read here (``../shared/data/nearlight/hehe12``)::
-
     photometric_sample_raw_0001.png ... _000N.png   one image per LED (8-bit, paletted grey)
     photometric_sample_raw_ambient.png              all LEDs off
     photometric_sample_mask_raw.png                 object mask
@@ -36,8 +35,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.io import loadmat
 
+from gpps._check import as_images, as_mask
 from gpps.camera import Perspective
+from gpps.io.files import _cv2
 from gpps.lights import PointLights
 
 __all__ = ["CV_TO_GPPS", "NearLightCapture", "aim_distance", "estimate_distance", "read_nearlight"]
@@ -83,8 +85,6 @@ class NearLightCapture:
 
 
 def _loadmat(path: Path) -> dict:
-    from scipy.io import loadmat
-
     if not path.is_file():
         raise FileNotFoundError(f"{path.name}: file not found: {path}")
     return {k: np.asarray(v) for k, v in loadmat(str(path)).items() if not k.startswith("__")}
@@ -119,7 +119,6 @@ def read_nearlight(root, *, downsample: int = 1, crop=None, prefix: str = "photo
         ValueError: bad ``downsample`` / ``crop``, inconsistent shapes, or light
             and image counts that differ.
     """
-    from gpps.io import _cv2
 
     root = Path(root)
     if not root.is_dir():
@@ -254,7 +253,6 @@ def estimate_distance(images, mask, camera, lights: PointLights, candidates, *, 
     Returns:
         ``(best distance, {distance: score})``.
     """
-    from gpps._check import as_images, as_mask
 
     img = as_images("images", images)
     if img.ndim == 4:

@@ -1,7 +1,6 @@
 """The output set every command writes, and the one depth convention they share.
 
 Files (:func:`write_outputs`, into a folder the caller writes atomically):
-
 ================  ==================================================================
 normals.npy       (H, W, 3) float32 unit normals, gpps frame, 0 outside the mask
 normals.png       16-bit RGB, ``(n + 1) / 2`` (black outside the mask)
@@ -18,7 +17,6 @@ mask.png          the mask used (always; automatic when the input had none)
 
 Depth convention (:func:`depth_convention`), stated in ``report.json`` under
 ``"depth"`` with its ``unit``, ``scale`` and ``source``:
-
 * **metric** when the scale is known: the depth is in the unit of what gave
   it (light positions, a reference depth given by the user, the ground truth's
   depth): ``scale = "metric"``, ``unit`` names it.
@@ -34,6 +32,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+
+from gpps.io.files import save_npy, save_png
+from gpps.io.formats import linear_to_srgb, save_exr, save_float_tiff, save_mesh_file
+from gpps.io.mesh import _mesh_arrays, render_view
 
 __all__ = ["depth_convention", "apply_depth_convention", "write_outputs", "OUTPUT_FILES"]
 
@@ -85,7 +87,6 @@ def _albedo_colors(albedo, mask):
     ok = np.asarray(mask, bool) & np.all(np.isfinite(a), -1)
     top = float(np.percentile(a[ok], 99)) if ok.any() else 1.0
     a = np.clip(np.nan_to_num(a / max(top, 1e-12)), 0.0, 1.0)
-    from gpps.io.formats import linear_to_srgb
 
     return linear_to_srgb(a)
 
@@ -108,8 +109,6 @@ def write_outputs(folder, *, normals, albedo, mask, depth=None, depth_mask=None,
     Returns:
         dict: ``files`` written and ``view`` (the renderer used, or why none).
     """
-    from gpps.io.formats import save_exr, save_float_tiff, save_mesh_file
-    from gpps.io import save_npy, save_png
 
     folder = Path(folder)
     mask = np.asarray(mask, bool)
@@ -140,7 +139,6 @@ def write_outputs(folder, *, normals, albedo, mask, depth=None, depth_mask=None,
         save_float_tiff(folder / "depth.tiff", d)
         save_exr(folder / "depth.exr", d, channels="Z")
         files += ["depth.npy", "depth.tiff", "depth.exr"]
-        from gpps.io.mesh import _mesh_arrays, render_view
 
         pts, faces = _mesh_arrays(np.where(dm, d, 0.0), dm, camera)
         vcol = None if colors is None else colors[dm]

@@ -2,7 +2,16 @@
 
 import warp as wp
 
-from gpps.kernels.brdf import CameraParams, LightParams, MaterialParams, light_dir, light_radiance, pixel_point, shade, view_dir
+from gpps.kernels.brdf import (
+    CameraParams,
+    LightParams,
+    MaterialParams,
+    light_dir,
+    light_radiance,
+    pixel_point,
+    shade,
+    view_dir,
+)
 
 
 @wp.kernel

@@ -6,7 +6,6 @@ features averaged over the whole image and passed through two fully
 connected layers, then added back everywhere), a mid scale and a fine scale
 (a U-Net decoder with skip connections) that predicts the x, y, z components
 of the normal and a relative depth at every pixel::
-
     input (4, S, S): RGB / p99 inside the mask, and the mask
       enc0  conv3x3 4->16, 16->16                  S
       enc1  avgpool2, conv 16->32, 32->32          S/2
@@ -32,6 +31,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 __all__ = ["ARCH", "SingleNet", "load_weights", "prepare_input", "conv3x3", "WEIGHTS_PATH", "NET_SIZE"]
@@ -152,7 +152,6 @@ class SingleNet:
     """The network with its weights, evaluated with numpy.
 
     Example::
-
         net = SingleNet.load()                       # the shipped weights
         normals, rel_depth = net.predict(image, mask)
     """
@@ -206,7 +205,6 @@ class SingleNet:
         Returns:
             (normals, height): float32, zero outside the mask.
         """
-        import cv2
 
         img = np.asarray(image, np.float32)
         h, w = img.shape[:2]

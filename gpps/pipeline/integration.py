@@ -41,7 +41,11 @@ from dataclasses import dataclass, field
 from typing import Callable, Literal
 
 import numpy as np
+import scipy.sparse.linalg as spla
+from scipy import ndimage
+from scipy.fft import dctn, idctn
 
+from gpps import _taichi
 from gpps._check import check_bool, check_choices, check_number
 from gpps.camera import Orthographic, Perspective
 from gpps.host.poisson import (
@@ -56,6 +60,8 @@ from gpps.host.poisson import (
     pixel_gradients,
     robust_edge_weights,
 )
+from gpps.kernels import poisson as K
+from gpps.pipeline.integration_bini import BilateralIntegrator, BiniConfig
 from gpps.pipeline.stage import Stage
 
 __all__ = ["IntegratorConfig", "IntegrationResult", "Integrator", "Solver"]
@@ -312,8 +318,6 @@ class Integrator(Stage):
     def _components(self, valid):
         key = valid.tobytes()
         if self._labels_key != key:
-            from scipy import ndimage
-
             lab, n = ndimage.label(valid)
             self._labels, self._ncomp, self._labels_key = lab, n, key
         return self._labels, self._ncomp
@@ -441,7 +445,6 @@ class Integrator(Stage):
 
     def _bini(self, valid):
         """The device BiNI stage for ``valid`` (kept while the valid pixels stay the same)."""
-        from gpps.pipeline.integration_bini import BilateralIntegrator, BiniConfig
 
         key = valid.tobytes()
         if getattr(self, "_bini_key", None) != key:
@@ -502,8 +505,6 @@ class Integrator(Stage):
         return self._solve_taichi(n, valid, wx, wy, tx, ty, u0, progress, tol)
 
     def _solve_direct(self, valid, wx, wy, tx, ty):
-        import scipy.sparse.linalg as spla
-
         t0 = time.perf_counter()
         b = divergence_rhs(wx, wy, tx, ty)
         A, idx = laplacian(wx, wy, valid)
@@ -525,8 +526,6 @@ class Integrator(Stage):
         return u, 1, None, {"rhs": t1 - t0, "solve": t2 - t1}
 
     def _solve_dct(self, valid, wx, wy, tx, ty):
-        from scipy.fft import dctn, idctn
-
         h, w = self.shape
         full = valid.all() and np.all(wx[:, :-1] == 1) and np.all(wy[:-1, :] == 1)
         if not full:
@@ -550,7 +549,6 @@ class Integrator(Stage):
     def _ensure_device(self):
         if self._dev is not None:
             return self._dev
-        from gpps import _taichi
 
         ti = _taichi.init(self.device)
         cfg = self.config
@@ -625,8 +623,6 @@ class Integrator(Stage):
         self._levels_key = key
 
     def _vcycle(self):
-        from gpps.kernels import poisson as K
-
         d, cfg = self._dev, self.config
         sh, of = d["shapes"], d["offs"]
         L = len(sh)
@@ -639,8 +635,6 @@ class Integrator(Stage):
             K.up(*args, int(of[k]), sh[k][0], sh[k][1], int(of[k + 1]), cfg.omega, cfg.smooth_pairs)
 
     def _solve_taichi(self, n, valid, wx, wy, tx, ty, u0, progress, tol):
-        from gpps.kernels import poisson as K
-
         cfg = self.config
         t0 = time.perf_counter()
         d = self._ensure_device()

@@ -19,14 +19,20 @@ checks the residual every ``check_every`` iterations (one 8-byte read each).
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from scipy import ndimage
 
+from gpps import _taichi
 from gpps._check import check_choices, check_number
+from gpps._runtime import warp
+from gpps._taichi import DirectLaunch
 from gpps.camera import Orthographic, Perspective
 from gpps.host.poisson import build_levels, diagonal, laplacian, level_shapes
+from gpps.kernels.poisson_fused import make_fused
 from gpps.pipeline.stage import Stage
 
 __all__ = ["StreamIntegratorConfig", "StreamIntegrator"]
@@ -137,10 +143,6 @@ class StreamIntegrator(Stage):
     """
 
     def __init__(self, mask, camera=None, config: StreamIntegratorConfig | None = None, device: str | None = "auto"):
-        from scipy import ndimage
-
-        from gpps import _taichi
-
         m = np.asarray(mask)
         if m.ndim != 2:
             raise ValueError(f"mask: expected (H, W), got shape {m.shape}")
@@ -249,7 +251,6 @@ class StreamIntegrator(Stage):
             F[k].fill(0)
         self._F = F
         self.levels = [(int(offs[k]), s[0], s[1]) for k, s in enumerate(shapes)]
-        from gpps.kernels.poisson_fused import make_fused
 
         self._K = make_fused(F, self.levels, cfg.smooth_pairs, cfg.omega, nc, camera.is_perspective)
         if camera.is_perspective:
@@ -278,7 +279,6 @@ class StreamIntegrator(Stage):
         per multiprocessor (no more than its largest level needs); on the CPU one thread."""
         if not self.device.startswith("cuda"):
             return 1, 1
-        from gpps._runtime import warp
 
         sms = int(warp().get_device("cuda:0").sm_count)
         _, hh, ww = self.levels[self._top]
@@ -320,8 +320,6 @@ class StreamIntegrator(Stage):
             F["bar"].fill(0)
             self._ready.clear()  # kernels of other cycle counts were checked with these blocks too
             if self._bps == 1:
-                import warnings
-
                 warnings.warn("StreamIntegrator: the GPU cannot hold the persistent kernel's blocks; "
                               "using one task per phase", RuntimeWarning, stacklevel=3)
                 self.launch = "tasks"
@@ -332,7 +330,6 @@ class StreamIntegrator(Stage):
         """The per-frame call of ``kern``: direct (see ``StreamIntegratorConfig.direct_launch``) or plain."""
         if not self.config.direct_launch:
             return kern
-        from gpps._taichi import DirectLaunch
 
         return DirectLaunch(kern)
 

@@ -6,6 +6,13 @@ import numpy as np
 
 from gpps._runtime import warp
 from gpps.camera import Orthographic, Perspective
+from gpps.kernels.brdf import (
+    DIRECTIONAL,
+    POINT,
+    CameraParams,
+    LightParams,
+    MaterialParams,
+)
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
 
@@ -13,7 +20,6 @@ from gpps.material import Material
 def camera_params(camera, shape: tuple[int, int]):
     """A :class:`gpps.kernels.brdf.CameraParams` for ``camera`` and image ``shape = (H, W)``."""
     wp = warp()
-    from gpps.kernels.brdf import CameraParams
 
     c = CameraParams()
     if isinstance(camera, Perspective):
@@ -33,8 +39,6 @@ def camera_params(camera, shape: tuple[int, int]):
 
 
 def material_params(material: Material):
-    from gpps.kernels.brdf import MaterialParams
-
     if not isinstance(material, Material):
         raise TypeError(f"material: expected gpps.Material, got {type(material).__name__}")
     m = MaterialParams()
@@ -54,7 +58,6 @@ def light_params(lights, device: str):
     The returned struct references device arrays; keep it alive while kernels use it.
     """
     wp = warp()
-    from gpps.kernels.brdf import DIRECTIONAL, POINT, LightParams
 
     lp = LightParams()
     n = len(lights)

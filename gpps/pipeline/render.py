@@ -6,6 +6,7 @@ import numpy as np
 
 from gpps._check import albedo_map, as_array, as_mask, unit_normals
 from gpps._runtime import resolve_device, warp
+from gpps.kernels import render as rk
 from gpps.pipeline.params import camera_params, light_params, material_params
 from gpps.pipeline.stage import Stage
 
@@ -26,7 +27,6 @@ class Renderer(Stage):
 
     def __init__(self, shape, camera, lights, material, device=None):
         wp = warp()
-        from gpps.kernels import render as rk  # noqa: F401  (registers kernels after init)
 
         self._rk = rk
         self.device = resolve_device(device)

@@ -13,13 +13,18 @@ from typing import Literal
 
 import numpy as np
 
-from gpps._check import as_array, as_images, as_mask, check_bool, check_choices, check_number
+from gpps._check import (
+    as_array,
+    as_images,
+    as_mask,
+    check_bool,
+    check_choices,
+    check_number,
+)
 from gpps._runtime import resolve_device, warp
+from gpps.kernels import solve as sk
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
-from gpps.pipeline.params import camera_params, light_params, material_params
-from gpps.pipeline.stage import Stage
-
 from gpps.names import (
     FLAG_ALBEDO_FROM_NEIGHBOURS,
     FLAG_FEW_OBSERVATIONS,
@@ -33,6 +38,8 @@ from gpps.names import (
 )
 from gpps.names import ROBUST_TAG as _ROBUST_TAG
 from gpps.names import SOLVER_TAG as _SOLVER_TAG
+from gpps.pipeline.params import camera_params, light_params, material_params
+from gpps.pipeline.stage import Stage
 
 AlbedoMode = Literal["rgb", "grey"]
 
@@ -293,7 +300,6 @@ class PixelSolver(Stage):
 
     def __init__(self, shape, camera, lights, material: Material, config: SolverConfig | None = None, device=None):
         wp = warp()
-        from gpps.kernels import solve as sk
 
         self._sk = sk
         self.device = resolve_device(device)

@@ -2,7 +2,6 @@
 
 :class:`Stream` is configured once (camera, lights, material, mask, frame size)
 and allocates every buffer once on its device.  Per frame it runs:
-
 1. upload (host frames into a pinned staging buffer, then an asynchronous copy
    on a separate CUDA stream; two slots, so the next frame's upload overlaps the
    current frame's compute in :meth:`Stream.run`);
@@ -37,17 +36,21 @@ residual jumps above ``jump_factor`` times the running level are re-solved cold
 
 from __future__ import annotations
 
+import importlib.util
 import time
 from dataclasses import dataclass
 from typing import Any, Iterable, Iterator, Literal
 
 import numpy as np
 
+from gpps import _taichi
 from gpps._check import as_mask, check_bool, check_choices, check_number
 from gpps._runtime import resolve_device, warp
 from gpps.camera import Orthographic, Perspective
+from gpps.kernels import stream as ks
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
+from gpps.pipeline.integration_device import StreamIntegrator
 from gpps.pipeline.solver import PixelSolver, SolverConfig
 from gpps.pipeline.stage import Stage
 
@@ -231,7 +234,6 @@ class Stream(Stage):
     def __init__(self, shape, camera, lights, material: Material, mask=None, config: StreamConfig | None = None,
                  device=None):
         wp = warp()
-        from gpps.kernels import stream as ks
 
         self._ks = ks
         self.config = config if config is not None else StreamConfig()
@@ -290,10 +292,11 @@ class Stream(Stage):
         self.depth = wp.zeros((h, w), dtype=wp.float32, device=d)
         self.integrator = None
         if cfg.integrate:
-            from gpps.pipeline.integration_device import StreamIntegrator
-
             self.integrator = StreamIntegrator(self.mask, camera, device=self._taichi_device())
             if self.is_cuda:
+                if importlib.util.find_spec("torch") is None:
+                    raise ImportError("the stream's integration on CUDA needs PyTorch for zero-copy views of the "
+                                      "Warp buffers: pip install 'gpps[cuda]' (or StreamConfig(integrate=False))")
                 self._nrm_view = wp.to_torch(self.solver.normals)
                 self._dep_view = wp.to_torch(self.depth)
             else:
@@ -530,8 +533,6 @@ class Stream(Stage):
                 self.integrator.step(self._nrm_view, self._dep_view, iterations=cfg.integration_iterations,
                                           reference=ref)
             if self.is_cuda:
-                from gpps import _taichi
-
                 _taichi.ti.sync()
             if self.point:
                 # the next frame's per-pixel light directions and fall-off come from this depth
