@@ -468,46 +468,14 @@ class RON:
         """
         t_all = time.perf_counter()
         c = self.config
-        n, h, w = self.shape
         m = self.mask
         step = progress or (lambda *a: None)
         timings = {"least_squares": 0.0, "dgmc": 0.0, "normals": 0.0, "integration": 0.0, "material": 0.0}
-        if reference_depth is not None:
-            reference_depth = check_number("reference_depth", reference_depth, lo=0.0, lo_open=True)
-        if depth is not None:
-            depth = as_array("depth", depth, shape=(h, w))
-            if np.any(depth[m] <= 0):
-                raise ValueError("depth: expected values > 0 inside the mask")
-            if reference_depth is None:
-                reference_depth = float(np.mean(depth[m]))
-        if self.point and depth is None:
-            if reference_depth is None:
-                raise ValueError("reference_depth: expected the object's distance (scene units) for point lights "
-                                 "without a depth estimate, got None")
-            depth = np.full((h, w), reference_depth, np.float32)
-        cur_depth = None if depth is None else np.where(m, depth, reference_depth or 1.0).astype(np.float32)
+        cur_depth, reference_depth = self._start_depth(depth, reference_depth)
         solve_depth = cur_depth if self.point else None
         total = float(c.rounds * 3 + 2)
         step(0, total, "least squares")
-
-        # start: least squares (Woodham) + DGMC
-        t = time.perf_counter()
-        s = self.solver
-        s.set_config(replace(c.solver, solver="none", smoothness=0.0))
-        ls = s.run(images, m, depth=solve_depth, valid=valid)
-        s.set_config(c.solver)
-        timings["least_squares"] += time.perf_counter() - t
-        start = ls["normals"]
-        highlight = np.zeros((h, w), bool)
-        if c.dgmc and self.material.brdf != "lambertian":
-            t = time.perf_counter()
-            pts = self.camera.backproject(np.where(m, solve_depth, 1.0)) if self.point else None
-            nrm = ls["normals"].astype(np.float64)
-            ok = m & (np.abs(np.linalg.norm(nrm, axis=-1) - 1.0) < 1e-3)
-            nrm[~ok] = (0.0, 0.0, 1.0)
-            dg = dgmc_start(images, m, nrm, lights=self.lights, config=c.dgmc_config, points=pts)
-            start, highlight = dg.normals.astype(np.float32), dg.highlight
-            timings["dgmc"] += time.perf_counter() - t
+        start, highlight, dg = self._least_squares_and_dgmc(images, solve_depth, valid, timings)
         step(1, total, "dgmc")
 
         material = self.material
@@ -586,24 +554,83 @@ class RON:
                 timings["material"] += time.perf_counter() - t
             step(1 + 3 * r, total, f"round {r}: material")
 
-        # the final depth, from the final normals
-        depth_out, depth_mask, ires = None, np.zeros((h, w), bool), None
-        if c.integrate:
-            t = time.perf_counter()
-            if c.final_integrator is None or c.final_integrator == self.integrator.config:
-                integ = self.integrator.run(out["normals"], reference_depth=reference_depth)
-            else:
-                final = Integrator(self.mask, camera=self.camera, config=c.final_integrator,
-                                   device=self._taichi_device())
-                try:
-                    integ = final.run(out["normals"], reference_depth=reference_depth)
-                finally:
-                    final.close()
-            depth_out, depth_mask, ires = integ.depth, integ.mask, float(integ.residual)
-            timings["integration"] += time.perf_counter() - t
+        depth_out, depth_mask, ires = self._final_depth(out["normals"], reference_depth, timings)
         step(total, total, "done")
         timings["total"] = time.perf_counter() - t_all
         estimated = {k: _get(material, k) for k in c.estimate}
+        notes = self._notes(estimated, converged)
+        return RONResult(
+            normals=np.where(m[..., None], out["normals"], 0.0).astype(np.float32),
+            albedo=out["albedo"], depth=depth_out, depth_mask=depth_mask, material=material, estimated=estimated,
+            energy=energies, normal_change_deg=changes, rounds=r, converged=converged,
+            residual=out["residual"], iterations=out["iterations"], flags=out["flags"], highlight=highlight,
+            start_normals=start, material_fit=fits, integration_residual=ires, timings=timings, warnings=notes,
+        )
+
+    def _start_depth(self, depth, reference_depth):
+        """Checked start depth (H, W) (None without depth or point lights) and the reference depth
+        (the given one, else the start depth's mean)."""
+        h, w = self.shape[1:]
+        m = self.mask
+        if reference_depth is not None:
+            reference_depth = check_number("reference_depth", reference_depth, lo=0.0, lo_open=True)
+        if depth is not None:
+            depth = as_array("depth", depth, shape=(h, w))
+            if np.any(depth[m] <= 0):
+                raise ValueError("depth: expected values > 0 inside the mask")
+            if reference_depth is None:
+                reference_depth = float(np.mean(depth[m]))
+        if self.point and depth is None:
+            if reference_depth is None:
+                raise ValueError("reference_depth: expected the object's distance (scene units) for point lights "
+                                 "without a depth estimate, got None")
+            depth = np.full((h, w), reference_depth, np.float32)
+        cur_depth = None if depth is None else np.where(m, depth, reference_depth or 1.0).astype(np.float32)
+        return cur_depth, reference_depth
+
+    def _least_squares_and_dgmc(self, images, solve_depth, valid, timings):
+        """The start (Algorithm 2's first step): least squares (Woodham), then DGMC's highlight pixels and
+        starts (4.16-4.18).  Returns ``(start normals (H, W, 3), highlight (H, W) bool, DGMC result or None)``."""
+        c, m = self.config, self.mask
+        t = time.perf_counter()
+        s = self.solver
+        s.set_config(replace(c.solver, solver="none", smoothness=0.0))
+        ls = s.run(images, m, depth=solve_depth, valid=valid)
+        s.set_config(c.solver)
+        timings["least_squares"] += time.perf_counter() - t
+        start, highlight, dg = ls["normals"], np.zeros(m.shape, bool), None
+        if c.dgmc and self.material.brdf != "lambertian":
+            t = time.perf_counter()
+            pts = self.camera.backproject(np.where(m, solve_depth, 1.0)) if self.point else None
+            nrm = ls["normals"].astype(np.float64)
+            ok = m & (np.abs(np.linalg.norm(nrm, axis=-1) - 1.0) < 1e-3)
+            nrm[~ok] = (0.0, 0.0, 1.0)
+            dg = dgmc_start(images, m, nrm, lights=self.lights, config=c.dgmc_config, points=pts)
+            start, highlight = dg.normals.astype(np.float32), dg.highlight
+            timings["dgmc"] += time.perf_counter() - t
+        return start, highlight, dg
+
+    def _final_depth(self, normals, reference_depth, timings):
+        """The returned depth, from the final normals, by the final integrator (BiNI by default).
+        Returns ``(depth or None, depth mask, integration residual or None)``."""
+        c = self.config
+        if not c.integrate:
+            return None, np.zeros(self.mask.shape, bool), None
+        t = time.perf_counter()
+        if c.final_integrator is None or c.final_integrator == self.integrator.config:
+            integ = self.integrator.run(normals, reference_depth=reference_depth)
+        else:
+            final = Integrator(self.mask, camera=self.camera, config=c.final_integrator, device=self._taichi_device())
+            try:
+                integ = final.run(normals, reference_depth=reference_depth)
+            finally:
+                final.close()
+        timings["integration"] += time.perf_counter() - t
+        return integ.depth, integ.mask, float(integ.residual)
+
+    def _notes(self, estimated: dict, converged: bool) -> list[str]:
+        """Warnings of the run: estimates on their search bound, rounds that hit the cap."""
+        c = self.config
         notes: list[str] = []
         for k, v in estimated.items():
             msg = estimate_on_bound(k, v)
@@ -613,13 +640,7 @@ class RON:
             warn(f"rounds: RON stopped at its cap of {c.rounds} rounds before meeting its tolerances "
                  f"(energy change {c.tol:g}, normal change {c.tol_normals_deg:g} deg); more rounds may change the result",
                  notes)
-        return RONResult(
-            normals=np.where(m[..., None], out["normals"], 0.0).astype(np.float32),
-            albedo=out["albedo"], depth=depth_out, depth_mask=depth_mask, material=material, estimated=estimated,
-            energy=energies, normal_change_deg=changes, rounds=r, converged=converged,
-            residual=out["residual"], iterations=out["iterations"], flags=out["flags"], highlight=highlight,
-            start_normals=start, material_fit=fits, integration_residual=ires, timings=timings, warnings=notes,
-        )
+        return notes
 
     def _fill_depth(self, depth, dmask, reference_depth) -> np.ndarray:
         """Integrated depth with the pixels it dropped filled by the mean (the solver needs depth > 0)."""

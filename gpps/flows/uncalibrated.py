@@ -377,9 +377,71 @@ def solve_uncalibrated(images, mask, *, camera=None, config: UncalibratedConfig 
     step = progress or (lambda *a, **k: None)
     t0 = time.perf_counter()
     imgs, mask = _prepare(images, mask, cfg.dark_fraction)
-    N = imgs.shape[0]
     rgb = imgs[:, mask]  # (N, P, 3)
     M, chroma = _factorisation_channel(rgb, cfg)
+    W, W_obs, grey = _observation_weights(rgb, M, chroma, cfg)
+    L0, B0, W = factorize(M, W, cfg.als_iterations)
+    step(1, 5, "factorised")
+    t_fact = time.perf_counter()
+    B, L, gbr_info = _resolve_ambiguity(B0, L0, M, W, mask, cfg)
+    step(2, 5, "GBR resolved")
+    t_gbr = time.perf_counter()
+
+    def unit(a):
+        return a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-12)
+
+    base_n = unit(B)
+    if chroma["used"]:
+        # the specular-free channel fixed the lights; its pseudo-normals are only as good as the
+        # albedo's chromatic part (noisy where the albedo is near grey): take the normals from
+        # the full-intensity images with those lights, highlights (positive outliers) trimmed
+        base_n = unit(pixel_pseudo_normals(grey, W_obs, L))
+    base_l = unit(L)
+    if np.median(base_l[:, 2]) < 0:
+        base_l = -base_l
+    baseline = {"normals": to_map(base_n, mask), "light_directions": base_l}
+    views = _view_vectors(camera, mask)
+    normals, lights, albedo = base_n, L, None
+    material: dict = {}
+    losses: list = []
+    spec_flip = False  # the flip decided by the specular fit (perspective camera)
+    if cfg.refine != "none":
+        normals, lights, albedo, material, losses, spec_flip = _refine(
+            imgs, mask, rgb, M, W_obs, normals, L, views, chroma, gbr_info, camera, cfg, device, step)
+    t_ref = time.perf_counter()
+    e = np.linalg.norm(lights, axis=1)
+    ldirs = lights / e[:, None]
+    if albedo is None:
+        albedo = albedo_ls(rgb, W, normals, lights / e.mean())
+    else:  # albedo and ks relative to the mean light intensity, as light_intensities are
+        albedo = albedo * e.mean()
+        if "ks" in material:
+            material["ks"] = float(material["ks"] * e.mean())
+    intens = e / e.mean()
+    gbr_info["channel"] = "specular-free" if chroma["used"] else "grey"
+    gbr_info["chroma_fraction"] = chroma["fraction"]
+    flip, alternative, normals, ldirs = _decide_flip(normals, ldirs, mask, views, camera, spec_flip, gbr_info, cfg)
+    step(5, 5, "done")
+    return UncalibratedResult(
+        normals=to_map(normals, mask),
+        albedo=to_map(albedo, mask),
+        light_directions=ldirs,
+        light_intensities=intens,
+        flip=flip,
+        alternative=alternative,
+        baseline=baseline,
+        gbr=gbr_info,
+        material=material,
+        losses=losses,
+        timings={"factorisation": t_fact - t0, "gbr": t_gbr - t_fact, "refinement": t_ref - t_gbr, "total": time.perf_counter() - t0},
+    )
+
+
+def _observation_weights(rgb, M, chroma: dict, cfg: UncalibratedConfig):
+    """Observation weights of the factorisation ``W`` (N, P) (lit, unsaturated, the brightest trimmed on
+    the grey path), those of the refinement ``W_obs`` (it models highlights, so it keeps them) and the
+    grey level (N, P).  Raises ValueError for images with fewer than 3 lit pixels or rank < 3 data."""
+    N = M.shape[0]
     unsat = rgb.max(-1) < cfg.saturation
     W = ((M > cfg.shadow_fraction * np.percentile(M, 99, axis=1, keepdims=True)) & unsat).astype(np.float64)
     # what the refinement sees: it models highlights, so it keeps them; the shadows are judged on the
@@ -401,9 +463,12 @@ def solve_uncalibrated(images, mask, *, camera=None, config: UncalibratedConfig 
     S = np.linalg.svd(M[:, full] if full.sum() >= 10 else M, compute_uv=False)
     if len(S) < 3 or S[2] < 1e-3 * S[0]:
         raise ValueError(f"images: the data have rank < 3 (singular values {np.round(S[:4] / S[0], 5).tolist()}); the lights may be coplanar or too few differ")
-    L0, B0, W = factorize(M, W, cfg.als_iterations)
-    step(1, 5, "factorised")
-    t_fact = time.perf_counter()
+    return W, W_obs, grey
+
+
+def _resolve_ambiguity(B0, L0, M, W, mask, cfg: UncalibratedConfig):
+    """Integrability (the 3x3 ambiguity down to GBR), the global sign, then the GBR from the cues.
+    Returns pseudo-normals B (P, 3), pseudo-lights L (N, 3) and the GBR report."""
     Bmap = np.zeros(mask.shape + (3,))
     Bmap[mask] = B0
     fit_ok = np.zeros(mask.shape, bool)
@@ -420,118 +485,111 @@ def solve_uncalibrated(images, mask, *, camera=None, config: UncalibratedConfig 
     H, gbr_info = resolve_gbr(B[W.sum(0) >= 3], L, cfg.cues, seed=cfg.seed, ldr=ldr)
     B = B @ H.T
     L = L @ np.linalg.inv(H)  # s' = H^-T s (rows)
-    step(2, 5, "GBR resolved")
-    t_gbr = time.perf_counter()
+    return B, L, gbr_info
 
-    def unit(a):
-        return a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-12)
 
-    base_n = unit(B)
-    if chroma["used"]:
-        # the specular-free channel fixed the lights; its pseudo-normals are only as good as the
-        # albedo's chromatic part (noisy where the albedo is near grey): take the normals from
-        # the full-intensity images with those lights, highlights (positive outliers) trimmed
-        base_n = unit(pixel_pseudo_normals(grey, W_obs, L))
-    base_l = unit(L)
-    if np.median(base_l[:, 2]) < 0:
-        base_l = -base_l
-    baseline = {"normals": to_map(base_n, mask), "light_directions": base_l}
-    flip_m = np.diag([-1.0, -1.0, 1.0])
-    # views
+def _view_vectors(camera, mask) -> np.ndarray:
+    """(P, 3) unit vectors toward the camera at the mask's pixels."""
     P = int(mask.sum())
     if isinstance(camera, Perspective):
         _, rays = camera.rays(mask.shape)
-        views = -rays[mask]
+        return -rays[mask]
+    return np.tile([0.0, 0.0, 1.0], (P, 1))
+
+
+def _refine(imgs, mask, rgb, M, W_obs, normals, L, views, chroma: dict, gbr_info: dict, camera, cfg: UncalibratedConfig,
+            device, step):
+    """Step 5: the lights refined through the image model (Adam, :class:`gpps.pipeline.uncalibrated.Refiner`)
+    and/or the shared material estimated, then the normals and albedo per pixel.
+
+    Returns:
+        ``(normals (P, 3), lights (N, 3), albedo (P, 3) or None, material dict, losses, spec_flip)``.
+    """
+    N, P = imgs.shape[0], int(mask.sum())
+    flip_m = np.diag([-1.0, -1.0, 1.0])
+    albedo, material, losses, spec_flip = None, {}, [], False
+    spec = cfg.refine  # the lobe of the refinement's model (a Refiner Lobe name)
+    Wrgb = W_obs
+    rng = np.random.default_rng(cfg.seed)
+    sub = rng.choice(P, min(P, cfg.refine_pixels), replace=False) if cfg.refine_pixels and cfg.refine_pixels < P else np.arange(P)
+    # intensities normalised to mean 1; albedo by per-channel least squares
+    e = np.linalg.norm(L, axis=1)
+    L = L / np.median(e)  # the median: a badly conditioned light can be far off
+    alb = albedo_ls(rgb, Wrgb, normals, L)
+    level = float(np.median(M[Wrgb > 0]))
+    robust, final_robust = cfg.refine_robust * level, cfg.final_robust * level
+    final = cfg.final_solver
+    if final == "auto":
+        final = "lm" if chroma["used"] else "adam"
+    fit_lights = cfg.refine_lights == "fit" or (cfg.refine_lights == "auto" and not chroma["used"])
+    lights = L
+    if final == "adam" or fit_lights:
+        ref = Refiner(N, len(sub), device=device)
+        r = ref.run(rgb[:, sub], Wrgb[:, sub], views[sub], normals[sub], alb[sub], L, specular=spec, robust=robust, iterations=cfg.refine_iterations, lr=cfg.lr, fit_lights=fit_lights,
+                    progress=lambda d, t, m: step(2 + d / t, 5, "refining lights: " + m))
+        lights = r.lights if fit_lights else L
+        material = {"brdf": cfg.refine, "ks": r.ks}
+        if cfg.refine == "ashikhmin-shirley":
+            material.update(eta_u=r.eta, eta_v=r.eta, f0=0.5)
+        elif cfg.refine == "blinn-phong":
+            material.update(shininess=r.eta)
+        losses = r.losses
+        if fit_lights and cfg.refine_gauge != "free":
+            lights = restore_gauge(lights, L, keep_gbr=cfg.refine_gauge == "gbr")
+    step(3, 5, "lights refined")
+    if final == "lm":
+        material = {"brdf": cfg.refine}
+        if spec != "lambertian":
+            # with a perspective camera the view vectors are not symmetric under the flip, so the
+            # specular lobe tells the two members of the pair apart: fit both, keep the better
+            cands = [lights, lights @ flip_m] if isinstance(camera, Perspective) else [lights]
+            fits = [estimate_material(imgs, mask, c, cfg.refine, camera=camera, pixels=cfg.material_pixels, seed=cfg.seed, device=device) for c in cands]
+            res_ = [f[1]["residual"] for f in fits]
+            j = int(np.argmin(res_))
+            lights = cands[j]
+            material.update(fits[j][0], search=fits[j][1])
+            if len(cands) == 2:
+                gbr_info["flip_specular_residuals"] = res_
+                spec_flip = max(res_) > cfg.flip_specular_ratio * max(min(res_), 1e-30)
+        step(4, 5, "material estimated")
+        normals, albedo = _calibrated_pass(imgs, mask, lights, material, camera, final_robust > 0, device)
     else:
-        views = np.tile([0.0, 0.0, 1.0], (P, 1))
-    normals, lights, albedo = base_n, L, None
-    material: dict = {}
-    losses: list = []
-    spec_flip = False  # the flip decided by the specular fit (perspective camera)
-    if cfg.refine != "none":
-        spec = cfg.refine  # the lobe of the refinement's model (a Refiner Lobe name)
-        Wrgb = W_obs
-        rng = np.random.default_rng(cfg.seed)
-        sub = rng.choice(P, min(P, cfg.refine_pixels), replace=False) if cfg.refine_pixels and cfg.refine_pixels < P else np.arange(P)
-        # intensities normalised to mean 1; albedo by per-channel least squares
-        e = np.linalg.norm(L, axis=1)
-        L = L / np.median(e)  # the median: a badly conditioned light can be far off
-        alb = albedo_ls(rgb, Wrgb, normals, L)
-        level = float(np.median(M[Wrgb > 0]))
-        robust, final_robust = cfg.refine_robust * level, cfg.final_robust * level
-        final = cfg.final_solver
-        if final == "auto":
-            final = "lm" if chroma["used"] else "adam"
-        fit_lights = cfg.refine_lights == "fit" or (cfg.refine_lights == "auto" and not chroma["used"])
-        lights = L
-        if final == "adam" or fit_lights:
-            ref = Refiner(N, len(sub), device=device)
-            r = ref.run(rgb[:, sub], Wrgb[:, sub], views[sub], normals[sub], alb[sub], L, specular=spec, robust=robust, iterations=cfg.refine_iterations, lr=cfg.lr, fit_lights=fit_lights,
-                        progress=lambda d, t, m: step(2 + d / t, 5, "refining lights: " + m))
-            lights = r.lights if fit_lights else L
-            material = {"brdf": cfg.refine, "ks": r.ks}
-            if cfg.refine == "ashikhmin-shirley":
-                material.update(eta_u=r.eta, eta_v=r.eta, f0=0.5)
-            elif cfg.refine == "blinn-phong":
-                material.update(shininess=r.eta)
-            losses = r.losses
-            if fit_lights and cfg.refine_gauge != "free":
-                lights = restore_gauge(lights, L, keep_gbr=cfg.refine_gauge == "gbr")
-        step(3, 5, "lights refined")
-        if final == "lm":
-            material = {"brdf": cfg.refine}
-            if spec != "lambertian":
-                # with a perspective camera the view vectors are not symmetric under the flip, so the
-                # specular lobe tells the two members of the pair apart: fit both, keep the better
-                cands = [lights, lights @ flip_m] if isinstance(camera, Perspective) else [lights]
-                fits = [estimate_material(imgs, mask, c, cfg.refine, camera=camera, pixels=cfg.material_pixels, seed=cfg.seed, device=device) for c in cands]
-                res_ = [f[1]["residual"] for f in fits]
-                j = int(np.argmin(res_))
-                lights = cands[j]
-                material.update(fits[j][0], search=fits[j][1])
-                if len(cands) == 2:
-                    gbr_info["flip_specular_residuals"] = res_
-                    spec_flip = max(res_) > cfg.flip_specular_ratio * max(min(res_), 1e-30)
-            step(4, 5, "material estimated")
-            normals, albedo = _calibrated_pass(imgs, mask, lights, material, camera, final_robust > 0, device)
-        else:
-            sets = max(1, cfg.normal_sets)
-            # the joint fit already solved every pixel with these lights (and this loss)
-            reuse = len(sub) == P and sets == 1 and cfg.refine_gauge == "free" and cfg.final_robust == cfg.refine_robust
-            ref_all = ref if len(sub) == P else Refiner(N, P, device=device)
-            nsets = []
-            for s in range(sets):
-                Wk = Wrgb
-                if sets > 1:
-                    keep = rng.random(N) < 0.7
-                    keep[rng.choice(N, 3, replace=False)] = True
-                    Wk = Wrgb * keep[:, None]
-                if reuse:
-                    nsets.append(r.normals)
-                    albedo = r.albedo
-                    continue
-                rr = ref_all.run(rgb, Wk, views, normals, albedo_ls(rgb, Wk, normals, lights), lights, ks=max(r.ks, 1e-4), eta=r.eta, specular=spec,
-                                 fit_lights=False, robust=final_robust, iterations=cfg.final_iterations, lr=cfg.lr,
-                                 progress=lambda d, t, m: step(3 + (s + d / t) / sets, 5, "per-pixel pass: " + m))
-                nsets.append(rr.normals)
-                albedo = rr.albedo
-            normals = nsets[0] if len(nsets) == 1 else pca_merge(np.stack(nsets))
-    t_ref = time.perf_counter()
-    e = np.linalg.norm(lights, axis=1)
-    ldirs = lights / e[:, None]
-    if albedo is None:
-        albedo = albedo_ls(rgb, W, normals, lights / e.mean())
-    else:  # albedo and ks relative to the mean light intensity, as light_intensities are
-        albedo = albedo * e.mean()
-        if "ks" in material:
-            material["ks"] = float(material["ks"] * e.mean())
-    intens = e / e.mean()
+        sets = max(1, cfg.normal_sets)
+        # the joint fit already solved every pixel with these lights (and this loss)
+        reuse = len(sub) == P and sets == 1 and cfg.refine_gauge == "free" and cfg.final_robust == cfg.refine_robust
+        ref_all = ref if len(sub) == P else Refiner(N, P, device=device)
+        nsets = []
+        for s in range(sets):
+            Wk = Wrgb
+            if sets > 1:
+                keep = rng.random(N) < 0.7
+                keep[rng.choice(N, 3, replace=False)] = True
+                Wk = Wrgb * keep[:, None]
+            if reuse:
+                nsets.append(r.normals)
+                albedo = r.albedo
+                continue
+            rr = ref_all.run(rgb, Wk, views, normals, albedo_ls(rgb, Wk, normals, lights), lights, ks=max(r.ks, 1e-4), eta=r.eta, specular=spec,
+                             fit_lights=False, robust=final_robust, iterations=cfg.final_iterations, lr=cfg.lr,
+                             progress=lambda d, t, m: step(3 + (s + d / t) / sets, 5, "per-pixel pass: " + m))
+            nsets.append(rr.normals)
+            albedo = rr.albedo
+        normals = nsets[0] if len(nsets) == 1 else pca_merge(np.stack(nsets))
+    return normals, lights, albedo, material, losses, spec_flip
+
+
+def _decide_flip(normals, ldirs, mask, views, camera, spec_flip: bool, gbr_info: dict, cfg: UncalibratedConfig):
+    """The convex/concave flip: decided by the specular fit, or by the perspective curl when the view
+    directions spread enough; otherwise ambiguous with the alternative returned.
+
+    Returns:
+        ``(flip "resolved" or "ambiguous", alternative (normal map, light directions) or None, normals, ldirs)``.
+    """
+    flip_m = np.diag([-1.0, -1.0, 1.0])
     # the convex/concave flip
     flip = "ambiguous"
     alternative = (to_map(normals @ flip_m, mask), ldirs @ flip_m)
     gbr_info["flip_curl"] = None
-    gbr_info["channel"] = "specular-free" if chroma["used"] else "grey"
-    gbr_info["chroma_fraction"] = chroma["fraction"]
     if spec_flip:
         flip, alternative = "resolved", None
     elif isinstance(camera, Perspective):
@@ -546,20 +604,7 @@ def solve_uncalibrated(images, mask, *, camera=None, config: UncalibratedConfig 
             if c1 < c0:
                 normals, ldirs = normals @ flip_m, ldirs @ flip_m
             alternative = None
-    step(5, 5, "done")
-    return UncalibratedResult(
-        normals=to_map(normals, mask),
-        albedo=to_map(albedo, mask),
-        light_directions=ldirs,
-        light_intensities=intens,
-        flip=flip,
-        alternative=alternative,
-        baseline=baseline,
-        gbr=gbr_info,
-        material=material,
-        losses=losses,
-        timings={"factorisation": t_fact - t0, "gbr": t_gbr - t_fact, "refinement": t_ref - t_gbr, "total": time.perf_counter() - t0},
-    )
+    return flip, alternative, normals, ldirs
 
 
 def estimate_material(images, mask, lights, brdf: str, *, camera=None, pixels: int = 1500, seed: int = 0, start=None, device=None) -> tuple[dict, dict]:
