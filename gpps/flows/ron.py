@@ -63,6 +63,7 @@ from gpps._check import (
     warn,
 )
 from gpps._runtime import resolve_device
+from gpps._taichi import taichi_device
 from gpps.host.dgmc import DGMCConfig, dgmc_start, propagate_front
 from gpps.host.merge import ranks_better
 from gpps.lights import PointLights
@@ -342,10 +343,7 @@ class RON:
             # Orthographic: uniform (with n_z^2 weights a 256^2 sphere under point lights came out 10 % off)
             wt = "normal" if camera.is_perspective else "uniform"
             icfg = self.config.integrator if self.config.integrator is not None else IntegratorConfig(tol=1e-5, weighting=wt)
-            self.integrator = Integrator(self.mask, camera=camera, config=icfg, device=self._taichi_device())
-
-    def _taichi_device(self) -> str:
-        return "cpu" if str(self.device).startswith("cpu") else str(self.device)
+            self.integrator = Integrator(self.mask, camera=camera, config=icfg, device=taichi_device(self.device))
 
     def close(self) -> None:
         """Free the integrator's Taichi fields."""
@@ -620,7 +618,7 @@ class RON:
         if c.final_integrator is None or c.final_integrator == self.integrator.config:
             integ = self.integrator.run(normals, reference_depth=reference_depth)
         else:
-            final = Integrator(self.mask, camera=self.camera, config=c.final_integrator, device=self._taichi_device())
+            final = Integrator(self.mask, camera=self.camera, config=c.final_integrator, device=taichi_device(self.device))
             try:
                 integ = final.run(normals, reference_depth=reference_depth)
             finally:

@@ -292,7 +292,7 @@ class Stream(Stage):
         self.depth = wp.zeros((h, w), dtype=wp.float32, device=d)
         self.integrator = None
         if cfg.integrate:
-            self.integrator = StreamIntegrator(self.mask, camera, device=self._taichi_device())
+            self.integrator = StreamIntegrator(self.mask, camera, device=_taichi.taichi_device(self.device))
             if self.is_cuda:
                 if importlib.util.find_spec("torch") is None:
                     raise ImportError("the stream's integration on CUDA needs PyTorch for zero-copy views of the "
@@ -320,9 +320,6 @@ class Stream(Stage):
         self._mask_n = float(self.mask.sum())
         self._levels: dict | None = None  # running lit share, saturated share, noise ratio, residual
         self._cmds: dict = {}
-
-    def _taichi_device(self):
-        return "cuda:0" if self.is_cuda else "cpu"
 
     # ------------------------------------------------------------------ frames
 
