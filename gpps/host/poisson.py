@@ -1,18 +1,22 @@
 """The integrator's host algebra (4.20): per-pixel gradients from normals, the edge system of the
 masked Poisson problem, robust and bilateral edge weights, the multigrid hierarchy, and the numpy
-references of the operators the Taichi kernels apply.  numpy / scipy only; the stage that solves the
-system on the device is :class:`gpps.pipeline.integration.Integrator`, whose docstring gives the model.
+references of the operators the Taichi kernels apply.  numpy / scipy only, with the two host solvers
+(sparse LU, Simchony's DCT); the stage that solves the system on the device is :class:`gpps.pipeline.integration.Integrator`, whose docstring gives the model.
 """
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy.fft import dctn, idctn
 from scipy.special import expit
 
 __all__ = ["pixel_gradients", "edge_system", "divergence_rhs", "laplacian", "apply_laplacian", "build_levels", "level_shapes",
            "diagonal", "normal_equation_residual", "edge_residuals", "ls_energy", "bilateral_weights", "loop_curl",
-           "curl_edge_weights", "robust_edge_weights"]
+           "curl_edge_weights", "robust_edge_weights", "component_means", "solve_direct", "solve_dct"]
 
 
 def pixel_gradients(normals: np.ndarray, valid: np.ndarray, camera, min_nz: float):
@@ -337,3 +341,76 @@ def bilateral_weights(u, valid, wx, wy, nzj, nzi, k, floor=0.0):
     wpj = _sigmoid(k * ((nzj * djm) ** 2 - (nzj * dj) ** 2), floor)
     wpi = _sigmoid(k * ((nzi * dim) ** 2 - (nzi * di) ** 2), floor)
     return np.where(valid, wpj, 0.5), np.where(valid, wpi, 0.5), (dj, djm, di, dim)
+
+
+def component_means(a, valid, labels, n: int) -> np.ndarray:
+    """(H, W) each valid pixel's connected-component mean of ``a`` (0 at label 0, outside ``valid``).
+
+    Args:
+        a: (H, W) values.
+        valid: (H, W) bool.
+        labels: (H, W) int component labels (0 = none), ``n`` components (``scipy.ndimage.label``).
+    """
+    s = np.bincount(labels.ravel(), weights=np.where(valid, a, 0).ravel(), minlength=n + 1)
+    c = np.bincount(labels.ravel(), minlength=n + 1)
+    mean = s / np.maximum(c, 1)
+    mean[0] = 0
+    return mean[labels]
+
+
+def solve_direct(valid, wx, wy, tx, ty, labels):
+    """The normal equations of (4.20) by sparse LU (scipy), the first pixel of each component pinned to 0.
+
+    Args:
+        valid: (H, W) bool; wx, wy, tx, ty: the edge system (:func:`edge_system`).
+        labels: (H, W) int connected components of ``valid`` (0 = none).
+
+    Returns:
+        ``(u (H, W), iterations 1, None, timings)``.
+    """
+    t0 = time.perf_counter()
+    b = divergence_rhs(wx, wy, tx, ty)
+    A, idx = laplacian(wx, wy, valid)
+    labv = labels.ravel()[idx]
+    # pin the first pixel of each component (Dirichlet 0), solve the SPD rest
+    _, first = np.unique(labv, return_index=True)
+    keep = np.ones(idx.size, bool)
+    keep[first] = False
+    bv = b.ravel()[idx]
+    t1 = time.perf_counter()
+    x = np.zeros(idx.size)
+    if keep.any():
+        Ak = A[keep][:, keep].tocsc()
+        x[keep] = spla.spsolve(Ak, bv[keep])
+    u = np.zeros(valid.shape)
+    u.ravel()[idx] = x
+    t2 = time.perf_counter()
+    return u, 1, None, {"rhs": t1 - t0, "solve": t2 - t1}
+
+
+def solve_dct(valid, wx, wy, tx, ty):
+    """Simchony et al.'s DCT solution of (4.20) on a full rectangle with uniform weights (scipy).
+
+    Returns:
+        ``(u (H, W), iterations 1, None, timings)``.
+
+    Raises:
+        ValueError: a mask that is not the full rectangle, or non-uniform weights.
+    """
+    h, w = valid.shape
+    full = valid.all() and np.all(wx[:, :-1] == 1) and np.all(wy[:-1, :] == 1)
+    if not full:
+        raise ValueError(
+            "solver: 'dct' (Simchony) needs a full rectangular mask, valid normals everywhere and uniform, "
+            "non-bilateral weights; use 'direct' or 'multigrid' on masked domains"
+        )
+    t0 = time.perf_counter()
+    b = divergence_rhs(wx, wy, tx, ty)
+    t1 = time.perf_counter()
+    lam = (2 - 2 * np.cos(np.pi * np.arange(h) / h))[:, None] + (2 - 2 * np.cos(np.pi * np.arange(w) / w))[None, :]
+    lam[0, 0] = 1.0
+    bh = dctn(b, type=2, norm="ortho")
+    bh /= lam  # A = -Laplacian (positive semi-definite): A u = b
+    bh[0, 0] = 0.0
+    u = idctn(bh, type=2, norm="ortho")
+    return u, 1, None, {"rhs": t1 - t0, "solve": time.perf_counter() - t1}

@@ -31,6 +31,10 @@ geometric multigrid V-cycle on coarsened masks), ``jacobi`` (Taichi, damped
 Jacobi, the reference and smoother), ``direct`` (scipy sparse LU, pinned per
 component) and ``dct`` (scipy, Simchony et al.'s DCT solution, full
 rectangles with uniform weights only).
+
+Length: the config (its modes documented in place), the result and one stage with its four solvers; the
+scipy solvers and the system algebra live in :mod:`gpps.host.poisson`, BiNI in
+:mod:`gpps.pipeline.integration_bini`; what is left is one solve's state, kept together.
 """
 
 from __future__ import annotations
@@ -41,15 +45,14 @@ from dataclasses import dataclass, field
 from typing import Callable, Literal
 
 import numpy as np
-import scipy.sparse.linalg as spla
 from scipy import ndimage
-from scipy.fft import dctn, idctn
 
 from gpps import _taichi
 from gpps._check import check_bool, check_choices, check_number
 from gpps.camera import Orthographic, Perspective
 from gpps.host.poisson import (
     build_levels,
+    component_means,
     curl_edge_weights,
     diagonal,
     divergence_rhs,
@@ -59,6 +62,8 @@ from gpps.host.poisson import (
     normal_equation_residual,
     pixel_gradients,
     robust_edge_weights,
+    solve_dct,
+    solve_direct,
 )
 from gpps.kernels import poisson as K
 from gpps.pipeline.integration_bini import BilateralIntegrator, BiniConfig
@@ -323,12 +328,7 @@ class Integrator(Stage):
         return self._labels, self._ncomp
 
     def _comp_mean(self, a, valid):
-        lab, n = self._components(valid)
-        s = np.bincount(lab.ravel(), weights=np.where(valid, a, 0).ravel(), minlength=n + 1)
-        c = np.bincount(lab.ravel(), minlength=n + 1)
-        mean = s / np.maximum(c, 1)
-        mean[0] = 0
-        return mean[lab]
+        return component_means(a, valid, *self._components(valid))
 
     # ------------------------------------------------------------------ main entry
 
@@ -499,50 +499,10 @@ class Integrator(Stage):
     def _solve(self, n, valid, wx, wy, tx, ty, u0, progress, tol):
         cfg = self.config
         if cfg.solver == "direct":
-            return self._solve_direct(valid, wx, wy, tx, ty)
+            return solve_direct(valid, wx, wy, tx, ty, self._components(valid)[0])
         if cfg.solver == "dct":
-            return self._solve_dct(valid, wx, wy, tx, ty)
+            return solve_dct(valid, wx, wy, tx, ty)
         return self._solve_taichi(n, valid, wx, wy, tx, ty, u0, progress, tol)
-
-    def _solve_direct(self, valid, wx, wy, tx, ty):
-        t0 = time.perf_counter()
-        b = divergence_rhs(wx, wy, tx, ty)
-        A, idx = laplacian(wx, wy, valid)
-        lab, ncomp = self._components(valid)
-        labv = lab.ravel()[idx]
-        # pin the first pixel of each component (Dirichlet 0), solve the SPD rest
-        _, first = np.unique(labv, return_index=True)
-        keep = np.ones(idx.size, bool)
-        keep[first] = False
-        bv = b.ravel()[idx]
-        t1 = time.perf_counter()
-        x = np.zeros(idx.size)
-        if keep.any():
-            Ak = A[keep][:, keep].tocsc()
-            x[keep] = spla.spsolve(Ak, bv[keep])
-        u = np.zeros(self.shape)
-        u.ravel()[idx] = x
-        t2 = time.perf_counter()
-        return u, 1, None, {"rhs": t1 - t0, "solve": t2 - t1}
-
-    def _solve_dct(self, valid, wx, wy, tx, ty):
-        h, w = self.shape
-        full = valid.all() and np.all(wx[:, :-1] == 1) and np.all(wy[:-1, :] == 1)
-        if not full:
-            raise ValueError(
-                "solver: 'dct' (Simchony) needs a full rectangular mask, valid normals everywhere and uniform, "
-                "non-bilateral weights; use 'direct' or 'multigrid' on masked domains"
-            )
-        t0 = time.perf_counter()
-        b = divergence_rhs(wx, wy, tx, ty)
-        t1 = time.perf_counter()
-        lam = (2 - 2 * np.cos(np.pi * np.arange(h) / h))[:, None] + (2 - 2 * np.cos(np.pi * np.arange(w) / w))[None, :]
-        lam[0, 0] = 1.0
-        bh = dctn(b, type=2, norm="ortho")
-        bh /= lam  # A = -Laplacian (positive semi-definite): A u = b
-        bh[0, 0] = 0.0
-        u = idctn(bh, type=2, norm="ortho")
-        return u, 1, None, {"rhs": t1 - t0, "solve": time.perf_counter() - t1}
 
     # ------------------------------------------------------------------ Taichi
 

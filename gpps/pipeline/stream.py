@@ -32,6 +32,9 @@ kernel over the converted frame and one over the residual, read back at the
 frame's one synchronisation point.  On a warm-started frame, the pixels whose
 residual jumps above ``jump_factor`` times the running level are re-solved cold
 (multi-start) within the frame, so a scene change or a bad start heals at once.
+
+Length: the config (every check's threshold documented in place), the result and the one stage whose
+frame state (upload slots, graphs, running levels of the sanity check) must stay together.
 """
 
 from __future__ import annotations
