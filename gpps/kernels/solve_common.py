@@ -1,0 +1,333 @@
+"""Shared pieces of the per-pixel solver (:mod:`gpps.kernels.solve`): tags, structs and small device helpers.
+
+Device math only.  The structs carry a pixel's settings and intermediate
+results between the functions that :mod:`gpps.kernels.solve_methods` defines
+per specialisation; the ``@wp.func`` here do not depend on the solver, the
+reflectance model or the robust loss, so every specialised module shares them
+(Warp emits into a module only the functions its kernels reach).
+"""
+
+import warp as wp
+
+from gpps import names
+
+from gpps.kernels.brdf import CameraParams, LightParams, light_dir, light_radiance, pixel_point, view_dir
+from gpps.kernels.jacobians import mat32, tangent_basis_t1
+
+# solver, robust-loss tags and flag bits: the integers of gpps.names (the public code uses its strings)
+NONE = wp.constant(names.SOLVER_TAG["none"])
+LM = wp.constant(names.SOLVER_TAG["lm"])
+DOGLEG = wp.constant(names.SOLVER_TAG["dogleg"])
+BFGS = wp.constant(names.SOLVER_TAG["bfgs"])
+
+ROBUST_NONE = wp.constant(names.ROBUST_TAG["none"])
+ROBUST_HUBER = wp.constant(names.ROBUST_TAG["huber"])
+ROBUST_CAUCHY = wp.constant(names.ROBUST_TAG["cauchy"])
+
+FLAG_ILL_CONDITIONED = wp.constant(names.FLAG_ILL_CONDITIONED)
+FLAG_FEW_OBSERVATIONS = wp.constant(names.FLAG_FEW_OBSERVATIONS)
+FLAG_NOT_CONVERGED = wp.constant(names.FLAG_NOT_CONVERGED)
+FLAG_WOODHAM_FALLBACK = wp.constant(names.FLAG_WOODHAM_FALLBACK)
+FLAG_ALBEDO_FROM_NEIGHBOURS = wp.constant(names.FLAG_ALBEDO_FROM_NEIGHBOURS)
+
+
+@wp.struct
+class SolverParams:
+    """Per-solve settings (see :class:`gpps.pipeline.solver.PixelSolver.Config`)."""
+
+    method: wp.int32
+    max_iters: wp.int32
+    starts: wp.int32
+    start_angle: wp.float32
+    tol_step: wp.float32
+    tol_grad: wp.float32
+    robust: wp.int32
+    robust_scale: wp.float32
+    irls_rounds: wp.int32
+    shadow_threshold: wp.float32
+    saturation: wp.float32
+    warm_start: wp.int32
+    grey_albedo: wp.int32
+    cond_threshold: wp.float32
+    early_exit: wp.int32
+    lm_tau: wp.float32
+    dogleg_radius: wp.float32
+    lit_threshold: wp.float32
+    lit_sigmas: wp.float32
+    keep_unmasked: wp.int32  # 1: pixels outside the mask keep their outputs (a re-solve of a subset)
+
+
+@wp.struct
+class Pixel:
+    """What a solve needs to know about its pixel.
+
+    Attributes:
+        i, j: row and column.
+        p: surface point at the given depth (gpps frame).
+        v: unit view direction.
+        fix_kd: 1 to hold the albedo at ``kd`` instead of eliminating it.
+        kd: the fixed albedo.
+        grey_albedo: 1 for one albedo value shared by the channels.
+        prior_w: weight of a weak prior ``1/2 prior_w |n - prior_n|^2`` added to
+            the cost (0: none); it only breaks ties of under-determined pixels.
+        prior_n: the prior normal.
+    """
+
+    i: wp.int32
+    j: wp.int32
+    p: wp.vec3
+    v: wp.vec3
+    fix_kd: wp.int32
+    kd: wp.vec3
+    grey_albedo: wp.int32
+    prior_w: wp.float32
+    prior_n: wp.vec3
+
+
+@wp.struct
+class Eval:
+    """Reduced cost, its gradient ``J^T W r`` and Gauss-Newton matrix ``J^T W J`` at one normal."""
+
+    cost: wp.float32
+    jtj: wp.mat22
+    jtr: wp.vec2
+    kd: wp.vec3
+    wsum: wp.float32
+
+
+@wp.func
+def grey(c: wp.vec3):
+    """Grey value of an RGB colour: the mean of its channels."""
+    return (c[0] + c[1] + c[2]) / 3.0
+
+
+@wp.func
+def dot2(a: wp.vec2, b: wp.vec2):
+    """Dot product of two 2-vectors."""
+    return a[0] * b[0] + a[1] * b[1]
+
+
+@wp.func
+def solve22(a: wp.mat22, b: wp.vec2):
+    """``a^-1 b`` for a symmetric positive (semi)definite 2x2; zero when singular (checked determinant)."""
+    det = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
+    scale = wp.abs(a[0, 0]) + wp.abs(a[1, 1])
+    if wp.abs(det) <= 1.0e-12 * scale * scale or scale <= 0.0:
+        return wp.vec2(0.0)
+    return wp.vec2(a[1, 1] * b[0] - a[0, 1] * b[1], a[0, 0] * b[1] - a[1, 0] * b[0]) / det
+
+
+@wp.func
+def transport(ev: Eval, dn_old: mat32, t1: wp.vec3, t2: wp.vec3):
+    """Express an evaluation made in an old chart (at a point with Jacobian ``dn_old``)
+    in the new chart centred there with tangent basis ``(t1, t2)``: with
+    ``dn_old M = [t1 t2]``, ``M = (dn_old^T dn_old)^-1 dn_old^T [t1 t2]``,
+    ``J_new = J_old M``; cost and albedo are unchanged."""
+    c0 = wp.vec3(dn_old[0, 0], dn_old[1, 0], dn_old[2, 0])
+    c1 = wp.vec3(dn_old[0, 1], dn_old[1, 1], dn_old[2, 1])
+    gm = wp.mat22(wp.dot(c0, c0), wp.dot(c0, c1), wp.dot(c0, c1), wp.dot(c1, c1))
+    m0 = solve22(gm, wp.vec2(wp.dot(c0, t1), wp.dot(c1, t1)))
+    m1 = solve22(gm, wp.vec2(wp.dot(c0, t2), wp.dot(c1, t2)))
+    m = wp.mat22(m0[0], m1[0], m0[1], m1[1])
+    out = Eval()
+    out.cost = ev.cost
+    out.kd = ev.kd
+    out.wsum = ev.wsum
+    out.jtr = wp.transpose(m) * ev.jtr
+    out.jtj = wp.transpose(m) * ev.jtj * m
+    return out
+
+
+@wp.struct
+class StartResult:
+    """Outcome of one solver run: normal, albedo, reduced cost, cost evaluations used, converged (1) or not."""
+
+    n: wp.vec3
+    kd: wp.vec3
+    cost: wp.float32
+    iters: wp.int32
+    converged: wp.int32
+
+
+@wp.func
+def start_result(n: wp.vec3, ev: Eval, iters: int, converged: int):
+    """The :class:`StartResult` of a run that ended at ``n`` with evaluation ``ev``."""
+    res = StartResult()
+    res.n = n
+    res.kd = ev.kd
+    res.cost = ev.cost
+    res.iters = iters
+    res.converged = converged
+    return res
+
+
+@wp.func
+def start_normal(s: int, ninit: wp.vec3, v: wp.vec3, hbright: wp.vec3, prm: SolverParams):
+    """Start ``s`` of the multi-start: 0 the initial normal, 1 the view direction,
+    2 the half vector of the brightest observation (the centre of a highlight),
+    3 halfway between that and the initial normal, then the initial normal tilted toward evenly spread azimuths, alternately by
+    ``start_angle`` and twice that."""
+    if s == 0:
+        return ninit
+    if s == 1:
+        return v
+    if s == 2:
+        return hbright
+    if s == 3:
+        return wp.normalize(hbright + ninit)
+    # two rings: odd extra starts at start_angle, even ones at twice that, azimuths interleaved
+    m = prm.starts - 4
+    q = s - 4
+    phi = 6.283185307179586 * float(q) / float(m)
+    ang = prm.start_angle
+    if q % 2 == 1 and m >= 4:
+        ang = 2.0 * prm.start_angle
+    t1 = tangent_basis_t1(ninit)
+    t2 = wp.cross(ninit, t1)
+    n = wp.cos(ang) * ninit + wp.sin(ang) * (wp.cos(phi) * t1 + wp.sin(phi) * t2)
+    if wp.dot(n, v) <= 0.05:
+        # keep the start visible: pull it toward the camera
+        n = wp.normalize(n + (0.1 - wp.dot(n, v)) * v)
+    return wp.normalize(n)
+
+
+@wp.func
+def light_gram(weights: wp.array3d(dtype=wp.float32), i: int, j: int, p: wp.vec3, lights: LightParams):
+    """``sum_k [w_k != 0] l_k l_k^T`` over the pixel's valid lights (dark ones included)."""
+    a = wp.mat33(0.0)
+    for k in range(lights.count):
+        if weights[k, i, j] != 0.0:
+            l = light_dir(lights, k, p)
+            a += wp.outer(l, l)
+    return a
+
+
+@wp.func
+def cond_frobenius(a: wp.mat33):
+    """Frobenius condition number ``|A|_F |A^-1|_F`` of a symmetric 3x3 (inf when singular; determinant checked)."""
+    det = wp.determinant(a)
+    fa = wp.sqrt(wp.ddot(a, a))
+    if wp.abs(det) <= 1.0e-12 * fa * fa * fa or fa == 0.0:
+        return 1.0e30
+    ai = wp.inverse(a)
+    return fa * wp.sqrt(wp.ddot(ai, ai))
+
+
+@wp.func
+def grey_max(images: wp.array3d(dtype=wp.vec3), i: int, j: int, nl_: int):
+    """Brightest grey value of the pixel's ``nl_`` observations (0 when none is brighter)."""
+    gmax = float(0.0)
+    for k in range(nl_):
+        gmax = wp.max(gmax, grey(images[k, i, j]))
+    return gmax
+
+
+@wp.struct
+class PixelSolution:
+    """Best solution of a pixel and the total number of cost evaluations spent."""
+
+    best: StartResult
+    total: wp.int32
+
+
+@wp.func
+def brightest_half_vector(images: wp.array3d(dtype=wp.vec3), weights: wp.array3d(dtype=wp.float32), px: Pixel, lights: LightParams):
+    """Half vector ``normalize(l + v)`` of the brightest valid observation: where a highlight peaks."""
+    kb = int(0)
+    gb = float(-1.0)
+    for k in range(lights.count):
+        if weights[k, px.i, px.j] != 0.0:
+            gk = grey(images[k, px.i, px.j])
+            if gk > gb:
+                gb = gk
+                kb = k
+    return wp.normalize(light_dir(lights, kb, px.p) + px.v)
+
+
+@wp.func
+def store_solution(
+    sol: PixelSolution,
+    flag: int,
+    weights: wp.array3d(dtype=wp.float32),
+    px: Pixel,
+    nl_: int,
+    normals: wp.array2d(dtype=wp.vec3),
+    albedo: wp.array2d(dtype=wp.vec3),
+    residual: wp.array2d(dtype=wp.float32),
+    iterations: wp.array2d(dtype=wp.int32),
+    flags: wp.array2d(dtype=wp.int32),
+):
+    i = px.i
+    j = px.j
+    wsum = float(0.0)
+    for k in range(nl_):
+        wsum += wp.abs(weights[k, i, j])
+    f = flag
+    if sol.best.converged == 0:
+        f = f | FLAG_NOT_CONVERGED
+    normals[i, j] = sol.best.n
+    albedo[i, j] = sol.best.kd
+    if wsum > 0.0:
+        residual[i, j] = wp.sqrt(2.0 * sol.best.cost / (3.0 * wsum))
+    else:
+        residual[i, j] = 0.0
+    iterations[i, j] = sol.total
+    flags[i, j] = f
+
+
+@wp.func
+def make_pixel(cam: CameraParams, depth: wp.array2d(dtype=wp.float32), i: int, j: int, prm: SolverParams):
+    px = Pixel()
+    px.i = i
+    px.j = j
+    px.p = pixel_point(cam, i, j, depth[i, j])
+    px.v = view_dir(cam, px.p)
+    px.fix_kd = 0
+    px.kd = wp.vec3(0.0)
+    px.grey_albedo = prm.grey_albedo
+    px.prior_w = 0.0
+    px.prior_n = wp.vec3(0.0)
+    return px
+
+
+@wp.func
+def store_least_squares(
+    ninit: wp.vec3,
+    kdw: wp.vec3,
+    flag: int,
+    use_all: int,
+    images: wp.array3d(dtype=wp.vec3),
+    weights: wp.array3d(dtype=wp.float32),
+    px: Pixel,
+    lights: LightParams,
+    normals: wp.array2d(dtype=wp.vec3),
+    albedo: wp.array2d(dtype=wp.vec3),
+    residual: wp.array2d(dtype=wp.float32),
+    iterations: wp.array2d(dtype=wp.int32),
+    flags: wp.array2d(dtype=wp.int32),
+):
+    """Store the Lambertian least-squares (Woodham) solution of solver ``"none"``."""
+    i = px.i
+    j = px.j
+    p = px.p
+    nl_ = lights.count
+    normals[i, j] = ninit
+    albedo[i, j] = wp.vec3(wp.max(kdw[0], 0.0), wp.max(kdw[1], 0.0), wp.max(kdw[2], 0.0))
+    # residual of the Lambertian fit (no shadows in the model: plain least squares)
+    rs = float(0.0)
+    ws = float(0.0)
+    for k in range(nl_):
+        if use_all != 0 or weights[k, i, j] != 0.0:
+            l = light_dir(lights, k, p)
+            e = light_radiance(lights, k, p)
+            o = images[k, i, j]
+            for c in range(3):
+                r = o[c] - e[c] * kdw[c] * wp.dot(ninit, l)
+                rs += r * r
+            ws += 3.0
+    if ws > 0.0:
+        residual[i, j] = wp.sqrt(rs / ws)
+    else:
+        residual[i, j] = 0.0
+    iterations[i, j] = 0
+    flags[i, j] = flag

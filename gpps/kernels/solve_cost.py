@@ -1,0 +1,215 @@
+"""The solver's cost: the reflectance model's value and gradient, and the variable-projection evaluation.
+
+Device math only, defined per specialisation by factories (see
+:mod:`gpps.kernels.solve` for the model and :func:`gpps.kernels.solve_methods.solver_funcs`
+for how the functions are put together): ``brdf`` fixed at code generation
+through ``wp.static``, or ``None`` for the run-time switch on ``mat.model``.
+``module`` / ``sfx``: Warp module and key suffix of the functions (distinct per
+specialisation; ``module=None`` puts them in this file's module).
+"""
+
+import warp as wp
+
+from gpps.kernels.brdf import LightParams, MaterialParams, light_dir, light_radiance
+from gpps.kernels.jacobians import (
+    ashikhmin_shirley_value_grad,
+    blinn_phong_value_grad,
+    chart_normal,
+    chart_normal_jacobian,
+    cook_torrance_value_grad,
+    diffuse_value_grad,
+    phong_value_grad,
+    specular_value_grad,
+)
+from gpps.kernels.solve_common import Eval, Pixel
+
+
+def specular_value_grad_for(brdf, module, sfx: str):
+    """:func:`gpps.kernels.jacobians.specular_value_grad` with the model fixed at code generation.
+
+    Same gating and lobes as the run-time dispatcher (``mat.model`` is not
+    read); ``brdf=None`` returns the run-time dispatcher itself.
+    """
+    if brdf is None:
+        return specular_value_grad
+
+    @wp.func(name="specular_value_grad" + sfx, module=module)
+    def spec_vg(mat: MaterialParams, n: wp.vec3, l: wp.vec3, v: wp.vec3):
+        """Specular value and its gradient in ``n``: ``(s, ds/dn)`` as a vec4 (0 outside the lit, visible side)."""
+        if wp.static(brdf == "lambertian"):
+            return wp.vec4(0.0)
+        else:
+            if wp.dot(n, l) <= 0.0 or wp.dot(n, v) <= 0.0:
+                return wp.vec4(0.0)
+            if wp.static(brdf == "phong"):
+                return phong_value_grad(n, l, v, mat.shininess)
+            elif wp.static(brdf == "blinn-phong"):
+                return blinn_phong_value_grad(n, l, v, mat.shininess)
+            elif wp.static(brdf == "cook-torrance"):
+                return cook_torrance_value_grad(n, l, v, mat.roughness, mat.f0)
+            else:
+                return ashikhmin_shirley_value_grad(n, l, v, mat.eta_u, mat.eta_v, mat.f0)
+
+    return spec_vg
+
+
+
+def light_terms_for(spec_vg, module, sfx: str):
+    """``light_terms``: one light's radiance, observation and model terms with their chart derivatives.
+
+    Args:
+        spec_vg: the specular value-and-gradient function (:func:`specular_value_grad_for`).
+        module: Warp module of the function (None: this file's).
+        sfx: key suffix of the function.
+    """
+
+    @wp.func(name="light_terms" + sfx, module=module)
+    def light_terms(
+        images: wp.array3d(dtype=wp.vec3),
+        lights: LightParams,
+        mat: MaterialParams,
+        k: int,
+        i: int,
+        j: int,
+        p: wp.vec3,
+        n: wp.vec3,
+        v: wp.vec3,
+        dn0: wp.vec3,
+        dn1: wp.vec3,
+    ):
+        """Light k at the pixel: radiance, observation, diffuse and specular values and their chart derivatives."""
+        l = light_dir(lights, k, p)
+        dg = diffuse_value_grad(n, l)
+        sg = spec_vg(mat, n, l, v)
+        gd = wp.vec3(dg[1], dg[2], dg[3])
+        gs = wp.vec3(sg[1], sg[2], sg[3])
+        return (
+            light_radiance(lights, k, p),
+            images[k, i, j],
+            dg[0],
+            sg[0],
+            wp.dot(gd, dn0),
+            wp.dot(gd, dn1),
+            wp.dot(gs, dn0),
+            wp.dot(gs, dn1),
+        )
+
+    return light_terms
+
+
+def evaluate_for(light_terms, module, sfx: str):
+    """``evaluate``: the reduced cost, its gradient and Gauss-Newton matrix at one normal.
+
+    Args:
+        light_terms: the per-light terms (:func:`light_terms_for`).
+        module: Warp module of the function (None: this file's).
+        sfx: key suffix of the function.
+    """
+
+    @wp.func(name="evaluate" + sfx, module=module)
+    def evaluate(
+        n0: wp.vec3,
+        t1: wp.vec3,
+        t2: wp.vec3,
+        x: wp.vec2,
+        images: wp.array3d(dtype=wp.vec3),
+        weights: wp.array3d(dtype=wp.float32),
+        px: Pixel,
+        lights: LightParams,
+        mat: MaterialParams,
+    ):
+        """Variable-projection evaluation of the reduced cost at ``n(x)`` (4.2 with kd eliminated).
+
+        Two passes over the lights: the albedo's normal equations (and their
+        derivatives) must be complete before the residuals can be formed, so
+        ``light_terms`` is evaluated twice per light; caching it would need
+        per-light scratch memory (N is a run-time size).
+        """
+        i = px.i
+        j = px.j
+        p = px.p
+        v = px.v
+        grey_albedo = px.grey_albedo
+        n = chart_normal(n0, t1, t2, x)
+        dn = chart_normal_jacobian(n0, t1, t2, x)
+        dn0 = wp.vec3(dn[0, 0], dn[1, 0], dn[2, 0])
+        dn1 = wp.vec3(dn[0, 1], dn[1, 1], dn[2, 1])
+        ks = mat.ks
+        # pass 1: normal equations of the albedo and their derivatives
+        saa = wp.vec3(0.0)
+        say = wp.vec3(0.0)
+        dsaa0 = wp.vec3(0.0)
+        dsaa1 = wp.vec3(0.0)
+        dsay0 = wp.vec3(0.0)
+        dsay1 = wp.vec3(0.0)
+        wsum = float(0.0)
+        for k in range(lights.count):
+            w = weights[k, i, j]
+            if w > 0.0:
+                e, obs, dval, sval, da0, da1, ds0, ds1 = light_terms(images, lights, mat, k, i, j, p, n, v, dn0, dn1)
+                wsum += w
+                for c in range(3):
+                    a = e[c] * dval
+                    y = obs[c] - e[c] * ks * sval
+                    a0 = e[c] * da0
+                    a1 = e[c] * da1
+                    y0 = -e[c] * ks * ds0
+                    y1 = -e[c] * ks * ds1
+                    saa[c] += w * a * a
+                    say[c] += w * a * y
+                    dsaa0[c] += w * 2.0 * a * a0
+                    dsaa1[c] += w * 2.0 * a * a1
+                    dsay0[c] += w * (a0 * y + a * y0)
+                    dsay1[c] += w * (a1 * y + a * y1)
+        if grey_albedo != 0:
+            saa = wp.vec3(saa[0] + saa[1] + saa[2])
+            say = wp.vec3(say[0] + say[1] + say[2])
+            dsaa0 = wp.vec3(dsaa0[0] + dsaa0[1] + dsaa0[2])
+            dsaa1 = wp.vec3(dsaa1[0] + dsaa1[1] + dsaa1[2])
+            dsay0 = wp.vec3(dsay0[0] + dsay0[1] + dsay0[2])
+            dsay1 = wp.vec3(dsay1[0] + dsay1[1] + dsay1[2])
+        kd = wp.vec3(0.0)
+        dkd0 = wp.vec3(0.0)
+        dkd1 = wp.vec3(0.0)
+        if px.fix_kd != 0:
+            kd = px.kd
+        for c in range(3):
+            if px.fix_kd == 0 and saa[c] > 1.0e-20:
+                kc = say[c] / saa[c]
+                if kc > 0.0:
+                    kd[c] = kc
+                    dkd0[c] = (dsay0[c] - kc * dsaa0[c]) / saa[c]
+                    dkd1[c] = (dsay1[c] - kc * dsaa1[c]) / saa[c]
+        # pass 2: residuals r = y - kd a and their exact derivatives
+        cost = float(0.0)
+        jtj = wp.mat22(0.0)
+        jtr = wp.vec2(0.0)
+        for k in range(lights.count):
+            w = weights[k, i, j]
+            if w != 0.0:
+                e, obs, dval, sval, da0, da1, ds0, ds1 = light_terms(images, lights, mat, k, i, j, p, n, v, dn0, dn1)
+                for c in range(3):
+                    a = e[c] * dval
+                    r = obs[c] - e[c] * ks * sval - kd[c] * a
+                    # a dark observation (w < 0) only bounds the model from above: n.l <= about 0
+                    if w > 0.0 or r < 0.0:
+                        wa = wp.abs(w)
+                        j0 = -e[c] * ks * ds0 - dkd0[c] * a - kd[c] * e[c] * da0
+                        j1 = -e[c] * ks * ds1 - dkd1[c] * a - kd[c] * e[c] * da1
+                        cost += 0.5 * wa * r * r
+                        jtr += wa * r * wp.vec2(j0, j1)
+                        jtj += wa * wp.mat22(j0 * j0, j0 * j1, j0 * j1, j1 * j1)
+        if px.prior_w > 0.0:
+            dp = n - px.prior_n
+            cost += 0.5 * px.prior_w * wp.dot(dp, dp)
+            jtr += px.prior_w * wp.vec2(wp.dot(dn0, dp), wp.dot(dn1, dp))
+            jtj += px.prior_w * wp.mat22(wp.dot(dn0, dn0), wp.dot(dn0, dn1), wp.dot(dn0, dn1), wp.dot(dn1, dn1))
+        ev = Eval()
+        ev.cost = cost
+        ev.jtj = jtj
+        ev.jtr = jtr
+        ev.kd = kd
+        ev.wsum = wsum
+        return ev
+
+    return evaluate

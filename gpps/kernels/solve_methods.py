@@ -1,0 +1,463 @@
+"""The per-pixel solvers: Levenberg-Marquardt, Powell's dog leg and BFGS, their multi-start and IRLS driver.
+
+Device math only, defined per specialisation ``(method, brdf, robust)`` by
+:func:`solver_funcs` (see :mod:`gpps.kernels.solve`): each solver's function
+comes from a factory of its own that closes over the cost evaluation of the
+reflectance model, and the ``wp.static`` conditions of ``run_method`` and
+``solve_pixel`` keep only the chosen solver and loss at code generation.
+``None`` for a choice keeps it a run-time switch (the generic build).
+"""
+
+from types import SimpleNamespace
+
+import warp as wp
+
+from gpps.kernels.brdf import LightParams, MaterialParams, light_dir, light_radiance
+from gpps.kernels.jacobians import chart_normal, chart_normal_jacobian, diffuse_value_grad, tangent_basis_t1
+from gpps.kernels.solve_common import (
+    BFGS,
+    DOGLEG,
+    ROBUST_HUBER,
+    Pixel,
+    PixelSolution,
+    SolverParams,
+    StartResult,
+    brightest_half_vector,
+    dot2,
+    solve22,
+    start_normal,
+    start_result,
+    transport,
+)
+from gpps.kernels.solve_cost import evaluate_for, light_terms_for, specular_value_grad_for
+
+
+def lm_for(evaluate, module, sfx: str):
+    """``run_lm``: Levenberg-Marquardt from one start normal.
+
+    Args:
+        evaluate: the cost evaluation (:func:`gpps.kernels.solve_cost.evaluate_for`).
+        module: Warp module of the function (None: this file's).
+        sfx: key suffix of the function.
+    """
+
+    @wp.func(name="run_lm" + sfx, module=module)
+    def run_lm(
+        nstart: wp.vec3,
+        images: wp.array3d(dtype=wp.vec3),
+        weights: wp.array3d(dtype=wp.float32),
+        px: Pixel,
+        lights: LightParams,
+        mat: MaterialParams,
+        prm: SolverParams,
+    ):
+        """Levenberg-Marquardt (Algorithm 4; Madsen-Nielsen damping update), chart re-centred at each accepted step.
+
+        ``d = -(J^T J + lambda I)^-1 J^T r``; gain ratio
+        ``rho = (F(x) - F(x + d)) / (1/2 d^T (lambda d - J^T r))`` (Algorithm 4's
+        denominator is ``L(0) - L(d)`` of the Gauss-Newton model); accepted steps
+        shrink lambda by ``max(1/3, 1 - (2 rho - 1)^3)``, rejected ones grow it by
+        ``nu`` and double ``nu``.  Stops on ``|J^T r|_inf <= tol_grad``, a step
+        ``<= tol_step`` (radians), or ``max_iters`` evaluations.
+        """
+        n0 = nstart
+        t1 = tangent_basis_t1(n0)
+        t2 = wp.cross(n0, t1)
+        zero = wp.vec2(0.0)
+        ev = evaluate(n0, t1, t2, zero, images, weights, px, lights, mat)
+        lam = prm.lm_tau * wp.max(wp.max(ev.jtj[0, 0], ev.jtj[1, 1]), 1.0e-20)
+        nu = float(2.0)
+        k = int(0)
+        converged = int(0)
+        while k < prm.max_iters:
+            g = ev.jtr
+            if wp.max(wp.abs(g[0]), wp.abs(g[1])) <= prm.tol_grad:
+                converged = 1
+                if prm.early_exit != 0:
+                    break
+            a = ev.jtj + wp.mat22(lam, 0.0, 0.0, lam)
+            d = -solve22(a, g)
+            k += 1
+            if wp.length(d) <= prm.tol_step:
+                converged = 1
+                if prm.early_exit != 0:
+                    break
+            trial = evaluate(n0, t1, t2, d, images, weights, px, lights, mat)
+            pred = 0.5 * (lam * dot2(d, d) - dot2(d, g))
+            rho = float(-1.0)
+            if pred > 0.0:
+                rho = (ev.cost - trial.cost) / pred
+            if rho > 0.0:
+                # re-centre the chart on the accepted normal, reusing the trial's Jacobian
+                dn_old = chart_normal_jacobian(n0, t1, t2, d)
+                n0 = chart_normal(n0, t1, t2, d)
+                t1 = tangent_basis_t1(n0)
+                t2 = wp.cross(n0, t1)
+                ev = transport(trial, dn_old, t1, t2)
+                t = 2.0 * rho - 1.0
+                lam = lam * wp.max(1.0 / 3.0, 1.0 - t * t * t)
+                nu = 2.0
+            else:
+                lam = lam * nu
+                nu = 2.0 * nu
+                if lam > 1.0e16:
+                    converged = 1
+                    if prm.early_exit != 0:
+                        break
+        return start_result(n0, ev, k, converged)
+
+    return run_lm
+
+
+def dogleg_for(evaluate, module, sfx: str):
+    """``run_dogleg``: Powell's dog leg from one start normal.
+
+    Args:
+        evaluate: the cost evaluation (:func:`gpps.kernels.solve_cost.evaluate_for`).
+        module: Warp module of the function (None: this file's).
+        sfx: key suffix of the function.
+    """
+
+    @wp.func(name="run_dogleg" + sfx, module=module)
+    def run_dogleg(
+        nstart: wp.vec3,
+        images: wp.array3d(dtype=wp.vec3),
+        weights: wp.array3d(dtype=wp.float32),
+        px: Pixel,
+        lights: LightParams,
+        mat: MaterialParams,
+        prm: SolverParams,
+    ):
+        """Powell's dog leg (Algorithm 5, 4.10-4.15) on the reduced problem.
+
+        ``h_sd = -g`` with ``g = J^T r`` and Cauchy step length
+        ``alpha = |g|^2 / |J g|^2`` (4.15); ``h_gn = -(J^T J)^-1 g`` (the
+        least-squares form of 4.10 for N > 2 residuals); the dog-leg step is
+        (4.12-4.14) with beta chosen so that ``|h_dl| = Delta``.
+
+        Algorithm 5's ``L(0) - L(h_dl)`` is garbled in the text; the correct gain
+        ratio denominator is the decrease of the Gauss-Newton model
+        ``L(0) - L(h) = -h^T g - 1/2 h^T J^T J h``, which reduces to Madsen et al.'s
+        cases: ``F(x)`` for the Gauss-Newton step (when J is square), ``Delta (2
+        |alpha g| - Delta) / (2 alpha)`` for the clipped steepest-descent step and
+        ``1/2 alpha (1 - beta)^2 |g|^2 + beta (2 - beta) F(x)`` otherwise.  We
+        evaluate the general expression.  Radius: ``rho > 0.75`` ->
+        ``Delta = max(Delta, 3 |h|)``, ``rho < 0.25`` -> ``Delta / 2``.
+        """
+        n0 = nstart
+        t1 = tangent_basis_t1(n0)
+        t2 = wp.cross(n0, t1)
+        zero = wp.vec2(0.0)
+        ev = evaluate(n0, t1, t2, zero, images, weights, px, lights, mat)
+        delta = prm.dogleg_radius
+        k = int(0)
+        converged = int(0)
+        while k < prm.max_iters:
+            g = ev.jtr
+            if wp.max(wp.abs(g[0]), wp.abs(g[1])) <= prm.tol_grad or delta <= prm.tol_step:
+                converged = 1
+                if prm.early_exit != 0:
+                    break
+            a = ev.jtj
+            gag = dot2(g, a * g)
+            gg = dot2(g, g)
+            alpha = float(0.0)
+            if gag > 0.0:
+                alpha = gg / gag
+            hgn = -solve22(a, g)
+            if dot2(hgn, hgn) == 0.0:
+                # singular J^T J: a tiny damping keeps the Gauss-Newton leg defined
+                tr = a[0, 0] + a[1, 1]
+                hgn = -solve22(a + wp.mat22(1.0e-6 * tr + 1.0e-20, 0.0, 0.0, 1.0e-6 * tr + 1.0e-20), g)
+            h = wp.vec2(0.0)
+            lg = wp.sqrt(gg)
+            if wp.length(hgn) <= delta:
+                h = hgn
+            elif alpha * lg >= delta or alpha == 0.0:
+                if lg > 0.0:
+                    h = -(delta / lg) * g
+            else:
+                sa = -alpha * g
+                bma = hgn - sa
+                c = dot2(sa, bma)
+                b2 = dot2(bma, bma)
+                disc = wp.max(c * c + b2 * (delta * delta - dot2(sa, sa)), 0.0)
+                beta = float(0.0)
+                if b2 > 0.0:
+                    beta = (-c + wp.sqrt(disc)) / b2
+                h = sa + beta * bma
+            k += 1
+            if wp.length(h) <= prm.tol_step:
+                converged = 1
+                if prm.early_exit != 0:
+                    break
+            trial = evaluate(n0, t1, t2, h, images, weights, px, lights, mat)
+            pred = -dot2(h, g) - 0.5 * dot2(h, a * h)
+            rho = float(-1.0)
+            if pred > 0.0:
+                rho = (ev.cost - trial.cost) / pred
+            if rho > 0.0:
+                dn_old = chart_normal_jacobian(n0, t1, t2, h)
+                n0 = chart_normal(n0, t1, t2, h)
+                t1 = tangent_basis_t1(n0)
+                t2 = wp.cross(n0, t1)
+                ev = transport(trial, dn_old, t1, t2)
+            if rho > 0.75:
+                delta = wp.max(delta, 3.0 * wp.length(h))
+            elif rho < 0.25:
+                delta = 0.5 * delta
+        return start_result(n0, ev, k, converged)
+
+    return run_dogleg
+
+
+def bfgs_for(evaluate, module, sfx: str):
+    """``run_bfgs``: quasi-Newton BFGS from one start normal.
+
+    Args:
+        evaluate: the cost evaluation (:func:`gpps.kernels.solve_cost.evaluate_for`).
+        module: Warp module of the function (None: this file's).
+        sfx: key suffix of the function.
+    """
+
+    @wp.func(name="run_bfgs" + sfx, module=module)
+    def run_bfgs(
+        nstart: wp.vec3,
+        images: wp.array3d(dtype=wp.vec3),
+        weights: wp.array3d(dtype=wp.float32),
+        px: Pixel,
+        lights: LightParams,
+        mat: MaterialParams,
+        prm: SolverParams,
+    ):
+        """Quasi-Newton with BFGS updates (Algorithm 3, 4.4-4.8) and a backtracking Armijo line search.
+
+        The chart is kept fixed (so the secant pairs live in one coordinate system)
+        and re-centred, with B reset, only when ``|x| > 0.5``.  ``B0`` is the
+        Gauss-Newton matrix ``J^T J`` (plus a tiny ridge), a standard choice for
+        least squares.  B is updated only when ``Theta^T Y > sqrt(eps) |Theta| |Y|``
+        (Algorithm 3).  Stops on ``|grad| <= tol_grad``, a step ``<= tol_step`` or
+        ``max_iters`` line-search evaluations.
+        """
+        n0 = nstart
+        t1 = tangent_basis_t1(n0)
+        t2 = wp.cross(n0, t1)
+        x = wp.vec2(0.0)
+        ev = evaluate(n0, t1, t2, x, images, weights, px, lights, mat)
+        tr = ev.jtj[0, 0] + ev.jtj[1, 1]
+        ridge = 1.0e-6 * tr + 1.0e-20
+        b = ev.jtj + wp.mat22(ridge, 0.0, 0.0, ridge)
+        k = int(0)
+        converged = int(0)
+        while k < prm.max_iters:
+            g = ev.jtr
+            if wp.max(wp.abs(g[0]), wp.abs(g[1])) <= prm.tol_grad:
+                converged = 1
+                if prm.early_exit != 0:
+                    break
+            d = -solve22(b, g)
+            gd = dot2(g, d)
+            if gd >= 0.0:
+                d = -g
+                gd = -dot2(g, g)
+                b = ev.jtj + wp.mat22(ridge, 0.0, 0.0, ridge)
+            # keep steps in the chart's useful range (about 0.5 rad)
+            ld = wp.length(d)
+            if ld > 0.5:
+                d = d * (0.5 / ld)
+                gd = gd * (0.5 / ld)
+            step = float(1.0)
+            accepted = int(0)
+            trial = ev
+            while k < prm.max_iters:
+                k += 1
+                trial = evaluate(n0, t1, t2, x + step * d, images, weights, px, lights, mat)
+                if trial.cost <= ev.cost + 1.0e-4 * step * gd:
+                    accepted = 1
+                    break
+                step = 0.5 * step
+                if step * ld <= prm.tol_step:
+                    break
+            if accepted == 0:
+                converged = 1
+                break
+            theta = step * d
+            yv = trial.jtr - g
+            x = x + theta
+            ev = trial
+            ty = dot2(theta, yv)
+            if ty > 3.45e-4 * wp.length(theta) * wp.length(yv):  # sqrt(float32 eps)
+                u = b * theta
+                tu = dot2(theta, u)
+                if tu > 0.0:
+                    b = b + wp.outer(yv, yv) / ty - wp.outer(u, u) / tu
+            if wp.length(theta) <= prm.tol_step:
+                converged = 1
+                if prm.early_exit != 0:
+                    break
+            if wp.length(x) > 0.5:
+                n0 = chart_normal(n0, t1, t2, x)
+                t1 = tangent_basis_t1(n0)
+                t2 = wp.cross(n0, t1)
+                x = wp.vec2(0.0)
+                ev = evaluate(n0, t1, t2, x, images, weights, px, lights, mat)
+                tr = ev.jtj[0, 0] + ev.jtj[1, 1]
+                ridge = 1.0e-6 * tr + 1.0e-20
+                b = ev.jtj + wp.mat22(ridge, 0.0, 0.0, ridge)
+        return start_result(chart_normal(n0, t1, t2, x), ev, k, converged)
+
+    return run_bfgs
+
+
+def run_method_for(method, run_lm, run_dogleg, run_bfgs, module, sfx: str):
+    """``run_method``: the chosen solver from one start normal (``method=None``: switch on ``prm.method``).
+
+    Args:
+        method: ``"lm"``, ``"dogleg"``, ``"bfgs"`` or None.
+        run_lm, run_dogleg, run_bfgs: the solvers (:func:`lm_for`, :func:`dogleg_for`, :func:`bfgs_for`).
+        module: Warp module of the function (None: this file's).
+        sfx: key suffix of the function.
+    """
+
+    @wp.func(name="run_method" + sfx, module=module)
+    def run_method(
+        nstart: wp.vec3,
+        images: wp.array3d(dtype=wp.vec3),
+        weights: wp.array3d(dtype=wp.float32),
+        px: Pixel,
+        lights: LightParams,
+        mat: MaterialParams,
+        prm: SolverParams,
+    ):
+        if wp.static(method == "lm"):
+            return run_lm(nstart, images, weights, px, lights, mat, prm)
+        elif wp.static(method == "dogleg"):
+            return run_dogleg(nstart, images, weights, px, lights, mat, prm)
+        elif wp.static(method == "bfgs"):
+            return run_bfgs(nstart, images, weights, px, lights, mat, prm)
+        else:
+            # generic build: run-time switch
+            if prm.method == DOGLEG:
+                return run_dogleg(nstart, images, weights, px, lights, mat, prm)
+            if prm.method == BFGS:
+                return run_bfgs(nstart, images, weights, px, lights, mat, prm)
+            return run_lm(nstart, images, weights, px, lights, mat, prm)
+
+    return run_method
+
+
+def solve_pixel_for(robust, run_method, spec_vg, module, sfx: str):
+    """``solve_pixel``: multi-start, then the IRLS rounds of the robust loss (``robust=None``: switch on ``prm.robust``).
+
+    Args:
+        robust: ``"none"``, ``"huber"``, ``"cauchy"`` or None.
+        run_method: the solver (:func:`run_method_for`).
+        spec_vg: the specular value-and-gradient (:func:`gpps.kernels.solve_cost.specular_value_grad_for`).
+        module: Warp module of the function (None: this file's).
+        sfx: key suffix of the function.
+    """
+
+    @wp.func(name="solve_pixel" + sfx, module=module)
+    def solve_pixel(
+        ninit: wp.vec3,
+        gmax: float,
+        images: wp.array3d(dtype=wp.vec3),
+        weights: wp.array3d(dtype=wp.float32),
+        px: Pixel,
+        lights: LightParams,
+        mat: MaterialParams,
+        prm: SolverParams,
+    ):
+        """Multi-start nonlinear least squares, then IRLS rounds from the best start."""
+        i = px.i
+        j = px.j
+        v = px.v
+        best = StartResult()
+        best.cost = 1.0e30
+        best.n = ninit
+        total = int(0)
+        nstarts = wp.max(prm.starts, 1)
+        if prm.warm_start != 0:
+            nstarts = 1
+        hbright = brightest_half_vector(images, weights, px, lights)
+        for s in range(nstarts):
+            res = run_method(start_normal(s, ninit, v, hbright, prm), images, weights, px, lights, mat, prm)
+            total += res.iters
+            if res.cost < best.cost and wp.dot(res.n, v) > 0.0:
+                best = res
+        if best.cost >= 1.0e30:
+            # every start ended facing away from the camera: keep the least-squares start
+            best = run_method(ninit, images, weights, px, lights, mat, prm)
+            total += best.iters
+        if wp.static(robust != "none"):
+            # (robust "none" runs no reweighting round: irls_rounds is 0)
+            for rnd in range(prm.irls_rounds):
+                # robust reweighting from the residuals at the current best (Huber / Cauchy IRLS)
+                scale = prm.robust_scale * wp.max(gmax, 1.0e-12)
+                for k in range(lights.count):
+                    wk = weights[k, i, j]
+                    if wk != 0.0:
+                        l = light_dir(lights, k, px.p)
+                        e = light_radiance(lights, k, px.p)
+                        o = images[k, i, j]
+                        dg = diffuse_value_grad(best.n, l)
+                        sg = spec_vg(mat, best.n, l, v)
+                        r2 = float(0.0)
+                        for c in range(3):
+                            r = o[c] - e[c] * (best.kd[c] * dg[0] + mat.ks * sg[0])
+                            if wk < 0.0:
+                                # a dark term's residual is one-sided; a cast shadow is its outlier
+                                r = wp.min(r, 0.0)
+                            r2 += r * r
+                        rr = wp.sqrt(r2 / 3.0) / scale
+                        w = float(1.0)
+                        if wp.static(robust == "huber"):
+                            if rr > 1.0:
+                                w = 1.0 / rr
+                        elif wp.static(robust == "cauchy"):
+                            w = 1.0 / (1.0 + rr * rr)
+                        else:
+                            # generic build: run-time switch
+                            if prm.robust == ROBUST_HUBER:
+                                if rr > 1.0:
+                                    w = 1.0 / rr
+                            else:
+                                w = 1.0 / (1.0 + rr * rr)
+                        w = wp.max(w, 1.0e-6)
+                        if wk < 0.0:
+                            w = -w
+                        weights[k, i, j] = w
+                res = run_method(best.n, images, weights, px, lights, mat, prm)
+                total += res.iters
+                best = res
+        out = PixelSolution()
+        out.best = best
+        out.total = total
+        return out
+
+    return solve_pixel
+
+
+def solver_funcs(method, brdf, robust, module=None, sfx: str = ""):
+    """Define the solver functions for one ``(method, brdf, robust)``.
+
+    ``None`` for any of them keeps that choice a run-time switch on
+    ``prm.method`` / ``mat.model`` / ``prm.robust`` (the generic build).  The
+    ``wp.static`` conditions are evaluated at code generation, so only the
+    chosen branches are emitted.  ``module`` / ``sfx``: Warp module and key
+    suffix of the functions (distinct per specialisation).
+
+    Returns:
+        A namespace with ``evaluate``, ``run_lm``, ``run_dogleg``, ``run_bfgs``,
+        ``run_method`` and ``solve_pixel``.
+    """
+    spec_vg = specular_value_grad_for(brdf, module, sfx)
+    evaluate = evaluate_for(light_terms_for(spec_vg, module, sfx), module, sfx)
+    run_lm = lm_for(evaluate, module, sfx)
+    run_dogleg = dogleg_for(evaluate, module, sfx)
+    run_bfgs = bfgs_for(evaluate, module, sfx)
+    run_method = run_method_for(method, run_lm, run_dogleg, run_bfgs, module, sfx)
+    solve_pixel = solve_pixel_for(robust, run_method, spec_vg, module, sfx)
+    return SimpleNamespace(
+        evaluate=evaluate, run_lm=run_lm, run_dogleg=run_dogleg, run_bfgs=run_bfgs, run_method=run_method, solve_pixel=solve_pixel
+    )

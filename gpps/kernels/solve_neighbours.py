@@ -1,0 +1,168 @@
+"""Robust statistics of the well-determined pixels around an under-determined one (the solver's neighbour pass).
+
+Device math only: :func:`neighbour_stats` is what the ``underdetermined_kernel``
+of :mod:`gpps.kernels.solve_kernels` reads to hold a pixel's albedo and to
+break the ties of its normal (see :class:`gpps.pipeline.solver.SolverConfig`'s
+``neighbour_radius``).
+"""
+
+import warp as wp
+
+from gpps.kernels.solve_common import FLAG_FEW_OBSERVATIONS
+
+NEIGHBOUR_MIN_COUNT = 16  # well-determined pixels the neighbour pass gathers (before its 2 extra rings)
+WEISZFELD_ITERS = wp.constant(8)  # iterations of the neighbours' geometric median
+LINEAR_ITERS = wp.constant(5)  # IRLS rounds of the neighbours' first-order normal model
+
+
+@wp.func
+def ring_offset(r: int, t: int):
+    """Offset ``(di, dj)`` of the ``t``-th pixel (``0 <= t < 8 r``) of the square ring of radius ``r``."""
+    side = t / (2 * r)
+    o = t % (2 * r)
+    if side == 0:
+        return -r, -r + o
+    if side == 1:
+        return -r + o, r
+    if side == 2:
+        return r, r - o
+    return r - o, -r
+
+
+@wp.func
+def is_determined(mask: wp.array2d(dtype=wp.uint8), flags: wp.array2d(dtype=wp.int32), ii: int, jj: int):
+    """True for a pixel inside the image and the mask with at least 3 lit observations."""
+    if ii < 0 or ii >= mask.shape[0] or jj < 0 or jj >= mask.shape[1]:
+        return False
+    if mask[ii, jj] == wp.uint8(0):
+        return False
+    return (flags[ii, jj] & FLAG_FEW_OBSERVATIONS) == 0
+
+
+@wp.struct
+class NeighbourStats:
+    """Robust albedo and normal of the well-determined pixels around an under-determined one."""
+
+    kd: wp.vec3
+    n: wp.vec3
+    n_lin: wp.vec3
+    lin_ok: wp.int32
+    count: wp.float32
+    reach: wp.int32
+
+
+@wp.func
+def neighbour_stats(
+    i: int,
+    j: int,
+    radius: int,
+    min_count: int,
+    mask: wp.array2d(dtype=wp.uint8),
+    flags: wp.array2d(dtype=wp.int32),
+    normals: wp.array2d(dtype=wp.vec3),
+    albedo: wp.array2d(dtype=wp.vec3),
+):
+    """Geometric medians of the albedo and the normal of the nearest well-determined pixels.
+
+    Square rings around ``(i, j)`` are searched until ``min_count`` well-determined
+    pixels are found (or ``radius``), then 2 rings more.  The location is the
+    geometric (spatial) median ``argmin_m sum_q |x_q - m|`` by Weiszfeld's
+    iteration ``m <- sum_q x_q / |x_q - m| / sum_q 1 / |x_q - m|`` from the mean
+    (Weiszfeld 1937; breakdown point 1/2): a few grazing pixels whose shadowed
+    observation noise made them look lit, with a wrong albedo, cannot pull it.
+    ``n_lin``: the first-order (affine) model ``n(q) = c + g_i di + g_j dj`` of
+    the same pixels' normals fitted by least absolute deviations (IRLS with
+    weights ``1 / |residual|``, ``LINEAR_ITERS`` rounds from least squares),
+    evaluated at the pixel (``c``): on a rim the neighbours lie on one side and
+    the normal keeps turning, so their median lags where the extrapolation does
+    not.  ``lin_ok`` 0: the fit was singular (neighbours on a line).
+    ``count`` 0: none found.
+    """
+    out = NeighbourStats()
+    acc = wp.vec3(0.0)
+    nacc = wp.vec3(0.0)
+    cnt = float(0.0)
+    r_stop = radius
+    reach = int(0)
+    for r in range(1, radius + 1):
+        if r > r_stop:
+            break
+        reach = r
+        for t in range(8 * r):
+            di, dj = ring_offset(r, t)
+            if is_determined(mask, flags, i + di, j + dj):
+                acc += albedo[i + di, j + dj]
+                nacc += normals[i + di, j + dj]
+                cnt += 1.0
+        if cnt >= float(min_count) and r_stop == radius:
+            r_stop = wp.min(r + 2, radius)
+    out.count = cnt
+    out.reach = reach
+    if cnt == 0.0:
+        out.kd = wp.vec3(0.0)
+        out.n = wp.vec3(0.0)
+        return out
+    mk = acc / cnt
+    mn = nacc / cnt
+    for it in range(WEISZFELD_ITERS):
+        ak = wp.vec3(0.0)
+        an = wp.vec3(0.0)
+        wk = float(0.0)
+        wn = float(0.0)
+        ek = 1.0e-4 * wp.length(mk) + 1.0e-12
+        for r in range(1, reach + 1):
+            for t in range(8 * r):
+                di, dj = ring_offset(r, t)
+                if is_determined(mask, flags, i + di, j + dj):
+                    a = albedo[i + di, j + dj]
+                    q = normals[i + di, j + dj]
+                    u = 1.0 / wp.max(wp.length(a - mk), ek)
+                    z = 1.0 / wp.max(wp.length(q - mn), 1.0e-4)
+                    ak += u * a
+                    wk += u
+                    an += z * q
+                    wn += z
+        mk = ak / wk
+        mn = an / wn
+    out.kd = mk
+    out.n = mn
+    # first-order model n(q) = c + g_i di + g_j dj of the neighbours' normals, least absolute
+    # deviations by IRLS (weights 1 / |residual|); c extrapolates the field to the pixel
+    lin = wp.vec3(mn)
+    gi = wp.vec3(0.0)
+    gj = wp.vec3(0.0)
+    ok = int(0)
+    for it in range(LINEAR_ITERS):
+        am = wp.mat33(0.0)
+        b0 = wp.vec3(0.0)
+        b1 = wp.vec3(0.0)
+        b2 = wp.vec3(0.0)
+        for r in range(1, reach + 1):
+            for t in range(8 * r):
+                di, dj = ring_offset(r, t)
+                if is_determined(mask, flags, i + di, j + dj):
+                    q = normals[i + di, j + dj]
+                    x = wp.vec3(1.0, float(di), float(dj))
+                    wgt = float(1.0)
+                    if it > 0:
+                        wgt = 1.0 / wp.max(wp.length(q - lin - float(di) * gi - float(dj) * gj), 1.0e-3)
+                    am += wgt * wp.outer(x, x)
+                    b0 += wgt * q[0] * x
+                    b1 += wgt * q[1] * x
+                    b2 += wgt * q[2] * x
+        fa = wp.sqrt(wp.ddot(am, am))
+        if wp.abs(wp.determinant(am)) <= 1.0e-6 * fa * fa * fa:
+            ok = 0
+            break
+        ai = wp.inverse(am)
+        c0 = ai * b0
+        c1 = ai * b1
+        c2 = ai * b2
+        lin = wp.vec3(c0[0], c1[0], c2[0])
+        gi = wp.vec3(c0[1], c1[1], c2[1])
+        gj = wp.vec3(c0[2], c1[2], c2[2])
+        ok = 1
+    out.n_lin = lin
+    out.lin_ok = ok
+    return out
+
