@@ -25,7 +25,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "gpps"
 
 LAYER_OF_TOP = {
-    "_check": "base", "names": "base", "_runtime": "base", "_taichi": "base",
+    "_check": "base", "names": "base", "_version": "base", "_runtime": "base", "_taichi": "base",
     "camera": "types", "lights": "types", "material": "types",
     "kernels": "kernels", "host": "host", "nn": "host", "io": "io", "pipeline": "pipeline", "flows": "flows",
     "__init__": "api", "__main__": "api", "cli": "cli",
