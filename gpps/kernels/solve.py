@@ -57,6 +57,7 @@ and IRLS), :mod:`gpps.kernels.solve_neighbours` (the neighbour statistics) and
 """
 
 from gpps import names
+from gpps._check import check_choice
 
 from gpps.kernels.solve_common import (
     BFGS,
@@ -135,12 +136,9 @@ def specialisation_key(method, brdf, robust) -> tuple:
     Solver ``"none"`` (Woodham only) uses neither the model nor the loss, so it
     has one build.  ``None`` (any of them): run-time switch (the generic build).
     """
-    if method is not None and method not in METHODS:
-        raise ValueError(f"method: expected one of {list(METHODS)} or None, got {method!r}")
-    if brdf is not None and brdf not in BRDFS:
-        raise ValueError(f"brdf: expected one of {list(BRDFS)} or None, got {brdf!r}")
-    if robust is not None and robust not in ROBUST:
-        raise ValueError(f"robust: expected one of {list(ROBUST)} or None, got {robust!r}")
+    check_choice("method", method, METHODS, allow_none=True)
+    check_choice("brdf", brdf, BRDFS, allow_none=True)
+    check_choice("robust", robust, ROBUST, allow_none=True)
     if method == "none":
         brdf, robust = "lambertian", "none"
     return method, brdf, robust
