@@ -206,7 +206,7 @@ def test_bad_configuration_raises():
 
 def test_failed_write_leaves_nothing(tmp_path, monkeypatch):
     """A crash while writing a capture leaves neither a half folder nor a changed old one."""
-    import gpps.io as gio
+    import gpps.io.files as gio  # write_dataset calls the module's save_png
 
     scene = make_scene("sphere", 32, "orthographic")
     ds = render_dataset(scene, Material(), default_lights("directional", 3), bits=16)

@@ -215,7 +215,7 @@ def test_refiner_robust_loss(device):
     ref = Refiner(N, P, device=device)
     errs = []
     for robust in (0.0, 0.02):
-        r = ref.run(img, w, np.tile([0.0, 0.0, 1.0], (P, 1)), start, np.full((P, 3), 0.5), s, specular=0, fit_lights=False, robust=robust, iterations=200, lr=0.02)
+        r = ref.run(img, w, np.tile([0.0, 0.0, 1.0], (P, 1)), start, np.full((P, 3), 0.5), s, specular="lambertian", fit_lights=False, robust=robust, iterations=200, lr=0.02)
         errs.append(np.degrees(np.arccos(np.clip(np.sum(r.normals * n, 1), -1, 1))).mean())
     assert errs[1] < 0.5 * errs[0], errs
 
