@@ -29,7 +29,8 @@ BiNI) is made by every pixel alike from the finished column, so one launch runs
 several iterations (unrolled, ``ti.static``) and turns into no-ops once the
 solve is done: the host checks once per launch and never overshoots.  :func:`make_bini` builds the kernels
 over one set of fields (closed over, not passed: a launch has no per-argument
-cost).
+cost), from factories by topic: the IRLS weights and energy, the system
+assembly with the CG start, and the CG iteration (parallel or serial).
 
 Only device code lives here; allocation and orchestration are in
 :mod:`gpps.pipeline.integration_bini`.
@@ -103,12 +104,28 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
         ``rr[(sc[ITS] - 1) % 3][0]`` is the last ``|r|^2``),
         ``scatter(n, out)`` (``out[i, j] = x[p]``).
     """
-    x, b, r, z, p0, p1, q = F["x"], F["b"], F["r"], F["z"], F["p0"], F["p1"], F["q"]
-    Nj, Ni, mj, mi, wj, wi = F["Nj"], F["Ni"], F["mj"], F["mi"], F["wj"], F["wi"]
-    Wr, Wd, Fr, Fd, dinv, nb, pix, sc = F["Wr"], F["Wd"], F["Fr"], F["Fd"], F["dinv"], F["nb"], F["pix"], F["sc"]
-    pqf, rrf, rzf, dnf = F["pq"], F["rr"], F["rz"], F["done"]
     if unroll % 6:
         raise ValueError(f"unroll: expected a multiple of 6 (direction buffers by 2, scalar columns by 3), got {unroll}")
+    x, pix = F["x"], F["pix"]
+    K = {**_weight_kernels(F), "begin": _begin_kernel(F),
+         "cg": _cg_serial_kernel(F, unroll) if serial else _cg_kernel(F, unroll, serial)}
+
+    @ti.kernel
+    def scatter(n: ti.i32, out: ti.types.ndarray()):
+        for p in range(n):
+            out[pix[p, 0], pix[p, 1]] = x[p]
+
+    K["scatter"] = scatter
+    return K
+
+
+def _weight_kernels(F: dict) -> dict:
+    """BiNI's energy and IRLS weight update over the fields ``F`` (see :func:`make_bini`).
+
+    Returns:
+        dict of kernels ``energy(n)``, ``reweight(n, k)``.
+    """
+    x, Nj, Ni, mj, mi, wj, wi, nb, sc = F["x"], F["Nj"], F["Ni"], F["mj"], F["mi"], F["wj"], F["wi"], F["nb"], F["sc"]
 
     @ti.func
     def _residuals(p):
@@ -136,6 +153,17 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
             wj[p] = w1
             wi[p] = w2
             sc[ENERGY] += w1 * rr * rr + (1 - w1) * rl * rl + w2 * rd * rd + (1 - w2) * ru * ru
+
+    return {"energy": energy, "reweight": reweight}
+
+
+def _begin_kernel(F: dict):
+    """The kernel ``begin(n)`` over the fields ``F``: the system assembled from the weights, the CG started
+    (see :func:`make_bini`)."""
+    x, b, r, z, p0 = F["x"], F["b"], F["r"], F["z"], F["p0"]
+    Nj, Ni, mj, mi, wj, wi = F["Nj"], F["Ni"], F["mj"], F["mi"], F["wj"], F["wi"]
+    Wr, Wd, Fr, Fd, dinv, nb, sc = F["Wr"], F["Wd"], F["Fr"], F["Fd"], F["dinv"], F["nb"], F["sc"]
+    pqf, rrf, rzf, dnf = F["pq"], F["rr"], F["rz"], F["done"]
 
     @ti.func
     def _apply(v: ti.template(), p):
@@ -204,6 +232,42 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
         ti.static(pqf[0])[0] = 0
         sc[ITS] = 0
 
+    return begin
+
+
+def _ap_fused_func(F: dict):
+    """The ti.func ``_ap_fused(p, beta, pold)`` over the fields ``F`` (both CG builds use it)."""
+    z, Wr, Wd, nb = F["z"], F["Wr"], F["Wd"], F["nb"]
+
+    @ti.func
+    def _ap_fused(p, beta, pold: ti.template()):
+        """(p_new, (A p_new)_p) with p_new = z + beta pold formed on the fly for p and its neighbours."""
+        pp = z[p] + beta * pold[p]
+        s = pp * 0
+        o = nb[p, 0]
+        if o >= 0:
+            s += Wr[p] * (pp - (z[o] + beta * pold[o]))
+        o = nb[p, 1]
+        if o >= 0:
+            s += Wr[o] * (pp - (z[o] + beta * pold[o]))
+        o = nb[p, 2]
+        if o >= 0:
+            s += Wd[p] * (pp - (z[o] + beta * pold[o]))
+        o = nb[p, 3]
+        if o >= 0:
+            s += Wd[o] * (pp - (z[o] + beta * pold[o]))
+        return pp, s
+
+    return _ap_fused
+
+
+def _cg_kernel(F: dict, unroll: int, serial: bool):
+    """The kernel ``cg(n, tol2, maxit)`` over the fields ``F``: ``unroll`` gated Jacobi-PCG iterations
+    as two parallel loops each (see :func:`make_bini`)."""
+    x, r, z, p0, p1, q, dinv, sc = F["x"], F["r"], F["z"], F["p0"], F["p1"], F["q"], F["dinv"], F["sc"]
+    pqf, rrf, rzf, dnf = F["pq"], F["rr"], F["rz"], F["done"]
+    _ap_fused = _ap_fused_func(F)
+
     @ti.kernel
     def cg(n: ti.i32, tol2: ti.f64, maxit: ti.i32):
         for t in ti.static(range(unroll)):
@@ -250,24 +314,14 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
                         sc[ITS] += 1
                         sc[TOTAL] += 1
 
-    @ti.func
-    def _ap_fused(p, beta, pold: ti.template()):
-        """(p_new, (A p_new)_p) with p_new = z + beta pold formed on the fly for p and its neighbours."""
-        pp = z[p] + beta * pold[p]
-        s = pp * 0
-        o = nb[p, 0]
-        if o >= 0:
-            s += Wr[p] * (pp - (z[o] + beta * pold[o]))
-        o = nb[p, 1]
-        if o >= 0:
-            s += Wr[o] * (pp - (z[o] + beta * pold[o]))
-        o = nb[p, 2]
-        if o >= 0:
-            s += Wd[p] * (pp - (z[o] + beta * pold[o]))
-        o = nb[p, 3]
-        if o >= 0:
-            s += Wd[o] * (pp - (z[o] + beta * pold[o]))
-        return pp, s
+    return cg
+
+
+def _cg_serial_kernel(F: dict, unroll: int):
+    """``cg`` on one thread (the CPU build, see :func:`make_bini`)."""
+    x, r, z, p0, p1, q, dinv, sc = F["x"], F["r"], F["z"], F["p0"], F["p1"], F["q"], F["dinv"], F["sc"]
+    pqf, rrf, rzf, dnf = F["pq"], F["rr"], F["rz"], F["done"]
+    _ap_fused = _ap_fused_func(F)
 
     @ti.kernel
     def cg_serial(n: ti.i32, tol2: ti.f64, maxit: ti.i32):
@@ -304,10 +358,4 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
                 ti.static(rrf[c])[0] = rr
                 ti.static(rzf[c])[0] = rz
 
-    @ti.kernel
-    def scatter(n: ti.i32, out: ti.types.ndarray()):
-        for p in range(n):
-            out[pix[p, 0], pix[p, 1]] = x[p]
-
-    return {"energy": energy, "reweight": reweight, "begin": begin, "cg": cg_serial if serial else cg,
-            "scatter": scatter}
+    return cg_serial
