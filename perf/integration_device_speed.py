@@ -79,6 +79,7 @@ sys.path.insert(0, str(ROOT))
 os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 sys.path.insert(0, str(ROOT / "perf"))
 
+from _fused_variants import profiling_kernels  # noqa: E402
 from integration_speed import surface_normals  # noqa: E402
 
 
@@ -182,7 +183,7 @@ def main(argv=None) -> int:
                 cfg = StreamIntegratorConfig(coarsest=coarsest, method=method, launch=launch, blocks_per_sm=bps,
                                              persistent_size=psize, direct_launch=direct)
                 si = StreamIntegrator(mask, cam, cfg, device=a.device)
-                K = si._K
+                K = {**si._K, **profiling_kernels(si._K)}  # with vcycle_only, coarse_only, noop
                 out = dev(np.zeros((n, n), np.float32))
                 si.step(nAd, out, iterations=1)  # compile
                 if not a.quick:

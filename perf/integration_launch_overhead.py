@@ -22,6 +22,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
+sys.path.insert(0, str(ROOT / "perf"))
+
+from _fused_variants import profiling_kernels  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -47,7 +50,7 @@ def main(argv=None) -> int:
     nd_n = ti.ndarray(ti.f32, (n, n, 3))
     nd_o = ti.ndarray(ti.f32, (n, n))
     si = StreamIntegrator(np.ones((n, n), bool), Orthographic(1.0 / n), device=a.device)
-    K = si._K
+    K = {**si._K, **profiling_kernels(si._K)}  # with vcycle_only, noop
     fld = si._F["sc"]
 
     @ti.kernel
