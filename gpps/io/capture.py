@@ -36,7 +36,7 @@ from gpps.host.automask import automatic_mask
 from gpps.io import Dataset, read_K, read_matrix
 from gpps.io.formats import IMAGE_EXTENSIONS, Transfer, read_image_file
 
-__all__ = ["Capture", "read_capture", "list_images", "SIDE_IMAGE_STEMS"]
+__all__ = ["Capture", "read_capture", "list_images", "find_side_file", "SIDE_IMAGE_STEMS"]
 
 #: image files that are not captures (compared on the lower-case stem)
 SIDE_IMAGE_STEMS = ("mask", "normal_gt", "normals", "albedo", "depth", "view", "normal", "chrome_mask", "matte_mask", "sphere_mask", "card_mask")
@@ -90,7 +90,17 @@ class Capture:
     calibrated: bool = True
 
 
-def _find_side(root: Path, stem: str) -> Path | None:
+def find_side_file(root, stem: str) -> Path | None:
+    """The side image ``<stem>.<ext>`` in folder ``root`` (any extension :mod:`gpps.io.formats` reads, lower or upper case).
+
+    Args:
+        root: the folder.
+        stem: the file name without extension, e.g. ``"mask"`` or ``"chrome_mask"``.
+
+    Returns:
+        The first existing file, in the order of :data:`gpps.io.formats.IMAGE_EXTENSIONS`; None if there is none.
+    """
+    root = Path(root)
     for ext in IMAGE_EXTENSIONS:
         for cand in (root / f"{stem}{ext}", root / f"{stem}{ext.upper()}"):
             if cand.is_file():
@@ -198,7 +208,7 @@ def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = No
     h, w = images.shape[1:3]
     mask_source = "given"
     if mask is None:
-        mp = _find_side(root, "mask")
+        mp = find_side_file(root, "mask")
         if mp is not None:
             m_img, _ = read_image_file(mp, transfer="linear")
             m = np.any(m_img > 0.5, axis=-1)

@@ -34,6 +34,7 @@ __all__ = [
     "atomic_dir",
     "save_npy",
     "save_json",
+    "json_default",
     "save_txt",
     "save_png",
     "save_tiff",
@@ -268,10 +269,15 @@ def save_npy(path, array) -> None:
 
 def save_json(path, obj) -> None:
     with atomic_write(path) as tmp:
-        tmp.write_text(json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
+        tmp.write_text(json.dumps(obj, indent=2, sort_keys=False, default=json_default) + "\n")
 
 
-def _json_default(o):
+def json_default(o):
+    """The ``default=`` of :func:`json.dump` for gpps reports: numpy scalars and arrays as numbers and lists, paths as strings.
+
+    Raises:
+        TypeError: anything else (``json.dumps`` reports it with the key's value).
+    """
     if isinstance(o, np.generic):
         return o.item()
     if isinstance(o, np.ndarray):
