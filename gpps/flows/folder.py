@@ -1,0 +1,521 @@
+"""Photometric stereo on a capture folder as users have it: read, solve (calibrated or not), integrate, report.
+
+:func:`reconstruct_folder` is what ``gpps reconstruct`` runs.  It reads the folder with
+:func:`gpps.io.capture.read_capture` (any image format, optional light files, mask, K.txt, ambient
+image, ground truth), then
+
+* **uncalibrated** (no light files, or ``FolderConfig(uncalibrated=True)``): leaves out nearly dark
+  images (failed captures), estimates the lights from the pixels lit in enough images
+  (:func:`gpps.flows.uncalibrated.solve_uncalibrated`), takes the convex member of the convex/concave
+  pair when the images cannot tell them apart (:func:`flip_decision`) and solves the rest of the mask
+  by Lambertian least squares under the estimated lights;
+* **calibrated**: builds the material from ``material.json`` and the given parameters, decides which
+  parameters to estimate, the reference depth (given, else the ground truth's mean depth for
+  perspective cameras or point lights) and the saturated observations, and runs one of the methods
+  ``"ron"`` (:func:`gpps.flows.reconstruction.reconstruct`), ``"ppn"``
+  (:func:`gpps.flows.photometric.solve_normals`) or ``"pps"``
+  (:func:`gpps.host.perspective.pps_blinn_phong`), with the solver options of
+  :func:`automatic_solver_options` (a robust loss and more starts with many images);
+
+and finally integrates the normals into depth where the method did not, states the depth convention
+(:func:`gpps.io.outputs.depth_convention`) and the errors against ``normal_gt.npy``.
+:meth:`FolderResult.write` writes the output set (:data:`gpps.io.outputs.OUTPUT_FILES`), the estimated
+lights and ``report.json`` into a folder.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable, Literal
+
+import numpy as np
+
+from gpps._check import GppsWarning, check_bool, check_choices, check_number
+from gpps.camera import Orthographic, Perspective, camera_from_K
+from gpps.flows.integrate import integrate_normals
+from gpps.flows.photometric import solve_normals
+from gpps.flows.reconstruction import reconstruct
+from gpps.flows.ron import LOBE_PARAMETERS, MaterialRule, RONConfig
+from gpps.flows.uncalibrated import UncalibratedConfig, solve_uncalibrated
+from gpps.host.automask import lit_pixels
+from gpps.host.gbr import dark_images
+from gpps.host.metrics import normal_errors
+from gpps.host.perspective import pps_blinn_phong
+from gpps.io import atomic_write, save_json
+from gpps.io.capture import Capture, read_capture
+from gpps.io.formats import Transfer
+from gpps.io.outputs import apply_depth_convention, depth_convention, write_outputs
+from gpps.lights import DirectionalLights, PointLights
+from gpps.material import Material
+from gpps.names import BRDF, RobustName, SolverName
+from gpps.pipeline.integration import IntegratorConfig
+
+__all__ = ["FolderConfig", "FolderResult", "reconstruct_folder", "automatic_solver_options", "flip_decision",
+           "MANY_IMAGES", "ESTIMATED_FILES"]
+
+FolderMethod = Literal["ron", "ppn", "pps"]
+FolderIntegration = Literal["bini", "poisson"]
+Progress = Callable[[float, float, str], None]
+
+MANY_IMAGES = 6
+"""With more images than this, the per-pixel solves expect outliers (shadows, highlights): a Cauchy loss,
+observations below 0.02 taken as shadowed and 4 starts (:func:`automatic_solver_options`)."""
+
+ESTIMATED_FILES = ("lights_estimated.txt", "light_intensities_estimated.txt", "filenames_used.txt")
+"""The files an uncalibrated result writes beside the output set (:meth:`FolderResult.write`)."""
+
+
+@dataclass(frozen=True)
+class FolderConfig:
+    """Settings of :func:`reconstruct_folder` (the options of ``gpps reconstruct``).
+
+    Attributes:
+        transfer: the images' transfer curve: ``"auto"`` decodes sRGB for JPEG only.
+        max_size: downscale images whose longer side exceeds this many pixels (K scaled with them);
+            None: full size.
+        uncalibrated: estimate the lights even when light files are present (without them this is
+            automatic).
+        method: ``"ron"``: least squares, DGMC starts, RON rounds of normals/albedo/depth/material;
+            ``"ppn"``: one per-pixel solve with the material known, then integration; ``"pps"``:
+            perspective Blinn-Phong in log depth (perspective camera, directional lights).
+        brdf: reflectance model; None: ``material.json``'s, else ``"blinn-phong"``.
+        solver: per-pixel solver (``"none"``: Lambertian least squares).
+        robust: robust loss; None: the automatic policy of :func:`automatic_solver_options`
+            (``"cauchy"`` with more than :data:`MANY_IMAGES` images, ``"none"`` otherwise).
+        ks, shininess, roughness, f0: known material parameters (unitless; ``shininess`` the
+            Phong/Blinn-Phong exponent, ``roughness`` Cook-Torrance's m); None: estimated with
+            ``method="ron"``, else the model's default (``f0`` is never estimated).
+        eta: known Ashikhmin-Shirley exponent ``eta_u = eta_v``; None: estimated (as above).
+        known_material: use ``material.json``'s parameters as known (no estimation).
+        dgmc: RON: DGMC starts for highlight pixels.
+        integrate: compute depth (integration, mesh).
+        integration: the returned depth: ``"bini"``: bilateral normal integration of the final
+            normals (keeps discontinuities); ``"poisson"``: one least-squares solve.
+        estimate: RON: estimate the material parameters not given.
+        rounds: RON's round cap (>= 1).
+        material_rule: RON's material update (``"depth-rms"``: the seed's 4.19).
+        pixel_size: orthographic camera (no K.txt): scene units per pixel; None: depth in pixels.
+        reference_depth: mean object distance (scene units): sets the depth's scale; needed for point
+            lights unless the folder has ``depth_gt.npy``.
+    """
+
+    transfer: Transfer = "auto"
+    max_size: int | None = None
+    uncalibrated: bool = False
+    method: FolderMethod = "ron"
+    brdf: BRDF | None = None
+    solver: SolverName = "lm"
+    robust: RobustName | None = None
+    ks: float | None = None
+    shininess: float | None = None
+    roughness: float | None = None
+    eta: float | None = None
+    f0: float | None = None
+    known_material: bool = False
+    dgmc: bool = True
+    integrate: bool = True
+    integration: FolderIntegration = "bini"
+    estimate: bool = True
+    rounds: int = 5
+    material_rule: MaterialRule = "photometric"
+    pixel_size: float | None = None
+    reference_depth: float | None = None
+
+    def __post_init__(self):
+        check_choices(self)
+        for name in ("uncalibrated", "known_material", "dgmc", "integrate", "estimate"):
+            check_bool(name, getattr(self, name))
+        object.__setattr__(self, "rounds", check_number("rounds", self.rounds, lo=1, integer=True))
+        if self.max_size is not None:
+            object.__setattr__(self, "max_size", check_number("max_size", self.max_size, lo=1, integer=True))
+        for name in ("pixel_size", "reference_depth"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, check_number(name, getattr(self, name), lo=0.0, lo_open=True))
+        for name in ("ks", "shininess", "roughness", "eta", "f0"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, check_number(name, getattr(self, name)))
+
+    def given_material(self) -> dict:
+        """The material parameters given (not None), as :meth:`gpps.Material.to_dict` keys (eta: eta_u, eta_v)."""
+        given = {k: getattr(self, k) for k in ("ks", "shininess", "roughness", "f0") if getattr(self, k) is not None}
+        if self.eta is not None:
+            given.update(eta_u=self.eta, eta_v=self.eta)
+        return given
+
+
+@dataclass
+class FolderResult:
+    """What :func:`reconstruct_folder` found.
+
+    Attributes:
+        normals: (H, W, 3) float32 unit normals, gpps frame, 0 outside ``mask``.
+        albedo: (H, W, 3) float RGB albedo (linear, as estimated).
+        mask: (H, W) bool, the object's pixels (read or automatic).
+        depth: (H, W) float depth ``d = -z`` in ``depth_info``'s convention (NaN outside
+            ``depth_mask``); None without integration.
+        depth_mask: (H, W) bool where ``depth`` is defined; None without depth.
+        camera: the camera (perspective from K.txt, else orthographic with ``pixel_size``).
+        depth_info: the depth convention (:func:`gpps.io.outputs.depth_convention`); None without depth.
+        lights: the lights used: read (directional or point), or estimated (directional, one per
+            image used, the flip applied).
+        uncalibrated: whether the lights were estimated.
+        light_directions: uncalibrated: (N_used, 3) unit directions toward the estimated lights as
+            written to ``lights_estimated.txt``; None when calibrated.
+        light_intensities: uncalibrated: (N_used, 3) relative RGB intensities (mean 1); None when calibrated.
+        images_used: uncalibrated: the file names of the images used, in order; calibrated: all.
+        report: the ``report.json`` entries known after the solve (the outputs, the total time and
+            the warnings are added by :meth:`write`).
+        started: ``time.perf_counter()`` when the flow started (the report's total time counts from it).
+    """
+
+    normals: np.ndarray
+    albedo: np.ndarray
+    mask: np.ndarray
+    depth: np.ndarray | None
+    depth_mask: np.ndarray | None
+    camera: Orthographic | Perspective
+    depth_info: dict | None
+    lights: DirectionalLights | PointLights
+    uncalibrated: bool
+    light_directions: np.ndarray | None = None
+    light_intensities: np.ndarray | None = None
+    images_used: list[str] = field(default_factory=list)
+    report: dict = field(default_factory=dict)
+    started: float = field(default_factory=time.perf_counter)
+
+    def write(self, folder, *, warnings: list[str] | None = None, started: float | None = None) -> dict:
+        """Write the output set, the estimated lights (uncalibrated) and ``report.json`` into ``folder``.
+
+        ``folder`` is written as is: give it a temporary folder of :func:`gpps.io.atomic_dir` so that
+        the result appears complete or not at all.
+
+        Args:
+            folder: an existing folder.
+            warnings: the warning messages to record in ``report.json`` (``"warnings"``).
+            started: ``time.perf_counter()`` value the report's ``timings["total"]`` (s) counts from;
+                None: :attr:`started`.
+
+        Returns:
+            The report as written (``report`` with ``outputs``, ``view``, ``timings["total"]`` and
+            ``warnings`` added).
+        """
+        folder = Path(folder)
+        written = write_outputs(folder, normals=self.normals, albedo=self.albedo, mask=self.mask, depth=self.depth,
+                                depth_mask=self.depth_mask, camera=self.camera, depth_info=self.depth_info)
+        if self.uncalibrated:
+            hdr = ("gpps uncalibrated estimate, one row per image used (images_used in report.json, in order): "
+                   "{}; gpps frame: x right, y up, z toward the camera")
+            _save_rows(folder / ESTIMATED_FILES[0], self.light_directions, hdr.format("unit directions toward the lights"))
+            _save_rows(folder / ESTIMATED_FILES[1], self.light_intensities, hdr.format("relative RGB intensities (mean 1)"))
+            (folder / ESTIMATED_FILES[2]).write_text("\n".join(self.images_used) + "\n")
+            written["files"] += list(ESTIMATED_FILES)
+        report = self.report
+        report["outputs"] = written["files"]
+        if "view" in written:
+            report["view"] = written["view"]
+        report.setdefault("timings", {})["total"] = time.perf_counter() - (self.started if started is None else started)
+        report["warnings"] = list(warnings or [])
+        save_json(folder / "report.json", report)
+        return report
+
+
+def _save_rows(path, rows, header: str) -> None:
+    """``rows`` as a text matrix (``%.9g``, one row a line) under a ``#`` header, written atomically."""
+    with atomic_write(path) as tmp:
+        np.savetxt(tmp, np.atleast_2d(np.asarray(rows, np.float64)), fmt="%.9g", header=header)
+
+
+def automatic_solver_options(n_images: int, robust: RobustName | None = None) -> dict:
+    """The per-pixel solver options the folder flow uses for ``n_images`` images.
+
+    With more than :data:`MANY_IMAGES` images some observations are expected to be outliers
+    (cast shadows, interreflections, highlights the model misses): the loss is Cauchy, observations
+    below 0.02 (of full scale) count as shadowed and each pixel is started from 4 normals.  With
+    fewer, every observation is needed: no robust loss, the solver's defaults.
+
+    Args:
+        n_images: the number of images N.
+        robust: a loss to use instead of the automatic one (None: automatic).
+
+    Returns:
+        ``{"robust": ...}``, plus ``shadow_threshold`` and ``starts`` with many images: keyword
+        arguments of :func:`gpps.flows.photometric.solve_normals` and fields of :class:`gpps.SolverConfig`.
+    """
+    many = n_images > MANY_IMAGES
+    opts = {"robust": robust or ("cauchy" if many else "none")}
+    if many:
+        opts.update(shadow_threshold=0.02, starts=4)
+    return opts
+
+
+def flip_decision(normals, mask, flip: str) -> tuple[bool, dict]:
+    """The convex/concave decision for an uncalibrated result.
+
+    When the images decided it (perspective cues, ``flip == "resolved"``) it is kept.  Otherwise the
+    two members of the pair explain the images equally well, and the convex one is taken: its
+    normals point away from the object's middle, ``mean(n_xy . (p - centroid) / |p - centroid|) > 0``
+    over the mask (p the pixel's position in the gpps frame, y up), which holds for any surface that
+    bulges toward the camera (faces, most objects).
+
+    Args:
+        normals: (H, W, 3) unit normals of the estimate, gpps frame.
+        mask: (H, W) bool, the pixels to judge on.
+        flip: the estimate's ``flip`` (:class:`gpps.flows.uncalibrated.UncalibratedResult`):
+            ``"resolved"`` when the images decided.
+
+    Returns:
+        (whether to flip: ``n -> diag(-1, -1, 1) n``, the report entry).
+    """
+    h, w = mask.shape
+    jj, ii = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    x, y = jj[mask] - jj[mask].mean(), -(ii[mask] - ii[mask].mean())
+    r = np.sqrt(x**2 + y**2) + 1e-9
+    n = normals[mask]
+    score = float(np.mean((n[:, 0] * x + n[:, 1] * y) / r))
+    if flip == "resolved":
+        return False, {"flip": "resolved", "by": "perspective cues (specular residual or curl)",
+                       "surface": "convex" if score > 0 else "concave", "convexity_score": score}
+    flipped = score < 0
+    return flipped, {"flip": "ambiguous", "by": "convexity prior: the images cannot tell the pair apart; the member whose "
+                                                "normals point away from the object's middle was kept",
+                     "surface": "convex", "convexity_score": abs(score), "flipped": bool(flipped)}
+
+
+def _uncalibrated(cap: Capture, camera, report: dict, device, progress) -> dict:
+    """The uncalibrated branch: lights estimated from the evidence pixels, the rest by least squares.
+
+    Returns:
+        ``normals``, ``albedo``, ``lights``, ``directions`` (N_used, 3), ``intensities`` (N_used, 3),
+        ``used`` (file names); the report entries are added to ``report``.
+    """
+    ds = cap.dataset
+    n = ds.images.shape[0]
+    cfg = UncalibratedConfig()
+    drop = dark_images(ds.images, ds.mask, cfg.dark_fraction) if cfg.dark_fraction > 0 else []
+    if drop:
+        warnings.warn(f"left out {len(drop)} nearly dark image(s) (failed captures?): {', '.join(ds.filenames[k] for k in drop)}",
+                      GppsWarning, stacklevel=3)
+    keep = [k for k in range(n) if k not in drop]
+    used = [ds.filenames[k] for k in keep]
+    t = time.perf_counter()
+    # the lights are estimated from the pixels that carry evidence: lit in enough images (a pupil or a
+    # hole dark in nearly every image says nothing about them); the rest of the mask is then solved
+    # with the estimated lights (Lambertian least squares)
+    imgs_used = ds.images[keep]
+    evidence = ds.mask & lit_pixels(imgs_used)
+    if evidence.sum() < 0.5 * ds.mask.sum():
+        evidence = ds.mask
+    res = solve_uncalibrated(imgs_used, evidence, camera=camera if camera.is_perspective else None, config=cfg,
+                             device=device, progress=progress)
+    flip, decision = flip_decision(res.normals, evidence, res.flip)
+    F = np.diag([-1.0, -1.0, 1.0])
+    normals, ldirs = (res.normals @ F, res.light_directions @ F) if flip else (res.normals, res.light_directions)
+    albedo = res.albedo
+    intens = np.repeat(np.asarray(res.light_intensities, np.float64)[:, None], 3, 1)
+    rest = ds.mask & ~evidence
+    if rest.any():
+        ls = solve_normals(imgs_used / intens[:, None, None, :].astype(np.float32), rest, DirectionalLights(ldirs),
+                           camera=camera, solver="none", device=device)
+        normals = np.where(rest[..., None], ls.normals, normals)
+        albedo = np.where(rest[..., None], ls.albedo, albedo)
+    report.update(method="uncalibrated", lights="estimated (directional)", convex_concave=decision,
+                  images_used=used, images_left_out=[ds.filenames[k] for k in drop],
+                  light_evidence_pixels=int(evidence.sum()), material=res.material, gbr=res.gbr,
+                  timings={"uncalibrated": time.perf_counter() - t, **res.timings})
+    return {"normals": normals, "albedo": albedo, "lights": DirectionalLights(ldirs), "directions": ldirs,
+            "intensities": intens, "used": used}
+
+
+def _material(ds, config: FolderConfig) -> tuple[Material, tuple[str, ...], set[str]]:
+    """The material of the calibrated solve: (material, the parameters to estimate, the names given).
+
+    ``material.json``'s model unless ``config.brdf`` names another; its parameters only with
+    ``known_material`` (else the model's defaults); the parameters given in ``config`` override.
+    RON estimates the model's lobe parameters that were not given.
+    """
+    base = Material.from_dict(ds.material) if ds.material else None
+    brdf = config.brdf or (base.brdf if base is not None else "blinn-phong")
+    if config.known_material and base is not None and base.brdf == brdf:
+        mat_d = base.to_dict()
+    else:
+        mat_d = Material.default_for(brdf).to_dict()
+    given = config.given_material()
+    mat_d.update(brdf=brdf, **given)
+    given_names = {"eta" if k in ("eta_u", "eta_v") else k for k in given}
+    if config.known_material or not config.estimate or config.method != "ron":
+        estimate = ()
+    else:
+        estimate = tuple(k for k in LOBE_PARAMETERS[brdf] if k not in given_names)
+    return Material.from_dict(mat_d), estimate, given_names
+
+
+def _saturation(cap: Capture) -> np.ndarray | None:
+    """(N, H, W) bool, False where an observation was saturated in the file; None for float images.
+
+    Integer images were read as 0..full scale, so a value >= 0.995 (before the division by the light
+    intensities) was clipped by the camera; float formats (EXR, 32-bit TIFF) have no ceiling.
+    """
+    ds = cap.dataset
+    integer_input = all(f["format"] not in ("exr",) and not (f["format"] == "tiff" and f["bits"] == 32) for f in cap.formats)
+    if not integer_input:
+        return None
+    raw = ds.images
+    if ds.light_intensities is not None and ds.normalised:
+        raw = ds.images * np.asarray(ds.light_intensities, np.float32)[:, None, None, :]
+    return ~np.any(raw >= 0.995, axis=-1)
+
+
+def _reference_depth(ds, camera, lights, reference, source) -> tuple[float | None, str | None]:
+    """The reference depth (scene units) and the name of what gave the depth's scale (None: relative).
+
+    Given by the user, else the ground truth's mean depth when the camera is perspective or the lights
+    are points; point lights set a metric scale themselves but need the distance.
+    """
+    if reference is None and ds.depth_gt is not None and (camera.is_perspective or isinstance(lights, PointLights)):
+        reference = float(np.nanmean(np.asarray(ds.depth_gt, np.float64)[ds.mask]))
+        source = "depth_gt.npy"
+    if isinstance(lights, PointLights):
+        if reference is None:
+            raise ValueError("reference_depth: expected the object's distance for point lights (light_positions.txt), got none")
+        source = "light_positions.txt" + (f" (distance from {source})" if source else "")
+    return reference, source
+
+
+def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, report: dict, device, progress) -> dict:
+    """The calibrated branch: the material, the reference depth, then the method (pps, ppn or ron).
+
+    Returns:
+        ``normals``, ``albedo``, ``lights``, ``depth`` and ``depth_mask`` (RON's, else None),
+        ``reference`` and ``source`` (the depth's scale); the report entries are added to ``report``.
+    """
+    ds = cap.dataset
+    n, h, w = ds.images.shape[:3]
+    report["method"] = config.method
+    lights = PointLights(ds.light_positions) if ds.light_positions is not None else DirectionalLights(ds.light_directions)
+    report["lights"] = lights.kind
+    material, estimate, given_names = _material(ds, config)
+    reference, source = _reference_depth(ds, camera, lights, reference, source)
+    internal_reference = reference
+    if internal_reference is None and camera.is_perspective:
+        internal_reference = float(np.sqrt(camera.fx * camera.fy))  # any scale: the shape does not depend on it
+    valid = _saturation(cap)
+    opts = automatic_solver_options(n, config.robust)
+    robust = opts["robust"]
+    out = {"lights": lights, "depth": None, "depth_mask": None, "reference": reference, "source": source}
+    if config.method == "pps":
+        if not camera.is_perspective or not isinstance(lights, DirectionalLights):
+            raise ValueError("method pps: expected a perspective camera (K.txt) and directional lights")
+        t = time.perf_counter()
+        r = pps_blinn_phong(ds.images, ds.mask, lights, camera, ks=material.ks, shininess=material.shininess)
+        out.update(normals=r["normals"], albedo=np.repeat(r["albedo"][..., None], 3, -1))
+        report["timings"] = {"solve": time.perf_counter() - t}
+        report["material"] = material.to_dict()
+    elif config.method == "ppn" or config.solver == "none":
+        res = solve_normals(
+            ds.images, ds.mask, lights, camera=camera, material=material, solver=config.solver,
+            depth=None if not isinstance(lights, PointLights) else np.full((h, w), internal_reference, np.float32),
+            valid=valid, device=device, progress=progress, **opts,
+        )
+        out.update(normals=res.normals, albedo=res.albedo)
+        report.update(solver=config.solver, robust=robust, timings=res.timings, material=material.to_dict(),
+                      mean_iterations=float(res.iterations[ds.mask].mean()),
+                      flagged_pixels=int(np.count_nonzero(res.flags[ds.mask])))
+    else:
+        cfg = RONConfig(rounds=config.rounds, dgmc=config.dgmc, integrate=config.integrate,
+                        material_rule=config.material_rule,
+                        final_integrator=IntegratorConfig(bilateral=True) if config.integration == "bini" else None)
+        cfg = replace(cfg, solver=replace(cfg.solver, solver=config.solver, **opts))
+        rec = reconstruct(ds.images, ds.mask, lights, camera=camera, material=material, estimate=estimate,
+                          reference_depth=internal_reference, valid=valid, config=cfg, device=device, progress=progress)
+        out.update(normals=rec.normals, albedo=rec.albedo, depth=rec.depth, depth_mask=rec.depth_mask)
+        report.update(solver=config.solver, robust=robust, timings=rec.timings, material=rec.material.to_dict(),
+                      estimated=rec.estimated, fixed=rec.fixed,
+                      known=sorted(given_names) if not config.known_material else "material.json",
+                      energy_per_round=rec.energy, rounds=rec.rounds, converged=rec.converged,
+                      highlight_pixels=int(rec.highlight.sum()),
+                      mean_iterations=float(rec.iterations[ds.mask].mean()),
+                      flagged_pixels=int(np.count_nonzero(rec.flags[ds.mask])))
+    return out
+
+
+def reconstruct_folder(folder, config: FolderConfig | None = None, *, lights=None, mask=None, ambient: str | None = "auto",
+                       device: str | None = None, progress: Progress | None = None,
+                       read_progress: Progress | None = None) -> FolderResult:
+    """Normals, albedo, depth (and the lights, when not given) of the object in a capture folder.
+
+    Args:
+        folder: the capture folder (images in any format :mod:`gpps.io.formats` reads; optional
+            filenames.txt, light_directions.txt or light_positions.txt, light_intensities.txt,
+            mask.*, K.txt, an ``*ambient*`` image, normal_gt.npy, depth_gt.npy, material.json).
+        config: :class:`FolderConfig` (None: the defaults).
+        lights: another folder to read the light files from (rows in the images' order); None: ``folder``.
+        mask: None (``mask.*`` in the folder, else automatic), ``"auto"`` (always automatic),
+            ``"none"`` (every pixel) or a mask file.
+        ambient: ``"auto"`` (an image named ``*ambient*`` in the folder), ``"none"`` or None (never),
+            or a file: subtracted from every image.
+        device: Warp/Taichi device (None or "auto": CUDA if present).
+        progress: optional ``progress(done, total, message)`` of the solve.
+        read_progress: optional ``progress(done, total, message)`` while the images are read.
+
+    Returns:
+        :class:`FolderResult`; :meth:`FolderResult.write` writes it.
+
+    Raises:
+        FileNotFoundError: no folder, or a named file is missing.
+        ValueError: no images, fewer than 10 object pixels, point lights without a reference depth,
+            ``method="pps"`` without a perspective camera and directional lights, degenerate images.
+    """
+    started = time.perf_counter()
+    config = FolderConfig() if config is None else config
+    if not isinstance(config, FolderConfig):
+        raise TypeError(f"config: expected FolderConfig, got {type(config).__name__}")
+    device = None if device == "auto" else device
+    cap = read_capture(folder, transfer=config.transfer, max_size=config.max_size,
+                       ambient=None if ambient == "none" else ambient,
+                       mask=mask, normalise=not config.uncalibrated, lights=lights, progress=read_progress)
+    ds = cap.dataset
+    n, h, w = ds.images.shape[:3]
+    camera = camera_from_K(ds.K) if ds.K is not None else Orthographic(config.pixel_size or 1.0)
+    uncalibrated = config.uncalibrated or not cap.calibrated
+    report = {"dir": str(folder), "images": n, "shape": [h, w], "camera": camera.kind,
+              "integration": None if not config.integrate else config.integration,
+              "input": {"formats": cap.formats, "mask": cap.mask_source, "ambient_subtracted": cap.ambient,
+                        "downscale": cap.scale, "filenames": ds.filenames}}
+    if cap.automask is not None:
+        report["input"]["automatic_mask"] = cap.automask
+    if ds.mask.sum() < 10:
+        raise ValueError(f"mask: expected at least 10 object pixels, got {int(ds.mask.sum())}")
+    reference = config.reference_depth
+    source = "--reference-depth" if reference is not None else None  # report.json's name for a given reference depth
+    if uncalibrated:
+        sol = _uncalibrated(cap, camera, report, device, progress)
+        sol.update(depth=None, depth_mask=None)
+    else:
+        sol = _calibrated(cap, camera, config, reference, source, report, device, progress)
+        reference, source = sol["reference"], sol["source"]
+    normals = np.where(ds.mask[..., None], sol["normals"], 0.0).astype(np.float32)
+    depth, dmask = sol["depth"], sol["depth_mask"]
+    if depth is None and config.integrate:
+        t = time.perf_counter()
+        ref_i = reference if reference is not None else (float(np.sqrt(camera.fx * camera.fy)) if camera.is_perspective else None)
+        # the Integrator takes "auto", not None
+        ir = integrate_normals(normals, ds.mask, camera=camera, reference_depth=ref_i, device=device or "auto",
+                               bilateral=config.integration == "bini")
+        depth, dmask = ir.depth, ir.mask
+        report.setdefault("timings", {})["integration"] = time.perf_counter() - t
+    conv = depth_convention(camera, known_scale=source)
+    if config.pixel_size is not None and not camera.is_perspective:
+        conv = depth_convention(camera)
+    if depth is not None:
+        depth = apply_depth_convention(depth, dmask, conv)
+        report["depth"] = conv
+    if ds.normal_gt is not None and ds.normal_gt.shape[:2] == (h, w):
+        report["errors"] = normal_errors(normals, ds.normal_gt, ds.mask)
+        report["maen_deg"] = report["errors"]["mean"]
+    return FolderResult(normals=normals, albedo=sol["albedo"], mask=ds.mask, depth=depth, depth_mask=dmask, camera=camera,
+                        depth_info=conv if depth is not None else None, lights=sol["lights"], uncalibrated=uncalibrated,
+                        light_directions=sol.get("directions"), light_intensities=sol.get("intensities"),
+                        images_used=sol.get("used", list(ds.filenames)), report=report, started=started)
