@@ -14,17 +14,43 @@ from gpps.lights import DirectionalLights, PointLights
 from gpps.material import BRDF_NAMES, Material
 
 _LAZY = {
+    # whole reconstructions (gpps.flows)
     "reconstruct": "gpps.flows.reconstruction",
     "Reconstruction": "gpps.flows.reconstruction",
     "RONConfig": "gpps.flows.ron",
+    "solve_normals": "gpps.flows.photometric",
+    "integrate_normals": "gpps.flows.integrate",
+    "solve_uncalibrated": "gpps.flows.uncalibrated",
+    "UncalibratedConfig": "gpps.flows.uncalibrated",
+    "reconstruct_single": "gpps.flows.single",
+    "SingleConfig": "gpps.flows.single",
+    "reconstruct_folder": "gpps.flows.folder",
+    "FolderConfig": "gpps.flows.folder",
+    "FolderResult": "gpps.flows.folder",
+    "calibrate_lights": "gpps.flows.calibration",
+    "LightCalibration": "gpps.flows.calibration",
+    "run_demo": "gpps.flows.demo",
+    # synthetic captures
+    "render": "gpps.flows.synthetic",
+    "render_dataset": "gpps.flows.synthetic",
+    "default_lights": "gpps.flows.synthetic",
+    "make_scene": "gpps.host.scenes",
+    "SCENE_NAMES": "gpps.host.scenes",
+    # errors against ground truth
+    "angular_error": "gpps.host.metrics",
+    "normal_errors": "gpps.host.metrics",
+    # stages and their settings (gpps.pipeline)
     "SolverConfig": "gpps.pipeline.solver",
+    "IntegratorConfig": "gpps.pipeline.integration",
+    "CuckooConfig": "gpps.pipeline.cuckoo",
     "Stream": "gpps.pipeline.stream",
     "StreamConfig": "gpps.pipeline.stream",
 }
 
 
 def __getattr__(name):
-    """Lazy exports: ``gpps.reconstruct`` and ``gpps.Stream`` load the pipeline (scipy, Warp) on first use."""
+    """Lazy exports: ``gpps.reconstruct`` and ``gpps.Stream`` load the pipeline (scipy, Warp) on first use,
+    so ``import gpps`` (and ``gpps --help``) costs numpy and the value types only."""
     if name in _LAZY:
         import importlib
 
