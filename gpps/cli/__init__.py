@@ -15,6 +15,9 @@ import io
 import sys
 import warnings
 
+import gpps
+from gpps.cli import _progress
+
 # Subcommand modules, in the order they appear in --help.
 SUBCOMMANDS = ["render", "reconstruct", "calibrate-lights", "integrate", "stream", "demo", "single"]
 
@@ -39,13 +42,11 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from gpps import __version__
-
     parser = _Parser(
         prog="gpps",
         description="Generalized perspective photometric stereo: normals, albedo and depth from a few images.",
     )
-    parser.add_argument("--version", action="version", version=f"gpps {__version__}", help="print the version and exit")
+    parser.add_argument("--version", action="version", version=f"gpps {gpps.__version__}", help="print the version and exit")
     parser.add_argument("--device", default="auto", help="Warp/Taichi device: auto (CUDA if present), cpu, cuda:0 ...")
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress and no summary lines (errors, warnings and --json output still shown)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
@@ -72,19 +73,15 @@ def main(argv: list[str] | None = None) -> int:
     :class:`gpps.GppsWarning` warnings are collected into ``args.warnings`` (the
     commands copy them into report.json) and printed on stderr.
     """
-    from gpps._check import GppsWarning
-
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
-    from gpps.cli import _progress
-
     _progress.configure(quiet=args.quiet)
     quiet_out = args.quiet and not getattr(args, "json", False)
     with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", GppsWarning)
+        warnings.simplefilter("always", gpps.GppsWarning)
         args.warnings = caught
         try:
             with contextlib.redirect_stdout(io.StringIO()) if quiet_out else contextlib.nullcontext():
@@ -96,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"gpps {args.command}: error: {e}", file=sys.stderr)
             status = 2
     for w in caught:
-        if issubclass(w.category, GppsWarning):
+        if issubclass(w.category, gpps.GppsWarning):
             print(f"gpps {args.command}: warning: {w.message}", file=sys.stderr)
         else:
             warnings.showwarning(w.message, w.category, w.filename, w.lineno)

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
-from gpps.io import check_output_dir
+import gpps
+import gpps.io
 
 
 def add_output_args(p, help: str) -> None:
@@ -18,12 +20,24 @@ def add_output_args(p, help: str) -> None:
 
 def prepare_out(args, inputs=()) -> Path:
     """Check ``args.out`` against the command's inputs before computing; the resolved path."""
-    return check_output_dir(args.out, inputs=[i for i in inputs if i is not None], overwrite=args.overwrite,
-                            name="--out")
+    return gpps.io.check_output_dir(args.out, inputs=[i for i in inputs if i is not None], overwrite=args.overwrite,
+                                    name="--out")
 
 
 def warning_messages(args) -> list[str]:
     """The :class:`gpps.GppsWarning` messages issued so far by this command (for report.json)."""
-    from gpps._check import GppsWarning
+    return [str(w.message) for w in getattr(args, "warnings", []) if issubclass(w.category, gpps.GppsWarning)]
 
-    return [str(w.message) for w in getattr(args, "warnings", []) if issubclass(w.category, GppsWarning)]
+
+@contextlib.contextmanager
+def as_options(*names: str):
+    """Errors that name one of ``names`` first (a library argument or config field: ``"rounds: expected ..."``)
+    name the command's option instead (``"--rounds: expected ..."``), as the command's own checks would."""
+    try:
+        yield
+    except (ValueError, TypeError, FileNotFoundError) as e:
+        msg = str(e)
+        for name in names:
+            if msg.startswith((name + ":", name + " ")):
+                raise type(e)("--" + name.replace("_", "-") + msg[len(name):]) from e
+        raise

@@ -26,9 +26,11 @@ reconstruct``: the object's images must be in the same light order.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
-from gpps.cli._output import add_output_args, prepare_out, warning_messages
+import gpps
+import gpps.io
+from gpps.cli._output import add_output_args, as_options, prepare_out, warning_messages
+from gpps.cli._progress import bar
 
 
 def register(subparsers) -> None:
@@ -56,162 +58,21 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def _mask_file(root: Path, stem: str, given: str | None):
-    from gpps.io.capture import _find_side
-
-    if given:
-        p = Path(given)
-        if not p.is_file():
-            raise FileNotFoundError(f"--{stem.replace('_', '-')}: file not found: {p}")
-        return p
-    return _find_side(root, stem)
-
-
-def _read_mask(path, shape):
-    import numpy as np
-
-    from gpps.io.formats import read_image_file
-
-    m, _ = read_image_file(path, transfer="linear")
-    m = np.any(m > 0.5, axis=-1)
-    if m.shape != shape:
-        raise ValueError(f"{path}: expected a mask of shape {shape}, got {m.shape}")
-    return m
-
-
 def run(args) -> int:
-    import numpy as np
-    from scipy import ndimage
-
-    from gpps.host.calibrate import (_disc_mask, card_intensities, circle_points, find_outline, fit_sphere,
-                                highlight_direction, mask_outline, matte_intensities, triangulate_lights)
-    from gpps.camera import Orthographic, camera_from_K
-    from gpps.io.capture import read_capture
-    from gpps.cli._progress import bar
-    from gpps.io import atomic_dir, read_K, save_json, save_txt
-
-    root = Path(args.dir)
-    inputs = [args.dir, args.chrome_mask, args.K]
+    """Calibrate with :func:`gpps.calibrate_lights` and write the light files into ``--out``."""
+    inputs = [i for i in (args.dir, args.chrome_mask, args.K) if i is not None]
     out = prepare_out(args, inputs=inputs)
-    # no object here: read with the mask "none" (no mask file, no automatic mask)
-    cap = read_capture(root, transfer=args.transfer, ambient=None if args.ambient == "none" else args.ambient,
-                       mask="none", normalise=False, progress=bar("read"))
-    ds = cap.dataset
-    images = ds.images
-    n, h, w = images.shape[:3]
-    if args.K:
-        K = read_K(args.K)
-    else:
-        K = ds.K
-    camera = camera_from_K(K) if K is not None else Orthographic()
-    report = {"dir": str(root), "images": n, "shape": [h, w], "camera": camera.kind, "filenames": ds.filenames,
-              "formats": cap.formats, "ambient_subtracted": cap.ambient}
-    prog = bar("calibrate")
-    # --- mirror spheres
-    fits, sources = [], []
-    chrome_mask = _mask_file(root, "chrome_mask", args.chrome_mask) if not args.chrome else None
-    if args.chrome:
-        for cx, cy, r in args.chrome:
-            fits.append(fit_sphere(circle_points(cx, cy, r), camera))
-            sources.append("given circle")
-    elif chrome_mask is not None:
-        m = _read_mask(chrome_mask, (h, w))
-        lab, k = ndimage.label(m)
-        if k == 0:
-            raise ValueError(f"{chrome_mask}: the mask is empty")
-        sizes = np.bincount(lab.ravel())[1:]
-        for idx in np.argsort(sizes)[::-1]:
-            if sizes[idx] < 0.2 * sizes.max():
-                break
-            fits.append(fit_sphere(mask_outline(lab == idx + 1), camera))
-            sources.append(f"mask {chrome_mask.name}")
-    else:
-        pts, _ = find_outline(images)
-        fits.append(fit_sphere(pts, camera))
-        sources.append("found in the images")
-    radii = None
-    if args.sphere_radius:
-        radii = list(args.sphere_radius) * (len(fits) if len(args.sphere_radius) == 1 else 1)
-        if len(radii) != len(fits) or min(radii) <= 0:
-            raise ValueError(f"--sphere-radius: expected one radius > 0 or one per sphere ({len(fits)}), got {args.sphere_radius}")
-        for f, r in zip(fits, radii):
-            f.radius = float(r)
-    dirs = np.full((len(fits), n, 3), np.nan)
-    cents = np.full((len(fits), n, 2), np.nan)
-    per = []
-    for s, f in enumerate(fits):
-        region = _disc_mask(f, (h, w), shrink=1.0)
-        rows = []
-        for k in range(n):
-            l, info = highlight_direction(f, images[k], region, min_contrast=args.min_contrast)
-            if l is not None:
-                dirs[s, k] = l
-                cents[s, k] = info["centroid"]
-            rows.append({"file": ds.filenames[k], **{kk: vv for kk, vv in info.items()}})
-            prog(s * n + k + 1, len(fits) * n, f"sphere {s + 1}: {ds.filenames[k]}")
-        per.append({"outline": sources[s], **f.to_dict(), "highlights": rows})
-    report["spheres"] = per
-    found = np.all(np.isfinite(dirs), -1)
-    missing = [ds.filenames[k] for k in range(n) if not found[:, k].any()]
-    if missing:
-        raise ValueError(f"images: no highlight on the mirror sphere in {', '.join(missing)} (light behind the sphere, off, or too weak: see --min-contrast)")
-    mean_dir = np.nanmean(dirs, 0)
-    mean_dir /= np.linalg.norm(mean_dir, axis=1, keepdims=True)
-    if len(fits) > 1:
-        spread = [float(np.degrees(np.arccos(np.clip(dirs[0, k] @ dirs[1, k], -1, 1)))) for k in range(n)]
-        report["direction_difference_between_spheres_deg"] = spread
-    positions = None
-    if len(fits) >= 2 and radii is not None and camera.is_perspective:
-        positions, tri = triangulate_lights(fits, list(cents), radii)
-        report["triangulation"] = tri
-        ang = np.asarray(tri["ray_angle_deg"])
-        if np.any(~np.isfinite(ang)) or np.median(ang) < 1.0:
-            report["triangulation"]["note"] = ("the reflected rays are nearly parallel (median angle "
-                                               f"{np.nanmedian(ang):.2f} deg): the lights are too far for positions; only directions written")
-            positions = None
-    elif len(fits) >= 2 and radii is not None:
-        report["triangulation"] = {"note": "positions need a perspective camera (K.txt)"}
-    # --- intensities
-    intens = np.ones((n, 3))
-    intens_src = "none (ones): no matte sphere or grey card"
-    matte_mask = _mask_file(root, "matte_mask", None) if args.matte is None else None
-    card_mask = _mask_file(root, "card_mask", None) if args.card is None else None
-    if args.matte is not None or matte_mask is not None:
-        if args.matte is not None:
-            mf = fit_sphere(circle_points(*args.matte), camera)
-        else:
-            mf = fit_sphere(mask_outline(_read_mask(matte_mask, (h, w))), camera)
-        intens, info = matte_intensities(images, mf, mean_dir)
-        intens_src = "matte sphere"
-        report["matte_sphere"] = {**mf.to_dict(), **info}
-    elif args.card is not None or card_mask is not None:
-        if args.card is not None:
-            x0, y0, x1, y1 = args.card
-            region = np.zeros((h, w), bool)
-            region[min(y0, y1):max(y0, y1) + 1, min(x0, x1):max(x0, x1) + 1] = True
-        else:
-            region = _read_mask(card_mask, (h, w))
-        intens, info = card_intensities(images, region, mean_dir, args.card_normal)
-        intens_src = "grey card"
-        report["grey_card"] = {"normal": list(args.card_normal), **info}
-    report["intensities_from"] = intens_src
-    report["light_directions"] = mean_dir
-    report["light_intensities"] = intens
-    if positions is not None:
-        report["light_positions"] = positions
-    report["warnings"] = warning_messages(args)
-    with atomic_dir(out, overwrite=args.overwrite, inputs=[i for i in inputs if i is not None], name="--out") as tmp:
-        save_txt(tmp / "light_directions.txt", mean_dir)
-        save_txt(tmp / "light_intensities.txt", intens)
-        if positions is not None:
-            save_txt(tmp / "light_positions.txt", positions)
-        (tmp / "filenames.txt").write_text("\n".join(ds.filenames) + "\n")
-        save_json(tmp / "calibration.json", report)
+    with as_options("chrome_mask", "sphere_radius", "min_contrast"):
+        cal = gpps.calibrate_lights(
+            args.dir, chrome=args.chrome, chrome_mask=args.chrome_mask, sphere_radius=args.sphere_radius,
+            matte=args.matte, card=args.card, card_normal=args.card_normal, K=args.K, transfer=args.transfer,
+            ambient=args.ambient, min_contrast=args.min_contrast, progress=bar("calibrate"), read_progress=bar("read"),
+        )
+    with gpps.io.atomic_dir(out, overwrite=args.overwrite, inputs=inputs, name="--out") as tmp:
+        report = cal.write(tmp, warnings=warning_messages(args))
     if args.json:
-        from gpps.io import _json_default
-
-        print(json.dumps(report, indent=2, default=_json_default))
+        print(json.dumps(report, indent=2, default=gpps.io.json_default))
     else:
-        print(f"wrote {out}: {n} light directions ({len(fits)} mirror sphere(s), outline {sources[0]}), intensities: {intens_src}"
-              + (", positions" if positions is not None else ""))
+        print(f"wrote {out}: {len(cal.directions)} light directions ({len(cal.spheres)} mirror sphere(s), outline {cal.outlines[0]}), "
+              f"intensities: {cal.intensities_from}" + (", positions" if cal.positions is not None else ""))
     return 0

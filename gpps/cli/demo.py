@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import time
 
+import gpps
 from gpps.cli._output import prepare_out
+from gpps.cli._progress import bar
 
 
 def register(sub):
@@ -17,13 +19,9 @@ def register(sub):
 
 
 def run(args) -> int:
-    from gpps.flows.demo import run_demo
-
-    from gpps.cli._progress import bar
-
     t0 = time.perf_counter()
     out = prepare_out(args)
-    report = run_demo(out, size=args.size, device=args.device, progress=bar("demo"), overwrite=args.overwrite)
+    report = gpps.run_demo(out, size=args.size, device=args.device, progress=bar("demo"), overwrite=args.overwrite)
     for k, v in report["summary"].items():
         print(f"{k:>28}: {v}")
     print(f"wrote {args.out} in {time.perf_counter() - t0:.1f} s")

@@ -16,7 +16,12 @@ from pathlib import Path
 
 import numpy as np
 
+import gpps
+from gpps import Orthographic, Perspective
 from gpps.cli._output import add_output_args, prepare_out, warning_messages
+from gpps.cli._progress import bar
+from gpps.io import (apply_depth_convention, atomic_dir, depth_convention, read_image, read_K, read_mask, save_json,
+                     write_outputs)
 
 
 def register(subparsers) -> None:
@@ -54,8 +59,6 @@ def _read_normals(path: Path) -> np.ndarray:
     if path.suffix.lower() == ".npy":
         n = np.load(path)
     else:
-        from gpps.io import read_image
-
         img = read_image(path, dtype=np.float64)  # RGB order, in [0, 1]
         if img.shape[-1] != 3:
             raise ValueError(f"normals: expected an RGB normal map, got {img.shape[-1]} channel(s) in {path}")
@@ -67,11 +70,6 @@ def _read_normals(path: Path) -> np.ndarray:
 
 
 def run(args) -> int:
-    from gpps.camera import Orthographic, Perspective
-    from gpps.cli._progress import bar
-    from gpps.flows.integrate import integrate_normals
-    from gpps.io import atomic_dir, read_K, read_mask
-
     inputs = [args.normals, args.mask, args.K]
     out = prepare_out(args, inputs=inputs)
     normals = _read_normals(Path(args.normals))
@@ -87,10 +85,10 @@ def run(args) -> int:
     if args.bilateral and method != "bini":
         raise ValueError("--bilateral: expected no --method poisson with it")
     if method == "bini":
-        res = integrate_normals(normals, mask, camera=camera, bilateral=True, bilateral_k=float(args.k),
+        res = gpps.integrate_normals(normals, mask, camera=camera, bilateral=True, bilateral_k=float(args.k),
                                 reference_depth=args.reference_depth, device=args.device, progress=bar("integrate"))
     else:
-        res = integrate_normals(
+        res = gpps.integrate_normals(
             normals, mask, camera=camera, solver=args.solver or "multigrid",
             tol=1e-5 if args.tol is None else args.tol, robust=args.robust or "none",
             reference_depth=args.reference_depth, device=args.device, progress=bar("integrate"),
@@ -104,9 +102,6 @@ def run(args) -> int:
 
 def _write(out, res, camera, args, method, normals, mask) -> None:
     """The output set (:mod:`gpps.io.outputs`, depth in its convention) and report.json into the temporary folder ``out``."""
-    from gpps.io import save_json
-    from gpps.io.outputs import apply_depth_convention, depth_convention, write_outputs
-
     conv = depth_convention(camera, known_scale="--reference-depth" if args.reference_depth is not None else None)
     depth = apply_depth_convention(res.depth, res.mask, conv)
     nn = normals / np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)

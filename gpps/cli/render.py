@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import time
 
+import gpps
+from gpps import BRDF_NAMES, Material
 from gpps.cli._output import add_output_args, prepare_out
-from gpps.material import BRDF_NAMES, Material
-from gpps.host.scenes import SCENE_NAMES
+from gpps.io import write_dataset
 
 
 def register(sub):
     p = sub.add_parser("render", help="render a synthetic scene to a DiLiGenT-style folder (16-bit PNGs + ground truth)")
-    p.add_argument("--scene", choices=SCENE_NAMES, default="sphere", help="synthetic object")
+    p.add_argument("--scene", choices=gpps.SCENE_NAMES, default="sphere", help="synthetic object")
     p.add_argument("--brdf", choices=BRDF_NAMES, default="blinn-phong", help="reflectance model")
     p.add_argument("--lights", choices=["directional", "point"], default="directional", help="light kind (point: near lights on the camera plane)")
     p.add_argument("--n-lights", type=int, default=3, help="number of lights (one image each)")
@@ -39,15 +40,11 @@ def material_from_args(args) -> Material:
 
 
 def run(args) -> int:
-    from gpps.io import write_dataset
-    from gpps.host.scenes import make_scene
-    from gpps.flows.synthetic import default_lights, render_dataset
-
     t0 = time.perf_counter()
     out = prepare_out(args)
-    scene = make_scene(args.scene, args.size, args.camera, albedo=args.albedo, seed=args.seed)
-    lights = default_lights(args.lights, args.n_lights, slant_deg=args.slant, layout=args.layout)
-    ds = render_dataset(scene, material_from_args(args), lights, noise=args.noise, bits=args.bits, seed=args.seed, device=args.device)
+    scene = gpps.make_scene(args.scene, args.size, args.camera, albedo=args.albedo, seed=args.seed)
+    lights = gpps.default_lights(args.lights, args.n_lights, slant_deg=args.slant, layout=args.layout)
+    ds = gpps.render_dataset(scene, material_from_args(args), lights, noise=args.noise, bits=args.bits, seed=args.seed, device=args.device)
     write_dataset(out, ds, bits=args.bits, overwrite=args.overwrite)
     print(f"wrote {len(ds.images)} images of {args.scene} ({args.size}x{args.size}, {args.camera}, {args.lights} lights, {args.brdf}) to {args.out} in {time.perf_counter() - t0:.2f} s")
     return 0

@@ -20,6 +20,7 @@ any other failure leaves nothing behind.
 
 from __future__ import annotations
 
+import json
 import re
 import sys
 import time
@@ -27,8 +28,11 @@ from pathlib import Path
 
 import numpy as np
 
+import gpps
+from gpps import BRDF_NAMES, DirectionalLights, Material, Orthographic, Perspective, PointLights
 from gpps.cli._output import add_output_args, prepare_out, warning_messages
-from gpps.material import BRDF_NAMES
+from gpps.cli._progress import quiet
+from gpps.io import atomic_dir, read_K, read_mask, read_matrix, save_json, save_npy, save_png
 
 
 def register(sub):
@@ -47,13 +51,9 @@ def register(sub):
 
 
 def _synthetic(args):
-    from gpps.material import Material
-    from gpps.host.scenes import make_scene
-    from gpps.flows.synthetic import default_lights, render
-
-    sc = make_scene("bumps", args.size, "perspective")
+    sc = gpps.make_scene("bumps", args.size, "perspective")
     mat = Material.default_for(args.brdf)
-    L = default_lights("directional", 3)
+    L = gpps.default_lights("directional", 3)
 
     drift = max(1, args.size // 16)
     # the scene slides sideways by up to `drift` pixels; the stream's (fixed) mask is where it always is
@@ -68,18 +68,13 @@ def _synthetic(args):
         for f in range(args.frames):
             s = (f // 2) % drift
             moved = type(sc)(**{k: rolled(v, s) if isinstance(v, np.ndarray) else v for k, v in sc.__dict__.items()})
-            img = render(moved, mat, L, bits=16, device=args.device if args.device != "auto" else None)
+            img = gpps.render(moved, mat, L, bits=16, device=args.device if args.device != "auto" else None)
             yield np.round(np.clip(img, 0, 1) * 65535).astype(np.uint16)
 
     return sc.mask.shape, sc.camera, L, mat, stream_mask, frames()
 
 
 def _folder(args):
-    from gpps.camera import Orthographic, Perspective
-    from gpps.io import read_K, read_mask, read_matrix
-    from gpps.lights import DirectionalLights, PointLights
-    from gpps.material import Material
-
     root = Path(args.source)
     if not root.is_dir():
         raise FileNotFoundError(f"source folder not found: {root}")
@@ -95,7 +90,7 @@ def _folder(args):
     inten = read_matrix(root / "light_intensities.txt", shape=(n, 3)) if (root / "light_intensities.txt").is_file() else None
     L = DirectionalLights(dirs, inten) if ld.is_file() else PointLights(pos, inten)
     mat_file = root / "material.json"
-    mat = Material.from_dict(__import__("json").loads(mat_file.read_text())) if mat_file.is_file() else Material.default_for(args.brdf)
+    mat = Material.from_dict(json.loads(mat_file.read_text())) if mat_file.is_file() else Material.default_for(args.brdf)
     pat = re.compile(r"^(.*)_(\d+)\.png$")
     groups: dict = {}
     for p in sorted(root.glob("*_*.png")):
@@ -103,7 +98,7 @@ def _folder(args):
         if m:
             groups.setdefault(m.group(1), {})[int(m.group(2))] = p
     videos = [next(iter(sorted(root.glob(f"light{k}.*"))), None) for k in range(n)]
-    import cv2
+    import cv2  # here, not at the top: it costs ~60 ms (python -X importtime) that `gpps --help` would pay
 
     if groups:
         keys = sorted(groups)
@@ -143,9 +138,6 @@ def _folder(args):
 
 
 def run(args) -> int:
-    from gpps.io import atomic_dir, save_json, save_npy, save_png
-    from gpps.pipeline.stream import Stream, StreamConfig
-
     if args.synthetic == (args.source is not None):
         raise ValueError("source: expected either SOURCE or --synthetic")
     if args.save_every < 0:
@@ -153,13 +145,11 @@ def run(args) -> int:
     inputs = [args.source]
     out = prepare_out(args, inputs=inputs)
     shape, cam, L, mat, mask, frames = _synthetic(args) if args.synthetic else _folder(args)
-    cfg = StreamConfig(iterations=args.iterations, integration_iterations=args.integration_iterations,
+    cfg = gpps.StreamConfig(iterations=args.iterations, integration_iterations=args.integration_iterations,
                        reference_depth=args.reference_depth, output="numpy" if args.save_every else "device")
-    st = Stream(shape, cam, L, mat, mask=mask, config=cfg, device=None if args.device == "auto" else args.device)
+    st = gpps.Stream(shape, cam, L, mat, mask=mask, config=cfg, device=None if args.device == "auto" else args.device)
     errors, n, t0, last = [], 0, time.perf_counter(), time.perf_counter()
     interrupted = False
-    from gpps.cli._progress import quiet
-
     tty = bool(getattr(sys.stderr, "isatty", lambda: False)())
     lead, tail = ("\r", "") if tty else ("", "\n")
     with atomic_dir(out, overwrite=args.overwrite, inputs=inputs, name="--out") as tmp:
