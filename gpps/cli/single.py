@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 import gpps
@@ -52,8 +53,6 @@ def _normal_png(n, mask):
 
 
 def run(args) -> int:
-    import cv2  # here, not at the top: it costs ~60 ms (python -X importtime) that `gpps --help` would pay
-
     if len(args.images) not in (1, 2, 3):
         raise ValueError(f"images: expected 1 to 3 images, got {len(args.images)}")
     inputs = [*args.images, args.mask]

@@ -26,6 +26,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 import gpps
@@ -98,8 +99,6 @@ def _folder(args):
         if m:
             groups.setdefault(m.group(1), {})[int(m.group(2))] = p
     videos = [next(iter(sorted(root.glob(f"light{k}.*"))), None) for k in range(n)]
-    import cv2  # here, not at the top: it costs ~60 ms (python -X importtime) that `gpps --help` would pay
-
     if groups:
         keys = sorted(groups)
         first = cv2.imread(str(groups[keys[0]][0]), cv2.IMREAD_UNCHANGED)
