@@ -7,6 +7,8 @@ perspective cameras and near lights, on CPU or GPU (NVIDIA Warp + Taichi).
 The coordinate frame is described once, in :mod:`gpps.camera`.
 """
 
+import importlib
+
 from gpps._check import GppsWarning
 from gpps._version import __version__  # noqa: F401  (gpps.__version__)
 from gpps.camera import Orthographic, Perspective, camera_from_K
@@ -40,7 +42,11 @@ _LAZY = {
     "angular_error": "gpps.host.metrics",
     "normal_errors": "gpps.host.metrics",
     # stages and their settings (gpps.pipeline)
+    "depth_error": "gpps.host.metrics",
     "SolverConfig": "gpps.pipeline.solver",
+    "PixelSolver": "gpps.pipeline.solver",
+    "Renderer": "gpps.pipeline.render",
+    "Integrator": "gpps.pipeline.integration",
     "IntegratorConfig": "gpps.pipeline.integration",
     "CuckooConfig": "gpps.pipeline.cuckoo",
     "Stream": "gpps.pipeline.stream",
@@ -52,8 +58,6 @@ def __getattr__(name):
     """Lazy exports: ``gpps.reconstruct`` and ``gpps.Stream`` load the pipeline (scipy, Warp) on first use,
     so ``import gpps`` (and ``gpps --help``) costs numpy and the value types only."""
     if name in _LAZY:
-        import importlib
-
         return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'gpps' has no attribute {name!r}")
 
