@@ -30,7 +30,6 @@ from typing import Literal
 
 import cv2
 import numpy as np
-import OpenEXR
 import tifffile
 
 from gpps._check import check_choice
@@ -198,6 +197,8 @@ def save_exr(path, array, *, channels: str | None = None) -> None:
         chans = {"RGB": a}
     else:
         raise ValueError(f"array: expected (H, W) or (H, W, 3), got shape {a.shape}")
+    import OpenEXR  # lazy: only EXR files need it, and the GPU machine's kit has no OpenEXR
+
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with atomic_write(path) as tmp:
         with OpenEXR.File(header, chans) as f:
@@ -206,6 +207,8 @@ def save_exr(path, array, *, channels: str | None = None) -> None:
 
 def read_exr(path) -> np.ndarray:
     """Read an OpenEXR file: (H, W, 3) for R, G, B channels, else (H, W, 1) (Y, Z or the first channel)."""
+    import OpenEXR  # lazy: only EXR files need it, and the GPU machine's kit has no OpenEXR
+
     with OpenEXR.File(str(path), separate_channels=True) as f:
         ch = {k: np.asarray(v.pixels) for k, v in f.channels().items()}
     if not ch:
