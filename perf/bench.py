@@ -184,14 +184,14 @@ def bench_size(size, device, repeat, bw, peak, log):
         for k in (1, 5):
             ps.set_config(SolverConfig(solver=solver, warm_start=True, starts=1, max_iters=k, early_exit=False,
                                        neighbour_radius=0))
-            ts[k] = _graph_time(wp, ps.launch, device, repeat, inner=5)
+            ts[k] = _graph_time(wp, ps.step, device, repeat, inner=5)
         row(f"{solver}_iteration", (ts[5] - ts[1]) / 4, "iteration", {"solve_1_iter_s": ts[1], "solve_5_iter_s": ts[5]})
     ps.set_config(SolverConfig(warm_start=True, starts=1, max_iters=3, early_exit=False, neighbour_radius=0))
-    row("solve_warm", _graph_time(wp, ps.launch, device, repeat, inner=5), "iteration", per=4.0,
+    row("solve_warm", _graph_time(wp, ps.step, device, repeat, inner=5), "iteration", per=4.0,
         extra={"note": "the stream's solve: 1 warm start, 3 iterations (4 evaluations) + observation weights"})
     ps.set_config(SolverConfig())
     ps.upload(img_np, sc.mask)
-    tc = _median_time(ps.launch, sync, max(3, repeat // 4), warmup=1)
+    tc = _median_time(ps.step, sync, max(3, repeat // 4), warmup=1)
     out = ps.fetch()
     row("solve_cold", tc, extra={"mean_evaluations": float(out["iterations"][sc.mask].mean())})
 
