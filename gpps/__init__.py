@@ -5,6 +5,11 @@ fixed camera under different lights, with non-Lambertian reflectance,
 perspective cameras and near lights, on CPU or GPU (NVIDIA Warp + Taichi).
 
 The coordinate frame is described once, in :mod:`gpps.camera`.
+
+The public face is this module's ``__all__`` (value types at once, the flows, configs and stages lazily)
+and the :mod:`gpps.io` package (readers, writers, output-folder rules).  The other subpackages are the
+layers behind them (:mod:`gpps.kernels`, :mod:`gpps.host`, :mod:`gpps.pipeline`, :mod:`gpps.flows`,
+:mod:`gpps.nn`): internal, their module paths may change; names with a leading underscore are private.
 """
 
 import importlib
