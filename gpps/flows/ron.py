@@ -81,6 +81,7 @@ __all__ = [
     "depth_rms_roughness",
 ]
 
+MaterialSearch = Literal["pattern", "nelder-mead"]
 MaterialRule = Literal["photometric", "depth-rms"]
 Progress = Callable[[float, float, str], None]
 
@@ -134,7 +135,12 @@ class RONConfig:
             seed's (4.19) (Cook-Torrance roughness only; see the module docstring).
         material_samples: pixels sampled for the photometric material fit.
         material_grid: grid points per estimated parameter in the first fit.
-        material_evals: Nelder-Mead evaluations after the grid (and in later rounds).
+        material_evals: candidate evaluations after the grid (and in later rounds).
+        material_search: after the grid, ``"nelder-mead"`` (default): scipy's Nelder-Mead, its initial
+            simplex scored in one batch, then one or two candidates a step; ``"pattern"``: a stencil search
+            with a quadratic model whose ``3^d`` candidates are scored in one batch (fewer, fuller launches
+            on the device; on rendered Cook-Torrance scenes it stopped further from the optimum than
+            Nelder-Mead within the same budget: 0.38 against 0.13 deg MAEN on a 64^2 sphere).
         material_trim: fraction of worst pixel residuals left out of the fit's
             energy (robust to cast shadows and inter-reflections).
         material_starts: starts per pixel in the fit's per-pixel solves.
@@ -162,6 +168,7 @@ class RONConfig:
     material_samples: int = 2000
     material_grid: int = 5
     material_evals: int = 40
+    material_search: MaterialSearch = "nelder-mead"
     material_trim: float = 0.02
     material_starts: int = 4
     roughness_window: float = 4.0
@@ -404,45 +411,115 @@ class RON:
         keep = max(1, int(round(r.size * (1.0 - self.config.material_trim))))
         return float(np.mean(r[:keep]))
 
-    def _fit_material(self, images, depth, valid, material, sample, *, grid: bool) -> tuple[Material, dict]:
-        """Step 4, photometric: the estimated parameters minimising the sampled energy."""
+    def _score(self, images, depth, valid, materials: list, sample) -> np.ndarray:
+        """The sampled fit energy of each candidate material (:meth:`_fit_energy`), one batch."""
+        return np.array([self._fit_energy(images, depth, valid, m, sample) for m in materials])
 
+    def _fit_material(self, images, depth, valid, material, sample, *, grid: bool, progress=None) -> tuple[Material, dict]:
+        """Step 4, photometric: the estimated parameters minimising the sampled energy.
+
+        In log-parameter space: a grid over the whole range (first round), then ``material_search``
+        from the best point.  Candidates are scored in batches (:meth:`_score`); ``progress(done,
+        total, message)`` is told after each batch.
+        """
         c = self.config
         names = c.estimate
         lo = np.log([_RANGES[k][0] for k in names])
         hi = np.log([_RANGES[k][1] for k in names])
         evals = []
+        report = progress or (lambda *a: None)
 
-        def f(x):
-            x = np.clip(x, lo, hi)
-            e = self._fit_energy(images, depth, valid, _with(material, dict(zip(names, np.exp(x)))), sample)
-            evals.append(e)
-            return e
+        def score(xs):
+            xs = [np.clip(x, lo, hi) for x in xs]
+            vals = self._score(images, depth, valid, [_with(material, dict(zip(names, np.exp(x)))) for x in xs], sample)
+            evals.extend(vals.tolist())
+            report(len(evals), len(evals) + c.material_evals, f"material: {len(evals)} candidates scored")
+            return vals
 
-        x0 = np.log([_get(material, k) for k in names])
-        x0 = np.clip(x0, lo, hi)
+        x0 = np.clip(np.log([_get(material, k) for k in names]), lo, hi)
         step = (hi - lo) / max(c.material_grid - 1, 1)
         spread = None
         if grid and c.material_grid > 1:
             axes = [np.linspace(a, b, c.material_grid) for a, b in zip(lo, hi)]
             pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(names))
-            vals = np.array([f(p) for p in pts])
+            vals = score(list(pts))
             x0 = pts[int(np.argmin(vals))]
             spread = float((vals.max() - vals.min()) / max(vals.max(), 1e-300))
             step = step / 2
         else:
             step = np.full(len(names), 0.15)
-        best = (f(x0), x0)
+        best = (float(score([x0])[0]), x0)
         if c.material_evals > 0:
-            simplex = np.vstack([x0] + [x0 + np.eye(len(names))[i] * step[i] for i in range(len(names))])
-            res = minimize(f, x0, method="Nelder-Mead",
-                           options={"initial_simplex": simplex, "maxfev": c.material_evals, "xatol": 1e-3, "fatol": 0.0})
-            if res.fun < best[0]:
-                best = (float(res.fun), np.clip(res.x, lo, hi))
+            if c.material_search == "pattern":
+                best = self._pattern_search(score, best, step, lo, hi, c.material_evals)
+            else:
+                simplex = np.vstack([x0] + [x0 + np.eye(len(names))[i] * step[i] for i in range(len(names))])
+                known = {tuple(x0): best[0]}
+                known.update({tuple(x): float(v) for x, v in zip(simplex[1:], score(list(simplex[1:])))})
+
+                def f(x):  # the simplex was scored in one batch above
+                    key = tuple(x)
+                    return known[key] if key in known else float(score([x])[0])
+
+                res = minimize(f, x0, method="Nelder-Mead",
+                               options={"initial_simplex": simplex, "maxfev": c.material_evals, "xatol": 1e-3,
+                                        "fatol": 0.0})
+                if res.fun < best[0]:
+                    best = (float(res.fun), np.clip(res.x, lo, hi))
         values = dict(zip(names, (float(v) for v in np.exp(best[1]))))
-        info = {"rule": "photometric", "values": values, "energy": best[0], "evaluations": len(evals),
-                "grid": bool(grid), "identifiable": None if spread is None else spread > 1e-3}
+        info = {"rule": "photometric", "search": c.material_search, "values": values, "energy": best[0],
+                "evaluations": len(evals), "grid": bool(grid), "identifiable": None if spread is None else spread > 1e-3}
         return _with(material, values), info
+
+    @staticmethod
+    def _pattern_search(score, best, step, lo, hi, budget: int, xatol: float = 1e-3):
+        """Batched stencil search with a quadratic model (log-parameter space).
+
+        Each batch scores the ``3^d - 1`` stencil points ``x + step * u``, ``u`` in {-1, 0, 1}^d (clipped to
+        the bounds), fits a quadratic to them and ``f(x)`` by least squares, and scores its minimiser
+        (within two steps) as one more candidate: the model follows valleys that run across the axes
+        (Cook-Torrance's ks and roughness trade against each other), where a compass search stalls.
+        The best point becomes the centre; the steps halve when it lies within the stencil or nothing
+        improved.  Stops when every step is below ``xatol`` (log units) or ``budget`` candidates are
+        spent.  Returns ``(energy, x)``.
+        """
+        f0, x = best
+        step = np.asarray(step, np.float64).copy()
+        d = x.size
+        grid = np.stack(np.meshgrid(*([np.array([-1.0, 0.0, 1.0])] * d), indexing="ij"), -1).reshape(-1, d)
+        grid = grid[np.any(grid != 0, axis=1)]
+        iu = np.triu_indices(d)
+        used = 0
+        while used < budget and np.max(step) >= xatol:
+            cands = [np.clip(x + u * step, lo, hi) for u in grid]
+            vals = list(score(cands))
+            used += len(cands)
+            # quadratic model in stencil units: f ~ c + g.u + 1/2 u^T H u
+            U = np.vstack([np.zeros(d)] + [(y - x) / step for y in cands])
+            F = np.array([f0] + vals)
+            A = np.hstack([np.ones((len(U), 1)), U, np.stack([U[:, i] * U[:, j] * (0.5 if i == j else 1.0)
+                                                              for i, j in zip(*iu)], 1)])
+            coef = np.linalg.lstsq(A, F, rcond=None)[0]
+            g = coef[1:1 + d]
+            H = np.zeros((d, d))
+            H[iu] = coef[1 + d:]
+            H = H + np.triu(H, 1).T
+            if used < budget and np.all(np.linalg.eigvalsh(H) > 0):
+                u_star = np.clip(-np.linalg.solve(H, g), -2.0, 2.0)
+                y = np.clip(x + u_star * step, lo, hi)
+                if not np.array_equal(y, x):
+                    cands.append(y)
+                    vals.append(float(score([y])[0]))
+                    used += 1
+            k = int(np.argmin(vals))
+            if vals[k] < f0:
+                inside = bool(np.all(np.abs(cands[k] - x) <= step + 1e-12))
+                f0, x = float(vals[k]), cands[k]
+                if inside:
+                    step = step / 2
+            else:
+                step = step / 2
+        return f0, x
 
     # ------------------------------------------------------------------ the loop
 
@@ -540,7 +617,9 @@ class RON:
             if estimating:
                 t = time.perf_counter()
                 if c.material_rule == "photometric":
-                    material, info = self._fit_material(images, solve_depth, valid, material, sample, grid=(r == 1))
+                    material, info = self._fit_material(
+                        images, solve_depth, valid, material, sample, grid=(r == 1),
+                        progress=lambda d, t, msg: step(1 + 3 * r - 1 + d / max(t, 1), total, f"round {r}: {msg}"))
                 else:
                     if cur_depth is None:
                         raise ValueError("material_rule: 'depth-rms' needs integrate=True")
