@@ -53,30 +53,62 @@ def rss_mb() -> float:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
+def uint16_frame(images):
+    """A camera's 16-bit view of rendered (N, H, W, 3) images: clipped to [0, 1], rounded, RGB kept.
+
+    The frames stay RGB on purpose: averaged to grey, the bumps scene's 3 Blinn-Phong
+    observations per pixel no longer determine the normal.  Grey leaves 3 equations for 3
+    unknowns (2 for the normal, 1 albedo) and the specular lobe gives them other exact
+    roots: 32 % of the pixels of the 48^2 scene then fit the grey data to 2e-6 with normals
+    more than 1 deg off (MAEN 6.1 deg, offline and stream alike).  In RGB the white highlight
+    and the coloured albedo differ between channels (9 equations, 5 unknowns): 0.006 deg.
+    The bench reported 5.96-5.98 deg from grey frames until this was found (issue 20).
+    """
+    import numpy as np
+
+    return np.ascontiguousarray(np.round(np.clip(images, 0, 1) * 65535).astype(np.uint16))
+
+
+def bumps_frame(size: int, device: str, shift: int = 0):
+    """The benchmarks' scene: Blinn-Phong bumps, perspective, 3 directional lights, moved ``shift`` pixels right.
+
+    Returns:
+        ``(scene, material, lights, frame)``: the moved scene, the material and lights
+        (intensities included), and its (3, H, W, 3) uint16 RGB frame (:func:`uint16_frame`).
+    """
+    import numpy as np
+
+    from gpps.flows.synthetic import default_lights, render
+    from gpps.host.scenes import make_scene
+    from gpps.material import Material
+
+    mat = Material.default_for("blinn-phong")
+    L = default_lights("directional", 3)
+    sc = make_scene("bumps", size, "perspective")
+    if shift:
+        sc = type(sc)(**{n: (np.roll(v, shift, axis=1) if isinstance(v, np.ndarray) and v.ndim >= 2 else v)
+                         for n, v in sc.__dict__.items()})
+    return sc, mat, L, uint16_frame(render(sc, mat, L, bits=16, device=device))
+
+
 def moving_bumps(size: int, device: str, positions: int = 8):
     """The stream benchmarks' scene: Blinn-Phong bumps, perspective, 3 directional lights, moved sideways.
 
     Returns:
         ``(scene, material, lights, frames, truth, mask)``: ``positions`` uint16 RGB
-        frames (N, H, W, 3) of the object moved by 0..positions-1 pixels, their true
-        normals, and the mask of the pixels inside the object at every position.
+        frames (N, H, W, 3) of the object moved by 0..positions-1 pixels
+        (:func:`bumps_frame`), their true normals, and the mask of the pixels inside the
+        object at every position.
     """
     import numpy as np
 
-    from gpps.material import Material
-    from gpps.host.scenes import make_scene
-    from gpps.flows.synthetic import default_lights, render
-
-    mat = Material.default_for("blinn-phong")
-    L = default_lights("directional", 3)
-    sc = make_scene("bumps", size, "perspective")
     frames, truth = [], []
-    mask = sc.mask.copy()
+    sc = mat = L = mask = None
     for k in range(positions):
-        moved = type(sc)(**{n: (np.roll(v, k, axis=1) if isinstance(v, np.ndarray) and v.ndim >= 2 else v)
-                            for n, v in sc.__dict__.items()})
-        img = render(moved, mat, L, bits=16, device=device)
-        frames.append(np.ascontiguousarray(np.round(np.clip(img, 0, 1) * 65535).astype(np.uint16)))
+        moved, mat, L, frame = bumps_frame(size, device, shift=k)
+        if k == 0:
+            sc, mask = moved, moved.mask.copy()
+        frames.append(frame)
         truth.append(moved.normals.astype(np.float32))
-        mask &= np.roll(sc.mask, k, axis=1)
+        mask &= moved.mask
     return sc, mat, L, frames, truth, mask
