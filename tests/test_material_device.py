@@ -207,18 +207,18 @@ def test_trimmed_energy():
     assert trimmed_energy(np.array([2.0]), 0.5) == 4.0
 
 
-def test_bad_input():
-    img, lights, sc, mat = make_case("sphere", 16, "perspective", "directional", "blinn-phong", device="cpu")
+def test_bad_input(device):
+    img, lights, sc, mat = make_case("sphere", 16, "perspective", "directional", "blinn-phong", device=device)
     cfg = fit_config()
     with pytest.raises(ValueError, match="neighbour_radius"):
-        MaterialScorer(img.shape[:3], sc.camera, lights, mat, SolverConfig(), device="cpu")
+        MaterialScorer(img.shape[:3], sc.camera, lights, mat, SolverConfig(), device=device)
     with pytest.raises(ValueError, match="solver='none'"):
-        MaterialScorer(img.shape[:3], sc.camera, lights, mat, replace(cfg, solver="none"), device="cpu")
+        MaterialScorer(img.shape[:3], sc.camera, lights, mat, replace(cfg, solver="none"), device=device)
     with pytest.raises(ValueError, match="brdf"):
-        MaterialScorer(img.shape[:3], sc.camera, lights, "glass", cfg, device="cpu")
+        MaterialScorer(img.shape[:3], sc.camera, lights, "glass", cfg, device=device)
     with pytest.raises(ValueError, match="lights"):
-        MaterialScorer((4,) + img.shape[1:3], sc.camera, lights, mat, cfg, device="cpu")
-    scorer = MaterialScorer(img.shape[:3], sc.camera, lights, mat, cfg, max_samples=10, max_candidates=2, device="cpu")
+        MaterialScorer((4,) + img.shape[1:3], sc.camera, lights, mat, cfg, device=device)
+    scorer = MaterialScorer(img.shape[:3], sc.camera, lights, mat, cfg, max_samples=10, max_candidates=2, device=device)
     with pytest.raises(ValueError, match="upload"):
         scorer.step([mat])
     with pytest.raises(ValueError, match="max_samples"):
