@@ -22,8 +22,8 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
 from cases import make_case
+
 from gpps.flows.synthetic import default_lights, render
 from gpps.host.scenes import make_scene
 from gpps.lights import DirectionalLights, PointLights

@@ -48,7 +48,13 @@ module (inlining, FMA contraction).
 
 import warp as wp
 
-from gpps.kernels.brdf import CameraParams, LightParams, MaterialParams, pixel_point, view_dir
+from gpps.kernels.brdf import (
+    CameraParams,
+    LightParams,
+    MaterialParams,
+    pixel_point,
+    view_dir,
+)
 from gpps.kernels.solve import module_name as _solve_module_name
 from gpps.kernels.solve import specialisation_key
 from gpps.kernels.solve_common import (

@@ -48,7 +48,12 @@ from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
 from gpps.names import BRDF_NAMES
 from gpps.pipeline.params import camera_params, light_params, material_params
-from gpps.pipeline.solver import SolverConfig, check_light_configuration, estimate_noise, solver_params
+from gpps.pipeline.solver import (
+    SolverConfig,
+    check_light_configuration,
+    estimate_noise,
+    solver_params,
+)
 from gpps.pipeline.stage import Stage
 
 __all__ = ["MaterialScorer", "trimmed_energy"]
@@ -281,9 +286,11 @@ class MaterialScorer(Stage):
         try:
             cands = list(candidates)
         except TypeError:
-            raise TypeError(f"candidates: expected a Material or a sequence of them, got {type(candidates).__name__}") from None
+            raise TypeError("candidates: expected a Material or a sequence of them, "
+                            f"got {type(candidates).__name__}") from None
         if not 1 <= len(cands) <= self.max_candidates:
-            raise ValueError(f"candidates: expected 1 to max_candidates={self.max_candidates} materials, got {len(cands)}")
+            raise ValueError(f"candidates: expected 1 to max_candidates={self.max_candidates} materials, "
+                             f"got {len(cands)}")
         for c in cands:
             if not isinstance(c, Material):
                 raise TypeError(f"candidates: expected gpps.Material items, got {type(c).__name__}")
@@ -296,7 +303,8 @@ class MaterialScorer(Stage):
         self.mats.assign(host)
         return len(cands)
 
-    def step(self, candidates: Sequence[Material], *, progress: Progress | None = None, chunks: int | None = None) -> None:
+    def step(self, candidates: Sequence[Material], *, progress: Progress | None = None,
+             chunks: int | None = None) -> None:
         """Solve every sample pixel for every candidate: one launch of K x P threads.
 
         Args:
