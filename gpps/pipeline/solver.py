@@ -55,6 +55,7 @@ __all__ = [
     "FLAG_ALBEDO_FROM_NEIGHBOURS",
     "check_light_configuration",
     "estimate_noise",
+    "solver_params",
 ]
 
 
@@ -273,6 +274,33 @@ def check_light_configuration(lights, point=None, *, tol: float = 1e-3) -> float
     return float(s[0] / s[-1])
 
 
+def solver_params(c: SolverConfig):
+    """The device parameter struct (:class:`gpps.kernels.solve.SolverParams`) of a config: what
+    :class:`PixelSolver` launches with (``keep_unmasked`` 0), shared with :class:`gpps.pipeline.material.MaterialScorer`."""
+    p = sk.SolverParams()
+    p.method = _SOLVER_TAG[c.solver]
+    p.max_iters = int(c.max_iters)
+    p.starts = int(c.starts)
+    p.start_angle = float(np.deg2rad(c.start_angle_deg))
+    p.tol_step = float(c.tol_step)
+    p.tol_grad = float(c.tol_grad)
+    p.robust = _ROBUST_TAG[c.robust]
+    p.robust_scale = float(c.robust_scale)
+    p.irls_rounds = int(c.irls_rounds) if c.robust != "none" else 0
+    p.shadow_threshold = float(c.shadow_threshold)
+    p.saturation = float(c.saturation) if c.saturation is not None else 0.0
+    p.warm_start = int(bool(c.warm_start))
+    p.grey_albedo = int(c.albedo == "grey")
+    p.cond_threshold = float(c.cond_threshold)
+    p.early_exit = int(bool(c.early_exit))
+    p.lm_tau = float(c.lm_tau)
+    p.dogleg_radius = float(c.dogleg_radius)
+    p.lit_threshold = float(c.lit_threshold)
+    p.lit_sigmas = float(c.lit_sigmas)
+    p.keep_unmasked = 0
+    return p
+
+
 class PixelSolver(Stage):
     """Per-pixel calibrated photometric stereo on N images; buffers allocated once.
 
@@ -344,28 +372,7 @@ class PixelSolver(Stage):
         self.intensity_scale = 1.0
 
     def _params(self, c: SolverConfig):
-        p = self._sk.SolverParams()
-        p.method = _SOLVER_TAG[c.solver]
-        p.max_iters = int(c.max_iters)
-        p.starts = int(c.starts)
-        p.start_angle = float(np.deg2rad(c.start_angle_deg))
-        p.tol_step = float(c.tol_step)
-        p.tol_grad = float(c.tol_grad)
-        p.robust = _ROBUST_TAG[c.robust]
-        p.robust_scale = float(c.robust_scale)
-        p.irls_rounds = int(c.irls_rounds) if c.robust != "none" else 0
-        p.shadow_threshold = float(c.shadow_threshold)
-        p.saturation = float(c.saturation) if c.saturation is not None else 0.0
-        p.warm_start = int(bool(c.warm_start))
-        p.grey_albedo = int(c.albedo == "grey")
-        p.cond_threshold = float(c.cond_threshold)
-        p.early_exit = int(bool(c.early_exit))
-        p.lm_tau = float(c.lm_tau)
-        p.dogleg_radius = float(c.dogleg_radius)
-        p.lit_threshold = float(c.lit_threshold)
-        p.lit_sigmas = float(c.lit_sigmas)
-        p.keep_unmasked = 0
-        return p
+        return solver_params(c)
 
     def _params_for(self, c: SolverConfig):
         """The device parameter struct of ``c`` for a subset re-solve (pixels outside the mask keep their

@@ -1,0 +1,248 @@
+"""Batched per-pixel solve for the material search: K candidate materials x P sample pixels in one launch.
+
+Device math only; buffers and launches live in :mod:`gpps.pipeline.material`.
+
+RON's photometric material update (``gpps.flows.ron``, step 4) scores a
+candidate material ``m`` by the trimmed mean of the squared per-pixel
+residuals of the variable-projection fit (seed 4.1-4.2; see
+:mod:`gpps.kernels.solve`)::
+
+    E(m) = 1/|S'| sum_(p in S') r_p(m)^2,   r_p(m)^2 = 2 min_(n, kd) F_p(n, kd; m) / (3 sum_k |w_k|)
+
+over the sample pixels ``S`` (``S'``: all but the worst ``trim`` fraction).
+Every ``r_p(m)`` is the per-pixel solve of :func:`gpps.kernels.solve_kernels.solve_kernel_for`
+with the material ``m``; nothing in a pixel's solve depends on another pixel
+(the fit runs without the neighbour pass and the smoothness term).  So the
+pixels are gathered once into a compact *strip* and the (candidate, pixel)
+pairs are independent threads:
+
+* :data:`prepare_samples_kernel` (dim P, once per upload): the material-free
+  part of ``solve_kernel`` for each sample pixel: its surface point and view
+  direction (2.33, at its true row and column), observation weights (shadow,
+  saturation, caller's ``valid``, the noise test of the lit count), the
+  lighting-sensitivity flags (3.13) and Woodham's least-squares start.
+* the batched kernel of :func:`get_batched_kernel` (dim (K, P), once per search
+  step): multi-start nonlinear least squares and (robust builds) IRLS rounds,
+  candidate ``c`` with ``mats[c]``; outputs (K, P).
+
+Layout.  The per-pixel functions index ``images[k, px.i, px.j]`` and
+``weights[k, px.i, px.j]``.  Here ``px.i`` is the candidate ``c`` and ``px.j``
+the sample index ``p``; ``images`` is an (N, K, P) *view* with stride 0 along
+the candidate axis of the (N, 1, P) strip (one copy of the observations serves
+every candidate).  ``weights`` is the same kind of view of the (N, 1, P) base
+weights when the loss is not robust (the solve only reads them), and an
+(N, K, P) buffer of its own when it is (IRLS rewrites a pixel's weights per
+candidate; the kernel first copies the base weights into its column).  The
+pixel's point and view direction come precomputed in the :class:`Pixel`, so
+``px.i`` / ``px.j`` are only array indices, never camera coordinates.
+
+Specialisation as in :mod:`gpps.kernels.solve`: one Warp module per
+``(method, brdf, robust)`` built from :func:`gpps.kernels.solve_methods.solver_funcs`
+with ``wp.static`` conditions (a monolithic kernel took more than 13 minutes
+to compile on CUDA); the material's *parameters* are run-time values, so all
+candidates of one model share a build.  Because the same device functions run
+on the same float32 inputs, a pixel's residual equals the one
+``PixelSolver`` computes, up to the code generator's choices in another
+module (inlining, FMA contraction).
+"""
+
+import warp as wp
+
+from gpps.kernels.brdf import (
+    CameraParams,
+    LightParams,
+    MaterialParams,
+    pixel_point,
+    view_dir,
+)
+from gpps.kernels.solve import module_name as _solve_module_name
+from gpps.kernels.solve import specialisation_key
+from gpps.kernels.solve_common import (
+    FLAG_FEW_OBSERVATIONS,
+    FLAG_ILL_CONDITIONED,
+    FLAG_WOODHAM_FALLBACK,
+    Pixel,
+    SolverParams,
+    cond_frobenius,
+    grey_max,
+    light_gram,
+    store_solution,
+)
+from gpps.kernels.solve_kernels import least_squares_start, observation_weights
+from gpps.kernels.solve_methods import solver_funcs
+
+__all__ = ["prepare_samples_kernel", "get_batched_kernel", "batched_module_name"]
+
+
+@wp.func
+def strip_pixel(c: int, p: int, point: wp.vec3, view: wp.vec3, prm: SolverParams):
+    """The :class:`Pixel` of candidate ``c`` and sample ``p``: array indices (c, p), precomputed point and view."""
+    px = Pixel()
+    px.i = c
+    px.j = p
+    px.p = point
+    px.v = view
+    px.fix_kd = 0
+    px.kd = wp.vec3(0.0)
+    px.grey_albedo = prm.grey_albedo
+    px.prior_w = 0.0
+    px.prior_n = wp.vec3(0.0)
+    return px
+
+
+@wp.kernel(enable_backward=False)
+def prepare_samples_kernel(
+    strip: wp.array3d(dtype=wp.vec3),
+    strip_valid: wp.array3d(dtype=wp.uint8),
+    rows: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    sample_depth: wp.array(dtype=wp.float32),
+    noise: wp.array(dtype=wp.float32),
+    cam: CameraParams,
+    lights: LightParams,
+    prm: SolverParams,
+    base_weights: wp.array3d(dtype=wp.float32),
+    points: wp.array(dtype=wp.vec3),
+    views: wp.array(dtype=wp.vec3),
+    ninit: wp.array(dtype=wp.vec3),
+    gmax: wp.array(dtype=wp.float32),
+    base_flags: wp.array(dtype=wp.int32),
+    cond: wp.array(dtype=wp.float32),
+):
+    """The material-free part of ``solve_kernel`` for sample pixel ``p`` (dim P).
+
+    Args:
+        strip: (N, 1, P) RGB observations of the sample pixels (images divided by
+            the light intensities when the lights carry unit intensity).
+        strip_valid: (N, 1, P) 1 where the caller keeps the observation.
+        rows, cols: (P,) the sample pixels' row and column in the image.
+        sample_depth: (P,) depth > 0 (scene units) of each sample pixel.
+        noise: (N,) noise standard deviation of each image's grey values (0: unknown).
+        base_weights: (N, 1, P) out: observation weights (1 used, -1 dark, 0 dropped).
+        points: (P,) out: surface point (2.33, gpps frame, scene units).
+        views: (P,) out: unit view direction.
+        ninit: (P,) out: Woodham's least-squares normal (the first start).
+        gmax: (P,) out: brightest grey value.
+        base_flags: (P,) out: FLAG_FEW_OBSERVATIONS / ILL_CONDITIONED / WOODHAM_FALLBACK bits.
+        cond: (P,) out: Frobenius condition number of the valid lights' Gram matrix (3.13).
+    """
+    p = wp.tid()
+    nl_ = lights.count
+    point = pixel_point(cam, rows[p], cols[p], sample_depth[p])
+    px = strip_pixel(0, p, point, view_dir(cam, point), prm)
+    g = grey_max(strip, 0, p, nl_)
+    ninfo = observation_weights(strip, strip_valid, noise, prm, 0, p, nl_, g, base_weights)
+    flag = int(0)
+    if ninfo < 3:
+        flag = flag | FLAG_FEW_OBSERVATIONS
+    cnd = cond_frobenius(light_gram(base_weights, 0, p, px.p, lights))
+    if cnd > prm.cond_threshold:
+        flag = flag | FLAG_ILL_CONDITIONED
+    use_all = int(0)
+    if cnd >= 1.0e29:
+        use_all = 1
+        flag = flag | FLAG_WOODHAM_FALLBACK
+    n0, kdw = least_squares_start(strip, base_weights, px, lights, use_all, 0)
+    points[p] = px.p
+    views[p] = px.v
+    ninit[p] = n0
+    gmax[p] = g
+    base_flags[p] = flag
+    cond[p] = cnd
+
+
+def batched_kernel_for(robust, solve_pixel, module, sfx: str):
+    """``solve_batched_kernel``: candidates x sample pixels, one thread a (candidate, pixel) pair.
+
+    Args:
+        robust: ``"none"``, ``"huber"`` or ``"cauchy"`` (the normalised key's loss).
+        solve_pixel: the nonlinear solve (:func:`gpps.kernels.solve_methods.solve_pixel_for`).
+        module: Warp module of the kernel.
+        sfx: key suffix of the kernel.
+    """
+
+    @wp.kernel(name="solve_batched_kernel" + sfx, module=module, enable_backward=False)
+    def solve_batched_kernel(
+        strip_k: wp.array3d(dtype=wp.vec3),
+        base_weights: wp.array3d(dtype=wp.float32),
+        points: wp.array(dtype=wp.vec3),
+        views: wp.array(dtype=wp.vec3),
+        ninit: wp.array(dtype=wp.vec3),
+        gmax: wp.array(dtype=wp.float32),
+        base_flags: wp.array(dtype=wp.int32),
+        lights: LightParams,
+        mats: wp.array(dtype=MaterialParams),
+        prm: SolverParams,
+        first: int,
+        weights_k: wp.array3d(dtype=wp.float32),
+        normals_k: wp.array2d(dtype=wp.vec3),
+        albedo_k: wp.array2d(dtype=wp.vec3),
+        residual_k: wp.array2d(dtype=wp.float32),
+        iterations_k: wp.array2d(dtype=wp.int32),
+        flags_k: wp.array2d(dtype=wp.int32),
+    ):
+        """Solve sample pixel ``first + t`` with candidate material ``mats[c]`` (dim (K, chunk)).
+
+        Args:
+            strip_k: (N, K, P) observations, a stride-0 view of the (N, 1, P) strip along K.
+            base_weights: (N, 1, P) observation weights of :data:`prepare_samples_kernel`.
+            points, views, ninit, gmax, base_flags: (P,) from :data:`prepare_samples_kernel`.
+            mats: (K,) candidate materials (one reflectance model: this build's).
+            first: index of the first sample pixel of this launch (a chunk of the pixels).
+            weights_k: (N, K, P) the weights the solve reads: a stride-0 view of
+                ``base_weights`` (robust "none"), or a buffer of its own that each
+                thread fills from ``base_weights`` and the IRLS rounds rewrite.
+            normals_k: (K, P) out: unit normals.
+            albedo_k: (K, P) out: RGB albedo kd.
+            residual_k: (K, P) out: RMS weighted residual per valid observation and
+                channel (``solve_kernel``'s ``residual``), image units.
+            iterations_k: (K, P) out: cost evaluations used.
+            flags_k: (K, P) out: FLAG_* bits (``base_flags`` plus FLAG_NOT_CONVERGED).
+        """
+        c, t = wp.tid()
+        p = first + t
+        nl_ = lights.count
+        if wp.static(robust != "none"):
+            for k in range(nl_):
+                weights_k[k, c, p] = base_weights[k, 0, p]
+        px = strip_pixel(c, p, points[p], views[p], prm)
+        sol = solve_pixel(ninit[p], gmax[p], strip_k, weights_k, px, lights, mats[c], prm)
+        store_solution(sol, base_flags[p], weights_k, px, nl_, normals_k, albedo_k, residual_k, iterations_k, flags_k)
+
+    return solve_batched_kernel
+
+
+_BATCHED: dict = {}
+
+
+def batched_module_name(method, brdf, robust) -> str:
+    """Name of the Warp module holding the batched kernel of one specialisation."""
+    tag = _solve_module_name(method, brdf, robust).rsplit(".", 1)[1]
+    return f"gpps.kernels.solve_batched.{tag}"
+
+
+def get_batched_kernel(method, brdf, robust="none"):
+    """The batched solve kernel specialised for one solver, reflectance model and robust loss.
+
+    Args:
+        method: ``"lm"``, ``"dogleg"`` or ``"bfgs"`` (solver ``"none"`` does not
+            depend on the material: nothing to batch).
+        brdf: a :data:`gpps.names.BRDF_NAMES` name.
+        robust: ``"none"``, ``"huber"`` or ``"cauchy"``; ``"none"`` emits no IRLS
+            round (``prm.irls_rounds`` must be 0) and never writes ``weights_k``.
+
+    Built once per key and cached, in a Warp module of its own
+    (:func:`batched_module_name`), compiled on first launch.
+    """
+    key = specialisation_key(method, brdf, robust)
+    if None in key or key[0] == "none":
+        raise ValueError(f"method, brdf, robust: expected a nonlinear solver and fixed choices, got {key}")
+    k = _BATCHED.get(key)
+    if k is None:
+        name = batched_module_name(*key)
+        sfx = "__batched_" + name.rsplit(".", 1)[1]
+        module = wp.get_module(name)
+        funcs = solver_funcs(*key, module, sfx)
+        k = batched_kernel_for(key[2], funcs.solve_pixel, module, sfx)
+        _BATCHED[key] = k
+    return k

@@ -1,0 +1,394 @@
+"""The material scorer stage: the sample pixels resident on the device, K candidate materials scored per launch.
+
+RON's photometric material update (:mod:`gpps.flows.ron`, step 4) searches
+the unknown scene parameters (``ks`` and the lobe width) that minimise the
+trimmed energy of a fixed pixel sample ``S`` (highlight pixels first)::
+
+    E(m) = 1/|S'| sum_(p in S') r_p(m)^2
+
+where ``r_p(m)`` is pixel p's RMS residual after its normal and albedo are
+re-solved with the material ``m`` (variable projection, seed 4.1-4.2; the
+same per-pixel multi-start solve as :class:`gpps.pipeline.solver.PixelSolver`)
+and ``S'`` leaves out the ``trim`` fraction of the largest residuals (cast
+shadows, inter-reflections).  Scoring each candidate through
+``PixelSolver.run`` re-uploads the whole (N, H, W, 3) frame, re-estimates the
+noise, launches over every pixel and fetches seven full frames; here::
+
+    scorer = MaterialScorer(images.shape[:3], camera, lights, "cook-torrance", fit_config,
+                            max_samples=2000, max_candidates=25, trim=0.02)
+    scorer.upload(images, sample_mask, depth=depth, valid=valid)   # once: gathers the samples
+    scorer.step([m1, m2, ..., mK])                                  # one launch, (K, P) pixel solves
+    energies = scorer.fetch()                                       # (K,) float64, E(m_c)
+    more = scorer.fetch_pixels(("normals", "residual"))             # (K, P, 3), (K, P)
+
+:meth:`MaterialScorer.upload` gathers the sample pixels' observations,
+``valid`` flags, depth and true (row, column) into a compact strip and
+precomputes what does not depend on the material (observation weights with
+PixelSolver's shadow, saturation and lit/dark rules, the noise levels
+PixelSolver would use, Woodham's start); :meth:`MaterialScorer.step` runs the
+candidates x pixels solve of :mod:`gpps.kernels.solve_batched`;
+:meth:`MaterialScorer.fetch` copies the (K, P) residuals back and returns the
+trimmed energies, computed on the host in float64 exactly as RON's fit did
+(a (K, P) float32 copy: 200 KB at K = 25, P = 2000).  A candidate's energy
+equals the one of ``PixelSolver`` with the same config on the same sample
+mask (tests/test_material_device.py).
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import numpy as np
+
+from gpps._check import as_array, as_images, as_mask, check_number
+from gpps._runtime import resolve_device, warp
+from gpps.kernels import solve_batched as sb
+from gpps.kernels.brdf import MaterialParams
+from gpps.lights import DirectionalLights, PointLights
+from gpps.material import Material
+from gpps.names import BRDF_NAMES
+from gpps.pipeline.params import camera_params, light_params, material_params
+from gpps.pipeline.solver import (
+    SolverConfig,
+    check_light_configuration,
+    estimate_noise,
+    solver_params,
+)
+from gpps.pipeline.stage import Stage
+
+__all__ = ["MaterialScorer", "trimmed_energy"]
+
+Progress = Callable[[float, float, str], None]
+
+_PIXEL_OUTPUTS = ("normals", "albedo", "residual", "iterations", "flags")
+
+
+def trimmed_energy(residual, trim: float) -> np.ndarray:
+    """Trimmed mean of the squared residuals, per row: RON's material energy.
+
+    ``E = mean of the smallest max(1, round(P (1 - trim)))`` values of ``r^2``
+    (float64), the computation of RON's ``_fit_energy`` on the sample pixels.
+
+    Args:
+        residual: (K, P) or (P,) RMS residuals (image units).
+        trim: fraction of the largest squared residuals left out, in [0, 0.5].
+
+    Returns:
+        (K,) float64 energies (a 0-d array for a (P,) input), image units squared.
+    """
+    r = np.asarray(residual, np.float64)
+    one = r.ndim == 1
+    r = np.atleast_2d(r)
+    keep = max(1, int(round(r.shape[1] * (1.0 - float(trim)))))
+    e = np.mean(np.sort(r * r, axis=1)[:, :keep], axis=1)
+    return e[0] if one else e
+
+
+class MaterialScorer(Stage):
+    """Scores candidate materials on a resident pixel sample: K candidates x P pixels per launch.
+
+    Args:
+        shape: (N, H, W) of the frames the sample is taken from.
+        camera: :class:`gpps.camera.Orthographic` or :class:`Perspective`.
+        lights: :class:`DirectionalLights` or :class:`PointLights` (N), unit
+            intensities when the images were divided by them.
+        brdf: the reflectance model of every candidate (a :class:`Material` or
+            its ``brdf`` name): the kernel is specialised for it.
+        config: the per-pixel solve's settings, a :class:`SolverConfig` with
+            a nonlinear solver, ``neighbour_radius=0``, ``smoothness=0`` and
+            ``warm_start=False`` (RON's fit: ``replace(solver, starts=material_starts,
+            neighbour_radius=0, smoothness=0.0, warm_start=False)``); the scorer
+            solves each pixel on its own, as PixelSolver does with those settings.
+        max_samples: capacity P_max of the sample (pixels).
+        max_candidates: capacity K_max of one step (candidates).
+        trim: fraction of the largest squared residuals left out of each energy, in [0, 0.5].
+        device: Warp device (None: CUDA if present).
+
+    Buffers (allocated once, N x K_max x P_max): the strip ``strip`` (N, 1, P_max)
+    and its weights, per-sample ``points``/``views``/``ninit``/``gmax``/``flags``,
+    the candidates ``mats`` (K_max,), and the outputs ``normals``, ``albedo``,
+    ``residual``, ``iterations``, ``flags_k`` (K_max, P_max); robust losses
+    add an (N, K_max, P_max) float32 weight buffer.
+    """
+
+    def __init__(self, shape, camera, lights, brdf, config: SolverConfig, *, max_samples: int = 2000,
+                 max_candidates: int = 25, trim: float = 0.02, device=None):
+        wp = warp()
+        try:
+            n, h, w = (int(s) for s in shape)
+        except (TypeError, ValueError):
+            raise ValueError(f"shape: expected (N, H, W), got {shape!r}") from None
+        if n < 1 or h < 1 or w < 1:
+            raise ValueError(f"shape: expected (N, H, W) with positive sizes, got {shape!r}")
+        if not isinstance(lights, (DirectionalLights, PointLights)):
+            raise TypeError(f"lights: expected DirectionalLights or PointLights, got {type(lights).__name__}")
+        if len(lights) != n:
+            raise ValueError(f"lights: expected {n} lights (one per image), got {len(lights)}")
+        if isinstance(brdf, Material):
+            brdf = brdf.brdf
+        if brdf not in BRDF_NAMES:
+            raise ValueError(f"brdf: expected a Material or one of {list(BRDF_NAMES)}, got {brdf!r}")
+        if not isinstance(config, SolverConfig):
+            raise TypeError(f"config: expected SolverConfig, got {type(config).__name__}")
+        if config.solver == "none":
+            raise ValueError("config: expected a nonlinear solver ('lm', 'dogleg' or 'bfgs'), got solver='none' "
+                             "(its least-squares normals do not depend on the material)")
+        if config.neighbour_radius != 0 or config.smoothness != 0.0 or config.warm_start:
+            raise ValueError("config: expected neighbour_radius=0, smoothness=0 and warm_start=False (the scorer "
+                             f"solves each pixel on its own), got neighbour_radius={config.neighbour_radius}, "
+                             f"smoothness={config.smoothness}, warm_start={config.warm_start}")
+        self.max_samples = check_number("max_samples", max_samples, lo=1, integer=True)
+        self.max_candidates = check_number("max_candidates", max_candidates, lo=1, integer=True)
+        self.trim = check_number("trim", trim, lo=0.0, hi=0.5)
+        self.device = resolve_device(device)
+        self.shape = (n, h, w)
+        self.camera = camera
+        self.cam = camera_params(camera, (h, w))
+        self.lights = lights
+        self.lp = light_params(lights, self.device)
+        self.brdf = brdf
+        self.config = config
+        # the parameter struct and specialisation PixelSolver uses for this config
+        self.prm = solver_params(config)
+        robust = config.robust if config.irls_rounds > 0 else "none"
+        self._robust = robust
+        self._kernel = sb.get_batched_kernel(config.solver, brdf, robust)
+        d, pm, km = self.device, int(self.max_samples), int(self.max_candidates)
+        self.strip = wp.zeros((n, 1, pm), dtype=wp.vec3, device=d)
+        self.strip_valid = wp.ones((n, 1, pm), dtype=wp.uint8, device=d)
+        self.rows = wp.zeros(pm, dtype=wp.int32, device=d)
+        self.cols = wp.zeros(pm, dtype=wp.int32, device=d)
+        self.sample_depth = wp.ones(pm, dtype=wp.float32, device=d)
+        self.noise = wp.zeros(n, dtype=wp.float32, device=d)
+        self.noise_level = np.zeros(n, np.float32)
+        self.base_weights = wp.zeros((n, 1, pm), dtype=wp.float32, device=d)
+        self.points = wp.zeros(pm, dtype=wp.vec3, device=d)
+        self.views = wp.zeros(pm, dtype=wp.vec3, device=d)
+        self.ninit = wp.zeros(pm, dtype=wp.vec3, device=d)
+        self.gmax = wp.zeros(pm, dtype=wp.float32, device=d)
+        self.flags = wp.zeros(pm, dtype=wp.int32, device=d)
+        self.cond = wp.zeros(pm, dtype=wp.float32, device=d)
+        self.mats = wp.zeros(km, dtype=MaterialParams, device=d)
+        self.normals = wp.zeros((km, pm), dtype=wp.vec3, device=d)
+        self.albedo = wp.zeros((km, pm), dtype=wp.vec3, device=d)
+        self.residual = wp.zeros((km, pm), dtype=wp.float32, device=d)
+        self.iterations = wp.zeros((km, pm), dtype=wp.int32, device=d)
+        self.flags_k = wp.zeros((km, pm), dtype=wp.int32, device=d)
+        # one copy of the observations (and, without IRLS, of the weights) serves every candidate
+        self._strip_k = _broadcast_k(wp, self.strip, km)
+        if robust == "none":
+            self._weights_k = _broadcast_k(wp, self.base_weights, km)
+        else:
+            self._weights_k = wp.zeros((n, km, pm), dtype=wp.float32, device=d)
+        self._mats_host = np.zeros(km, dtype=MaterialParams.numpy_dtype())
+        self.samples = 0  # P of the current upload
+        self.candidates = 0  # K of the last step
+        self.rows_host = np.zeros(0, np.int64)
+        self.cols_host = np.zeros(0, np.int64)
+        self._closed = False
+
+    # ------------------------------------------------------------------ upload
+
+    def _images(self, images) -> np.ndarray:
+        n, h, w = self.shape
+        arr = as_images("images", images)
+        if arr.shape == (n, h, w):
+            arr = np.repeat(arr[..., None], 3, axis=-1)
+        elif arr.shape == (n, h, w, 1):
+            arr = np.repeat(arr, 3, axis=-1)
+        if arr.shape != (n, h, w, 3):
+            raise ValueError(f"images: expected shape ({n}, {h}, {w}, 3) or ({n}, {h}, {w}), got {arr.shape}")
+        return arr
+
+    def upload(self, images, sample_mask, *, depth=None, valid=None, noise=None) -> None:
+        """Gather the sample pixels into the device strip and precompute their material-free terms.
+
+        Args:
+            images: (N, H, W, 3) RGB or (N, H, W) grey observations >= 0 (image units,
+                divided by the light intensities when the lights have unit intensity).
+            sample_mask: (H, W) bool, the P <= ``max_samples`` pixels to score on.
+            depth: (H, W) depth (> 0 on the sample, scene units); required for point
+                lights (2.30-2.31), optional otherwise (then 1, as PixelSolver).
+            valid: optional (N, H, W) bool observations to use.
+            noise: optional (N,) noise standard deviation of each image's grey values
+                (image units).  None: what ``PixelSolver.upload`` would use for this
+                frame and mask: ``config.noise_level``, else
+                :func:`gpps.pipeline.solver.estimate_noise` of ``images`` on ``sample_mask``.
+
+        Raises:
+            ValueError: shapes, an empty or too large sample, depth <= 0 on the
+                sample, degenerate point lights at the sample's median point.
+        """
+        self._check_open()
+        wp = warp()
+        n, h, w = self.shape
+        img = self._images(images)
+        m = as_mask("sample_mask", sample_mask, (h, w))
+        rows, cols = np.nonzero(m)
+        p = int(rows.size)
+        if p > self.max_samples:
+            raise ValueError(f"sample_mask: expected at most max_samples={self.max_samples} pixels, got {p}")
+        if depth is None:
+            if isinstance(self.lights, PointLights):
+                raise ValueError("depth: expected an (H, W) depth estimate for point lights (2.30-2.31), got None")
+            dep = np.ones(p, np.float32)
+        else:
+            dep = as_array("depth", depth, shape=(h, w))[rows, cols].astype(np.float32)
+            if np.any(dep <= 0):
+                raise ValueError("depth: expected values > 0 inside the sample mask")
+        if valid is None:
+            val = np.ones((n, p), np.uint8)
+        else:
+            val = np.asarray(valid)
+            if val.shape != (n, h, w):
+                raise ValueError(f"valid: expected shape ({n}, {h}, {w}), got {val.shape}")
+            val = (val[:, rows, cols] > 0).astype(np.uint8)
+        if isinstance(self.lights, PointLights):
+            # as PixelSolver: the configuration must determine normals at the sample's centre
+            full = np.zeros((h, w), np.float32)
+            full[rows, cols] = dep
+            pts = self.camera.backproject(full)
+            check_light_configuration(self.lights, np.median(pts[m], axis=0))
+        if noise is not None:
+            lev = as_array("noise", noise, shape=(n,))
+            if np.any(lev < 0):
+                raise ValueError("noise: expected values >= 0")
+            self.noise_level = lev.astype(np.float32)
+        elif self.config.noise_level is not None:
+            self.noise_level = np.full(n, self.config.noise_level, np.float32)
+        else:
+            self.noise_level = estimate_noise(img, m)
+        pm = self.max_samples
+        strip = np.zeros((n, 1, pm, 3), np.float32)
+        strip[:, 0, :p] = img[:, rows, cols]
+        vstrip = np.zeros((n, 1, pm), np.uint8)
+        vstrip[:, 0, :p] = val
+        self.strip.assign(strip)
+        self.strip_valid.assign(vstrip)
+        self.rows.assign(np.pad(rows.astype(np.int32), (0, pm - p)))
+        self.cols.assign(np.pad(cols.astype(np.int32), (0, pm - p)))
+        self.sample_depth.assign(np.pad(dep, (0, pm - p), constant_values=1.0))
+        self.noise.assign(self.noise_level)
+        self.samples = p
+        self.candidates = 0
+        self.rows_host, self.cols_host = rows, cols
+        wp.launch(sb.prepare_samples_kernel, dim=p,
+                  inputs=[self.strip, self.strip_valid, self.rows, self.cols, self.sample_depth, self.noise,
+                          self.cam, self.lp, self.prm],
+                  outputs=[self.base_weights, self.points, self.views, self.ninit, self.gmax, self.flags, self.cond],
+                  device=self.device)
+
+    # ------------------------------------------------------------------ step
+
+    def _set_candidates(self, candidates) -> int:
+        if isinstance(candidates, Material):
+            candidates = [candidates]
+        try:
+            cands = list(candidates)
+        except TypeError:
+            raise TypeError("candidates: expected a Material or a sequence of them, "
+                            f"got {type(candidates).__name__}") from None
+        if not 1 <= len(cands) <= self.max_candidates:
+            raise ValueError(f"candidates: expected 1 to max_candidates={self.max_candidates} materials, "
+                             f"got {len(cands)}")
+        for c in cands:
+            if not isinstance(c, Material):
+                raise TypeError(f"candidates: expected gpps.Material items, got {type(c).__name__}")
+            if c.brdf != self.brdf:
+                raise ValueError(f"candidates: expected {self.brdf!r} materials (the scorer's model), got {c.brdf!r}")
+        host = self._mats_host
+        for k, c in enumerate(cands):
+            mp = material_params(c)
+            host[k] = (mp.model, mp.ks, mp.shininess, mp.roughness, mp.f0, mp.eta_u, mp.eta_v)
+        self.mats.assign(host)
+        return len(cands)
+
+    def step(self, candidates: Sequence[Material], *, progress: Progress | None = None,
+             chunks: int | None = None) -> None:
+        """Solve every sample pixel for every candidate: one launch of K x P threads.
+
+        Args:
+            candidates: K <= ``max_candidates`` materials of the scorer's model
+                (their parameters may all differ).
+            progress: optional ``progress(done, total, message)`` in pixel solves
+                (``total = K * P``), called after each launch has finished.
+            chunks: launches the pixels are split over (each launch still holds all
+                K candidates), so that ``progress`` moves during a long step.  None:
+                1 without ``progress``; with it, 1 on CUDA and 8 on the CPU (whose
+                Warp backend is single-threaded and slow).  With ``chunks > 1`` (or a
+                ``progress``) the host waits for each launch.
+
+        No copy comes back; without ``progress`` and with one chunk the host
+        does not wait.
+        """
+        self._check_open()
+        if self.samples == 0:
+            raise ValueError("step: expected an upload of the sample pixels first")
+        k = self._set_candidates(candidates)
+        self.candidates = k
+        p = self.samples
+        if chunks is None:
+            chunks = 1 if progress is None or self.device.startswith("cuda") else 8
+        chunks = min(check_number("chunks", chunks, lo=1, integer=True), p)
+        wp = warp()
+        bounds = np.linspace(0, p, chunks + 1).round().astype(int)
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            wp.launch(self._kernel, dim=(k, int(b - a)),
+                      inputs=[self._strip_k, self.base_weights, self.points, self.views, self.ninit, self.gmax,
+                              self.flags, self.lp, self.mats, self.prm, int(a)],
+                      outputs=[self._weights_k, self.normals, self.albedo, self.residual, self.iterations,
+                               self.flags_k],
+                      device=self.device)
+            if progress is not None or chunks > 1:
+                wp.synchronize_device(self.device)
+            if progress is not None:
+                progress(float(k * b), float(k * p), f"material: {k} candidates, {int(b)}/{p} pixels")
+
+    # ------------------------------------------------------------------ fetch
+
+    def fetch(self) -> np.ndarray:
+        """The last step's trimmed energies: (K,) float64, image units squared (see :func:`trimmed_energy`)."""
+        return trimmed_energy(self.fetch_pixels(("residual",))["residual"], self.trim)
+
+    def fetch_pixels(self, names=_PIXEL_OUTPUTS) -> dict:
+        """The last step's per-(candidate, pixel) results as numpy copies, pixels in ``(rows_host, cols_host)`` order
+        (row-major, as ``x[sample_mask]``): ``normals`` (K, P, 3) unit normals, ``albedo`` (K, P, 3), ``residual``
+        (K, P) RMS residual (image units), ``iterations`` (K, P), ``flags`` (K, P) (bits of :mod:`gpps.names`).
+        """
+        self._check_open()
+        if self.candidates == 0:
+            raise ValueError("fetch: expected a step first")
+        bad = [x for x in names if x not in _PIXEL_OUTPUTS]
+        if bad:
+            raise ValueError(f"names: expected names from {list(_PIXEL_OUTPUTS)}, got {bad}")
+        k, p = self.candidates, self.samples
+        out = {}
+        for x in names:
+            buf = self.flags_k if x == "flags" else getattr(self, x)
+            out[x] = np.array(buf.numpy()[:k, :p], copy=True)
+        return out
+
+    def run(self, images, sample_mask, candidates, *, depth=None, valid=None, noise=None, progress=None) -> np.ndarray:
+        """``upload``, ``step(candidates)`` and ``fetch()`` in one: (K,) energies."""
+        self.upload(images, sample_mask, depth=depth, valid=valid, noise=noise)
+        self.step(candidates, progress=progress)
+        return self.fetch()
+
+    def close(self) -> None:
+        """Release the device buffers; the scorer refuses work afterwards."""
+        for name in ("strip", "strip_valid", "rows", "cols", "sample_depth", "noise", "base_weights", "points",
+                     "views", "ninit", "gmax", "flags", "cond", "mats", "normals", "albedo", "residual",
+                     "iterations", "flags_k", "_strip_k", "_weights_k", "lp"):
+            self.__dict__.pop(name, None)
+        self._closed = True
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ValueError("MaterialScorer: closed (its buffers were released)")
+
+
+def _broadcast_k(wp, base, k: int):
+    """An (N, k, P) view of an (N, 1, P) array with stride 0 along axis 1 (no copy)."""
+    n, _, p = base.shape
+    return wp.array(ptr=base.ptr, dtype=base.dtype, shape=(n, k, p), strides=(base.strides[0], 0, base.strides[2]),
+                    device=base.device, copy=False)

@@ -1,0 +1,239 @@
+"""MaterialScorer (gpps/pipeline/material.py): K candidate materials x P resident sample pixels per launch.
+
+Reference: RON's material energy as ``RON._fit_energy`` computed it at f93cc14: ``PixelSolver.run`` on the
+whole frame with the sample mask and RON's fit config (``starts=material_starts, neighbour_radius=0,
+smoothness=0, warm_start=False``), the sample pixels' squared residuals sorted in float64 and trimmed by
+``material_trim``.  The reference is written out here (not called through RON) so that it stays the
+independent check when RON itself moves to the scorer.
+
+Tolerance.  The scorer runs the same ``@wp.func`` solve code (gpps.kernels.solve_methods) on the same
+float32 inputs (observations, weights, noise levels, start normal and pixel point computed by the same
+functions); only the enclosing kernel and Warp module differ.  On the CPU backend the residuals come out
+bitwise equal (observed: max |diff| = 0).  A compiler may still inline or contract (FMA) differently in
+another module: a last-bit change of the iterate, which at a converged minimum moves the cost only to second
+order and otherwise shifts where ``tol_step`` (1e-6 rad) stops the iteration.  The bound used,
+``|dE| <= 1e-5 E + (1e-6 s)^2`` (``s``: the 99th percentile grey value, so ``1e-6 s`` is a few float32 ulps
+of an observation), covers that; near-exact fits (3 images, E ~ 1e-15 s^2) fall under the absolute term.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from cases import make_case
+
+from gpps.flows.synthetic import default_lights, render
+from gpps.host.scenes import make_scene
+from gpps.lights import DirectionalLights, PointLights
+from gpps.material import Material
+from gpps.pipeline.material import MaterialScorer, trimmed_energy
+from gpps.pipeline.solver import PixelSolver, SolverConfig
+
+TRIM = 0.02
+STARTS = 4
+
+
+def fit_config(**kw) -> SolverConfig:
+    """RON's material-fit config: the default solver settings with RON's overrides."""
+    return replace(SolverConfig(**kw), starts=STARTS, neighbour_radius=0, smoothness=0.0, warm_start=False)
+
+
+def sample_mask(mask, n, seed=0, block=False):
+    """``n`` random mask pixels (and, with ``block``, a dense 8x8 patch, so the noise estimate sees pixels)."""
+    rng = np.random.default_rng(seed)
+    idx = np.flatnonzero(mask.ravel())
+    s = np.zeros(mask.size, bool)
+    s[rng.choice(idx, min(n, idx.size), replace=False)] = True
+    s = s.reshape(mask.shape)
+    if block:
+        ci, cj = (int(np.mean(a)) for a in np.nonzero(mask))
+        s[ci - 4 : ci + 4, cj - 4 : cj + 4] = True
+    return s & mask
+
+
+def candidates_around(mat: Material) -> list[Material]:
+    """The true material and four others: ks and the lobe width moved by factors 0.25-4."""
+    lobe = {"blinn-phong": "shininess", "phong": "shininess", "cook-torrance": "roughness"}[mat.brdf]
+    out = [mat]
+    for fk, fl in ((0.25, 1.0), (1.0, 2.0), (2.0, 0.5), (0.5, 1.6)):
+        d = mat.to_dict()
+        d["ks"] = mat.ks * fk
+        d[lobe] = getattr(mat, lobe) * fl
+        out.append(Material.from_dict(d))
+    return out
+
+
+def reference(images, sample, camera, lights, cands, config, *, depth, valid, device):
+    """RON's ``_fit_energy`` for each candidate, and the residuals / normals at the sample (row-major)."""
+    solver = PixelSolver(images.shape[:3], camera, lights, cands[0], config, device=device)
+    energies, residuals, normals = [], [], []
+    for m in cands:
+        solver.set_material(m)
+        out = solver.run(images, sample, depth=depth, valid=valid)
+        r = np.sort(out["residual"][sample].astype(np.float64) ** 2)
+        keep = max(1, int(round(r.size * (1.0 - TRIM))))
+        energies.append(float(np.mean(r[:keep])))
+        residuals.append(out["residual"][sample])
+        normals.append(out["normals"][sample])
+    return np.array(energies), np.array(residuals), np.array(normals)
+
+
+def scale_of(images, mask) -> float:
+    g = np.asarray(images, np.float64)[:, mask]
+    if g.ndim == 3:
+        g = g.mean(-1)
+    return float(np.percentile(g, 99.0))
+
+
+def assert_energies_equal(e, ref, s):
+    tol = 1e-5 * ref + (1e-6 * s) ** 2
+    assert e.shape == ref.shape
+    assert np.all(np.abs(e - ref) <= tol), (e, ref, np.abs(e - ref) / np.maximum(ref, 1e-300))
+
+
+def score(images, sample, camera, lights, cands, config, *, depth=None, valid=None, device, **kw):
+    with MaterialScorer(images.shape[:3], camera, lights, cands[0].brdf, config, max_samples=int(sample.sum()) + 7,
+                        max_candidates=8, trim=TRIM, device=device) as sc:
+        sc.upload(images, sample, depth=depth, valid=valid)
+        sc.step(cands, **kw)
+        return sc.fetch(), sc.fetch_pixels(), (sc.rows_host, sc.cols_host)
+
+
+CASES_3 = [
+    ("blinn-phong", "directional", "perspective"),
+    ("blinn-phong", "point", "orthographic"),
+    ("cook-torrance", "directional", "orthographic"),
+    ("cook-torrance", "point", "perspective"),
+]
+
+
+@pytest.mark.parametrize("brdf,light_kind,camera", CASES_3)
+def test_energies_equal_pixel_solver_three_images(brdf, light_kind, camera, device):
+    """make_case scenes (3 images): energies, residuals and normals equal PixelSolver's on the sample mask."""
+    img, lights, sc, mat = make_case("sphere", 32, camera, light_kind, brdf, device=device)
+    sample = sample_mask(sc.mask, 150, seed=1)
+    depth = sc.depth if light_kind == "point" else None
+    cands = candidates_around(mat)
+    cfg = fit_config()
+    ref, ref_r, ref_n = reference(img, sample, sc.camera, lights, cands, cfg, depth=depth, valid=None, device=device)
+    e, px, (rows, cols) = score(img, sample, sc.camera, lights, cands, cfg, depth=depth, device=device)
+    s = scale_of(img, sc.mask)
+    assert_energies_equal(e, ref, s)
+    np.testing.assert_array_equal(rows * sc.mask.shape[1] + cols, np.flatnonzero(sample.ravel()))
+    assert np.abs(px["residual"] - ref_r).max() <= 1e-5 * s
+    assert px["normals"].shape == ref_n.shape == (len(cands), int(sample.sum()), 3)
+
+
+def _many_lights_case(brdf, light_kind, n, size=32, noise=0.01, device=None):
+    """Like tests/cases.make_case with ``n`` lights (spiral layout) and 16-bit noisy images."""
+    sc = make_scene("sphere", size, "perspective", albedo="texture")
+    mat = Material.default_for(brdf)
+    L = default_lights(light_kind, n, layout="spiral")
+    img = render(sc, mat, L, bits=16, noise=noise, device=device)
+    img = img / np.asarray(L.intensities, np.float32)[:, None, None, :]
+    Lu = DirectionalLights(L.directions) if light_kind == "directional" else PointLights(L.positions)
+    return img, Lu, sc, mat
+
+
+@pytest.mark.parametrize("brdf,light_kind", [("blinn-phong", "directional"), ("cook-torrance", "point")])
+def test_energies_equal_pixel_solver_eight_noisy_images(brdf, light_kind, device):
+    """8 images with noise, textured albedo, a dense patch in the sample (non-zero noise estimate), a
+    ``valid`` mask and a shadow threshold: the energies still equal PixelSolver's, and identify the material."""
+    img, lights, sc, mat = _many_lights_case(brdf, light_kind, 8, device=device)
+    sample = sample_mask(sc.mask, 200, seed=2, block=True)
+    depth = sc.depth if light_kind == "point" else None
+    valid = np.random.default_rng(3).random(img.shape[:3]) > 0.1
+    cands = candidates_around(mat)
+    cfg = fit_config(shadow_threshold=0.02)
+    ref, ref_r, ref_n = reference(img, sample, sc.camera, lights, cands, cfg, depth=depth, valid=valid, device=device)
+    e, px, _ = score(img, sample, sc.camera, lights, cands, cfg, depth=depth, valid=valid, device=device)
+    s = scale_of(img, sc.mask)
+    assert_energies_equal(e, ref, s)
+    assert np.abs(px["residual"] - ref_r).max() <= 1e-5 * s
+    # angle between unit normals, 2 asin(|a - b| / 2) in float64 (arccos of a float32 cosine resolves only ~0.02 deg)
+    ang = np.degrees(2.0 * np.arcsin(np.linalg.norm(px["normals"].astype(np.float64) - ref_n, axis=-1) / 2.0))
+    assert np.mean(ang < 1e-2) >= 0.99
+    # the test discriminates: the rendered material scores best, clearly
+    assert int(np.argmin(ref)) == 0 and np.sort(ref)[1] > 2.0 * ref[0]
+
+
+def test_robust_loss_and_chunked_progress(device):
+    """Huber IRLS (per-candidate weights buffer) equals PixelSolver; a chunked step with a progress
+    callback gives the same energies as one launch and reports K * P pixel solves."""
+    img, lights, sc, mat = _many_lights_case("blinn-phong", "directional", 6, size=24, device=device)
+    sample = sample_mask(sc.mask, 120, seed=4)
+    cands = candidates_around(mat)
+    cfg = fit_config(robust="huber", irls_rounds=2)
+    ref, _, _ = reference(img, sample, sc.camera, lights, cands, cfg, depth=None, valid=None, device=device)
+    e1, _, _ = score(img, sample, sc.camera, lights, cands, cfg, device=device)
+    calls = []
+    e2, _, _ = score(img, sample, sc.camera, lights, cands, cfg, device=device,
+                     progress=lambda d, t, msg: calls.append((d, t)), chunks=3)
+    s = scale_of(img, sc.mask)
+    assert_energies_equal(e1, ref, s)
+    np.testing.assert_array_equal(e1, e2)
+    total = len(cands) * int(sample.sum())
+    assert len(calls) == 3 and calls[-1] == (total, total)
+    assert all(a[0] < b[0] for a, b in zip(calls, calls[1:]))
+
+
+def test_reupload_and_steps_reuse_buffers(device):
+    """Several steps of different K on one upload, then a new sample: each equals a fresh scorer."""
+    img, lights, sc, mat = make_case("sphere", 24, "perspective", "directional", "blinn-phong", device=device)
+    cfg = fit_config()
+    cands = candidates_around(mat)
+    s1, s2 = sample_mask(sc.mask, 100, seed=5), sample_mask(sc.mask, 60, seed=6)
+    with MaterialScorer(img.shape[:3], sc.camera, lights, mat, cfg, max_samples=128, max_candidates=5,
+                        device=device) as scorer:
+        scorer.upload(img, s1)
+        scorer.step(cands[:2])
+        a = scorer.fetch()
+        scorer.step(cands)
+        b = scorer.fetch()
+        scorer.upload(img, s2)
+        scorer.step(cands[3:])
+        c = scorer.fetch()
+    np.testing.assert_array_equal(a, b[:2])
+    ref2, _, _ = reference(img, s2, sc.camera, lights, cands[3:], cfg, depth=None, valid=None, device=device)
+    assert_energies_equal(c, ref2, scale_of(img, sc.mask))
+
+
+def test_trimmed_energy():
+    r = np.array([[3.0, 1.0, 2.0, 10.0], [0.5, 0.5, 0.5, 0.5]])
+    np.testing.assert_allclose(trimmed_energy(r, 0.25), [(1 + 4 + 9) / 3, 0.25])
+    np.testing.assert_allclose(trimmed_energy(r, 0.0), [(9 + 1 + 4 + 100) / 4, 0.25])
+    assert trimmed_energy(np.array([2.0]), 0.5) == 4.0
+
+
+def test_bad_input(device):
+    img, lights, sc, mat = make_case("sphere", 16, "perspective", "directional", "blinn-phong", device=device)
+    cfg = fit_config()
+    with pytest.raises(ValueError, match="neighbour_radius"):
+        MaterialScorer(img.shape[:3], sc.camera, lights, mat, SolverConfig(), device=device)
+    with pytest.raises(ValueError, match="solver='none'"):
+        MaterialScorer(img.shape[:3], sc.camera, lights, mat, replace(cfg, solver="none"), device=device)
+    with pytest.raises(ValueError, match="brdf"):
+        MaterialScorer(img.shape[:3], sc.camera, lights, "glass", cfg, device=device)
+    with pytest.raises(ValueError, match="lights"):
+        MaterialScorer((4,) + img.shape[1:3], sc.camera, lights, mat, cfg, device=device)
+    scorer = MaterialScorer(img.shape[:3], sc.camera, lights, mat, cfg, max_samples=10, max_candidates=2, device=device)
+    with pytest.raises(ValueError, match="upload"):
+        scorer.step([mat])
+    with pytest.raises(ValueError, match="max_samples"):
+        scorer.upload(img, sc.mask)
+    with pytest.raises(ValueError, match="images"):
+        scorer.upload(img[:2], sample_mask(sc.mask, 5))
+    scorer.upload(img, sample_mask(sc.mask, 5))
+    with pytest.raises(ValueError, match="max_candidates"):
+        scorer.step([mat, mat, mat])
+    with pytest.raises(ValueError, match="'blinn-phong' materials"):
+        scorer.step([Material.default_for("cook-torrance")])
+    with pytest.raises(TypeError, match="candidates"):
+        scorer.step([mat.to_dict()])
+    with pytest.raises(ValueError, match="step first"):
+        scorer.fetch()
+    scorer.close()
+    with pytest.raises(ValueError, match="closed"):
+        scorer.upload(img, sample_mask(sc.mask, 5))
