@@ -69,6 +69,7 @@ from gpps.host.merge import ranks_better
 from gpps.lights import PointLights
 from gpps.material import Material
 from gpps.pipeline.integration import Integrator, IntegratorConfig
+from gpps.pipeline.material import MaterialScorer
 from gpps.pipeline.solver import PixelSolver, SolverConfig
 
 __all__ = [
@@ -343,6 +344,9 @@ class RON:
         self.point = isinstance(lights, PointLights)
         self.solver = PixelSolver(self.shape, camera, lights, material, self.config.solver, device=self.device)
         self._fit_solver = None
+        self._scorer = None  # the material fit's resident sample (MaterialScorer), built at the first fit
+        self._scored = None  # the inputs it holds
+        self._batch = max(25, self.config.material_grid ** max(len(self.config.estimate), 1))
         self.integrator = None
         if self.config.integrate:
             # default, perspective: BiNI's n_z^2 confidence weighting: grazing rim normals (a few degrees off
@@ -353,7 +357,10 @@ class RON:
             self.integrator = Integrator(self.mask, camera=camera, config=icfg, device=taichi_device(self.device))
 
     def close(self) -> None:
-        """Free the integrator's Taichi fields."""
+        """Free the integrator's Taichi fields and the material scorer's buffers."""
+        if self._scorer is not None:
+            self._scorer.close()
+            self._scorer = None
         if self.integrator is not None:
             self.integrator.close()
             self.integrator = None
@@ -412,8 +419,28 @@ class RON:
         return float(np.mean(r[:keep]))
 
     def _score(self, images, depth, valid, materials: list, sample) -> np.ndarray:
-        """The sampled fit energy of each candidate material (:meth:`_fit_energy`), one batch."""
-        return np.array([self._fit_energy(images, depth, valid, m, sample) for m in materials])
+        """The sampled fit energy of each candidate material, a batch at a time.
+
+        The sample pixels stay resident in a :class:`gpps.pipeline.material.MaterialScorer` (uploaded again
+        only when the images, depth or observation mask change: point lights move the depth each round);
+        each batch of up to ``max_candidates`` candidates is one launch.  The energies equal
+        :meth:`_fit_energy`'s (tests/test_material_device.py).
+        """
+        c = self.config
+        inputs = (images, depth, valid, sample)
+        if self._scorer is None:
+            fit = replace(c.solver, starts=c.material_starts, neighbour_radius=0, smoothness=0.0, warm_start=False)
+            self._scorer = MaterialScorer(self.shape, self.camera, self.lights, materials[0], fit,
+                                          max_samples=int(sample.sum()), max_candidates=self._batch,
+                                          trim=c.material_trim, device=self.device)
+        if self._scored is None or any(a is not b for a, b in zip(self._scored, inputs)):
+            self._scorer.upload(images, sample, depth=depth, valid=valid)
+            self._scored = inputs
+        out = []
+        for i in range(0, len(materials), self._batch):
+            self._scorer.step(materials[i:i + self._batch])
+            out.append(self._scorer.fetch())
+        return np.concatenate(out)
 
     def _fit_material(self, images, depth, valid, material, sample, *, grid: bool, progress=None) -> tuple[Material, dict]:
         """Step 4, photometric: the estimated parameters minimising the sampled energy.
