@@ -53,6 +53,8 @@ __all__ = [
     "StartMode",
     "detect_highlights",
     "dgmc_start",
+    "fill_indices",
+    "gaussian_derivative_weights",
     "geodesic_candidates",
     "hessian_curvatures",
     "outer_boundary",
@@ -491,6 +493,13 @@ def _detect(grey: np.ndarray, cmax: np.ndarray, m: np.ndarray, lights, cfg: DGMC
 # --------------------------------------------------------------------------- geodesic candidates
 
 
+def _tie_key(d: np.ndarray) -> np.ndarray:
+    """Distances rounded to 1e-9 pixels for ordering: equal path lengths ``a + b sqrt(2)`` summed in different
+    orders differ by an ulp in Dijkstra's floats; rounded, they tie and go to the smaller source index (as the
+    docstring says, and as the device form :mod:`gpps.kernels.dgmc`, which counts steps exactly, orders them)."""
+    return np.round(d, 9)
+
+
 def geodesic_candidates(region, boundary, k: int = 32, *, chunk: int = 256) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The ``k`` boundary pixels nearest to each region pixel by geodesic distance (multi-source Dijkstra).
 
@@ -555,11 +564,11 @@ def geodesic_candidates(region, boundary, k: int = 32, *, chunk: int = 256) -> t
         all_s = np.concatenate([best_s, np.broadcast_to(idx[:, None], d.shape)], 0)
         if all_d.shape[0] > k:
             # keep the k smallest (ties toward the smaller source index, found by a stable sort)
-            order = np.lexsort((all_s, all_d), axis=0)[:k]
+            order = np.lexsort((all_s, _tie_key(all_d)), axis=0)[:k]
             all_d = np.take_along_axis(all_d, order, 0)
             all_s = np.take_along_axis(all_s, order, 0)
         best_d, best_s = all_d, all_s
-    order = np.lexsort((best_s, best_d), axis=0)
+    order = np.lexsort((best_s, _tie_key(best_d)), axis=0)
     best_d = np.take_along_axis(best_d, order, 0)
     best_s = np.take_along_axis(best_s, order, 0)
     kk = best_d.shape[0]
@@ -572,12 +581,37 @@ def geodesic_candidates(region, boundary, k: int = 32, *, chunk: int = 256) -> t
 # --------------------------------------------------------------------------- curvature
 
 
+def fill_indices(mask) -> np.ndarray:
+    """(H, W, 2) int32 ``(row, column)`` of the nearest pixel inside ``mask`` (itself inside; Euclidean, scipy's
+    :func:`~scipy.ndimage.distance_transform_edt` ties): the fill of :func:`hessian_curvatures` (also used by the
+    device stage :mod:`gpps.pipeline.dgmc`, which depends on the mask only)."""
+    m = np.asarray(mask, bool)
+    if m.all():
+        ii, jj = np.indices(m.shape)
+    else:
+        _, (ii, jj) = ndi.distance_transform_edt(~m, return_indices=True)
+    return np.stack([ii, jj], -1).astype(np.int32)
+
+
+def gaussian_derivative_weights(sigma: float, order: int, truncate: float = 4.0) -> np.ndarray:
+    """(2r + 1,) float64 correlation weights ``w`` of :func:`scipy.ndimage.gaussian_filter1d` (``order``-th
+    derivative, radius ``r = int(truncate sigma + 0.5)``): ``out[i] = sum_t w[t] in[i + t - r]``.  Read off the
+    filter's impulse response, so they are scipy's own weights."""
+    sigma = check_number("sigma", sigma, lo=0.0, lo_open=True)
+    r = int(truncate * float(sigma) + 0.5)
+    imp = np.zeros(4 * r + 1)
+    imp[2 * r] = 1.0
+    out = ndi.gaussian_filter1d(imp, sigma, order=int(order), mode="constant", truncate=truncate)
+    # out[i] = w[2r - i + r] for |i - 2r| <= r
+    return out[r:3 * r + 1][::-1].copy()
+
+
 def _fill_outside(f: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """``f`` with pixels outside ``mask`` set to the nearest inside value (keeps filters off the edge step)."""
     if mask.all():
         return f
-    _, (ii, jj) = ndi.distance_transform_edt(~mask, return_indices=True)
-    return f[ii, jj]
+    idx = fill_indices(mask)
+    return f[idx[..., 0], idx[..., 1]]
 
 
 def hessian_curvatures(field, mask, *, sigma: float = 2.0, kind: CurvatureField = "intensity") -> tuple[np.ndarray, np.ndarray]:

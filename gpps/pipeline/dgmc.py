@@ -1,0 +1,402 @@
+"""DGMC on the device (seed 4.1.9, 4.16-4.18): the stage that owns the buffers and launches :mod:`gpps.kernels.dgmc`.
+
+:class:`DeviceDGMC` runs the whole of :func:`gpps.host.dgmc.dgmc_start` on a Warp device: the highlight test
+(O(N) per pixel and flagging round instead of the host's O(N^2) leave-one-out refits), the regions' labels and
+outer boundaries, the ``K`` nearest boundary pixels of each highlight pixel by geodesic distance (min-plus
+relaxation sweeps instead of a host Dijkstra per boundary pixel), the curvatures (4.16) and the
+curvature-similarity start search (4.17-4.18).  Where the parallel forms differ from the host's and why the
+results agree is written in :mod:`gpps.kernels.dgmc`.  :func:`dgmc_start_device` has the signature and result of
+:func:`gpps.host.dgmc.dgmc_start` (plus ``device``), so a caller swaps it in with one line.
+
+The only host work left is the mask's fill-index map (a Euclidean distance transform of the mask, once per upload)
+and scipy's Gaussian-derivative weights (a few numbers per ``sigma``); the sorts behind the reference albedo (a
+median) and the percentile rule run on the device (:func:`warp.utils.radix_sort_pairs`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gpps._check import as_array, as_mask
+from gpps._runtime import resolve_device, warp
+from gpps.host.dgmc import (
+    DGMCConfig,
+    DGMCResult,
+    Highlights,
+    fill_indices,
+    gaussian_derivative_weights,
+)
+from gpps.kernels import dgmc as dk
+from gpps.lights import DirectionalLights, PointLights
+from gpps.pipeline.stage import Stage
+
+__all__ = ["DeviceDGMC", "dgmc_start_device"]
+
+# sweeps between two convergence checks of the geodesic relaxation (each check waits for the device)
+CHECK_EVERY = 8
+
+
+class DeviceDGMC(Stage):
+    """DGMC start normals on a Warp device; buffers allocated once for one (N, H, W) and ``config.k_nearest``.
+
+    Args:
+        shape: (N, H, W): images and their size.
+        config: :class:`gpps.host.dgmc.DGMCConfig` (default settings when None).
+        device: Warp device (None: CUDA if present, else CPU).
+
+    ``upload(images, mask, normals, lights=..., points=...)``, ``step()``, ``fetch()`` -> :class:`DGMCResult`
+    (the host's fields; ``highlights.predicted`` and the maps included).  ``sweeps`` holds the number of
+    geodesic relaxation sweeps of the last step.
+    """
+
+    def __init__(self, shape, *, config: DGMCConfig | None = None, device=None):
+        wp = warp()
+        cfg = DGMCConfig() if config is None else config
+        if not isinstance(cfg, DGMCConfig):
+            raise TypeError(f"config: expected DGMCConfig, got {type(cfg).__name__}")
+        if len(tuple(shape)) != 3 or any(int(v) < 1 for v in shape):
+            raise ValueError(f"shape: expected (N, H, W) with positive sizes, got {shape!r}")
+        n, h, w = (int(v) for v in shape)
+        if cfg.rule == "lambertian" and n < 3:
+            raise ValueError(f"shape: expected N >= 3 images for rule='lambertian', got N = {n}")
+        self.config = cfg
+        self.shape = (n, h, w)
+        self.device = resolve_device(device)
+        d = self.device
+        k = int(cfg.k_nearest)
+        f64, i32, u8 = wp.float64, wp.int32, wp.uint8
+        self.images = wp.zeros((n, h, w), dtype=wp.vec3, device=d)
+        self.mask = wp.zeros((h, w), dtype=u8, device=d)
+        self.normals = wp.zeros((h, w), dtype=wp.vec3d, device=d)
+        self.points = wp.zeros((h, w), dtype=wp.vec3d, device=d)
+        self.lvec = wp.zeros(n, dtype=wp.vec3d, device=d)
+        self.laxis = wp.zeros(n, dtype=wp.vec3d, device=d)
+        self.lmu = wp.zeros(n, dtype=f64, device=d)
+        self.lint = wp.zeros(n, dtype=f64, device=d)
+        self.fill = wp.zeros((h, w, 2), dtype=i32, device=d)
+        self.sort_keys = wp.zeros(2 * h * w, dtype=f64, device=d)
+        self.sort_vals = wp.zeros(2 * h * w, dtype=i32, device=d)
+        self.rho = wp.zeros(1, dtype=f64, device=d)
+        self.levels = wp.zeros(n, dtype=f64, device=d)
+        self.flags = wp.zeros((n, h, w), dtype=u8, device=d)
+        self.saturated = wp.zeros((n, h, w), dtype=u8, device=d)
+        self.predicted = wp.zeros((n, h, w), dtype=wp.float32, device=d)
+        self.region = wp.zeros((h, w), dtype=u8, device=d)
+        self.labels = wp.zeros((h, w), dtype=i32, device=d)
+        self.roots = wp.zeros(h * w, dtype=i32, device=d)
+        self.numbers = wp.zeros(h * w, dtype=i32, device=d)
+        self.boundary = wp.zeros((h, w), dtype=i32, device=d)
+        self.counter = wp.zeros(1, dtype=i32, device=d)
+        self.keys = [wp.zeros((h, w, k), dtype=i32, device=d) for _ in range(2)]
+        self.srcs = [wp.zeros((h, w, k), dtype=i32, device=d) for _ in range(2)]
+        self.changed = [wp.zeros((h, w), dtype=i32, device=d) for _ in range(2)]
+        self.f = [wp.zeros((h, w), dtype=f64, device=d) for _ in range(2)]
+        self.tmp = wp.zeros((h, w), dtype=f64, device=d)
+        self.deriv = [wp.zeros((h, w), dtype=f64, device=d) for _ in range(4)]
+        self.gc = wp.zeros((h, w), dtype=f64, device=d)
+        self.mc = wp.zeros((h, w), dtype=f64, device=d)
+        self.weights = [wp.array(gaussian_derivative_weights(cfg.sigma, o), dtype=f64, device=d) for o in range(3)]
+        self.out_normals = wp.zeros((h, w), dtype=wp.vec3, device=d)
+        self.source = wp.zeros((h, w, 2), dtype=i32, device=d)
+        self.distance = wp.zeros((h, w), dtype=wp.float32, device=d)
+        self.rank = wp.zeros((h, w), dtype=i32, device=d)
+        self.tol_used = wp.zeros((h, w), dtype=wp.float32, device=d)
+        self.channels = 3
+        self.light_kind = 0
+        self.count = 0
+        self.sweeps = 0
+        self._uploaded = False
+        self._closed = False
+
+    # ------------------------------------------------------------------ upload
+
+    def upload(self, images, mask, normals, *, lights=None, points=None) -> None:
+        """Copy a frame into the stage's buffers.
+
+        Args:
+            images: (N, H, W) grey or (N, H, W, 3) RGB numpy images >= 0, or a Warp (N, H, W) vec3 array on the
+                stage's device (copied on the device; not checked for values).
+            mask: (H, W) bool object mask, not empty.
+            normals: (H, W, 3) unit normals inside the mask (numpy; e.g. the least-squares solution), or a Warp
+                (H, W) vec3d array on the stage's device.
+            lights: DirectionalLights, PointLights (needs ``points``) or (N, 3) directions; needed for
+                ``config.rule="lambertian"``.
+            points: (H, W, 3) surface points (scene units) for point lights.
+        """
+        self._check_open()
+        wp = warp()
+        n, h, w = self.shape
+        self._upload_images(images)
+        m = as_mask("mask", mask, (h, w))
+        self.mask.assign(m.astype(np.uint8))
+        self.count = int(m.sum())
+        self.fill.assign(fill_indices(m))
+        if isinstance(normals, wp.array):
+            if normals.shape != (h, w) or normals.dtype != wp.vec3d or normals.device != self.device:
+                raise ValueError(f"normals: expected a ({h}, {w}) vec3d array on {self.device}, "
+                                 f"got {normals.shape} {normals.dtype} on {normals.device}")
+            wp.copy(self.normals, normals)
+        else:
+            nrm = np.asarray(normals)
+            if nrm.shape != (h, w, 3):
+                raise ValueError(f"normals: expected (H, W, 3) = ({h}, {w}, 3), got {nrm.shape}")
+            nrm = as_array("normals", nrm, dtype=np.float64)
+            norms = np.linalg.norm(nrm[m], axis=-1)
+            if np.any(np.abs(norms - 1.0) > 1e-3):
+                bad = int(np.argmax(np.abs(norms - 1.0)))
+                raise ValueError(f"normals: expected unit vectors inside the mask, got norm {norms[bad]:.6g}")
+            self.normals.assign(np.ascontiguousarray(nrm))
+        self._upload_lights(lights, points)
+        self._uploaded = True
+
+    def _upload_images(self, images) -> None:
+        wp = warp()
+        n, h, w = self.shape
+        if isinstance(images, wp.array):
+            if images.shape != (n, h, w) or images.dtype != wp.vec3 or images.device != self.device:
+                raise ValueError(f"images: expected a ({n}, {h}, {w}) vec3 array on {self.device}, "
+                                 f"got {images.shape} {images.dtype} on {images.device}")
+            wp.copy(self.images, images)
+            self.channels = 3
+            return
+        arr = np.asarray(images)
+        if arr.ndim not in (3, 4) or (arr.ndim == 4 and arr.shape[-1] not in (1, 3)):
+            raise ValueError(f"images: expected (N, H, W) or (N, H, W, 3), got {arr.shape}")
+        if arr.shape[:3] != (n, h, w):
+            raise ValueError(f"images: expected (N, H, W) = ({n}, {h}, {w}) leading axes, got {arr.shape}")
+        arr = as_array("images", arr, dtype=np.float32)
+        if np.any(arr < 0):
+            raise ValueError("images: expected values >= 0")
+        if arr.ndim == 3 or arr.shape[-1] == 1:
+            arr = arr.reshape(n, h, w, 1)
+            self.channels = 1
+            arr = np.concatenate([arr, np.zeros((n, h, w, 2), np.float32)], -1)
+        else:
+            self.channels = 3
+        self.images.assign(np.ascontiguousarray(arr))
+
+    def _upload_lights(self, lights, points) -> None:
+        n, h, w = self.shape
+        if lights is None:
+            if self.config.rule == "lambertian":
+                raise ValueError("lights: expected DirectionalLights, PointLights or (N, 3) directions for "
+                                 "rule='lambertian', got None")
+            return
+        if isinstance(lights, (DirectionalLights, PointLights)) and len(lights) != n:
+            raise ValueError(f"lights: expected {n} lights (one per image), got {len(lights)}")
+        if isinstance(lights, DirectionalLights):
+            e = np.asarray(lights.intensities, np.float64).mean(1)
+            self.lvec.assign(np.asarray(lights.directions, np.float64) * e[:, None])
+            self.light_kind = 0
+        elif isinstance(lights, PointLights):
+            if points is None:
+                raise ValueError("points: expected (H, W, 3) surface points for point lights (2.30-2.31), got None")
+            self.points.assign(np.ascontiguousarray(as_array("points", points, shape=(h, w, 3), dtype=np.float64)))
+            self.lvec.assign(np.asarray(lights.positions, np.float64))
+            self.laxis.assign(np.asarray(lights.axes, np.float64))
+            self.lmu.assign(np.asarray(lights.mu, np.float64))
+            self.lint.assign(np.asarray(lights.intensities, np.float64).mean(1))
+            self.light_kind = 1
+        else:
+            arr = as_array("lights", lights, dtype=np.float64)
+            if arr.shape != (n, 3):
+                raise ValueError(f"lights: expected DirectionalLights, PointLights or an ({n}, 3) direction array, "
+                                 f"got {arr.shape}")
+            self.lvec.assign(arr)
+            self.light_kind = 0
+
+    # ------------------------------------------------------------------ step
+
+    def step(self) -> None:
+        """Highlights, regions, boundaries, geodesic candidates, curvatures and the start search, on the device."""
+        self._check_open()
+        if not self._uploaded:
+            raise RuntimeError("step: upload() a frame first")
+        self._highlights()
+        self._regions()
+        self._geodesics()
+        self._curvatures()
+        self._select()
+
+    def _launch(self, kernel, dim, inputs) -> None:
+        warp().launch(kernel, dim=dim, inputs=inputs, device=self.device)
+
+    def _sorted_median(self, slot_out, slot) -> None:
+        wp = warp()
+        hw = self.shape[1] * self.shape[2]
+        wp.utils.radix_sort_pairs(self.sort_keys, self.sort_vals, hw)
+        self._launch(dk.median_kernel, 1, [self.sort_keys, self.count, slot_out, slot])
+
+    def _highlights(self) -> None:
+        wp = warp()
+        cfg = self.config
+        n, h, w = self.shape
+        light = [self.light_kind, self.lvec, self.laxis, self.lmu, self.lint, self.points]
+        if cfg.rule == "lambertian":
+            self._launch(dk.albedo_sample_kernel, (h, w),
+                         [self.images, self.channels, self.mask, *light, self.sort_keys, self.sort_vals])
+            self._sorted_median(self.rho, 0)
+            self._launch(dk.highlight_kernel, (h, w),
+                         [self.images, self.channels, self.mask, *light, self.rho, float(cfg.ratio),
+                          float(cfg.margin), self.flags, self.predicted])
+        else:
+            q = float(np.true_divide(cfg.percentile, 100))
+            for k in range(n):
+                self._launch(dk.grey_keys_kernel, (h, w),
+                             [self.images, self.channels, self.mask, k, self.sort_keys, self.sort_vals])
+                wp.utils.radix_sort_pairs(self.sort_keys, self.sort_vals, h * w)
+                self._launch(dk.percentile_kernel, 1, [self.sort_keys, self.count, q, self.levels, k])
+            self._launch(dk.percentile_rule_kernel, (n, h, w),
+                         [self.images, self.channels, self.mask, self.levels, float(cfg.ratio), float(cfg.margin),
+                          self.flags, self.predicted])
+        sat = cfg.saturation
+        self._launch(dk.saturation_kernel, (h, w),
+                     [self.images, self.channels, self.mask, 0.0 if sat is None else float(sat),
+                      0 if sat is None else 1, self.flags, self.saturated, self.region])
+
+    def _regions(self) -> None:
+        """Connected regions by in-place min-label propagation, numbered 1..n in raster order of their first
+        pixels (scipy.ndimage.label's numbering), and the outer boundary labelled with the smallest region."""
+        wp = warp()
+        _, h, w = self.shape
+        conn = int(self.config.connectivity)
+        self._launch(dk.label_init_kernel, (h, w), [self.region, self.labels])
+        for it in range(h * w + 1):
+            self.counter.zero_()
+            self._launch(dk.label_min_kernel, (h, w), [self.region, conn, self.labels, self.counter])
+            if int(self.counter.numpy()[0]) == 0:
+                break
+        self._launch(dk.roots_kernel, (h, w), [self.labels, self.roots])
+        wp.utils.array_scan(self.roots, self.numbers, inclusive=True)
+        self._launch(dk.label_number_kernel, (h, w), [self.numbers, self.labels])
+        self._launch(dk.boundary_kernel, (h, w), [self.mask, self.region, self.labels, conn, self.boundary])
+
+    def _geodesics(self) -> None:
+        """K-lists by Jacobi min-plus sweeps until a whole check interval changes nothing."""
+        _, h, w = self.shape
+        k = int(self.config.k_nearest)
+        conn = int(self.config.connectivity)
+        for b in range(2):
+            self._launch(dk.list_reset_kernel, (h, w, k), [self.keys[b], self.srcs[b], self.changed[b]])
+        old, new = 0, 1
+        prev, cur = 0, 1
+        self.counter.zero_()
+        sweeps = 0
+        limit = h * w + CHECK_EVERY + 1  # Bellman-Ford: at most (region pixels + 1) sweeps change anything
+        while True:
+            self._launch(dk.geodesic_relax_kernel, (h, w),
+                         [self.mask, self.region, self.labels, conn, 1 if sweeps == 0 else 0,
+                          self.keys[old], self.srcs[old], self.changed[prev], self.keys[new], self.srcs[new],
+                          self.changed[cur], self.counter])
+            self._launch(dk.geodesic_copy_kernel, (h, w),
+                         [self.changed[cur], self.keys[new], self.srcs[new], self.keys[old], self.srcs[old]])
+            prev, cur = cur, prev
+            sweeps += 1
+            if sweeps % CHECK_EVERY == 0:
+                if int(self.counter.numpy()[0]) == 0:
+                    break
+                self.counter.zero_()
+            if sweeps > limit:  # pragma: no cover - would be a bug in the kernel
+                raise RuntimeError(f"geodesic relaxation did not converge in {sweeps} sweeps")
+        self.sweeps = sweeps
+
+    def _curvatures(self) -> None:
+        """GC and MC (4.16): the host's Gaussian-derivative filters as separable device passes."""
+        _, h, w = self.shape
+        kind = 0 if self.config.curvature_field == "intensity" else 1
+        self._launch(dk.field_kernel, (h, w), [self.images, self.channels, self.normals, kind, self.fill,
+                                               self.f[0], self.f[1]])
+        wt = self.weights
+        if kind == 0:
+            # f_ii: order (2, 0); f_ij: (1, 1); f_jj: (0, 2)
+            plan = [(self.f[0], 2, 0), (self.f[0], 1, 1), (self.f[0], 0, 2)]
+        else:
+            # q_i: (1, 0) of q; p_i: (1, 0) of p; q_j: (0, 1) of q; p_j: (0, 1) of p
+            plan = [(self.f[1], 1, 0), (self.f[0], 1, 0), (self.f[1], 0, 1), (self.f[0], 0, 1)]
+        for out, (src, o0, o1) in zip(self.deriv, plan):
+            self._launch(dk.correlate_kernel, (h, w), [src, wt[o0], 0, self.tmp])
+            self._launch(dk.correlate_kernel, (h, w), [self.tmp, wt[o1], 1, out])
+        d = self.deriv
+        self._launch(dk.curvature_kernel, (h, w), [self.mask, kind, d[0], d[1], d[2], d[3], self.gc, self.mc])
+
+    def _select(self) -> None:
+        _, h, w = self.shape
+        cfg = self.config
+        self._launch(dk.select_kernel, (h, w),
+                     [self.mask, self.region, self.keys[0], self.srcs[0], self.gc, self.mc, self.normals,
+                      float(cfg.tolerance), float(cfg.widen_factor), int(cfg.widen_steps), self.out_normals,
+                      self.source, self.distance, self.rank, self.tol_used])
+
+    # ------------------------------------------------------------------ fetch
+
+    def candidates(self) -> tuple[np.ndarray, np.ndarray]:
+        """The converged lists: ``(sources (H, W, K) int32 flat indices, -1 past the end; distances (H, W, K)
+        float64, inf past the end)``, nearest first (the device form of :func:`gpps.host.dgmc.geodesic_candidates`)."""
+        wp = warp()
+        _, h, w = self.shape
+        k = int(self.config.k_nearest)
+        dist = wp.zeros((h, w, k), dtype=wp.float64, device=self.device)
+        self._launch(dk.key_distance_kernel, (h, w, k), [self.keys[0], self.srcs[0], dist])
+        return self.srcs[0].numpy(), dist.numpy()
+
+    def fetch(self) -> DGMCResult:
+        """The result of the last step, as :func:`gpps.host.dgmc.dgmc_start` returns it."""
+        self._check_open()
+        m = self.mask.numpy().astype(bool)
+        flags = self.flags.numpy().astype(bool)
+        labels = self.labels.numpy()
+        hl = Highlights(
+            maps=flags,
+            saturated=self.saturated.numpy().astype(bool),
+            region=self.region.numpy().astype(bool),
+            labels=labels,
+            n_regions=int(labels.max()) if labels.size else 0,
+            boundary=self.boundary.numpy(),
+            predicted=self.predicted.numpy(),
+        )
+        return DGMCResult(
+            normals=self.out_normals.numpy().reshape(m.shape + (3,)),
+            highlight=hl.region,
+            source=self.source.numpy(),
+            distance=self.distance.numpy(),
+            rank=self.rank.numpy(),
+            tolerance=self.tol_used.numpy(),
+            gaussian=self.gc.numpy().astype(np.float32),
+            mean=self.mc.numpy().astype(np.float32),
+            highlights=hl,
+            config=self.config,
+        )
+
+    def close(self) -> None:
+        """Release the device buffers."""
+        for name in list(vars(self)):
+            if name not in ("config", "shape", "device", "_closed"):
+                setattr(self, name, None)
+        self._closed = True
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise RuntimeError("DeviceDGMC: the stage is closed")
+
+
+def dgmc_start_device(images, mask, normals, *, lights=None, config: DGMCConfig | None = None, points=None,
+                      device=None) -> DGMCResult:
+    """:func:`gpps.host.dgmc.dgmc_start` on a Warp device (same arguments and result; see :class:`DeviceDGMC`).
+
+    Args:
+        images: (N, H, W) grey or (N, H, W, 3) RGB images >= 0 (numpy; float32 on the device).
+        mask: (H, W) bool object mask, not empty.
+        normals: (H, W, 3) unit normals inside the mask.
+        lights: lights for ``config.rule="lambertian"``.
+        config: :class:`DGMCConfig`.
+        points: (H, W, 3) surface points, for point lights.
+        device: Warp device (None: CUDA if present, else CPU).
+
+    Returns:
+        :class:`gpps.host.dgmc.DGMCResult`.
+    """
+    arr = np.asarray(images)
+    if arr.ndim not in (3, 4):
+        raise ValueError(f"images: expected (N, H, W) or (N, H, W, 3), got {arr.shape}")
+    with DeviceDGMC(arr.shape[:3], config=config, device=device) as stage:
+        return stage.run(arr, mask, normals, lights=lights, points=points)
