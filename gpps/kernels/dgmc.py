@@ -41,6 +41,10 @@ STEP_DIAG = wp.constant(1)  # one diagonal step
 NO_KEY = wp.constant(2147483647)
 
 vec8i = wp.types.vector(length=8, dtype=wp.int32)
+vec8d = wp.types.vector(length=8, dtype=wp.float64)
+# the 8 neighbour offsets in raster order (the order of the slots of geodesic_relax_kernel)
+OFF_I = wp.constant(vec8i(-1, -1, -1, 0, 0, 1, 1, 1))
+OFF_J = wp.constant(vec8i(-1, 0, 1, -1, 1, -1, 0, 1))
 
 
 # --------------------------------------------------------------------------- observations and lights
@@ -543,34 +547,50 @@ def geodesic_relax_kernel(mask: wp.array2d(dtype=wp.uint8), region: wp.array2d(d
                 else:
                     step[n] = STEP_UNIT
                 n += 1
+    # the current head of each slot (value, packed key, source; -1: exhausted), refreshed only when popped
+    hval = vec8d()
+    hkey = vec8i()
+    hsrc = vec8i()
+    for sl in range(8):
+        a = i + OFF_I[sl]
+        b = j + OFF_J[sl]
+        hsrc[sl] = -1
+        if slot[sl] == 1:
+            cs = old_src[a, b, 0]
+            if cs >= 0:
+                hsrc[sl] = cs
+                hkey[sl] = old_key[a, b, 0] + step[sl]
+        elif slot[sl] == 2:
+            hsrc[sl] = a * w + b
+            hkey[sl] = step[sl]
+        if hsrc[sl] >= 0:
+            hval[sl] = key_value(hkey[sl])
     cnt = int(0)
     while cnt < kk:
         best = int(-1)
-        bkey = NO_KEY
-        bsrc = int(-1)
-        n = 0
-        for di in range(-1, 2):
-            for dj in range(-1, 2):
-                if di != 0 or dj != 0:
-                    a = i + di
-                    b = j + dj
-                    ck = NO_KEY
-                    cs = int(-1)
-                    if slot[n] == 1 and head[n] < kk:
-                        cs = old_src[a, b, head[n]]
-                        if cs >= 0:
-                            ck = old_key[a, b, head[n]] + step[n]
-                    elif slot[n] == 2 and head[n] == 0:
-                        cs = a * w + b
-                        ck = step[n]
-                    if cs >= 0 and (best < 0 or key_less(ck, cs, bkey, bsrc)):
-                        best = n
-                        bkey = ck
-                        bsrc = cs
-                    n += 1
+        for sl in range(8):
+            if hsrc[sl] >= 0:
+                if best < 0:
+                    best = sl
+                elif hval[sl] < hval[best] or (hval[sl] == hval[best] and hsrc[sl] < hsrc[best]):
+                    best = sl
         if best < 0:
             break
-        head[best] = head[best] + 1
+        bkey = hkey[best]
+        bsrc = hsrc[best]
+        # advance the popped slot
+        hsrc[best] = -1
+        if slot[best] == 1:
+            nh = head[best] + 1
+            head[best] = nh
+            if nh < kk:
+                a = i + OFF_I[best]
+                b = j + OFF_J[best]
+                cs = old_src[a, b, nh]
+                if cs >= 0:
+                    hsrc[best] = cs
+                    hkey[best] = old_key[a, b, nh] + step[best]
+                    hval[best] = key_value(hkey[best])
         dup = int(0)
         for t in range(cnt):
             if new_src[i, j, t] == bsrc:
