@@ -1,4 +1,5 @@
-"""DGMC on the device (seed 4.1.9, 4.16-4.18): the stage that owns the buffers and launches :mod:`gpps.kernels.dgmc`.
+"""DGMC on the device (seed 4.1.9, 4.16-4.18): the stage that owns the buffers and launches the kernels of
+:mod:`gpps.kernels.dgmc` and :mod:`gpps.kernels.dgmc_geodesic`.
 
 :class:`DeviceDGMC` runs the whole of :func:`gpps.host.dgmc.dgmc_start` on a Warp device: the highlight test
 (O(N) per pixel and flagging round instead of the host's O(N^2) leave-one-out refits), the regions' labels and
@@ -27,6 +28,7 @@ from gpps.host.dgmc import (
     gaussian_derivative_weights,
 )
 from gpps.kernels import dgmc as dk
+from gpps.kernels import dgmc_geodesic as dg
 from gpps.lights import DirectionalLights, PointLights
 from gpps.pipeline.stage import Stage
 
@@ -260,16 +262,16 @@ class DeviceDGMC(Stage):
         wp = warp()
         _, h, w = self.shape
         conn = int(self.config.connectivity)
-        self._launch(dk.label_init_kernel, (h, w), [self.region, self.labels])
+        self._launch(dg.label_init_kernel, (h, w), [self.region, self.labels])
         for it in range(h * w + 1):
             self.counter.zero_()
-            self._launch(dk.label_min_kernel, (h, w), [self.region, conn, self.labels, self.counter])
+            self._launch(dg.label_min_kernel, (h, w), [self.region, conn, self.labels, self.counter])
             if int(self.counter.numpy()[0]) == 0:
                 break
-        self._launch(dk.roots_kernel, (h, w), [self.labels, self.roots])
+        self._launch(dg.roots_kernel, (h, w), [self.labels, self.roots])
         wp.utils.array_scan(self.roots, self.numbers, inclusive=True)
-        self._launch(dk.label_number_kernel, (h, w), [self.numbers, self.labels])
-        self._launch(dk.boundary_kernel, (h, w), [self.mask, self.region, self.labels, conn, self.boundary])
+        self._launch(dg.label_number_kernel, (h, w), [self.numbers, self.labels])
+        self._launch(dg.boundary_kernel, (h, w), [self.mask, self.region, self.labels, conn, self.boundary])
 
     def _geodesics(self) -> None:
         """K-lists by Jacobi min-plus sweeps until a whole check interval changes nothing."""
@@ -277,18 +279,18 @@ class DeviceDGMC(Stage):
         k = int(self.config.k_nearest)
         conn = int(self.config.connectivity)
         for b in range(2):
-            self._launch(dk.list_reset_kernel, (h, w, k), [self.keys[b], self.srcs[b], self.changed[b]])
+            self._launch(dg.list_reset_kernel, (h, w, k), [self.keys[b], self.srcs[b], self.changed[b]])
         old, new = 0, 1
         prev, cur = 0, 1
         self.counter.zero_()
         sweeps = 0
         limit = h * w + CHECK_EVERY + 1  # Bellman-Ford: at most (region pixels + 1) sweeps change anything
         while True:
-            self._launch(dk.geodesic_relax_kernel, (h, w),
+            self._launch(dg.geodesic_relax_kernel, (h, w),
                          [self.mask, self.region, self.labels, conn, 1 if sweeps == 0 else 0,
                           self.keys[old], self.srcs[old], self.changed[prev], self.keys[new], self.srcs[new],
                           self.changed[cur], self.counter])
-            self._launch(dk.geodesic_copy_kernel, (h, w),
+            self._launch(dg.geodesic_copy_kernel, (h, w),
                          [self.changed[cur], self.keys[new], self.srcs[new], self.keys[old], self.srcs[old]])
             prev, cur = cur, prev
             sweeps += 1
@@ -336,7 +338,7 @@ class DeviceDGMC(Stage):
         _, h, w = self.shape
         k = int(self.config.k_nearest)
         dist = wp.zeros((h, w, k), dtype=wp.float64, device=self.device)
-        self._launch(dk.key_distance_kernel, (h, w, k), [self.keys[0], self.srcs[0], dist])
+        self._launch(dg.key_distance_kernel, (h, w, k), [self.keys[0], self.srcs[0], dist])
         return self.srcs[0].numpy(), dist.numpy()
 
     def fetch(self) -> DGMCResult:
