@@ -69,6 +69,8 @@ def main():
     ap.add_argument("--sizes", type=int, nargs="+", default=[64, 128])
     ap.add_argument("--lights", type=int, nargs="+", default=[12, 96])
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--host-repeat", type=int, default=None, help="host runs (default --repeat; 128^2 x 96 takes minutes)")
+    ap.add_argument("--append", action="store_true", help="add the rows to those already in --out")
     ap.add_argument("--out", default=str(ROOT / "perf" / "results" / "dgmc_device_cpu.json"))
     args = ap.parse_args()
 
@@ -83,8 +85,13 @@ def main():
     for size in args.sizes:
         for n in args.lights:
             img, L, sc, nrm = _case(size, n, args.device)
-            t_host, ts_host = _median(lambda: dgmc_start(img, sc.mask, nrm, lights=L), args.repeat, lambda: None)
-            h = dgmc_start(img, sc.mask, nrm, lights=L)
+            h = None
+
+            def host():
+                nonlocal h
+                h = dgmc_start(img, sc.mask, nrm, lights=L)
+
+            t_host, ts_host = _median(host, args.host_repeat or args.repeat, lambda: None)
             st = DeviceDGMC(img.shape[:3], device=args.device)
             run = lambda: st.run(img, sc.mask, nrm, lights=L)  # noqa: E731
             run()  # warm-up: compile / load the kernels
@@ -116,8 +123,12 @@ def main():
             print(json.dumps(row), flush=True)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    payload = {"device": args.device, "device_name": device_label(args.device),
-               "command": "python perf/dgmc_device.py " + " ".join(sys.argv[1:]),
+    commands = ["python perf/dgmc_device.py " + " ".join(sys.argv[1:])]
+    if args.append and out.exists():
+        old = json.loads(out.read_text())
+        rows = old["rows"] + rows
+        commands = old["commands"] + commands
+    payload = {"device": args.device, "device_name": device_label(args.device), "commands": commands,
                "scene": "bumps, Blinn-Phong, orthographic, spiral directional lights, 16-bit, default DGMCConfig",
                "rows": rows}
     out.write_text(json.dumps(payload, indent=2) + "\n")
