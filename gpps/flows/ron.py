@@ -64,10 +64,11 @@ from gpps._check import (
 )
 from gpps._runtime import resolve_device
 from gpps._taichi import taichi_device
-from gpps.host.dgmc import DGMCConfig, dgmc_start, propagate_front
+from gpps.host.dgmc import DGMCConfig, propagate_front
 from gpps.host.merge import ranks_better
 from gpps.lights import PointLights
 from gpps.material import Material
+from gpps.pipeline.dgmc import dgmc_start_device
 from gpps.pipeline.integration import Integrator, IntegratorConfig
 from gpps.pipeline.material import MaterialScorer
 from gpps.pipeline.solver import PixelSolver, SolverConfig
@@ -694,7 +695,7 @@ class RON:
 
     def _least_squares_and_dgmc(self, images, solve_depth, valid, timings):
         """The start (Algorithm 2's first step): least squares (Woodham), then DGMC's highlight pixels and
-        starts (4.16-4.18).  Returns ``(start normals (H, W, 3), highlight (H, W) bool, DGMC result or None)``."""
+        starts (4.16-4.18, on the device: :func:`gpps.pipeline.dgmc.dgmc_start_device`, the host's decisions).  Returns ``(start normals (H, W, 3), highlight (H, W) bool, DGMC result or None)``."""
         c, m = self.config, self.mask
         t = time.perf_counter()
         s = self.solver
@@ -709,7 +710,8 @@ class RON:
             nrm = ls["normals"].astype(np.float64)
             ok = m & (np.abs(np.linalg.norm(nrm, axis=-1) - 1.0) < 1e-3)
             nrm[~ok] = (0.0, 0.0, 1.0)
-            dg = dgmc_start(images, m, nrm, lights=self.lights, config=c.dgmc_config, points=pts)
+            dg = dgmc_start_device(images, m, nrm, lights=self.lights, config=c.dgmc_config, points=pts,
+                                   device=self.device)
             start, highlight = dg.normals.astype(np.float32), dg.highlight
             timings["dgmc"] += time.perf_counter() - t
         return start, highlight, dg
