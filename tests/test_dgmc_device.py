@@ -23,11 +23,11 @@ def _scene(scene, size, camera, light_kind, n_lights, bits=16, noise=0.0, brdf="
     sc = make_scene(scene, size, camera)
     mat = Material.default_for(brdf)
     L = default_lights(light_kind, n_lights)
-    img = render(sc, mat, L, bits=bits, noise=noise, device="cpu")
+    img = render(sc, mat, L, bits=bits, noise=noise, device=None)  # the scene is data: render it wherever Warp runs
     img = (img / np.asarray(L.intensities, np.float32)[:, None, None, :]).astype(np.float32)
     Lu = DirectionalLights(L.directions) if light_kind == "directional" else PointLights(L.positions)
     depth = sc.depth if light_kind == "point" else None
-    ls = solve_normals(img, sc.mask, Lu, camera=sc.camera, material=mat, solver="none", depth=depth, device="cpu")
+    ls = solve_normals(img, sc.mask, Lu, camera=sc.camera, material=mat, solver="none", depth=depth, device=None)
     nrm = ls.normals.astype(np.float64)
     ok = sc.mask & (np.abs(np.linalg.norm(nrm, axis=-1) - 1.0) < 1e-3)
     nrm[~ok] = (0.0, 0.0, 1.0)
