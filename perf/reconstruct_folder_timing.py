@@ -1,0 +1,45 @@
+"""``gpps.reconstruct_folder`` (what ``gpps reconstruct`` runs, without writing) on capture folders: wall time
+per call, per-stage timings and MAEN where ground truth exists.  Usage:
+``python perf/reconstruct_folder_timing.py FOLDER... [--device cuda:0] [--repeat 2] [--out FILE]``"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
+
+import gpps  # noqa: E402
+from gpps.io import json_default  # noqa: E402
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("folders", nargs="+")
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args(argv)
+    rows = []
+    for folder in a.folders:
+        for k in range(a.repeat):
+            t = time.perf_counter()
+            res = gpps.reconstruct_folder(folder, device=a.device)
+            wall = time.perf_counter() - t
+            rep = res.report
+            row = {"folder": Path(folder).name, "call": k, "wall_s": wall, "maen_deg": rep.get("maen_deg"),
+                   "timings": rep.get("timings"), "images": rep.get("images"), "shape": rep.get("shape")}
+            rows.append(row)
+            print(json.dumps(row, default=json_default), flush=True)
+    if a.out:
+        Path(a.out).write_text(json.dumps({"device": a.device, "rows": rows}, indent=1, default=json_default))
+
+
+if __name__ == "__main__":
+    main()
