@@ -1,6 +1,5 @@
 """Image formats in, every output format out and read back; capture folders as users have them; the automatic mask."""
 
-import json
 
 import numpy as np
 import pytest
