@@ -25,7 +25,6 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "perf"))
 os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 
-import numpy as np  # noqa: E402
 
 import gpps  # noqa: E402
 from gpps.io import save_json  # noqa: E402
