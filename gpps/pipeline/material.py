@@ -44,13 +44,14 @@ from gpps._check import as_array, as_images, as_mask, check_number
 from gpps._runtime import resolve_device, warp
 from gpps.kernels import solve_batched as sb
 from gpps.kernels.brdf import MaterialParams
-from gpps.lights import DirectionalLights, PointLights
+from gpps.lights import PointLights
 from gpps.material import Material
 from gpps.names import BRDF_NAMES
 from gpps.pipeline.params import camera_params, light_params, material_params
 from gpps.pipeline.solver import (
     SolverConfig,
     check_light_configuration,
+    check_problem,
     estimate_noise,
     solver_params,
 )
@@ -114,16 +115,7 @@ class MaterialScorer(Stage):
     def __init__(self, shape, camera, lights, brdf, config: SolverConfig, *, max_samples: int = 2000,
                  max_candidates: int = 25, trim: float = 0.02, device=None):
         wp = warp()
-        try:
-            n, h, w = (int(s) for s in shape)
-        except (TypeError, ValueError):
-            raise ValueError(f"shape: expected (N, H, W), got {shape!r}") from None
-        if n < 1 or h < 1 or w < 1:
-            raise ValueError(f"shape: expected (N, H, W) with positive sizes, got {shape!r}")
-        if not isinstance(lights, (DirectionalLights, PointLights)):
-            raise TypeError(f"lights: expected DirectionalLights or PointLights, got {type(lights).__name__}")
-        if len(lights) != n:
-            raise ValueError(f"lights: expected {n} lights (one per image), got {len(lights)}")
+        n, h, w = check_problem(shape, lights)
         if isinstance(brdf, Material):
             brdf = brdf.brdf
         if brdf not in BRDF_NAMES:

@@ -187,6 +187,26 @@ class SolverConfig:
             raise ValueError("smoothness: expected 0 with solver 'none' (the smoothness term needs a nonlinear solver)")
 
 
+def check_problem(shape, lights) -> tuple[int, int, int]:
+    """``(N, H, W)`` of a per-pixel problem, checked against its lights (one per image).
+
+    Raises:
+        ValueError: a shape that is not three positive sizes, or a light count other than N.
+        TypeError: lights that are not :class:`DirectionalLights` or :class:`PointLights`.
+    """
+    try:
+        n, h, w = (int(s) for s in shape)
+    except (TypeError, ValueError):
+        raise ValueError(f"shape: expected (N, H, W), got {shape!r}") from None
+    if n < 1 or h < 1 or w < 1:
+        raise ValueError(f"shape: expected (N, H, W) with positive sizes, got {shape!r}")
+    if not isinstance(lights, (DirectionalLights, PointLights)):
+        raise TypeError(f"lights: expected DirectionalLights or PointLights, got {type(lights).__name__}")
+    if len(lights) != n:
+        raise ValueError(f"lights: expected {n} lights (one per image), got {len(lights)}")
+    return n, h, w
+
+
 def estimate_noise(images, mask, *, max_pixels: int = 1 << 16) -> np.ndarray:
     """Noise standard deviation of each image's grey values: (N,) float32.
 
@@ -331,16 +351,7 @@ class PixelSolver(Stage):
 
         self._sk = sk
         self.device = resolve_device(device)
-        try:
-            n, h, w = (int(s) for s in shape)
-        except (TypeError, ValueError):
-            raise ValueError(f"shape: expected (N, H, W), got {shape!r}") from None
-        if n < 1 or h < 1 or w < 1:
-            raise ValueError(f"shape: expected (N, H, W) with positive sizes, got {shape!r}")
-        if not isinstance(lights, (DirectionalLights, PointLights)):
-            raise TypeError(f"lights: expected DirectionalLights or PointLights, got {type(lights).__name__}")
-        if len(lights) != n:
-            raise ValueError(f"lights: expected {n} lights (one per image), got {len(lights)}")
+        n, h, w = check_problem(shape, lights)
         self.config = config if config is not None else SolverConfig()
         if not isinstance(self.config, SolverConfig):
             raise TypeError(f"config: expected PixelSolver.Config, got {type(self.config).__name__}")

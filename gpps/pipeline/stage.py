@@ -16,20 +16,26 @@ Stages hold no numpy algorithms (those live in :mod:`gpps.host`) and no whole fl
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
+
 __all__ = ["Stage"]
 
 
-class Stage:
-    """Base class of the stages: the protocol above, with ``run`` and the context manager written once."""
+class Stage(ABC):
+    """Base class of the stages: the protocol above, with ``run`` and the context manager written once.
+    A stage that lacks one of the three verbs cannot be instantiated (``abc``)."""
 
-    def upload(self, *args, **kwargs) -> None:  # pragma: no cover - every stage defines it
-        raise NotImplementedError
+    @abstractmethod
+    def upload(self, *args, **kwargs) -> None:
+        """Copy the inputs into the stage's buffers (shapes checked)."""
 
-    def step(self, *args, **kwargs) -> None:  # pragma: no cover - every stage defines it
-        raise NotImplementedError
+    @abstractmethod
+    def step(self, *args, **kwargs) -> None:
+        """Launch the work on the stage's device."""
 
-    def fetch(self, *args, **kwargs):  # pragma: no cover - every stage defines it
-        raise NotImplementedError
+    @abstractmethod
+    def fetch(self, *args, **kwargs):
+        """Copy the results to the host and return them."""
 
     def close(self) -> None:
         """Release the device buffers (the base class holds none)."""
