@@ -61,11 +61,11 @@ from gpps.kernels.solve_common import (
     FLAG_FEW_OBSERVATIONS,
     FLAG_ILL_CONDITIONED,
     FLAG_WOODHAM_FALLBACK,
-    Pixel,
     SolverParams,
     cond_frobenius,
     grey_max,
     light_gram,
+    pixel_at,
     store_solution,
 )
 from gpps.kernels.solve_kernels import least_squares_start, observation_weights
@@ -77,17 +77,7 @@ __all__ = ["prepare_samples_kernel", "get_batched_kernel", "batched_module_name"
 @wp.func
 def strip_pixel(c: int, p: int, point: wp.vec3, view: wp.vec3, prm: SolverParams):
     """The :class:`Pixel` of candidate ``c`` and sample ``p``: array indices (c, p), precomputed point and view."""
-    px = Pixel()
-    px.i = c
-    px.j = p
-    px.p = point
-    px.v = view
-    px.fix_kd = 0
-    px.kd = wp.vec3(0.0)
-    px.grey_albedo = prm.grey_albedo
-    px.prior_w = 0.0
-    px.prior_n = wp.vec3(0.0)
-    return px
+    return pixel_at(c, p, point, view, prm)
 
 
 @wp.kernel(enable_backward=False)

@@ -276,18 +276,26 @@ def store_solution(
 
 
 @wp.func
-def make_pixel(cam: CameraParams, depth: wp.array2d(dtype=wp.float32), i: int, j: int, prm: SolverParams):
+def pixel_at(i: int, j: int, point: wp.vec3, view: wp.vec3, prm: SolverParams):
+    """The :class:`Pixel` with array indices (i, j), surface point and view direction (no prior, albedo free)."""
     px = Pixel()
     px.i = i
     px.j = j
-    px.p = pixel_point(cam, i, j, depth[i, j])
-    px.v = view_dir(cam, px.p)
+    px.p = point
+    px.v = view
     px.fix_kd = 0
     px.kd = wp.vec3(0.0)
     px.grey_albedo = prm.grey_albedo
     px.prior_w = 0.0
     px.prior_n = wp.vec3(0.0)
     return px
+
+
+@wp.func
+def make_pixel(cam: CameraParams, depth: wp.array2d(dtype=wp.float32), i: int, j: int, prm: SolverParams):
+    """The :class:`Pixel` of image pixel (i, j) at its depth."""
+    point = pixel_point(cam, i, j, depth[i, j])
+    return pixel_at(i, j, point, view_dir(cam, point), prm)
 
 
 @wp.func
