@@ -237,3 +237,58 @@ def test_bad_input(device):
     scorer.close()
     with pytest.raises(ValueError, match="closed"):
         scorer.upload(img, sample_mask(sc.mask, 5))
+
+
+@pytest.mark.parametrize("light_kind", ["directional", "point"])
+def test_warm_step_equals_pixel_solver_warm_start(light_kind, device):
+    """``set_start`` + ``step(warm=True)``: each pixel solved from one given start normal equals
+    PixelSolver's warm-started solve (``warm_start=True, starts=1``) from the same normals; a start
+    copied on the device from a candidate of the last step equals the same start given from the host."""
+    img, lights, sc, mat = _many_lights_case("cook-torrance", light_kind, 8, device=device)
+    sample = sample_mask(sc.mask, 150, seed=7, block=True)
+    depth = sc.depth if light_kind == "point" else None
+    cands = candidates_around(mat)
+    cfg = fit_config()
+    # start normals: the cold solution for cands[2] (a material far from the others)
+    _, _, cold_n = reference(img, sample, sc.camera, lights, [cands[2]], cfg, depth=depth, valid=None, device=device)
+    init = np.zeros(sc.mask.shape + (3,), np.float32)
+    init[..., 2] = 1.0
+    init[sample] = cold_n[0]
+    solver = PixelSolver(img.shape[:3], sc.camera, lights, cands[0], replace(cfg, warm_start=True, starts=1),
+                         device=device)
+    ref, ref_r = [], []
+    for m in cands:
+        solver.set_material(m)
+        out = solver.run(img, sample, depth=depth, init_normals=init)
+        r = out["residual"][sample]
+        ref.append(float(trimmed_energy(r, TRIM)))
+        ref_r.append(r)
+    s = scale_of(img, sc.mask)
+    with MaterialScorer(img.shape[:3], sc.camera, lights, mat, cfg, max_samples=int(sample.sum()),
+                        max_candidates=len(cands), trim=TRIM, device=device) as scorer:
+        scorer.upload(img, sample, depth=depth)
+        with pytest.raises(ValueError, match="set_start"):
+            scorer.step(cands, warm=True)
+        scorer.set_start(init[sample])
+        scorer.step(cands, warm=True)
+        e_host = scorer.fetch()
+        r_host = scorer.fetch_pixels(("residual", "iterations"))
+        # from the device: candidate 2's cold normals are the same start
+        scorer.step(cands)
+        e_cold = scorer.fetch()
+        it_cold = scorer.fetch_pixels(("iterations",))["iterations"]
+        scorer.set_start(candidate=2)
+        scorer.step(cands, warm=True)
+        e_dev = scorer.fetch()
+        with pytest.raises(ValueError, match="candidate"):
+            scorer.set_start(candidate=len(cands))
+        with pytest.raises(ValueError, match="exactly one"):
+            scorer.set_start()
+        with pytest.raises(ValueError, match="unit"):
+            scorer.set_start(2.0 * init[sample])
+    assert_energies_equal(e_host, np.array(ref), s)
+    assert np.abs(r_host["residual"] - np.array(ref_r)).max() <= 1e-5 * s
+    np.testing.assert_allclose(e_dev, e_host, rtol=1e-5, atol=(1e-6 * s) ** 2)
+    # from its own cold solution, candidate 2 keeps that minimum at a fraction of the cold multi-start's cost
+    assert_energies_equal(e_host[2:3], e_cold[2:3], s)
+    assert r_host["iterations"][2].mean() < 0.5 * it_cold[2].mean()

@@ -113,6 +113,22 @@ def test_reconstruct_unknown_material(brdf, camera, kind, device):
     assert done == sorted(done) and done[-1] == calls[-1][1]
 
 
+def test_warm_rounds_match_cold_rounds(device):
+    """The continuation defaults (later material fits from warm starts, normals cold only in the first
+    ``cold_rounds``) reach what every round cold reaches, on a 3-image Cook-Torrance scene."""
+    img, L, sc, sat = _case("cook-torrance", "perspective", "directional")
+    ref = float(sc.depth[sc.mask].mean())
+    out = {}
+    for name, cfg in (("warm", RONConfig()), ("cold", RONConfig(material_warm=False, cold_rounds=5))):
+        rec = gpps.reconstruct(img, sc.mask, L, camera=sc.camera, material="cook-torrance", reference_depth=ref,
+                               saturation=sat, config=cfg, device=device)
+        out[name] = (angular_error(rec.normals, sc.normals, sc.mask)[sc.mask].mean(), rec.estimated)
+    (e_warm, est_warm), (e_cold, est_cold) = out["warm"], out["cold"]
+    assert e_warm <= max(1.1 * e_cold, e_cold + 0.02), (e_warm, e_cold)
+    for k, v in est_cold.items():
+        assert est_warm[k] == pytest.approx(v, rel=0.02), (est_warm, est_cold)
+
+
 def test_reconstruct_known_material_is_solve_then_integrate(device):
     """Known material and directional lights: one round, equal to solve_normals + integrate_normals."""
     from gpps.flows.integrate import integrate_normals
@@ -183,6 +199,10 @@ def test_reconstruct_bad_input():
         RONConfig(material_rule="guess")
     with pytest.raises(ValueError, match="solver"):
         RONConfig(solver=gpps.SolverConfig(solver="none"))
+    with pytest.raises(ValueError, match="cold_rounds"):
+        RONConfig(cold_rounds=0)
+    with pytest.raises(TypeError, match="material_warm"):
+        RONConfig(material_warm=1)
 
 
 # --------------------------------------------------------------------------- CLI

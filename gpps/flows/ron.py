@@ -97,6 +97,11 @@ LOBE_PARAMETERS: dict[str, tuple[str, ...]] = {
 }
 # log-space search ranges (lo, hi) of each parameter
 _RANGES = {"ks": (0.02, 3.0), "shininess": (2.0, 500.0), "roughness": (0.03, 0.8), "eta": (2.0, 500.0)}
+# Nelder-Mead's stopping size of the simplex (log units): the first fit only has to land in the optimum's
+# basin (every later fit starts from it with a simplex of at most _LATER_STEP and refines to _XATOL)
+_FIRST_XATOL, _XATOL = 0.05, 1e-3
+# a later fit's initial simplex: twice the previous fit's move, within these bounds (log units)
+_LATER_STEP = (0.01, 0.15)
 
 
 def estimable_parameters(brdf: str) -> tuple[str, ...]:
@@ -137,7 +142,12 @@ class RONConfig:
             seed's (4.19) (Cook-Torrance roughness only; see the module docstring).
         material_samples: pixels sampled for the photometric material fit.
         material_grid: grid points per estimated parameter in the first fit.
-        material_evals: candidate evaluations after the grid (and in later rounds).
+        material_evals: the most candidate evaluations after the grid (and in each later round).
+            Nelder-Mead stops earlier when its simplex has shrunk below 0.05 log units in the
+            first fit (which only has to find the optimum's basin: every later fit starts there)
+            and below 1e-3 in later fits, whose initial simplex is twice the previous fit's move
+            (0.01-0.15 log units): the material moves less from round to round.  So the rounds
+            stop only after a later fit (at least 3 rounds when estimating photometrically).
         material_search: after the grid, ``"nelder-mead"`` (default): scipy's Nelder-Mead, its initial
             simplex scored in one batch, then one or two candidates a step; ``"pattern"``: a stencil search
             with a quadratic model whose ``3^d`` candidates are scored in one batch (fewer, fuller launches
@@ -145,7 +155,20 @@ class RONConfig:
             Nelder-Mead within the same budget: 0.38 against 0.13 deg MAEN on a 64^2 sphere).
         material_trim: fraction of worst pixel residuals left out of the fit's
             energy (robust to cast shadows and inter-reflections).
-        material_starts: starts per pixel in the fit's per-pixel solves.
+        material_starts: starts per pixel in the fit's cold per-pixel solves.
+        material_warm: score the candidates of the later fits (rounds 2, 3, ...) from warm starts
+            (one start per pixel, continuation): from the round's normals, which were solved
+            with the current material (cold multi-start and warm, the lower residual winning).
+            A pixel's minimiser moves continuously with the material near it, so the local solve
+            from there finds it at a fraction of the cold multi-start's cost.  The first fit
+            stays cold: its grid spans the whole range, and with 3 images a start from a grid
+            candidate's normals led Nelder-Mead into a false valley (ks 1.22 for 0.7 on a
+            rendered Blinn-Phong scene).  False: every candidate cold.
+        cold_rounds: rounds whose normals solve includes the cold multi-start (besides the
+            warm start from the previous round's normals, the lower residual winning); later
+            rounds only continue from the previous round's normals.  The default 2 covers the
+            round with the start material and the first with an estimated one; after that the
+            material moves little between rounds and each pixel's minimiser with it.
         roughness_window: Gaussian scale (pixels) of the mean surface of (4.19).
         solver: the per-pixel solver settings (steps 1 and 5).
         integrator: settings of the Taichi integrator (step 3); None: multigrid
@@ -173,6 +196,8 @@ class RONConfig:
     material_search: MaterialSearch = "nelder-mead"
     material_trim: float = 0.02
     material_starts: int = 4
+    material_warm: bool = True
+    cold_rounds: int = 2
     roughness_window: float = 4.0
     solver: SolverConfig = field(default_factory=SolverConfig)
     integrator: object = None  # gpps.pipeline.integration.IntegratorConfig (None: defaults)
@@ -198,6 +223,8 @@ class RONConfig:
         check_number("material_evals", self.material_evals, lo=0, integer=True)
         check_number("material_trim", self.material_trim, lo=0.0, hi=0.5)
         check_number("material_starts", self.material_starts, lo=1, integer=True)
+        check_bool("material_warm", self.material_warm)
+        check_number("cold_rounds", self.cold_rounds, lo=1, integer=True)
         check_number("roughness_window", self.roughness_window, lo=0.5)
         if not isinstance(self.dgmc_config, DGMCConfig):
             raise TypeError(f"dgmc_config: expected DGMCConfig, got {type(self.dgmc_config).__name__}")
@@ -348,6 +375,7 @@ class RON:
         self._scorer = None  # the material fit's resident sample (MaterialScorer), built at the first fit
         self._scored = None  # the inputs it holds
         self._batch = max(25, self.config.material_grid ** max(len(self.config.estimate), 1))
+        self._last_move = None  # log-space move of the last material fit (sizes the next fit's simplex)
         self.integrator = None
         if self.config.integrate:
             # default, perspective: BiNI's n_z^2 confidence weighting: grazing rim normals (a few degrees off
@@ -368,13 +396,24 @@ class RON:
 
     # ------------------------------------------------------------------ steps
 
-    def _solve(self, images, depth, valid, material, *, starts=None, init=None, init_mask=None, mask=None) -> dict:
+    def _solve(self, images, depth, valid, material, *, starts=None, init=None, init_mask=None, mask=None,
+               cold: bool = True) -> dict:
         """Steps 1/2/5: cold multi-start solve of ``mask``; where ``init`` is given, also a
-        warm-started solve from it (on ``init_mask``); the lower residual wins per pixel."""
+        warm-started solve from it (on ``init_mask``); the lower residual wins per pixel.
+        ``cold=False`` (needs ``init`` on the whole mask): only the warm solve, with the
+        configured neighbour pass for the under-determined pixels."""
         s = self.solver
         cfg = self.config.solver
         m = self.mask if mask is None else mask
         s.set_material(material)
+        if not cold:
+            if init is None or init_mask is not None:
+                raise ValueError("cold: False needs init normals on the whole mask")
+            s.set_config(replace(cfg, warm_start=True, starts=1))
+            try:
+                return s.run(images, m, depth=depth, valid=valid, init_normals=init)
+            finally:
+                s.set_config(cfg)
         s.set_config(cfg if starts is None else replace(cfg, starts=starts))
         out = s.run(images, m, depth=depth, valid=valid)
         if init is not None:
@@ -419,36 +458,46 @@ class RON:
         keep = max(1, int(round(r.size * (1.0 - self.config.material_trim))))
         return float(np.mean(r[:keep]))
 
-    def _score(self, images, depth, valid, materials: list, sample) -> np.ndarray:
-        """The sampled fit energy of each candidate material, a batch at a time.
-
-        The sample pixels stay resident in a :class:`gpps.pipeline.material.MaterialScorer` (uploaded again
-        only when the images, depth or observation mask change: point lights move the depth each round);
-        each batch of up to ``max_candidates`` candidates is one launch.  The energies equal
-        :meth:`_fit_energy`'s (tests/test_material_device.py).
-        """
+    def _scorer_for(self, images, depth, valid, sample, material) -> MaterialScorer:
+        """The resident sample (:class:`MaterialScorer`), built at the first fit and uploaded again only
+        when the images, depth or observation mask change (point lights move the depth each round)."""
         c = self.config
         inputs = (images, depth, valid, sample)
         if self._scorer is None:
             fit = replace(c.solver, starts=c.material_starts, neighbour_radius=0, smoothness=0.0, warm_start=False)
-            self._scorer = MaterialScorer(self.shape, self.camera, self.lights, materials[0], fit,
+            self._scorer = MaterialScorer(self.shape, self.camera, self.lights, material, fit,
                                           max_samples=int(sample.sum()), max_candidates=self._batch,
                                           trim=c.material_trim, device=self.device)
         if self._scored is None or any(a is not b for a, b in zip(self._scored, inputs)):
             self._scorer.upload(images, sample, depth=depth, valid=valid)
             self._scored = inputs
+        return self._scorer
+
+    def _score(self, images, depth, valid, materials: list, sample, *, warm: bool = False) -> np.ndarray:
+        """The sampled fit energy of each candidate material, a batch at a time.
+
+        The sample pixels stay resident in a :class:`gpps.pipeline.material.MaterialScorer` (uploaded again
+        only when the images, depth or observation mask change: point lights move the depth each round);
+        each batch of up to ``max_candidates`` candidates is one launch.  The energies equal
+        :meth:`_fit_energy`'s (tests/test_material_device.py).  ``warm``: from the scorer's
+        warm start (:meth:`MaterialScorer.set_start`), one start per pixel.
+        """
+        scorer = self._scorer_for(images, depth, valid, sample, materials[0])
         out = []
         for i in range(0, len(materials), self._batch):
-            self._scorer.step(materials[i:i + self._batch])
-            out.append(self._scorer.fetch())
+            scorer.step(materials[i:i + self._batch], warm=warm)
+            out.append(scorer.fetch())
         return np.concatenate(out)
 
-    def _fit_material(self, images, depth, valid, material, sample, *, grid: bool, progress=None) -> tuple[Material, dict]:
+    def _fit_material(self, images, depth, valid, material, sample, *, grid: bool, progress=None,
+                      normals=None) -> tuple[Material, dict]:
         """Step 4, photometric: the estimated parameters minimising the sampled energy.
 
         In log-parameter space: a grid over the whole range (first round), then ``material_search``
         from the best point.  Candidates are scored in batches (:meth:`_score`); ``progress(done,
-        total, message)`` is told after each batch.
+        total, message)`` is told after each batch.  With ``material_warm`` and no grid (later rounds)
+        the candidates are solved from one start per pixel: ``normals`` (H, W, 3), the round's
+        normals (solved with ``material``).
         """
         c = self.config
         names = c.estimate
@@ -457,9 +506,12 @@ class RON:
         evals = []
         report = progress or (lambda *a: None)
 
+        warm = False
+
         def score(xs):
             xs = [np.clip(x, lo, hi) for x in xs]
-            vals = self._score(images, depth, valid, [_with(material, dict(zip(names, np.exp(x)))) for x in xs], sample)
+            vals = self._score(images, depth, valid, [_with(material, dict(zip(names, np.exp(x)))) for x in xs],
+                               sample, warm=warm)
             evals.extend(vals.tolist())
             report(len(evals), len(evals) + c.material_evals, f"material: {len(evals)} candidates scored")
             return vals
@@ -474,8 +526,14 @@ class RON:
             x0 = pts[int(np.argmin(vals))]
             spread = float((vals.max() - vals.min()) / max(vals.max(), 1e-300))
             step = step / 2
+            xatol = _FIRST_XATOL
         else:
-            step = np.full(len(names), 0.15)
+            move = np.abs(self._last_move) if self._last_move is not None else np.full(len(names), np.inf)
+            step = np.clip(2.0 * move, *_LATER_STEP)
+            xatol = _XATOL
+            if c.material_warm and normals is not None:
+                self._scorer_for(images, depth, valid, sample, material).set_start(normals[sample])
+                warm = True
         best = (float(score([x0])[0]), x0)
         if c.material_evals > 0:
             if c.material_search == "pattern":
@@ -489,13 +547,16 @@ class RON:
                     key = tuple(x)
                     return known[key] if key in known else float(score([x])[0])
 
+                # converged when the simplex is smaller than xatol (fatol inf: no energy condition)
                 res = minimize(f, x0, method="Nelder-Mead",
-                               options={"initial_simplex": simplex, "maxfev": c.material_evals, "xatol": 1e-3,
-                                        "fatol": 0.0})
+                               options={"initial_simplex": simplex, "maxfev": c.material_evals, "xatol": xatol,
+                                        "fatol": np.inf})
                 if res.fun < best[0]:
                     best = (float(res.fun), np.clip(res.x, lo, hi))
+        start = np.clip(np.log([_get(material, k) for k in names]), lo, hi)
+        self._last_move = best[1] - start
         values = dict(zip(names, (float(v) for v in np.exp(best[1]))))
-        info = {"rule": "photometric", "search": c.material_search, "values": values, "energy": best[0],
+        info = {"rule": "photometric", "search": c.material_search, "warm": warm, "values": values, "energy": best[0],
                 "evaluations": len(evals), "grid": bool(grid), "identifiable": None if spread is None else spread > 1e-3}
         return _with(material, values), info
 
@@ -572,6 +633,7 @@ class RON:
         t_all = time.perf_counter()
         c = self.config
         m = self.mask
+        self._last_move = None
         step = progress or (lambda *a: None)
         timings = {"least_squares": 0.0, "dgmc": 0.0, "normals": 0.0, "integration": 0.0, "material": 0.0}
         cur_depth, reference_depth = self._start_depth(depth, reference_depth)
@@ -597,7 +659,8 @@ class RON:
             front = r == 1 and highlight.any() and c.dgmc_config.start == "front"
             if r == 1 and (not highlight.any() or front):
                 init = None
-            out = self._solve(images, solve_depth, valid, material, init=init, init_mask=init_mask)
+            out = self._solve(images, solve_depth, valid, material, init=init, init_mask=init_mask,
+                              cold=(r <= c.cold_rounds or init is None))
             if front:
                 # DGMC on the solved front (4.16-4.18): highlight pixels start from their solved
                 # neighbours ring by ring; the lower residual wins per pixel
@@ -621,7 +684,8 @@ class RON:
             changes.append(float(np.degrees(np.arccos(cosang)).mean()))
             prev = out["normals"]
             step(1 + 3 * r - 2, total, f"round {r}: normals (energy {energies[-1]:.3g})")
-            if r > 1:
+            # a photometric estimate is final only after a later (fine) fit: the first one is coarse
+            if r > (2 if estimating and c.material_rule == "photometric" else 1):
                 de = abs(energies[-1] - energies[-2]) / max(energies[-2], 1e-300)
                 if de < c.tol and changes[-1] < c.tol_normals_deg:
                     converged = True
@@ -632,8 +696,9 @@ class RON:
                 # nothing that step 1 depends on changes: one round is the fixed point
                 converged = True
                 break
-            # step 3: depth
-            if c.integrate:
+            # step 3: depth; it feeds back only through point lights (2.30-2.31) and the depth-rms
+            # rule (4.19): otherwise the rounds' depths would be discarded, and only the final one is kept
+            if c.integrate and (self.point or (estimating and c.material_rule == "depth-rms")):
                 t = time.perf_counter()
                 integ = self.integrator.run(out["normals"], reference_depth=reference_depth)
                 cur_depth = self._fill_depth(integ.depth, integ.mask, reference_depth)
@@ -646,7 +711,7 @@ class RON:
                 t = time.perf_counter()
                 if c.material_rule == "photometric":
                     material, info = self._fit_material(
-                        images, solve_depth, valid, material, sample, grid=(r == 1),
+                        images, solve_depth, valid, material, sample, grid=(r == 1), normals=out["normals"],
                         progress=lambda d, t, msg: step(1 + 3 * r - 1 + d / max(t, 1), total, f"round {r}: {msg}"))
                 else:
                     if cur_depth is None:

@@ -36,6 +36,7 @@ mask (tests/test_material_device.py).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -47,6 +48,7 @@ from gpps.kernels.brdf import MaterialParams
 from gpps.lights import PointLights
 from gpps.material import Material
 from gpps.names import BRDF_NAMES
+from gpps.pipeline.cpu_threads import cpu_threads, run_all
 from gpps.pipeline.params import camera_params, light_params, material_params
 from gpps.pipeline.solver import (
     SolverConfig,
@@ -142,6 +144,8 @@ class MaterialScorer(Stage):
         self.config = config
         # the parameter struct and specialisation PixelSolver uses for this config
         self.prm = solver_params(config)
+        # warm steps: one start per pixel, from ``nwarm`` (set_start)
+        self.prm_warm = solver_params(replace(config, warm_start=True, starts=1))
         robust = config.robust if config.irls_rounds > 0 else "none"
         self._robust = robust
         self._kernel = sb.get_batched_kernel(config.solver, brdf, robust)
@@ -157,6 +161,8 @@ class MaterialScorer(Stage):
         self.points = wp.zeros(pm, dtype=wp.vec3, device=d)
         self.views = wp.zeros(pm, dtype=wp.vec3, device=d)
         self.ninit = wp.zeros(pm, dtype=wp.vec3, device=d)
+        self.nwarm = wp.zeros(pm, dtype=wp.vec3, device=d)
+        self.warm_ready = False
         self.gmax = wp.zeros(pm, dtype=wp.float32, device=d)
         self.flags = wp.zeros(pm, dtype=wp.int32, device=d)
         self.cond = wp.zeros(pm, dtype=wp.float32, device=d)
@@ -263,12 +269,47 @@ class MaterialScorer(Stage):
         self.noise.assign(self.noise_level)
         self.samples = p
         self.candidates = 0
+        self.warm_ready = False
         self.rows_host, self.cols_host = rows, cols
         wp.launch(sb.prepare_samples_kernel, dim=p,
                   inputs=[self.strip, self.strip_valid, self.rows, self.cols, self.sample_depth, self.noise,
                           self.cam, self.lp, self.prm],
                   outputs=[self.base_weights, self.points, self.views, self.ninit, self.gmax, self.flags, self.cond],
                   device=self.device)
+
+    def set_start(self, normals=None, *, candidate: int | None = None) -> None:
+        """The start normals of later warm steps (``step(..., warm=True)``): one start per pixel.
+
+        Args:
+            normals: (P, 3) unit normals of the sample pixels, in ``(rows_host, cols_host)``
+                order (as ``x[sample_mask]``), e.g. the normals RON solved this round.
+            candidate: instead of ``normals``: the normals the last step solved for its
+                candidate ``candidate`` (a device copy, nothing comes back).
+
+        Raises:
+            ValueError: neither or both given, wrong shape, no upload / step to take them from.
+        """
+        self._check_open()
+        if (normals is None) == (candidate is None):
+            raise ValueError("normals, candidate: expected exactly one of them")
+        p = self.samples
+        if p == 0:
+            raise ValueError("set_start: expected an upload of the sample pixels first")
+        wp = warp()
+        if candidate is not None:
+            k = int(candidate)
+            if not 0 <= k < self.candidates:
+                raise ValueError(f"candidate: expected 0 <= candidate < {self.candidates} (the last step's), got {k}")
+            wp.copy(self.nwarm, self.normals, dest_offset=0, src_offset=k * self.max_samples, count=p)
+        else:
+            nrm = as_array("normals", normals, shape=(p, 3)).astype(np.float32)
+            norm = np.linalg.norm(nrm, axis=1, keepdims=True)
+            if not np.all(np.abs(norm - 1.0) < 1e-3):
+                raise ValueError("normals: expected unit vectors")
+            full = np.zeros((self.max_samples, 3), np.float32)
+            full[:p] = nrm
+            self.nwarm.assign(full)
+        self.warm_ready = True
 
     # ------------------------------------------------------------------ step
 
@@ -295,13 +336,16 @@ class MaterialScorer(Stage):
         self.mats.assign(host)
         return len(cands)
 
-    def step(self, candidates: Sequence[Material], *, progress: Progress | None = None,
+    def step(self, candidates: Sequence[Material], *, warm: bool = False, progress: Progress | None = None,
              chunks: int | None = None) -> None:
         """Solve every sample pixel for every candidate: one launch of K x P threads.
 
         Args:
             candidates: K <= ``max_candidates`` materials of the scorer's model
                 (their parameters may all differ).
+            warm: solve each pixel from one start, the normals of :meth:`set_start`
+                (continuation: candidates near the material those normals were solved
+                with), instead of the config's cold multi-start from Woodham's normal.
             progress: optional ``progress(done, total, message)`` in pixel solves
                 (``total = K * P``), called after each launch has finished.
             chunks: launches the pixels are split over (each launch still holds all
@@ -316,21 +360,34 @@ class MaterialScorer(Stage):
         self._check_open()
         if self.samples == 0:
             raise ValueError("step: expected an upload of the sample pixels first")
+        if warm and not self.warm_ready:
+            raise ValueError("warm: expected set_start(...) after the last upload")
         k = self._set_candidates(candidates)
         self.candidates = k
+        ninit, prm = (self.nwarm, self.prm_warm) if warm else (self.ninit, self.prm)
         p = self.samples
+        cuda = self.device.startswith("cuda")
         if chunks is None:
-            chunks = 1 if progress is None or self.device.startswith("cuda") else 8
+            chunks = 1 if progress is None or cuda else 8
         chunks = min(check_number("chunks", chunks, lo=1, integer=True), p)
+        # on the CPU each chunk is split again over the threads (gpps.pipeline.cpu_threads), run together
+        threads = 1 if cuda else min(cpu_threads(), max(1, p // max(chunks, 1)))
         wp = warp()
         bounds = np.linspace(0, p, chunks + 1).round().astype(int)
+
+        def launcher(a0, b0):
+            def go():
+                wp.launch(self._kernel, dim=(k, int(b0 - a0)),
+                          inputs=[self._strip_k, self.base_weights, self.points, self.views, ninit, self.gmax,
+                                  self.flags, self.lp, self.mats, prm, int(a0)],
+                          outputs=[self._weights_k, self.normals, self.albedo, self.residual, self.iterations,
+                                   self.flags_k],
+                          device=self.device)
+            return go
+
         for a, b in zip(bounds[:-1], bounds[1:]):
-            wp.launch(self._kernel, dim=(k, int(b - a)),
-                      inputs=[self._strip_k, self.base_weights, self.points, self.views, self.ninit, self.gmax,
-                              self.flags, self.lp, self.mats, self.prm, int(a)],
-                      outputs=[self._weights_k, self.normals, self.albedo, self.residual, self.iterations,
-                               self.flags_k],
-                      device=self.device)
+            parts = np.linspace(a, b, threads + 1).round().astype(int)
+            run_all([launcher(x, y) for x, y in zip(parts[:-1], parts[1:]) if y > x])
             if progress is not None or chunks > 1:
                 wp.synchronize_device(self.device)
             if progress is not None:
@@ -369,7 +426,7 @@ class MaterialScorer(Stage):
     def close(self) -> None:
         """Release the device buffers; the scorer refuses work afterwards."""
         for name in ("strip", "strip_valid", "rows", "cols", "sample_depth", "noise", "base_weights", "points",
-                     "views", "ninit", "gmax", "flags", "cond", "mats", "normals", "albedo", "residual",
+                     "views", "ninit", "nwarm", "gmax", "flags", "cond", "mats", "normals", "albedo", "residual",
                      "iterations", "flags_k", "_strip_k", "_weights_k", "lp"):
             self.__dict__.pop(name, None)
         self._closed = True
