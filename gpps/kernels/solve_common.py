@@ -55,6 +55,7 @@ class SolverParams:
     lit_threshold: wp.float32
     lit_sigmas: wp.float32
     keep_unmasked: wp.int32  # 1: pixels outside the mask keep their outputs (a re-solve of a subset)
+    row0: wp.int32  # first image row of the launch (a CPU launch split by rows across threads); 0: the whole image
 
 
 @wp.struct

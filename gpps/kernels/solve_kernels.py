@@ -173,7 +173,8 @@ def solve_kernel_for(method, solve_pixel, module, sfx: str):
             flags: (H, W) FLAG_* bits.
             cond: (H, W) Frobenius condition number of the valid lights' Gram matrix.
         """
-        i, j = wp.tid()
+        t, j = wp.tid()
+        i = t + prm.row0
         nl_ = lights.count
         if mask[i, j] == wp.uint8(0):
             if prm.keep_unmasked != 0:

@@ -38,6 +38,7 @@ from gpps.names import (
 )
 from gpps.names import ROBUST_TAG as _ROBUST_TAG
 from gpps.names import SOLVER_TAG as _SOLVER_TAG
+from gpps.pipeline.cpu_threads import balanced_bounds, cpu_threads, run_all
 from gpps.pipeline.params import camera_params, light_params, material_params
 from gpps.pipeline.stage import Stage
 
@@ -318,6 +319,7 @@ def solver_params(c: SolverConfig):
     p.lit_threshold = float(c.lit_threshold)
     p.lit_sigmas = float(c.lit_sigmas)
     p.keep_unmasked = 0
+    p.row0 = 0
     return p
 
 
@@ -381,6 +383,20 @@ class PixelSolver(Stage):
         self.flags = wp.zeros((h, w), dtype=wp.int32, device=d)
         self.cond = wp.zeros((h, w), dtype=wp.float32, device=d)
         self.intensity_scale = 1.0
+        self._row_bounds = None  # CPU: the solve launch's row ranges, one thread each (None: one launch)
+
+    def _split_rows(self, m: np.ndarray) -> None:
+        """On the CPU, split the solve launch by rows over the threads, balanced by the mask's pixels
+        (:mod:`gpps.pipeline.cpu_threads`); one launch on CUDA or with one thread."""
+        n = cpu_threads() if not self.device.startswith("cuda") else 1
+        bounds = balanced_bounds(m.sum(axis=1), n) if n > 1 else None
+        if bounds is not None and len(bounds) < 2:
+            bounds = None
+        if bounds != self._row_bounds:
+            self._row_bounds = bounds
+            cmds = self.__dict__.get("_cmds", {})
+            for k in [k for k in cmds if k[0] == "solve"]:
+                del cmds[k]
 
     def _params(self, c: SolverConfig):
         return solver_params(c)
@@ -496,6 +512,7 @@ class PixelSolver(Stage):
             self.intensity_scale = float(max(np.percentile(g, 99.0), 1e-12))
         self.images.assign(img)
         self.mask.assign(m.astype(np.uint8))
+        self._split_rows(m)
         self.depth.assign(dep)
         self.valid.assign(val)
 
@@ -517,17 +534,36 @@ class PixelSolver(Stage):
                        [self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags,
                         self.cond]).launch()
 
-    def _recorded(self, key, kernel, inputs, outputs):
-        """A recorded launch (``wp.launch(..., record_cmd=True)``) of ``kernel`` over the pixels, kept per ``key``
-        until the config or material changes: the arguments are packed once (a plain CPU launch re-packs its
-        struct arguments every time, and Warp keeps a cache entry per packing: memory grows per frame)."""
+    def _recorded(self, key, kernel, inputs, outputs, dim=None):
+        """A recorded launch (``wp.launch(..., record_cmd=True)``) of ``kernel`` over the pixels (or ``dim``),
+        kept per ``key`` until the config or material changes: the arguments are packed once (a plain CPU
+        launch re-packs its struct arguments every time, and Warp keeps a cache entry per packing: memory
+        grows per frame)."""
         cmds = self.__dict__.setdefault("_cmds", {})
         cmd = cmds.get(key)
         if cmd is None:
-            cmd = warp().launch(kernel, dim=self.shape[1:], inputs=inputs, outputs=outputs, device=self.device,
-                                record_cmd=True)
+            cmd = warp().launch(kernel, dim=self.shape[1:] if dim is None else dim, inputs=inputs, outputs=outputs,
+                                device=self.device, record_cmd=True)
             cmds[key] = cmd
         return cmd
+
+    def _launch_solve(self) -> None:
+        """The pixelwise solve over the whole image: one launch, or on the CPU one per row range of
+        :meth:`_split_rows`, run on several threads (each with ``row0`` set in its parameter copy)."""
+        ins = [self.images, self.mask, self.valid, self.depth, self.noise, self.cam, self.lp, self.mp]
+        outs = [self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags, self.cond]
+        if self._row_bounds is None:
+            self._recorded(("solve",), self._solve_kernel, ins + [self.prm], outs).launch()
+            return
+        cmds = []
+        for a, b in self._row_bounds:
+            key = ("solve", a, b)
+            if key not in self.__dict__.get("_cmds", {}):
+                prm = self._params(self.config)
+                prm.row0 = int(a)
+                self._recorded(key, self._solve_kernel, ins + [prm], outs, dim=(b - a, self.shape[2]))
+            cmds.append(self._cmds[key])
+        run_all([c.launch for c in cmds])
 
     def step(self) -> None:
         """Solve all pixels from the current buffers, no host sync (graph-capturable).
@@ -535,10 +571,7 @@ class PixelSolver(Stage):
         Two kernel launches (pixelwise solve, under-determined pixels), then
         ``2 * smoothing_sweeps`` red-black half-sweeps when ``smoothness > 0``.
         """
-        self._recorded(("solve",), self._solve_kernel,
-                       [self.images, self.mask, self.valid, self.depth, self.noise, self.cam, self.lp, self.mp, self.prm],
-                       [self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags,
-                        self.cond]).launch()
+        self._launch_solve()
         if self.config.neighbour_radius > 0 and self._underdetermined_kernel is not None:
             self._recorded(("underdetermined",), self._underdetermined_kernel,
                            [self.images, self.mask, self.depth, self.cam, self.lp, self.mp, self.prm,
@@ -581,6 +614,7 @@ class PixelSolver(Stage):
         nrm = as_array("init_normals", init_normals, shape=(h, w, 3))
         self.mask.assign(m.astype(np.uint8))
         self.normals.assign(nrm)
+        self._split_rows(m)
         if m.any():
             self.step()
         return self.fetch(names)

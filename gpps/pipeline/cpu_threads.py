@@ -1,0 +1,82 @@
+"""Warp launches on the CPU split across threads.
+
+Warp 1.19's CPU backend runs a launch on one thread, but it releases the GIL while the kernel runs (the
+launch is a ctypes call), so launches on disjoint parts of the problem from several Python threads run on
+several cores.  The stages split only their per-pixel solves this way (the work that dominates on the
+CPU): :class:`gpps.pipeline.solver.PixelSolver` by image rows (``SolverParams.row0``), balanced by the
+mask's pixel count, and :class:`gpps.pipeline.material.MaterialScorer` by sample pixels.  Every pixel's
+result is the same as in one launch (each thread writes only its own pixels).
+
+The thread count is ``GPPS_CPU_THREADS`` when set (1 disables the split), else the cores this process
+may run on.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, Sequence
+
+import numpy as np
+
+__all__ = ["cpu_threads", "run_all", "balanced_bounds"]
+
+_POOL: ThreadPoolExecutor | None = None
+_POOL_LOCK = threading.Lock()
+
+
+def cpu_threads() -> int:
+    """Threads for CPU launches: ``GPPS_CPU_THREADS`` (an integer >= 1) or the usable cores."""
+    env = os.environ.get("GPPS_CPU_THREADS")
+    if env:
+        try:
+            n = int(env)
+        except ValueError:
+            raise ValueError(f"GPPS_CPU_THREADS: expected an integer >= 1, got {env!r}") from None
+        if n < 1:
+            raise ValueError(f"GPPS_CPU_THREADS: expected an integer >= 1, got {env!r}")
+        return n
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def run_all(tasks: Sequence[Callable[[], None]]) -> None:
+    """Run the tasks, concurrently on the shared pool when there are several; re-raise the first error."""
+    global _POOL
+    if len(tasks) <= 1:
+        for t in tasks:
+            t()
+        return
+    n = cpu_threads()
+    with _POOL_LOCK:
+        if _POOL is None or _POOL._max_workers != n:  # noqa: SLF001 - size check only
+            _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="gpps-cpu")
+        pool = _POOL
+    for f in [pool.submit(t) for t in tasks]:
+        f.result()
+
+
+def balanced_bounds(weights, parts: int) -> list[tuple[int, int]]:
+    """Split ``range(len(weights))`` into at most ``parts`` contiguous, non-empty ranges of about equal weight.
+
+    Args:
+        weights: (R,) non-negative work per item (e.g. mask pixels per image row).
+        parts: the most ranges to return (>= 1).
+
+    Returns:
+        ``[(a, b), ...]`` covering ``0..R`` in order; ranges with no weight are merged into their neighbours.
+    """
+    w = np.asarray(weights, np.float64)
+    r = w.size
+    if r == 0:
+        return []
+    total = float(w.sum())
+    if parts <= 1 or total <= 0:
+        return [(0, r)]
+    cum = np.cumsum(w)
+    cuts = np.searchsorted(cum, total * np.arange(1, parts) / parts, side="left") + 1
+    edges = np.unique(np.concatenate([[0], np.clip(cuts, 1, r), [r]]))
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
