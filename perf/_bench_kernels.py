@@ -55,3 +55,29 @@ def fma_peak(out: wp.array(dtype=wp.float32), n: int):
         a6 = a6 * 0.9999 + 1.0e-7
         a7 = a7 * 0.9999 + 1.0e-7
     out[tid] = a0 + a1 + a2 + a3 + a4 + a5 + a6 + a7
+
+
+@wp.kernel(enable_backward=False)
+def fma_peak_f64(out: wp.array(dtype=wp.float64), n: int):
+    """fma_peak in float64 (DGMC and BiNI compute in float64): 16 n FLOPs a thread."""
+    tid = wp.tid()
+    a0 = wp.float64(tid) * wp.float64(1.0e-9)
+    a1 = a0 + wp.float64(0.1)
+    a2 = a0 + wp.float64(0.2)
+    a3 = a0 + wp.float64(0.3)
+    a4 = a0 + wp.float64(0.4)
+    a5 = a0 + wp.float64(0.5)
+    a6 = a0 + wp.float64(0.6)
+    a7 = a0 + wp.float64(0.7)
+    c = wp.float64(0.9999)
+    d = wp.float64(1.0e-7)
+    for _ in range(n):
+        a0 = a0 * c + d
+        a1 = a1 * c + d
+        a2 = a2 * c + d
+        a3 = a3 * c + d
+        a4 = a4 * c + d
+        a5 = a5 * c + d
+        a6 = a6 * c + d
+        a7 = a7 * c + d
+    out[tid] = a0 + a1 + a2 + a3 + a4 + a5 + a6 + a7

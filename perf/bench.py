@@ -36,9 +36,23 @@ so the FLOP bound is a lower bound).  The roofline is measured in the same
 run: copy bandwidth (``wp.copy`` of 512 MiB) and an FMA-chain FLOP probe.
 ``ratio`` = measured time / max(bytes / bandwidth, FLOPs / peak) (1 = at the bound).
 
-Writes ``perf/results/bench_<device>.json`` and prints a table last.
+Writes ``perf/results/bench_<device>.json`` and prints a table last (progress goes to stderr).
+
+The offline chain (``--chain``; rows, scene and counts in ``perf/_bench_chain.py``): the kernels the
+stream skips, on a DiLiGenT-ball-like scene (perspective Blinn-Phong sphere, ``--chain-size`` 166,
+``--chain-images`` 96 spiral lights): DGMC on the device (the highlight test, one geodesic min-plus
+sweep, the start search 4.17-4.18, and the whole step), the material scorer's batched solve (K = 25
+candidates x P = 2000 samples, at 96 and at 3 images), the full-image pixel solve (the offline normals
+step) and BiNI's CG iteration; same timing and ratio, bytes counted as compulsory traffic, float64
+kernels against a float64 FMA probe.  ``--chain`` alone runs only those rows (``--sizes`` adds the
+stream's) and writes ``perf/results/bench_chain_<device>.json`` (default sizes: the above on CUDA, 48^2,
+12 images, K = 9 x P = 200 on the single-threaded CPU backend).  ``--ncu-driver K`` times nothing: it
+sets every chain kernel up, then launches each K times outside graphs inside one CUDA profiler range
+(``perf/ncu_chain.py`` runs it under Nsight Compute) and writes the launch order to ``--out``.
 
 Usage:  python perf/bench.py [--device cuda:0] [--sizes 256 512 1024 2048] [--repeat 20]
+        python perf/bench.py --device cuda:0 --chain [--chain-size 166 --chain-images 96 --chain-samples 2000
+            --chain-candidates 25]   (the defaults on CUDA; on the CPU 48, 12, 200, 9)
 """
 
 from __future__ import annotations
@@ -103,8 +117,8 @@ def _graph_time(wp, launch, device, repeat, inner=20):
     return _median_time(lambda: wp.capture_launch(g), lambda: wp.synchronize_device(device), repeat) / inner
 
 
-def roofline(wp, device, repeat):
-    """Copy bandwidth (bytes read + written per second) and FMA-chain FLOP/s."""
+def roofline(wp, device, repeat, f64=False):
+    """Copy bandwidth (bytes read + written per second) and FMA-chain FLOP/s (and float64 FLOP/s with ``f64``)."""
     n = (512 << 20) // 4 if device.startswith("cuda") else (64 << 20) // 4
     a = wp.zeros(n, dtype=wp.float32, device=device)
     b = wp.zeros(n, dtype=wp.float32, device=device)
@@ -117,7 +131,14 @@ def roofline(wp, device, repeat):
     out = wp.zeros(threads, dtype=wp.float32, device=device)
     tf = _median_time(lambda: wp.launch(fma_peak, dim=threads, inputs=[out, steps], device=device),
                       lambda: wp.synchronize_device(device), max(3, repeat // 4))
-    return bw, threads * steps * 16 / tf
+    if not f64:
+        return bw, threads * steps * 16 / tf
+    from _bench_kernels import fma_peak_f64
+
+    out64 = wp.zeros(threads, dtype=wp.float64, device=device)
+    t64 = _median_time(lambda: wp.launch(fma_peak_f64, dim=threads, inputs=[out64, steps], device=device),
+                       lambda: wp.synchronize_device(device), max(3, repeat // 4))
+    return bw, threads * steps * 16 / tf, threads * steps * 16 / t64
 
 
 def bench_size(size, device, repeat, bw, peak, log):
@@ -340,26 +361,56 @@ def bench_moving(size, device, positions, frames, log):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default=None)
-    ap.add_argument("--sizes", type=int, nargs="*", default=[256, 512, 1024, 2048])
+    ap.add_argument("--sizes", type=int, nargs="*", default=None,
+                    help="stream rows' sizes (default 256 512 1024 2048; none with --chain)")
     ap.add_argument("--repeat", type=int, default=20)
     ap.add_argument("--out", default=None)
     ap.add_argument("--moving-sizes", type=int, nargs="*", default=None,
                     help="sizes of the moving-scene accuracy row (default: the smallest of --sizes; none: skip)")
     ap.add_argument("--moving-positions", type=int, default=8)
     ap.add_argument("--moving-frames", type=int, default=24)
+    ap.add_argument("--chain", action="store_true", help="the offline chain's kernels (perf/_bench_chain.py)")
+    # the chain's sizes: CUDA: DiLiGenT-ball-like (166^2, 96 images, RON's K = 25 x P = 2000); CPU (one thread:
+    # a 166^2 x 96-image solve alone takes 17 s there, the scorer's step 20 s): 48^2, 12 images, K = 9 x P = 200
+    ap.add_argument("--chain-size", type=int, default=None, help="image side of the chain's scene (166; CPU 48)")
+    ap.add_argument("--chain-images", type=int, default=None, help="images of the chain's scene (96; CPU 12)")
+    ap.add_argument("--chain-samples", type=int, default=None, help="material scorer: sample pixels P (2000; CPU 200)")
+    ap.add_argument("--chain-candidates", type=int, default=None, help="material scorer: candidates K (25; CPU 9)")
+    ap.add_argument("--chain-parts", nargs="*", default=None, help="some of: dgmc scorer solve bini (default all)")
+    ap.add_argument("--ncu-driver", type=int, default=0, metavar="K",
+                    help="no timing: launch each chain kernel K times in a CUDA profiler range (perf/ncu_chain.py)")
     a = ap.parse_args(argv)
+    if a.ncu_driver:
+        a.chain = True
+    if a.sizes is None:
+        a.sizes = [] if a.chain else [256, 512, 1024, 2048]
     moving_sizes = [min(a.sizes)] if a.moving_sizes is None and a.sizes else (a.moving_sizes or [])
     from gpps._runtime import resolve_device, warp
     from gpps.io import save_json
 
     wp = warp()
     device = resolve_device(a.device)
-    log = lambda s: print(s, flush=True)
-    bw, peak = roofline(wp, device, a.repeat)
-    log(f"roofline: copy {bw / 1e9:.0f} GB/s, FMA {peak / 1e12:.2f} TFLOP/s")
+    log = lambda s: print(s, file=sys.stderr, flush=True)
+    parts = a.chain_parts if a.chain_parts else None
+    if a.chain:
+        from _bench_chain import PARTS
+
+        parts = parts or list(PARTS)
+        bad = [p for p in parts if p not in PARTS]
+        if bad:
+            ap.error(f"--chain-parts: expected some of {list(PARTS)}, got {bad}")
+    for name, gpu, cpu in (("chain_size", 166, 48), ("chain_images", 96, 12), ("chain_samples", 2000, 200),
+                           ("chain_candidates", 25, 9)):
+        if getattr(a, name) is None:
+            setattr(a, name, gpu if device.startswith("cuda") else cpu)
     from _common import device_label
 
     label = device_label(device)
+    if a.ncu_driver:
+        return ncu_driver(a, device, parts, log)
+    bw, peak, *peak64 = roofline(wp, device, a.repeat, f64=a.chain)
+    log(f"roofline: copy {bw / 1e9:.0f} GB/s, FMA {peak / 1e12:.2f} TFLOP/s"
+        + (f", float64 FMA {peak64[0] / 1e12:.2f} TFLOP/s" if peak64 else ""))
     rows, errors = [], []
     for size in a.sizes:
         try:
@@ -373,15 +424,27 @@ def main(argv=None):
         except Exception as e:
             errors.append({"size": size, "kernel": "moving_stream", "error": repr(e), "trace": traceback.format_exc()})
             log(f"[{size}] moving FAILED: {e!r}")
-    path = Path(a.out) if a.out else ROOT / "perf" / "results" / f"bench_{label}.json"
-    save_json(path, {"device": device, "device_name": label, "copy_bandwidth_Bps": bw, "fma_peak_flops": peak,
-                     "n_lights": N_LIGHTS, "scene": "bumps, perspective, blinn-phong, 3 directional lights, uint16 RGB frames",
-                     "rows": rows, "errors": errors})
+    payload = {"device": device, "device_name": label, "copy_bandwidth_Bps": bw, "fma_peak_flops": peak,
+               "n_lights": N_LIGHTS, "scene": "bumps, perspective, blinn-phong, 3 directional lights, uint16 RGB frames",
+               "command": "python perf/bench.py " + " ".join(sys.argv[1:] if argv is None else argv)}
+    if a.chain:
+        from _bench_chain import Ctx, bench_chain
+
+        ctx = Ctx(device, a.repeat, bw, peak, peak64[0], _median_time, _graph_time, a.chain_size)
+        rows += bench_chain(ctx, parts, a.chain_images, a.chain_samples, a.chain_candidates, errors)
+        payload.update(fma_peak_f64_flops=peak64[0], chain_scene=(
+            f"sphere {a.chain_size}^2, perspective, blinn-phong, {a.chain_images} spiral directional lights "
+            "(3: ring), 16-bit, 0.5 % noise, divided by the intensities"))
+    name = f"bench_chain_{label}.json" if a.chain and not a.sizes else f"bench_{label}.json"
+    path = Path(a.out) if a.out else ROOT / "perf" / "results" / name
+    save_json(path, {**payload, "rows": rows, "errors": errors})
     print(f"\n{'size':>5} {'kernel':22s} {'ms':>9} {'GB/s':>8} {'GFLOP/s':>9} {'ratio':>6}  notes")
     for r in rows:
         extra = ""
         if "triples_per_s" in r:
             extra = f"{r['triples_per_s']:.0f} triples/s"
+        elif "summary" in r:
+            extra = r["summary"]
         elif "iterations" in r:
             extra = f"{r['iterations']} it"
         if "maen_stream_mean" in r:
@@ -392,6 +455,28 @@ def main(argv=None):
         print(f"{r['size']:5d} {r['kernel']:22s} {r['seconds'] * 1e3:9.3f} {r.get('gbps', float('nan')):8.1f} "
               f"{r.get('gflops', float('nan')):9.1f} {r.get('ratio', float('nan')):6.2f}  {extra}")
     print(f"wrote {path}")
+    if errors:
+        print(f"{len(errors)} part(s) FAILED (traces in the JSON): " + ", ".join(
+            str(e.get("part", e.get("kernel", e["size"]))) for e in errors))
+
+
+def ncu_driver(a, device, parts, log):
+    """``--ncu-driver K``: set up the chain's kernels, launch each K times in a profiler range, write the order."""
+    import json
+
+    from _bench_chain import Ctx, bench_chain, launch_profiled
+
+    nan = float("nan")
+    ctx = Ctx(device, a.repeat, nan, nan, nan, _median_time, _graph_time, a.chain_size, driver=a.ncu_driver)
+    errors = []
+    bench_chain(ctx, parts, a.chain_images, a.chain_samples, a.chain_candidates, errors)
+    manifest = launch_profiled(ctx)
+    out = {"device": device, "size": a.chain_size, "images": a.chain_images, "samples": a.chain_samples,
+           "candidates": a.chain_candidates, "launches": manifest, "errors": errors}
+    if a.out:
+        Path(a.out).write_text(json.dumps(out, indent=2) + "\n")
+    log(f"[driver] {len(manifest)} kernels launched {a.ncu_driver} time(s) each; {len(errors)} part(s) failed")
+    return out
 
 
 if __name__ == "__main__":
