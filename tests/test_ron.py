@@ -69,12 +69,12 @@ def test_depth_rms_roughness_plane_and_checkerboard():
 
 
 @pytest.mark.parametrize("brdf", ["blinn-phong", "cook-torrance"])
-def test_material_fit_recovers_parameters(brdf):
+def test_material_fit_recovers_parameters(brdf, device):
     img, L, sc, sat = _case(brdf, "perspective", "directional")
     start = Material.default_for(brdf)
     names = estimable_parameters(brdf)
     cfg = RONConfig(estimate=names, solver=gpps.SolverConfig(saturation=sat), material_samples=1500)
-    ron = RON(img.shape[:3], sc.camera, L, start, sc.mask, cfg, device="cpu")
+    ron = RON(img.shape[:3], sc.camera, L, start, sc.mask, cfg, device=device)
     sample = ron._sample(np.zeros(sc.mask.shape, bool))
     mat, info = ron._fit_material(img, None, None, start, sample, grid=True)
     for k in names:
@@ -146,16 +146,16 @@ def test_reconstruct_known_material_is_solve_then_integrate(device):
     np.testing.assert_allclose(rec.depth, ir.depth, rtol=1e-5, atol=1e-6)
 
 
-def test_dgmc_starts_used_on_highlight_pixels():
+def test_dgmc_starts_used_on_highlight_pixels(device):
     """Round 1 starts from least squares, replaced by DGMC normals on highlight pixels only."""
     from gpps.flows.photometric import solve_normals
 
     img, L, sc, sat = _case("cook-torrance", "orthographic", "directional")
     rec = gpps.reconstruct(img, sc.mask, L, camera=sc.camera, material=TRUE["cook-torrance"], saturation=sat,
-                           device="cpu")
+                           device=device)
     hl = rec.highlight
     assert hl.any()
-    ls = solve_normals(img, sc.mask, L, camera=sc.camera, solver="none", device="cpu").normals
+    ls = solve_normals(img, sc.mask, L, camera=sc.camera, solver="none", device=device).normals
     diff = np.linalg.norm(rec.details.start_normals - ls, axis=-1)
     assert (diff[sc.mask & ~hl] < 1e-6).all()
     assert (diff[hl] > 1e-3).mean() > 0.5
@@ -166,9 +166,9 @@ def test_dgmc_starts_used_on_highlight_pixels():
     assert angular_error(rec.normals, sc.normals, sc.mask)[hl].mean() < 1.0
 
 
-def test_reconstruct_prints_nothing(capsys):
+def test_reconstruct_prints_nothing(capsys, device):
     img, L, sc, sat = _case("blinn-phong", "orthographic", "directional", size=32)
-    gpps.reconstruct(img, sc.mask, L, camera=sc.camera, material=TRUE["blinn-phong"], device="cpu")
+    gpps.reconstruct(img, sc.mask, L, camera=sc.camera, material=TRUE["blinn-phong"], device=device)
     out = capsys.readouterr()
     assert out.out == "" and out.err == ""
 
