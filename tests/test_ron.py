@@ -208,9 +208,9 @@ def test_reconstruct_bad_input():
 # --------------------------------------------------------------------------- CLI
 
 
-def test_cli_reconstruct_runs_pipeline(tmp_path):
+def test_cli_reconstruct_runs_pipeline(tmp_path, device):
     cap = tmp_path / "cap"
-    env_py = [sys.executable, "-m", "gpps", "--device", "cpu"]
+    env_py = [sys.executable, "-m", "gpps", "--device", device]
     r = subprocess.run(env_py + ["render", "--scene", "sphere", "--size", "48", "--camera", "perspective", "--brdf",
                                  "blinn-phong", "--out", str(cap)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
