@@ -9,14 +9,16 @@ bounded work) and hands back with :meth:`PatternSearch.tell`:
 * the first batch is a ``g^d`` grid over the whole range (``g`` points per parameter);
 * then each batch is the centre ``x``, the ``3^d - 1`` stencil points ``x + step * u`` (``u`` in
   ``{-1, 0, 1}^d``, clipped to the bounds) and, when the previous batch's quadratic model had a minimum, that
-  minimiser (within two steps), as RON's ``pattern`` search scores them (:meth:`gpps.flows.ron.RON._pattern_search`).
+  minimiser (within two steps), the points RON's ``pattern`` search scores (:meth:`gpps.flows.ron.RON._pattern_search`).
   The energies of one batch come from one frame and are compared only with each other (the centre is
   re-scored in every batch: another frame's data give other energies).  The best point becomes the centre;
-  the step halves when it lies within the stencil or the centre stayed best;
+  the step halves when the centre stayed best (a compass search: a move keeps the step, so the search can
+  travel; RON also halves after a move within the stencil, which would stop a refinement from following a
+  material that drifted by more than a few steps);
 * when every step is below ``tol`` (or ``budget`` batches were spent) the search is *settled*; each later
   :meth:`PatternSearch.refine` re-opens it with the step ``refine_step`` around the estimate, and it settles
-  again once the centre stays best at that step (a material that drifts is followed, a steady one costs one
-  batch per refinement).
+  again once the centre stays best at that step (a material that drifts is followed, the step doubling after
+  each move of a refinement; a steady one costs one batch per refinement).
 
 Pure numpy; the caller owns the evaluations (:mod:`gpps.pipeline.stream_material` scores each batch with
 :class:`gpps.pipeline.material.MaterialScorer`).
@@ -69,6 +71,7 @@ class PatternSearch:
         u = np.stack(np.meshgrid(*([np.array([-1.0, 0.0, 1.0])] * d), indexing="ij"), -1).reshape(-1, d)
         self._stencil = u[np.any(u != 0, axis=1)]
         self._gridding = self.grid > 1
+        self._step_max = (self.hi - self.lo) / max(self.grid - 1, 2) / 2.0  # the stencil step after the grid
         self._model: np.ndarray | None = None  # the last quadratic model's minimiser (scored in the next batch)
         self._asked: np.ndarray | None = None
         self.settled = False
@@ -114,7 +117,7 @@ class PatternSearch:
         if self._gridding:
             self._gridding = False
             self.x = pts[int(np.argmin(f))].copy()
-            self.step = (self.hi - self.lo) / max(self.grid - 1, 1) / 2.0
+            self.step = self._step_max.copy()
             self._model = None
             return not np.array_equal(old, self.x)
         self._stencils += 1
@@ -122,11 +125,9 @@ class PatternSearch:
         stencil = len(self._stencil) + 1
         self._model = self._quadratic(pts[:stencil], f[:stencil])
         if k != 0 and f[k] < f[0]:
-            inside = bool(np.all(np.abs(pts[k] - self.x) <= self.step + 1e-12))
             self.x = pts[k].copy()
-            if inside:
-                self.step = self.step / 2.0
-            self._refining = False
+            if self._refining:  # the optimum moved since the search settled: widen the step to follow it
+                self.step = np.minimum(self.step * 2.0, self._step_max)
         else:
             self.step = self.step / 2.0
             if self._refining:  # the estimate held at the refinement step: settled again

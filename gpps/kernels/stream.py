@@ -206,7 +206,7 @@ def refresh_rows(mask: wp.array2d(dtype=wp.uint8), phase: wp.array(dtype=wp.int3
     rolling cold re-solve (whole rows, so that a GPU warp's threads are all busy or all idle)."""
     i, j = wp.tid()
     r = wp.uint8(0)
-    if mask[i, j] != 0 and i % period == phase[0]:
+    if mask[i, j] != 0 and i % period == phase[0] % period:
         r = wp.uint8(1)
     rows[i, j] = r
 

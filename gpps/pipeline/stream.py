@@ -132,7 +132,7 @@ class StreamConfig:
             :data:`gpps.names.LOBE_PARAMETERS` for the model); empty: all of them.
         refine_every: once the search has settled, one batch of candidates is
             scored every this many frames (k), which follows a drifting material.
-        material_samples: pixels of the material sample (half of them each scored
+        material_samples: pixels of the material sample (RON's 2000; half of them each scored
             frame's brightest pixel per tile, half fixed random mask pixels).
         material_candidates: most candidates per launch (one launch a scoring
             frame): the first frame scores a grid of ``floor(K^(1/d))`` points per
@@ -155,9 +155,16 @@ class StreamConfig:
             residual grows slowly): on a moving object, and after the estimated
             material moved.  Moving 128^2 Cook-Torrance bumps on the CPU, material
             known: 0.16 deg at the cold first frame, 0.4-0.6 deg later without it.
-            Cost: about ``redo_starts * redo_iterations / (3 * refresh_rows)``
-            warm solves a frame.  0: off; None: off with a known material
-            (known mode's cost stays as it is), 32 in full mode.
+            Cost: at most ``redo_starts * redo_iterations / (3 * refresh_rows)``
+            warm solves a frame (the cold solves stop early on convergence).
+            0 (default): off, known mode's cost stays as it is.
+        sweep_rows: full mode: after each change of the estimated material the
+            rolling cold re-solve runs with period ``sweep_rows`` (whatever
+            ``refresh_rows`` is) until ``sweep_rows`` frames have passed without a
+            change, so every pixel gets one multi-start solve with the new
+            material: a warm start keeps the basin the old material put a normal
+            in (64^2 Cook-Torrance bumps solved first with the first frame's grid
+            estimate stayed near 3 deg MAEN without it, offline 1.3 deg).  0: off.
     """
 
     solver: StreamSolver = "lm"
@@ -185,13 +192,14 @@ class StreamConfig:
     material: MaterialMode = "known"
     estimate: tuple[str, ...] = ()
     refine_every: int = 8
-    material_samples: int = 1024
+    material_samples: int = 2000
     material_candidates: int = 25
     material_starts: int = 4
     material_trim: float = 0.02
     material_tol: float = 0.01
     dgmc: bool = True
-    refresh_rows: int | None = None
+    refresh_rows: int = 0
+    sweep_rows: int = 8
 
     def __post_init__(self):
         check_choices(self)
@@ -230,8 +238,8 @@ class StreamConfig:
         check_number("material_trim", self.material_trim, lo=0.0, hi=0.5)
         check_number("material_tol", self.material_tol, lo=0.0, lo_open=True)
         check_bool("dgmc", self.dgmc)
-        if self.refresh_rows is not None:
-            check_number("refresh_rows", self.refresh_rows, lo=0, integer=True)
+        check_number("refresh_rows", self.refresh_rows, lo=0, integer=True)
+        check_number("sweep_rows", self.sweep_rows, lo=0, integer=True)
 
 
 @dataclass
@@ -405,9 +413,10 @@ class Stream(Stage):
             self._dgmc_cfg = SolverConfig(solver=cfg.solver, max_iters=cfg.first_iterations, starts=1,
                                           warm_start=True, neighbour_radius=0)
             self.stats.update({"material_batches": 0, "material_changes": 0, "dgmc_pixels": 0})
-        refresh = cfg.refresh_rows if cfg.refresh_rows is not None else (32 if cfg.material == "estimate" else 0)
-        self._refresh = int(refresh)
-        if self._refresh:  # the rolling cold re-solve: this frame's rows, its phase, the warm solution it competes with
+        self._refresh = int(cfg.refresh_rows)  # the period of the rolling cold re-solve on this frame (0: none)
+        self._sweep_left = 0  # full mode: frames the re-solve still runs with period sweep_rows
+        if cfg.refresh_rows or (self.estimator is not None and cfg.sweep_rows):
+            # the rolling cold re-solve: this frame's rows, its phase, the warm solution it competes with
             self._refresh_mask = wp.zeros((h, w), dtype=wp.uint8, device=d)
             self._phase = wp.zeros(1, dtype=wp.int32, device=d)
             self._saved = (wp.zeros((h, w), dtype=wp.vec3, device=d), wp.zeros((h, w), dtype=wp.vec3, device=d),
@@ -626,10 +635,13 @@ class Stream(Stage):
         else:
             if self.solver.config is not self._warm_cfg:
                 self.solver.set_config(self._warm_cfg)
-            score = est is not None and est.scoring()
+            if est is not None:
+                score = est.scoring()
+                self._refresh = cfg.sweep_rows if self._sweep_left > 0 else cfg.refresh_rows
+                self._sweep_left = max(self._sweep_left - 1, 0)
             use_graph = self.is_cuda and cfg.graph == "auto" and self._warm_frames >= cfg.capture_after
             if use_graph:
-                gkey = (key, slot) if est is None else (key, slot, score)
+                gkey = (key, slot) if est is None else (key, slot, score, self._refresh)
                 g = self._graphs.get(gkey)
                 if g is None:
                     wp.capture_begin(device=self.device)
@@ -691,6 +703,7 @@ class Stream(Stage):
         self._graphs.clear()
         self._warm_frames = 0
         self.stats["material_changes"] += 1
+        self._sweep_left = self.config.sweep_rows
 
     def _first_full(self, key, slot) -> None:
         """The first frame in full mode (it is a cold one already: its extra waits do not touch later frames).
@@ -734,6 +747,8 @@ class Stream(Stage):
         nrm = cold["normals"].astype(np.float64)
         ok = m & (np.abs(np.linalg.norm(nrm, axis=-1) - 1.0) < 1e-3)
         nrm[~ok] = (0.0, 0.0, 1.0)
+        if not (m & ok).any():
+            return 0
         pts = None
         if self.point:
             pts = self.camera.backproject(np.full(self.shape, float(self.config.reference_depth), np.float32))
