@@ -16,6 +16,20 @@ BRDF_NAMES: tuple[str, ...] = get_args(BRDF)
 BRDF_TAG = {name: i for i, name in enumerate(BRDF_NAMES)}  # device tags of gpps.kernels.brdf
 LAMBERTIAN, PHONG, BLINN_PHONG, COOK_TORRANCE, ASHIKHMIN_SHIRLEY = range(5)
 
+# the scene parameters the material searches estimate per model ("eta" ties Ashikhmin-Shirley's eta_u = eta_v),
+# and each one's log-space search range (lo, hi).  gpps.flows.ron keeps its own copies (LOBE_PARAMETERS,
+# _RANGES) until it imports these; tests/test_stream_full.py checks that the two agree
+LOBE_PARAMETERS: dict[str, tuple[str, ...]] = {
+    "lambertian": (),
+    "phong": ("ks", "shininess"),
+    "blinn-phong": ("ks", "shininess"),
+    "cook-torrance": ("ks", "roughness"),
+    "ashikhmin-shirley": ("ks", "eta"),
+}
+LOBE_RANGES: dict[str, tuple[float, float]] = {
+    "ks": (0.02, 3.0), "shininess": (2.0, 500.0), "roughness": (0.03, 0.8), "eta": (2.0, 500.0),
+}
+
 # ---------------------------------------------------------------- lights
 LIGHT_DIRECTIONAL, LIGHT_POINT = 0, 1  # device tags of gpps.kernels.brdf.LightParams.kind
 

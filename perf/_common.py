@@ -69,8 +69,10 @@ def uint16_frame(images):
     return np.ascontiguousarray(np.round(np.clip(images, 0, 1) * 65535).astype(np.uint16))
 
 
-def bumps_frame(size: int, device: str, shift: int = 0):
+def bumps_frame(size: int, device: str, shift: int = 0, material=None):
     """The benchmarks' scene: Blinn-Phong bumps, perspective, 3 directional lights, moved ``shift`` pixels right.
+
+    ``material``: another :class:`gpps.Material` to render with (default: Blinn-Phong's defaults).
 
     Returns:
         ``(scene, material, lights, frame)``: the moved scene, the material and lights
@@ -82,7 +84,7 @@ def bumps_frame(size: int, device: str, shift: int = 0):
     from gpps.host.scenes import make_scene
     from gpps.material import Material
 
-    mat = Material.default_for("blinn-phong")
+    mat = Material.default_for("blinn-phong") if material is None else material
     L = default_lights("directional", 3)
     sc = make_scene("bumps", size, "perspective")
     if shift:
@@ -91,8 +93,10 @@ def bumps_frame(size: int, device: str, shift: int = 0):
     return sc, mat, L, uint16_frame(render(sc, mat, L, bits=16, device=device))
 
 
-def moving_bumps(size: int, device: str, positions: int = 8):
+def moving_bumps(size: int, device: str, positions: int = 8, material=None):
     """The stream benchmarks' scene: Blinn-Phong bumps, perspective, 3 directional lights, moved sideways.
+
+    ``material``: another :class:`gpps.Material` to render with (the full mode's scene: Cook-Torrance).
 
     Returns:
         ``(scene, material, lights, frames, truth, mask)``: ``positions`` uint16 RGB
@@ -105,7 +109,7 @@ def moving_bumps(size: int, device: str, positions: int = 8):
     frames, truth = [], []
     sc = mat = L = mask = None
     for k in range(positions):
-        moved, mat, L, frame = bumps_frame(size, device, shift=k)
+        moved, mat, L, frame = bumps_frame(size, device, shift=k, material=material)
         if k == 0:
             sc, mask = moved, moved.mask.copy()
         frames.append(frame)

@@ -63,6 +63,7 @@ from gpps.kernels.solve_common import (
     FLAG_WOODHAM_FALLBACK,
     SolverParams,
     cond_frobenius,
+    grey,
     grey_max,
     light_gram,
     pixel_at,
@@ -71,7 +72,19 @@ from gpps.kernels.solve_common import (
 from gpps.kernels.solve_kernels import least_squares_start, observation_weights
 from gpps.kernels.solve_methods import solver_funcs
 
-__all__ = ["prepare_samples_kernel", "get_batched_kernel", "batched_module_name"]
+__all__ = [
+    "prepare_samples_kernel",
+    "gather_samples_kernel",
+    "tile_reset_kernel",
+    "tile_score_kernel",
+    "tile_pick_kernel",
+    "tile_samples_kernel",
+    "get_batched_kernel",
+    "batched_module_name",
+]
+
+# "no pixel yet" in a tile's arg-min slot (larger than any flat pixel index)
+TILE_NONE = wp.constant(2147483647)
 
 
 @wp.func
@@ -139,6 +152,133 @@ def prepare_samples_kernel(
     gmax[p] = g
     base_flags[p] = flag
     cond[p] = cnd
+
+
+@wp.kernel(enable_backward=False)
+def gather_samples_kernel(
+    images: wp.array3d(dtype=wp.vec3),
+    valid: wp.array3d(dtype=wp.uint8),
+    depth: wp.array2d(dtype=wp.float32),
+    rows: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    use_valid: int,
+    use_depth: int,
+    strip: wp.array3d(dtype=wp.vec3),
+    strip_valid: wp.array3d(dtype=wp.uint8),
+    sample_depth: wp.array(dtype=wp.float32),
+):
+    """The device form of :meth:`MaterialScorer.upload`'s gather: sample ``p`` from frame buffers (dim P).
+
+    Args:
+        images: (N, H, W) RGB observations of the frame (e.g. a stream's converted frame).
+        valid: (N, H, W) 1 where the observation is used.
+        depth: (H, W) depth > 0 (scene units).
+        rows, cols: (P,) the sample pixels' row and column.
+        use_valid, use_depth: 0: ``valid`` / ``depth`` are not read and ``strip_valid`` /
+            ``sample_depth`` not written (the caller filled them with 1).
+        strip: (N, 1, P) out: their observations.
+        strip_valid: (N, 1, P) out: their ``valid`` flags.
+        sample_depth: (P,) out: their depth.
+    """
+    p = wp.tid()
+    i = rows[p]
+    j = cols[p]
+    for k in range(images.shape[0]):
+        strip[k, 0, p] = images[k, i, j]
+        if use_valid != 0:
+            strip_valid[k, 0, p] = valid[k, i, j]
+    if use_depth != 0:
+        sample_depth[p] = depth[i, j]
+
+
+@wp.kernel(enable_backward=False)
+def tile_reset_kernel(best: wp.array(dtype=wp.float32), pick: wp.array(dtype=wp.int32)):
+    """Empty every tile's running maximum and arg-max before :data:`tile_score_kernel` (dim T)."""
+    t = wp.tid()
+    best[t] = -1.0
+    pick[t] = TILE_NONE
+
+
+@wp.func
+def _tile_of(i: int, j: int, box: wp.vec4i, tiles_j: int, tile_h: int, tile_w: int) -> int:
+    """Tile of pixel (i, j) in a grid of ``tile_h x tile_w`` tiles over ``box = (i0, j0, i1, j1)``; -1 outside."""
+    if i < box[0] or j < box[1] or i >= box[2] or j >= box[3]:
+        return -1
+    return ((i - box[0]) // tile_h) * tiles_j + (j - box[1]) // tile_w
+
+
+@wp.kernel(enable_backward=False)
+def tile_score_kernel(
+    images: wp.array3d(dtype=wp.vec3),
+    mask: wp.array2d(dtype=wp.uint8),
+    box: wp.vec4i,
+    tiles_j: int,
+    tile_h: int,
+    tile_w: int,
+    score: wp.array2d(dtype=wp.float32),
+    best: wp.array(dtype=wp.float32),
+):
+    """Highlight score of every mask pixel, and each tile's maximum (dim (H, W)).
+
+    The score is the pixel's brightest grey value over its N observations: the
+    specular lobe peaks there (RON samples highlight pixels first, 4.1.10).
+
+    Args:
+        images: (N, H, W) RGB observations.
+        mask: (H, W) 1 inside the mask.
+        box, tiles_j, tile_h, tile_w: the tile grid (:func:`_tile_of`).
+        score: (H, W) out: the score (-1 outside the mask and the grid).
+        best: (T,) in/out: each tile's maximum score (reset by :data:`tile_reset_kernel`).
+    """
+    i, j = wp.tid()
+    s = float(-1.0)
+    t = _tile_of(i, j, box, tiles_j, tile_h, tile_w)
+    if mask[i, j] != 0 and t >= 0:
+        for k in range(images.shape[0]):
+            s = wp.max(s, grey(images[k, i, j]))
+        wp.atomic_max(best, t, s)
+    score[i, j] = s
+
+
+@wp.kernel(enable_backward=False)
+def tile_pick_kernel(
+    score: wp.array2d(dtype=wp.float32),
+    box: wp.vec4i,
+    tiles_j: int,
+    tile_h: int,
+    tile_w: int,
+    best: wp.array(dtype=wp.float32),
+    pick: wp.array(dtype=wp.int32),
+):
+    """Each tile's arg-max: the smallest flat index (row-major) among its pixels with the tile's maximum
+    score (dim (H, W); deterministic: ties go to the first pixel in raster order)."""
+    i, j = wp.tid()
+    s = score[i, j]
+    if s >= 0.0:
+        t = _tile_of(i, j, box, tiles_j, tile_h, tile_w)
+        if s == best[t]:
+            wp.atomic_min(pick, t, i * score.shape[1] + j)
+
+
+@wp.kernel(enable_backward=False)
+def tile_samples_kernel(
+    pick: wp.array(dtype=wp.int32),
+    fallback_rows: wp.array(dtype=wp.int32),
+    fallback_cols: wp.array(dtype=wp.int32),
+    width: int,
+    rows: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+):
+    """Sample slot ``t`` = tile ``t``'s pick, or the fixed fallback pixel of the slot when the tile has no
+    mask pixel (dim T)."""
+    t = wp.tid()
+    q = pick[t]
+    if q == TILE_NONE:
+        rows[t] = fallback_rows[t]
+        cols[t] = fallback_cols[t]
+    else:
+        rows[t] = q // width
+        cols[t] = q - (q // width) * width
 
 
 def batched_kernel_for(robust, solve_pixel, module, sfx: str):

@@ -197,3 +197,40 @@ def mark_jumps(residual: wp.array2d(dtype=wp.float32), previous: wp.array2d(dtyp
             r = wp.uint8(1)
             wp.atomic_add(stats, (i * mask.shape[1] + j) % STAT_SLOTS, STAT_REDONE, 1.0)
     redo[i, j] = r
+
+
+@wp.kernel(enable_backward=False)
+def refresh_rows(mask: wp.array2d(dtype=wp.uint8), phase: wp.array(dtype=wp.int32), period: int,
+                 rows: wp.array2d(dtype=wp.uint8)):
+    """rows[i, j] = 1 inside the mask on the rows ``i = phase[0] (mod period)``: this frame's share of the
+    rolling cold re-solve (whole rows, so that a GPU warp's threads are all busy or all idle)."""
+    i, j = wp.tid()
+    r = wp.uint8(0)
+    if mask[i, j] != 0 and i % period == phase[0] % period:
+        r = wp.uint8(1)
+    rows[i, j] = r
+
+
+@wp.kernel(enable_backward=False)
+def advance_phase(phase: wp.array(dtype=wp.int32), period: int):
+    """The next frame's rows of the rolling re-solve (dim 1; on the device, so a captured graph advances it)."""
+    phase[0] = (phase[0] + 1) % period
+
+
+@wp.kernel(enable_backward=False)
+def keep_better(rows: wp.array2d(dtype=wp.uint8), normals0: wp.array2d(dtype=wp.vec3),
+                albedo0: wp.array2d(dtype=wp.vec3), residual0: wp.array2d(dtype=wp.float32),
+                flags0: wp.array2d(dtype=wp.int32), few: int, normals: wp.array2d(dtype=wp.vec3),
+                albedo: wp.array2d(dtype=wp.vec3), residual: wp.array2d(dtype=wp.float32),
+                flags: wp.array2d(dtype=wp.int32)):
+    """Where ``rows`` is set, keep the cold re-solve only when it ranks better than the warm solution saved in
+    ``*0`` (a lower residual on a pixel without the ``few`` flag bit: :func:`gpps.host.merge.ranks_better`);
+    otherwise restore the warm one."""
+    i, j = wp.tid()
+    if rows[i, j] != 0:
+        better = residual[i, j] < residual0[i, j] and (flags[i, j] & few) == 0
+        if not better:
+            normals[i, j] = normals0[i, j]
+            albedo[i, j] = albedo0[i, j]
+            residual[i, j] = residual0[i, j]
+            flags[i, j] = flags0[i, j]

@@ -183,6 +183,10 @@ class MaterialScorer(Stage):
         self.candidates = 0  # K of the last step
         self.rows_host = np.zeros(0, np.int64)
         self.cols_host = np.zeros(0, np.int64)
+        # upload_device without depth / valid: never-read stand-ins of the gather's unused arguments
+        self._no_depth = wp.ones((1, 1), dtype=wp.float32, device=d)
+        self._no_valid = wp.ones((n, 1, 1), dtype=wp.uint8, device=d)
+        self._device_noise = None
         self._closed = False
 
     # ------------------------------------------------------------------ upload
@@ -218,7 +222,6 @@ class MaterialScorer(Stage):
                 sample, degenerate point lights at the sample's median point.
         """
         self._check_open()
-        wp = warp()
         n, h, w = self.shape
         img = self._images(images)
         m = as_mask("sample_mask", sample_mask, (h, w))
@@ -271,11 +274,93 @@ class MaterialScorer(Stage):
         self.candidates = 0
         self.warm_ready = False
         self.rows_host, self.cols_host = rows, cols
-        wp.launch(sb.prepare_samples_kernel, dim=p,
-                  inputs=[self.strip, self.strip_valid, self.rows, self.cols, self.sample_depth, self.noise,
-                          self.cam, self.lp, self.prm],
-                  outputs=[self.base_weights, self.points, self.views, self.ninit, self.gmax, self.flags, self.cond],
+        self._prepare(p)
+
+    def upload_device(self, images, rows, cols, count: int, *, valid=None, depth=None, noise=None) -> None:
+        """Gather the sample from frame buffers already on the device: no host copy, no host wait.
+
+        The device form of :meth:`upload` for a caller whose frames live on the device (the stream's
+        full mode, :mod:`gpps.pipeline.stream_material`): two launches (the gather, then the
+        material-free terms of :data:`gpps.kernels.solve_batched.prepare_samples_kernel`) and, where the
+        arguments are not the scorer's own buffers, device-to-device copies, so it can be captured in a
+        CUDA graph and re-run on every frame of a moving scene.  Unlike :meth:`upload` it checks no
+        values (pixels in range, depth > 0 and the point lights' configuration are the caller's) and
+        estimates no noise; :attr:`rows_host` / :attr:`cols_host` are None (the pixels live on the device).
+
+        Args:
+            images: (N, H, W) Warp vec3 array on the scorer's device: RGB observations (image units,
+                divided by the light intensities when the lights have unit intensity).
+            rows, cols: Warp int32 arrays on the device, at least ``count`` long: the sample pixels' row and
+                column (``self.rows`` / ``self.cols`` themselves: nothing is copied).
+            count: P <= ``max_samples``, the sample size (host int: fixes the launch size).
+            valid: (N, H, W) Warp uint8 array, 1 where an observation is used; None: all.
+            depth: (H, W) Warp float32 depth (scene units) at every pixel; None: 1 (directional lights).
+            noise: (N,) Warp float32 noise level of each image's grey values (image units); None:
+                ``config.noise_level``, else 0 (no noise test, as a stream's solver).
+
+        Raises:
+            ValueError / TypeError: an array of the wrong shape, dtype or device, a bad ``count``, no
+                depth for point lights.
+        """
+        self._check_open()
+        wp = warp()
+        n, h, w = self.shape
+        p = check_number("count", count, lo=1, hi=self.max_samples, integer=True)
+
+        def need(name, a, shape, dtype, *, at_least=False):
+            if not isinstance(a, wp.array):
+                raise TypeError(f"{name}: expected a Warp array on {self.device}, got {type(a).__name__}")
+            ok = (len(a.shape) == 1 and a.shape[0] >= shape[0]) if at_least else tuple(a.shape) == shape
+            if not ok or a.dtype != dtype or str(a.device) != str(wp.get_device(self.device)):
+                want = f"({shape[0]},) or longer" if at_least else str(shape)
+                raise ValueError(f"{name}: expected a {want} {dtype.__name__} array on {self.device}, got "
+                                 f"{tuple(a.shape)} {getattr(a.dtype, '__name__', a.dtype)} on {a.device}")
+
+        need("images", images, (n, h, w), wp.vec3)
+        need("rows", rows, (p,), wp.int32, at_least=True)
+        need("cols", cols, (p,), wp.int32, at_least=True)
+        if valid is not None:
+            need("valid", valid, (n, h, w), wp.uint8)
+        if depth is not None:
+            need("depth", depth, (h, w), wp.float32)
+        elif isinstance(self.lights, PointLights):
+            raise ValueError("depth: expected an (H, W) depth estimate for point lights (2.30-2.31), got None")
+        if noise is not None:
+            need("noise", noise, (n,), wp.float32)
+        if rows is not self.rows:
+            wp.copy(self.rows, rows, count=p)
+        if cols is not self.cols:
+            wp.copy(self.cols, cols, count=p)
+        if noise is not None:
+            wp.copy(self.noise, noise)
+        elif self._device_noise is None or self._device_noise != self.config.noise_level:
+            lev = 0.0 if self.config.noise_level is None else float(self.config.noise_level)
+            self.noise_level = np.full(n, lev, np.float32)
+            self.noise.assign(self.noise_level)
+            self._device_noise = self.config.noise_level
+        if valid is None:
+            self.strip_valid.fill_(1)
+        if depth is None:
+            self.sample_depth.fill_(1.0)
+        self.samples = p
+        self.warm_ready = False
+        self.rows_host = self.cols_host = None  # (the candidates of set_candidates stay: launch() scores them)
+        wp.launch(sb.gather_samples_kernel, dim=p,
+                  inputs=[images, self._no_valid if valid is None else valid,
+                          self._no_depth if depth is None else depth, self.rows, self.cols,
+                          int(valid is not None), int(depth is not None)],
+                  outputs=[self.strip, self.strip_valid, self.sample_depth],
                   device=self.device)
+        self._prepare(p)
+
+    def _prepare(self, p: int) -> None:
+        """The material-free terms of the ``p`` gathered sample pixels (one launch)."""
+        warp().launch(sb.prepare_samples_kernel, dim=p,
+                      inputs=[self.strip, self.strip_valid, self.rows, self.cols, self.sample_depth, self.noise,
+                              self.cam, self.lp, self.prm],
+                      outputs=[self.base_weights, self.points, self.views, self.ninit, self.gmax, self.flags,
+                               self.cond],
+                      device=self.device)
 
     def set_start(self, normals=None, *, candidate: int | None = None) -> None:
         """The start normals of later warm steps (``step(..., warm=True)``): one start per pixel.
@@ -312,6 +397,34 @@ class MaterialScorer(Stage):
         self.warm_ready = True
 
     # ------------------------------------------------------------------ step
+
+    def set_candidates(self, candidates: Sequence[Material]) -> None:
+        """Copy K <= ``max_candidates`` candidate materials to the device, for :meth:`launch` (a small
+        host-to-device copy: call it where the host may wait, e.g. after a frame's synchronisation)."""
+        self._check_open()
+        self.candidates = self._set_candidates(candidates)
+
+    def launch(self) -> None:
+        """Score the candidates of the last :meth:`set_candidates` on the current sample: one launch of
+        K x P threads, no copy and no host wait (graph-capturable; the candidates are read from the
+        device buffer ``mats``, so a captured launch scores whatever was set last)."""
+        self._check_open()
+        if self.samples == 0:
+            raise ValueError("launch: expected an upload of the sample pixels first")
+        if self.candidates == 0:
+            raise ValueError("launch: expected set_candidates first")
+        self._launch_chunk(self.candidates, 0, self.samples)
+
+    def _launch_chunk(self, k: int, a: int, b: int, *, warm: bool = False) -> None:
+        """One launch: candidates ``0..k`` x sample pixels ``a..b``, cold (Woodham's start, the config's
+        multi-start) or ``warm`` (one start from :meth:`set_start`'s normals)."""
+        ninit, prm = (self.nwarm, self.prm_warm) if warm else (self.ninit, self.prm)
+        warp().launch(self._kernel, dim=(k, int(b - a)),
+                      inputs=[self._strip_k, self.base_weights, self.points, self.views, ninit, self.gmax,
+                              self.flags, self.lp, self.mats, prm, int(a)],
+                      outputs=[self._weights_k, self.normals, self.albedo, self.residual, self.iterations,
+                               self.flags_k],
+                      device=self.device)
 
     def _set_candidates(self, candidates) -> int:
         if isinstance(candidates, Material):
@@ -364,7 +477,6 @@ class MaterialScorer(Stage):
             raise ValueError("warm: expected set_start(...) after the last upload")
         k = self._set_candidates(candidates)
         self.candidates = k
-        ninit, prm = (self.nwarm, self.prm_warm) if warm else (self.ninit, self.prm)
         p = self.samples
         cuda = self.device.startswith("cuda")
         if chunks is None:
@@ -376,14 +488,7 @@ class MaterialScorer(Stage):
         bounds = np.linspace(0, p, chunks + 1).round().astype(int)
 
         def launcher(a0, b0):
-            def go():
-                wp.launch(self._kernel, dim=(k, int(b0 - a0)),
-                          inputs=[self._strip_k, self.base_weights, self.points, self.views, ninit, self.gmax,
-                                  self.flags, self.lp, self.mats, prm, int(a0)],
-                          outputs=[self._weights_k, self.normals, self.albedo, self.residual, self.iterations,
-                                   self.flags_k],
-                          device=self.device)
-            return go
+            return lambda: self._launch_chunk(k, int(a0), int(b0), warm=warm)
 
         for a, b in zip(bounds[:-1], bounds[1:]):
             parts = np.linspace(a, b, threads + 1).round().astype(int)
@@ -427,7 +532,7 @@ class MaterialScorer(Stage):
         """Release the device buffers; the scorer refuses work afterwards."""
         for name in ("strip", "strip_valid", "rows", "cols", "sample_depth", "noise", "base_weights", "points",
                      "views", "ninit", "nwarm", "gmax", "flags", "cond", "mats", "normals", "albedo", "residual",
-                     "iterations", "flags_k", "_strip_k", "_weights_k", "lp"):
+                     "iterations", "flags_k", "_strip_k", "_weights_k", "lp", "_no_depth", "_no_valid"):
             self.__dict__.pop(name, None)
         self._closed = True
 
