@@ -22,6 +22,7 @@ from gpps._check import (
     check_number,
 )
 from gpps._runtime import resolve_device, warp
+from gpps.kernels import merge as mk
 from gpps.kernels import solve as sk
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
@@ -384,12 +385,14 @@ class PixelSolver(Stage):
         self.cond = wp.zeros((h, w), dtype=wp.float32, device=d)
         self.intensity_scale = 1.0
         self._row_bounds = None  # CPU: the solve launch's row ranges, one thread each (None: one launch)
+        self._mask_rows = None  # mask pixels per row of the last upload (balances the CPU row ranges)
 
     def _split_rows(self, m: np.ndarray) -> None:
         """On the CPU, split the solve launch by rows over the threads, balanced by the mask's pixels
         (:mod:`gpps.pipeline.cpu_threads`); one launch on CUDA or with one thread."""
         n = cpu_threads() if not self.device.startswith("cuda") else 1
-        bounds = balanced_bounds(m.sum(axis=1), n) if n > 1 else None
+        self._mask_rows = m.sum(axis=1)
+        bounds = balanced_bounds(self._mask_rows, n) if n > 1 else None
         if bounds is not None and len(bounds) < 2:
             bounds = None
         if bounds != self._row_bounds:
@@ -507,9 +510,9 @@ class PixelSolver(Stage):
         else:
             self.noise_level = np.full(n, c.noise_level, np.float32)
         self.noise.assign(self.noise_level)
-        if self.config.smoothness > 0.0:
-            g = img[:, m].mean(axis=-1)
-            self.intensity_scale = float(max(np.percentile(g, 99.0), 1e-12))
+        # (always: a later config may add the smoothness term without another upload)
+        g = img[:, m].mean(axis=-1)
+        self.intensity_scale = float(max(np.percentile(g, 99.0), 1e-12))
         self.images.assign(img)
         self.mask.assign(m.astype(np.uint8))
         self._split_rows(m)
@@ -547,31 +550,45 @@ class PixelSolver(Stage):
             cmds[key] = cmd
         return cmd
 
-    def _launch_solve(self) -> None:
+    def _launch_solve(self, progress=None) -> None:
         """The pixelwise solve over the whole image: one launch, or on the CPU one per row range of
-        :meth:`_split_rows`, run on several threads (each with ``row0`` set in its parameter copy)."""
+        :meth:`_split_rows`, run on several threads (each with ``row0`` set in its parameter copy).
+        With ``progress`` on the CPU: 8 row ranges a thread, run a thread-full at a time, and
+        ``progress(done, total, message)`` in mask pixels after each such wave."""
         ins = [self.images, self.mask, self.valid, self.depth, self.noise, self.cam, self.lp, self.mp]
         outs = [self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags, self.cond]
-        if self._row_bounds is None:
+        bounds = self._row_bounds
+        threads = 1 if bounds is None else len(bounds)
+        if progress is not None and not self.device.startswith("cuda") and self._mask_rows is not None:
+            threads = max(1, cpu_threads())
+            bounds = balanced_bounds(self._mask_rows, 8 * threads)
+        if bounds is None:
             self._recorded(("solve",), self._solve_kernel, ins + [self.prm], outs).launch()
             return
         cmds = []
-        for a, b in self._row_bounds:
+        for a, b in bounds:
             key = ("solve", a, b)
             if key not in self.__dict__.get("_cmds", {}):
                 prm = self._params(self.config)
                 prm.row0 = int(a)
                 self._recorded(key, self._solve_kernel, ins + [prm], outs, dim=(b - a, self.shape[2]))
             cmds.append(self._cmds[key])
-        run_all([c.launch for c in cmds])
+        total = float(self._mask_rows.sum()) if self._mask_rows is not None else 0.0
+        for w0 in range(0, len(cmds), threads):
+            run_all([c.launch for c in cmds[w0:w0 + threads]])
+            if progress is not None:
+                done = float(self._mask_rows[:bounds[min(w0 + threads, len(bounds)) - 1][1]].sum())
+                progress(done, total, f"normals: {int(done)}/{int(total)} pixels")
 
-    def step(self) -> None:
+    def step(self, progress=None) -> None:
         """Solve all pixels from the current buffers, no host sync (graph-capturable).
 
         Two kernel launches (pixelwise solve, under-determined pixels), then
         ``2 * smoothing_sweeps`` red-black half-sweeps when ``smoothness > 0``.
+        ``progress(done, total, message)``: on the CPU, told as the solve's row
+        ranges finish (:meth:`_launch_solve`; the host waits for them); ignored on CUDA.
         """
-        self._launch_solve()
+        self._launch_solve(progress)
         if self.config.neighbour_radius > 0 and self._underdetermined_kernel is not None:
             self._recorded(("underdetermined",), self._underdetermined_kernel,
                            [self.images, self.mask, self.depth, self.cam, self.lp, self.mp, self.prm,
@@ -590,6 +607,58 @@ class PixelSolver(Stage):
                         outputs=[self.weights, self.normals, self.albedo, self.residual, self.iterations],
                         device=self.device,
                     )
+
+    # ------------------------------------------------------------------ re-solves of the uploaded frame
+
+    def set_mask(self, mask) -> None:
+        """Solve other pixels of the uploaded frame next: (H, W) bool (may be empty), copied to the device."""
+        n, h, w = self.shape
+        m = as_mask("mask", mask, (h, w), allow_empty=True)
+        self.mask.assign(m.astype(np.uint8))
+        self._split_rows(m)
+
+    def set_start(self, normals) -> None:
+        """Start normals of the next warm-started step: (H, W, 3), copied into the ``normals`` buffer."""
+        n, h, w = self.shape
+        self.normals.assign(as_array("normals", normals, shape=(h, w, 3)).astype(np.float32))
+
+    def set_depth(self, depth, mask=None) -> None:
+        """Another depth estimate for the uploaded frame (point lights move with it each RON round): (H, W),
+        > 0 inside ``mask`` (default: the pixels of the last :meth:`set_mask` / :meth:`upload`)."""
+        n, h, w = self.shape
+        dep = as_array("depth", depth, shape=(h, w))
+        m = self.mask.numpy().astype(bool) if mask is None else as_mask("mask", mask, (h, w), allow_empty=True)
+        if np.any(dep[m] <= 0):
+            raise ValueError("depth: expected values > 0 inside the mask")
+        self.depth.assign(np.where(m, dep, 1.0).astype(np.float32))
+
+    def save(self) -> None:
+        """Keep a device copy of the current outputs (``normals`` .. ``cond``) for :meth:`merge_saved`."""
+        wp = warp()
+        names = ("normals", "albedo", "residual", "iterations", "flags", "cond")
+        if "_saved" not in self.__dict__:
+            self._saved = {k: wp.empty_like(getattr(self, k)) for k in names}
+        for k in names:
+            wp.copy(self._saved[k], getattr(self, k))
+
+    def merge_saved(self) -> None:
+        """Merge the last step (a solve of the current mask) into the :meth:`save`'d outputs, on the device:
+        the lower residual where it can rank (:func:`gpps.host.merge.ranks_better`, kernel
+        :data:`gpps.kernels.merge.merge_saved_kernel`); the saved outputs elsewhere."""
+        if "_saved" not in self.__dict__:
+            raise ValueError("merge_saved: expected save() first")
+        sv = self._saved
+        warp().launch(mk.merge_saved_kernel, dim=self.shape[1:],
+                      inputs=[self.mask, int(FLAG_FEW_OBSERVATIONS), sv["normals"], sv["albedo"], sv["residual"],
+                              sv["iterations"], sv["flags"], sv["cond"]],
+                      outputs=[self.normals, self.albedo, self.residual, self.iterations, self.flags, self.cond],
+                      device=self.device)
+
+    def run(self, *args, progress=None, **kwargs) -> dict:
+        """``upload(*args, **kwargs)``, ``step(progress)`` and ``fetch()`` (:meth:`Stage.run` with progress)."""
+        self.upload(*args, **kwargs)
+        self.step(progress)
+        return self.fetch()
 
     def resolve(self, mask, init_normals, *, names=("normals", "albedo", "residual", "iterations", "flags")) -> dict:
         """Solve the uploaded frame again on another mask from other start normals.

@@ -1,0 +1,66 @@
+"""PixelSolver re-solves of the uploaded frame and the device merge (gpps/kernels/merge.py) against the host rule."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from cases import make_case
+
+from gpps.host.merge import ranks_better
+from gpps.pipeline.solver import PixelSolver, SolverConfig
+
+NAMES = ("normals", "albedo", "residual", "iterations", "flags", "cond")
+
+
+def test_resolve_and_merge_equal_host_merge(device):
+    """A cold solve, a warm re-solve of a subset from other normals and the device merge equal two full
+    uploads merged on the host with gpps.host.merge.ranks_better (as RON merged them before)."""
+    img, lights, sc, mat = make_case("sphere", 40, "perspective", "directional", "cook-torrance", device=device)
+    m = sc.mask
+    cold_cfg = SolverConfig(starts=3)
+    warm_cfg = replace(cold_cfg, warm_start=True, starts=1, neighbour_radius=0)
+    rng = np.random.default_rng(1)
+    sub = m & (rng.random(m.shape) < 0.5)
+    init = sc.normals.astype(np.float32)  # the truth: the warm solve wins on most pixels
+    # host reference: two uploads, merge in numpy
+    ref_s = PixelSolver(img.shape[:3], sc.camera, lights, mat, cold_cfg, device=device)
+    cold = ref_s.run(img, m)
+    ref_s.set_config(warm_cfg)
+    warm = ref_s.run(img, sub, init_normals=init)
+    better = sub & ranks_better(warm["residual"], warm["flags"], cold["residual"])
+    ref = {k: np.where(better.reshape(better.shape + (1,) * (cold[k].ndim - 2)), warm[k], cold[k])
+           for k in ("normals", "albedo", "residual", "flags", "cond")}
+    ref["iterations"] = cold["iterations"] + np.where(sub, warm["iterations"], 0)
+    # device: one upload, re-solve, merge
+    s = PixelSolver(img.shape[:3], sc.camera, lights, mat, cold_cfg, device=device)
+    s.upload(img, m)
+    s.step()
+    s.save()
+    s.set_config(warm_cfg)
+    s.set_mask(sub)
+    s.set_start(init)
+    s.step()
+    s.merge_saved()
+    out = s.fetch(NAMES)
+    assert better.sum() > 0.2 * sub.sum()
+    for k in NAMES:
+        np.testing.assert_array_equal(out[k], ref[k], err_msg=k)
+
+
+def test_set_depth_and_errors(device):
+    img, lights, sc, mat = make_case("sphere", 24, "perspective", "point", "blinn-phong", device=device)
+    s = PixelSolver(img.shape[:3], sc.camera, lights, mat, SolverConfig(starts=2), device=device)
+    a = s.run(img, sc.mask, depth=sc.depth)
+    s.upload(img, sc.mask, depth=np.full_like(sc.depth, float(sc.depth[sc.mask].mean())))
+    s.set_depth(sc.depth)
+    s.step()
+    b = s.fetch(("normals", "residual"))
+    np.testing.assert_array_equal(a["normals"], b["normals"])
+    with pytest.raises(ValueError, match="depth"):
+        s.set_depth(np.zeros_like(sc.depth))
+    with pytest.raises(ValueError, match="save"):
+        PixelSolver(img.shape[:3], sc.camera, lights, mat, device=device).merge_saved()
+    with pytest.raises(ValueError, match="normals"):
+        s.set_start(np.zeros((3, 3, 3)))
