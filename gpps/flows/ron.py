@@ -65,7 +65,6 @@ from gpps._check import (
 from gpps._runtime import resolve_device
 from gpps._taichi import taichi_device
 from gpps.host.dgmc import DGMCConfig, propagate_front
-from gpps.host.merge import ranks_better
 from gpps.lights import PointLights
 from gpps.material import Material
 from gpps.pipeline.dgmc import dgmc_start_device
@@ -140,7 +139,13 @@ class RONConfig:
             :data:`LOBE_PARAMETERS` for the model); empty: none.
         material_rule: ``"photometric"`` (default) or ``"depth-rms"``, the
             seed's (4.19) (Cook-Torrance roughness only; see the module docstring).
-        material_samples: pixels sampled for the photometric material fit.
+        material_samples: the most pixels sampled for the photometric material fit.
+        material_observations: the fit's budget of observations: the sample has
+            ``clip(material_observations / N, min(500, material_samples), material_samples)`` pixels
+            for N images.  The estimate's precision grows with the observations it rests on (each
+            pixel adds N residual terms that sample its specular lobe at N half-angles), so with many
+            lights fewer pixels carry the same information: 2000 pixels up to 12 images, 500 from 48
+            (the floor keeps the sample spread over the object), at a quarter of the cost.
         material_grid: grid points per estimated parameter in the first fit.
         material_evals: the most candidate evaluations after the grid (and in each later round).
             Nelder-Mead stops earlier when its simplex has shrunk below 0.05 log units in the
@@ -191,6 +196,7 @@ class RONConfig:
     estimate: tuple[str, ...] = ()
     material_rule: MaterialRule = "photometric"
     material_samples: int = 2000
+    material_observations: int = 24000
     material_grid: int = 5
     material_evals: int = 40
     material_search: MaterialSearch = "nelder-mead"
@@ -219,6 +225,7 @@ class RONConfig:
         if bad:
             raise ValueError(f"estimate: expected names from {sorted(_RANGES)}, got {bad}")
         check_number("material_samples", self.material_samples, lo=16, integer=True)
+        check_number("material_observations", self.material_observations, lo=1, integer=True)
         check_number("material_grid", self.material_grid, lo=1, hi=25, integer=True)
         check_number("material_evals", self.material_evals, lo=0, integer=True)
         check_number("material_trim", self.material_trim, lo=0.0, hi=0.5)
@@ -292,6 +299,17 @@ class RONResult:
     integration_residual: float | None = None
     timings: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
+
+
+# the per-pixel outputs RON reads back from a solve
+_OUTPUTS = ("normals", "albedo", "residual", "iterations", "flags", "cond")
+
+
+def _part(progress, a: float, b: float):
+    """A solver progress callback ``(done, total, message)`` mapped onto ``progress(fraction)`` in [a, b]."""
+    if progress is None:
+        return None
+    return lambda d, t, msg: progress(a + (b - a) * d / max(t, 1.0))
 
 
 def estimate_on_bound(name: str, value: float, rel: float = 0.01) -> str | None:
@@ -376,6 +394,7 @@ class RON:
         self._scored = None  # the inputs it holds
         self._batch = max(25, self.config.material_grid ** max(len(self.config.estimate), 1))
         self._last_move = None  # log-space move of the last material fit (sizes the next fit's simplex)
+        self._frame_key = self._frame_depth = None  # the frame on the solver's device (see _frame)
         self.integrator = None
         if self.config.integrate:
             # default, perspective: BiNI's n_z^2 confidence weighting: grazing rim normals (a few degrees off
@@ -396,38 +415,63 @@ class RON:
 
     # ------------------------------------------------------------------ steps
 
+    def _frame(self, images, depth, valid) -> None:
+        """The frame on the solver's device: uploaded once per run (images, observation mask, noise
+        levels); later solves change only the mask, start normals, config or material there, and a new
+        depth estimate (point lights, each round) is copied in alone."""
+        s = self.solver
+        key = (id(images), id(valid))
+        if self._frame_key != key:
+            cfg = s.config
+            if cfg.warm_start:
+                s.set_config(replace(cfg, warm_start=False))
+            s.upload(images, self.mask, depth=depth, valid=valid)
+            s.set_config(cfg)
+            self._frame_key, self._frame_depth = key, depth
+        elif depth is not self._frame_depth:
+            s.set_depth(depth, mask=self.mask)
+            self._frame_depth = depth
+
     def _solve(self, images, depth, valid, material, *, starts=None, init=None, init_mask=None, mask=None,
-               cold: bool = True) -> dict:
+               cold: bool = True, progress=None) -> dict:
         """Steps 1/2/5: cold multi-start solve of ``mask``; where ``init`` is given, also a
-        warm-started solve from it (on ``init_mask``); the lower residual wins per pixel.
-        ``cold=False`` (needs ``init`` on the whole mask): only the warm solve, with the
-        configured neighbour pass for the under-determined pixels."""
+        warm-started solve from it (on ``init_mask``); the lower residual wins per pixel, merged on
+        the device (:meth:`PixelSolver.merge_saved`).  ``cold=False`` (needs ``init`` on the whole
+        mask): only the warm solve, with the configured neighbour pass for the under-determined
+        pixels.  The frame stays on the device between solves (:meth:`_frame`); only the outputs
+        RON reads come back.  ``progress(fraction)``: on the CPU, told as the solves' row ranges
+        finish (the cold solve is the first 0.8 of a cold+warm pair)."""
         s = self.solver
         cfg = self.config.solver
         m = self.mask if mask is None else mask
         s.set_material(material)
-        if not cold:
-            if init is None or init_mask is not None:
-                raise ValueError("cold: False needs init normals on the whole mask")
-            s.set_config(replace(cfg, warm_start=True, starts=1))
-            try:
-                return s.run(images, m, depth=depth, valid=valid, init_normals=init)
-            finally:
-                s.set_config(cfg)
-        s.set_config(cfg if starts is None else replace(cfg, starts=starts))
-        out = s.run(images, m, depth=depth, valid=valid)
-        if init is not None:
-            im = m if init_mask is None else (init_mask & m)
-            if im.any():
-                s.set_config(replace(cfg, warm_start=True, starts=1, neighbour_radius=0, smoothness=0.0))
-                warm = s.run(images, im, depth=depth, valid=valid, init_normals=init)
-                # under-determined pixels keep the neighbour pass of the cold solve
-                better = im & ranks_better(warm["residual"], warm["flags"], out["residual"])
-                for k in ("normals", "albedo", "residual", "flags", "cond"):
-                    out[k] = np.where(better.reshape(better.shape + (1,) * (out[k].ndim - 2)), warm[k], out[k])
-                out["iterations"] = out["iterations"] + np.where(im, warm["iterations"], 0)
+        self._frame(images, depth, valid)
+        try:
+            if not cold:
+                if init is None or init_mask is not None:
+                    raise ValueError("cold: False needs init normals on the whole mask")
+                s.set_config(replace(cfg, warm_start=True, starts=1))
+                s.set_mask(m)
+                s.set_start(init)
+                s.step(_part(progress, 0.0, 1.0))
+                return s.fetch(_OUTPUTS)
+            s.set_config(cfg if starts is None else replace(cfg, starts=starts))
+            share = 0.8 if init is not None else 1.0
+            s.set_mask(m)
+            s.step(_part(progress, 0.0, share))
+            if init is not None:
+                im = m if init_mask is None else (init_mask & m)
+                if im.any():
+                    # under-determined pixels keep the neighbour pass of the cold solve
+                    s.save()
+                    s.set_config(replace(cfg, warm_start=True, starts=1, neighbour_radius=0, smoothness=0.0))
+                    s.set_mask(im)
+                    s.set_start(init)
+                    s.step(_part(progress, share, 1.0))
+                    s.merge_saved()
+            return s.fetch(_OUTPUTS)
+        finally:
             s.set_config(cfg)
-        return out
 
     def _energy(self, residual, mask) -> float:
         r = residual[mask].astype(np.float64)
@@ -438,7 +482,8 @@ class RON:
         c = self.config
         rng = np.random.default_rng(c.seed)
         idx = np.flatnonzero(self.mask.ravel())
-        k = min(c.material_samples, idx.size)
+        floor = min(500, c.material_samples)
+        k = min(int(np.clip(c.material_observations // self.shape[0], floor, c.material_samples)), idx.size)
         hl = np.flatnonzero((highlight & self.mask).ravel())
         take = rng.choice(hl, min(hl.size, k // 2), replace=False) if hl.size else np.zeros(0, np.int64)
         rest = np.setdiff1d(idx, take, assume_unique=True)
@@ -473,19 +518,21 @@ class RON:
             self._scored = inputs
         return self._scorer
 
-    def _score(self, images, depth, valid, materials: list, sample, *, warm: bool = False) -> np.ndarray:
+    def _score(self, images, depth, valid, materials: list, sample, *, warm: bool = False,
+               progress=None) -> np.ndarray:
         """The sampled fit energy of each candidate material, a batch at a time.
 
         The sample pixels stay resident in a :class:`gpps.pipeline.material.MaterialScorer` (uploaded again
         only when the images, depth or observation mask change: point lights move the depth each round);
         each batch of up to ``max_candidates`` candidates is one launch.  The energies equal
         :meth:`_fit_energy`'s (tests/test_material_device.py).  ``warm``: from the scorer's
-        warm start (:meth:`MaterialScorer.set_start`), one start per pixel.
+        warm start (:meth:`MaterialScorer.set_start`), one start per pixel.  ``progress(done, total,
+        message)`` is passed to the scorer, which reports inside a batch on the CPU (chunked launches).
         """
         scorer = self._scorer_for(images, depth, valid, sample, materials[0])
         out = []
         for i in range(0, len(materials), self._batch):
-            scorer.step(materials[i:i + self._batch], warm=warm)
+            scorer.step(materials[i:i + self._batch], warm=warm, progress=progress)
             out.append(scorer.fetch())
         return np.concatenate(out)
 
@@ -510,12 +557,19 @@ class RON:
 
         def score(xs):
             xs = [np.clip(x, lo, hi) for x in xs]
+            n0 = len(evals)
+
+            def inside(d, t, msg):  # within this batch: candidates scored so far, in fractions
+                report(n0 + len(xs) * d / max(t, 1.0), n0 + len(xs) + c.material_evals, msg)
+
             vals = self._score(images, depth, valid, [_with(material, dict(zip(names, np.exp(x)))) for x in xs],
-                               sample, warm=warm)
+                               sample, warm=warm, progress=inside if len(xs) > 4 else None)
             evals.extend(vals.tolist())
             report(len(evals), len(evals) + c.material_evals, f"material: {len(evals)} candidates scored")
             return vals
 
+        self._scorer_for(images, depth, valid, sample, material)  # (the sample upload, once)
+        report(0, c.material_evals, "material: sample uploaded")
         x0 = np.clip(np.log([_get(material, k) for k in names]), lo, hi)
         step = (hi - lo) / max(c.material_grid - 1, 1)
         spread = None
@@ -634,6 +688,7 @@ class RON:
         c = self.config
         m = self.mask
         self._last_move = None
+        self._frame_key = self._frame_depth = None
         step = progress or (lambda *a: None)
         timings = {"least_squares": 0.0, "dgmc": 0.0, "normals": 0.0, "integration": 0.0, "material": 0.0}
         cur_depth, reference_depth = self._start_depth(depth, reference_depth)
@@ -660,7 +715,8 @@ class RON:
             if r == 1 and (not highlight.any() or front):
                 init = None
             out = self._solve(images, solve_depth, valid, material, init=init, init_mask=init_mask,
-                              cold=(r <= c.cold_rounds or init is None))
+                              cold=(r <= c.cold_rounds or init is None),
+                              progress=lambda f: step(3 * r - 2 + f, total, f"round {r}: normals"))
             if front:
                 # DGMC on the solved front (4.16-4.18): highlight pixels start from their solved
                 # neighbours ring by ring; the lower residual wins per pixel
@@ -765,7 +821,10 @@ class RON:
         t = time.perf_counter()
         s = self.solver
         s.set_config(replace(c.solver, solver="none", smoothness=0.0))
-        ls = s.run(images, m, depth=solve_depth, valid=valid)
+        self._frame(images, solve_depth, valid)
+        s.set_mask(m)
+        s.step()
+        ls = s.fetch(_OUTPUTS)
         s.set_config(c.solver)
         timings["least_squares"] += time.perf_counter() - t
         start, highlight, dg = ls["normals"], np.zeros(m.shape, bool), None

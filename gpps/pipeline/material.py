@@ -463,8 +463,8 @@ class MaterialScorer(Stage):
                 (``total = K * P``), called after each launch has finished.
             chunks: launches the pixels are split over (each launch still holds all
                 K candidates), so that ``progress`` moves during a long step.  None:
-                1 without ``progress``; with it, 1 on CUDA and 8 on the CPU (whose
-                Warp backend is single-threaded and slow).  With ``chunks > 1`` (or a
+                1 without ``progress``; with it, 1 on CUDA and 16 on the CPU (whose
+                Warp backend runs a launch on one thread: each chunk is split over the threads).  With ``chunks > 1`` (or a
                 ``progress``) the host waits for each launch.
 
         No copy comes back; without ``progress`` and with one chunk the host
@@ -480,7 +480,7 @@ class MaterialScorer(Stage):
         p = self.samples
         cuda = self.device.startswith("cuda")
         if chunks is None:
-            chunks = 1 if progress is None or cuda else 8
+            chunks = 1 if progress is None or cuda else 16
         chunks = min(check_number("chunks", chunks, lo=1, integer=True), p)
         # on the CPU each chunk is split again over the threads (gpps.pipeline.cpu_threads), run together
         threads = 1 if cuda else min(cpu_threads(), max(1, p // max(chunks, 1)))
