@@ -209,6 +209,7 @@ def test_reconstruct_bad_input():
 
 
 def test_cli_reconstruct_runs_pipeline(tmp_path, device):
+    pytest.importorskip("OpenEXR", reason="the reconstruct command writes depth.exr (the GPU machine's kit lacks OpenEXR)")
     cap = tmp_path / "cap"
     env_py = [sys.executable, "-m", "gpps", "--device", device]
     r = subprocess.run(env_py + ["render", "--scene", "sphere", "--size", "48", "--camera", "perspective", "--brdf",
