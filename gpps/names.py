@@ -17,8 +17,7 @@ BRDF_TAG = {name: i for i, name in enumerate(BRDF_NAMES)}  # device tags of gpps
 LAMBERTIAN, PHONG, BLINN_PHONG, COOK_TORRANCE, ASHIKHMIN_SHIRLEY = range(5)
 
 # the scene parameters the material searches estimate per model ("eta" ties Ashikhmin-Shirley's eta_u = eta_v),
-# and each one's log-space search range (lo, hi).  gpps.flows.ron keeps its own copies (LOBE_PARAMETERS,
-# _RANGES) until it imports these; tests/test_stream_full.py checks that the two agree
+# and each one's log-space search range (lo, hi): RON's material fit (gpps.flows.ron) and the stream's full mode
 LOBE_PARAMETERS: dict[str, tuple[str, ...]] = {
     "lambertian": (),
     "phong": ("ks", "shininess"),

@@ -38,15 +38,6 @@ def _moving(size=SIZE, shifts=(0, 0, 1, 1, 2, 2, 3, 3), material=None):
     return sc, L, [frames[s] for s in shifts], [truth[s] for s in shifts], mask
 
 
-def test_names_agree_with_ron():
-    """gpps.names holds the lobe parameters and ranges the pipeline uses; RON keeps copies until it imports them."""
-    from gpps.flows import ron
-    from gpps.names import LOBE_PARAMETERS, LOBE_RANGES
-
-    assert LOBE_PARAMETERS == ron.LOBE_PARAMETERS
-    assert LOBE_RANGES == ron._RANGES
-
-
 def test_pattern_search_minimises_a_valley_one_batch_at_a_time():
     """A rotated quadratic valley (as ks and roughness trade): grid, stencils, settle, refine, discard."""
     from gpps.host.pattern import PatternSearch

@@ -67,6 +67,7 @@ from gpps._taichi import taichi_device
 from gpps.host.dgmc import DGMCConfig, propagate_front
 from gpps.lights import PointLights
 from gpps.material import Material
+from gpps.names import LOBE_PARAMETERS, LOBE_RANGES
 from gpps.pipeline.dgmc import dgmc_start_device
 from gpps.pipeline.integration import Integrator, IntegratorConfig
 from gpps.pipeline.material import MaterialScorer
@@ -86,16 +87,9 @@ MaterialSearch = Literal["pattern", "nelder-mead"]
 MaterialRule = Literal["photometric", "depth-rms"]
 Progress = Callable[[float, float, str], None]
 
-# the scene parameters RON can estimate per model; "eta" ties Ashikhmin-Shirley's eta_u = eta_v
-LOBE_PARAMETERS: dict[str, tuple[str, ...]] = {
-    "lambertian": (),
-    "phong": ("ks", "shininess"),
-    "blinn-phong": ("ks", "shininess"),
-    "cook-torrance": ("ks", "roughness"),
-    "ashikhmin-shirley": ("ks", "eta"),
-}
-# log-space search ranges (lo, hi) of each parameter
-_RANGES = {"ks": (0.02, 3.0), "shininess": (2.0, 500.0), "roughness": (0.03, 0.8), "eta": (2.0, 500.0)}
+# the scene parameters RON can estimate per model and their log-space search ranges (gpps.names: the
+# stream's full mode searches the same)
+_RANGES = LOBE_RANGES
 # Nelder-Mead's stopping size of the simplex (log units): the first fit only has to land in the optimum's
 # basin (every later fit starts from it with a simplex of at most _LATER_STEP and refines to _XATOL)
 _FIRST_XATOL, _XATOL = 0.05, 1e-3

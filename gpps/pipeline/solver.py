@@ -4,6 +4,10 @@ One Warp launch solves every pixel (the iteration loop, the multi-start and
 the IRLS rounds all run inside the kernel, see :mod:`gpps.kernels.solve`), so
 a solve needs no host synchronisation and :meth:`PixelSolver.step` can be
 captured in a CUDA graph.  Buffers are allocated once for ``(N, H, W)``.
+
+Length: the config (every setting documented in place, about 150 lines), the noise and light checks the
+stages share, and one stage whose frame buffers serve its solve, re-solves of the uploaded frame
+(``set_mask`` / ``set_start`` / ``set_depth``) and the device merge (``save`` / ``merge_saved``).
 """
 
 from __future__ import annotations
