@@ -72,6 +72,7 @@ from gpps.pipeline.dgmc import dgmc_start_device
 from gpps.pipeline.integration import Integrator, IntegratorConfig
 from gpps.pipeline.material import MaterialScorer
 from gpps.pipeline.solver import PixelSolver, SolverConfig
+from gpps.pipeline.stream_material import lobe_value, with_lobe
 
 __all__ = [
     "RON",
@@ -103,18 +104,8 @@ def estimable_parameters(brdf: str) -> tuple[str, ...]:
     return LOBE_PARAMETERS[brdf]
 
 
-def _get(material: Material, name: str) -> float:
-    return float(material.eta_u if name == "eta" else getattr(material, name))
-
-
-def _with(material: Material, values: dict) -> Material:
-    d = material.to_dict()
-    for k, v in values.items():
-        if k == "eta":
-            d["eta_u"] = d["eta_v"] = float(v)
-        else:
-            d[k] = float(v)
-    return Material.from_dict(d)
+# a scene parameter of a material, and a material with some of them set (shared with the stream's full mode)
+_get, _with = lobe_value, with_lobe
 
 
 @dataclass(frozen=True)
