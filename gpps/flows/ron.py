@@ -51,7 +51,6 @@ from typing import Callable, Literal
 
 import numpy as np
 from scipy.ndimage import gaussian_filter
-from scipy.optimize import minimize
 
 from gpps._check import (
     as_array,
@@ -579,25 +578,99 @@ class RON:
                 best = self._pattern_search(score, best, step, lo, hi, c.material_evals)
             else:
                 simplex = np.vstack([x0] + [x0 + np.eye(len(names))[i] * step[i] for i in range(len(names))])
-                known = {tuple(x0): best[0]}
-                known.update({tuple(x): float(v) for x, v in zip(simplex[1:], score(list(simplex[1:])))})
-
-                def f(x):  # the simplex was scored in one batch above
-                    key = tuple(x)
-                    return known[key] if key in known else float(score([x])[0])
-
-                # converged when the simplex is smaller than xatol (fatol inf: no energy condition)
-                res = minimize(f, x0, method="Nelder-Mead",
-                               options={"initial_simplex": simplex, "maxfev": c.material_evals, "xatol": xatol,
-                                        "fatol": np.inf})
-                if res.fun < best[0]:
-                    best = (float(res.fun), np.clip(res.x, lo, hi))
+                # on CUDA a launch costs its slowest thread, not its candidates: score every point a
+                # step may need at once (the same trajectory: Nelder-Mead reads only what it needs)
+                fx, xb = self._nelder_mead(score, simplex, best[0], c.material_evals, xatol,
+                                           speculate=self.device.startswith("cuda"))
+                if fx < best[0]:
+                    best = (fx, np.clip(xb, lo, hi))
         start = np.clip(np.log([_get(material, k) for k in names]), lo, hi)
         self._last_move = best[1] - start
         values = dict(zip(names, (float(v) for v in np.exp(best[1]))))
         info = {"rule": "photometric", "search": c.material_search, "warm": warm, "values": values, "energy": best[0],
                 "evaluations": len(evals), "grid": bool(grid), "identifiable": None if spread is None else spread > 1e-3}
         return _with(material, values), info
+
+    @staticmethod
+    def _nelder_mead(score, simplex, f0: float, maxfev: int, xatol: float, *, speculate: bool):
+        """Nelder-Mead (scipy's ``method="Nelder-Mead"``, standard coefficients, ``fatol`` infinite) that
+        scores in batches: the initial simplex (vertex 0 known: ``f0``) in one, and with ``speculate``
+        the reflection, expansion and both contractions of a step in one (a shrink's vertices always
+        together).  The trajectory and the result do not depend on ``speculate``: the method reads only
+        the values it needs, and ``maxfev`` counts only those.  Converged when every vertex lies within
+        ``xatol`` of the best (log units).
+
+        Args:
+            score: ``score(xs) -> (K,) energies`` of a list of points.
+            simplex: (d + 1, d) initial simplex, vertex 0 the start.
+            f0: the energy at vertex 0.
+            maxfev: the most evaluations the method needs (the initial simplex included).
+            xatol: simplex size at convergence.
+            speculate: score every candidate point of a step in one batch.
+
+        Returns:
+            ``(energy, x)`` of the best vertex.
+        """
+        rho, chi, psi, sigma = 1.0, 2.0, 0.5, 0.5
+        sim = np.array(simplex, np.float64)
+        d = sim.shape[1]
+        cache: dict = {tuple(sim[0]): float(f0)}
+        need = [1]  # vertex 0 counts (as scipy counts it)
+
+        class _Budget(Exception):
+            pass
+
+        def values(points, wanted):
+            """Energies of ``wanted`` (indices into ``points``); with ``speculate`` all of ``points`` scored."""
+            todo = [p for p in (points if speculate else [points[i] for i in wanted]) if tuple(p) not in cache]
+            uniq = list({tuple(p): p for p in todo}.values())
+            if uniq:
+                for p, v in zip(uniq, score(uniq)):
+                    cache[tuple(p)] = float(v)
+            out = []
+            for i in wanted:
+                if need[0] >= maxfev:
+                    raise _Budget
+                need[0] += 1
+                out.append(cache[tuple(points[i])])
+            return out
+
+        fsim = np.array([float(f0)] + values(list(sim[1:]), list(range(d))))
+        try:
+            while True:
+                order = np.argsort(fsim, kind="stable")
+                sim, fsim = sim[order], fsim[order]
+                if np.max(np.abs(sim[1:] - sim[0])) <= xatol:
+                    break
+                xbar = sim[:-1].sum(0) / d
+                pts = [(1 + rho) * xbar - rho * sim[-1], (1 + rho * chi) * xbar - rho * chi * sim[-1],
+                       (1 + psi * rho) * xbar - psi * rho * sim[-1], (1 - psi) * xbar + psi * sim[-1]]
+                (fxr,) = values(pts, [0])
+                shrink = False
+                if fxr < fsim[0]:
+                    (fxe,) = values(pts, [1])
+                    sim[-1], fsim[-1] = (pts[1], fxe) if fxe < fxr else (pts[0], fxr)
+                elif fxr < fsim[-2]:
+                    sim[-1], fsim[-1] = pts[0], fxr
+                elif fxr < fsim[-1]:
+                    (fxc,) = values(pts, [2])
+                    if fxc <= fxr:
+                        sim[-1], fsim[-1] = pts[2], fxc
+                    else:
+                        shrink = True
+                else:
+                    (fxcc,) = values(pts, [3])
+                    if fxcc < fsim[-1]:
+                        sim[-1], fsim[-1] = pts[3], fxcc
+                    else:
+                        shrink = True
+                if shrink:
+                    sim[1:] = sim[0] + sigma * (sim[1:] - sim[0])
+                    fsim[1:] = values(list(sim[1:]), list(range(d)))
+        except _Budget:
+            order = np.argsort(fsim, kind="stable")
+            sim, fsim = sim[order], fsim[order]
+        return float(fsim[0]), sim[0]
 
     @staticmethod
     def _pattern_search(score, best, step, lo, hi, budget: int, xatol: float = 1e-3):
