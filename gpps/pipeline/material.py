@@ -41,7 +41,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from gpps._check import as_array, as_images, as_mask, check_number
+from gpps._check import as_array, as_mask, check_number
 from gpps._runtime import resolve_device, warp
 from gpps.kernels import solve_batched as sb
 from gpps.kernels.brdf import MaterialParams
@@ -55,6 +55,7 @@ from gpps.pipeline.solver import (
     check_light_configuration,
     check_problem,
     estimate_noise,
+    rgb_images,
     solver_params,
 )
 from gpps.pipeline.stage import Stage
@@ -192,15 +193,7 @@ class MaterialScorer(Stage):
     # ------------------------------------------------------------------ upload
 
     def _images(self, images) -> np.ndarray:
-        n, h, w = self.shape
-        arr = as_images("images", images)
-        if arr.shape == (n, h, w):
-            arr = np.repeat(arr[..., None], 3, axis=-1)
-        elif arr.shape == (n, h, w, 1):
-            arr = np.repeat(arr, 3, axis=-1)
-        if arr.shape != (n, h, w, 3):
-            raise ValueError(f"images: expected shape ({n}, {h}, {w}, 3) or ({n}, {h}, {w}), got {arr.shape}")
-        return arr
+        return rgb_images(images, self.shape)
 
     def upload(self, images, sample_mask, *, depth=None, valid=None, noise=None) -> None:
         """Gather the sample pixels into the device strip and precompute their material-free terms.

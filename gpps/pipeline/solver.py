@@ -193,6 +193,20 @@ class SolverConfig:
             raise ValueError("smoothness: expected 0 with solver 'none' (the smoothness term needs a nonlinear solver)")
 
 
+def rgb_images(images, shape) -> np.ndarray:
+    """Checked images of an ``(N, H, W)`` problem as (N, H, W, 3): RGB as given, grey (N, H, W) or (N, H, W, 1)
+    repeated over the channels (:func:`gpps._check.as_images` rules).  Raises ValueError for another shape."""
+    n, h, w = shape
+    arr = as_images("images", images)
+    if arr.shape == (n, h, w):
+        arr = np.repeat(arr[..., None], 3, axis=-1)
+    elif arr.shape == (n, h, w, 1):
+        arr = np.repeat(arr, 3, axis=-1)
+    if arr.shape != (n, h, w, 3):
+        raise ValueError(f"images: expected shape ({n}, {h}, {w}, 3) or ({n}, {h}, {w}), got {arr.shape}")
+    return arr
+
+
 def check_problem(shape, lights) -> tuple[int, int, int]:
     """``(N, H, W)`` of a per-pixel problem, checked against its lights (one per image).
 
@@ -452,14 +466,7 @@ class PixelSolver(Stage):
     # ------------------------------------------------------------------ per frame
 
     def _images(self, images) -> np.ndarray:
-        n, h, w = self.shape
-        arr = as_images("images", images)
-        if arr.shape == (n, h, w):
-            arr = np.repeat(arr[..., None], 3, axis=-1)
-        elif arr.shape == (n, h, w, 1):
-            arr = np.repeat(arr, 3, axis=-1)
-        if arr.shape != (n, h, w, 3):
-            raise ValueError(f"images: expected shape ({n}, {h}, {w}, 3) or ({n}, {h}, {w}), got {arr.shape}")
+        arr = rgb_images(images, self.shape)
         if np.any(arr < 0):
             raise ValueError("images: expected values >= 0")
         return np.ascontiguousarray(arr, dtype=np.float32)
