@@ -225,9 +225,9 @@ def dgmc_rows(ctx, n_images):
     def sweep():
         wp.launch(dg.geodesic_relax_kernel, dim=(h, w),
                   inputs=[st.mask, st.region, st.labels, conn, 1, st.keys[0], st.srcs[0], st.changed[0],
-                          st.keys[1], st.srcs[1], st.changed[1], st.counter], device=ctx.device)
+                          st.keys[1], st.srcs[1], st.changed[1], st.counter, 0, 0], device=ctx.device)
         wp.launch(dg.geodesic_copy_kernel, dim=(h, w),
-                  inputs=[st.changed[1], st.keys[1], st.srcs[1], st.keys[0], st.srcs[0]], device=ctx.device)
+                  inputs=[st.changed[1], st.keys[1], st.srcs[1], st.keys[0], st.srcs[0], 0], device=ctx.device)
 
     t = _time_or_register(ctx, "dgmc_geodesic_sweep", "geodesic_(relax|copy)_kernel", sweep, inner=10, per_launch=2)
     srcs = st.srcs[0].numpy()

@@ -149,7 +149,8 @@ def geodesic_relax_kernel(mask: wp.array2d(dtype=wp.uint8), region: wp.array2d(d
                           old_key: wp.array3d(dtype=wp.int32), old_src: wp.array3d(dtype=wp.int32),
                           prev_changed: wp.array2d(dtype=wp.int32),
                           new_key: wp.array3d(dtype=wp.int32), new_src: wp.array3d(dtype=wp.int32),
-                          changed: wp.array2d(dtype=wp.int32), count: wp.array(dtype=wp.int32)):
+                          changed: wp.array2d(dtype=wp.int32), count: wp.array(dtype=wp.int32), row0: int,
+                          part: int):
     """One Jacobi min-plus sweep of the K-nearest-boundary lists (module docstring).
 
     A region pixel whose 8 neighbours did not change in the previous sweep (and not the first sweep) is skipped:
@@ -159,9 +160,12 @@ def geodesic_relax_kernel(mask: wp.array2d(dtype=wp.uint8), region: wp.array2d(d
         old_key, old_src: (H, W, K) lists of the previous sweep, nearest first: packed step counts and flat source
             indices (``row * W + column``); -1 sources (and NO_KEY) past the end.
         new_key, new_src: (H, W, K) out.
-        changed: (H, W) out: 1 where the list changed; count[0] += their number.
+        changed: (H, W) out: 1 where the list changed; count[part] += their number.
+        row0: first row of this launch (dim (rows, W)); a CPU launch split by rows across threads
+            (gpps.pipeline.cpu_threads) gives each part its own slot ``part`` of ``count``.
     """
-    i, j = wp.tid()
+    t, j = wp.tid()
+    i = t + row0
     h = mask.shape[0]
     w = mask.shape[1]
     kk = old_key.shape[2]
@@ -263,15 +267,16 @@ def geodesic_relax_kernel(mask: wp.array2d(dtype=wp.uint8), region: wp.array2d(d
             diff = 1
     if diff != 0:
         changed[i, j] = 1
-        wp.atomic_add(count, 0, 1)
+        wp.atomic_add(count, part, 1)
 
 
 @wp.kernel
 def geodesic_copy_kernel(changed: wp.array2d(dtype=wp.int32), new_key: wp.array3d(dtype=wp.int32),
                          new_src: wp.array3d(dtype=wp.int32), old_key: wp.array3d(dtype=wp.int32),
-                         old_src: wp.array3d(dtype=wp.int32)):
-    """old = new on the pixels whose list changed (after it, both buffers hold the same lists)."""
-    i, j = wp.tid()
+                         old_src: wp.array3d(dtype=wp.int32), row0: int):
+    """old = new on the pixels whose list changed (after it, both buffers hold the same lists); rows from ``row0``."""
+    t, j = wp.tid()
+    i = t + row0
     if changed[i, j] == 0:
         return
     for t in range(new_key.shape[2]):

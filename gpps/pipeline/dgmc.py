@@ -30,6 +30,7 @@ from gpps.host.dgmc import (
 from gpps.kernels import dgmc as dk
 from gpps.kernels import dgmc_geodesic as dg
 from gpps.lights import DirectionalLights, PointLights
+from gpps.pipeline.cpu_threads import balanced_bounds, cpu_threads, run_all
 from gpps.pipeline.stage import Stage
 
 __all__ = ["DeviceDGMC", "dgmc_start_device"]
@@ -89,6 +90,8 @@ class DeviceDGMC(Stage):
         self.numbers = wp.zeros(h * w, dtype=i32, device=d)
         self.boundary = wp.zeros((h, w), dtype=i32, device=d)
         self.counter = wp.zeros(1, dtype=i32, device=d)
+        # the geodesic sweeps' change counts, one slot per CPU thread (gpps.pipeline.cpu_threads)
+        self.sweep_count = wp.zeros(max(1, cpu_threads()), dtype=i32, device=d)
         self.keys = [wp.zeros((h, w, k), dtype=i32, device=d) for _ in range(2)]
         self.srcs = [wp.zeros((h, w, k), dtype=i32, device=d) for _ in range(2)]
         self.changed = [wp.zeros((h, w), dtype=i32, device=d) for _ in range(2)]
@@ -282,22 +285,33 @@ class DeviceDGMC(Stage):
             self._launch(dg.list_reset_kernel, (h, w, k), [self.keys[b], self.srcs[b], self.changed[b]])
         old, new = 0, 1
         prev, cur = 0, 1
-        self.counter.zero_()
+        # CPU: the rows split across threads (Jacobi: a sweep reads only the last sweep's lists), balanced by
+        # the region's pixels; each part counts its changes in its own slot
+        parts = [(0, h)]
+        if not self.device.startswith("cuda") and self.sweep_count.shape[0] > 1:
+            parts = balanced_bounds(self.region.numpy().sum(axis=1), self.sweep_count.shape[0]) or [(0, h)]
+        wp = warp()
+        count = self.sweep_count
+        count.zero_()
         sweeps = 0
         limit = h * w + CHECK_EVERY + 1  # Bellman-Ford: at most (region pixels + 1) sweeps change anything
         while True:
-            self._launch(dg.geodesic_relax_kernel, (h, w),
-                         [self.mask, self.region, self.labels, conn, 1 if sweeps == 0 else 0,
-                          self.keys[old], self.srcs[old], self.changed[prev], self.keys[new], self.srcs[new],
-                          self.changed[cur], self.counter])
-            self._launch(dg.geodesic_copy_kernel, (h, w),
-                         [self.changed[cur], self.keys[new], self.srcs[new], self.keys[old], self.srcs[old]])
+            first = 1 if sweeps == 0 else 0
+            ins = [self.mask, self.region, self.labels, conn, first, self.keys[old], self.srcs[old],
+                   self.changed[prev], self.keys[new], self.srcs[new], self.changed[cur], count]
+            run_all([lambda a=a, b=b, q=q: wp.launch(dg.geodesic_relax_kernel, dim=(b - a, w), inputs=ins + [a, q],
+                                                     device=self.device)
+                     for q, (a, b) in enumerate(parts)])
+            cp = [self.changed[cur], self.keys[new], self.srcs[new], self.keys[old], self.srcs[old]]
+            run_all([lambda a=a, b=b: wp.launch(dg.geodesic_copy_kernel, dim=(b - a, w), inputs=cp + [a],
+                                                device=self.device)
+                     for a, b in parts])
             prev, cur = cur, prev
             sweeps += 1
             if sweeps % CHECK_EVERY == 0:
-                if int(self.counter.numpy()[0]) == 0:
+                if int(count.numpy().sum()) == 0:
                     break
-                self.counter.zero_()
+                count.zero_()
             if sweeps > limit:  # pragma: no cover - would be a bug in the kernel
                 raise RuntimeError(f"geodesic relaxation did not converge in {sweeps} sweeps")
         self.sweeps = sweeps
