@@ -20,7 +20,9 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-__all__ = ["cpu_threads", "run_all", "balanced_bounds"]
+from gpps._runtime import warp
+
+__all__ = ["cpu_threads", "run_all", "balanced_bounds", "load_first"]
 
 _POOL: ThreadPoolExecutor | None = None
 _POOL_LOCK = threading.Lock()
@@ -41,6 +43,11 @@ def cpu_threads() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # pragma: no cover - not Linux
         return max(1, os.cpu_count() or 1)
+
+
+def load_first(kernel, device) -> None:
+    """Compile / load ``kernel``'s Warp module on this thread before launches from several threads race to."""
+    warp().load_module(kernel.module, device=device)
 
 
 def run_all(tasks: Sequence[Callable[[], None]]) -> None:

@@ -30,7 +30,7 @@ from gpps.host.dgmc import (
 from gpps.kernels import dgmc as dk
 from gpps.kernels import dgmc_geodesic as dg
 from gpps.lights import DirectionalLights, PointLights
-from gpps.pipeline.cpu_threads import balanced_bounds, cpu_threads, run_all
+from gpps.pipeline.cpu_threads import balanced_bounds, cpu_threads, load_first, run_all
 from gpps.pipeline.stage import Stage
 
 __all__ = ["DeviceDGMC", "dgmc_start_device"]
@@ -291,6 +291,8 @@ class DeviceDGMC(Stage):
         if not self.device.startswith("cuda") and self.sweep_count.shape[0] > 1:
             parts = balanced_bounds(self.region.numpy().sum(axis=1), self.sweep_count.shape[0]) or [(0, h)]
         wp = warp()
+        if len(parts) > 1:
+            load_first(dg.geodesic_relax_kernel, self.device)
         count = self.sweep_count
         count.zero_()
         sweeps = 0

@@ -48,7 +48,7 @@ from gpps.kernels.brdf import MaterialParams
 from gpps.lights import PointLights
 from gpps.material import Material
 from gpps.names import BRDF_NAMES
-from gpps.pipeline.cpu_threads import cpu_threads, run_all
+from gpps.pipeline.cpu_threads import cpu_threads, load_first, run_all
 from gpps.pipeline.params import camera_params, light_params, material_params
 from gpps.pipeline.solver import (
     SolverConfig,
@@ -483,6 +483,8 @@ class MaterialScorer(Stage):
         def launcher(a0, b0):
             return lambda: self._launch_chunk(k, int(a0), int(b0), warm=warm)
 
+        if threads > 1:
+            load_first(self._kernel, self.device)
         for a, b in zip(bounds[:-1], bounds[1:]):
             parts = np.linspace(a, b, threads + 1).round().astype(int)
             run_all([launcher(x, y) for x, y in zip(parts[:-1], parts[1:]) if y > x])
