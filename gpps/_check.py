@@ -108,14 +108,20 @@ def as_mask(name, m, shape=None, allow_empty=False) -> np.ndarray:
     return arr
 
 
+def check_unit(name, vectors, tol=1e-3, where="inside the mask") -> np.ndarray:
+    """The norms of (M, 3) ``vectors``; ValueError naming ``name`` when one is farther than ``tol`` from 1."""
+    norms = np.linalg.norm(vectors, axis=-1)
+    if np.any(np.abs(norms - 1.0) > tol):
+        k = int(np.argmax(np.abs(norms - 1.0)))
+        raise ValueError(f"{name}: expected unit vectors {where}, got norm {norms[k]:.6g}")
+    return norms
+
+
 def unit_normals(name, n, mask, tol=1e-3) -> np.ndarray:
     """(H, W, 3) float32 normals, unit inside ``mask`` (checked), zero outside."""
     h, w = mask.shape
     arr = as_array(name, n, shape=(h, w, 3))
-    norms = np.linalg.norm(arr[mask], axis=-1)
-    if np.any(np.abs(norms - 1.0) > tol):
-        k = int(np.argmax(np.abs(norms - 1.0)))
-        raise ValueError(f"{name}: expected unit vectors inside the mask, got norm {norms[k]:.6g}")
+    norms = check_unit(name, arr[mask], tol)
     out = np.zeros_like(arr)
     out[mask] = arr[mask] / norms[:, None]
     return out

@@ -103,8 +103,6 @@ def estimable_parameters(brdf: str) -> tuple[str, ...]:
     return LOBE_PARAMETERS[brdf]
 
 
-# a scene parameter of a material, and a material with some of them set (shared with the stream's full mode)
-_get, _with = lobe_value, with_lobe
 
 
 @dataclass(frozen=True)
@@ -546,7 +544,7 @@ class RON:
             def inside(d, t, msg):  # within this batch: candidates scored so far, in fractions
                 report(n0 + len(xs) * d / max(t, 1.0), n0 + len(xs) + c.material_evals, msg)
 
-            vals = self._score(images, depth, valid, [_with(material, dict(zip(names, np.exp(x)))) for x in xs],
+            vals = self._score(images, depth, valid, [with_lobe(material, dict(zip(names, np.exp(x)))) for x in xs],
                                sample, warm=warm, progress=inside if len(xs) > 4 else None)
             evals.extend(vals.tolist())
             report(len(evals), len(evals) + c.material_evals, f"material: {len(evals)} candidates scored")
@@ -554,7 +552,7 @@ class RON:
 
         self._scorer_for(images, depth, valid, sample, material)  # (the sample upload, once)
         report(0, c.material_evals, "material: sample uploaded")
-        x0 = np.clip(np.log([_get(material, k) for k in names]), lo, hi)
+        x0 = np.clip(np.log([lobe_value(material, k) for k in names]), lo, hi)
         step = (hi - lo) / max(c.material_grid - 1, 1)
         spread = None
         if grid and c.material_grid > 1:
@@ -584,12 +582,12 @@ class RON:
                                            speculate=self.device.startswith("cuda"))
                 if fx < best[0]:
                     best = (fx, np.clip(xb, lo, hi))
-        start = np.clip(np.log([_get(material, k) for k in names]), lo, hi)
+        start = np.clip(np.log([lobe_value(material, k) for k in names]), lo, hi)
         self._last_move = best[1] - start
         values = dict(zip(names, (float(v) for v in np.exp(best[1]))))
         info = {"rule": "photometric", "search": c.material_search, "warm": warm, "values": values, "energy": best[0],
                 "evaluations": len(evals), "grid": bool(grid), "identifiable": None if spread is None else spread > 1e-3}
-        return _with(material, values), info
+        return with_lobe(material, values), info
 
     @staticmethod
     def _nelder_mead(score, simplex, f0: float, maxfev: int, xatol: float, *, speculate: bool):
@@ -832,7 +830,7 @@ class RON:
                         raise ValueError("material_rule: 'depth-rms' needs integrate=True")
                     mr = depth_rms_roughness(cur_depth, m, self.camera, window=c.roughness_window)
                     mr = float(np.clip(mr, *_RANGES["roughness"]))
-                    material = _with(material, {"roughness": mr})
+                    material = with_lobe(material, {"roughness": mr})
                     info = {"rule": "depth-rms", "values": {"roughness": mr}}
                 fits.append(info)
                 timings["material"] += time.perf_counter() - t
@@ -841,7 +839,7 @@ class RON:
         depth_out, depth_mask, ires = self._final_depth(out["normals"], reference_depth, timings)
         step(total, total, "done")
         timings["total"] = time.perf_counter() - t_all
-        estimated = {k: _get(material, k) for k in c.estimate}
+        estimated = {k: lobe_value(material, k) for k in c.estimate}
         notes = self._notes(estimated, converged)
         return RONResult(
             normals=np.where(m[..., None], out["normals"], 0.0).astype(np.float32),

@@ -39,7 +39,7 @@ from scipy import ndimage as ndi
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from gpps._check import as_array, as_mask, check_choice, check_choices, check_number
+from gpps._check import as_array, as_mask, check_choice, check_choices, check_number, check_unit
 from gpps.host.merge import ranks_better
 from gpps.lights import DirectionalLights, PointLights
 
@@ -747,10 +747,7 @@ def dgmc_start(images, mask, normals, *, lights=None, config: DGMCConfig | None 
     if nrm.shape != (h, w, 3):
         raise ValueError(f"normals: expected (H, W, 3) = ({h}, {w}, 3), got {nrm.shape}")
     nrm = as_array("normals", nrm, dtype=np.float64)
-    norms = np.linalg.norm(nrm[m], axis=-1)
-    if np.any(np.abs(norms - 1.0) > 1e-3):
-        bad = int(np.argmax(np.abs(norms - 1.0)))
-        raise ValueError(f"normals: expected unit vectors inside the mask, got norm {norms[bad]:.6g}")
+    check_unit("normals", nrm[m])
 
     hl = _detect(grey, cmax, m, lights, cfg, points)
     field = grey.mean(0) if cfg.curvature_field == "intensity" else nrm

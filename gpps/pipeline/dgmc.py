@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gpps._check import as_array, as_mask
+from gpps._check import as_array, as_mask, check_unit
 from gpps._runtime import resolve_device, warp
 from gpps.host.dgmc import (
     DGMCConfig,
@@ -146,10 +146,7 @@ class DeviceDGMC(Stage):
             if nrm.shape != (h, w, 3):
                 raise ValueError(f"normals: expected (H, W, 3) = ({h}, {w}, 3), got {nrm.shape}")
             nrm = as_array("normals", nrm, dtype=np.float64)
-            norms = np.linalg.norm(nrm[m], axis=-1)
-            if np.any(np.abs(norms - 1.0) > 1e-3):
-                bad = int(np.argmax(np.abs(norms - 1.0)))
-                raise ValueError(f"normals: expected unit vectors inside the mask, got norm {norms[bad]:.6g}")
+            check_unit("normals", nrm[m])
             self.normals.assign(np.ascontiguousarray(nrm))
         self._upload_lights(lights, points)
         self._uploaded = True

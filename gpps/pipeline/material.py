@@ -41,7 +41,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from gpps._check import as_array, as_mask, check_number
+from gpps._check import as_array, as_mask, check_number, check_unit
 from gpps._runtime import resolve_device, warp
 from gpps.kernels import solve_batched as sb
 from gpps.kernels.brdf import MaterialParams
@@ -381,9 +381,7 @@ class MaterialScorer(Stage):
             wp.copy(self.nwarm, self.normals, dest_offset=0, src_offset=k * self.max_samples, count=p)
         else:
             nrm = as_array("normals", normals, shape=(p, 3)).astype(np.float32)
-            norm = np.linalg.norm(nrm, axis=1, keepdims=True)
-            if not np.all(np.abs(norm - 1.0) < 1e-3):
-                raise ValueError("normals: expected unit vectors")
+            check_unit("normals", nrm, where="at the sample pixels")
             full = np.zeros((self.max_samples, 3), np.float32)
             full[:p] = nrm
             self.nwarm.assign(full)
