@@ -529,6 +529,10 @@ def test_front_keep_better_never_raises_the_residual(device):
     assert (fr.residual[sc.mask] <= sources["residual"][sc.mask] + 1e-7).all()
     kept = hm & ~fr.won
     np.testing.assert_array_equal(fr.normals[kept], sources["normals"][kept])
+    # the frame already on the solver (images=None): the same front, without another upload
+    again = propagate_front(one, None, sc.mask, hm, sources, gaussian=dg.gaussian, mean=dg.mean, keep_better=True)
+    for k in ("normals", "residual", "iterations"):
+        np.testing.assert_array_equal(getattr(again, k), getattr(fr, k), err_msg=k)
 
 
 def test_front_island_without_boundary_is_left_alone(device):

@@ -778,7 +778,8 @@ class RON:
                 # neighbours ring by ring; the lower residual wins per pixel
                 tf = time.perf_counter()
                 self.solver.set_material(material)
-                fr = propagate_front(self.solver, images, m, highlight, out, gaussian=dg.gaussian, mean=dg.mean,
+                # (the frame is on the solver's device: _solve put it there)
+                fr = propagate_front(self.solver, None, m, highlight, out, gaussian=dg.gaussian, mean=dg.mean,
                                      depth=solve_depth, valid=valid, config=c.dgmc_config, keep_better=True)
                 for k in ("normals", "albedo", "residual", "flags"):
                     out[k] = getattr(fr, k)

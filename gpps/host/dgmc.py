@@ -856,7 +856,8 @@ def propagate_front(solver, images, mask, highlight, solution: dict, *, gaussian
         solver: a :class:`gpps.pipeline.solver.PixelSolver` for the frame's shape;
             its config is replaced for the front solves (``warm_start=True``,
             ``starts=1``, no neighbour pass, no smoothness) and restored after.
-        images: (N, H, W) or (N, H, W, 3) the frame (uploaded once).
+        images: (N, H, W) or (N, H, W, 3) the frame (uploaded once), or None when the
+            solver already holds it (its last upload; ``depth`` and ``valid`` then unused).
         mask: (H, W) bool object mask.
         highlight: (H, W) bool highlight region (:attr:`DGMCResult.highlight`).
         solution: dict with (H, W, 3) ``normals`` and ``albedo`` and (H, W)
@@ -905,7 +906,12 @@ def propagate_front(solver, images, mask, highlight, solution: dict, *, gaussian
     old = solver.config
     solver.set_config(replace(old, warm_start=True, starts=1, neighbour_radius=0, smoothness=0.0))
     try:
-        solver.upload(images, m, depth=depth, valid=valid, init_normals=np.where(m[..., None], nrm, 0.0))
+        start = np.where(m[..., None], nrm, 0.0)
+        if images is None:
+            solver.set_mask(m)
+            solver.set_start(start)
+        else:
+            solver.upload(images, m, depth=depth, valid=valid, init_normals=start)
         solved = m & ~hl
         todo = hl.copy()
         # 8 neighbours, edge ones first (the nearer), with their offsets
