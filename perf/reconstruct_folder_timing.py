@@ -1,5 +1,5 @@
 """``gpps.reconstruct_folder`` (what ``gpps reconstruct`` runs, without writing) on capture folders: wall time
-per call, per-stage timings and MAEN where ground truth exists.  Usage:
+per call, per-stage timings, the longest stretch without a progress report and MAEN where ground truth exists.  Usage:
 ``python perf/reconstruct_folder_timing.py FOLDER... [--device cuda:0] [--repeat 2] [--out FILE]``"""
 
 from __future__ import annotations
@@ -30,11 +30,20 @@ def main(argv=None):
     for folder in a.folders:
         for k in range(a.repeat):
             t = time.perf_counter()
-            res = gpps.reconstruct_folder(folder, device=a.device)
+            last, gaps = [t], []
+
+            def progress(done, total, msg):  # the longest time the progress callback sat still
+                now = time.perf_counter()
+                gaps.append(now - last[0])
+                last[0] = now
+
+            res = gpps.reconstruct_folder(folder, device=a.device, progress=progress)
             wall = time.perf_counter() - t
+            gaps.append(time.perf_counter() - last[0])
             rep = res.report
             row = {"folder": Path(folder).name, "call": k, "wall_s": wall, "maen_deg": rep.get("maen_deg"),
-                   "timings": rep.get("timings"), "images": rep.get("images"), "shape": rep.get("shape")}
+                   "timings": rep.get("timings"), "images": rep.get("images"), "shape": rep.get("shape"),
+                   "max_progress_gap_s": max(gaps)}
             rows.append(row)
             print(json.dumps(row, default=json_default), flush=True)
     if a.out:
