@@ -1,0 +1,93 @@
+"""Where a warm ``gpps.reconstruct_folder`` / ``gpps.reconstruct`` call spends its host time (cProfile).
+
+Each case: one cold call (compilation), one warm call, then a warm call under cProfile; writes the top
+functions by cumulative and by own time (``<case>_cumulative.txt``, ``<case>_tottime.txt``) and the stage
+timings (``profile.json``) to ``--out``.  On CUDA the host waits at synchronisation points (fetches), so a
+kernel's device time shows up in the function that fetches its result.
+
+Usage:  python perf/profile_reconstruct.py [FOLDER...] [--synthetic 256] [--images 3] [--device cuda:0] --out DIR
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import io
+import json
+import os
+import pstats
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
+
+import gpps  # noqa: E402
+from gpps.io import json_default  # noqa: E402
+
+
+def _stats(prof, key: str, top: int) -> str:
+    s = io.StringIO()
+    pstats.Stats(prof, stream=s).sort_stats(key).print_stats(top)
+    return s.getvalue()
+
+
+def _synthetic(size: int, n: int, device):
+    sc = gpps.make_scene("bumps", size, "perspective")
+    L = gpps.default_lights("directional", n, layout="ring" if n <= 4 else "spiral")
+    true = gpps.Material("cook-torrance", ks=0.8, roughness=0.2, f0=0.5)
+    img = gpps.render(sc, true, L, bits=16, device=device) / L.intensities[:, None, None, :]
+    lu = gpps.DirectionalLights(L.directions)
+
+    def call():
+        rec = gpps.reconstruct(img, sc.mask, lu, camera=sc.camera, material="cook-torrance", device=device)
+        return rec.timings, gpps.normal_errors(rec.normals, sc.normals, sc.mask)["mean"]
+    return call
+
+
+def _folder(folder: str, device):
+    def call():
+        res = gpps.reconstruct_folder(folder, device=device)
+        return res.report.get("timings"), res.report.get("maen_deg")
+    return call
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("folders", nargs="*")
+    ap.add_argument("--synthetic", type=int, nargs="*", default=[])
+    ap.add_argument("--images", type=int, default=3)
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--top", type=int, default=45)
+    ap.add_argument("--out", required=True)
+    a = ap.parse_args(argv)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    cases = [(Path(f).name, _folder(f, a.device)) for f in a.folders]
+    cases += [(f"bumps{s}x{a.images}", _synthetic(s, a.images, a.device)) for s in a.synthetic]
+    rows = []
+    for name, call in cases:
+        t = time.perf_counter()
+        call()
+        cold = time.perf_counter() - t
+        t = time.perf_counter()
+        timings, maen = call()
+        warm = time.perf_counter() - t
+        prof = cProfile.Profile()
+        t = time.perf_counter()
+        prof.enable()
+        call()
+        prof.disable()
+        profiled = time.perf_counter() - t
+        (out / f"{name}_cumulative.txt").write_text(_stats(prof, "cumulative", a.top))
+        (out / f"{name}_tottime.txt").write_text(_stats(prof, "tottime", a.top))
+        rows.append({"case": name, "cold_s": cold, "warm_s": warm, "profiled_s": profiled, "maen_deg": maen,
+                     "timings": timings})
+        print(json.dumps(rows[-1], default=json_default), flush=True)
+    (out / "profile.json").write_text(json.dumps({"device": a.device, "rows": rows}, indent=1, default=json_default))
+
+
+if __name__ == "__main__":
+    main()
