@@ -40,6 +40,14 @@ ROBUST_NAMES: tuple[str, ...] = get_args(RobustName)
 SOLVER_TAG = {name: i for i, name in enumerate(SOLVER_NAMES)}  # none 0, lm 1, dogleg 2, bfgs 3
 ROBUST_TAG = {name: i for i, name in enumerate(ROBUST_NAMES)}  # none 0, huber 1, cauchy 2
 
+# how a batched solve is spread over GPU threads: one thread a (candidate, pixel) pair, or one block of
+# LIGHT_LANES threads a pair with the lights split over the lanes (gpps.kernels.solve_cost.evaluate_for);
+# "auto": "lights" on CUDA from LIGHTS_PARALLEL_MIN images on (perf/material_lanes.py), else "pixels"
+ParallelName = Literal["auto", "pixels", "lights"]
+PARALLEL_NAMES: tuple[str, ...] = get_args(ParallelName)
+LIGHT_LANES = 32
+LIGHTS_PARALLEL_MIN = 16
+
 # bits of the solver's per-pixel ``flags`` (int32)
 FLAG_ILL_CONDITIONED = 1  # light matrix of the pixel's valid lights is (nearly) singular (3.13)
 FLAG_FEW_OBSERVATIONS = 2  # fewer than 3 valid observations

@@ -292,3 +292,71 @@ def test_warm_step_equals_pixel_solver_warm_start(light_kind, device):
     # from its own cold solution, candidate 2 keeps that minimum at a fraction of the cold multi-start's cost
     assert_energies_equal(e_host[2:3], e_cold[2:3], s)
     assert r_host["iterations"][2].mean() < 0.5 * it_cold[2].mean()
+
+
+def _score_parallel(images, sample, camera, lights, cands, config, parallel, *, device, depth=None, warm=None):
+    with MaterialScorer(images.shape[:3], camera, lights, cands[0].brdf, config, max_samples=int(sample.sum()),
+                        max_candidates=len(cands), trim=TRIM, parallel=parallel, device=device) as sc:
+        sc.upload(images, sample, depth=depth)
+        if warm is not None:
+            sc.set_start(warm)
+        sc.step(cands, warm=warm is not None)
+        return sc.fetch(), sc.fetch_pixels(), sc.parallel
+
+
+@pytest.mark.parametrize("method,robust,light_kind", [("lm", "cauchy", "directional"), ("dogleg", "none", "point"),
+                                                      ("bfgs", "huber", "directional")])
+@pytest.mark.parametrize("cpu_blocks", [False, True])
+def test_lights_parallel_equals_one_thread_a_pixel(method, robust, light_kind, cpu_blocks, device, monkeypatch):
+    """The lights-parallel build (a block of 32 lanes a (candidate, pixel) solve, the lights split over the
+    lanes and the sums reduced over the block) against one thread a solve, 40 noisy images with a shadow
+    threshold, IRLS (the lanes reweight their own lights), cold multi-start and warm steps.
+
+    The sums differ only in order: on one lane (the CPU without ``enable_cpu_blocks``) the order is the same
+    and the results are bitwise equal; with 32 lanes (CUDA, or the CPU's cooperative blocks) the energies
+    agree to the float32 rounding of a sum of 40 terms carried through the fit (rtol 1e-4), and the normals
+    to 0.01 deg on all but a few pixels (a rounding difference can move where an iteration stops)."""
+    import warp as wp
+
+    if cpu_blocks:
+        if device != "cpu":
+            pytest.skip("enable_cpu_blocks concerns the CPU backend")
+        monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    img, lights, sc, mat = _many_lights_case("cook-torrance", light_kind, 40, size=24, device=device)
+    sample = sample_mask(sc.mask, 90, seed=7)
+    depth = sc.depth if light_kind == "point" else None
+    cands = candidates_around(mat)
+    cfg = fit_config(solver=method, robust=robust, irls_rounds=2 if robust != "none" else 3, shadow_threshold=0.02)
+    s = scale_of(img, sc.mask)
+    warm = sc.normals[sample].astype(np.float32)
+    for start in (None, warm):
+        e1, p1, k1 = _score_parallel(img, sample, sc.camera, lights, cands, cfg, "pixels", device=device,
+                                     depth=depth, warm=start)
+        e2, p2, k2 = _score_parallel(img, sample, sc.camera, lights, cands, cfg, "lights", device=device,
+                                     depth=depth, warm=start)
+        assert (k1, k2) == ("pixels", "lights")
+        if device == "cpu" and not cpu_blocks:
+            np.testing.assert_array_equal(e1, e2)
+            for name in ("normals", "albedo", "residual", "iterations", "flags"):
+                np.testing.assert_array_equal(p1[name], p2[name])
+            continue
+        np.testing.assert_allclose(e2, e1, rtol=1e-4, atol=(1e-6 * s) ** 2)
+        ang = np.degrees(2.0 * np.arcsin(np.linalg.norm(p1["normals"].astype(np.float64) - p2["normals"], axis=-1) / 2))
+        assert np.mean(ang < 1e-2) >= 0.97, np.sort(ang.ravel())[-10:]
+        np.testing.assert_array_equal(p1["flags"] & ~4, p2["flags"] & ~4)  # all but "not converged"
+
+
+def test_parallel_choice(device):
+    """``parallel``: checked; "auto" picks the lights-parallel build on CUDA from LIGHTS_PARALLEL_MIN images."""
+    from gpps.names import LIGHTS_PARALLEL_MIN
+
+    img, lights, sc, mat = make_case("sphere", 16, "orthographic", "directional", "blinn-phong", device=device)
+    with pytest.raises(ValueError, match="parallel"):
+        MaterialScorer(img.shape[:3], sc.camera, lights, mat, fit_config(), parallel="warps", device=device)
+    with MaterialScorer(img.shape[:3], sc.camera, lights, mat, fit_config(), device=device) as a:
+        assert a.parallel == "pixels"  # 3 images
+    n = LIGHTS_PARALLEL_MIN
+    shape = (n,) + img.shape[1:3]
+    many = DirectionalLights(default_lights("directional", n, layout="spiral").directions)
+    with MaterialScorer(shape, sc.camera, many, mat, fit_config(), device=device) as b:
+        assert b.parallel == ("lights" if device.startswith("cuda") else "pixels")

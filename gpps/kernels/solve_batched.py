@@ -68,6 +68,7 @@ from gpps.kernels.solve_common import (
     light_gram,
     pixel_at,
     store_solution,
+    store_solution_lanes,
 )
 from gpps.kernels.solve_kernels import least_squares_start, observation_weights
 from gpps.kernels.solve_methods import solver_funcs
@@ -281,14 +282,17 @@ def tile_samples_kernel(
         cols[t] = q - (q // width) * width
 
 
-def batched_kernel_for(robust, solve_pixel, module, sfx: str):
-    """``solve_batched_kernel``: candidates x sample pixels, one thread a (candidate, pixel) pair.
+def batched_kernel_for(robust, solve_pixel, module, sfx: str, lanes: bool = False):
+    """``solve_batched_kernel``: candidates x sample pixels, one thread (or one block) a (candidate, pixel) pair.
 
     Args:
         robust: ``"none"``, ``"huber"`` or ``"cauchy"`` (the normalised key's loss).
         solve_pixel: the nonlinear solve (:func:`gpps.kernels.solve_methods.solve_pixel_for`).
         module: Warp module of the kernel.
         sfx: key suffix of the kernel.
+        lanes: the lights-parallel build, launched with ``wp.launch_tiled(dim=(K, chunk),
+            block_dim=B)``: the B lanes of a block share one (candidate, pixel) solve, each
+            taking every B-th light (``solve_pixel`` must be the lanes build too).
     """
 
     @wp.kernel(name="solve_batched_kernel" + sfx, module=module, enable_backward=False)
@@ -329,15 +333,31 @@ def batched_kernel_for(robust, solve_pixel, module, sfx: str):
             iterations_k: (K, P) out: cost evaluations used.
             flags_k: (K, P) out: FLAG_* bits (``base_flags`` plus FLAG_NOT_CONVERGED).
         """
-        c, t = wp.tid()
-        p = first + t
-        nl_ = lights.count
-        if wp.static(robust != "none"):
-            for k in range(nl_):
-                weights_k[k, c, p] = base_weights[k, 0, p]
-        px = strip_pixel(c, p, points[p], views[p], prm)
-        sol = solve_pixel(ninit[p], gmax[p], strip_k, weights_k, px, lights, mats[c], prm)
-        store_solution(sol, base_flags[p], weights_k, px, nl_, normals_k, albedo_k, residual_k, iterations_k, flags_k)
+        if wp.static(lanes):
+            c, t, lane = wp.tid()
+            p = first + t
+            nl_ = lights.count
+            nb = wp.block_dim()
+            if wp.static(robust != "none"):
+                for k in range(lane, nl_, nb):  # each lane its own lights: it alone reweights them
+                    weights_k[k, c, p] = base_weights[k, 0, p]
+            px = strip_pixel(c, p, points[p], views[p], prm)
+            px.lane = lane
+            px.lanes = nb
+            sol = solve_pixel(ninit[p], gmax[p], strip_k, weights_k, px, lights, mats[c], prm)
+            store_solution_lanes(sol, base_flags[p], weights_k, px, nl_, normals_k, albedo_k, residual_k,
+                                 iterations_k, flags_k)
+        else:
+            c, t = wp.tid()
+            p = first + t
+            nl_ = lights.count
+            if wp.static(robust != "none"):
+                for k in range(nl_):
+                    weights_k[k, c, p] = base_weights[k, 0, p]
+            px = strip_pixel(c, p, points[p], views[p], prm)
+            sol = solve_pixel(ninit[p], gmax[p], strip_k, weights_k, px, lights, mats[c], prm)
+            store_solution(sol, base_flags[p], weights_k, px, nl_, normals_k, albedo_k, residual_k, iterations_k,
+                           flags_k)
 
     return solve_batched_kernel
 
@@ -345,13 +365,13 @@ def batched_kernel_for(robust, solve_pixel, module, sfx: str):
 _BATCHED: dict = {}
 
 
-def batched_module_name(method, brdf, robust) -> str:
+def batched_module_name(method, brdf, robust, lanes: bool = False) -> str:
     """Name of the Warp module holding the batched kernel of one specialisation."""
     tag = _solve_module_name(method, brdf, robust).rsplit(".", 1)[1]
-    return f"gpps.kernels.solve_batched.{tag}"
+    return f"gpps.kernels.solve_batched.{tag}" + ("_lanes" if lanes else "")
 
 
-def get_batched_kernel(method, brdf, robust="none"):
+def get_batched_kernel(method, brdf, robust="none", lanes: bool = False):
     """The batched solve kernel specialised for one solver, reflectance model and robust loss.
 
     Args:
@@ -360,6 +380,7 @@ def get_batched_kernel(method, brdf, robust="none"):
         brdf: a :data:`gpps.names.BRDF_NAMES` name.
         robust: ``"none"``, ``"huber"`` or ``"cauchy"``; ``"none"`` emits no IRLS
             round (``prm.irls_rounds`` must be 0) and never writes ``weights_k``.
+        lanes: the lights-parallel build (:func:`batched_kernel_for`; launch it tiled).
 
     Built once per key and cached, in a Warp module of its own
     (:func:`batched_module_name`), compiled on first launch.
@@ -367,12 +388,13 @@ def get_batched_kernel(method, brdf, robust="none"):
     key = specialisation_key(method, brdf, robust)
     if None in key or key[0] == "none":
         raise ValueError(f"method, brdf, robust: expected a nonlinear solver and fixed choices, got {key}")
-    k = _BATCHED.get(key)
+    lanes = bool(lanes)
+    k = _BATCHED.get((key, lanes))
     if k is None:
-        name = batched_module_name(*key)
+        name = batched_module_name(*key, lanes=lanes)
         sfx = "__batched_" + name.rsplit(".", 1)[1]
         module = wp.get_module(name)
-        funcs = solver_funcs(*key, module, sfx)
-        k = batched_kernel_for(key[2], funcs.solve_pixel, module, sfx)
-        _BATCHED[key] = k
+        funcs = solver_funcs(*key, module, sfx, lanes=lanes)
+        k = batched_kernel_for(key[2], funcs.solve_pixel, module, sfx, lanes=lanes)
+        _BATCHED[(key, lanes)] = k
     return k

@@ -72,6 +72,9 @@ class Pixel:
         prior_w: weight of a weak prior ``1/2 prior_w |n - prior_n|^2`` added to
             the cost (0: none); it only breaks ties of under-determined pixels.
         prior_n: the prior normal.
+        lane, lanes: the thread's lane and the lanes sharing this pixel's solve (the
+            lights-parallel builds: lane ``l`` takes lights ``l, l + lanes, ...`` and the
+            sums are reduced over the block); 0 and 1 in the one-thread-a-pixel builds.
     """
 
     i: wp.int32
@@ -83,6 +86,13 @@ class Pixel:
     grey_albedo: wp.int32
     prior_w: wp.float32
     prior_n: wp.vec3
+    lane: wp.int32
+    lanes: wp.int32
+
+# the pass-1 sums of the lights-parallel evaluation (6 vec3 and the weight sum) and the pass-2 sums
+# (cost, J^T r, the 3 distinct entries of J^T J), reduced over a block as one vector each
+vec19 = wp.types.vector(length=19, dtype=wp.float32)
+vec6 = wp.types.vector(length=6, dtype=wp.float32)
 
 
 @wp.struct
@@ -289,6 +299,8 @@ def pixel_at(i: int, j: int, point: wp.vec3, view: wp.vec3, prm: SolverParams):
     px.grey_albedo = prm.grey_albedo
     px.prior_w = 0.0
     px.prior_n = wp.vec3(0.0)
+    px.lane = 0
+    px.lanes = 1
     return px
 
 
@@ -340,3 +352,84 @@ def store_least_squares(
         residual[i, j] = 0.0
     iterations[i, j] = 0
     flags[i, j] = flag
+
+
+# ---------------------------------------------------------------- lights-parallel pieces
+# Used only by the lights-parallel builds (``lanes=True`` in :func:`gpps.kernels.solve_methods.solver_funcs`),
+# launched with ``wp.launch_tiled`` so that one block of ``lanes`` threads solves one pixel: every lane runs
+# the same (uniform) solver steps and takes a strided share of the light loops; the sums are reduced over
+# the block (``wp.tile_sum``) and every lane reads the same total, so the lanes' control flow stays uniform.
+# A lane reads and writes only the weights of its own lights: no lane waits for another's memory writes.
+
+
+@wp.func
+def lanes_sum(x: float):
+    """Sum of a scalar over the block's lanes (every lane gets it)."""
+    return wp.tile_sum(wp.tile(x))[0]
+
+
+@wp.func
+def lanes_sum19(x: vec19):
+    """Sum of a :data:`vec19` over the block's lanes (every lane gets it)."""
+    return wp.tile_sum(wp.tile(x, preserve_type=True))[0]
+
+
+@wp.func
+def lanes_sum6(x: vec6):
+    """Sum of a :data:`vec6` over the block's lanes (every lane gets it)."""
+    return wp.tile_sum(wp.tile(x, preserve_type=True))[0]
+
+
+@wp.func
+def brightest_half_vector_lanes(images: wp.array3d(dtype=wp.vec3), weights: wp.array3d(dtype=wp.float32), px: Pixel,
+                                lights: LightParams):
+    """:func:`brightest_half_vector` over the lanes: the same light (the first of the brightest valid ones)."""
+    kb = int(lights.count)
+    gb = float(-1.0)
+    for k in range(px.lane, lights.count, px.lanes):
+        if weights[k, px.i, px.j] != 0.0:
+            gk = grey(images[k, px.i, px.j])
+            if gk > gb:
+                gb = gk
+                kb = k
+    gm = wp.tile_max(wp.tile(gb))[0]
+    if gb != gm:
+        kb = lights.count
+    kb = wp.tile_min(wp.tile(kb))[0]
+    if kb >= lights.count:
+        kb = 0  # no valid light: the one-thread version's default
+    return wp.normalize(light_dir(lights, kb, px.p) + px.v)
+
+
+@wp.func
+def store_solution_lanes(
+    sol: PixelSolution,
+    flag: int,
+    weights: wp.array3d(dtype=wp.float32),
+    px: Pixel,
+    nl_: int,
+    normals: wp.array2d(dtype=wp.vec3),
+    albedo: wp.array2d(dtype=wp.vec3),
+    residual: wp.array2d(dtype=wp.float32),
+    iterations: wp.array2d(dtype=wp.int32),
+    flags: wp.array2d(dtype=wp.int32),
+):
+    """:func:`store_solution` over the lanes: the weight sum reduced over the block, lane 0 writes."""
+    wsum = float(0.0)
+    for k in range(px.lane, nl_, px.lanes):
+        wsum += wp.abs(weights[k, px.i, px.j])
+    wsum = lanes_sum(wsum)
+    if px.lane == 0:
+        i = px.i
+        j = px.j
+        f = flag
+        if sol.best.converged == 0:
+            f = f | FLAG_NOT_CONVERGED
+        normals[i, j] = sol.best.n
+        albedo[i, j] = sol.best.kd
+        if wsum > 0.0:
+            residual[i, j] = wp.sqrt(2.0 * sol.best.cost / (3.0 * wsum))
+        else:
+            residual[i, j] = 0.0
+        iterations[i, j] = sol.total
+        flags[i, j] = f

@@ -21,7 +21,7 @@ from gpps.kernels.jacobians import (
     phong_value_grad,
     specular_value_grad,
 )
-from gpps.kernels.solve_common import Eval, Pixel
+from gpps.kernels.solve_common import Eval, Pixel, lanes_sum6, lanes_sum19, vec6, vec19
 
 
 def specular_value_grad_for(brdf, module, sfx: str):
@@ -97,13 +97,17 @@ def light_terms_for(spec_vg, module, sfx: str):
     return light_terms
 
 
-def evaluate_for(light_terms, module, sfx: str):
+def evaluate_for(light_terms, module, sfx: str, lanes: bool = False):
     """``evaluate``: the reduced cost, its gradient and Gauss-Newton matrix at one normal.
 
     Args:
         light_terms: the per-light terms (:func:`light_terms_for`).
         module: Warp module of the function (None: this file's).
         sfx: key suffix of the function.
+        lanes: the lights-parallel build: the pixel's lanes (``px.lane`` of ``px.lanes``, one
+            block) each sum a strided share of the lights, and each pass's sums are reduced over
+            the block before they are used (the same sums in another order: equal up to float
+            rounding).  False: one thread sums every light in order.
     """
 
     @wp.func(name="evaluate" + sfx, module=module)
@@ -143,7 +147,12 @@ def evaluate_for(light_terms, module, sfx: str):
         dsay0 = wp.vec3(0.0)
         dsay1 = wp.vec3(0.0)
         wsum = float(0.0)
-        for k in range(lights.count):
+        k0 = int(0)
+        dk = int(1)
+        if wp.static(lanes):
+            k0 = px.lane
+            dk = px.lanes
+        for k in range(k0, lights.count, dk):
             w = weights[k, i, j]
             if w > 0.0:
                 e, obs, dval, sval, da0, da1, ds0, ds1 = light_terms(images, lights, mat, k, i, j, p, n, v, dn0, dn1)
@@ -161,6 +170,24 @@ def evaluate_for(light_terms, module, sfx: str):
                     dsaa1[c] += w * 2.0 * a * a1
                     dsay0[c] += w * (a0 * y + a * y0)
                     dsay1[c] += w * (a1 * y + a * y1)
+        if wp.static(lanes):
+            t = vec19()
+            for c in range(3):
+                t[c] = saa[c]
+                t[3 + c] = say[c]
+                t[6 + c] = dsaa0[c]
+                t[9 + c] = dsaa1[c]
+                t[12 + c] = dsay0[c]
+                t[15 + c] = dsay1[c]
+            t[18] = wsum
+            t = lanes_sum19(t)
+            saa = wp.vec3(t[0], t[1], t[2])
+            say = wp.vec3(t[3], t[4], t[5])
+            dsaa0 = wp.vec3(t[6], t[7], t[8])
+            dsaa1 = wp.vec3(t[9], t[10], t[11])
+            dsay0 = wp.vec3(t[12], t[13], t[14])
+            dsay1 = wp.vec3(t[15], t[16], t[17])
+            wsum = t[18]
         if grey_albedo != 0:
             saa = wp.vec3(saa[0] + saa[1] + saa[2])
             say = wp.vec3(say[0] + say[1] + say[2])
@@ -184,7 +211,7 @@ def evaluate_for(light_terms, module, sfx: str):
         cost = float(0.0)
         jtj = wp.mat22(0.0)
         jtr = wp.vec2(0.0)
-        for k in range(lights.count):
+        for k in range(k0, lights.count, dk):
             w = weights[k, i, j]
             if w != 0.0:
                 e, obs, dval, sval, da0, da1, ds0, ds1 = light_terms(images, lights, mat, k, i, j, p, n, v, dn0, dn1)
@@ -199,6 +226,11 @@ def evaluate_for(light_terms, module, sfx: str):
                         cost += 0.5 * wa * r * r
                         jtr += wa * r * wp.vec2(j0, j1)
                         jtj += wa * wp.mat22(j0 * j0, j0 * j1, j0 * j1, j1 * j1)
+        if wp.static(lanes):
+            u = lanes_sum6(vec6(cost, jtr[0], jtr[1], jtj[0, 0], jtj[0, 1], jtj[1, 1]))
+            cost = u[0]
+            jtr = wp.vec2(u[1], u[2])
+            jtj = wp.mat22(u[3], u[4], u[4], u[5])
         if px.prior_w > 0.0:
             dp = n - px.prior_n
             cost += 0.5 * px.prior_w * wp.dot(dp, dp)

@@ -23,6 +23,7 @@ from gpps.kernels.solve_common import (
     SolverParams,
     StartResult,
     brightest_half_vector,
+    brightest_half_vector_lanes,
     dot2,
     solve22,
     start_normal,
@@ -346,7 +347,7 @@ def run_method_for(method, run_lm, run_dogleg, run_bfgs, module, sfx: str):
     return run_method
 
 
-def solve_pixel_for(robust, run_method, spec_vg, module, sfx: str):
+def solve_pixel_for(robust, run_method, spec_vg, module, sfx: str, lanes: bool = False):
     """``solve_pixel``: multi-start, then the IRLS rounds of the robust loss (``robust=None``: switch on ``prm.robust``).
 
     Args:
@@ -355,6 +356,8 @@ def solve_pixel_for(robust, run_method, spec_vg, module, sfx: str):
         spec_vg: the specular value-and-gradient (:func:`gpps.kernels.solve_cost.specular_value_grad_for`).
         module: Warp module of the function (None: this file's).
         sfx: key suffix of the function.
+        lanes: the lights-parallel build (see :func:`gpps.kernels.solve_cost.evaluate_for`): the
+            brightest light is found over the lanes and each lane reweights its own lights.
     """
 
     @wp.func(name="solve_pixel" + sfx, module=module)
@@ -379,7 +382,11 @@ def solve_pixel_for(robust, run_method, spec_vg, module, sfx: str):
         nstarts = wp.max(prm.starts, 1)
         if prm.warm_start != 0:
             nstarts = 1
-        hbright = brightest_half_vector(images, weights, px, lights)
+        hbright = wp.vec3(0.0)
+        if wp.static(lanes):
+            hbright = brightest_half_vector_lanes(images, weights, px, lights)
+        else:
+            hbright = brightest_half_vector(images, weights, px, lights)
         for s in range(nstarts):
             res = run_method(start_normal(s, ninit, v, hbright, prm), images, weights, px, lights, mat, prm)
             total += res.iters
@@ -394,7 +401,12 @@ def solve_pixel_for(robust, run_method, spec_vg, module, sfx: str):
             for rnd in range(prm.irls_rounds):
                 # robust reweighting from the residuals at the current best (Huber / Cauchy IRLS)
                 scale = prm.robust_scale * wp.max(gmax, 1.0e-12)
-                for k in range(lights.count):
+                k0 = int(0)
+                dk = int(1)
+                if wp.static(lanes):
+                    k0 = px.lane
+                    dk = px.lanes
+                for k in range(k0, lights.count, dk):
                     wk = weights[k, i, j]
                     if wk != 0.0:
                         l = light_dir(lights, k, px.p)
@@ -438,26 +450,28 @@ def solve_pixel_for(robust, run_method, spec_vg, module, sfx: str):
     return solve_pixel
 
 
-def solver_funcs(method, brdf, robust, module=None, sfx: str = ""):
+def solver_funcs(method, brdf, robust, module=None, sfx: str = "", lanes: bool = False):
     """Define the solver functions for one ``(method, brdf, robust)``.
 
     ``None`` for any of them keeps that choice a run-time switch on
     ``prm.method`` / ``mat.model`` / ``prm.robust`` (the generic build).  The
     ``wp.static`` conditions are evaluated at code generation, so only the
     chosen branches are emitted.  ``module`` / ``sfx``: Warp module and key
-    suffix of the functions (distinct per specialisation).
+    suffix of the functions (distinct per specialisation).  ``lanes``: the
+    lights-parallel build (one block of lanes a pixel, launched tiled; see
+    :func:`gpps.kernels.solve_cost.evaluate_for`).
 
     Returns:
         A namespace with ``evaluate``, ``run_lm``, ``run_dogleg``, ``run_bfgs``,
         ``run_method`` and ``solve_pixel``.
     """
     spec_vg = specular_value_grad_for(brdf, module, sfx)
-    evaluate = evaluate_for(light_terms_for(spec_vg, module, sfx), module, sfx)
+    evaluate = evaluate_for(light_terms_for(spec_vg, module, sfx), module, sfx, lanes)
     run_lm = lm_for(evaluate, module, sfx)
     run_dogleg = dogleg_for(evaluate, module, sfx)
     run_bfgs = bfgs_for(evaluate, module, sfx)
     run_method = run_method_for(method, run_lm, run_dogleg, run_bfgs, module, sfx)
-    solve_pixel = solve_pixel_for(robust, run_method, spec_vg, module, sfx)
+    solve_pixel = solve_pixel_for(robust, run_method, spec_vg, module, sfx, lanes)
     return SimpleNamespace(
         evaluate=evaluate, run_lm=run_lm, run_dogleg=run_dogleg, run_bfgs=run_bfgs, run_method=run_method, solve_pixel=solve_pixel
     )

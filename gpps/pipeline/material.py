@@ -41,13 +41,13 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from gpps._check import as_array, as_mask, check_number, check_unit
+from gpps._check import as_array, as_mask, check_choice, check_number, check_unit
 from gpps._runtime import resolve_device, warp
 from gpps.kernels import solve_batched as sb
 from gpps.kernels.brdf import MaterialParams
 from gpps.lights import PointLights
 from gpps.material import Material
-from gpps.names import BRDF_NAMES
+from gpps.names import BRDF_NAMES, LIGHT_LANES, LIGHTS_PARALLEL_MIN, ParallelName
 from gpps.pipeline.cpu_threads import cpu_threads, load_first, run_all
 from gpps.pipeline.params import camera_params, light_params, material_params
 from gpps.pipeline.solver import (
@@ -106,6 +106,13 @@ class MaterialScorer(Stage):
         max_samples: capacity P_max of the sample (pixels).
         max_candidates: capacity K_max of one step (candidates).
         trim: fraction of the largest squared residuals left out of each energy, in [0, 0.5].
+        parallel: ``"pixels"``: one thread a (candidate, pixel) solve; ``"lights"``: one block of
+            :data:`gpps.names.LIGHT_LANES` threads a solve, the lights split over the lanes (a GPU
+            launch costs its slowest thread: with many images one thread's light loops are the
+            critical path, and K x P threads fill a fraction of the GPU); ``"auto"``: "lights" on
+            CUDA with :data:`gpps.names.LIGHTS_PARALLEL_MIN` images or more.  The two differ only
+            in the order of the light sums (float rounding).  On the CPU a block runs as one lane
+            unless ``warp.config.enable_cpu_blocks`` is set.
         device: Warp device (None: CUDA if present).
 
     Buffers (allocated once, N x K_max x P_max): the strip ``strip`` (N, 1, P_max)
@@ -116,7 +123,7 @@ class MaterialScorer(Stage):
     """
 
     def __init__(self, shape, camera, lights, brdf, config: SolverConfig, *, max_samples: int = 2000,
-                 max_candidates: int = 25, trim: float = 0.02, device=None):
+                 max_candidates: int = 25, trim: float = 0.02, parallel: ParallelName = "auto", device=None):
         wp = warp()
         n, h, w = check_problem(shape, lights)
         if isinstance(brdf, Material):
@@ -149,7 +156,11 @@ class MaterialScorer(Stage):
         self.prm_warm = solver_params(replace(config, warm_start=True, starts=1))
         robust = config.robust if config.irls_rounds > 0 else "none"
         self._robust = robust
-        self._kernel = sb.get_batched_kernel(config.solver, brdf, robust)
+        parallel = check_choice("parallel", parallel, ParallelName)
+        if parallel == "auto":
+            parallel = "lights" if self.device.startswith("cuda") and n >= LIGHTS_PARALLEL_MIN else "pixels"
+        self.parallel = parallel
+        self._kernel = sb.get_batched_kernel(config.solver, brdf, robust, lanes=parallel == "lights")
         d, pm, km = self.device, int(self.max_samples), int(self.max_candidates)
         self.strip = wp.zeros((n, 1, pm), dtype=wp.vec3, device=d)
         self.strip_valid = wp.ones((n, 1, pm), dtype=wp.uint8, device=d)
@@ -410,12 +421,16 @@ class MaterialScorer(Stage):
         """One launch: candidates ``0..k`` x sample pixels ``a..b``, cold (Woodham's start, the config's
         multi-start) or ``warm`` (one start from :meth:`set_start`'s normals)."""
         ninit, prm = (self.nwarm, self.prm_warm) if warm else (self.ninit, self.prm)
-        warp().launch(self._kernel, dim=(k, int(b - a)),
-                      inputs=[self._strip_k, self.base_weights, self.points, self.views, ninit, self.gmax,
-                              self.flags, self.lp, self.mats, prm, int(a)],
-                      outputs=[self._weights_k, self.normals, self.albedo, self.residual, self.iterations,
-                               self.flags_k],
-                      device=self.device)
+        wp = warp()
+        args = dict(inputs=[self._strip_k, self.base_weights, self.points, self.views, ninit, self.gmax,
+                            self.flags, self.lp, self.mats, prm, int(a)],
+                    outputs=[self._weights_k, self.normals, self.albedo, self.residual, self.iterations,
+                             self.flags_k],
+                    device=self.device)
+        if self.parallel == "lights":
+            wp.launch_tiled(self._kernel, dim=(k, int(b - a)), block_dim=LIGHT_LANES, **args)
+        else:
+            wp.launch(self._kernel, dim=(k, int(b - a)), **args)
 
     def _set_candidates(self, candidates) -> int:
         if isinstance(candidates, Material):
@@ -475,6 +490,8 @@ class MaterialScorer(Stage):
         chunks = min(check_number("chunks", chunks, lo=1, integer=True), p)
         # on the CPU each chunk is split again over the threads (gpps.pipeline.cpu_threads), run together
         threads = 1 if cuda else min(cpu_threads(), max(1, p // max(chunks, 1)))
+        if self.parallel == "lights":
+            threads = 1  # Warp's CPU tile code keeps block scratch memory that concurrent launches share (segfault)
         wp = warp()
         bounds = np.linspace(0, p, chunks + 1).round().astype(int)
 
