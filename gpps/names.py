@@ -41,12 +41,19 @@ SOLVER_TAG = {name: i for i, name in enumerate(SOLVER_NAMES)}  # none 0, lm 1, d
 ROBUST_TAG = {name: i for i, name in enumerate(ROBUST_NAMES)}  # none 0, huber 1, cauchy 2
 
 # how a batched solve is spread over GPU threads: one thread a (candidate, pixel) pair, or one block of
-# LIGHT_LANES threads a pair with the lights split over the lanes (gpps.kernels.solve_cost.evaluate_for);
-# "auto": "lights" on CUDA from LIGHTS_PARALLEL_MIN images on (perf/material_lanes.py), else "pixels"
+# LIGHT_LANES threads a pair with the lights split over the lanes (gpps.kernels.solve_cost.evaluate_for).
+# "auto", per launch on CUDA: "lights" from LIGHTS_PARALLEL_MIN images on when the launch has at most
+# LIGHTS_PARALLEL_PAIRS_PER_IMAGE x N (candidate, pixel) pairs, else "pixels".  Measured on an H100
+# (perf/results/material_lanes_H100.json, Cauchy IRLS, 4 starts cold / 1 warm): a launch of few pairs is
+# latency-bound (its slowest thread's light loops), the lanes cut that: 4 x 500 warm pairs at 96 images
+# 30.5 -> 2.7 ms, at 16 images 4 x 1500 6.8 -> 3.1 ms; a launch of many pairs already fills the GPU and the
+# lanes' reductions cost more than they save: 25 x 1000 pairs at 24 images 19.8 -> 24.7 ms, 25 x 2000 at
+# 12 images 15.8 -> 46.9 ms (but 25 x 500 at 96 images 73.9 -> 27.9 ms).
 ParallelName = Literal["auto", "pixels", "lights"]
 PARALLEL_NAMES: tuple[str, ...] = get_args(ParallelName)
 LIGHT_LANES = 32
 LIGHTS_PARALLEL_MIN = 16
+LIGHTS_PARALLEL_PAIRS_PER_IMAGE = 500
 
 # bits of the solver's per-pixel ``flags`` (int32)
 FLAG_ILL_CONDITIONED = 1  # light matrix of the pixel's valid lights is (nearly) singular (3.13)

@@ -347,8 +347,9 @@ def test_lights_parallel_equals_one_thread_a_pixel(method, robust, light_kind, c
 
 
 def test_parallel_choice(device):
-    """``parallel``: checked; "auto" picks the lights-parallel build on CUDA from LIGHTS_PARALLEL_MIN images."""
-    from gpps.names import LIGHTS_PARALLEL_MIN
+    """``parallel``: checked; "auto" stays per launch on CUDA from LIGHTS_PARALLEL_MIN images (the lanes for
+    launches of at most LIGHTS_PARALLEL_PAIRS_PER_IMAGE x N pairs), else one thread a pair."""
+    from gpps.names import LIGHTS_PARALLEL_MIN, LIGHTS_PARALLEL_PAIRS_PER_IMAGE
 
     img, lights, sc, mat = make_case("sphere", 16, "orthographic", "directional", "blinn-phong", device=device)
     with pytest.raises(ValueError, match="parallel"):
@@ -359,4 +360,9 @@ def test_parallel_choice(device):
     shape = (n,) + img.shape[1:3]
     many = DirectionalLights(default_lights("directional", n, layout="spiral").directions)
     with MaterialScorer(shape, sc.camera, many, mat, fit_config(), device=device) as b:
-        assert b.parallel == ("lights" if device.startswith("cuda") else "pixels")
+        cuda = device.startswith("cuda")
+        assert b.parallel == ("auto" if cuda else "pixels")
+        limit = LIGHTS_PARALLEL_PAIRS_PER_IMAGE * n
+        assert b._uses_lanes(limit) == cuda and not b._uses_lanes(limit + 1)
+    with MaterialScorer(shape, sc.camera, many, mat, fit_config(), parallel="lights", device=device) as c:
+        assert c._uses_lanes(10 ** 9) and c._kernel is None

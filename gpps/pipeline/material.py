@@ -47,7 +47,13 @@ from gpps.kernels import solve_batched as sb
 from gpps.kernels.brdf import MaterialParams
 from gpps.lights import PointLights
 from gpps.material import Material
-from gpps.names import BRDF_NAMES, LIGHT_LANES, LIGHTS_PARALLEL_MIN, ParallelName
+from gpps.names import (
+    BRDF_NAMES,
+    LIGHT_LANES,
+    LIGHTS_PARALLEL_MIN,
+    LIGHTS_PARALLEL_PAIRS_PER_IMAGE,
+    ParallelName,
+)
 from gpps.pipeline.cpu_threads import cpu_threads, load_first, run_all
 from gpps.pipeline.params import camera_params, light_params, material_params
 from gpps.pipeline.solver import (
@@ -109,10 +115,12 @@ class MaterialScorer(Stage):
         parallel: ``"pixels"``: one thread a (candidate, pixel) solve; ``"lights"``: one block of
             :data:`gpps.names.LIGHT_LANES` threads a solve, the lights split over the lanes (a GPU
             launch costs its slowest thread: with many images one thread's light loops are the
-            critical path, and K x P threads fill a fraction of the GPU); ``"auto"``: "lights" on
-            CUDA with :data:`gpps.names.LIGHTS_PARALLEL_MIN` images or more.  The two differ only
-            in the order of the light sums (float rounding).  On the CPU a block runs as one lane
-            unless ``warp.config.enable_cpu_blocks`` is set.
+            critical path, and K x P threads fill a fraction of the GPU); ``"auto"``: chosen per
+            launch on CUDA, "lights" with :data:`gpps.names.LIGHTS_PARALLEL_MIN` images or more
+            and at most ``LIGHTS_PARALLEL_PAIRS_PER_IMAGE x N`` (candidate, pixel) pairs in the
+            launch (measured: :mod:`gpps.names`), else "pixels"; on the CPU always "pixels".
+            The two differ only in the order of the light sums (float rounding).  On the CPU a
+            block runs as one lane unless ``warp.config.enable_cpu_blocks`` is set.
         device: Warp device (None: CUDA if present).
 
     Buffers (allocated once, N x K_max x P_max): the strip ``strip`` (N, 1, P_max)
@@ -157,10 +165,12 @@ class MaterialScorer(Stage):
         robust = config.robust if config.irls_rounds > 0 else "none"
         self._robust = robust
         parallel = check_choice("parallel", parallel, ParallelName)
-        if parallel == "auto":
-            parallel = "lights" if self.device.startswith("cuda") and n >= LIGHTS_PARALLEL_MIN else "pixels"
-        self.parallel = parallel
-        self._kernel = sb.get_batched_kernel(config.solver, brdf, robust, lanes=parallel == "lights")
+        if parallel == "auto" and not (self.device.startswith("cuda") and n >= LIGHTS_PARALLEL_MIN):
+            parallel = "pixels"
+        self.parallel = parallel  # "auto" here: per launch (_uses_lanes)
+        self._kernel = sb.get_batched_kernel(config.solver, brdf, robust) if parallel != "lights" else None
+        self._kernel_lanes = (sb.get_batched_kernel(config.solver, brdf, robust, lanes=True)
+                              if parallel != "pixels" else None)
         d, pm, km = self.device, int(self.max_samples), int(self.max_candidates)
         self.strip = wp.zeros((n, 1, pm), dtype=wp.vec3, device=d)
         self.strip_valid = wp.ones((n, 1, pm), dtype=wp.uint8, device=d)
@@ -427,10 +437,16 @@ class MaterialScorer(Stage):
                     outputs=[self._weights_k, self.normals, self.albedo, self.residual, self.iterations,
                              self.flags_k],
                     device=self.device)
-        if self.parallel == "lights":
-            wp.launch_tiled(self._kernel, dim=(k, int(b - a)), block_dim=LIGHT_LANES, **args)
+        if self._uses_lanes(k * int(b - a)):
+            wp.launch_tiled(self._kernel_lanes, dim=(k, int(b - a)), block_dim=LIGHT_LANES, **args)
         else:
             wp.launch(self._kernel, dim=(k, int(b - a)), **args)
+
+    def _uses_lanes(self, pairs: int) -> bool:
+        """Whether a launch of ``pairs`` (candidate, pixel) solves runs the lights-parallel build."""
+        if self.parallel != "auto":
+            return self.parallel == "lights"
+        return pairs <= LIGHTS_PARALLEL_PAIRS_PER_IMAGE * self.shape[0]
 
     def _set_candidates(self, candidates) -> int:
         if isinstance(candidates, Material):
@@ -492,6 +508,7 @@ class MaterialScorer(Stage):
         threads = 1 if cuda else min(cpu_threads(), max(1, p // max(chunks, 1)))
         if self.parallel == "lights":
             threads = 1  # Warp's CPU tile code keeps block scratch memory that concurrent launches share (segfault)
+        kernels = [x for x in (self._kernel, self._kernel_lanes) if x is not None]
         wp = warp()
         bounds = np.linspace(0, p, chunks + 1).round().astype(int)
 
@@ -499,7 +516,8 @@ class MaterialScorer(Stage):
             return lambda: self._launch_chunk(k, int(a0), int(b0), warm=warm)
 
         if threads > 1:
-            load_first(self._kernel, self.device)
+            for kern in kernels:
+                load_first(kern, self.device)
         for a, b in zip(bounds[:-1], bounds[1:]):
             parts = np.linspace(a, b, threads + 1).round().astype(int)
             run_all([launcher(x, y) for x, y in zip(parts[:-1], parts[1:]) if y > x])
