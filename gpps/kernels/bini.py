@@ -75,7 +75,7 @@ def _diffs(x: ti.template(), nb: ti.template(), p):
     return dr, dl, dd, du
 
 
-def make_bini(F: dict, unroll: int = 8, serial: bool = False):
+def make_bini(F: dict, unroll: int = 8, serial: bool = False, block_sums: bool = False):
     """Build the BiNI kernels over the fields ``F``.
 
     Args:
@@ -93,6 +93,12 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
         serial: ``cg`` runs on one thread with local sums (the CPU build:
             Taichi's thread-pool dispatch of a loop costs more than a loop over
             ~1e5 pixels, and a sum into a field element is an atomic per pixel).
+        block_sums: ``cg``'s sums reduced in shared memory per block of
+            :data:`BLOCK` threads, one float64 atomic a block (the CUDA build: Taichi
+            launches at least a saturating grid of threads, so its thread-local sums
+            still end in one atomic a pixel, and float64 atomics on one address
+            serialise: 77-148 us a loop on DiLiGenT bear's 40 670 pixels on an H100,
+            perf/results/bini_launch_bear_H100.json).
 
     Returns:
         dict of kernels, each taking the pixel count ``n`` first:
@@ -107,8 +113,13 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
     if unroll % 6:
         raise ValueError(f"unroll: expected a multiple of 6 (direction buffers by 2, scalar columns by 3), got {unroll}")
     x, pix = F["x"], F["pix"]
-    K = {**_weight_kernels(F), "begin": _begin_kernel(F),
-         "cg": _cg_serial_kernel(F, unroll) if serial else _cg_kernel(F, unroll, serial)}
+    if serial:
+        cg = _cg_serial_kernel(F, unroll)
+    elif block_sums:
+        cg = _cg_block_kernel(F, unroll)
+    else:
+        cg = _cg_kernel(F, unroll, serial)
+    K = {**_weight_kernels(F), "begin": _begin_kernel(F), "cg": cg}
 
     @ti.kernel
     def scatter(n: ti.i32, out: ti.types.ndarray()):
@@ -315,6 +326,90 @@ def _cg_kernel(F: dict, unroll: int, serial: bool):
                         sc[TOTAL] += 1
 
     return cg
+
+
+BLOCK = 128  # threads of a block in the block-sum CG build (a power of two)
+_LOG_BLOCK = BLOCK.bit_length() - 1
+
+
+@ti.func
+def _block_total(pad: ti.template(), tid):
+    """Tree sum of the block's ``pad[0..BLOCK)`` into ``pad[0]`` (every thread of the block must call it)."""
+    ti.simt.block.sync()
+    for k in ti.static(range(_LOG_BLOCK)):
+        stride = ti.static(BLOCK >> (k + 1))
+        if tid < stride:
+            pad[tid] += pad[tid + stride]
+        ti.simt.block.sync()
+
+
+def _cg_block_kernel(F: dict, unroll: int):
+    """``cg`` with block sums (the CUDA build, see :func:`make_bini`): the iteration of :func:`_cg_kernel`,
+    each loop over ``n`` rounded up to whole blocks (the extra threads add 0), each sum tree-reduced in
+    shared memory and added to its field by one atomic a block.  The same arithmetic per pixel; only the
+    order of the float64 sums differs."""
+    x, r, z, p0, p1, q, dinv, sc = F["x"], F["r"], F["z"], F["p0"], F["p1"], F["q"], F["dinv"], F["sc"]
+    pqf, rrf, rzf, dnf = F["pq"], F["rr"], F["rz"], F["done"]
+    _ap_fused = _ap_fused_func(F)
+
+    @ti.kernel
+    def cg_block(n: ti.i32, tol2: ti.f64, maxit: ti.i32):
+        for t in ti.static(range(unroll)):
+            c, c1, c2 = ti.static(t % 3, (t + 2) % 3, (t + 1) % 3)
+            pold, pnew = ti.static((p0, p1) if t % 2 == 0 else (p1, p0))
+            ti.loop_config(block_dim=BLOCK)
+            for p in range((n + BLOCK - 1) // BLOCK * BLOCK):
+                tid = p % BLOCK
+                pad = ti.simt.block.SharedArray((BLOCK,), ti.f64)
+                done = ti.static(dnf[c1])[0] != 0 or ti.static(rrf[c1])[0] <= tol2 * sc[BB] or sc[ITS] >= maxit
+                beta = ti.static(rzf[c1])[0] / ti.static(rzf[c2])[0]
+                pq = ti.cast(0, ti.f64)
+                if p < n and not done:
+                    pp, s = _ap_fused(p, beta, pold)
+                    q[p] = s
+                    pnew[p] = pp
+                    pq = pp * s
+                pad[tid] = pq
+                _block_total(pad, tid)
+                if tid == 0:
+                    ti.atomic_add(ti.static(pqf[c])[0], pad[0])
+                if p == 0:
+                    ti.static(dnf[c])[0] = ti.cast(done, ti.f64)
+                    if not done:
+                        ti.static(rrf[c])[0] = 0
+                        ti.static(rzf[c])[0] = 0
+            ti.loop_config(block_dim=BLOCK)
+            for p in range((n + BLOCK - 1) // BLOCK * BLOCK):
+                tid = p % BLOCK
+                pr = ti.simt.block.SharedArray((BLOCK,), ti.f64)
+                pz = ti.simt.block.SharedArray((BLOCK,), ti.f64)
+                done = ti.static(dnf[c])[0] != 0
+                pq = ti.static(pqf[c])[0]
+                rr = ti.cast(0, ti.f64)
+                rz = ti.cast(0, ti.f64)
+                if p < n and not done and pq != 0:
+                    a = ti.static(rzf[c1])[0] / pq
+                    x[p] += a * pnew[p]
+                    rv = r[p] - a * q[p]
+                    r[p] = rv
+                    zv = dinv[p] * rv
+                    z[p] = zv
+                    rr = rv * rv
+                    rz = rv * zv
+                pr[tid] = rr
+                pz[tid] = rz
+                _block_total(pr, tid)
+                _block_total(pz, tid)
+                if tid == 0:
+                    ti.atomic_add(ti.static(rrf[c])[0], pr[0])
+                    ti.atomic_add(ti.static(rzf[c])[0], pz[0])
+                if p == 0:
+                    ti.static(pqf[(t + 1) % 3])[0] = 0
+                    if not done:
+                        sc[ITS] += 1
+                        sc[TOTAL] += 1
+
+    return cg_block
 
 
 def _cg_serial_kernel(F: dict, unroll: int):
