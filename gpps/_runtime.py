@@ -94,3 +94,12 @@ def resolve_device(device: str | None = None) -> str:
     if device not in names:
         raise ValueError(f"device: expected one of {names} or 'auto', got {device!r}")
     return device
+
+
+def block_lanes(device: str, lanes: int) -> int:
+    """The threads a block of ``lanes`` gets on ``device``: ``lanes`` on CUDA; on the CPU 1, unless
+    ``warp.config.enable_cpu_blocks`` (Warp runs a CPU block as one thread otherwise).  Launch a tiled kernel
+    over ``(..., block_lanes(...))`` with that ``block_dim``, so that each block is one pixel's lanes."""
+    if str(device).startswith("cuda") or warp().config.enable_cpu_blocks:
+        return int(lanes)
+    return 1

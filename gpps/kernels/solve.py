@@ -88,7 +88,7 @@ from gpps.kernels.solve_common import (
     store_solution,
     transport,
 )
-from gpps.kernels.solve_kernels import make_kernels
+from gpps.kernels.solve_kernels import make_kernels, make_lanes_kernel
 from gpps.kernels.solve_methods import solver_funcs
 from gpps.kernels.solve_neighbours import (
     LINEAR_ITERS,
@@ -149,6 +149,24 @@ def module_name(method, brdf, robust) -> str:
     method, brdf, robust = specialisation_key(method, brdf, robust)
     tag = "_".join("any" if s is None else s.replace("-", "_") for s in (method, brdf, robust))
     return f"gpps.kernels.solve.{tag}"
+
+
+_LANES: dict = {}
+
+
+def get_solve_kernel_lanes(method, brdf, robust="none"):
+    """The lights-parallel solve kernel (one block of lanes a pixel, launched tiled;
+    :func:`gpps.kernels.solve_kernels.solve_kernel_lanes_for`) of one nonlinear solver, reflectance model and
+    robust loss, in a Warp module of its own (:func:`module_name` + ``"_lanes"``), built once and cached."""
+    key = specialisation_key(method, brdf, robust)
+    if None in key or key[0] == "none":
+        raise ValueError(f"method, brdf, robust: expected a nonlinear solver and fixed choices, got {key}")
+    k = _LANES.get(key)
+    if k is None:
+        name = module_name(*key) + "_lanes"
+        k = make_lanes_kernel(*key, module_name=name, sfx="__" + name.rsplit(".", 1)[1])
+        _LANES[key] = k
+    return k
 
 
 def get_solve_kernels(method, brdf, robust="none"):

@@ -21,10 +21,14 @@ from gpps.kernels.solve_common import (
     cond_frobenius,
     grey,
     grey_max,
+    lanes_sum,
+    lanes_sum19,
     light_gram,
     make_pixel,
     store_least_squares,
     store_solution,
+    store_solution_lanes,
+    vec19,
 )
 from gpps.kernels.solve_methods import solver_funcs
 from gpps.kernels.solve_neighbours import neighbour_stats
@@ -123,6 +127,169 @@ def least_squares_start(
             ninit = wp.normalize(gvec)
             kdw = wp.vec3(wp.dot(ai * bc0, ninit), wp.dot(ai * bc1, ninit), wp.dot(ai * bc2, ninit))
     return ninit, kdw
+
+
+# ---------------------------------------------------------------- lights-parallel forms (one block a pixel)
+# The same per-light rules as above over the lane's lights ``px.lane, px.lane + px.lanes, ...`` (a lane writes
+# and reads only its own lights' weights), the sums reduced over the block (gpps.kernels.solve_common).
+
+
+@wp.func
+def observation_weights_lanes(images: wp.array3d(dtype=wp.vec3), valid: wp.array3d(dtype=wp.uint8),
+                              noise: wp.array(dtype=wp.float32), prm: SolverParams, px: Pixel, nl_: int, gmax: float,
+                              weights: wp.array3d(dtype=wp.float32)):
+    """:func:`observation_weights` over the lanes: each lane writes its lights' weights; the lit count of all."""
+    i = px.i
+    j = px.j
+    ninfo = float(0.0)
+    for k in range(px.lane, nl_, px.lanes):
+        o = images[k, i, j]
+        ok = valid[k, i, j] != wp.uint8(0)
+        if grey(o) < prm.shadow_threshold * gmax:
+            ok = False
+        if prm.saturation > 0.0 and wp.max(o[0], wp.max(o[1], o[2])) >= prm.saturation:
+            ok = False
+        w = float(0.0)
+        if ok:
+            w = 1.0
+            if grey(o) > prm.lit_threshold * gmax and grey(o) > prm.lit_sigmas * noise[k]:
+                ninfo += 1.0
+            if grey(o) <= prm.lit_sigmas * noise[k]:
+                w = -1.0
+        weights[k, i, j] = w
+    return int(lanes_sum(ninfo) + 0.5)
+
+
+@wp.func
+def light_gram_lanes(weights: wp.array3d(dtype=wp.float32), px: Pixel, lights: LightParams):
+    """:func:`gpps.kernels.solve_common.light_gram` over the lanes (the block's total)."""
+    t = vec19()
+    for k in range(px.lane, lights.count, px.lanes):
+        if weights[k, px.i, px.j] != 0.0:
+            l = light_dir(lights, k, px.p)
+            for r in range(3):
+                for c in range(3):
+                    t[3 * r + c] += l[r] * l[c]
+    t = lanes_sum19(t)
+    return wp.mat33(t[0], t[1], t[2], t[3], t[4], t[5], t[6], t[7], t[8])
+
+
+@wp.func
+def least_squares_start_lanes(images: wp.array3d(dtype=wp.vec3), weights: wp.array3d(dtype=wp.float32), px: Pixel,
+                              lights: LightParams, use_all: int, warm_ok: int):
+    """:func:`least_squares_start` over the lanes: the normal equations summed over the block, then solved
+    by every lane alike."""
+    i = px.i
+    j = px.j
+    p = px.p
+    t = vec19()
+    for k in range(px.lane, lights.count, px.lanes):
+        if warm_ok == 0 and (use_all != 0 or weights[k, i, j] != 0.0):
+            l = light_dir(lights, k, p)
+            e = light_radiance(lights, k, p)
+            o = images[k, i, j]
+            y = wp.vec3(0.0)
+            for c in range(3):
+                if e[c] > 0.0:
+                    y[c] = o[c] / e[c]
+            for r in range(3):
+                for c in range(3):
+                    t[3 * r + c] += l[r] * l[c]
+                t[9 + r] += y[0] * l[r]
+                t[12 + r] += y[1] * l[r]
+                t[15 + r] += y[2] * l[r]
+    t = lanes_sum19(t)
+    a = wp.mat33(t[0], t[1], t[2], t[3], t[4], t[5], t[6], t[7], t[8])
+    bc0 = wp.vec3(t[9], t[10], t[11])
+    bc1 = wp.vec3(t[12], t[13], t[14])
+    bc2 = wp.vec3(t[15], t[16], t[17])
+    bg = bc0 + bc1 + bc2
+    ninit = px.v
+    kdw = wp.vec3(0.0)
+    det = wp.determinant(a)
+    fa = wp.sqrt(wp.ddot(a, a))
+    if wp.abs(det) > 1.0e-12 * fa * fa * fa and fa > 0.0:
+        ai = wp.inverse(a)
+        gvec = ai * bg
+        if wp.length(gvec) > 0.0:
+            ninit = wp.normalize(gvec)
+            kdw = wp.vec3(wp.dot(ai * bc0, ninit), wp.dot(ai * bc1, ninit), wp.dot(ai * bc2, ninit))
+    return ninit, kdw
+
+
+def solve_kernel_lanes_for(solve_pixel, module, sfx: str):
+    """``solve_kernel_lanes``: :func:`solve_kernel_for`'s per-pixel solve (a nonlinear method) with one block of
+    lanes a pixel, launched tiled over ``(rows, W)`` (``solve_pixel``: the lanes build, see
+    :func:`gpps.kernels.solve_methods.solver_funcs`); the outputs and the inputs are those of ``solve_kernel``.
+    The lanes' sums differ from one thread's only in order (float rounding)."""
+
+    @wp.kernel(name="solve_kernel_lanes" + sfx, module=module, enable_backward=False)
+    def solve_kernel_lanes(
+        images: wp.array3d(dtype=wp.vec3),
+        mask: wp.array2d(dtype=wp.uint8),
+        valid: wp.array3d(dtype=wp.uint8),
+        depth: wp.array2d(dtype=wp.float32),
+        noise: wp.array(dtype=wp.float32),
+        cam: CameraParams,
+        lights: LightParams,
+        mat: MaterialParams,
+        prm: SolverParams,
+        weights: wp.array3d(dtype=wp.float32),
+        normals: wp.array2d(dtype=wp.vec3),
+        albedo: wp.array2d(dtype=wp.vec3),
+        residual: wp.array2d(dtype=wp.float32),
+        iterations: wp.array2d(dtype=wp.int32),
+        flags: wp.array2d(dtype=wp.int32),
+        cond: wp.array2d(dtype=wp.float32),
+    ):
+        t, j, lane = wp.tid()
+        i = t + prm.row0
+        nl_ = lights.count
+        nb = wp.block_dim()
+        if mask[i, j] == wp.uint8(0):
+            if prm.keep_unmasked != 0:
+                return
+            if lane == 0:
+                normals[i, j] = wp.vec3(0.0)
+                albedo[i, j] = wp.vec3(0.0)
+                residual[i, j] = 0.0
+                iterations[i, j] = 0
+                flags[i, j] = 0
+                cond[i, j] = 0.0
+            for k in range(lane, nl_, nb):
+                weights[k, i, j] = 0.0
+            return
+        px = make_pixel(cam, depth, i, j, prm)
+        px.lane = lane
+        px.lanes = nb
+        gmax = grey_max(images, i, j, nl_)
+        ninfo = observation_weights_lanes(images, valid, noise, prm, px, nl_, gmax, weights)
+        flag = int(0)
+        if ninfo < 3:
+            flag = flag | FLAG_FEW_OBSERVATIONS
+        gram = light_gram_lanes(weights, px, lights)
+        cnd = cond_frobenius(gram)
+        if lane == 0:
+            cond[i, j] = cnd
+        if cnd > prm.cond_threshold:
+            flag = flag | FLAG_ILL_CONDITIONED
+        use_all = int(0)
+        if cnd >= 1.0e29:
+            use_all = 1
+            flag = flag | FLAG_WOODHAM_FALLBACK
+        warm_ok = int(0)
+        nw = wp.vec3(0.0)
+        if prm.warm_start != 0:
+            nw = normals[i, j]
+            if wp.length(nw) > 0.5:
+                warm_ok = 1
+        ninit, kdw = least_squares_start_lanes(images, weights, px, lights, use_all, warm_ok)
+        if warm_ok != 0:
+            ninit = wp.normalize(nw)
+        sol = solve_pixel(ninit, gmax, images, weights, px, lights, mat, prm)
+        store_solution_lanes(sol, flag, weights, px, nl_, normals, albedo, residual, iterations, flags)
+
+    return solve_kernel_lanes
 
 
 def solve_kernel_for(method, solve_pixel, module, sfx: str):
@@ -397,6 +564,14 @@ def smooth_kernel_for(run_method, module, sfx: str):
         iterations[i, j] = iterations[i, j] + res.iters
 
     return smooth_kernel
+
+
+def make_lanes_kernel(method, brdf, robust, module_name: str, sfx: str):
+    """The lights-parallel solve kernel (:func:`solve_kernel_lanes_for`) of one specialisation (a nonlinear
+    ``method``) in the Warp module ``module_name``."""
+    module = wp.get_module(module_name)
+    funcs = solver_funcs(method, brdf, robust, module, sfx, lanes=True)
+    return solve_kernel_lanes_for(funcs.solve_pixel, module, sfx)
 
 
 def make_kernels(method, brdf, robust, module_name: str, sfx: str):

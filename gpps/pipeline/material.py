@@ -42,7 +42,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from gpps._check import as_array, as_mask, check_choice, check_number, check_unit
-from gpps._runtime import resolve_device, warp
+from gpps._runtime import block_lanes, resolve_device, warp
 from gpps.kernels import solve_batched as sb
 from gpps.kernels.brdf import MaterialParams
 from gpps.lights import PointLights
@@ -112,7 +112,7 @@ class MaterialScorer(Stage):
         max_samples: capacity P_max of the sample (pixels).
         max_candidates: capacity K_max of one step (candidates).
         trim: fraction of the largest squared residuals left out of each energy, in [0, 0.5].
-        parallel: ``"pixels"``: one thread a (candidate, pixel) solve; ``"lights"``: one block of
+        parallel: None: ``config.parallel``; ``"pixels"``: one thread a (candidate, pixel) solve; ``"lights"``: one block of
             :data:`gpps.names.LIGHT_LANES` threads a solve, the lights split over the lanes (a GPU
             launch costs its slowest thread: with many images one thread's light loops are the
             critical path, and K x P threads fill a fraction of the GPU); ``"auto"``: chosen per
@@ -131,7 +131,7 @@ class MaterialScorer(Stage):
     """
 
     def __init__(self, shape, camera, lights, brdf, config: SolverConfig, *, max_samples: int = 2000,
-                 max_candidates: int = 25, trim: float = 0.02, parallel: ParallelName = "auto", device=None):
+                 max_candidates: int = 25, trim: float = 0.02, parallel: ParallelName | None = None, device=None):
         wp = warp()
         n, h, w = check_problem(shape, lights)
         if isinstance(brdf, Material):
@@ -164,7 +164,7 @@ class MaterialScorer(Stage):
         self.prm_warm = solver_params(replace(config, warm_start=True, starts=1))
         robust = config.robust if config.irls_rounds > 0 else "none"
         self._robust = robust
-        parallel = check_choice("parallel", parallel, ParallelName)
+        parallel = check_choice("parallel", config.parallel if parallel is None else parallel, ParallelName)
         if parallel == "auto" and not (self.device.startswith("cuda") and n >= LIGHTS_PARALLEL_MIN):
             parallel = "pixels"
         self.parallel = parallel  # "auto" here: per launch (_uses_lanes)
@@ -438,7 +438,8 @@ class MaterialScorer(Stage):
                              self.flags_k],
                     device=self.device)
         if self._uses_lanes(k * int(b - a)):
-            wp.launch_tiled(self._kernel_lanes, dim=(k, int(b - a)), block_dim=LIGHT_LANES, **args)
+            lanes = block_lanes(self.device, LIGHT_LANES)
+            wp.launch(self._kernel_lanes, dim=(k, int(b - a), lanes), block_dim=lanes, **args)
         else:
             wp.launch(self._kernel, dim=(k, int(b - a)), **args)
 

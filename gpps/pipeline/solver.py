@@ -25,7 +25,7 @@ from gpps._check import (
     check_choices,
     check_number,
 )
-from gpps._runtime import resolve_device, warp
+from gpps._runtime import block_lanes, resolve_device, warp
 from gpps.kernels import merge as mk
 from gpps.kernels import solve as sk
 from gpps.lights import DirectionalLights, PointLights
@@ -36,8 +36,12 @@ from gpps.names import (
     FLAG_ILL_CONDITIONED,
     FLAG_NOT_CONVERGED,
     FLAG_WOODHAM_FALLBACK,
+    LIGHT_LANES,
+    LIGHTS_PARALLEL_MIN,
+    LIGHTS_PARALLEL_PAIRS_PER_IMAGE,
     ROBUST_NAMES,
     SOLVER_NAMES,
+    ParallelName,
     RobustName,
     SolverName,
 )
@@ -139,6 +143,14 @@ class SolverConfig:
             term (weight -1 in ``weights``) that only penalises a model brighter
             than them (see :mod:`gpps.kernels.solve`).  0: no noise test, and
             only exact zeros are dark.
+        parallel: how the pixelwise solve is spread over GPU threads: ``"pixels"`` one thread a
+            pixel; ``"lights"`` one block of :data:`gpps.names.LIGHT_LANES` threads a pixel with
+            the lights split over the lanes (equal up to the order of the light sums);
+            ``"auto"``: "lights" on CUDA with :data:`gpps.names.LIGHTS_PARALLEL_MIN` images or
+            more for a solve of at most ``LIGHTS_PARALLEL_PAIRS_PER_IMAGE x N`` mask pixels
+            (latency-bound launches, measured in :mod:`gpps.names`), else "pixels".  A
+            "lights" solve on the CPU runs as one launch on one thread (and one lane unless
+            ``warp.config.enable_cpu_blocks``): a testing aid.
     """
 
     solver: SolverName = "lm"
@@ -164,6 +176,7 @@ class SolverConfig:
     smoothing_sweeps: int = 20
     noise_level: float | None = None  # (after the older fields: positional construction keeps working)
     lit_sigmas: float = 3.0
+    parallel: ParallelName = "auto"
 
     def __post_init__(self):
         check_choices(self)
@@ -443,6 +456,19 @@ class PixelSolver(Stage):
         self._solve_kernel, self._underdetermined_kernel, self._smooth_kernel = self._sk.get_solve_kernels(
             c.solver, self.material.brdf, robust
         )
+        cuda = self.device.startswith("cuda")
+        lanes = c.solver != "none" and (c.parallel == "lights" or (
+            c.parallel == "auto" and cuda and self.shape[0] >= LIGHTS_PARALLEL_MIN))
+        self._lanes_kernel = self._sk.get_solve_kernel_lanes(c.solver, self.material.brdf, robust) if lanes else None
+
+    def _uses_lanes(self) -> bool:
+        """Whether the next pixelwise solve runs the lights-parallel kernel (``config.parallel``)."""
+        if self._lanes_kernel is None:
+            return False
+        if self.config.parallel == "lights":
+            return True
+        pixels = int(self._mask_rows.sum()) if self._mask_rows is not None else self.shape[1] * self.shape[2]
+        return pixels <= LIGHTS_PARALLEL_PAIRS_PER_IMAGE * self.shape[0]
 
     @property
     def kernels(self) -> tuple:
@@ -548,7 +574,7 @@ class PixelSolver(Stage):
                        [self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags,
                         self.cond]).launch()
 
-    def _recorded(self, key, kernel, inputs, outputs, dim=None):
+    def _recorded(self, key, kernel, inputs, outputs, dim=None, block_dim=None):
         """A recorded launch (``wp.launch(..., record_cmd=True)``) of ``kernel`` over the pixels (or ``dim``),
         kept per ``key`` until the config or material changes: the arguments are packed once (a plain CPU
         launch re-packs its struct arguments every time, and Warp keeps a cache entry per packing: memory
@@ -556,8 +582,9 @@ class PixelSolver(Stage):
         cmds = self.__dict__.setdefault("_cmds", {})
         cmd = cmds.get(key)
         if cmd is None:
+            extra = {} if block_dim is None else {"block_dim": int(block_dim)}
             cmd = warp().launch(kernel, dim=self.shape[1:] if dim is None else dim, inputs=inputs, outputs=outputs,
-                                device=self.device, record_cmd=True)
+                                device=self.device, record_cmd=True, **extra)
             cmds[key] = cmd
         return cmd
 
@@ -568,6 +595,14 @@ class PixelSolver(Stage):
         ``progress(done, total, message)`` in mask pixels after each such wave."""
         ins = [self.images, self.mask, self.valid, self.depth, self.noise, self.cam, self.lp, self.mp]
         outs = [self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags, self.cond]
+        if self._uses_lanes():
+            # one block of lanes a pixel (tiled: the lanes are the last launch dimension); one launch, also on
+            # the CPU (Warp's CPU tile code is not safe in concurrent launches)
+            h, w = self.shape[1:]
+            lanes = block_lanes(self.device, LIGHT_LANES)
+            self._recorded(("solve_lanes", lanes), self._lanes_kernel, ins + [self.prm], outs, dim=(h, w, lanes),
+                           block_dim=lanes).launch()
+            return
         bounds = self._row_bounds
         threads = 1 if bounds is None else len(bounds)
         if progress is not None and not self.device.startswith("cuda") and self._mask_rows is not None:
