@@ -25,7 +25,10 @@ centres at integers, so ``c' = (c + 0.5) s - 0.5``).
 from __future__ import annotations
 
 import json
+import os
 import re
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -34,12 +37,49 @@ import numpy as np
 
 from gpps.host.automask import automatic_mask
 from gpps.io import Dataset, read_K, read_matrix
-from gpps.io.formats import IMAGE_EXTENSIONS, Transfer, read_image_file
+from gpps.io.formats import IMAGE_EXTENSIONS, Transfer, decode_image_file, read_image_file
 
 __all__ = ["Capture", "read_capture", "list_images", "find_side_file", "SIDE_IMAGE_STEMS"]
 
 #: image files that are not captures (compared on the lower-case stem)
 SIDE_IMAGE_STEMS = ("mask", "normal_gt", "normals", "albedo", "depth", "view", "normal", "chrome_mask", "matte_mask", "sphere_mask", "card_mask")
+
+
+#: at most this many threads decode and scale the images (OpenCV, tifffile and numpy release the GIL)
+MAX_READ_THREADS = 8
+
+
+def _read_threads() -> int:
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, MAX_READ_THREADS))
+
+
+def _imap(fn, items):
+    """``fn`` over ``items`` on a bounded thread pool: a generator of the results in order (each exception
+    raised at its item, as a sequential loop would; close the generator to drop the items not started)."""
+    items = list(items)
+    threads = min(_read_threads(), len(items))
+    if threads <= 1:
+        yield from map(fn, items)
+        return
+    with ThreadPoolExecutor(threads, thread_name_prefix="gpps-read") as pool:
+        futures = [pool.submit(fn, x) for x in items]
+        try:
+            for f in futures:
+                yield f.result()
+        finally:
+            for f in futures:
+                f.cancel()
+
+
+def _each(fn, items) -> None:
+    """``fn`` over ``items`` on the thread pool of :func:`_imap`; returns when all are done."""
+    with closing(_imap(fn, items)) as results:
+        for _ in results:
+            pass
 
 
 def _natural_key(name: str):
@@ -176,20 +216,21 @@ def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = No
         elif li.shape[1] != 3:
             raise ValueError(f"light_intensities.txt: expected {n} rows of 1 or 3 values, got shape {li.shape}")
     K = read_K(root / "K.txt") if (root / "K.txt").is_file() else None
-    imgs, formats = [], {}
-    for k, name in enumerate(names):
-        img, info = read_image_file(root / name, transfer=transfer)
-        imgs.append(img)
-        formats[(info["format"], info["bits"], info["transfer"])] = formats.get((info["format"], info["bits"], info["transfer"]), 0) + 1
-        step(k + 1, n, f"read {name}")
-    shapes = {im.shape[:2] for im in imgs}
+    formats = {}
+    raws = []
+    with closing(_imap(lambda nm: decode_image_file(root / nm, transfer=transfer), names)) as decoded:
+        for k, (name, raw) in enumerate(zip(names, decoded)):
+            raws.append(raw)
+            info = raw.info
+            formats[(info["format"], info["bits"], info["transfer"])] = formats.get((info["format"], info["bits"], info["transfer"]), 0) + 1
+            step(k + 1, n, f"read {name}")
+    shapes = {r.data.shape[:2] for r in raws}
     if len(shapes) != 1:
         raise ValueError(f"dir: expected images of one size, got {sorted(shapes)} in {root}")
-    chans = {im.shape[2] for im in imgs}
-    imgs = [np.repeat(im, 3, axis=-1) if im.shape[2] == 1 and chans != {1} else im for im in imgs]
-    images = np.stack(imgs)
-    if images.shape[-1] == 1:
-        images = np.repeat(images, 3, axis=-1)
+    # one (N, H, W, 3) float32 stack, each image scaled into its slot (grey images repeated over the channels)
+    images = np.empty((n, *raws[0].data.shape[:2], 3), np.float32)
+    _each(lambda k: raws[k].to_float(np.float32, out=images[k]), range(n))
+    raws.clear()  # the decoded files, no longer needed
     amb_name = None
     if ambient is not None:
         if ambient == "auto":
@@ -203,7 +244,8 @@ def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = No
             a, _ = read_image_file(amb_path, transfer=transfer)
             if a.shape[:2] != images.shape[1:3]:
                 raise ValueError(f"ambient: expected shape {images.shape[1:3]}, got {a.shape[:2]} in {amb_path}")
-            images = np.clip(images - a[None], 0.0, None).astype(np.float32)
+            np.subtract(images, a[None], out=images)
+            np.clip(images, 0.0, None, out=images)
             amb_name = amb_path.name
     h, w = images.shape[1:3]
     mask_source = "given"
@@ -251,12 +293,13 @@ def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = No
     if normalise and li is not None:
         if np.any(li <= 0):
             raise ValueError("light_intensities.txt: expected positive intensities")
-        images = (images / li[:, None, None, :].astype(np.float32)).astype(np.float32)
+        li32 = li.astype(np.float32)
+        _each(lambda k: np.divide(images[k], li32[k], out=images[k]), range(n))
         normalised = True
     ngt = np.load(root / "normal_gt.npy").astype(np.float32) if (root / "normal_gt.npy").is_file() and scale == 1.0 else None
     dgt = np.load(root / "depth_gt.npy") if (root / "depth_gt.npy").is_file() and scale == 1.0 else None
     mat = json.loads((root / "material.json").read_text()) if (root / "material.json").is_file() else None
-    ds = Dataset(images=images.astype(np.float32), mask=m, light_directions=ld, light_positions=lp, light_intensities=li,
+    ds = Dataset(images=images.astype(np.float32, copy=False), mask=m, light_directions=ld, light_positions=lp, light_intensities=li,
                  K=K, normal_gt=ngt, depth_gt=dgt, material=mat, filenames=list(names), normalised=normalised)
     fmts = [{"format": f, "bits": b, "transfer": t, "images": c} for (f, b, t), c in formats.items()]
     return Capture(dataset=ds, mask_source=mask_source, automask=am_info, formats=fmts, ambient=amb_name, scale=scale,
