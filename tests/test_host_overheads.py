@@ -174,3 +174,96 @@ def test_read_capture_diligent_equals_the_sequential_read(data_root, name):
     ds = cap.dataset
     li = np.loadtxt(root / "light_intensities.txt")
     assert _same(ds.images, _reference_capture_images(root, ds.filenames, li=li))
+
+
+# ------------------------------------------------------------------------------------------- estimate_noise
+
+
+def _estimate_noise_reference(images, mask, *, max_pixels: int = 1 << 16) -> np.ndarray:
+    """estimate_noise before issue 20: the whole frame in float32, the kernel's rows tripled, a plain 3x3 loop."""
+    img = np.asarray(images, np.float32)
+    m = np.asarray(mask, bool)
+    n, h, w = img.shape[:3]
+    out = np.zeros(n, np.float32)
+    if h < 3 or w < 3:
+        return out
+    inner = m[1:-1, 1:-1].copy()
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            inner &= m[1 + di : h - 1 + di, 1 + dj : w - 1 + dj]
+    rows = np.nonzero(inner.any(axis=1))[0]
+    if rows.size == 0:
+        return out
+    st = max(1, int(np.ceil(inner[rows].sum() / max_pixels)))
+    rows = rows[::st]
+    sel = inner[rows]
+    blk = img[:, np.stack([rows, rows + 1, rows + 2])]
+    if blk.ndim == 5:
+        blk = (blk[..., 0] + blk[..., 1] + blk[..., 2]) / 3.0
+    lap = np.zeros((n, rows.size, w - 2), np.float32)
+    pos = np.broadcast_to(sel, lap.shape).copy()
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            sh = blk[:, 1 + di, :, 1 + dj : w - 1 + dj]
+            lap += (1 + (di == 0)) * (1 + (dj == 0)) * (-1) ** (di + dj) * sh
+            pos &= sh > 0.0
+    lap = lap.reshape(n, -1)
+    pos = pos.reshape(n, -1)
+    for k in range(n):
+        if pos[k].sum() >= 64:
+            out[k] = float(np.median(np.abs(lap[k, pos[k]]))) / (0.6745 * 6.0)
+    return out
+
+
+def _blob_mask(h, w, rng, holes=True):
+    yy, xx = np.mgrid[:h, :w]
+    m = (yy - h / 2) ** 2 / (0.4 * h) ** 2 + (xx - w / 2) ** 2 / (0.35 * w) ** 2 < 1.0
+    if holes:  # rows without inner pixels and a second component: rows that are no arithmetic progression
+        m[h // 2 - 2 : h // 2 + 2] = False
+        m[2:5, 1:6] = True
+        m &= rng.random((h, w)) > 0.002
+    return m
+
+
+@pytest.mark.parametrize("max_pixels", [1 << 16, 500, 120, 37])
+@pytest.mark.parametrize("kind", ["rgb", "grey", "rgb64", "uint16"])
+def test_estimate_noise_equals_the_plain_loop(kind, max_pixels):
+    from gpps.pipeline.solver import estimate_noise
+
+    rng = np.random.default_rng(3)
+    n, h, w = 5, 41, 53
+    smooth = np.linspace(0.1, 0.9, w)[None, None, :] * np.linspace(0.5, 1.0, h)[None, :, None]
+    img = smooth[..., None] + rng.normal(0, [0.01, 0.02, 0.005, 0.03, 0.0][:n], (h, w, 3, n)).transpose(3, 0, 1, 2)
+    img[1, :, : w // 3] = 0.0  # a shadow: the kernel must see positive neighbourhoods only
+    img[2, 10:14, 10:20] = -0.01
+    if kind == "grey":
+        img = img.mean(axis=-1).astype(np.float32)
+    elif kind == "rgb":
+        img = img.astype(np.float32)
+    elif kind == "uint16":
+        img = np.clip(img * 60000, 0, 65535).astype(np.uint16)
+    for holes in (False, True):
+        m = _blob_mask(h, w, rng, holes)
+        got = estimate_noise(img, m, max_pixels=max_pixels)
+        ref = _estimate_noise_reference(img, m, max_pixels=max_pixels)
+        assert got.dtype == np.float32 and _same(got, ref), (got, ref)
+    assert np.any(ref > 0) or max_pixels < 64  # (fewer than 64 pixels: unknown, 0)
+    assert _same(estimate_noise(img, np.zeros((h, w), bool)), np.zeros(n, np.float32))
+    assert _same(estimate_noise(img[:, :2], np.ones((2, w), bool)), np.zeros(n, np.float32))
+    one = np.zeros((h, w), bool)
+    one[10:13, 20:23] = True  # a single inner pixel: fewer than 64, unknown
+    assert _same(estimate_noise(img, one), np.zeros(n, np.float32))
+
+
+@pytest.mark.parametrize("name", ["ball", "bear"])
+def test_estimate_noise_diligent_equals_the_plain_loop(data_root, name):
+    from gpps.pipeline.solver import estimate_noise
+
+    root = data_root / "diligent" / name
+    if not root.is_dir():
+        pytest.skip(f"no {root}")
+    ds = capture.read_capture(root).dataset
+    for mp in (1 << 16, 5000):
+        assert _same(estimate_noise(ds.images, ds.mask, max_pixels=mp),
+                     _estimate_noise_reference(ds.images, ds.mask, max_pixels=mp))
+    assert np.all(estimate_noise(ds.images, ds.mask) > 0)

@@ -259,8 +259,13 @@ def estimate_noise(images, mask, *, max_pixels: int = 1 << 16) -> np.ndarray:
         images: (N, H, W, 3) or (N, H, W) observations.
         mask: (H, W) bool.
         max_pixels: cap on the pixels used per image.
+
+    Cost: image by image (the blocks stay in cache), only the rows and the column range of the chosen
+    pixels, one grey value per pixel (not once per kernel row), in float32 without a copy of the frame.
+    The kernel sums its 9 terms in the same order as a plain 3x3 loop and the median is np.median's, so
+    the estimate is the same bit for bit (tests/test_host_overheads.py pins it to that loop).
     """
-    img = np.asarray(images, np.float32)
+    img = np.asarray(images)
     m = np.asarray(mask, bool)
     n, h, w = img.shape[:3]
     out = np.zeros(n, np.float32)
@@ -277,21 +282,66 @@ def estimate_noise(images, mask, *, max_pixels: int = 1 << 16) -> np.ndarray:
     st = max(1, int(np.ceil(inner[rows].sum() / max_pixels)))
     rows = rows[::st]
     sel = inner[rows]  # (R, W - 2)
-    blk = img[:, np.stack([rows, rows + 1, rows + 2])]  # (N, 3, R, W[, 3]): the rows above, at and below
-    if blk.ndim == 5:
-        blk = (blk[..., 0] + blk[..., 1] + blk[..., 2]) / 3.0
-    lap = np.zeros((n, rows.size, w - 2), np.float32)
-    pos = np.broadcast_to(sel, lap.shape).copy()
-    for di in (-1, 0, 1):
-        for dj in (-1, 0, 1):
-            sh = blk[:, 1 + di, :, 1 + dj : w - 1 + dj]
-            lap += (1 + (di == 0)) * (1 + (dj == 0)) * (-1) ** (di + dj) * sh  # K[di, dj]
-            pos &= sh > 0.0
-    lap = lap.reshape(n, -1)
-    pos = pos.reshape(n, -1)
-    for k in range(n):
-        if pos[k].sum() >= 64:
-            out[k] = float(np.median(np.abs(lap[k, pos[k]]))) / (0.6745 * 6.0)
+    cols = np.nonzero(sel.any(axis=0))[0]
+    c0, c1 = int(cols[0]), int(cols[-1]) + 3  # image columns c0 .. c1 - 1 hold every 3x3 neighbourhood
+    sel = sel[:, c0 : c1 - 2]
+    wc = c1 - c0
+
+    def take_rows(a, idx):
+        """``a[idx]``, a view when ``idx`` (increasing) is an arithmetic progression."""
+        d = np.diff(idx)
+        if idx.size == 1 or np.all(d == d[0]):
+            return a[int(idx[0]) : int(idx[-1]) + 1 : int(d[0]) if idx.size > 1 else 1]
+        return a[idx]
+
+    used = np.unique(np.concatenate([rows, rows + 1, rows + 2]))  # the image rows above, at and below
+    at = [np.searchsorted(used, rows + 1 + di) for di in (-1, 0, 1)]
+    taps = [(di, dj, (1 + (di == 0)) * (1 + (dj == 0)) * (-1) ** (di + dj)) for di in (-1, 0, 1) for dj in (-1, 0, 1)]
+    grey = np.empty((used.size, wc), np.float32)
+    lit = np.empty(grey.shape, bool)
+    lap = np.empty((rows.size, wc - 2), np.float32)
+    tmp = np.empty_like(lap)
+    pos = np.empty(lap.shape, bool)
+    mid = np.empty(2, np.float32)
+    for k in range(n):  # one image at a time: the (U, Wc) blocks stay in cache
+        blk = take_rows(img[k, :, c0:c1], used)
+        if blk.ndim == 3:  # (U, Wc, C): the mean of R, G, B in float32, summed left to right
+            blk = blk.astype(np.float32, copy=False)
+            np.add(blk[..., 0], blk[..., 1], out=grey)
+            grey += blk[..., 2]
+            grey /= 3.0
+        else:
+            grey[...] = blk
+        np.greater(grey, 0.0, out=lit)
+        pos[...] = sel
+        for i, (di, dj, kk) in enumerate(taps):  # lap = sum of K[di, dj] I[r + di, c + dj] in this order
+            sh = take_rows(grey, at[di + 1])[:, 1 + dj : wc - 1 + dj]
+            pos &= take_rows(lit, at[di + 1])[:, 1 + dj : wc - 1 + dj]
+            if i == 0:  # 0 + 1 sh: sh (bit for bit where it counts: sh > 0 there)
+                lap[...] = sh
+            elif kk == 1:
+                lap += sh
+            elif kk == -1:
+                lap -= sh
+            else:
+                np.multiply(sh, kk, out=tmp)
+                lap += tmp
+        v = np.abs(lap[pos])
+        if v.size < 64:
+            continue
+        if np.isnan(v).any():  # pragma: no cover - inf in the images; np.median's NaN rule
+            med = np.median(v)
+        else:
+            # the median as np.median takes it: the middle order statistic, or the float32 mean of the two;
+            # |values| >= +0 sort as their bit patterns (one partition, no float compare)
+            j = (v.size - 1) // 2
+            part = np.partition(v.view(np.uint32), j).view(np.float32)
+            if v.size % 2:
+                med = part[j]
+            else:
+                mid[0], mid[1] = part[j], part[j + 1 :].min()
+                med = np.mean(mid)
+        out[k] = float(med) / (0.6745 * 6.0)
     return out
 
 
