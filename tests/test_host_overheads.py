@@ -3,6 +3,9 @@ the same errors and warnings.
 
 * reading: the threaded :func:`gpps.io.capture.read_capture` and the float32 scaling of 8/16-bit images
   against the sequential float64 route it replaced;
+* :func:`gpps.pipeline.solver.estimate_noise` against its plain 3x3 loop;
+* :func:`gpps.flows.photometric.check_observations`, :func:`gpps.flows.folder._saturation` against their
+  whole-stack numpy formulas.
 """
 
 from __future__ import annotations
@@ -267,3 +270,217 @@ def test_estimate_noise_diligent_equals_the_plain_loop(data_root, name):
         assert _same(estimate_noise(ds.images, ds.mask, max_pixels=mp),
                      _estimate_noise_reference(ds.images, ds.mask, max_pixels=mp))
     assert np.all(estimate_noise(ds.images, ds.mask) > 0)
+
+
+# ------------------------------------------------------------------------ check_observations, _saturation
+
+
+def _check_observations_reference(images, mask, lights, *, valid=None, saturation=None, reference_depth=None,
+                                  sink=None):
+    """check_observations before issue 20 (whole-stack means, maxima and gathers)."""
+    from gpps._check import warn
+    from gpps.flows.photometric import MIN_DETERMINED, UNLIT_FRACTION, WARN_DETERMINED
+    from gpps.lights import DirectionalLights
+
+    img = images if images.ndim == 4 else images[..., None]
+    grey = img.mean(axis=-1)[:, mask]
+    scale = float(np.percentile(grey, 99.9)) if grey.size else 0.0
+    if not scale > 0.0:
+        outside = img.mean(axis=-1)[:, ~mask]
+        where = (" while pixels outside it are lit: the mask lies outside the lit area"
+                 if outside.size and float(outside.max()) > 0 else "")
+        raise ValueError(f"images: every observation inside the mask is black (0){where}; nothing is lit")
+    lit = grey > UNLIT_FRACTION * scale
+    sat = np.zeros_like(lit)
+    if saturation is not None:
+        sat |= img.max(axis=-1)[:, mask] >= saturation
+    if valid is not None:
+        sat |= ~np.asarray(valid, bool)[:, mask]
+    determined = np.zeros(mask.shape, bool)
+    determined[mask] = np.count_nonzero(lit & ~sat, axis=0) >= 3
+    frac = float(determined[mask].mean())
+    if frac < MIN_DETERMINED:
+        if sat.mean() > 0.5:
+            cause = f"{100 * sat.mean():.0f}% of the observations are saturated (over-exposed)"
+        elif lit.mean() < 0.5:
+            cause = (f"{100 * (1 - lit.mean()):.0f}% of the observations are dark: under-exposed images, lights "
+                     "that missed the object, or a mask outside the lit area")
+        else:
+            cause = "too few lights reach each pixel"
+        raise ValueError(f"images: only {100 * frac:.1f}% of the mask pixels have 3 or more usable (lit, "
+                         f"unsaturated) observations; {cause}")
+    if frac < WARN_DETERMINED:
+        warn(f"images: {100 * (1 - frac):.0f}% of the mask pixels have fewer than 3 usable (lit, unsaturated) "
+             "observations; their normals rest on neighbours and priors", sink)
+    if isinstance(lights, DirectionalLights):
+        behind = np.nonzero(np.asarray(lights.directions)[:, 2] <= 0.0)[0]
+        if behind.size:
+            warn(f"lights: {behind.size} of {len(lights)} directional lights point away from the camera side "
+                 f"(z <= 0; lights {(behind + 1).tolist()[:8]}): they light only surfaces facing away from the camera",
+                 sink)
+    elif reference_depth is not None:
+        behind = np.nonzero(np.asarray(lights.positions)[:, 2] <= -float(reference_depth))[0]
+        if behind.size:
+            warn(f"lights: {behind.size} of {len(lights)} point lights are at or beyond the object's mean depth "
+                 f"{float(reference_depth):g} (lights {(behind + 1).tolist()[:8]}): they light it from behind", sink)
+    return determined
+
+
+def _outcome(fn, *args, **kwargs):
+    """(determined, warnings' messages, error) of one call."""
+    import warnings
+
+    sink = []
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        try:
+            det = fn(*args, sink=sink, **kwargs)
+        except ValueError as e:
+            return None, sink, [str(w.message) for w in rec], str(e)
+    return det, sink, [str(w.message) for w in rec], None
+
+
+def test_masked_grey_is_numpys_channel_mean():
+    """The per-image (a0 + a1) + a2, / 3 of check_observations is numpy's mean over the channel axis."""
+    from gpps.flows.photometric import _masked_statistics
+
+    a = np.array([[1, 4e-8, 4e-8], [4e-8, 4e-8, 1], [3e-8, 1, 3e-8]], np.float32)  # the order shows
+    img = np.broadcast_to(a[None, None], (2, 3, 3, 3)).copy()
+    mask = np.ones((3, 3), bool)
+    grey, bad = _masked_statistics(img, mask, None, None)
+    assert bad is None and _same(grey, img.mean(axis=-1)[:, mask])
+    rng = np.random.default_rng(5)
+    for dtype in (np.float32, np.float64):
+        img = rng.random((4, 9, 11, 3)).astype(dtype) ** 3
+        mask = rng.random((9, 11)) > 0.4
+        grey, _ = _masked_statistics(img, mask, None, None)
+        np.testing.assert_array_equal(grey, img.mean(axis=-1)[:, mask])
+        assert grey.dtype == dtype
+        view = np.moveaxis(np.ascontiguousarray(np.moveaxis(img, -1, 1)), 1, -1)  # channels the slowest axis
+        np.testing.assert_array_equal(_masked_statistics(view, mask, None, None)[0], img.mean(axis=-1)[:, mask])
+
+
+def _observation_cases():
+    from gpps.lights import DirectionalLights, PointLights
+
+    rng = np.random.default_rng(7)
+    n, h, w = 9, 13, 17
+    d = rng.normal(size=(n, 3))
+    d[:, 2] = np.abs(d[:, 2]) + 0.5
+    d[2, 2] = -0.3  # one light behind: a warning
+    dl = DirectionalLights(d / np.linalg.norm(d, axis=1, keepdims=True))
+    pl = PointLights(np.c_[rng.normal(size=(n, 2)), rng.uniform(-3.0, 2.0, n)])
+    mask = np.zeros((h, w), bool)
+    mask[2:11, 3:15] = True
+    base = (rng.random((n, h, w, 3)) * 0.9).astype(np.float32)
+    cases = []
+    for name, img in [("rgb", base), ("grey", base.mean(axis=-1)), ("rgb64", base.astype(np.float64)),
+                      ("one channel", base[..., :1])]:
+        cases.append((name, img, mask, dl, {}))
+        cases.append((name + " saturation", img, mask, dl, {"saturation": 0.6}))
+        cases.append((name + " valid", img, mask, pl, {"valid": rng.random((n, h, w)) > 0.3, "reference_depth": 1.0}))
+        cases.append((name + " both", img, mask, dl, {"valid": rng.random((n, h, w)) > 0.2, "saturation": 0.8}))
+    dark = base.copy()
+    dark[:, ~mask] = 0.0
+    dark[:7] = 0.0
+    cases.append(("dark: error", dark, mask, dl, {}))
+    half = base.copy()
+    half[:7, 2:8] *= 1e-5  # 2 lit images on two thirds of the mask: a third determined
+    cases.append(("half dark: warning", half, mask, dl, {}))
+    cases.append(("saturated: error", base, mask, dl, {"saturation": 0.05}))
+    few = base.copy()
+    few[6:] *= 1e-5
+    inval = np.ones((n, h, w), bool)
+    inval[:4] = False
+    cases.append(("few lights: error", few, mask, dl, {"valid": inval}))  # 6 lit, 4 of them invalid: 2 usable
+    cases.append(("invalid: error", base, mask, dl, {"valid": np.zeros((n, h, w), np.uint8)}))
+    black = base.copy()
+    black[:, mask] = 0.0
+    cases.append(("black inside: error", black, mask, dl, {}))
+    cases.append(("black everywhere: error", np.zeros_like(base), mask, dl, {}))
+    cases.append(("empty mask: error", base, np.zeros((h, w), bool), dl, {}))
+    return cases
+
+
+@pytest.mark.parametrize("case", _observation_cases(), ids=lambda c: c[0])
+def test_check_observations_equals_the_whole_stack_formula(case):
+    from gpps.flows.photometric import check_observations
+
+    _, img, mask, lights, kw = case
+    got = _outcome(check_observations, img, mask, lights, **kw)
+    ref = _outcome(_check_observations_reference, img, mask, lights, **kw)
+    assert got[1:] == ref[1:]
+    assert (got[0] is None) == (ref[0] is None)
+    if ref[0] is not None:
+        np.testing.assert_array_equal(got[0], ref[0])
+    if case[0].endswith("error"):
+        assert ref[3] is not None
+    if case[0].endswith("warning"):
+        assert any("fewer than 3 usable" in m for m in ref[1])
+
+
+def test_check_observations_diligent_equals_the_whole_stack_formula(data_root):
+    from gpps.flows.folder import _saturation
+    from gpps.flows.photometric import check_observations
+    from gpps.lights import DirectionalLights
+
+    root = data_root / "diligent" / "bear"
+    if not root.is_dir():
+        pytest.skip(f"no {root}")
+    cap = capture.read_capture(root)
+    ds = cap.dataset
+    lights = DirectionalLights(ds.light_directions)
+    valid = _saturation(cap)
+    for kw in ({"valid": valid}, {}, {"saturation": 0.5}):
+        got = _outcome(check_observations, ds.images, ds.mask, lights, **kw)
+        ref = _outcome(_check_observations_reference, ds.images, ds.mask, lights, **kw)
+        assert got[1:] == ref[1:] and ref[3] is None
+        np.testing.assert_array_equal(got[0], ref[0])
+
+
+def _saturation_reference(cap):
+    """folder._saturation before issue 20: the whole stack times the intensities, any over the channels."""
+    ds = cap.dataset
+    integer_input = all(f["format"] not in ("exr",) and not (f["format"] == "tiff" and f["bits"] == 32) for f in cap.formats)
+    if not integer_input:
+        return None
+    raw = ds.images
+    if ds.light_intensities is not None and ds.normalised:
+        raw = ds.images * np.asarray(ds.light_intensities, np.float32)[:, None, None, :]
+    return ~np.any(raw >= 0.995, axis=-1)
+
+
+def test_saturation_equals_the_whole_stack_formula(tmp_path):
+    from gpps.flows.folder import _saturation
+    from gpps.io import Dataset
+
+    rng = np.random.default_rng(11)
+    n, h, w = 6, 8, 9
+    li = rng.uniform(0.5, 2.0, (n, 3))
+    raw = rng.integers(60000, 65536, (n, h, w, 3)).astype(np.float32) / np.float32(65535)
+    raw[0, 0, 0] = (np.float32(0.995), 0.0, 0.0)  # exactly at the level, in one channel
+    raw[1, 0, 0] = (0.0, 0.0, np.nextafter(np.float32(0.995), np.float32(0)))  # just below
+    images = (raw / li[:, None, None, :].astype(np.float32)).astype(np.float32)
+    images[2, 1, 1] = (np.nan, 1.0, 0.0)  # NaN in one channel: any() and fmax() agree
+    images[2, 1, 2] = (np.nan, np.nan, np.nan)
+    png = [{"format": "png", "bits": 16, "transfer": "linear", "images": n}]
+    for normalised, intens in ((True, li), (False, li), (True, None)):
+        ds = Dataset(images=images, mask=np.ones((h, w), bool), light_intensities=intens, normalised=normalised)
+        cap = capture.Capture(dataset=ds, mask_source="given", formats=png)
+        got, ref = _saturation(cap), _saturation_reference(cap)
+        assert got.dtype == bool and got.shape == (n, h, w)
+        np.testing.assert_array_equal(got, ref)
+        assert 0 < np.count_nonzero(~got) < got.size
+    exr = capture.Capture(dataset=ds, mask_source="given", formats=[{"format": "exr", "bits": 32, "transfer": "linear", "images": n}])
+    assert _saturation(exr) is None
+
+
+def test_saturation_diligent_equals_the_whole_stack_formula(data_root):
+    from gpps.flows.folder import _saturation
+
+    for name in ("ball", "bear"):
+        root = data_root / "diligent" / name
+        if not root.is_dir():
+            pytest.skip(f"no {root}")
+        cap = capture.read_capture(root)
+        np.testing.assert_array_equal(_saturation(cap), _saturation_reference(cap))

@@ -362,10 +362,30 @@ def _saturation(cap: Capture) -> np.ndarray | None:
     integer_input = all(f["format"] not in ("exr",) and not (f["format"] == "tiff" and f["bits"] == 32) for f in cap.formats)
     if not integer_input:
         return None
-    raw = ds.images
+    images = ds.images
+    n, h, w, c = images.shape
+    li = None
     if ds.light_intensities is not None and ds.normalised:
-        raw = ds.images * np.asarray(ds.light_intensities, np.float32)[:, None, None, :]
-    return ~np.any(raw >= 0.995, axis=-1)
+        li = np.asarray(ds.light_intensities, np.float32)
+    # image by image (in cache, no (N, H, W, 3) temporaries): not any(raw_c >= 0.995), raw = images *
+    # intensities in float32 as before; any(x_c >= t) is fmax_c(x_c) >= t (fmax skips NaN as the comparison does)
+    valid = np.empty((n, h, w), bool)
+    raw = np.empty((h, w, c), images.dtype if li is None else np.result_type(images.dtype, li.dtype))
+    top = np.empty((h, w), raw.dtype)
+    for k in range(n):
+        if li is None:
+            raw[...] = images[k]
+        else:
+            np.multiply(images[k], li[k], out=raw)
+        if c == 1:
+            top[...] = raw[..., 0]
+        else:
+            np.fmax(raw[..., 0], raw[..., 1], out=top)
+        for j in range(2, c):
+            np.fmax(top, raw[..., j], out=top)
+        np.greater_equal(top, 0.995, out=valid[k])
+        np.logical_not(valid[k], out=valid[k])
+    return valid
 
 
 def _reference_depth(ds, camera, lights, reference, source) -> tuple[float | None, str | None]:

@@ -110,6 +110,52 @@ MIN_DETERMINED = 0.2
 WARN_DETERMINED = 0.5
 
 
+def _masked_statistics(img, mask, valid, saturation):
+    """The statistics :func:`check_observations` needs, on the mask's pixels only, image by image.
+
+    Args:
+        img: (N, H, W, C) images; mask: (H, W) bool; valid: (N, H, W) or None; saturation: level or None.
+
+    Returns:
+        ``(grey, bad)``: (N, P) ``img.mean(axis=-1)[:, mask]`` (the same values: numpy's mean over the
+        channel axis sums left to right, then divides by C; tests/test_host_overheads.py pins it), and
+        (N, P) bool ``max over channels >= saturation`` or not ``valid`` (None when neither is given).
+        One pass over each image (in cache), no (N, H, W) temporaries.
+    """
+    n, c = img.shape[0], img.shape[-1]
+    if img.dtype not in (np.float32, np.float64) or c not in (1, 3):  # other inputs: the plain formula
+        grey = img.mean(axis=-1)[:, mask]
+        bad = None if saturation is None else img.max(axis=-1)[:, mask] >= saturation
+        if valid is not None:
+            inv = ~np.asarray(valid, bool)[:, mask]
+            bad = inv if bad is None else bad | inv
+        return grey, bad
+    idx = np.flatnonzero(mask)
+    grey = np.empty((n, idx.size), img.dtype)
+    bad = None if saturation is None and valid is None else np.zeros((n, idx.size), bool)
+    val = None if valid is None else np.asarray(valid, bool)
+    tmp = np.empty(mask.size, img.dtype)
+    for k in range(n):
+        a = img[k].reshape(-1, c)
+        if c == 3:
+            np.add(a[:, 0], a[:, 1], out=tmp)
+            tmp += a[:, 2]
+            tmp /= 3
+            np.take(tmp, idx, out=grey[k])
+        else:
+            np.take(a[:, 0], idx, out=grey[k])
+        if saturation is not None:
+            if c == 3:
+                np.maximum(a[:, 0], a[:, 1], out=tmp)
+                np.maximum(tmp, a[:, 2], out=tmp)
+                bad[k] = np.take(tmp, idx) >= saturation
+            else:
+                bad[k] = np.take(a[:, 0], idx) >= saturation
+        if val is not None:
+            bad[k] |= ~np.take(val[k].reshape(-1), idx)
+    return grey, bad
+
+
 def check_observations(images, mask, lights, *, valid=None, saturation=None, reference_depth=None,
                        sink: list | None = None) -> np.ndarray:
     """Refuse degenerate input and warn about doubtful input, before any solve.
@@ -139,7 +185,7 @@ def check_observations(images, mask, lights, *, valid=None, saturation=None, ref
     """
 
     img = images if images.ndim == 4 else images[..., None]
-    grey = img.mean(axis=-1)[:, mask]  # (N, P)
+    grey, bad = _masked_statistics(img, mask, valid, saturation)  # (N, P) grey values, (N, P) unusable or None
     scale = float(np.percentile(grey, 99.9)) if grey.size else 0.0
     if not scale > 0.0:
         outside = img.mean(axis=-1)[:, ~mask]
@@ -147,17 +193,15 @@ def check_observations(images, mask, lights, *, valid=None, saturation=None, ref
                  if outside.size and float(outside.max()) > 0 else "")
         raise ValueError(f"images: every observation inside the mask is black (0){where}; nothing is lit")
     lit = grey > UNLIT_FRACTION * scale
-    sat = np.zeros_like(lit)
-    if saturation is not None:
-        sat |= img.max(axis=-1)[:, mask] >= saturation
-    if valid is not None:
-        sat |= ~np.asarray(valid, bool)[:, mask]
+    usable = lit if bad is None else lit & ~bad
+    inside = np.count_nonzero(usable, axis=0) >= 3  # (P,)
     determined = np.zeros(mask.shape, bool)
-    determined[mask] = np.count_nonzero(lit & ~sat, axis=0) >= 3
-    frac = float(determined[mask].mean())
+    determined[mask] = inside
+    frac = float(inside.mean())
     if frac < MIN_DETERMINED:
-        if sat.mean() > 0.5:
-            cause = f"{100 * sat.mean():.0f}% of the observations are saturated (over-exposed)"
+        sat_share = 0.0 if bad is None else float(bad.mean())
+        if sat_share > 0.5:
+            cause = f"{100 * sat_share:.0f}% of the observations are saturated (over-exposed)"
         elif lit.mean() < 0.5:
             cause = (f"{100 * (1 - lit.mean()):.0f}% of the observations are dark: under-exposed images, lights "
                      "that missed the object, or a mask outside the lit area")
