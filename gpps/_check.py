@@ -57,12 +57,25 @@ def as_images(name, a, *, dtype=np.float32) -> np.ndarray:
         raise TypeError(f"{name}: expected uint8, uint16 (scaled by full scale) or floating-point images "
                         f"(linear, 1 = full scale), got dtype {src.dtype}")
     scale = IMAGE_FULL_SCALE.get(src.dtype)
-    arr = src.astype(dtype) / dtype(scale) if scale else np.asarray(src, dtype=dtype)
-    if not np.all(np.isfinite(arr)):
+    if scale:  # uint8 / uint16: one float copy divided in place, finite and >= 0 by construction
+        arr = src.astype(dtype)
+        arr /= dtype(scale)
+        return arr
+    arr = np.asarray(src, dtype=dtype)  # no copy when ``a`` already has the dtype
+    lo, hi = _extremes(arr)
+    if not (np.isfinite(lo) and np.isfinite(hi)):
         raise ValueError(f"{name}: expected finite values, got NaN or inf")
-    if np.any(arr < 0):
-        raise ValueError(f"{name}: expected values >= 0, got a minimum of {float(arr.min()):.6g}")
+    if lo < 0:
+        raise ValueError(f"{name}: expected values >= 0, got a minimum of {float(lo):.6g}")
     return arr
+
+
+def _extremes(arr):
+    """``(min, max)`` of a float array in two reductions without temporaries: NaN when it holds a NaN
+    (min and max propagate it), so both are finite exactly when every value is; (0, 0) when empty."""
+    if arr.size == 0:
+        return 0.0, 0.0
+    return np.min(arr), np.max(arr)
 
 
 def as_array(name, a, *, ndim=None, shape=None, dtype=np.float32, finite=True) -> np.ndarray:
@@ -82,7 +95,7 @@ def as_array(name, a, *, ndim=None, shape=None, dtype=np.float32, finite=True) -
     if shape is not None:
         if len(shape) != arr.ndim or any(w is not None and w != g for w, g in zip(shape, arr.shape)):
             raise ValueError(f"{name}: expected shape {_fmt(shape)}, got {arr.shape}")
-    if finite and np.issubdtype(arr.dtype, np.floating) and not np.all(np.isfinite(arr)):
+    if finite and np.issubdtype(arr.dtype, np.floating) and not all(np.isfinite(_extremes(arr))):
         raise ValueError(f"{name}: expected finite values, got NaN or inf")
     return arr
 

@@ -4,8 +4,8 @@ the same errors and warnings.
 * reading: the threaded :func:`gpps.io.capture.read_capture` and the float32 scaling of 8/16-bit images
   against the sequential float64 route it replaced;
 * :func:`gpps.pipeline.solver.estimate_noise` against its plain 3x3 loop;
-* :func:`gpps.flows.photometric.check_observations`, :func:`gpps.flows.folder._saturation` against their
-  whole-stack numpy formulas.
+* :func:`gpps.flows.photometric.check_observations`, :func:`gpps.flows.folder._saturation` and
+  :func:`gpps._check.as_images` against their whole-stack numpy formulas.
 """
 
 from __future__ import annotations
@@ -272,7 +272,7 @@ def test_estimate_noise_diligent_equals_the_plain_loop(data_root, name):
     assert np.all(estimate_noise(ds.images, ds.mask) > 0)
 
 
-# ------------------------------------------------------------------------ check_observations, _saturation
+# ------------------------------------------------------------------- check_observations, _saturation, as_images
 
 
 def _check_observations_reference(images, mask, lights, *, valid=None, saturation=None, reference_depth=None,
@@ -484,3 +484,35 @@ def test_saturation_diligent_equals_the_whole_stack_formula(data_root):
             pytest.skip(f"no {root}")
         cap = capture.read_capture(root)
         np.testing.assert_array_equal(_saturation(cap), _saturation_reference(cap))
+
+
+def test_as_images_errors_and_no_copy():
+    from gpps._check import as_array, as_images
+
+    a = np.random.default_rng(2).random((3, 4, 5, 3)).astype(np.float32)
+    assert as_images("images", a) is a  # the right dtype: no copy
+    assert as_array("depth", a[0, ..., 0]).base is a
+    for bad, msg in [(np.nan, "finite"), (np.inf, "finite"), (-np.inf, "finite"), (-0.25, "minimum of -0.25")]:
+        b = a.copy()
+        b[1, 2, 3, 1] = bad
+        with pytest.raises(ValueError, match=msg):
+            as_images("images", b)
+        if msg == "finite":
+            with pytest.raises(ValueError, match="depth: expected finite"):
+                as_array("depth", b)
+    b = a.copy()
+    b[0, 0, 0] = (-0.0, np.nan, -1.0)  # NaN before negatives, as before
+    with pytest.raises(ValueError, match="finite"):
+        as_images("images", b)
+    b[0, 0, 0, 1] = 0.0
+    b[0, 0, 0, 2] = -0.0  # -0 is >= 0
+    assert as_images("images", b) is b
+    assert as_images("images", np.zeros((0, 4, 3))).shape == (0, 4, 3)
+    for dtype in (np.uint8, np.uint16):
+        info = np.iinfo(dtype)
+        x = np.arange(info.max + 1, dtype=dtype).reshape(-1, 256)
+        got = as_images("images", x)
+        assert got.dtype == np.float32 and _same(got, x.astype(np.float32) / np.float32(info.max))
+        np.testing.assert_array_equal(as_images("images", x, dtype=np.float64), x.astype(np.float64) / info.max)
+    with pytest.raises(TypeError, match="int32"):
+        as_images("images", np.zeros(3, np.int32))
