@@ -137,6 +137,17 @@ def test_read_capture_threads_equal_the_sequential_read(tmp_path, monkeypatch, t
                            {"format": "png", "bits": 8, "transfer": "linear", "images": 2}]
     raw = capture.read_capture(tmp_path, ambient=None, normalise=False)
     assert _same(raw.dataset.images, _reference_capture_images(tmp_path, names))
+    # the automatic mask and the downscaling read the undivided images: divided after them, as before
+    from gpps.host.automask import automatic_mask
+
+    undivided = _reference_capture_images(tmp_path, names, ambient="ambient.png")
+    auto = capture.read_capture(tmp_path, mask="auto")
+    assert auto.mask_source == "automatic"
+    np.testing.assert_array_equal(auto.dataset.mask, automatic_mask(undivided, None)[0])
+    assert _same(auto.dataset.images, _reference_capture_images(tmp_path, names, ambient="ambient.png", li=li))
+    small = capture.read_capture(tmp_path, max_size=8)
+    ref = np.stack([capture._resize(im, (7, 8)) for im in undivided]).astype(np.float32)
+    assert small.scale < 1 and _same(small.dataset.images, (ref / li[:, None, None, :].astype(np.float32)).astype(np.float32))
     grey = tmp_path / "grey"
     grey.mkdir()
     for k in range(4):
@@ -166,6 +177,13 @@ def test_read_capture_errors_in_file_order(tmp_path, monkeypatch, threads):
         capture.read_capture(tmp_path)
     with pytest.raises(ValueError, match="transfer"):
         capture.read_capture(tmp_path, transfer="gamma")
+    (tmp_path / "filenames.txt").write_text("0.png\n1.png\n2.png\n")
+    with pytest.raises(FileNotFoundError, match=r"ambient: file not found: .*none\.png"):
+        capture.read_capture(tmp_path, ambient="none.png", mask="bad mask path")  # the ambient first, as before
+    with pytest.raises(ValueError, match=r"ambient: expected shape \(4, 4\), got \(5, 4\)"):
+        capture.read_capture(tmp_path, ambient="4.png")
+    with pytest.raises(ValueError, match=r"mask: expected shape \(4, 4\), got \(5, 4\)"):
+        capture.read_capture(tmp_path, mask=np.ones((5, 4), bool))
 
 
 @pytest.mark.parametrize("name", ["ball", "bear"])

@@ -153,6 +153,44 @@ def _resize(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return out[..., None] if out.ndim == 2 else out
 
 
+def _decode_images(root: Path, names: list[str], transfer, step) -> tuple[list, dict]:
+    """The files decoded on the thread pool (:func:`decode_image_file`), progress and errors in file order.
+
+    Returns:
+        ``(raws, formats)``: the :class:`gpps.io.formats.RawImage` of each file and a count of each
+        ``(format, bits, transfer)``.
+
+    Raises:
+        ValueError: images of different sizes (after every file was read), or what a file's decoding raised.
+    """
+    n = len(names)
+    formats, raws = {}, []
+    with closing(_imap(lambda nm: decode_image_file(root / nm, transfer=transfer), names)) as decoded:
+        for k, (name, raw) in enumerate(zip(names, decoded)):
+            raws.append(raw)
+            info = raw.info
+            formats[(info["format"], info["bits"], info["transfer"])] = formats.get((info["format"], info["bits"], info["transfer"]), 0) + 1
+            step(k + 1, n, f"read {name}")
+    shapes = {r.data.shape[:2] for r in raws}
+    if len(shapes) != 1:
+        raise ValueError(f"dir: expected images of one size, got {sorted(shapes)} in {root}")
+    return raws, formats
+
+
+def _ambient_path(root: Path, names: list[str], ambient) -> Path | None:
+    """The ambient image to subtract: ``"auto"``: the first ``*ambient*`` image that is no capture; a name: that
+    file (FileNotFoundError when missing); None: none."""
+    if ambient is None:
+        return None
+    if ambient == "auto":
+        cands = [p for p in sorted(root.iterdir()) if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS and _is_ambient(p.name) and p.name not in names]
+        return cands[0] if cands else None
+    amb_path = Path(ambient) if Path(ambient).is_absolute() else root / ambient
+    if not amb_path.is_file():
+        raise FileNotFoundError(f"ambient: file not found: {amb_path}")
+    return amb_path
+
+
 def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = None, ambient: str | None = "auto",
                  mask=None, automask=None, normalise: bool = True, lights=None, progress=None) -> Capture:
     """Read a photometric-stereo folder as users have it.
@@ -216,38 +254,27 @@ def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = No
         elif li.shape[1] != 3:
             raise ValueError(f"light_intensities.txt: expected {n} rows of 1 or 3 values, got shape {li.shape}")
     K = read_K(root / "K.txt") if (root / "K.txt").is_file() else None
-    formats = {}
-    raws = []
-    with closing(_imap(lambda nm: decode_image_file(root / nm, transfer=transfer), names)) as decoded:
-        for k, (name, raw) in enumerate(zip(names, decoded)):
-            raws.append(raw)
-            info = raw.info
-            formats[(info["format"], info["bits"], info["transfer"])] = formats.get((info["format"], info["bits"], info["transfer"]), 0) + 1
-            step(k + 1, n, f"read {name}")
-    shapes = {r.data.shape[:2] for r in raws}
-    if len(shapes) != 1:
-        raise ValueError(f"dir: expected images of one size, got {sorted(shapes)} in {root}")
-    # one (N, H, W, 3) float32 stack, each image scaled into its slot (grey images repeated over the channels)
-    images = np.empty((n, *raws[0].data.shape[:2], 3), np.float32)
-    _each(lambda k: raws[k].to_float(np.float32, out=images[k]), range(n))
+    raws, formats = _decode_images(root, names, transfer, step)
+    h, w = raws[0].data.shape[:2]
+    amb_path = _ambient_path(root, names, ambient)
+    amb = None
+    if amb_path is not None:
+        amb, _ = read_image_file(amb_path, transfer=transfer)
+        if amb.shape[:2] != (h, w):
+            raise ValueError(f"ambient: expected shape {(h, w)}, got {amb.shape[:2]} in {amb_path}")
+    # one (N, H, W, 3) float32 stack, each image scaled into its slot (grey images repeated over the
+    # channels), minus the ambient image and clipped at 0 in place
+    images = np.empty((n, h, w, 3), np.float32)
+
+    def fill(k):
+        im = raws[k].to_float(np.float32, out=images[k])
+        if amb is not None:
+            np.subtract(im, amb, out=im)
+            np.clip(im, 0.0, None, out=im)
+
+    _each(fill, range(n))
     raws.clear()  # the decoded files, no longer needed
-    amb_name = None
-    if ambient is not None:
-        if ambient == "auto":
-            cands = [p for p in sorted(root.iterdir()) if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS and _is_ambient(p.name) and p.name not in names]
-            amb_path = cands[0] if cands else None
-        else:
-            amb_path = Path(ambient) if Path(ambient).is_absolute() else root / ambient
-            if not amb_path.is_file():
-                raise FileNotFoundError(f"ambient: file not found: {amb_path}")
-        if amb_path is not None:
-            a, _ = read_image_file(amb_path, transfer=transfer)
-            if a.shape[:2] != images.shape[1:3]:
-                raise ValueError(f"ambient: expected shape {images.shape[1:3]}, got {a.shape[:2]} in {amb_path}")
-            np.subtract(images, a[None], out=images)
-            np.clip(images, 0.0, None, out=images)
-            amb_name = amb_path.name
-    h, w = images.shape[1:3]
+    amb_name = None if amb_path is None else amb_path.name
     mask_source = "given"
     if mask is None:
         mp = find_side_file(root, "mask")
