@@ -46,7 +46,8 @@ import numpy as np  # noqa: E402
 from cases import make_case  # noqa: E402
 from gpps.host.metrics import angular_error  # noqa: E402
 from gpps.flows.photometric import solve_normals  # noqa: E402
-from gpps.host.dgmc import DGMCConfig, dgmc_start, propagate_front  # noqa: E402
+from gpps.host.dgmc import DGMCConfig, dgmc_start  # noqa: E402
+from gpps.pipeline.front import propagate_front  # noqa: E402
 from gpps.pipeline.solver import PixelSolver, SolverConfig  # noqa: E402
 
 

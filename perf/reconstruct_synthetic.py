@@ -17,7 +17,7 @@ normal solve on the DGMC highlight pixels four ways: (a) the multi-start solver
 (10 starts from least squares), (b) one start from the least-squares normal,
 (c) one start from the seed's DGMC normal (sources on the region boundary),
 (d) one start from the DGMC front (the pipeline's default,
-``gpps.host.dgmc.propagate_front``: sources on the solved front, ring by
+``gpps.pipeline.front.propagate_front``: sources on the solved front, ring by
 ring; the non-highlight sources solved as in (a)).  Cost evaluations per pixel
 (PixelSolver ``iterations``, all starts summed) and MAEN on those pixels.
 
@@ -47,7 +47,8 @@ from gpps.lights import DirectionalLights, PointLights  # noqa: E402
 from gpps.material import Material  # noqa: E402
 from gpps.host.metrics import angular_error  # noqa: E402
 from gpps.flows.photometric import solve_normals  # noqa: E402
-from gpps.host.dgmc import dgmc_start, propagate_front  # noqa: E402
+from gpps.host.dgmc import dgmc_start  # noqa: E402
+from gpps.pipeline.front import propagate_front  # noqa: E402
 from gpps.pipeline.solver import PixelSolver, SolverConfig  # noqa: E402
 from gpps.host.scenes import make_scene  # noqa: E402
 from gpps.flows.synthetic import default_lights, render  # noqa: E402

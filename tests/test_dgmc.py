@@ -477,7 +477,7 @@ def _front_case(device, size=96, brdf="blinn-phong", camera="orthographic"):
 @pytest.mark.parametrize("camera", ["orthographic", "perspective"])
 def test_front_converges_in_fewer_evaluations_to_the_right_normals(device, camera):
     from gpps.host.metrics import angular_error
-    from gpps.host.dgmc import propagate_front
+    from gpps.pipeline.front import propagate_front
 
     img, sc, ls, dg, sources, one = _front_case(device, camera=camera)
     hm = dg.highlight
@@ -499,7 +499,7 @@ def test_front_converges_in_fewer_evaluations_to_the_right_normals(device, camer
 def test_front_rings_follow_the_solved_neighbours(device):
     """Ring k pixels start from an 8-neighbour that is outside the highlights (k = 1) or in ring k - 1,
     an edge neighbour whenever one is solved (no curvature test), with that neighbour's final normal."""
-    from gpps.host.dgmc import propagate_front
+    from gpps.pipeline.front import propagate_front
 
     img, sc, ls, dg, sources, one = _front_case(device, size=48)
     hm = dg.highlight
@@ -521,7 +521,7 @@ def test_front_rings_follow_the_solved_neighbours(device):
 
 
 def test_front_keep_better_never_raises_the_residual(device):
-    from gpps.host.dgmc import propagate_front
+    from gpps.pipeline.front import propagate_front
 
     img, sc, ls, dg, sources, one = _front_case(device, size=48)
     hm = dg.highlight
@@ -537,7 +537,7 @@ def test_front_keep_better_never_raises_the_residual(device):
 
 def test_front_island_without_boundary_is_left_alone(device):
     """A highlight region with no solved pixel next to it is not reached: ring -1, no evaluations."""
-    from gpps.host.dgmc import propagate_front
+    from gpps.pipeline.front import propagate_front
 
     img, sc, ls, dg, sources, one = _front_case(device, size=48)
     hm = dg.highlight.copy()
@@ -555,7 +555,7 @@ def test_front_island_without_boundary_is_left_alone(device):
 
 
 def test_front_bad_input(device):
-    from gpps.host.dgmc import propagate_front
+    from gpps.pipeline.front import propagate_front
 
     img, sc, ls, dg, sources, one = _front_case(device, size=32)
     hm = dg.highlight

@@ -63,11 +63,12 @@ from gpps._check import (
 )
 from gpps._runtime import resolve_device
 from gpps._taichi import taichi_device
-from gpps.host.dgmc import DGMCConfig, propagate_front
+from gpps.host.dgmc import DGMCConfig
 from gpps.lights import PointLights
 from gpps.material import Material
 from gpps.names import LOBE_PARAMETERS, LOBE_RANGES
 from gpps.pipeline.dgmc import dgmc_start_device
+from gpps.pipeline.front import propagate_front
 from gpps.pipeline.integration import Integrator, IntegratorConfig
 from gpps.pipeline.material import MaterialScorer
 from gpps.pipeline.solver import PixelSolver, SolverConfig

@@ -17,6 +17,9 @@ the highlight that has a similar local geometry:
    curvature are both within +-5 % of ``p``'s (4.17-4.18), the tolerance
    widened stepwise when none qualifies, else the nearest boundary pixel; ``p``
    starts from ``q``'s normal.
+5. :func:`front_rings`: the rings and sources of the front that the pipeline
+   solves instead (:func:`gpps.pipeline.front.propagate_front`): the same rule
+   with the boundary moved inward ring by ring as pixels get solved.
 
 Pure numpy/scipy on the host (no Warp)::
 
@@ -31,7 +34,7 @@ Conventions: pixel ``(i, j)`` = (row, column); geodesic distances are in pixels
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -40,7 +43,6 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from gpps._check import as_array, as_mask, check_choice, check_choices, check_number, check_unit
-from gpps.host.merge import ranks_better
 from gpps.lights import DirectionalLights, PointLights
 
 __all__ = [
@@ -54,11 +56,11 @@ __all__ = [
     "detect_highlights",
     "dgmc_start",
     "fill_indices",
+    "front_rings",
     "gaussian_derivative_weights",
     "geodesic_candidates",
     "hessian_curvatures",
     "outer_boundary",
-    "propagate_front",
     "select_sources",
 ]
 
@@ -108,7 +110,7 @@ class DGMCConfig:
             qualifies ...
         widen_steps: ... up to this many times; then the nearest boundary pixel wins.
         start: how the pipeline (:class:`gpps.flows.ron.RON`) uses the rule:
-            ``"front"`` (default): :func:`propagate_front`, sources on the solved
+            ``"front"`` (default): :func:`gpps.pipeline.front.propagate_front`, sources on the solved
             front moving inward ring by ring (4.1-4.6 cost evaluations per
             highlight pixel and under 0.01 deg on ``perf/dgmc_start.py``'s
             scenes); ``"boundary"``: :func:`dgmc_start` as the seed states it,
@@ -799,7 +801,7 @@ def dgmc_start(images, mask, normals, *, lights=None, config: DGMCConfig | None 
 
 @dataclass
 class FrontResult:
-    """Output of :func:`propagate_front`.
+    """Output of :func:`gpps.pipeline.front.propagate_front` (the rings and sources: :func:`front_rings`).
 
     Attributes:
         normals: (H, W, 3) float32: the given solution, with each highlight
@@ -829,137 +831,78 @@ class FrontResult:
     n_rings: int
 
 
-def propagate_front(solver, images, mask, highlight, solution: dict, *, gaussian=None, mean=None, depth=None,
-                    valid=None, config: DGMCConfig | None = None, keep_better: bool = True,
-                    progress=None) -> FrontResult:
-    """DGMC on the solved front: highlight pixels start from their solved neighbours, ring by ring.
+def front_rings(mask, highlight, *, gaussian=None, mean=None, config: DGMCConfig | None = None
+                ) -> tuple[np.ndarray, np.ndarray, int]:
+    """The rings of DGMC's solved front and each ring pixel's source (4.17-4.18), from the masks alone.
 
-    :func:`dgmc_start` copies the normal of a boundary pixel ``q`` that may lie
-    tens of pixels from ``p`` (a broad lobe makes large highlight regions); on a
-    curved surface that start is as far from the truth as ``q`` is from ``p``, and
-    it converges no faster than the least-squares start
-    (``perf/dgmc_start.py``).  Here the same rule (4.17-4.18) is applied with
-    the boundary moved inward as pixels get solved, in the order of the
-    multi-source search from the outer boundary (unit rings of the 8-neighbour
-    graph, the discrete form of the Dijkstra order): ring 1 is the highlight
-    pixels next to a solved pixel; each of its pixels takes as ``q`` the nearest
-    solved 8-neighbour (edge neighbours before corner ones) whose Gaussian and
-    mean curvature are within ``config.tolerance`` of its own, widened by
-    ``config.widen_factor`` up to ``config.widen_steps`` times, else the nearest
-    (:func:`select_sources`); it is solved from ``q``'s *solved* normal with one
-    warm start, and then serves as a source for ring 2, and so on.  A start one
-    pixel away is within the basin of the right minimum where the surface is
-    smooth, so the highlight pixels converge in fewer cost evaluations and far
-    more often to the right normal.
+    The front (:func:`gpps.pipeline.front.propagate_front`) solves the highlight pixels ring by ring: ring 1 is
+    the highlight pixels with a solved 8-neighbour (a mask pixel outside the highlights), ring ``k`` those next
+    to ring ``k - 1`` (the 8-neighbour breadth-first distance from the solved pixels, through highlight pixels).
+    Each ring pixel ``p`` takes as source ``q`` the nearest neighbour solved before its ring (outside the
+    highlights or in a lower ring; edge neighbours before corner ones) whose Gaussian and mean curvature are
+    within ``config.tolerance`` of ``p``'s, widened by ``config.widen_factor`` up to ``config.widen_steps``
+    times, else the nearest (:func:`select_sources`).  Neither choice depends on a solve, so all rings and
+    sources are found here at once, before any solve; only the start normals (``q``'s solved normal) wait for
+    the earlier rings.
 
     Args:
-        solver: a :class:`gpps.pipeline.solver.PixelSolver` for the frame's shape;
-            its config is replaced for the front solves (``warm_start=True``,
-            ``starts=1``, no neighbour pass, no smoothness) and restored after.
-        images: (N, H, W) or (N, H, W, 3) the frame (uploaded once), or None when the
-            solver already holds it (its last upload; ``depth`` and ``valid`` then unused).
         mask: (H, W) bool object mask.
-        highlight: (H, W) bool highlight region (:attr:`DGMCResult.highlight`).
-        solution: dict with (H, W, 3) ``normals`` and ``albedo`` and (H, W)
-            ``residual`` and ``flags`` of a solve of the mask: the sources are its
-            non-highlight pixels; with ``keep_better`` its highlight pixels are
-            the alternative each front solve must beat.
-        gaussian, mean: (H, W) curvatures (4.16, :attr:`DGMCResult.gaussian` /
-            ``mean``); None: the test of 4.17-4.18 is skipped (nearest neighbour).
-        depth, valid: as :meth:`PixelSolver.solve` (depth needed for point lights).
+        highlight: (H, W) bool highlight region (only its pixels inside ``mask`` count).
+        gaussian, mean: (H, W) curvatures (4.16); None: no curvature test (the nearest solved neighbour).
         config: :class:`DGMCConfig` (tolerance, widen_factor, widen_steps).
-        keep_better: keep, per highlight pixel, the front solve only where its
-            residual is below the given solution's (and the pixel has 3 lit
-            observations: an under-determined pixel's residual cannot rank
-            starts); that winner is what later rings start from.  False: always
-            the front solve.
-        progress: optional ``progress(ring, None, message)`` callback.
 
     Returns:
-        :class:`FrontResult`.
+        ``(ring, source, n_rings)``: (H, W) int32 ring of each highlight pixel (1, 2, ...; -1 where no ring
+        reaches it, a region with no solved pixel next to it; 0 off the highlights), (H, W, 2) int32
+        ``(row, column)`` of each ring pixel's source (-1 elsewhere), and the number of rings.
     """
     cfg = _check_config(config)
-    n_img, h, w = solver.shape
-    m = as_mask("mask", mask, (h, w))
+    m = as_mask("mask", mask, allow_empty=True)
+    h, w = m.shape
     hl = np.asarray(highlight, bool)
     if hl.shape != (h, w):
         raise ValueError(f"highlight: expected shape ({h}, {w}), got {hl.shape}")
     hl = hl & m
-    for k, shp in (("normals", (h, w, 3)), ("albedo", (h, w, 3)), ("residual", (h, w)), ("flags", (h, w))):
-        if k not in solution:
-            raise ValueError(f"solution: expected a dict with '{k}', got keys {sorted(solution)}")
-        if np.shape(solution[k]) != shp:
-            raise ValueError(f"solution['{k}']: expected shape {shp}, got {np.shape(solution[k])}")
     curv = gaussian is not None and mean is not None
     if curv:
         gc = as_array("gaussian", gaussian, shape=(h, w), dtype=np.float64)
         mc = as_array("mean", mean, shape=(h, w), dtype=np.float64)
-    nrm = np.array(solution["normals"], np.float32)
-    alb = np.array(solution["albedo"], np.float32)
-    res = np.array(solution["residual"], np.float32)
-    flg = np.array(solution["flags"], np.int32)
-    iters = np.zeros((h, w), np.int32)
-    ring_map = np.where(hl, -1, 0).astype(np.int32)
+    # the rings: breadth-first from the solved pixels through the highlight pixels, 8-neighbour steps
+    ring = np.where(hl, -1, 0).astype(np.int32)
+    solved = m & ~hl
+    todo = hl.copy()
+    eight = _structure(8)
+    k = 0
+    while todo.any():
+        grown = todo & ndi.binary_dilation(solved, eight)
+        if not grown.any():
+            break
+        k += 1
+        ring[grown] = k
+        solved |= grown
+        todo &= ~grown
     source = np.full((h, w, 2), -1, np.int32)
-    won = np.zeros((h, w), bool)
-
-    old = solver.config
-    solver.set_config(replace(old, warm_start=True, starts=1, neighbour_radius=0, smoothness=0.0))
-    try:
-        start = np.where(m[..., None], nrm, 0.0)
-        if images is None:
-            solver.set_mask(m)
-            solver.set_start(start)
-        else:
-            solver.upload(images, m, depth=depth, valid=valid, init_normals=start)
-        solved = m & ~hl
-        todo = hl.copy()
-        # 8 neighbours, edge ones first (the nearer), with their offsets
-        offs = sorted(_OFFSETS, key=lambda o: abs(o[0]) + abs(o[1]))
-        pad = np.pad(solved, 1)
-        k = 0
-        while todo.any():
-            pad[1:-1, 1:-1] = solved
-            cand = np.stack([pad[1 + di:1 + di + h, 1 + dj:1 + dj + w] for di, dj in offs], -1)  # (H, W, 8)
-            ring = todo & cand.any(-1)
-            if not ring.any():
-                break
-            k += 1
-            pi, pj = np.nonzero(ring)
-            c = cand[pi, pj]  # (P, 8) solved neighbours
-            # the valid candidates first (a prefix), nearest first within them
-            order = np.argsort(~c, axis=1, kind="stable")
-            c = np.take_along_axis(c, order, 1)
-            di = np.array([o[0] for o in offs])[order]
-            dj = np.array([o[1] for o in offs])[order]
-            qi, qj = np.clip(pi[:, None] + di, 0, h - 1), np.clip(pj[:, None] + dj, 0, w - 1)
-            if curv:
-                rank, _ = select_sources(gc[pi, pj], mc[pi, pj], gc[qi, qj], mc[qi, qj], c, tolerance=cfg.tolerance,
-                                         widen_factor=cfg.widen_factor, widen_steps=cfg.widen_steps)
-            else:
-                rank = np.zeros(pi.size, np.int64)
-            rows = np.arange(pi.size)
-            si, sj = qi[rows, rank], qj[rows, rank]
-            init = nrm.copy()
-            init[pi, pj] = nrm[si, sj]
-            out = solver.resolve(ring, init)
-            iters[pi, pj] = out["iterations"][pi, pj]
-            take = np.ones(pi.size, bool)
-            if keep_better:
-                take = ranks_better(out["residual"][pi, pj], out["flags"][pi, pj], res[pi, pj])
-            ti, tj = pi[take], pj[take]
-            nrm[ti, tj] = out["normals"][ti, tj]
-            alb[ti, tj] = out["albedo"][ti, tj]
-            res[ti, tj] = out["residual"][ti, tj]
-            flg[ti, tj] = out["flags"][ti, tj]
-            won[ti, tj] = True
-            ring_map[pi, pj] = k
-            source[pi, pj, 0], source[pi, pj, 1] = si, sj
-            solved |= ring
-            todo &= ~ring
-            if progress is not None:
-                progress(k, None, f"DGMC front ring {k}: {pi.size} pixels")
-    finally:
-        solver.set_config(old)
-    return FrontResult(normals=nrm, albedo=alb, residual=res, flags=flg, iterations=iters, ring=ring_map,
-                       source=source, won=won, n_rings=k)
+    if k == 0:
+        return ring, source, 0
+    # when each pixel was solved: 0 outside the highlights, its ring on them, never (k + 1) off the mask / unreached
+    level = np.where(m & ~hl, 0, np.where(ring > 0, ring, k + 1)).astype(np.int32)
+    pad = np.pad(level, 1, constant_values=k + 1)
+    pi, pj = np.nonzero(ring > 0)
+    rk = ring[pi, pj]
+    # 8 neighbours, edge ones first (the nearer); a neighbour is a candidate when solved before p's ring
+    offs = sorted(_OFFSETS, key=lambda o: abs(o[0]) + abs(o[1]))
+    c = np.stack([pad[1 + pi + di, 1 + pj + dj] < rk for di, dj in offs], -1)  # (P, 8)
+    # the valid candidates first (a prefix), nearest first within them
+    order = np.argsort(~c, axis=1, kind="stable")
+    c = np.take_along_axis(c, order, 1)
+    di = np.array([o[0] for o in offs])[order]
+    dj = np.array([o[1] for o in offs])[order]
+    qi, qj = np.clip(pi[:, None] + di, 0, h - 1), np.clip(pj[:, None] + dj, 0, w - 1)
+    if curv:
+        rank, _ = select_sources(gc[pi, pj], mc[pi, pj], gc[qi, qj], mc[qi, qj], c, tolerance=cfg.tolerance,
+                                 widen_factor=cfg.widen_factor, widen_steps=cfg.widen_steps)
+    else:
+        rank = np.zeros(pi.size, np.int64)
+    rows = np.arange(pi.size)
+    source[pi, pj, 0], source[pi, pj, 1] = qi[rows, rank], qj[rows, rank]
+    return ring, source, k

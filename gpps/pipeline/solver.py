@@ -7,7 +7,7 @@ captured in a CUDA graph.  Buffers are allocated once for ``(N, H, W)``.
 
 Length: the config (every setting documented in place, about 150 lines), the noise and light checks the
 stages share, and one stage whose frame buffers serve its solve, re-solves of the uploaded frame
-(``set_mask`` / ``set_start`` / ``set_depth``) and the device merge (``save`` / ``merge_saved``).
+(``set_mask`` / ``select_mask`` / ``set_start`` / ``set_depth``) and the device merge (``save`` / ``merge_saved``).
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from gpps._check import (
     check_number,
 )
 from gpps._runtime import block_lanes, resolve_device, warp
+from gpps.kernels import front as fk
 from gpps.kernels import merge as mk
 from gpps.kernels import solve as sk
 from gpps.lights import DirectionalLights, PointLights
@@ -471,8 +472,12 @@ class PixelSolver(Stage):
     def _split_rows(self, m: np.ndarray) -> None:
         """On the CPU, split the solve launch by rows over the threads, balanced by the mask's pixels
         (:mod:`gpps.pipeline.cpu_threads`); one launch on CUDA or with one thread."""
+        self._split_counts(m.sum(axis=1))
+
+    def _split_counts(self, rows: np.ndarray) -> None:
+        """:meth:`_split_rows` from the mask's (H,) pixel counts per row."""
         n = cpu_threads() if not self.device.startswith("cuda") else 1
-        self._mask_rows = m.sum(axis=1)
+        self._mask_rows = rows
         bounds = balanced_bounds(self._mask_rows, n) if n > 1 else None
         if bounds is not None and len(bounds) < 2:
             bounds = None
@@ -712,6 +717,34 @@ class PixelSolver(Stage):
         self.mask.assign(m.astype(np.uint8))
         self._split_rows(m)
 
+    def select_mask(self, labels, value: int, rows=None) -> None:
+        """Solve the pixels where a device label map equals ``value`` next: the mask is set on the device
+        (kernel :data:`gpps.kernels.front.label_mask_kernel`), nothing is copied (the DGMC front selects its
+        rings this way, :class:`gpps.pipeline.front.DeviceFront`).
+
+        Args:
+            labels: (H, W) int32 Warp array on the solver's device.
+            value: the label to solve.
+            rows: (H,) the selected pixels per image row (host numbers the caller knows): they balance the
+                CPU row split (:meth:`_split_rows`); None: every row weighs the same.  Unused on CUDA.
+        """
+        wp = warp()
+        n, h, w = self.shape
+        if not isinstance(labels, wp.array) or labels.dtype != wp.int32 or tuple(labels.shape) != (h, w):
+            raise ValueError(f"labels: expected a ({h}, {w}) int32 Warp array, got {type(labels).__name__} "
+                             f"{getattr(labels, 'shape', None)} {getattr(labels, 'dtype', None)}")
+        if str(labels.device) != str(self.mask.device):
+            raise ValueError(f"labels: expected an array on {self.mask.device}, got {labels.device}")
+        if rows is None:
+            rows = np.ones(h, np.int64)
+        else:
+            rows = np.asarray(rows)
+            if rows.shape != (h,):
+                raise ValueError(f"rows: expected shape ({h},), got {rows.shape}")
+        wp.launch(fk.label_mask_kernel, dim=(h, w), inputs=[labels, int(value)], outputs=[self.mask],
+                  device=self.device)
+        self._split_counts(rows)
+
     def set_start(self, normals) -> None:
         """Start normals of the next warm-started step: (H, W, 3), copied into the ``normals`` buffer."""
         n, h, w = self.shape
@@ -760,8 +793,9 @@ class PixelSolver(Stage):
 
         The images, depth, observation mask and noise levels of the last
         :meth:`upload` stay; only ``mask`` and the start normals change, so a
-        sequence of small solves (the DGMC front, :func:`gpps.host.dgmc.propagate_front`)
-        does not copy the frame each time.  Needs ``config.warm_start``.
+        sequence of small solves does not copy the frame each time (the DGMC
+        front, :class:`gpps.pipeline.front.DeviceFront`, copies not even masks,
+        starts and outputs: :meth:`select_mask`).  Needs ``config.warm_start``.
 
         Args:
             mask: (H, W) bool, the pixels to solve (may be empty: nothing runs).

@@ -1,0 +1,212 @@
+"""DGMC on the solved front (seed 4.16-4.18), device-resident: the stage :class:`DeviceFront` and
+:func:`propagate_front`.
+
+:func:`gpps.host.dgmc.dgmc_start` copies the normal of a boundary pixel ``q`` that may lie tens of pixels from
+``p`` (a broad lobe makes large highlight regions); on a curved surface that start is as far from the truth as
+``q`` is from ``p``, and it converges no faster than the least-squares start (``perf/dgmc_start.py``).  The front
+applies the same rule (4.17-4.18) with the boundary moved inward as pixels get solved: ring 1 is the highlight
+pixels next to a solved pixel, ring ``k`` those next to ring ``k - 1``; each ring pixel starts from the *solved*
+normal of its source (the nearest solved 8-neighbour, edge ones first, whose curvatures match,
+:func:`gpps.host.dgmc.front_rings`), with one warm start, and then serves as a source for the next ring.  A start
+one pixel away is within the basin of the right minimum where the surface is smooth, so the highlight pixels
+converge in fewer cost evaluations and far more often to the right normal.
+
+Device-resident: the rings and sources depend only on the masks and the curvatures, so the host finds them all
+at once (:func:`gpps.host.dgmc.front_rings`) and uploads them once, as an (H, W) ring map and an (H, W, 2) source
+map, with the given solution.  Per ring only the starts depend on the earlier rings' results, and everything
+runs on the solver's device with no copy: the solver's mask becomes ring ``k``
+(:meth:`gpps.pipeline.solver.PixelSolver.select_mask`), each ring pixel's start is gathered from the current
+normals at its source, the solver steps (:meth:`PixelSolver.step`: on the CPU split over rows across threads),
+and the ring's solve is merged into the current solution on the device (:mod:`gpps.kernels.front`).  The result
+comes back once, at the end.  Decisions and results are those of the former host loop over rings (rings and
+sources picked in numpy per ring, a full start array uploaded and the full outputs fetched per ring, merged on the
+host): tests/test_front.py compares the two exactly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from gpps._check import as_mask
+from gpps._runtime import warp
+from gpps.host.dgmc import DGMCConfig, FrontResult, front_rings
+from gpps.kernels import front as fk
+from gpps.names import FLAG_FEW_OBSERVATIONS
+from gpps.pipeline.stage import Stage
+
+__all__ = ["DeviceFront", "propagate_front"]
+
+_SOLUTION = (("normals", 3), ("albedo", 3), ("residual", 0), ("flags", 0))
+
+
+class DeviceFront(Stage):
+    """The front's buffers on a :class:`gpps.pipeline.solver.PixelSolver`'s device, allocated once for its (H, W).
+
+    Args:
+        solver: the solver that holds the frame (its last upload) and solves the rings.
+
+    ``upload(mask, highlight, solution, gaussian=..., mean=..., config=...)`` (host plan and one copy of each
+    input), ``step(keep_better=..., progress=...)`` (every ring on the device, no copy), ``fetch()`` ->
+    :class:`gpps.host.dgmc.FrontResult`.  The solver's config is replaced for the ring solves
+    (``warm_start=True``, ``starts=1``, no neighbour pass, no smoothness) and restored after; its mask and
+    outputs are left as the last ring's solve left them (unchanged when there is no ring).
+    """
+
+    def __init__(self, solver):
+        wp = warp()
+        self.solver = solver
+        self.device = solver.device
+        h, w = solver.shape[1:]
+        d = self.device
+        self.ring = wp.zeros((h, w), dtype=wp.int32, device=d)
+        self.source = wp.zeros((h, w, 2), dtype=wp.int32, device=d)
+        self.normals = wp.zeros((h, w), dtype=wp.vec3, device=d)
+        self.albedo = wp.zeros((h, w), dtype=wp.vec3, device=d)
+        self.residual = wp.zeros((h, w), dtype=wp.float32, device=d)
+        self.flags = wp.zeros((h, w), dtype=wp.int32, device=d)
+        self.iterations = wp.zeros((h, w), dtype=wp.int32, device=d)
+        self.won = wp.zeros((h, w), dtype=wp.uint8, device=d)
+        self._plan = None
+        self._closed = False
+
+    def upload(self, mask, highlight, solution: dict, *, gaussian=None, mean=None,
+               config: DGMCConfig | None = None) -> None:
+        """Find the rings and sources (:func:`gpps.host.dgmc.front_rings`) and copy them and the solution in.
+
+        Args:
+            mask: (H, W) bool object mask.
+            highlight: (H, W) bool highlight region (:attr:`gpps.host.dgmc.DGMCResult.highlight`).
+            solution: dict with (H, W, 3) ``normals`` and ``albedo`` and (H, W) ``residual`` and ``flags`` of a
+                solve of the mask: the sources are its non-highlight pixels; with ``keep_better`` its highlight
+                pixels are the alternative each ring's solve must beat.
+            gaussian, mean: (H, W) curvatures (4.16); None: the test of 4.17-4.18 is skipped (nearest neighbour).
+            config: :class:`gpps.host.dgmc.DGMCConfig` (tolerance, widen_factor, widen_steps).
+        """
+        self._check_open()
+        h, w = self.solver.shape[1:]
+        m = as_mask("mask", mask, (h, w))
+        hl = np.asarray(highlight, bool)
+        if hl.shape != (h, w):
+            raise ValueError(f"highlight: expected shape ({h}, {w}), got {hl.shape}")
+        for k, c in _SOLUTION:
+            shp = (h, w, c) if c else (h, w)
+            if k not in solution:
+                raise ValueError(f"solution: expected a dict with '{k}', got keys {sorted(solution)}")
+            if np.shape(solution[k]) != shp:
+                raise ValueError(f"solution['{k}']: expected shape {shp}, got {np.shape(solution[k])}")
+        if not (gaussian is not None and mean is not None):
+            gaussian = mean = None
+        ring, source, n = front_rings(m, hl, gaussian=gaussian, mean=mean, config=config)
+        # pixels of each ring per image row: they balance the solver's CPU row split (row k: ring k)
+        ri, _ = np.nonzero(ring > 0)
+        rows = np.zeros((n + 1, h), np.int64)
+        np.add.at(rows, (ring[ring > 0], ri), 1)
+        self.ring.assign(ring)
+        self.source.assign(source)
+        self.normals.assign(np.asarray(solution["normals"], np.float32))
+        self.albedo.assign(np.asarray(solution["albedo"], np.float32))
+        self.residual.assign(np.asarray(solution["residual"], np.float32))
+        self.flags.assign(np.asarray(solution["flags"], np.int32))
+        self.iterations.zero_()
+        self.won.zero_()
+        self._plan = (ring, source, n, rows, np.bincount(ring[ring > 0], minlength=n + 1))
+
+    def step(self, *, keep_better: bool = True, progress=None) -> None:
+        """Solve the rings in order on the solver's device: per ring the mask, the starts, a warm solve and the
+        merge, with no copy between host and device.
+
+        Args:
+            keep_better: keep, per highlight pixel, the ring's solve only where its residual is below the
+                current solution's and the pixel has 3 lit observations (:func:`gpps.host.merge.ranks_better`:
+                an under-determined pixel's residual cannot rank starts); that winner is what later rings start
+                from.  False: always the ring's solve.
+            progress: optional ``progress(ring, None, message)`` callback, after each ring's launches.
+        """
+        self._check_open()
+        if self._plan is None:
+            raise RuntimeError("step: upload() first")
+        wp = warp()
+        s = self.solver
+        h, w = s.shape[1:]
+        _, _, n, rows, sizes = self._plan
+        if n == 0:
+            return
+        old = s.config
+        s.set_config(replace(old, warm_start=True, starts=1, neighbour_radius=0, smoothness=0.0))
+        try:
+            for k in range(1, n + 1):
+                s.select_mask(self.ring, k, rows[k])
+                wp.launch(fk.front_start_kernel, dim=(h, w), inputs=[self.ring, k, self.source, self.normals],
+                          outputs=[s.normals], device=self.device)
+                s.step()
+                wp.launch(fk.front_merge_kernel, dim=(h, w),
+                          inputs=[self.ring, k, int(bool(keep_better)), int(FLAG_FEW_OBSERVATIONS), s.normals,
+                                  s.albedo, s.residual, s.iterations, s.flags],
+                          outputs=[self.normals, self.albedo, self.residual, self.flags, self.iterations, self.won],
+                          device=self.device)
+                if progress is not None:
+                    progress(k, None, f"DGMC front ring {k}: {int(sizes[k])} pixels")
+        finally:
+            s.set_config(old)
+
+    def fetch(self) -> FrontResult:
+        """The merged solution and the front's diagnostics (copies owned by the caller)."""
+        self._check_open()
+        if self._plan is None:
+            raise RuntimeError("fetch: upload() first")
+        ring, source, n, _, _ = self._plan
+        out = {k: np.array(getattr(self, k).numpy(), copy=True)
+               for k in ("normals", "albedo", "residual", "flags", "iterations", "won")}
+        return FrontResult(normals=out["normals"], albedo=out["albedo"], residual=out["residual"],
+                           flags=out["flags"], iterations=out["iterations"], ring=ring, source=source,
+                           won=out["won"].astype(bool), n_rings=n)
+
+    def close(self) -> None:
+        """Release the device buffers."""
+        for name in ("ring", "source", "normals", "albedo", "residual", "flags", "iterations", "won", "_plan"):
+            setattr(self, name, None)
+        self._closed = True
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise RuntimeError("DeviceFront: the stage is closed")
+
+
+def propagate_front(solver, images, mask, highlight, solution: dict, *, gaussian=None, mean=None, depth=None,
+                    valid=None, config: DGMCConfig | None = None, keep_better: bool = True,
+                    progress=None) -> FrontResult:
+    """DGMC on the solved front: highlight pixels start from their solved neighbours, ring by ring, on the
+    solver's device (:class:`DeviceFront`; the rule and why: this module's docstring).
+
+    Args:
+        solver: a :class:`gpps.pipeline.solver.PixelSolver` for the frame's shape; its config is replaced for the
+            front solves (``warm_start=True``, ``starts=1``, no neighbour pass, no smoothness) and restored after.
+        images: (N, H, W) or (N, H, W, 3) the frame (uploaded once), or None when the solver already holds it
+            (its last upload; ``depth`` and ``valid`` then unused).
+        mask: (H, W) bool object mask.
+        highlight: (H, W) bool highlight region (:attr:`gpps.host.dgmc.DGMCResult.highlight`).
+        solution: dict with (H, W, 3) ``normals`` and ``albedo`` and (H, W) ``residual`` and ``flags`` of a solve
+            of the mask: the sources are its non-highlight pixels; with ``keep_better`` its highlight pixels are
+            the alternative each front solve must beat.
+        gaussian, mean: (H, W) curvatures (4.16, :attr:`gpps.host.dgmc.DGMCResult.gaussian` / ``mean``); None:
+            the test of 4.17-4.18 is skipped (nearest neighbour).
+        depth, valid: as :meth:`PixelSolver.upload` (depth needed for point lights).
+        config: :class:`gpps.host.dgmc.DGMCConfig` (tolerance, widen_factor, widen_steps).
+        keep_better: keep, per highlight pixel, the front solve only where its residual is below the given
+            solution's (and the pixel has 3 lit observations: an under-determined pixel's residual cannot rank
+            starts); that winner is what later rings start from.  False: always the front solve.
+        progress: optional ``progress(ring, None, message)`` callback.
+
+    Returns:
+        :class:`gpps.host.dgmc.FrontResult`.
+    """
+    with DeviceFront(solver) as front:
+        front.upload(mask, highlight, solution, gaussian=gaussian, mean=mean, config=config)
+        if images is not None:
+            m = np.asarray(mask, bool)
+            start = np.where(m[..., None], np.asarray(solution["normals"], np.float32), 0.0)
+            solver.upload(images, m, depth=depth, valid=valid, init_normals=start)
+        front.step(keep_better=keep_better, progress=progress)
+        return front.fetch()

@@ -1,0 +1,224 @@
+"""DGMC's device-resident front (gpps.pipeline.front, gpps.kernels.front, gpps.host.dgmc.front_rings) against the
+former host loop over rings (tests/front_reference.py): identical rings, sources, starts, merges and results on
+rendered scenes and on every device, and no host<->device copy per ring."""
+
+import numpy as np
+import pytest
+
+from front_reference import propagate_front_host
+from gpps._runtime import warp
+from gpps.host.dgmc import DGMCConfig, dgmc_start, front_rings
+from gpps.host.merge import ranks_better
+from gpps.names import FLAG_FEW_OBSERVATIONS
+from gpps.pipeline.front import DeviceFront, propagate_front
+from gpps.pipeline.solver import PixelSolver, SolverConfig
+
+_FIELDS = ("normals", "albedo", "residual", "flags", "iterations", "ring", "source", "won")
+
+
+def _case(device, scene, size, camera, brdf, light_kind, n_lights):
+    """A rendered frame on a PixelSolver, its multi-start solution (the front's sources), DGMC's highlights and
+    curvatures (host), and the depth the solver needs (point lights)."""
+    from gpps.flows.synthetic import default_lights, render
+    from gpps.host.scenes import make_scene
+    from gpps.lights import DirectionalLights, PointLights
+    from gpps.material import Material
+
+    sc = make_scene(scene, size, camera)
+    mat = Material.default_for(brdf)
+    L = default_lights(light_kind, n_lights, layout="ring" if n_lights <= 4 else "spiral")
+    img = render(sc, mat, L, bits=16, device=device)
+    img = (img / np.asarray(L.intensities, np.float32)[:, None, None, :]).astype(np.float32)
+    lu = DirectionalLights(L.directions) if light_kind == "directional" else PointLights(L.positions)
+    depth = sc.depth if light_kind == "point" else None
+    solver = PixelSolver(img.shape[:3], sc.camera, lu, mat, SolverConfig(solver="none"), device=device)
+    ls = solver.run(img, sc.mask, depth=depth)
+    nrm = ls["normals"].astype(np.float64)
+    ok = sc.mask & (np.abs(np.linalg.norm(nrm, axis=-1) - 1.0) < 1e-3)
+    nrm[~ok] = (0.0, 0.0, 1.0)
+    pts = sc.camera.backproject(np.where(sc.mask, sc.depth, 1.0)) if light_kind == "point" else None
+    # (point-lit images divided by unit intensities are ~100x darker: a margin to match)
+    dg = dgmc_start(img, sc.mask, nrm, lights=lu, points=pts, config=DGMCConfig(margin=2e-4) if pts is not None else None)
+    solver.set_config(SolverConfig())
+    solver.set_mask(sc.mask)
+    solver.step()
+    sol = solver.fetch(("normals", "albedo", "residual", "iterations", "flags"))
+    return img, sc, solver, dg, sol, depth
+
+
+def _assert_same(a, b):
+    for k in _FIELDS:
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k), err_msg=k)
+    assert a.n_rings == b.n_rings
+
+
+# Measured when written (CPU, 48-64 px): every field bit-identical to the host loop in every case.
+@pytest.mark.parametrize(
+    "scene, size, camera, brdf, light_kind, n_lights, curvatures, keep_better",
+    [
+        ("sphere", 64, "orthographic", "blinn-phong", "directional", 3, True, True),
+        ("bumps", 64, "perspective", "cook-torrance", "directional", 3, True, True),
+        ("bumps", 48, "perspective", "cook-torrance", "directional", 12, False, False),
+        ("sphere", 48, "perspective", "blinn-phong", "point", 3, True, False),
+    ],
+)
+def test_device_front_equals_the_host_loop(device, scene, size, camera, brdf, light_kind, n_lights, curvatures,
+                                           keep_better):
+    img, sc, solver, dg, sol, depth = _case(device, scene, size, camera, brdf, light_kind, n_lights)
+    hm = dg.highlight
+    assert hm.sum() > 50
+    kw = dict(gaussian=dg.gaussian, mean=dg.mean) if curvatures else {}
+    ref = propagate_front_host(solver, img, sc.mask, hm, sol, depth=depth, keep_better=keep_better, **kw)
+    cfg = solver.config
+    dev = propagate_front(solver, img, sc.mask, hm, sol, depth=depth, keep_better=keep_better, **kw)
+    assert ref.n_rings > 3
+    _assert_same(dev, ref)
+    assert solver.config == cfg  # restored
+    if keep_better:
+        assert (dev.residual[sc.mask] <= sol["residual"][sc.mask]).all() and dev.won.any()
+    else:
+        np.testing.assert_array_equal(dev.won, dev.ring > 0)
+    # the frame already on the solver (images=None, as RON calls it): the same front
+    again = propagate_front(solver, None, sc.mask, hm, sol, keep_better=keep_better, **kw)
+    _assert_same(again, ref)
+
+
+def test_rings_and_sources_equal_the_host_loop(device):
+    """front_rings (all rings at once, before any solve) gives the host loop's rings and sources, with and without
+    the curvature test and with a widened tolerance."""
+    img, sc, solver, dg, sol, depth = _case(device, "bumps", 48, "perspective", "cook-torrance", "directional", 3)
+    hm = dg.highlight
+    for kw in ({}, dict(gaussian=dg.gaussian, mean=dg.mean),
+               dict(gaussian=dg.gaussian, mean=dg.mean, config=DGMCConfig(tolerance=0.2, widen_steps=0))):
+        ref = propagate_front_host(solver, None, sc.mask, hm, sol, keep_better=False, **kw)
+        ring, source, n = front_rings(sc.mask, hm, **kw)
+        np.testing.assert_array_equal(ring, ref.ring)
+        np.testing.assert_array_equal(source, ref.source)
+        assert n == ref.n_rings
+
+
+def test_no_copies_per_ring(device):
+    """Between two rings' progress reports nothing goes between host and device (warp.copy, which
+    array.assign uses, array.numpy and warp.array(data=...) are counted)."""
+    img, sc, solver, dg, sol, depth = _case(device, "sphere", 48, "orthographic", "blinn-phong", "directional", 3)
+    wp = warp()
+    n = [0]
+    cls = wp.array
+    old_copy, old_numpy, old_init = wp.copy, cls.numpy, cls.__init__
+
+    def copy(*a, **k):
+        n[0] += 1
+        return old_copy(*a, **k)
+
+    def numpy(self, *a, **k):
+        n[0] += 1
+        return old_numpy(self, *a, **k)
+
+    def init(self, *a, **k):
+        if (a and a[0] is not None) or k.get("data") is not None:
+            n[0] += 1
+        return old_init(self, *a, **k)
+
+    marks = []
+    wp.copy, cls.numpy, cls.__init__ = copy, numpy, init
+    try:
+        fr = propagate_front(solver, None, sc.mask, dg.highlight, sol, gaussian=dg.gaussian, mean=dg.mean,
+                             progress=lambda k, _t, _m: marks.append(n[0]))
+        end = n[0]
+        ref_marks = []
+        n[0] = 0
+        propagate_front_host(solver, None, sc.mask, dg.highlight, sol, gaussian=dg.gaussian, mean=dg.mean,
+                             progress=lambda k, _t, _m: ref_marks.append(n[0]))
+    finally:
+        wp.copy, cls.numpy, cls.__init__ = old_copy, old_numpy, old_init
+    assert fr.n_rings > 3 and len(marks) == fr.n_rings
+    assert np.all(np.diff(marks) == 0), marks
+    assert end - marks[-1] <= 6  # the one fetch at the end
+    assert np.all(np.diff(ref_marks) > 0)  # (the counter sees the host loop's per-ring copies)
+
+
+def _dev(v, device):
+    wp = warp()
+    return wp.array(v, dtype=wp.vec3, device=device) if v.ndim == 3 else wp.array(v, device=device)
+
+
+def test_merge_kernel_is_ranks_better(device):
+    """front_merge_kernel against numpy: ring k only, lower residual without the few-observations flag wins
+    (ties keep the current solution), the ring solve's own evaluations, won set where taken."""
+    from gpps.kernels import front as fk
+
+    wp = warp()
+    rng = np.random.default_rng(0)
+    h, w = 9, 11
+    ring = rng.integers(-1, 4, (h, w)).astype(np.int32)
+    new = {"normals": rng.normal(size=(h, w, 3)).astype(np.float32), "albedo": rng.random((h, w, 3)).astype(np.float32),
+           "residual": rng.random((h, w)).astype(np.float32), "iterations": rng.integers(1, 9, (h, w)).astype(np.int32),
+           "flags": rng.choice([0, FLAG_FEW_OBSERVATIONS, 1, 1 | FLAG_FEW_OBSERVATIONS], (h, w)).astype(np.int32)}
+    cur = {"normals": rng.normal(size=(h, w, 3)).astype(np.float32), "albedo": rng.random((h, w, 3)).astype(np.float32),
+           "residual": rng.random((h, w)).astype(np.float32), "flags": rng.integers(0, 4, (h, w)).astype(np.int32)}
+    cur["residual"][::3] = new["residual"][::3]  # ties
+    for keep in (1, 0):
+        for k in (1, 2):
+            d = {key: _dev(v, device) for key, v in new.items()}
+            c = {key: _dev(v, device) for key, v in cur.items()}
+            it = wp.full((h, w), -7, dtype=wp.int32, device=device)
+            won = wp.zeros((h, w), dtype=wp.uint8, device=device)
+            wp.launch(fk.front_merge_kernel, dim=(h, w),
+                      inputs=[wp.array(ring, device=device), k, keep, int(FLAG_FEW_OBSERVATIONS), d["normals"],
+                              d["albedo"], d["residual"], d["iterations"], d["flags"]],
+                      outputs=[c["normals"], c["albedo"], c["residual"], c["flags"], it, won], device=device)
+            on = ring == k
+            take = on & (ranks_better(new["residual"], new["flags"], cur["residual"]) if keep else True)
+            for key in cur:
+                want = np.where(take[..., None] if cur[key].ndim == 3 else take, new[key], cur[key])
+                np.testing.assert_array_equal(c[key].numpy(), want, err_msg=key)
+            np.testing.assert_array_equal(it.numpy(), np.where(on, new["iterations"], -7))
+            np.testing.assert_array_equal(won.numpy().astype(bool), take)
+
+
+def test_select_mask_sets_the_label_on_the_device(device):
+    img, sc, solver, dg, sol, depth = _case(device, "sphere", 32, "orthographic", "blinn-phong", "directional", 3)
+    wp = warp()
+    labels = np.where(sc.mask, np.arange(sc.mask.size).reshape(sc.mask.shape) % 3, -1).astype(np.int32)
+    lab = wp.array(labels, dtype=wp.int32, device=device)
+    solver.select_mask(lab, 2, (labels == 2).sum(1))
+    np.testing.assert_array_equal(solver.mask.numpy().astype(bool), labels == 2)
+    # a solve of the selected pixels equals one of the same mask set from the host
+    solver.step()
+    a = solver.fetch(("normals", "residual"))
+    solver.set_mask(labels == 2)
+    solver.step()
+    b = solver.fetch(("normals", "residual"))
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k])
+    with pytest.raises(ValueError, match="labels"):
+        solver.select_mask(labels, 2)
+    with pytest.raises(ValueError, match="labels"):
+        solver.select_mask(wp.array(labels[:-1], dtype=wp.int32, device=device), 2)
+    with pytest.raises(ValueError, match="rows"):
+        solver.select_mask(lab, 2, np.ones(3))
+
+
+def test_stage_protocol_and_bad_input(device):
+    img, sc, solver, dg, sol, depth = _case(device, "sphere", 32, "orthographic", "blinn-phong", "directional", 3)
+    hm = dg.highlight
+    with DeviceFront(solver) as front:
+        with pytest.raises(RuntimeError, match="upload"):
+            front.step()
+        with pytest.raises(ValueError, match="solution"):
+            front.upload(sc.mask, hm, {"normals": sol["normals"]})
+        with pytest.raises(ValueError, match=r"solution\['flags'\]"):
+            front.upload(sc.mask, hm, {**sol, "flags": sol["flags"][:-1]})
+        with pytest.raises(ValueError, match="highlight"):
+            front.upload(sc.mask, hm[:-1], sol)
+        with pytest.raises(ValueError, match="mask"):
+            front.upload(sc.mask[:-1], hm, sol)
+        front.upload(sc.mask, hm, sol)
+        front.step(keep_better=False)
+        a = front.fetch()
+        # the stage is reusable: a second upload and step give the same result
+        front.upload(sc.mask, hm, sol)
+        front.step(keep_better=False)
+        _assert_same(front.fetch(), a)
+    with pytest.raises(RuntimeError, match="closed"):
+        front.fetch()
