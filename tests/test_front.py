@@ -142,61 +142,85 @@ def _dev(v, device):
     return wp.array(v, dtype=wp.vec3, device=device) if v.ndim == 3 else wp.array(v, device=device)
 
 
-def test_merge_kernel_is_ranks_better(device):
-    """front_merge_kernel against numpy: ring k only, lower residual without the few-observations flag wins
-    (ties keep the current solution), the ring solve's own evaluations, won set where taken."""
+def test_merge_and_start_kernels_against_numpy(device):
+    """front_merge_kernel on one ring's slice of the pixel list: the lower residual without the few-observations
+    flag wins (ties keep the current solution: gpps.host.merge.ranks_better), the ring solve's own evaluations,
+    won set where taken, pixels off the slice untouched; front_start_kernel copies each source's normal."""
     from gpps.kernels import front as fk
 
     wp = warp()
     rng = np.random.default_rng(0)
     h, w = 9, 11
-    ring = rng.integers(-1, 4, (h, w)).astype(np.int32)
     new = {"normals": rng.normal(size=(h, w, 3)).astype(np.float32), "albedo": rng.random((h, w, 3)).astype(np.float32),
            "residual": rng.random((h, w)).astype(np.float32), "iterations": rng.integers(1, 9, (h, w)).astype(np.int32),
            "flags": rng.choice([0, FLAG_FEW_OBSERVATIONS, 1, 1 | FLAG_FEW_OBSERVATIONS], (h, w)).astype(np.int32)}
     cur = {"normals": rng.normal(size=(h, w, 3)).astype(np.float32), "albedo": rng.random((h, w, 3)).astype(np.float32),
            "residual": rng.random((h, w)).astype(np.float32), "flags": rng.integers(0, 4, (h, w)).astype(np.int32)}
     cur["residual"][::3] = new["residual"][::3]  # ties
+    flat = rng.permutation(h * w).astype(np.int32)
+    sources = rng.integers(0, h * w, h * w).astype(np.int32)
+    pix, srcs = wp.array(flat, device=device), wp.array(sources, device=device)
+    a, c = 17, 40
+    on = np.zeros(h * w, bool)
+    on[flat[a:a + c]] = True
+    on = on.reshape(h, w)
     for keep in (1, 0):
-        for k in (1, 2):
-            d = {key: _dev(v, device) for key, v in new.items()}
-            c = {key: _dev(v, device) for key, v in cur.items()}
-            it = wp.full((h, w), -7, dtype=wp.int32, device=device)
-            won = wp.zeros((h, w), dtype=wp.uint8, device=device)
-            wp.launch(fk.front_merge_kernel, dim=(h, w),
-                      inputs=[wp.array(ring, device=device), k, keep, int(FLAG_FEW_OBSERVATIONS), d["normals"],
-                              d["albedo"], d["residual"], d["iterations"], d["flags"]],
-                      outputs=[c["normals"], c["albedo"], c["residual"], c["flags"], it, won], device=device)
-            on = ring == k
-            take = on & (ranks_better(new["residual"], new["flags"], cur["residual"]) if keep else True)
-            for key in cur:
-                want = np.where(take[..., None] if cur[key].ndim == 3 else take, new[key], cur[key])
-                np.testing.assert_array_equal(c[key].numpy(), want, err_msg=key)
-            np.testing.assert_array_equal(it.numpy(), np.where(on, new["iterations"], -7))
-            np.testing.assert_array_equal(won.numpy().astype(bool), take)
+        d = {key: _dev(v, device) for key, v in new.items()}
+        cu = {key: _dev(v, device) for key, v in cur.items()}
+        it = wp.full((h, w), -7, dtype=wp.int32, device=device)
+        won = wp.zeros((h, w), dtype=wp.uint8, device=device)
+        wp.launch(fk.front_merge_kernel, dim=c,
+                  inputs=[pix, a, w, keep, int(FLAG_FEW_OBSERVATIONS), d["normals"], d["albedo"], d["residual"],
+                          d["iterations"], d["flags"]],
+                  outputs=[cu["normals"], cu["albedo"], cu["residual"], cu["flags"], it, won], device=device)
+        take = on & (ranks_better(new["residual"], new["flags"], cur["residual"]) if keep else True)
+        assert 0 < take.sum() < c or not keep
+        for key in cur:
+            want = np.where(take[..., None] if cur[key].ndim == 3 else take, new[key], cur[key])
+            np.testing.assert_array_equal(cu[key].numpy(), want, err_msg=key)
+        np.testing.assert_array_equal(it.numpy(), np.where(on, new["iterations"], -7))
+        np.testing.assert_array_equal(won.numpy().astype(bool), take)
+    start = _dev(np.zeros((h, w, 3), np.float32), device)
+    wp.launch(fk.front_start_kernel, dim=c, inputs=[pix, srcs, a, w, _dev(cur["normals"], device)], outputs=[start],
+              device=device)
+    want = np.zeros((h, w, 3), np.float32)
+    want.reshape(-1, 3)[flat[a:a + c]] = cur["normals"].reshape(-1, 3)[sources[a:a + c]]
+    np.testing.assert_array_equal(start.numpy(), want)
 
 
-def test_select_mask_sets_the_label_on_the_device(device):
+def test_select_pixels_and_subset_step(device):
+    """select_pixels sets exactly the slice on the device; a subset step solves those pixels as a step of the same
+    mask set from the host does, and leaves every other pixel's outputs as they were."""
     img, sc, solver, dg, sol, depth = _case(device, "sphere", 32, "orthographic", "blinn-phong", "directional", 3)
     wp = warp()
-    labels = np.where(sc.mask, np.arange(sc.mask.size).reshape(sc.mask.shape) % 3, -1).astype(np.int32)
-    lab = wp.array(labels, dtype=wp.int32, device=device)
-    solver.select_mask(lab, 2, (labels == 2).sum(1))
-    np.testing.assert_array_equal(solver.mask.numpy().astype(bool), labels == 2)
-    # a solve of the selected pixels equals one of the same mask set from the host
+    names = ("normals", "albedo", "residual", "iterations", "flags", "cond")
+    flat = np.flatnonzero(sc.mask.ravel()).astype(np.int32)[::-1].copy()
+    pix = wp.array(flat, dtype=wp.int32, device=device)
+    a, c = 5, 60
+    sel = np.zeros(sc.mask.size, bool)
+    sel[flat[a:a + c]] = True
+    sel = sel.reshape(sc.mask.shape)
+    solver.select_pixels(pix, a, c, sel.sum(1))
+    np.testing.assert_array_equal(solver.mask.numpy().astype(bool), sel)
+    before = solver.fetch(names)
+    solver.step(subset=True)
+    got = solver.fetch(names)
+    solver.set_mask(sel)
     solver.step()
-    a = solver.fetch(("normals", "residual"))
-    solver.set_mask(labels == 2)
-    solver.step()
-    b = solver.fetch(("normals", "residual"))
-    for k in a:
-        np.testing.assert_array_equal(a[k], b[k])
-    with pytest.raises(ValueError, match="labels"):
-        solver.select_mask(labels, 2)
-    with pytest.raises(ValueError, match="labels"):
-        solver.select_mask(wp.array(labels[:-1], dtype=wp.int32, device=device), 2)
+    want = solver.fetch(names)
+    for k in names:
+        np.testing.assert_array_equal(got[k][sel], want[k][sel], err_msg=k)
+        np.testing.assert_array_equal(got[k][~sel], before[k][~sel], err_msg=k)
+    solver.select_pixels(pix, 0, 0)
+    assert not solver.mask.numpy().any()
+    with pytest.raises(ValueError, match="pixels"):
+        solver.select_pixels(flat, 0, 3)
+    with pytest.raises(ValueError, match="pixels"):
+        solver.select_pixels(wp.array(flat.astype(np.float32), device=device), 0, 3)
+    with pytest.raises(ValueError, match="start, count"):
+        solver.select_pixels(pix, flat.size - 2, 3)
     with pytest.raises(ValueError, match="rows"):
-        solver.select_mask(lab, 2, np.ones(3))
+        solver.select_pixels(pix, 0, 3, np.ones(3))
 
 
 def test_stage_protocol_and_bad_input(device):

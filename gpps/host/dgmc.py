@@ -867,20 +867,26 @@ def front_rings(mask, highlight, *, gaussian=None, mean=None, config: DGMCConfig
     if curv:
         gc = as_array("gaussian", gaussian, shape=(h, w), dtype=np.float64)
         mc = as_array("mean", mean, shape=(h, w), dtype=np.float64)
-    # the rings: breadth-first from the solved pixels through the highlight pixels, 8-neighbour steps
-    ring = np.where(hl, -1, 0).astype(np.int32)
-    solved = m & ~hl
-    todo = hl.copy()
-    eight = _structure(8)
+    # the rings: breadth-first from the solved pixels through the highlight pixels, 8-neighbour steps, on flat
+    # indices of the image padded by one pixel (the pad is never a highlight); each step visits only the last ring
+    wpad = w + 2
+    steps = np.array([di * wpad + dj for di, dj in _OFFSETS])
+    todo = np.pad(hl, 1).ravel()
+    ring_pad = np.zeros(todo.size, np.int32)
+    front = np.flatnonzero(np.pad(m & ~hl, 1))
     k = 0
-    while todo.any():
-        grown = todo & ndi.binary_dilation(solved, eight)
-        if not grown.any():
+    while front.size:
+        nb = (front[:, None] + steps).ravel()
+        nb = np.unique(nb[todo[nb]])
+        if nb.size == 0:
             break
         k += 1
-        ring[grown] = k
-        solved |= grown
-        todo &= ~grown
+        ring_pad[nb] = k
+        todo[nb] = False
+        front = nb
+    ring = np.where(hl, -1, 0).astype(np.int32)
+    inner = ring_pad.reshape(h + 2, wpad)[1:-1, 1:-1]
+    ring[inner > 0] = inner[inner > 0]
     source = np.full((h, w, 2), -1, np.int32)
     if k == 0:
         return ring, source, 0

@@ -2,9 +2,12 @@
 
 Device math only; the stage :class:`gpps.pipeline.front.DeviceFront` owns the buffers and launches these per ring
 around :meth:`gpps.pipeline.solver.PixelSolver.step`.  The rings and each ring pixel's source come from the
-host, once (:func:`gpps.host.dgmc.front_rings`); per ring only the starts depend on the earlier rings' results:
+host, once (:func:`gpps.host.dgmc.front_rings`), as a list of flat pixel indices ``y * W + x`` sorted by ring
+(``pixels``) and their sources' indices (``sources``); ring ``k`` is the slice ``[start, start + count)``, and
+every kernel here runs one thread per pixel of that slice (the work of a ring is its size, not the image's).
+Per ring only the starts depend on the earlier rings' results:
 
-* :func:`label_mask_kernel`: the solver's mask is ring ``k`` of the ring map (:meth:`PixelSolver.select_mask`);
+* :func:`scatter_mask_kernel`: the solver's (cleared) mask is set on the slice (:meth:`PixelSolver.select_pixels`);
 * :func:`front_start_kernel`: each ring pixel starts from its source's current normal;
 * :func:`front_merge_kernel`: the ring's solve replaces the current solution where it ranks better, the rule of
   :func:`gpps.host.merge.ranks_better` (a lower residual on a pixel without ``FLAG_FEW_OBSERVATIONS``), or
@@ -15,53 +18,55 @@ host, once (:func:`gpps.host.dgmc.front_rings`); per ring only the starts depend
 
 import warp as wp
 
-__all__ = ["label_mask_kernel", "front_start_kernel", "front_merge_kernel"]
+__all__ = ["scatter_mask_kernel", "front_start_kernel", "front_merge_kernel"]
 
 
 @wp.kernel(enable_backward=False)
-def label_mask_kernel(labels: wp.array2d(dtype=wp.int32), value: int, mask: wp.array2d(dtype=wp.uint8)):
-    """``mask = (labels == value)`` (dim (H, W)).
+def scatter_mask_kernel(pixels: wp.array(dtype=wp.int32), start: int, width: int, mask: wp.array2d(dtype=wp.uint8)):
+    """``mask = 1`` on the flat pixel indices ``pixels[start : start + count]`` (dim ``count``).
 
     Args:
-        labels: (H, W) int32 label map (e.g. the front's rings).
-        value: the label to select.
-        mask: (H, W) out: 1 where ``labels == value``, 0 elsewhere.
+        pixels: (P,) flat pixel indices ``y * W + x``.
+        start: first entry of the slice.
+        width: W.
+        mask: (H, W) out: 1 on the slice (the caller cleared it before).
     """
-    i, j = wp.tid()
-    if labels[i, j] == value:
-        mask[i, j] = wp.uint8(1)
-    else:
-        mask[i, j] = wp.uint8(0)
+    t = wp.tid()
+    p = pixels[start + t]
+    mask[p // width, p % width] = wp.uint8(1)
 
 
 @wp.kernel(enable_backward=False)
 def front_start_kernel(
-    ring: wp.array2d(dtype=wp.int32),
-    k: int,
-    source: wp.array3d(dtype=wp.int32),
+    pixels: wp.array(dtype=wp.int32),
+    sources: wp.array(dtype=wp.int32),
+    start: int,
+    width: int,
     current: wp.array2d(dtype=wp.vec3),
-    start: wp.array2d(dtype=wp.vec3),
+    normals: wp.array2d(dtype=wp.vec3),
 ):
-    """Start normals of ring ``k``: ``start[p] = current[source[p]]`` where ``ring[p] == k`` (dim (H, W)).
+    """Start normals of one ring: ``normals[p] = current[q]`` for each pixel ``p`` of the slice and its source ``q``
+    (dim ``count``).
 
     Args:
-        ring: (H, W) ring of each pixel (:func:`gpps.host.dgmc.front_rings`).
-        k: the ring to start.
-        source: (H, W, 2) ``(row, column)`` of each ring pixel's source (solved in an earlier ring or outside
-            the highlights).
+        pixels: (P,) flat indices of the ring pixels, sorted by ring.
+        sources: (P,) flat index of each one's source (solved in an earlier ring or outside the highlights).
+        start: first entry of the ring's slice.
+        width: W.
         current: (H, W) the current (merged) normals.
-        start: (H, W) out, on ring ``k``: the start normals (the solver's ``normals`` buffer); untouched elsewhere.
+        normals: (H, W) out on the ring: its start normals (the solver's ``normals`` buffer).
     """
-    i, j = wp.tid()
-    if ring[i, j] != k:
-        return
-    start[i, j] = current[source[i, j, 0], source[i, j, 1]]
+    t = wp.tid()
+    p = pixels[start + t]
+    q = sources[start + t]
+    normals[p // width, p % width] = current[q // width, q % width]
 
 
 @wp.kernel(enable_backward=False)
 def front_merge_kernel(
-    ring: wp.array2d(dtype=wp.int32),
-    k: int,
+    pixels: wp.array(dtype=wp.int32),
+    start: int,
+    width: int,
     keep_better: int,
     few: int,
     normals: wp.array2d(dtype=wp.vec3),
@@ -76,25 +81,27 @@ def front_merge_kernel(
     front_iterations: wp.array2d(dtype=wp.int32),
     won: wp.array2d(dtype=wp.uint8),
 ):
-    """Merge ring ``k``'s solve into the current solution (dim (H, W); pixels off ring ``k`` untouched).
+    """Merge one ring's solve into the current solution (dim ``count``; pixels off the ring untouched).
 
-    On ring ``k``: ``front_iterations`` = the solve's evaluations; the solve replaces the current normal,
-    albedo, residual and flags (and ``won`` is set) where ``keep_better`` is 0, or where its residual is lower
-    and ``flags & few == 0`` (:func:`gpps.host.merge.ranks_better`).
+    On each pixel of the slice: ``front_iterations`` = the solve's evaluations; the solve replaces the current
+    normal, albedo, residual and flags (and ``won`` is set) where ``keep_better`` is 0, or where its residual is
+    lower and ``flags & few == 0`` (:func:`gpps.host.merge.ranks_better`).
 
     Args:
-        ring: (H, W) ring of each pixel.
-        k: the ring just solved.
+        pixels: (P,) flat indices of the ring pixels, sorted by ring.
+        start: first entry of the ring's slice.
+        width: W.
         keep_better: 1: keep the better of the two; 0: always the ring's solve.
         few: the FLAG_FEW_OBSERVATIONS bit.
-        normals .. flags: (H, W) the solver's outputs of ring ``k``'s solve.
+        normals .. flags: (H, W) the solver's outputs of the ring's solve.
         cur_normals .. cur_flags: (H, W) in/out: the current solution.
-        front_iterations: (H, W) out on ring ``k``: the solve's cost evaluations.
-        won: (H, W) out on ring ``k``: 1 where the solve was kept.
+        front_iterations: (H, W) out on the ring: the solve's cost evaluations.
+        won: (H, W) out on the ring: 1 where the solve was kept.
     """
-    i, j = wp.tid()
-    if ring[i, j] != k:
-        return
+    t = wp.tid()
+    p = pixels[start + t]
+    i = p // width
+    j = p % width
     front_iterations[i, j] = iterations[i, j]
     if keep_better != 0:
         if not (residual[i, j] < cur_residual[i, j] and (flags[i, j] & few) == 0):

@@ -12,13 +12,14 @@ one pixel away is within the basin of the right minimum where the surface is smo
 converge in fewer cost evaluations and far more often to the right normal.
 
 Device-resident: the rings and sources depend only on the masks and the curvatures, so the host finds them all
-at once (:func:`gpps.host.dgmc.front_rings`) and uploads them once, as an (H, W) ring map and an (H, W, 2) source
-map, with the given solution.  Per ring only the starts depend on the earlier rings' results, and everything
-runs on the solver's device with no copy: the solver's mask becomes ring ``k``
-(:meth:`gpps.pipeline.solver.PixelSolver.select_mask`), each ring pixel's start is gathered from the current
-normals at its source, the solver steps (:meth:`PixelSolver.step`: on the CPU split over rows across threads),
-and the ring's solve is merged into the current solution on the device (:mod:`gpps.kernels.front`).  The result
-comes back once, at the end.  Decisions and results are those of the former host loop over rings (rings and
+at once (:func:`gpps.host.dgmc.front_rings`) and uploads them once, as the list of ring pixels sorted by ring
+and their sources (flat indices), with the given solution.  Per ring only the starts depend on the earlier
+rings' results, and everything runs on the solver's device with no copy: the solver's mask becomes ring ``k``
+(:meth:`gpps.pipeline.solver.PixelSolver.select_pixels`), each ring pixel's start is gathered from the current
+normals at its source, the solver steps (:meth:`PixelSolver.step` with ``subset``: the pixels outside the ring
+are left alone; on the CPU split over rows across threads), and the ring's solve is merged into the current
+solution on the device (:mod:`gpps.kernels.front`; every launch but the solve's is one thread per ring pixel).
+The result comes back once, at the end.  Decisions and results are those of the former host loop over rings (rings and
 sources picked in numpy per ring, a full start array uploaded and the full outputs fetched per ring, merged on the
 host): tests/test_front.py compares the two exactly.
 """
@@ -50,8 +51,9 @@ class DeviceFront(Stage):
     ``upload(mask, highlight, solution, gaussian=..., mean=..., config=...)`` (host plan and one copy of each
     input), ``step(keep_better=..., progress=...)`` (every ring on the device, no copy), ``fetch()`` ->
     :class:`gpps.host.dgmc.FrontResult`.  The solver's config is replaced for the ring solves
-    (``warm_start=True``, ``starts=1``, no neighbour pass, no smoothness) and restored after; its mask and
-    outputs are left as the last ring's solve left them (unchanged when there is no ring).
+    (``warm_start=True``, ``starts=1``, no neighbour pass, no smoothness) and restored after; its mask is
+    left on the last ring, and its outputs hold each ring's solve on that ring (unchanged when there is no ring;
+    outside the rings as they were).
     """
 
     def __init__(self, solver):
@@ -60,8 +62,8 @@ class DeviceFront(Stage):
         self.device = solver.device
         h, w = solver.shape[1:]
         d = self.device
-        self.ring = wp.zeros((h, w), dtype=wp.int32, device=d)
-        self.source = wp.zeros((h, w, 2), dtype=wp.int32, device=d)
+        self.pixels = wp.zeros(h * w, dtype=wp.int32, device=d)  # ring pixels (flat), sorted by ring
+        self.sources = wp.zeros(h * w, dtype=wp.int32, device=d)  # their sources (flat)
         self.normals = wp.zeros((h, w), dtype=wp.vec3, device=d)
         self.albedo = wp.zeros((h, w), dtype=wp.vec3, device=d)
         self.residual = wp.zeros((h, w), dtype=wp.float32, device=d)
@@ -99,19 +101,25 @@ class DeviceFront(Stage):
         if not (gaussian is not None and mean is not None):
             gaussian = mean = None
         ring, source, n = front_rings(m, hl, gaussian=gaussian, mean=mean, config=config)
+        # the ring pixels sorted by ring (row-major within one), their sources, and each ring's slice
+        flat = np.flatnonzero(ring > 0)
+        flat = flat[np.argsort(ring.ravel()[flat], kind="stable")]
+        sizes = np.bincount(ring.ravel()[flat], minlength=n + 1)
+        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        src = source.reshape(-1, 2)[flat]
         # pixels of each ring per image row: they balance the solver's CPU row split (row k: ring k)
-        ri, _ = np.nonzero(ring > 0)
         rows = np.zeros((n + 1, h), np.int64)
-        np.add.at(rows, (ring[ring > 0], ri), 1)
-        self.ring.assign(ring)
-        self.source.assign(source)
+        np.add.at(rows, (ring.ravel()[flat], flat // w), 1)
+        if flat.size:
+            self.pixels[:flat.size].assign(flat.astype(np.int32))
+            self.sources[:flat.size].assign((src[:, 0] * w + src[:, 1]).astype(np.int32))
         self.normals.assign(np.asarray(solution["normals"], np.float32))
         self.albedo.assign(np.asarray(solution["albedo"], np.float32))
         self.residual.assign(np.asarray(solution["residual"], np.float32))
         self.flags.assign(np.asarray(solution["flags"], np.int32))
         self.iterations.zero_()
         self.won.zero_()
-        self._plan = (ring, source, n, rows, np.bincount(ring[ring > 0], minlength=n + 1))
+        self._plan = (ring, source, n, rows, sizes, starts)
 
     def step(self, *, keep_better: bool = True, progress=None) -> None:
         """Solve the rings in order on the solver's device: per ring the mask, the starts, a warm solve and the
@@ -130,19 +138,20 @@ class DeviceFront(Stage):
         wp = warp()
         s = self.solver
         h, w = s.shape[1:]
-        _, _, n, rows, sizes = self._plan
+        _, _, n, rows, sizes, starts = self._plan
         if n == 0:
             return
         old = s.config
         s.set_config(replace(old, warm_start=True, starts=1, neighbour_radius=0, smoothness=0.0))
         try:
             for k in range(1, n + 1):
-                s.select_mask(self.ring, k, rows[k])
-                wp.launch(fk.front_start_kernel, dim=(h, w), inputs=[self.ring, k, self.source, self.normals],
+                a, c = int(starts[k]), int(sizes[k])
+                s.select_pixels(self.pixels, a, c, rows[k])
+                wp.launch(fk.front_start_kernel, dim=c, inputs=[self.pixels, self.sources, a, w, self.normals],
                           outputs=[s.normals], device=self.device)
-                s.step()
-                wp.launch(fk.front_merge_kernel, dim=(h, w),
-                          inputs=[self.ring, k, int(bool(keep_better)), int(FLAG_FEW_OBSERVATIONS), s.normals,
+                s.step(subset=True)
+                wp.launch(fk.front_merge_kernel, dim=c,
+                          inputs=[self.pixels, a, w, int(bool(keep_better)), int(FLAG_FEW_OBSERVATIONS), s.normals,
                                   s.albedo, s.residual, s.iterations, s.flags],
                           outputs=[self.normals, self.albedo, self.residual, self.flags, self.iterations, self.won],
                           device=self.device)
@@ -156,7 +165,7 @@ class DeviceFront(Stage):
         self._check_open()
         if self._plan is None:
             raise RuntimeError("fetch: upload() first")
-        ring, source, n, _, _ = self._plan
+        ring, source, n = self._plan[:3]
         out = {k: np.array(getattr(self, k).numpy(), copy=True)
                for k in ("normals", "albedo", "residual", "flags", "iterations", "won")}
         return FrontResult(normals=out["normals"], albedo=out["albedo"], residual=out["residual"],
@@ -165,7 +174,7 @@ class DeviceFront(Stage):
 
     def close(self) -> None:
         """Release the device buffers."""
-        for name in ("ring", "source", "normals", "albedo", "residual", "flags", "iterations", "won", "_plan"):
+        for name in ("pixels", "sources", "normals", "albedo", "residual", "flags", "iterations", "won", "_plan"):
             setattr(self, name, None)
         self._closed = True
 

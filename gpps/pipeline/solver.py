@@ -7,7 +7,7 @@ captured in a CUDA graph.  Buffers are allocated once for ``(N, H, W)``.
 
 Length: the config (every setting documented in place, about 150 lines), the noise and light checks the
 stages share, and one stage whose frame buffers serve its solve, re-solves of the uploaded frame
-(``set_mask`` / ``select_mask`` / ``set_start`` / ``set_depth``) and the device merge (``save`` / ``merge_saved``).
+(``set_mask`` / ``select_pixels`` / ``set_start`` / ``set_depth``) and the device merge (``save`` / ``merge_saved``).
 """
 
 from __future__ import annotations
@@ -642,11 +642,12 @@ class PixelSolver(Stage):
             cmds[key] = cmd
         return cmd
 
-    def _launch_solve(self, progress=None) -> None:
+    def _launch_solve(self, progress=None, subset: bool = False) -> None:
         """The pixelwise solve over the whole image: one launch, or on the CPU one per row range of
         :meth:`_split_rows`, run on several threads (each with ``row0`` set in its parameter copy).
         With ``progress`` on the CPU: 8 row ranges a thread, run a thread-full at a time, and
-        ``progress(done, total, message)`` in mask pixels after each such wave."""
+        ``progress(done, total, message)`` in mask pixels after each such wave.  ``subset``: pixels
+        outside the mask keep their outputs (``keep_unmasked``)."""
         ins = [self.images, self.mask, self.valid, self.depth, self.noise, self.cam, self.lp, self.mp]
         outs = [self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags, self.cond]
         if self._uses_lanes():
@@ -663,14 +664,16 @@ class PixelSolver(Stage):
             threads = max(1, cpu_threads())
             bounds = balanced_bounds(self._mask_rows, 8 * threads)
         if bounds is None:
-            self._recorded(("solve",), self._solve_kernel, ins + [self.prm], outs).launch()
+            key, prm = (("solve", "subset"), self._params_for(self.config)) if subset else (("solve",), self.prm)
+            self._recorded(key, self._solve_kernel, ins + [prm], outs).launch()
             return
         cmds = []
         for a, b in bounds:
-            key = ("solve", a, b)
+            key = ("solve", a, b, subset)
             if key not in self.__dict__.get("_cmds", {}):
                 prm = self._params(self.config)
                 prm.row0 = int(a)
+                prm.keep_unmasked = int(subset)
                 self._recorded(key, self._solve_kernel, ins + [prm], outs, dim=(b - a, self.shape[2]))
             cmds.append(self._cmds[key])
         total = float(self._mask_rows.sum()) if self._mask_rows is not None else 0.0
@@ -680,15 +683,18 @@ class PixelSolver(Stage):
                 done = float(self._mask_rows[:bounds[min(w0 + threads, len(bounds)) - 1][1]].sum())
                 progress(done, total, f"normals: {int(done)}/{int(total)} pixels")
 
-    def step(self, progress=None) -> None:
+    def step(self, progress=None, *, subset: bool = False) -> None:
         """Solve all pixels from the current buffers, no host sync (graph-capturable).
 
         Two kernel launches (pixelwise solve, under-determined pixels), then
         ``2 * smoothing_sweeps`` red-black half-sweeps when ``smoothness > 0``.
         ``progress(done, total, message)``: on the CPU, told as the solve's row
         ranges finish (:meth:`_launch_solve`; the host waits for them); ignored on CUDA.
+        ``subset``: the pixelwise solve leaves the outputs outside the mask as they are
+        (default: zeros there), so a re-solve of a few pixels costs little more than
+        their solves (the DGMC front's rings, :class:`gpps.pipeline.front.DeviceFront`).
         """
-        self._launch_solve(progress)
+        self._launch_solve(progress, subset)
         if self.config.neighbour_radius > 0 and self._underdetermined_kernel is not None:
             self._recorded(("underdetermined",), self._underdetermined_kernel,
                            [self.images, self.mask, self.depth, self.cam, self.lp, self.mp, self.prm,
@@ -717,32 +723,37 @@ class PixelSolver(Stage):
         self.mask.assign(m.astype(np.uint8))
         self._split_rows(m)
 
-    def select_mask(self, labels, value: int, rows=None) -> None:
-        """Solve the pixels where a device label map equals ``value`` next: the mask is set on the device
-        (kernel :data:`gpps.kernels.front.label_mask_kernel`), nothing is copied (the DGMC front selects its
-        rings this way, :class:`gpps.pipeline.front.DeviceFront`).
+    def select_pixels(self, pixels, start: int, count: int, rows=None) -> None:
+        """Solve exactly the pixels of a device index list next: the mask is cleared and set on
+        ``pixels[start : start + count]`` on the device (kernel :data:`gpps.kernels.front.scatter_mask_kernel`);
+        nothing is copied (the DGMC front selects its rings this way, :class:`gpps.pipeline.front.DeviceFront`).
 
         Args:
-            labels: (H, W) int32 Warp array on the solver's device.
-            value: the label to solve.
+            pixels: (P,) int32 Warp array of flat pixel indices ``y * W + x`` on the solver's device.
+            start, count: the slice to solve (count may be 0: an empty mask).
             rows: (H,) the selected pixels per image row (host numbers the caller knows): they balance the
                 CPU row split (:meth:`_split_rows`); None: every row weighs the same.  Unused on CUDA.
         """
         wp = warp()
         n, h, w = self.shape
-        if not isinstance(labels, wp.array) or labels.dtype != wp.int32 or tuple(labels.shape) != (h, w):
-            raise ValueError(f"labels: expected a ({h}, {w}) int32 Warp array, got {type(labels).__name__} "
-                             f"{getattr(labels, 'shape', None)} {getattr(labels, 'dtype', None)}")
-        if str(labels.device) != str(self.mask.device):
-            raise ValueError(f"labels: expected an array on {self.mask.device}, got {labels.device}")
+        if not isinstance(pixels, wp.array) or pixels.dtype != wp.int32 or pixels.ndim != 1:
+            raise ValueError(f"pixels: expected a 1-D int32 Warp array, got {type(pixels).__name__} "
+                             f"{getattr(pixels, 'shape', None)} {getattr(pixels, 'dtype', None)}")
+        if str(pixels.device) != str(self.mask.device):
+            raise ValueError(f"pixels: expected an array on {self.mask.device}, got {pixels.device}")
+        start, count = int(start), int(count)
+        if start < 0 or count < 0 or start + count > pixels.shape[0]:
+            raise ValueError(f"start, count: expected a slice of the {pixels.shape[0]} pixels, got {start}, {count}")
         if rows is None:
             rows = np.ones(h, np.int64)
         else:
             rows = np.asarray(rows)
             if rows.shape != (h,):
                 raise ValueError(f"rows: expected shape ({h},), got {rows.shape}")
-        wp.launch(fk.label_mask_kernel, dim=(h, w), inputs=[labels, int(value)], outputs=[self.mask],
-                  device=self.device)
+        self.mask.zero_()
+        if count:
+            wp.launch(fk.scatter_mask_kernel, dim=count, inputs=[pixels, start, w], outputs=[self.mask],
+                      device=self.device)
         self._split_counts(rows)
 
     def set_start(self, normals) -> None:
@@ -795,7 +806,7 @@ class PixelSolver(Stage):
         :meth:`upload` stay; only ``mask`` and the start normals change, so a
         sequence of small solves does not copy the frame each time (the DGMC
         front, :class:`gpps.pipeline.front.DeviceFront`, copies not even masks,
-        starts and outputs: :meth:`select_mask`).  Needs ``config.warm_start``.
+        starts and outputs: :meth:`select_pixels`).  Needs ``config.warm_start``.
 
         Args:
             mask: (H, W) bool, the pixels to solve (may be empty: nothing runs).
