@@ -7,10 +7,14 @@ solver holds the frame; ``keep_better=True``).  ``--impl host`` is the old host 
 (tests/front_reference.py), ``device`` the device-resident front (:func:`gpps.pipeline.front.propagate_front`);
 with both, their results are compared (they must be equal).
 
+``--reconstruct``: also the whole ``gpps.reconstruct`` (material unknown) on the same scenes, warm, with each
+implementation in RON (the host loop patched into :mod:`gpps.flows.ron` for ``host``), with its DGMC stage time.
+
 Copies: calls of ``warp.copy`` (``array.assign`` goes through it), ``array.numpy`` and ``warp.array(data=...)``
 counted between the progress reports of consecutive rings (per ring), before the first and after the last.
 
-Usage:  python perf/front_timing.py [--size 256] [--lights 3 12] [--impl host device] [--device cpu] [--out FILE]
+Usage:  python perf/front_timing.py [--size 256] [--lights 3 12] [--impl host device] [--device cpu] [--reconstruct]
+        [--out NAME]
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from _common import timeit, write_results  # noqa: E402
 from front_reference import propagate_front_host  # noqa: E402
 
 import gpps  # noqa: E402
+import gpps.flows.ron as ron_module  # noqa: E402
 from gpps._runtime import resolve_device, warp  # noqa: E402
 from gpps.pipeline.dgmc import dgmc_start_device  # noqa: E402
 from gpps.pipeline.front import propagate_front  # noqa: E402
@@ -68,13 +73,18 @@ def copy_counter():
         wp.copy, cls.numpy, cls.__init__ = old_copy, old_numpy, old_init
 
 
-def case(size: int, n_lights: int, device: str):
-    """The scene's frame on a PixelSolver with its multi-start solution, the highlights and the curvatures."""
+def scene(size: int, n_lights: int, device: str):
+    """perf/profile_reconstruct.py's synthetic case: images divided by the intensities, unit lights, scene, material."""
     sc = gpps.make_scene("bumps", size, "perspective")
     L = gpps.default_lights("directional", n_lights, layout="ring" if n_lights <= 4 else "spiral")
     mat = gpps.Material("cook-torrance", ks=0.8, roughness=0.2, f0=0.5)
     img = gpps.render(sc, mat, L, bits=16, device=device) / L.intensities[:, None, None, :]
-    lu = gpps.DirectionalLights(L.directions)
+    return img, gpps.DirectionalLights(L.directions), sc, mat
+
+
+def case(size: int, n_lights: int, device: str):
+    """The scene's frame on a PixelSolver with its multi-start solution, the highlights and the curvatures."""
+    img, lu, sc, mat = scene(size, n_lights, device)
     solver = PixelSolver(img.shape[:3], sc.camera, lu, mat, SolverConfig(solver="none"), device=device)
     ls = solver.run(img, sc.mask)
     nrm = ls["normals"].astype(np.float64)
@@ -111,6 +121,32 @@ def measure(impl: str, solver, mask, dg, sol, device: str, repeat: int) -> tuple
             "mean_iterations": float(fr.iterations[fr.ring > 0].mean()) if fr.n_rings else 0.0}, fr
 
 
+def reconstruct(size: int, n_lights: int, device: str, impls, repeat: int) -> list[dict]:
+    """Warm ``gpps.reconstruct`` (material unknown) with each front implementation in RON."""
+    img, lu, sc, _ = scene(size, n_lights, device)
+    rows = []
+    for impl in impls:
+        ron_module.propagate_front = IMPLS[impl]
+        try:
+            def call():
+                return gpps.reconstruct(img, sc.mask, lu, camera=sc.camera, material="cook-torrance", device=device)
+
+            call()
+            ts, dg, maen = [], [], None
+            for _ in range(repeat):
+                t0 = time.perf_counter()
+                rec = call()
+                ts.append(time.perf_counter() - t0)
+                dg.append(rec.timings["dgmc"])
+                maen = gpps.normal_errors(rec.normals, sc.normals, sc.mask)["mean"]
+        finally:
+            ron_module.propagate_front = propagate_front
+        rows.append({"reconstruct": impl, "size": size, "lights": n_lights, "median_s": float(np.median(ts)),
+                     "dgmc_median_s": float(np.median(dg)), "runs": repeat, "maen_deg": maen})
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=256)
@@ -118,6 +154,7 @@ def main(argv=None):
     ap.add_argument("--impl", nargs="+", default=["host", "device"], choices=sorted(IMPLS))
     ap.add_argument("--device", default=None)
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--reconstruct", action="store_true")
     ap.add_argument("--out", default=None, help="results name under perf/results (default: none written)")
     a = ap.parse_args(argv)
     device = resolve_device(a.device)
@@ -136,6 +173,8 @@ def main(argv=None):
                        ("normals", "albedo", "residual", "flags", "iterations", "ring", "source", "won"))
             print(json.dumps({"lights": n, "identical": bool(same and h.n_rings == d.n_rings)}), flush=True)
             rows[-1]["identical_to_host"] = bool(same and h.n_rings == d.n_rings)
+        if a.reconstruct:
+            rows += reconstruct(a.size, n, device, a.impl, max(3, a.repeat // 2))
     if a.out:
         print(write_results(a.out, device, {"rows": rows, "command": " ".join(sys.argv)}))
 
