@@ -47,23 +47,33 @@ IMPLS = {"host": propagate_front_host, "device": propagate_front}
 
 @contextmanager
 def copy_counter():
-    """Count Warp copies (``warp.copy``, ``array.numpy``, ``warp.array(data=...)``) while inside."""
+    """Count Warp copies (``warp.copy``, ``array.numpy``, ``warp.array(data=...)``; a call inside another counted
+    one is not counted again) while inside."""
     wp = warp()
     n = [0]
+    inside = [False]  # one transfer counts once (numpy() copies through warp.copy on CUDA)
     cls = wp.array
     old_copy, old_numpy, old_init = wp.copy, cls.numpy, cls.__init__
 
-    def copy(*a, **k):
+    def counted(fn, *a, **k):
+        if inside[0]:
+            return fn(*a, **k)
         n[0] += 1
-        return old_copy(*a, **k)
+        inside[0] = True
+        try:
+            return fn(*a, **k)
+        finally:
+            inside[0] = False
+
+    def copy(*a, **k):
+        return counted(old_copy, *a, **k)
 
     def numpy(self, *a, **k):
-        n[0] += 1
-        return old_numpy(self, *a, **k)
+        return counted(old_numpy, self, *a, **k)
 
     def init(self, *a, **k):
         if (a and a[0] is not None) or k.get("data") is not None:
-            n[0] += 1
+            return counted(old_init, self, *a, **k)
         return old_init(self, *a, **k)
 
     wp.copy, cls.numpy, cls.__init__ = copy, numpy, init

@@ -831,84 +831,57 @@ class FrontResult:
     n_rings: int
 
 
-def front_rings(mask, highlight, *, gaussian=None, mean=None, config: DGMCConfig | None = None
-                ) -> tuple[np.ndarray, np.ndarray, int]:
-    """The rings of DGMC's solved front and each ring pixel's source (4.17-4.18), from the masks alone.
+def front_rings(mask, highlight) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rings of DGMC's solved front, from the masks alone.
 
     The front (:func:`gpps.pipeline.front.propagate_front`) solves the highlight pixels ring by ring: ring 1 is
     the highlight pixels with a solved 8-neighbour (a mask pixel outside the highlights), ring ``k`` those next
-    to ring ``k - 1`` (the 8-neighbour breadth-first distance from the solved pixels, through highlight pixels).
-    Each ring pixel ``p`` takes as source ``q`` the nearest neighbour solved before its ring (outside the
-    highlights or in a lower ring; edge neighbours before corner ones) whose Gaussian and mean curvature are
-    within ``config.tolerance`` of ``p``'s, widened by ``config.widen_factor`` up to ``config.widen_steps``
-    times, else the nearest (:func:`select_sources`).  Neither choice depends on a solve, so all rings and
-    sources are found here at once, before any solve; only the start normals (``q``'s solved normal) wait for
-    the earlier rings.
+    to ring ``k - 1``: the 8-neighbour breadth-first distance from the solved pixels, through highlight pixels.
+    No solve changes it, so all rings are found here at once; so are the sources (4.17-4.18: each ring pixel's
+    nearest neighbour solved before its ring whose curvatures match, :func:`gpps.kernels.front.front_source_kernel`
+    on the device), and only the start normals wait for the earlier rings' solves.
 
     Args:
         mask: (H, W) bool object mask.
         highlight: (H, W) bool highlight region (only its pixels inside ``mask`` count).
-        gaussian, mean: (H, W) curvatures (4.16); None: no curvature test (the nearest solved neighbour).
-        config: :class:`DGMCConfig` (tolerance, widen_factor, widen_steps).
 
     Returns:
-        ``(ring, source, n_rings)``: (H, W) int32 ring of each highlight pixel (1, 2, ...; -1 where no ring
-        reaches it, a region with no solved pixel next to it; 0 off the highlights), (H, W, 2) int32
-        ``(row, column)`` of each ring pixel's source (-1 elsewhere), and the number of rings.
+        ``(ring, pixels, sizes)``: (H, W) int32 ring of each highlight pixel (1, 2, ...; -1 where no ring
+        reaches it, a region with no solved pixel next to it; 0 off the highlights); (P,) int64 flat indices
+        ``y * W + x`` of the ring pixels, ring 1 first; (n_rings + 1,) int64 pixels per ring (``sizes[0] = 0``),
+        so ring ``k`` is ``pixels[sizes[:k].sum() : sizes[:k + 1].sum()]``.
     """
-    cfg = _check_config(config)
     m = as_mask("mask", mask, allow_empty=True)
     h, w = m.shape
     hl = np.asarray(highlight, bool)
     if hl.shape != (h, w):
         raise ValueError(f"highlight: expected shape ({h}, {w}), got {hl.shape}")
     hl = hl & m
-    curv = gaussian is not None and mean is not None
-    if curv:
-        gc = as_array("gaussian", gaussian, shape=(h, w), dtype=np.float64)
-        mc = as_array("mean", mean, shape=(h, w), dtype=np.float64)
-    # the rings: breadth-first from the solved pixels through the highlight pixels, 8-neighbour steps, on flat
-    # indices of the image padded by one pixel (the pad is never a highlight); each step visits only the last ring
+    # breadth-first on flat indices of the image padded by one pixel (the pad is never a highlight), from the
+    # solved pixels next to a highlight; each step visits only the last ring's neighbours
     wpad = w + 2
     steps = np.array([di * wpad + dj for di, dj in _OFFSETS])
     todo = np.pad(hl, 1).ravel()
-    ring_pad = np.zeros(todo.size, np.int32)
-    front = np.flatnonzero(np.pad(m & ~hl, 1))
-    k = 0
+    seen = np.zeros(todo.size, np.int64)
+    front = np.flatnonzero(np.pad(m & ~hl & ndi.binary_dilation(hl, _structure(8)), 1))
+    rings = []
     while front.size:
         nb = (front[:, None] + steps).ravel()
-        nb = np.unique(nb[todo[nb]])
+        nb = nb[todo[nb]]
         if nb.size == 0:
             break
-        k += 1
-        ring_pad[nb] = k
         todo[nb] = False
+        # one entry per pixel (the last of its repeats), in a fixed order
+        idx = np.arange(nb.size)
+        seen[nb] = idx
+        nb = nb[seen[nb] == idx]
+        rings.append(nb)
         front = nb
+    sizes = np.array([0] + [r.size for r in rings], np.int64)
     ring = np.where(hl, -1, 0).astype(np.int32)
-    inner = ring_pad.reshape(h + 2, wpad)[1:-1, 1:-1]
-    ring[inner > 0] = inner[inner > 0]
-    source = np.full((h, w, 2), -1, np.int32)
-    if k == 0:
-        return ring, source, 0
-    # when each pixel was solved: 0 outside the highlights, its ring on them, never (k + 1) off the mask / unreached
-    level = np.where(m & ~hl, 0, np.where(ring > 0, ring, k + 1)).astype(np.int32)
-    pad = np.pad(level, 1, constant_values=k + 1)
-    pi, pj = np.nonzero(ring > 0)
-    rk = ring[pi, pj]
-    # 8 neighbours, edge ones first (the nearer); a neighbour is a candidate when solved before p's ring
-    offs = sorted(_OFFSETS, key=lambda o: abs(o[0]) + abs(o[1]))
-    c = np.stack([pad[1 + pi + di, 1 + pj + dj] < rk for di, dj in offs], -1)  # (P, 8)
-    # the valid candidates first (a prefix), nearest first within them
-    order = np.argsort(~c, axis=1, kind="stable")
-    c = np.take_along_axis(c, order, 1)
-    di = np.array([o[0] for o in offs])[order]
-    dj = np.array([o[1] for o in offs])[order]
-    qi, qj = np.clip(pi[:, None] + di, 0, h - 1), np.clip(pj[:, None] + dj, 0, w - 1)
-    if curv:
-        rank, _ = select_sources(gc[pi, pj], mc[pi, pj], gc[qi, qj], mc[qi, qj], c, tolerance=cfg.tolerance,
-                                 widen_factor=cfg.widen_factor, widen_steps=cfg.widen_steps)
-    else:
-        rank = np.zeros(pi.size, np.int64)
-    rows = np.arange(pi.size)
-    source[pi, pj, 0], source[pi, pj, 1] = qi[rows, rank], qj[rows, rank]
-    return ring, source, k
+    if not rings:
+        return ring, np.zeros(0, np.int64), sizes
+    padded = np.concatenate(rings)
+    pixels = (padded // wpad - 1) * w + (padded % wpad - 1)
+    ring.ravel()[pixels] = np.repeat(np.arange(1, len(rings) + 1, dtype=np.int32), sizes[1:])
+    return ring, pixels, sizes

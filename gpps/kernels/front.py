@@ -1,24 +1,112 @@
-"""DGMC's solved front on the device (seed 4.16-4.18): one ring's solve mask, start normals and merge.
+"""DGMC's solved front on the device (seed 4.16-4.18): the sources, and one ring's solve mask, starts and merge.
 
-Device math only; the stage :class:`gpps.pipeline.front.DeviceFront` owns the buffers and launches these per ring
-around :meth:`gpps.pipeline.solver.PixelSolver.step`.  The rings and each ring pixel's source come from the
-host, once (:func:`gpps.host.dgmc.front_rings`), as a list of flat pixel indices ``y * W + x`` sorted by ring
-(``pixels``) and their sources' indices (``sources``); ring ``k`` is the slice ``[start, start + count)``, and
-every kernel here runs one thread per pixel of that slice (the work of a ring is its size, not the image's).
-Per ring only the starts depend on the earlier rings' results:
+Device math only; the stage :class:`gpps.pipeline.front.DeviceFront` owns the buffers and launches these around
+:meth:`gpps.pipeline.solver.PixelSolver.step`.  The rings come from the host, once
+(:func:`gpps.host.dgmc.front_rings`), as a list of flat pixel indices ``y * W + x`` sorted by ring (``pixels``)
+and a level map (the ring of each ring pixel, 0 on the solved pixels outside the highlights, more than any ring
+elsewhere); ring ``k`` is the slice ``[start, start + count)`` of the list, and every kernel here runs one thread
+per listed pixel (the work of a ring is its size, not the image's):
 
-* :func:`scatter_mask_kernel`: the solver's (cleared) mask is set on the slice (:meth:`PixelSolver.select_pixels`);
+* :func:`front_source_kernel` (once, every ring pixel): the source of each ring pixel, the seed's rule
+  (4.17-4.18) among its 8 neighbours solved before its ring;
+* :func:`scatter_mask_kernel`: the solver's (cleared) mask is set on a ring (:meth:`PixelSolver.select_pixels`);
 * :func:`front_start_kernel`: each ring pixel starts from its source's current normal;
 * :func:`front_merge_kernel`: the ring's solve replaces the current solution where it ranks better, the rule of
   :func:`gpps.host.merge.ranks_better` (a lower residual on a pixel without ``FLAG_FEW_OBSERVATIONS``), or
   everywhere on the ring without ``keep_better``.  Unlike :func:`gpps.kernels.merge.merge_saved_kernel` (the same
   comparison) it writes into the front's own buffers, records the front solve's own evaluations (not the sum of
   both solves') and which pixels it won, and leaves the solver's outputs alone.
+
+Only the starts depend on the earlier rings' results, so the sources are chosen for all rings at once; the
+choice is the former host loop's (:func:`gpps.host.dgmc.select_sources` on each ring pixel's solved neighbours,
+edge ones first): the same candidates in the same order, the same float64 tests with the tolerance multiplied
+step by step in the same order, the first candidate when none qualifies; tests/test_front.py compares them.
 """
 
 import warp as wp
 
-__all__ = ["scatter_mask_kernel", "front_start_kernel", "front_merge_kernel"]
+__all__ = ["front_source_kernel", "scatter_mask_kernel", "front_start_kernel", "front_merge_kernel"]
+
+
+@wp.func
+def edge_first_offset(r: int) -> wp.vec2i:
+    """The ``r``-th 8-neighbour offset ``(di, dj)``, edge neighbours first: (-1, 0), (0, -1), (0, 1), (1, 0), then
+    the corners (-1, -1), (-1, 1), (1, -1), (1, 1) (the host's order)."""
+    di = int(0)
+    dj = int(0)
+    if r == 0:
+        di = -1
+    elif r == 1:
+        dj = -1
+    elif r == 2:
+        dj = 1
+    elif r == 3:
+        di = 1
+    else:
+        di = -1
+        dj = -1
+        if r >= 6:
+            di = 1
+        if r % 2 == 1:
+            dj = 1
+    return wp.vec2i(di, dj)
+
+
+@wp.kernel(enable_backward=False)
+def front_source_kernel(
+    pixels: wp.array(dtype=wp.int32),
+    level: wp.array2d(dtype=wp.int32),
+    gc: wp.array2d(dtype=wp.float64),
+    mc: wp.array2d(dtype=wp.float64),
+    curvatures: int,
+    tolerance: wp.float64,
+    widen_factor: wp.float64,
+    widen_steps: int,
+    sources: wp.array(dtype=wp.int32),
+):
+    """Source of each ring pixel ``p`` (dim P): among its 8 neighbours ``q`` solved before its ring
+    (``level[q] < level[p]``), edge ones first, the first with ``|GC_q - GC_p| <= t |GC_p|`` and
+    ``|MC_q - MC_p| <= t |MC_p|`` (4.17-4.18) at ``t = tolerance``, then ``t`` times ``widen_factor`` up to
+    ``widen_steps`` times; else (or with ``curvatures`` 0) the first of them.
+
+    Args:
+        pixels: (P,) flat indices of the ring pixels.
+        level: (H, W) the ring of each ring pixel; 0 on solved pixels; more than any ring elsewhere.
+        gc, mc: (H, W) Gaussian and mean curvature (4.16), read when ``curvatures`` is 1.
+        curvatures: 1: the test of 4.17-4.18; 0: the nearest solved neighbour.
+        tolerance, widen_factor, widen_steps: as :class:`gpps.host.dgmc.DGMCConfig`.
+        sources: (P,) out: the flat index of each pixel's source (-1 with no solved neighbour: never for a ring
+            pixel).
+    """
+    t = wp.tid()
+    h = level.shape[0]
+    w = level.shape[1]
+    p = pixels[t]
+    i = p // w
+    j = p % w
+    k = level[i, j]
+    gp = gc[i, j]
+    mp = mc[i, j]
+    first = int(-1)
+    found = int(-1)
+    tt = tolerance
+    for stp in range(widen_steps + 1):
+        if found < 0:
+            for r in range(8):
+                off = edge_first_offset(r)
+                a = i + off[0]
+                b = j + off[1]
+                if found < 0 and a >= 0 and a < h and b >= 0 and b < w:
+                    if level[a, b] < k:
+                        if first < 0:
+                            first = a * w + b
+                        if curvatures != 0:
+                            if wp.abs(gc[a, b] - gp) <= tt * wp.abs(gp) and wp.abs(mc[a, b] - mp) <= tt * wp.abs(mp):
+                                found = a * w + b
+            tt = tt * widen_factor
+    if found < 0:
+        found = first
+    sources[t] = found
 
 
 @wp.kernel(enable_backward=False)

@@ -11,15 +11,16 @@ normal of its source (the nearest solved 8-neighbour, edge ones first, whose cur
 one pixel away is within the basin of the right minimum where the surface is smooth, so the highlight pixels
 converge in fewer cost evaluations and far more often to the right normal.
 
-Device-resident: the rings and sources depend only on the masks and the curvatures, so the host finds them all
-at once (:func:`gpps.host.dgmc.front_rings`) and uploads them once, as the list of ring pixels sorted by ring
-and their sources (flat indices), with the given solution.  Per ring only the starts depend on the earlier
-rings' results, and everything runs on the solver's device with no copy: the solver's mask becomes ring ``k``
-(:meth:`gpps.pipeline.solver.PixelSolver.select_pixels`), each ring pixel's start is gathered from the current
-normals at its source, the solver steps (:meth:`PixelSolver.step` with ``subset``: the pixels outside the ring
-are left alone; on the CPU split over rows across threads), and the ring's solve is merged into the current
-solution on the device (:mod:`gpps.kernels.front`; every launch but the solve's is one thread per ring pixel).
-The result comes back once, at the end.  Decisions and results are those of the former host loop over rings (rings and
+Device-resident: the rings depend only on the masks, so the host finds them all at once
+(:func:`gpps.host.dgmc.front_rings`, a breadth-first walk) and uploads them once, as the list of ring pixels
+ring by ring and a level map, with the curvatures and the given solution.  The sources depend only on the rings
+and the curvatures: one launch picks them all (:func:`gpps.kernels.front.front_source_kernel`).  Per ring only
+the starts depend on the earlier rings' results, and everything runs on the solver's device with no copy: the
+solver's mask becomes ring ``k`` (:meth:`gpps.pipeline.solver.PixelSolver.select_pixels`), each ring pixel's
+start is gathered from the current normals at its source, the solver steps (:meth:`PixelSolver.step` with
+``subset``: the pixels outside the ring are left alone; on the CPU split over rows across threads), and the
+ring's solve is merged into the current solution on the device (:mod:`gpps.kernels.front`; every launch but the
+solve's is one thread per ring pixel).  The result comes back once, at the end.  Decisions and results are those of the former host loop over rings (rings and
 sources picked in numpy per ring, a full start array uploaded and the full outputs fetched per ring, merged on the
 host): tests/test_front.py compares the two exactly.
 """
@@ -30,7 +31,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from gpps._check import as_mask
+from gpps._check import as_array, as_mask
 from gpps._runtime import warp
 from gpps.host.dgmc import DGMCConfig, FrontResult, front_rings
 from gpps.kernels import front as fk
@@ -40,6 +41,7 @@ from gpps.pipeline.stage import Stage
 __all__ = ["DeviceFront", "propagate_front"]
 
 _SOLUTION = (("normals", 3), ("albedo", 3), ("residual", 0), ("flags", 0))
+_UNSOLVED = 1 << 30  # the level of pixels no ring solves (off the mask, unreached highlights)
 
 
 class DeviceFront(Stage):
@@ -48,10 +50,10 @@ class DeviceFront(Stage):
     Args:
         solver: the solver that holds the frame (its last upload) and solves the rings.
 
-    ``upload(mask, highlight, solution, gaussian=..., mean=..., config=...)`` (host plan and one copy of each
-    input), ``step(keep_better=..., progress=...)`` (every ring on the device, no copy), ``fetch()`` ->
-    :class:`gpps.host.dgmc.FrontResult`.  The solver's config is replaced for the ring solves
-    (``warm_start=True``, ``starts=1``, no neighbour pass, no smoothness) and restored after; its mask is
+    ``upload(mask, highlight, solution, gaussian=..., mean=..., config=...)`` (the rings found on the host, one
+    copy of each input), ``step(keep_better=..., progress=...)`` (the sources, then every ring, on the device, no
+    copy), ``fetch()`` -> :class:`gpps.host.dgmc.FrontResult`.  The solver's config is replaced for the ring
+    solves (``warm_start=True``, ``starts=1``, no neighbour pass, no smoothness) and restored after; its mask is
     left on the last ring, and its outputs hold each ring's solve on that ring (unchanged when there is no ring;
     outside the rings as they were).
     """
@@ -62,8 +64,11 @@ class DeviceFront(Stage):
         self.device = solver.device
         h, w = solver.shape[1:]
         d = self.device
-        self.pixels = wp.zeros(h * w, dtype=wp.int32, device=d)  # ring pixels (flat), sorted by ring
+        self.pixels = wp.zeros(h * w, dtype=wp.int32, device=d)  # ring pixels (flat), ring by ring
         self.sources = wp.zeros(h * w, dtype=wp.int32, device=d)  # their sources (flat)
+        self.level = wp.zeros((h, w), dtype=wp.int32, device=d)  # when each pixel is solved (front_source_kernel)
+        self.gc = wp.zeros((h, w), dtype=wp.float64, device=d)
+        self.mc = wp.zeros((h, w), dtype=wp.float64, device=d)
         self.normals = wp.zeros((h, w), dtype=wp.vec3, device=d)
         self.albedo = wp.zeros((h, w), dtype=wp.vec3, device=d)
         self.residual = wp.zeros((h, w), dtype=wp.float32, device=d)
@@ -75,7 +80,7 @@ class DeviceFront(Stage):
 
     def upload(self, mask, highlight, solution: dict, *, gaussian=None, mean=None,
                config: DGMCConfig | None = None) -> None:
-        """Find the rings and sources (:func:`gpps.host.dgmc.front_rings`) and copy them and the solution in.
+        """Find the rings (:func:`gpps.host.dgmc.front_rings`) and copy them, the curvatures and the solution in.
 
         Args:
             mask: (H, W) bool object mask.
@@ -87,6 +92,9 @@ class DeviceFront(Stage):
             config: :class:`gpps.host.dgmc.DGMCConfig` (tolerance, widen_factor, widen_steps).
         """
         self._check_open()
+        cfg = DGMCConfig() if config is None else config
+        if not isinstance(cfg, DGMCConfig):
+            raise TypeError(f"config: expected DGMCConfig, got {type(cfg).__name__}")
         h, w = self.solver.shape[1:]
         m = as_mask("mask", mask, (h, w))
         hl = np.asarray(highlight, bool)
@@ -98,32 +106,33 @@ class DeviceFront(Stage):
                 raise ValueError(f"solution: expected a dict with '{k}', got keys {sorted(solution)}")
             if np.shape(solution[k]) != shp:
                 raise ValueError(f"solution['{k}']: expected shape {shp}, got {np.shape(solution[k])}")
-        if not (gaussian is not None and mean is not None):
-            gaussian = mean = None
-        ring, source, n = front_rings(m, hl, gaussian=gaussian, mean=mean, config=config)
-        # the ring pixels sorted by ring (row-major within one), their sources, and each ring's slice
-        flat = np.flatnonzero(ring > 0)
-        flat = flat[np.argsort(ring.ravel()[flat], kind="stable")]
-        sizes = np.bincount(ring.ravel()[flat], minlength=n + 1)
+        curv = gaussian is not None and mean is not None
+        if curv:
+            self.gc.assign(as_array("gaussian", gaussian, shape=(h, w), dtype=np.float64))
+            self.mc.assign(as_array("mean", mean, shape=(h, w), dtype=np.float64))
+        ring, pixels, sizes = front_rings(m, hl)
+        n = sizes.size - 1
         starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-        src = source.reshape(-1, 2)[flat]
-        # pixels of each ring per image row: they balance the solver's CPU row split (row k: ring k)
-        rows = np.zeros((n + 1, h), np.int64)
-        np.add.at(rows, (ring.ravel()[flat], flat // w), 1)
-        if flat.size:
-            self.pixels[:flat.size].assign(flat.astype(np.int32))
-            self.sources[:flat.size].assign((src[:, 0] * w + src[:, 1]).astype(np.int32))
+        rows = None
+        if not self.device.startswith("cuda") and n:
+            # pixels of each ring per image row: they balance the solver's CPU row split (row k: ring k)
+            per = np.repeat(np.arange(n + 1), sizes)
+            rows = np.bincount(per * h + pixels // w, minlength=(n + 1) * h).reshape(n + 1, h)
+        if pixels.size:
+            self.pixels[:pixels.size].assign(pixels.astype(np.int32))
+            level = np.where(m & ~hl, 0, np.where(ring > 0, ring, _UNSOLVED)).astype(np.int32)
+            self.level.assign(level)
         self.normals.assign(np.asarray(solution["normals"], np.float32))
         self.albedo.assign(np.asarray(solution["albedo"], np.float32))
         self.residual.assign(np.asarray(solution["residual"], np.float32))
         self.flags.assign(np.asarray(solution["flags"], np.int32))
         self.iterations.zero_()
         self.won.zero_()
-        self._plan = (ring, source, n, rows, sizes, starts)
+        self._plan = (ring, pixels, sizes, starts, rows, curv, cfg)
 
     def step(self, *, keep_better: bool = True, progress=None) -> None:
-        """Solve the rings in order on the solver's device: per ring the mask, the starts, a warm solve and the
-        merge, with no copy between host and device.
+        """The sources of every ring pixel, then the rings in order, on the solver's device: per ring the mask, the
+        starts, a warm solve and the merge, with no copy between host and device.
 
         Args:
             keep_better: keep, per highlight pixel, the ring's solve only where its residual is below the
@@ -137,16 +146,21 @@ class DeviceFront(Stage):
             raise RuntimeError("step: upload() first")
         wp = warp()
         s = self.solver
-        h, w = s.shape[1:]
-        _, _, n, rows, sizes, starts = self._plan
+        w = s.shape[2]
+        ring, pixels, sizes, starts, rows, curv, cfg = self._plan
+        n = sizes.size - 1
         if n == 0:
             return
+        wp.launch(fk.front_source_kernel, dim=pixels.size,
+                  inputs=[self.pixels, self.level, self.gc, self.mc, int(curv), float(cfg.tolerance),
+                          float(cfg.widen_factor), int(cfg.widen_steps)],
+                  outputs=[self.sources], device=self.device)
         old = s.config
         s.set_config(replace(old, warm_start=True, starts=1, neighbour_radius=0, smoothness=0.0))
         try:
             for k in range(1, n + 1):
                 a, c = int(starts[k]), int(sizes[k])
-                s.select_pixels(self.pixels, a, c, rows[k])
+                s.select_pixels(self.pixels, a, c, None if rows is None else rows[k])
                 wp.launch(fk.front_start_kernel, dim=c, inputs=[self.pixels, self.sources, a, w, self.normals],
                           outputs=[s.normals], device=self.device)
                 s.step(subset=True)
@@ -156,7 +170,7 @@ class DeviceFront(Stage):
                           outputs=[self.normals, self.albedo, self.residual, self.flags, self.iterations, self.won],
                           device=self.device)
                 if progress is not None:
-                    progress(k, None, f"DGMC front ring {k}: {int(sizes[k])} pixels")
+                    progress(k, None, f"DGMC front ring {k}: {c} pixels")
         finally:
             s.set_config(old)
 
@@ -165,16 +179,22 @@ class DeviceFront(Stage):
         self._check_open()
         if self._plan is None:
             raise RuntimeError("fetch: upload() first")
-        ring, source, n = self._plan[:3]
+        ring, pixels, sizes = self._plan[:3]
+        h, w = ring.shape
         out = {k: np.array(getattr(self, k).numpy(), copy=True)
                for k in ("normals", "albedo", "residual", "flags", "iterations", "won")}
+        source = np.full((h, w, 2), -1, np.int32)
+        if pixels.size:
+            q = self.sources.numpy()[:pixels.size]
+            source.reshape(-1, 2)[pixels] = np.stack([q // w, q % w], -1)
         return FrontResult(normals=out["normals"], albedo=out["albedo"], residual=out["residual"],
                            flags=out["flags"], iterations=out["iterations"], ring=ring, source=source,
-                           won=out["won"].astype(bool), n_rings=n)
+                           won=out["won"].astype(bool), n_rings=sizes.size - 1)
 
     def close(self) -> None:
         """Release the device buffers."""
-        for name in ("pixels", "sources", "normals", "albedo", "residual", "flags", "iterations", "won", "_plan"):
+        for name in ("pixels", "sources", "level", "gc", "mc", "normals", "albedo", "residual", "flags",
+                     "iterations", "won", "_plan"):
             setattr(self, name, None)
         self._closed = True
 
