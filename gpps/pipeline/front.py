@@ -155,20 +155,27 @@ class DeviceFront(Stage):
                   inputs=[self.pixels, self.level, self.gc, self.mc, int(curv), float(cfg.tolerance),
                           float(cfg.widen_factor), int(cfg.widen_steps)],
                   outputs=[self.sources], device=self.device)
+        # recorded once, then per ring only the slice changes (a launch packs its arguments anew each time)
+        start = wp.launch(fk.front_start_kernel, dim=1, inputs=[self.pixels, self.sources, 0, w, self.normals],
+                          outputs=[s.normals], device=self.device, record_cmd=True)
+        merge = wp.launch(fk.front_merge_kernel, dim=1,
+                          inputs=[self.pixels, 0, w, int(bool(keep_better)), int(FLAG_FEW_OBSERVATIONS), s.normals,
+                                  s.albedo, s.residual, s.iterations, s.flags],
+                          outputs=[self.normals, self.albedo, self.residual, self.flags, self.iterations, self.won],
+                          device=self.device, record_cmd=True)
         old = s.config
         s.set_config(replace(old, warm_start=True, starts=1, neighbour_radius=0, smoothness=0.0))
         try:
             for k in range(1, n + 1):
                 a, c = int(starts[k]), int(sizes[k])
                 s.select_pixels(self.pixels, a, c, None if rows is None else rows[k])
-                wp.launch(fk.front_start_kernel, dim=c, inputs=[self.pixels, self.sources, a, w, self.normals],
-                          outputs=[s.normals], device=self.device)
+                start.set_dim(c)
+                start.set_param_at_index(2, a)
+                start.launch()
                 s.step(subset=True)
-                wp.launch(fk.front_merge_kernel, dim=c,
-                          inputs=[self.pixels, a, w, int(bool(keep_better)), int(FLAG_FEW_OBSERVATIONS), s.normals,
-                                  s.albedo, s.residual, s.iterations, s.flags],
-                          outputs=[self.normals, self.albedo, self.residual, self.flags, self.iterations, self.won],
-                          device=self.device)
+                merge.set_dim(c)
+                merge.set_param_at_index(1, a)
+                merge.launch()
                 if progress is not None:
                     progress(k, None, f"DGMC front ring {k}: {c} pixels")
         finally:

@@ -752,8 +752,14 @@ class PixelSolver(Stage):
                 raise ValueError(f"rows: expected shape ({h},), got {rows.shape}")
         self.mask.zero_()
         if count:
-            wp.launch(fk.scatter_mask_kernel, dim=count, inputs=[pixels, start, w], outputs=[self.mask],
-                      device=self.device)
+            # recorded once per index list (kept alive with it): later slices change only two numbers
+            rec = self.__dict__.get("_scatter")
+            if rec is None or rec[0] is not pixels:
+                rec = self._scatter = (pixels, wp.launch(fk.scatter_mask_kernel, dim=1, inputs=[pixels, 0, w],
+                                                         outputs=[self.mask], device=self.device, record_cmd=True))
+            rec[1].set_dim(count)
+            rec[1].set_param_at_index(1, start)
+            rec[1].launch()
         self._split_counts(rows)
 
     def set_start(self, normals) -> None:
