@@ -16,7 +16,7 @@ from gpps.pipeline.solver import PixelSolver, SolverConfig
 _FIELDS = ("normals", "albedo", "residual", "flags", "iterations", "ring", "source", "won")
 
 
-def _case(device, scene, size, camera, brdf, light_kind, n_lights):
+def _case(device, scene, size, camera, brdf, light_kind, n_lights, parallel="auto"):
     """A rendered frame on a PixelSolver, its multi-start solution (the front's sources), DGMC's highlights and
     curvatures (host), and the depth the solver needs (point lights)."""
     from gpps.flows.synthetic import default_lights, render
@@ -39,7 +39,7 @@ def _case(device, scene, size, camera, brdf, light_kind, n_lights):
     pts = sc.camera.backproject(np.where(sc.mask, sc.depth, 1.0)) if light_kind == "point" else None
     # (point-lit images divided by unit intensities are ~100x darker: a margin to match)
     dg = dgmc_start(img, sc.mask, nrm, lights=lu, points=pts, config=DGMCConfig(margin=2e-4) if pts is not None else None)
-    solver.set_config(SolverConfig())
+    solver.set_config(SolverConfig(parallel=parallel))
     solver.set_mask(sc.mask)
     solver.step()
     sol = solver.fetch(("normals", "albedo", "residual", "iterations", "flags"))
@@ -81,6 +81,19 @@ def test_device_front_equals_the_host_loop(device, scene, size, camera, brdf, li
     # the frame already on the solver (images=None, as RON calls it): the same front
     again = propagate_front(solver, None, sc.mask, hm, sol, keep_better=keep_better, **kw)
     _assert_same(again, ref)
+
+
+@pytest.mark.parametrize("parallel", ["pixels", "lights"])
+def test_device_front_equals_the_host_loop_either_kernel(device, parallel):
+    """The ring solves through either solve kernel (one thread a pixel, or the lights split over lanes, which also
+    leaves the pixels outside the ring alone): the host loop's result."""
+    img, sc, solver, dg, sol, depth = _case(device, "sphere", 48, "orthographic", "blinn-phong", "directional", 12,
+                                            parallel=parallel)
+    hm = dg.highlight
+    kw = dict(gaussian=dg.gaussian, mean=dg.mean)
+    ref = propagate_front_host(solver, None, sc.mask, hm, sol, **kw)
+    assert ref.n_rings > 3
+    _assert_same(propagate_front(solver, None, sc.mask, hm, sol, **kw), ref)
 
 
 def test_rings_and_sources_equal_the_host_loop(device):
@@ -201,10 +214,12 @@ def test_merge_and_start_kernels_against_numpy(device):
     np.testing.assert_array_equal(start.numpy(), want)
 
 
-def test_select_pixels_and_subset_step(device):
-    """select_pixels sets exactly the slice on the device; a subset step solves those pixels as a step of the same
-    mask set from the host does, and leaves every other pixel's outputs as they were."""
-    img, sc, solver, dg, sol, depth = _case(device, "sphere", 32, "orthographic", "blinn-phong", "directional", 3)
+@pytest.mark.parametrize("parallel", ["pixels", "lights"])
+def test_select_pixels_and_subset_step(device, parallel):
+    """select_pixels sets exactly the slice on the device; a subset step (with either solve kernel) solves those
+    pixels as a step of the same mask set from the host does, and leaves every other pixel's outputs as they were."""
+    img, sc, solver, dg, sol, depth = _case(device, "sphere", 32, "orthographic", "blinn-phong", "directional", 3,
+                                            parallel=parallel)
     wp = warp()
     names = ("normals", "albedo", "residual", "iterations", "flags", "cond")
     flat = np.flatnonzero(sc.mask.ravel()).astype(np.int32)[::-1].copy()

@@ -113,11 +113,10 @@ class DeviceFront(Stage):
         ring, pixels, sizes = front_rings(m, hl)
         n = sizes.size - 1
         starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-        rows = None
-        if not self.device.startswith("cuda") and n:
-            # pixels of each ring per image row: they balance the solver's CPU row split (row k: ring k)
-            per = np.repeat(np.arange(n + 1), sizes)
-            rows = np.bincount(per * h + pixels // w, minlength=(n + 1) * h).reshape(n + 1, h)
+        # pixels of each ring per image row (row k: ring k): they balance the solver's CPU row split, and their
+        # sum picks its kernel (PixelSolver.select_pixels)
+        per = np.repeat(np.arange(n + 1), sizes)
+        rows = np.bincount(per * h + pixels // w, minlength=(n + 1) * h).reshape(n + 1, h)
         if pixels.size:
             self.pixels[:pixels.size].assign(pixels.astype(np.int32))
             level = np.where(m & ~hl, 0, np.where(ring > 0, ring, _UNSOLVED)).astype(np.int32)
@@ -168,7 +167,7 @@ class DeviceFront(Stage):
         try:
             for k in range(1, n + 1):
                 a, c = int(starts[k]), int(sizes[k])
-                s.select_pixels(self.pixels, a, c, None if rows is None else rows[k])
+                s.select_pixels(self.pixels, a, c, rows[k])
                 start.set_dim(c)
                 start.set_param_at_index(2, a)
                 start.launch()

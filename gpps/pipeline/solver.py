@@ -655,8 +655,9 @@ class PixelSolver(Stage):
             # the CPU (Warp's CPU tile code is not safe in concurrent launches)
             h, w = self.shape[1:]
             lanes = block_lanes(self.device, LIGHT_LANES)
-            self._recorded(("solve_lanes", lanes), self._lanes_kernel, ins + [self.prm], outs, dim=(h, w, lanes),
-                           block_dim=lanes).launch()
+            prm = self._params_for(self.config) if subset else self.prm
+            self._recorded(("solve_lanes", lanes, subset), self._lanes_kernel, ins + [prm], outs,
+                           dim=(h, w, lanes), block_dim=lanes).launch()
             return
         bounds = self._row_bounds
         threads = 1 if bounds is None else len(bounds)
@@ -732,7 +733,8 @@ class PixelSolver(Stage):
             pixels: (P,) int32 Warp array of flat pixel indices ``y * W + x`` on the solver's device.
             start, count: the slice to solve (count may be 0: an empty mask).
             rows: (H,) the selected pixels per image row (host numbers the caller knows): they balance the
-                CPU row split (:meth:`_split_rows`); None: every row weighs the same.  Unused on CUDA.
+                CPU row split (:meth:`_split_rows`), and their sum picks the kernel (``config.parallel``);
+                None: ``count`` spread evenly over the rows.
         """
         wp = warp()
         n, h, w = self.shape
@@ -745,7 +747,7 @@ class PixelSolver(Stage):
         if start < 0 or count < 0 or start + count > pixels.shape[0]:
             raise ValueError(f"start, count: expected a slice of the {pixels.shape[0]} pixels, got {start}, {count}")
         if rows is None:
-            rows = np.ones(h, np.int64)
+            rows = np.full(h, count / h)
         else:
             rows = np.asarray(rows)
             if rows.shape != (h,):
