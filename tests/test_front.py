@@ -38,7 +38,8 @@ def _case(device, scene, size, camera, brdf, light_kind, n_lights, parallel="aut
     nrm[~ok] = (0.0, 0.0, 1.0)
     pts = sc.camera.backproject(np.where(sc.mask, sc.depth, 1.0)) if light_kind == "point" else None
     # (point-lit images divided by unit intensities are ~100x darker: a margin to match)
-    dg = dgmc_start(img, sc.mask, nrm, lights=lu, points=pts, config=DGMCConfig(margin=2e-4) if pts is not None else None)
+    cfg = DGMCConfig(margin=2e-4) if pts is not None else None
+    dg = dgmc_start(img, sc.mask, nrm, lights=lu, points=pts, config=cfg)
     solver.set_config(SolverConfig(parallel=parallel))
     solver.set_mask(sc.mask)
     solver.step()

@@ -17,9 +17,9 @@ the highlight that has a similar local geometry:
    curvature are both within +-5 % of ``p``'s (4.17-4.18), the tolerance
    widened stepwise when none qualifies, else the nearest boundary pixel; ``p``
    starts from ``q``'s normal.
-5. :func:`front_rings`: the rings and sources of the front that the pipeline
-   solves instead (:func:`gpps.pipeline.front.propagate_front`): the same rule
-   with the boundary moved inward ring by ring as pixels get solved.
+5. :func:`front_rings`: the rings of the front that the pipeline solves
+   instead (:func:`gpps.pipeline.front.propagate_front`): the same rule with
+   the boundary moved inward ring by ring as pixels get solved.
 
 Pure numpy/scipy on the host (no Warp)::
 
@@ -801,7 +801,7 @@ def dgmc_start(images, mask, normals, *, lights=None, config: DGMCConfig | None 
 
 @dataclass
 class FrontResult:
-    """Output of :func:`gpps.pipeline.front.propagate_front` (the rings and sources: :func:`front_rings`).
+    """Output of :func:`gpps.pipeline.front.propagate_front` (the rings: :func:`front_rings`).
 
     Attributes:
         normals: (H, W, 3) float32: the given solution, with each highlight

@@ -7,9 +7,9 @@
 applies the same rule (4.17-4.18) with the boundary moved inward as pixels get solved: ring 1 is the highlight
 pixels next to a solved pixel, ring ``k`` those next to ring ``k - 1``; each ring pixel starts from the *solved*
 normal of its source (the nearest solved 8-neighbour, edge ones first, whose curvatures match,
-:func:`gpps.host.dgmc.front_rings`), with one warm start, and then serves as a source for the next ring.  A start
-one pixel away is within the basin of the right minimum where the surface is smooth, so the highlight pixels
-converge in fewer cost evaluations and far more often to the right normal.
+:func:`gpps.kernels.front.front_source_kernel`), with one warm start, and then serves as a source for the next
+ring.  A start one pixel away is within the basin of the right minimum where the surface is smooth, so the
+highlight pixels converge in fewer cost evaluations and far more often to the right normal.
 
 Device-resident: the rings depend only on the masks, so the host finds them all at once
 (:func:`gpps.host.dgmc.front_rings`, a breadth-first walk) and uploads them once, as the list of ring pixels
@@ -20,9 +20,10 @@ solver's mask becomes ring ``k`` (:meth:`gpps.pipeline.solver.PixelSolver.select
 start is gathered from the current normals at its source, the solver steps (:meth:`PixelSolver.step` with
 ``subset``: the pixels outside the ring are left alone; on the CPU split over rows across threads), and the
 ring's solve is merged into the current solution on the device (:mod:`gpps.kernels.front`; every launch but the
-solve's is one thread per ring pixel).  The result comes back once, at the end.  Decisions and results are those of the former host loop over rings (rings and
-sources picked in numpy per ring, a full start array uploaded and the full outputs fetched per ring, merged on the
-host): tests/test_front.py compares the two exactly.
+solve's is one thread per ring pixel).  The result comes back once, at the end.  Decisions and results are
+those of the former host loop over rings (rings and sources picked in numpy per ring, a full start array
+uploaded and the full outputs fetched per ring, merged on the host): tests/test_front.py compares the two
+exactly.
 """
 
 from __future__ import annotations
