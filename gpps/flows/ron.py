@@ -61,7 +61,7 @@ from gpps._check import (
     check_number,
     warn,
 )
-from gpps._runtime import resolve_device
+from gpps._runtime import resolve_device, warp
 from gpps._taichi import taichi_device
 from gpps.host.dgmc import DGMCConfig
 from gpps.lights import PointLights
@@ -71,6 +71,7 @@ from gpps.pipeline.dgmc import dgmc_start_device
 from gpps.pipeline.front import propagate_front
 from gpps.pipeline.integration import Integrator, IntegratorConfig
 from gpps.pipeline.material import MaterialScorer
+from gpps.pipeline.ron_rounds import DeviceRounds
 from gpps.pipeline.solver import PixelSolver, SolverConfig
 from gpps.pipeline.stream_material import lobe_value, with_lobe
 
@@ -168,6 +169,14 @@ class RONConfig:
             keeps depth discontinuities) while the rounds, whose depth only moves
             point lights, keep the warm-started Poisson solve.
         seed: seed of the pixel sample (results are reproducible).
+        device_rounds: when the rounds' depth feeds back (point lights, the depth-rms rule) and the
+            integrator is the plain multigrid one: exchange normals and depth with the integrator on
+            the device (:class:`gpps.pipeline.ron_rounds.DeviceRounds`: the system assembled and
+            solved there, the depth written into the solver's buffer, the round's energy and normal
+            change reduced there; only scalars come back per round, the outputs once at the end).
+            The photometric material fit still takes the round's normals and depth on the host,
+            the depth-rms rule the depth; a round whose normals have invalid pixels (NaN, zero,
+            back-facing) is integrated on the host.  False: every round on the host (the reference).
     """
 
     rounds: int = 5
@@ -192,12 +201,14 @@ class RONConfig:
     integrator: object = None  # gpps.pipeline.integration.IntegratorConfig (None: defaults)
     final_integrator: object = None  # IntegratorConfig of the returned depth (None: integrator's)
     seed: int = 0
+    device_rounds: bool = True
 
     def __post_init__(self):
         check_choices(self)
         check_number("rounds", self.rounds, lo=1, integer=True)
         check_bool("dgmc", self.dgmc)
         check_bool("integrate", self.integrate)
+        check_bool("device_rounds", self.device_rounds)
         check_number("seed", self.seed, lo=0, integer=True)
         check_number("tol", self.tol, lo=0.0)
         check_number("tol_normals_deg", self.tol_normals_deg, lo=0.0)
@@ -306,6 +317,20 @@ def estimate_on_bound(name: str, value: float, rel: float = 0.01) -> str | None:
     return None
 
 
+def normal_change_deg(normals, prev, mask) -> float:
+    """Mean angle (degrees) between two normal maps over ``mask``: ``atan2(|a x b|, a . b)`` in float64
+    (accurate for small angles and vectors of any length; 90 degrees where either is zero), as the
+    device rounds reduce it (:mod:`gpps.kernels.ron`).  (The earlier ``arccos`` of a float32 dot product
+    read any change below about 0.02 degrees as 0 or 0.02: one float32 step below 1.)"""
+    a = np.asarray(normals)[mask].astype(np.float64)
+    b = np.asarray(prev)[mask].astype(np.float64)
+    if a.shape[0] == 0:
+        return 0.0
+    ang = np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, -1))
+    zero = (np.sum(a * a, -1) == 0) | (np.sum(b * b, -1) == 0)
+    return float(np.degrees(np.where(zero, np.pi / 2, ang)).mean())
+
+
 def depth_rms_roughness(depth, mask, camera, *, window: float = 4.0) -> float:
     """The seed's roughness update (4.19) with its square restored.
 
@@ -378,6 +403,8 @@ class RON:
         self._batch = max(25, self.config.material_grid ** max(len(self.config.estimate), 1))
         self._last_move = None  # log-space move of the last material fit (sizes the next fit's simplex)
         self._frame_key = self._frame_depth = None  # the frame on the solver's device (see _frame)
+        self._solver_mask = None  # the mask in the solver's buffer, when RON set it (see _set_mask)
+        self._rounds = None  # the device side of the rounds (DeviceRounds), built at the first run that uses it
         self.integrator = None
         if self.config.integrate:
             # default, perspective: BiNI's n_z^2 confidence weighting: grazing rim normals (a few degrees off
@@ -388,7 +415,10 @@ class RON:
             self.integrator = Integrator(self.mask, camera=camera, config=icfg, device=taichi_device(self.device))
 
     def close(self) -> None:
-        """Free the integrator's Taichi fields and the material scorer's buffers."""
+        """Free the integrator's Taichi fields, the device rounds' and the material scorer's buffers."""
+        if self._rounds is not None:
+            self._rounds.close()
+            self._rounds = None
         if self._scorer is not None:
             self._scorer.close()
             self._scorer = None
@@ -411,19 +441,36 @@ class RON:
             s.upload(images, self.mask, depth=depth, valid=valid)
             s.set_config(cfg)
             self._frame_key, self._frame_depth = key, depth
+            self._solver_mask = self.mask
         elif depth is not self._frame_depth:
             s.set_depth(depth, mask=self.mask)
             self._frame_depth = depth
 
+    def _set_mask(self, mask) -> None:
+        """The solver's mask, copied to the device only when it is not the one RON last set there."""
+        if mask is not self._solver_mask:
+            self.solver.set_mask(mask)
+            self._solver_mask = mask
+
+    def _set_start(self, init) -> None:
+        """Start normals of the warm solve: a host array (copied in) or a Warp buffer on the solver's
+        device (the device rounds' previous normals: copied device to device)."""
+        if isinstance(init, np.ndarray):
+            self.solver.set_start(init)
+        else:
+            warp().copy(self.solver.normals, init)
+
     def _solve(self, images, depth, valid, material, *, starts=None, init=None, init_mask=None, mask=None,
-               cold: bool = True, progress=None) -> dict:
+               cold: bool = True, progress=None, fetch: bool = True) -> dict | None:
         """Steps 1/2/5: cold multi-start solve of ``mask``; where ``init`` is given, also a
         warm-started solve from it (on ``init_mask``); the lower residual wins per pixel, merged on
         the device (:meth:`PixelSolver.merge_saved`).  ``cold=False`` (needs ``init`` on the whole
         mask): only the warm solve, with the configured neighbour pass for the under-determined
         pixels.  The frame stays on the device between solves (:meth:`_frame`); only the outputs
         RON reads come back.  ``progress(fraction)``: on the CPU, told as the solves' row ranges
-        finish (the cold solve is the first 0.8 of a cold+warm pair)."""
+        finish (the cold solve is the first 0.8 of a cold+warm pair).  ``init``: (H, W, 3) host
+        normals or a Warp buffer of them on the solver's device.  ``fetch=False``: nothing comes
+        back (None; the outputs stay in the solver's buffers)."""
         s = self.solver
         cfg = self.config.solver
         m = self.mask if mask is None else mask
@@ -434,13 +481,13 @@ class RON:
                 if init is None or init_mask is not None:
                     raise ValueError("cold: False needs init normals on the whole mask")
                 s.set_config(replace(cfg, warm_start=True, starts=1))
-                s.set_mask(m)
-                s.set_start(init)
+                self._set_mask(m)
+                self._set_start(init)
                 s.step(_part(progress, 0.0, 1.0))
-                return s.fetch(_OUTPUTS)
+                return s.fetch(_OUTPUTS) if fetch else None
             s.set_config(cfg if starts is None else replace(cfg, starts=starts))
             share = 0.8 if init is not None else 1.0
-            s.set_mask(m)
+            self._set_mask(m)
             s.step(_part(progress, 0.0, share))
             if init is not None:
                 im = m if init_mask is None else (init_mask & m)
@@ -448,11 +495,11 @@ class RON:
                     # under-determined pixels keep the neighbour pass of the cold solve
                     s.save()
                     s.set_config(replace(cfg, warm_start=True, starts=1, neighbour_radius=0, smoothness=0.0))
-                    s.set_mask(im)
-                    s.set_start(init)
+                    self._set_mask(im)
+                    self._set_start(init)
                     s.step(_part(progress, share, 1.0))
                     s.merge_saved()
-            return s.fetch(_OUTPUTS)
+            return s.fetch(_OUTPUTS) if fetch else None
         finally:
             s.set_config(cfg)
 
@@ -745,7 +792,7 @@ class RON:
         c = self.config
         m = self.mask
         self._last_move = None
-        self._frame_key = self._frame_depth = None
+        self._frame_key = self._frame_depth = self._solver_mask = None
         step = progress or (lambda *a: None)
         timings = {"least_squares": 0.0, "dgmc": 0.0, "normals": 0.0, "integration": 0.0, "material": 0.0}
         cur_depth, reference_depth = self._start_depth(depth, reference_depth)
@@ -763,16 +810,20 @@ class RON:
         out = None
         converged = False
         integ = None
+        # the rounds on the device (DeviceRounds): prev then lives in dev.prev (on_dev), out stays None
+        dev = self._device_rounds(reference_depth, estimating)
+        on_dev = False
         r = 0
         for r in range(1, c.rounds + 1):
             # steps 1-2 (5): normals and albedo with the current material and depth
             t = time.perf_counter()
-            init, init_mask = (start, highlight) if r == 1 else (prev, None)
+            init, init_mask = (start, highlight) if r == 1 else (dev.prev if on_dev else prev, None)
             front = r == 1 and highlight.any() and c.dgmc_config.start == "front"
             if r == 1 and (not highlight.any() or front):
                 init = None
+            on_device = dev is not None and not front  # (the front's merge is on the host)
             out = self._solve(images, solve_depth, valid, material, init=init, init_mask=init_mask,
-                              cold=(r <= c.cold_rounds or init is None),
+                              cold=(r <= c.cold_rounds or init is None), fetch=not on_device,
                               progress=lambda f: step(3 * r - 2 + f, total, f"round {r}: normals"))
             if front:
                 # DGMC on the solved front (4.16-4.18): highlight pixels start from their solved
@@ -792,11 +843,21 @@ class RON:
                 start[has] = fr.normals[src[has, 0], src[has, 1]]
                 timings["dgmc"] += time.perf_counter() - tf
                 t += time.perf_counter() - tf
+                self._solver_mask = None  # (the front solved its own masks)
             timings["normals"] += time.perf_counter() - t
-            energies.append(self._energy(out["residual"], m))
-            cosang = np.clip(np.sum(out["normals"][m] * prev[m], -1), -1.0, 1.0)
-            changes.append(float(np.degrees(np.arccos(cosang)).mean()))
-            prev = out["normals"]
+            if on_device:
+                if not on_dev:
+                    dev.upload(prev)
+                dev.step()
+                got = dev.fetch()
+                energies.append(got["energy"])
+                changes.append(got["change_deg"])
+                on_dev = True
+            else:
+                energies.append(self._energy(out["residual"], m))
+                changes.append(normal_change_deg(out["normals"], prev, m))
+                prev = out["normals"]
+                on_dev = False
             step(1 + 3 * r - 2, total, f"round {r}: normals (energy {energies[-1]:.3g})")
             # a photometric estimate is final only after a later (fine) fit: the first one is coarse
             if r > (2 if estimating and c.material_rule == "photometric" else 1):
@@ -814,18 +875,26 @@ class RON:
             # rule (4.19): otherwise the rounds' depths would be discarded, and only the final one is kept
             if c.integrate and (self.point or (estimating and c.material_rule == "depth-rms")):
                 t = time.perf_counter()
-                integ = self.integrator.run(out["normals"], reference_depth=reference_depth)
-                cur_depth = self._fill_depth(integ.depth, integ.mask, reference_depth)
-                if self.point:
-                    solve_depth = cur_depth
+                if on_device and dev.integrate(reference_depth, into_solver=self.point):
+                    # the depth is in the solver's buffer; the host gets it only for a host rule
+                    cur_depth = dev.depth if not estimating else dev.depth_host()
+                    if self.point:
+                        solve_depth = self._frame_depth = cur_depth
+                else:
+                    nrm = out["normals"] if out is not None else self.solver.fetch(("normals",))["normals"]
+                    integ = self.integrator.run(nrm, reference_depth=reference_depth)
+                    cur_depth = self._fill_depth(integ.depth, integ.mask, reference_depth)
+                    if self.point:
+                        solve_depth = cur_depth
                 timings["integration"] += time.perf_counter() - t
             step(1 + 3 * r - 1, total, f"round {r}: depth")
             # step 4: material
             if estimating:
                 t = time.perf_counter()
                 if c.material_rule == "photometric":
+                    nrm = out["normals"] if out is not None else self.solver.fetch(("normals",))["normals"]
                     material, info = self._fit_material(
-                        images, solve_depth, valid, material, sample, grid=(r == 1), normals=out["normals"],
+                        images, solve_depth, valid, material, sample, grid=(r == 1), normals=nrm,
                         progress=lambda d, t, msg: step(1 + 3 * r - 1 + d / max(t, 1), total, f"round {r}: {msg}"))
                 else:
                     if cur_depth is None:
@@ -838,6 +907,8 @@ class RON:
                 timings["material"] += time.perf_counter() - t
             step(1 + 3 * r, total, f"round {r}: material")
 
+        if out is None:  # device rounds: the outputs come back once
+            out = self.solver.fetch(_OUTPUTS)
         depth_out, depth_mask, ires = self._final_depth(out["normals"], reference_depth, timings)
         step(total, total, "done")
         timings["total"] = time.perf_counter() - t_all
@@ -850,6 +921,19 @@ class RON:
             residual=out["residual"], iterations=out["iterations"], flags=out["flags"], highlight=highlight,
             start_normals=start, material_fit=fits, integration_residual=ires, timings=timings, warnings=notes,
         )
+
+    def _device_rounds(self, reference_depth, estimating: bool):
+        """The device side of the rounds (:class:`DeviceRounds`, built once) when this run's rounds
+        integrate (point lights or the depth-rms rule) with a device-assembled integrator and a
+        reference depth; else None (every round on the host)."""
+        c = self.config
+        feeds = self.point or (estimating and c.material_rule == "depth-rms")
+        if not (c.device_rounds and c.integrate and feeds and self.integrator is not None
+                and reference_depth is not None and c.rounds > 1):
+            return None
+        if self._rounds is None:
+            self._rounds = DeviceRounds(self.solver, self.mask, self.integrator)
+        return self._rounds if self._rounds.integrates else None
 
     def _start_depth(self, depth, reference_depth):
         """Checked start depth (H, W) (None without depth or point lights) and the reference depth
@@ -880,7 +964,7 @@ class RON:
         s = self.solver
         s.set_config(replace(c.solver, solver="none", smoothness=0.0))
         self._frame(images, solve_depth, valid)
-        s.set_mask(m)
+        self._set_mask(m)
         s.step()
         ls = s.fetch(_OUTPUTS)
         s.set_config(c.solver)

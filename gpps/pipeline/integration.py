@@ -640,11 +640,22 @@ class Integrator(Stage):
             d["z"].from_numpy(np.where(valid, u0, 0.0).astype(d["np_dtype"]))
         else:
             d["z"].fill(0)
+        t1 = time.perf_counter()
+        its, res = self._iterate(progress, tol)
+        u = d["z"].to_numpy().astype(np.float64)
+        t2 = time.perf_counter()
+        return u, its, res, {"rhs": t1 - t0, "solve": t2 - t1}
+
+    def _iterate(self, progress, tol) -> tuple[int, float]:
+        """Solve the system in the fields (``b``, the levels, the start in ``z``) to ``tol``: Jacobi or
+        multigrid-preconditioned CG, reading one float64 scalar every ``check_every`` iterations.
+        Returns ``(iterations, relative residual)``; the solution is left in ``z``."""
+        d, cfg = self._dev, self.config
+        h, w = self.shape
         # |b|^2
         d["r"].fill(0)
         K.residual_norm(d["r"], d["b"], d["q"], d["wx"], d["wy"], d["dg"], d["sc"], h, w)
         bb = float(d["sc"][K.RR])
-        t1 = time.perf_counter()
         tol2 = (tol ** 2) * bb
         cap = cfg.iterations_cap
         its = 0
@@ -684,6 +695,4 @@ class Integrator(Stage):
                     self._vcycle()
                     K.cg_direction(d["r"], d["e"], d["p"], d["sc"], h, w)
             res = math.sqrt(rr / bb)
-        u = d["z"].to_numpy().astype(np.float64)
-        t2 = time.perf_counter()
-        return u, its, res, {"rhs": t1 - t0, "solve": t2 - t1}
+        return its, res

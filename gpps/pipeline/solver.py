@@ -779,6 +779,19 @@ class PixelSolver(Stage):
             raise ValueError("depth: expected values > 0 inside the mask")
         self.depth.assign(np.where(m, dep, 1.0).astype(np.float32))
 
+    def set_depth_device(self, depth) -> None:
+        """Another depth estimate already on this solver's device: an (H, W) float32 Warp array, copied
+        device to device (no host round trip; RON's device rounds write their integrated depth there).
+        The caller guarantees what :meth:`set_depth` checks: > 0 inside the mask."""
+        wp = warp()
+        n, h, w = self.shape
+        if not isinstance(depth, wp.array) or tuple(depth.shape) != (h, w) or depth.dtype != wp.float32:
+            raise ValueError(f"depth: expected a ({h}, {w}) float32 Warp array, got {type(depth).__name__} "
+                             f"of shape {tuple(getattr(depth, 'shape', ()))}")
+        if str(depth.device) != str(self.depth.device):
+            raise ValueError(f"depth: expected an array on {self.depth.device}, got one on {depth.device}")
+        wp.copy(self.depth, depth)
+
     def save(self) -> None:
         """Keep a device copy of the current outputs (``normals`` .. ``cond``) for :meth:`merge_saved`."""
         wp = warp()

@@ -1,0 +1,380 @@
+"""Taichi device math of the integrator's weighted system, assembled on the device (4.20).
+
+:class:`gpps.pipeline.integration.Integrator` assembles its system on the host
+(:func:`gpps.host.poisson.pixel_gradients`, :func:`gpps.host.poisson.edge_system`,
+:func:`gpps.host.poisson.build_levels`, the coarsest pseudo-inverse by numpy).
+These kernels build the same system from a normal map that is already on the
+device (a solver's buffer), into the integrator's own fields, so that RON's
+rounds exchange depth and normals without a host round trip
+(:class:`gpps.pipeline.integration_rounds.DeviceSystem`):
+
+* :func:`assemble_pixels`: the checks of ``Integrator._check_normals``
+  (finite, non-zero, camera-facing) and the per-pixel steps and BiNI factors of
+  ``pixel_gradients``; with ``"normal"`` weighting the confidences ``N_z^2``
+  (their mean over the valid pixels, the host's ``scale``, is summed here);
+* :func:`assemble_edges`: ``edge_system`` with ``w+ = 1/2`` (edge weight
+  ``(c_a + c_b) / 2``, flux ``(c_a g_a + c_b g_b) / 2``), the right-hand side
+  ``b = -div(w t)`` and the level-0 diagonal;
+* :func:`coarsen`: one level of ``build_levels`` (2x2 aggregation, coarse edge
+  weight ``alpha`` times the crossing fine weights) and its diagonal;
+* :func:`coarsest_pinv`: the exact pseudo-inverse of the coarsest Laplacian as
+  ``(A + Q)^-1 - Q``, ``Q`` the orthogonal projector onto the per-component
+  constants (the null space), by Gauss-Jordan elimination of the SPD ``A + Q``
+  in float64: one serial task (at most ``coarsest^2 = 64`` cells by default,
+  about 0.3 M multiply-adds), laid out over the full coarsest grid (inactive
+  cells get zero rows, so their correction stays 0);
+* :func:`label_init`, :func:`label_hook`, :func:`label_compress`: the connected components
+  (4-neighbourhood) of the valid pixels when some mask pixel's normal was dropped, by parallel
+  hooking of roots along edges (``atomic_min``: a parent index is always smaller) and pointer
+  jumping, repeated until no edge joins two roots (one flag read a pass); a component's label is
+  its root pixel's flat index (the mask's own components, labelled once on the host, likewise);
+* :func:`component_sums`, :func:`depth_exp`, :func:`depth_write`,
+  :func:`depth_fill`: ``Integrator.fetch``'s post-processing (mean 0 per
+  component, ``exp`` under perspective, mean depth ``reference`` per
+  component) and RON's ``_fill_depth`` (dropped pixels filled by the mean
+  depth), written into a float32 (H, W) array (the solver's depth buffer).
+
+Float64 arithmetic for the assembly (as the host's numpy), cast to the field
+precision where stored; sums in float64.  Only device code lives here.
+"""
+
+from gpps._taichi import ti
+
+# indices into the float64 statistics field ``st``
+C_SUM, N_VALID, N_INVALID, FILL_SUM, FILL_N, CHANGED = 0, 1, 2, 3, 4, 5
+
+
+@ti.kernel
+def assemble_pixels(nrm: ti.types.ndarray(), mask: ti.template(), gj: ti.template(), gi: ti.template(),
+                    cj: ti.template(), ci: ti.template(), st: ti.template(), perspective: ti.i32, weighted: ti.i32,
+                    fx: ti.f64, fy: ti.f64, cx: ti.f64, cy: ti.f64, s: ti.f64, min_nz: ti.f64, h: ti.i32, w: ti.i32):
+    """Per-pixel steps ``gj, gi`` and confidences ``cj, ci`` (0: not valid) of the (H, W, 3) normals ``nrm``.
+
+    Valid: inside ``mask`` (i32), finite, longer than 1e-6, facing the camera (the host's
+    ``_check_normals``).  ``weighted``: ``cj = N_zj^2``, ``ci = N_zi^2`` (:func:`gpps.host.poisson.pixel_gradients`;
+    divided by their mean later); else 1.  ``st[C_SUM]`` += ``cj``, ``st[N_VALID]``, ``st[N_INVALID]`` counted
+    (``st`` zeroed by the caller).
+    """
+    for i, j in ti.ndrange(h, w):
+        a = ti.cast(0, ti.f64)
+        c = ti.cast(0, ti.f64)
+        wj = ti.cast(0, ti.f64)
+        wi = ti.cast(0, ti.f64)
+        if mask[i, j] != 0:
+            nx = ti.cast(nrm[i, j, 0], ti.f64)
+            ny = ti.cast(nrm[i, j, 1], ti.f64)
+            nz = ti.cast(nrm[i, j, 2], ti.f64)
+            norm = ti.sqrt(nx * nx + ny * ny + nz * nz)
+            ok = norm == norm and norm < 1e300 and norm > 1e-6
+            facing = False
+            if ok:
+                nx, ny, nz = nx / norm, ny / norm, nz / norm
+                if perspective:
+                    facing = nx * (j - cx) / fx - ny * (i - cy) / fy - nz < 0
+                else:
+                    facing = nz > 0
+            if ok and facing:
+                nzj = ti.cast(0, ti.f64)
+                nzi = ti.cast(0, ti.f64)
+                if perspective:
+                    m = ti.min(nx * (j - cx) / fx - ny * (i - cy) / fy - nz, -min_nz)
+                    a = -nx / (fx * m)
+                    c = ny / (fy * m)
+                    nzj, nzi = -fx * m, -fy * m
+                else:
+                    den = ti.max(nz, min_nz)
+                    a = s * nx / den
+                    c = -s * ny / den
+                    nzj = den / s
+                    nzi = nzj
+                wj, wi = ti.cast(1, ti.f64), ti.cast(1, ti.f64)
+                if weighted:
+                    wj, wi = nzj * nzj, nzi * nzi
+                st[C_SUM] += wj
+                st[N_VALID] += 1.0
+            else:
+                st[N_INVALID] += 1.0
+        gj[i, j] = a
+        gi[i, j] = c
+        cj[i, j] = wj
+        ci[i, j] = wi
+
+
+@ti.func
+def _flux_j(gj: ti.template(), cj: ti.template(), i, j, inv):
+    """(weight, flux) of the edge (i, j)-(i, j+1); 0 where either pixel is not valid."""
+    wgt = ti.cast(0, ti.f64)
+    flx = ti.cast(0, ti.f64)
+    a = cj[i, j] * inv * 0.5
+    b = cj[i, j + 1] * inv * 0.5
+    if cj[i, j] > 0 and cj[i, j + 1] > 0 and a + b > 0:
+        wgt = a + b
+        flx = wgt * ((a * gj[i, j] + b * gj[i, j + 1]) / wgt)
+    return wgt, flx
+
+
+@ti.func
+def _flux_i(gi: ti.template(), ci: ti.template(), i, j, inv):
+    """(weight, flux) of the edge (i, j)-(i+1, j)."""
+    wgt = ti.cast(0, ti.f64)
+    flx = ti.cast(0, ti.f64)
+    a = ci[i, j] * inv * 0.5
+    b = ci[i + 1, j] * inv * 0.5
+    if ci[i, j] > 0 and ci[i + 1, j] > 0 and a + b > 0:
+        wgt = a + b
+        flx = wgt * ((a * gi[i, j] + b * gi[i + 1, j]) / wgt)
+    return wgt, flx
+
+
+@ti.kernel
+def assemble_edges(gj: ti.template(), gi: ti.template(), cj: ti.template(), ci: ti.template(), st: ti.template(),
+                   weighted: ti.i32, wx: ti.template(), wy: ti.template(), dg: ti.template(), b: ti.template(),
+                   h: ti.i32, w: ti.i32):
+    """Level-0 edge weights ``wx, wy``, diagonal ``dg`` and right-hand side ``b = -div(w t)``
+    (:func:`gpps.host.poisson.edge_system` with ``w+ = 1/2``, :func:`gpps.host.poisson.divergence_rhs`);
+    with ``weighted`` the confidences are divided by their mean over the valid pixels (the host's ``scale``)."""
+    inv = ti.cast(1, ti.f64)
+    if weighted and st[N_VALID] > 0 and st[C_SUM] > 0:
+        inv = st[N_VALID] / st[C_SUM]
+    for i, j in ti.ndrange(h, w):
+        ex = ti.cast(0, ti.f64)
+        fx_ = ti.cast(0, ti.f64)
+        ey = ti.cast(0, ti.f64)
+        fy_ = ti.cast(0, ti.f64)
+        d = ti.cast(0, ti.f64)
+        rhs = ti.cast(0, ti.f64)
+        if j < w - 1:
+            ex, fx_ = _flux_j(gj, cj, i, j, inv)
+        if i < h - 1:
+            ey, fy_ = _flux_i(gi, ci, i, j, inv)
+        d += ex + ey
+        rhs -= fx_ + fy_
+        if j > 0:
+            e0, f0 = _flux_j(gj, cj, i, j - 1, inv)
+            d += e0
+            rhs += f0
+        if i > 0:
+            e1, f1 = _flux_i(gi, ci, i - 1, j, inv)
+            d += e1
+            rhs += f1
+        wx[i, j] = ti.cast(ex, wx.dtype)
+        wy[i, j] = ti.cast(ey, wy.dtype)
+        dg[i, j] = ti.cast(d, dg.dtype)
+        b[i, j] = ti.cast(rhs, b.dtype)
+
+
+@ti.kernel
+def coarsen(wx: ti.template(), wy: ti.template(), dg: ti.template(), off: ti.i32, h: ti.i32, w: ti.i32,
+            offc: ti.i32, hc: ti.i32, wc: ti.i32, alpha: ti.f64):
+    """The next level's edge weights and diagonal (:func:`gpps.host.poisson.build_levels`, one level):
+    coarse cell (ci, cj) aggregates fine (2ci..2ci+1, 2cj..2cj+1); its j-edge weight is ``alpha`` times the
+    fine j-edges leaving the block's right column, its i-edge weight those leaving its bottom row."""
+    for ci_, cj_ in ti.ndrange(hc, wc):
+        sx = ti.cast(0, ti.f64)
+        sy = ti.cast(0, ti.f64)
+        if cj_ < wc - 1:
+            jj = 2 * cj_ + 1
+            if jj < w:
+                sx += ti.cast(wx[2 * ci_, off + jj], ti.f64)
+                if 2 * ci_ + 1 < h:
+                    sx += ti.cast(wx[2 * ci_ + 1, off + jj], ti.f64)
+        if ci_ < hc - 1:
+            ii = 2 * ci_ + 1
+            if ii < h:
+                sy += ti.cast(wy[ii, off + 2 * cj_], ti.f64)
+                if 2 * cj_ + 1 < w:
+                    sy += ti.cast(wy[ii, off + 2 * cj_ + 1], ti.f64)
+        wx[ci_, offc + cj_] = ti.cast(alpha * sx, wx.dtype)
+        wy[ci_, offc + cj_] = ti.cast(alpha * sy, wy.dtype)
+    for ci_, cj_ in ti.ndrange(hc, wc):
+        d = wx[ci_, offc + cj_] + wy[ci_, offc + cj_]
+        if cj_ > 0:
+            d += wx[ci_, offc + cj_ - 1]
+        if ci_ > 0:
+            d += wy[ci_ - 1, offc + cj_]
+        dg[ci_, offc + cj_] = d
+
+
+@ti.kernel
+def coarsest_pinv(wx: ti.template(), wy: ti.template(), dg: ti.template(), pinv: ti.template(),
+                  cidx: ti.template(), a: ti.template(), clab: ti.template(), ccount: ti.template(),
+                  off: ti.i32, hc: ti.i32, wc: ti.i32):
+    """``pinv`` = the pseudo-inverse of the coarsest level's Laplacian over its full (hc, wc) grid, cell
+    ``k = i * wc + j`` at ``cidx[k] = (i, off + j)``; inactive cells (``dg = 0``) get zero rows and columns.
+
+    ``pinv(A) = (A + Q)^-1 - Q`` with ``Q = sum_c 1_c 1_c^T / n_c`` over the connected components ``c`` of the
+    active cells (found here by label propagation): ``Q`` projects onto ``A``'s null space, so ``A + Q``
+    is SPD and Gauss-Jordan needs no pivoting.  ``a``: (n, 2n) float64 scratch, ``clab``: (n,) i32,
+    ``ccount``: (n,) f64.  One serial task (the matrix is at most ``coarsest^2`` square)."""
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        n = hc * wc
+        for k in range(n):
+            i, j = k // wc, k % wc
+            cidx[k, 0] = i
+            cidx[k, 1] = off + j
+            clab[k] = -1
+            if dg[i, off + j] > 0:
+                clab[k] = k
+            ccount[k] = 0.0
+            for m in range(2 * n):
+                a[k, m] = 0.0
+        changed = True
+        while changed:
+            changed = False
+            for k in range(n):
+                i, j = k // wc, k % wc
+                if clab[k] >= 0:
+                    if j < wc - 1 and wx[i, off + j] > 0 and clab[k + 1] != clab[k]:
+                        lo = ti.min(clab[k], clab[k + 1])
+                        clab[k] = lo
+                        clab[k + 1] = lo
+                        changed = True
+                    if i < hc - 1 and wy[i, off + j] > 0 and clab[k + wc] != clab[k]:
+                        lo = ti.min(clab[k], clab[k + wc])
+                        clab[k] = lo
+                        clab[k + wc] = lo
+                        changed = True
+        for k in range(n):
+            if clab[k] >= 0:
+                ccount[clab[k]] += 1.0
+        # A + Q | I
+        for k in range(n):
+            i, j = k // wc, k % wc
+            a[k, n + k] = 1.0
+            if clab[k] < 0:
+                a[k, k] = 1.0
+            else:
+                a[k, k] += ti.cast(dg[i, off + j], ti.f64)
+                if j < wc - 1:
+                    v = ti.cast(wx[i, off + j], ti.f64)
+                    a[k, k + 1] -= v
+                    a[k + 1, k] -= v
+                if i < hc - 1:
+                    v = ti.cast(wy[i, off + j], ti.f64)
+                    a[k, k + wc] -= v
+                    a[k + wc, k] -= v
+                for m in range(n):
+                    if clab[m] == clab[k]:
+                        a[k, m] += 1.0 / ccount[clab[k]]
+        # Gauss-Jordan (SPD: no pivoting)
+        for p in range(n):
+            piv = 1.0 / a[p, p]
+            for m in range(2 * n):
+                a[p, m] *= piv
+            for k in range(n):
+                if k != p:
+                    f = a[k, p]
+                    if f != 0:
+                        for m in range(2 * n):
+                            a[k, m] -= f * a[p, m]
+        for k in range(n):
+            for m in range(n):
+                v = ti.cast(0, ti.f64)
+                if clab[k] >= 0 and clab[m] >= 0:
+                    v = a[k, n + m]
+                    if clab[m] == clab[k]:
+                        v -= 1.0 / ccount[clab[k]]
+                pinv[k, m] = ti.cast(v, pinv.dtype)
+
+
+@ti.kernel
+def label_init(cj: ti.template(), lab: ti.template(), h: ti.i32, w: ti.i32):
+    """Every valid pixel (``cj > 0``) its own root (its flat index); -1 elsewhere."""
+    for i, j in ti.ndrange(h, w):
+        lab[i, j] = i * w + j if cj[i, j] > 0 else -1
+
+
+@ti.func
+def _root(lab: ti.template(), k, w):
+    r = k
+    while lab[r // w, r % w] != r:
+        r = lab[r // w, r % w]
+    return r
+
+
+@ti.kernel
+def label_hook(lab: ti.template(), st: ti.template(), h: ti.i32, w: ti.i32):
+    """Along each edge of valid pixels whose roots differ, the larger root's parent becomes at most the
+    smaller one (``st[CHANGED]`` set, ``st`` zeroed there by the caller)."""
+    for i, j in ti.ndrange(h, w):
+        if lab[i, j] >= 0:
+            for t in ti.static(range(2)):
+                ii, jj = i + t, j + 1 - t
+                if ii < h and jj < w and lab[ii, jj] >= 0:
+                    a = _root(lab, i * w + j, w)
+                    b = _root(lab, ii * w + jj, w)
+                    if a != b:
+                        hi, lo = ti.max(a, b), ti.min(a, b)
+                        ti.atomic_min(lab[hi // w, hi % w], lo)
+                        st[CHANGED] = 1.0
+
+
+@ti.kernel
+def label_compress(lab: ti.template(), h: ti.i32, w: ti.i32):
+    """Pointer jumping: each valid pixel's label becomes its root."""
+    for i, j in ti.ndrange(h, w):
+        if lab[i, j] >= 0:
+            lab[i, j] = _root(lab, i * w + j, w)
+
+
+@ti.kernel
+def component_sums(z: ti.template(), cj: ti.template(), lab: ti.template(), csum: ti.template(),
+                   ccnt: ti.template(), h: ti.i32, w: ti.i32):
+    """Per component (``lab``, -1: none) of the valid pixels (``cj > 0``): the sum of ``z`` and the count."""
+    for k in csum:
+        csum[k] = 0.0
+        ccnt[k] = 0.0
+    for i, j in ti.ndrange(h, w):
+        if cj[i, j] > 0 and lab[i, j] >= 0:
+            csum[lab[i, j]] += ti.cast(z[i, j], ti.f64)
+            ccnt[lab[i, j]] += 1.0
+
+
+@ti.kernel
+def depth_exp(z: ti.template(), cj: ti.template(), lab: ti.template(), csum: ti.template(), ccnt: ti.template(),
+              cden: ti.template(), h: ti.i32, w: ti.i32):
+    """Perspective: the per-component sums of ``exp(z - mean z)`` (the depth before scaling) into ``cden``."""
+    for k in cden:
+        cden[k] = 0.0
+    for i, j in ti.ndrange(h, w):
+        if cj[i, j] > 0 and lab[i, j] >= 0:
+            l = lab[i, j]
+            cden[l] += ti.exp(ti.cast(z[i, j], ti.f64) - csum[l] / ccnt[l])
+
+
+@ti.kernel
+def depth_write(z: ti.template(), cj: ti.template(), lab: ti.template(), csum: ti.template(), ccnt: ti.template(),
+                cden: ti.template(), st: ti.template(), out: ti.types.ndarray(), perspective: ti.i32, ref: ti.f64,
+                h: ti.i32, w: ti.i32):
+    """The depth of the valid pixels into ``out`` (float32): ``u = z - mean z`` per component; perspective
+    ``exp(u) * ref / mean exp(u)``, orthographic ``u + ref`` (``Integrator.fetch``); ``st[FILL_SUM]``,
+    ``st[FILL_N]``: their float32 values summed and counted (RON's fill value is their mean)."""
+    st[FILL_SUM] = 0.0
+    st[FILL_N] = 0.0
+    for i, j in ti.ndrange(h, w):
+        if cj[i, j] > 0 and lab[i, j] >= 0:
+            l = lab[i, j]
+            u = ti.cast(z[i, j], ti.f64) - csum[l] / ccnt[l]
+            d = u + ref
+            if perspective:
+                d = ti.exp(u) * (ref / (cden[l] / ccnt[l]))
+            d32 = ti.cast(d, ti.f32)
+            out[i, j] = d32
+            st[FILL_SUM] += ti.cast(d32, ti.f64)
+            st[FILL_N] += 1.0
+
+
+@ti.kernel
+def depth_fill(cj: ti.template(), lab: ti.template(), mask: ti.template(), st: ti.template(),
+               out: ti.types.ndarray(), ref: ti.f64, outside: ti.f32, h: ti.i32, w: ti.i32):
+    """RON's ``_fill_depth`` on ``out``: mask pixels that were dropped (or came out <= 0) get the mean depth of
+    the valid ones (``ref`` when there are none); pixels outside the mask get ``outside``."""
+    fill = ti.cast(ref, ti.f32)
+    if st[FILL_N] > 0:
+        fill = ti.cast(st[FILL_SUM] / st[FILL_N], ti.f32)
+    for i, j in ti.ndrange(h, w):
+        if mask[i, j] == 0:
+            out[i, j] = outside
+        elif not (cj[i, j] > 0 and lab[i, j] >= 0 and out[i, j] > 0):
+            out[i, j] = fill

@@ -1,0 +1,204 @@
+"""The integrator's system assembled and solved on the device, from a normal map already there.
+
+:class:`DeviceSystem` is a second front end of one :class:`gpps.pipeline.integration.Integrator`: it
+builds the system ``Integrator.upload`` builds on the host (same checks, steps, ``"uniform"`` or
+``"normal"`` (BiNI's ``N_z^2``) weighting, perspective log-depth) in the integrator's own Taichi
+fields (:mod:`gpps.kernels.poisson_weighted`), with the multigrid hierarchy for those weights
+(``alpha = 1/2`` for uniform weights, 1 (Galerkin) for weighted ones, as ``Integrator._upload_levels``)
+and the coarsest level's exact pseudo-inverse computed there too, then runs the integrator's own
+multigrid-preconditioned CG (``Integrator._iterate``, same tolerance, one float64 scalar read every
+``check_every`` iterations) from ``u = 0`` (as RON's host rounds), and writes the depth (mean 0 per
+component, ``exp``, mean ``reference_depth`` per component: ``Integrator.fetch``; dropped pixels filled
+by the mean depth: RON's ``_fill_depth``) into a float32 (H, W) array on the device.
+
+The normals and the output are read and written in place: numpy views of CPU Warp arrays, or on CUDA
+torch views of Warp arrays (``wp.to_torch``, zero-copy; torch is the ``gpps[cuda]`` extra, as for the
+stream).  Only scalars come back: the invalid-pixel count, the CG residual checks, the fill value.
+
+Component constants use the connected components of the mask, labelled once; a normal map with
+invalid pixels (NaN, zero or back-facing inside the mask, dropped as the host drops them), whose
+valid pixels may split into other components, has them labelled on the device
+(:func:`gpps.kernels.poisson_weighted.label_hook`).  The host path's fields are shared: its cached
+levels are marked stale after each device solve.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+from scipy import ndimage
+
+from gpps import _taichi
+from gpps.kernels import poisson_weighted as KW
+from gpps.pipeline.integration import Integrator, IntegratorConfig
+from gpps.pipeline.stage import Stage
+
+__all__ = ["DeviceSystem"]
+
+# fields of closed device systems, by (Taichi device, H, W, coarsest cells, component slots): Taichi compiles
+# the kernels for each set of fields (as the integrator's own pool, gpps.pipeline.integration._POOL)
+_POOL: dict = {}
+_POOL_LOCK = threading.Lock()
+
+
+class DeviceSystem(Stage):
+    """Device assembly and solve of an :class:`Integrator`'s system (plain multigrid only).
+
+    Args:
+        integrator: the integrator whose fields, levels and CG are used (its mask, camera and config).
+
+    Raises:
+        ValueError: a config the device path does not build (see :meth:`supports`).
+    """
+
+    def __init__(self, integrator: Integrator):
+        if not isinstance(integrator, Integrator):
+            raise TypeError(f"integrator: expected gpps.pipeline.integration.Integrator, got {type(integrator).__name__}")
+        if not self.supports(integrator.config):
+            raise ValueError("integrator: expected config with solver='multigrid', robust='none', bilateral=False "
+                             f"(the device assembly builds the plain Poisson system), got {integrator.config}")
+        self.integrator = integrator
+        ti = _taichi.init(integrator.device)
+        d = integrator._ensure_device()
+        h, w = self.shape = integrator.shape
+        cam = integrator.camera
+        cx, cy = cam.principal_point(self.shape)
+        if cam.is_perspective:
+            self._cam = (1, float(cam.fx), float(cam.fy), float(cx), float(cy), 1.0)
+        else:
+            self._cam = (0, 1.0, 1.0, float(cx), float(cy), float(cam.pixel_size))
+        self._weighted = int(integrator.config.weighting == "normal")
+        lab, ncomp = ndimage.label(integrator.mask)
+        hc, wc = d["shapes"][-1]
+        nco = hc * wc
+        self._key = (_taichi.current_device(), h, w, nco)
+        with _POOL_LOCK:
+            free = _POOL.get(self._key)
+            F = free.pop() if free else None
+        if F is None:
+            F = self._allocate(ti, h, w, nco)
+        F["mask"].from_numpy(integrator.mask.astype(np.int32))
+        # a component's label: its first pixel's flat index (as the device labelling's roots)
+        first = np.full(ncomp + 1, h * w, np.int64)
+        flat = lab.ravel()
+        idx = np.flatnonzero(flat)
+        np.minimum.at(first, flat[idx], idx)
+        F["lab_mask"].from_numpy(np.where(lab > 0, first[lab], -1).astype(np.int32))
+        self._F = F
+        self.last = {}
+
+    @staticmethod
+    def _allocate(ti, h, w, nco) -> dict:
+        fb = ti.FieldsBuilder()
+        F = {}
+        for name, dt in (("mask", ti.i32), ("lab", ti.i32), ("lab_mask", ti.i32), ("gj", ti.f64), ("gi", ti.f64), ("cj", ti.f64),
+                         ("ci", ti.f64)):
+            F[name] = ti.field(dt)
+            fb.dense(ti.ij, (h, w)).place(F[name])
+        F["st"] = ti.field(ti.f64)
+        fb.dense(ti.i, 8).place(F["st"])
+        for name in ("csum", "ccnt", "cden"):
+            F[name] = ti.field(ti.f64)
+            fb.dense(ti.i, h * w).place(F[name])  # indexed by a component's root pixel
+        F["a"] = ti.field(ti.f64)
+        fb.dense(ti.ij, (nco, 2 * nco)).place(F["a"])
+        F["clab"] = ti.field(ti.i32)
+        fb.dense(ti.i, nco).place(F["clab"])
+        F["ccount"] = ti.field(ti.f64)
+        fb.dense(ti.i, nco).place(F["ccount"])
+        F["tree"] = fb.finalize()
+        return F
+
+    @staticmethod
+    def supports(config: IntegratorConfig) -> bool:
+        """Whether the device path builds ``config``'s system: the plain (non-robust, non-bilateral)
+        multigrid solve with ``"uniform"`` or ``"normal"`` weighting."""
+        return (config.solver == "multigrid" and config.robust == "none" and not config.bilateral
+                and config.weighting in ("uniform", "normal"))
+
+    def upload(self, *args, **kwargs) -> None:
+        """Nothing to copy: :meth:`step` reads the normals where they are (another stage's buffer)."""
+
+    def step(self, normals, out, *, reference_depth: float, outside: float = 1.0) -> bool:
+        """Integrate ``normals`` into ``out`` on the device.
+
+        Args:
+            normals: (H, W, 3) float32 normals (a numpy view of a CPU Warp array, or a CUDA torch view).
+            out: (H, W) float32 array of the same kind: the depth (valid pixels), the mean depth
+                (dropped mask pixels), ``outside`` (outside the mask).
+            reference_depth: mean depth per component (> 0).
+            outside: the value outside the mask.
+
+        Returns:
+            False (nothing solved, ``out`` untouched) when fewer than 2 normals are valid: the caller
+            integrates on the host (which raises the host's error).
+        """
+        integ, F = self.integrator, self._F
+        if F is None:
+            raise ValueError("DeviceSystem: expected an open stage, got a closed one")
+        d = integ._ensure_device()
+        cfg = integ.config
+        h, w = self.shape
+        persp = self._cam[0]
+        F["st"].fill(0)
+        KW.assemble_pixels(normals, F["mask"], F["gj"], F["gi"], F["cj"], F["ci"], F["st"], persp, self._weighted,
+                           *self._cam[1:], float(cfg.min_nz), h, w)
+        invalid = int(F["st"][KW.N_INVALID])
+        if F["st"][KW.N_VALID] < 2:
+            self.last = {"invalid": invalid}
+            return False
+        if invalid:
+            self._label(h, w)
+        else:
+            F["lab"].copy_from(F["lab_mask"])
+        KW.assemble_edges(F["gj"], F["gi"], F["cj"], F["ci"], F["st"], self._weighted, d["wx"], d["wy"], d["dg"],
+                          d["b"], h, w)
+        sh, of = d["shapes"], d["offs"]
+        alpha = 1.0 if self._weighted else 0.5  # Integrator._upload_levels' rule
+        for k in range(len(sh) - 1):
+            KW.coarsen(d["wx"], d["wy"], d["dg"], int(of[k]), sh[k][0], sh[k][1], int(of[k + 1]), sh[k + 1][0],
+                       sh[k + 1][1], alpha)
+        hc, wc = sh[-1]
+        KW.coarsest_pinv(d["wx"], d["wy"], d["dg"], d["pinv"], d["cidx"], F["a"], F["clab"], F["ccount"],
+                         int(of[len(sh) - 1]), hc, wc)
+        d["nc"] = hc * wc
+        integ._levels_key = None  # the host path must upload its own levels again
+        d["z"].fill(0)
+        its, res = integ._iterate(None, cfg.tol)
+        KW.component_sums(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], h, w)
+        if persp:
+            KW.depth_exp(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], F["cden"], h, w)
+        ref = float(reference_depth)
+        KW.depth_write(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], F["cden"], F["st"], out, persp, ref, h, w)
+        KW.depth_fill(F["cj"], F["lab"], F["mask"], F["st"], out, ref, float(outside), h, w)
+        self.last = {"invalid": invalid, "iterations": int(its), "residual": float(res)}
+        return True
+
+    def _label(self, h, w) -> None:
+        """The components of the valid pixels into ``lab`` (one flag read a hooking pass)."""
+        F = self._F
+        KW.label_init(F["cj"], F["lab"], h, w)
+        while True:
+            F["st"][KW.CHANGED] = 0.0
+            KW.label_hook(F["lab"], F["st"], h, w)
+            KW.label_compress(F["lab"], h, w)
+            if F["st"][KW.CHANGED] == 0.0:
+                break
+
+    def fetch(self) -> dict:
+        """The last :meth:`step`'s scalars: ``invalid`` (mask pixels with invalid normals), and after a
+        solve ``iterations``, ``residual`` (the CG's relative residual) and ``fill`` (the mean depth of
+        the valid pixels, one scalar read)."""
+        out = dict(self.last)
+        if "iterations" in out:
+            n = float(self._F["st"][KW.FILL_N])
+            out["fill"] = float(self._F["st"][KW.FILL_SUM]) / n if n > 0 else float("nan")
+        return out
+
+    def close(self) -> None:
+        """Give this path's own fields back to the pool of this process (the integrator's stay with it)."""
+        if self._F is not None:
+            F, self._F = self._F, None
+            with _POOL_LOCK:
+                _POOL.setdefault(self._key, []).append(F)
