@@ -273,3 +273,36 @@ def test_device_rounds_copy_nothing_per_round(device, monkeypatch):
 def test_device_rounds_config():
     with pytest.raises(TypeError, match="device_rounds"):
         RONConfig(device_rounds="yes")
+
+
+def test_device_rounds_default_by_device(monkeypatch):
+    """``device_rounds=None`` (the default): the device rounds on the CPU, the host rounds on CUDA until the
+    device rounds have run on a GPU; an explicit True or False wins on every device."""
+    from gpps.flows.ron import RON
+
+    assert RONConfig().device_rounds is None
+
+    class Probe:  # only what _device_rounds reads
+        point = True
+        integrator = object()
+        _rounds = None
+
+        def __init__(self, device, flag):
+            self.device = device
+            self.config = RONConfig(device_rounds=flag)
+
+    made = []
+
+    class Fake:
+        integrates = True
+
+        def __init__(self, *a):
+            made.append(a)
+
+    monkeypatch.setattr("gpps.flows.ron.DeviceRounds", Fake)
+    for device, flag, want in (("cpu", None, True), ("cuda:0", None, False), ("cuda:0", True, True),
+                               ("cpu", False, False)):
+        p = Probe(device, flag)
+        p.solver = p.mask = None
+        got = RON._device_rounds(p, 1.0, False)
+        assert (got is not None) == want, (device, flag)

@@ -177,6 +177,9 @@ class RONConfig:
             The photometric material fit still takes the round's normals and depth on the host,
             the depth-rms rule the depth; a round whose normals have invalid pixels (NaN, zero,
             back-facing) is integrated on the host.  False: every round on the host (the reference).
+            None (default): True on the CPU; on CUDA False until the device rounds' tests have run on
+            a GPU (tests/test_ron_device.py, written and passed on the CPU only so far); True on
+            CUDA needs torch (the ``gpps[cuda]`` extra).
     """
 
     rounds: int = 5
@@ -201,14 +204,15 @@ class RONConfig:
     integrator: object = None  # gpps.pipeline.integration.IntegratorConfig (None: defaults)
     final_integrator: object = None  # IntegratorConfig of the returned depth (None: integrator's)
     seed: int = 0
-    device_rounds: bool = True
+    device_rounds: bool | None = None
 
     def __post_init__(self):
         check_choices(self)
         check_number("rounds", self.rounds, lo=1, integer=True)
         check_bool("dgmc", self.dgmc)
         check_bool("integrate", self.integrate)
-        check_bool("device_rounds", self.device_rounds)
+        if self.device_rounds is not None:
+            check_bool("device_rounds", self.device_rounds)
         check_number("seed", self.seed, lo=0, integer=True)
         check_number("tol", self.tol, lo=0.0)
         check_number("tol_normals_deg", self.tol_normals_deg, lo=0.0)
@@ -928,7 +932,10 @@ class RON:
         reference depth; else None (every round on the host)."""
         c = self.config
         feeds = self.point or (estimating and c.material_rule == "depth-rms")
-        if not (c.device_rounds and c.integrate and feeds and self.integrator is not None
+        on = c.device_rounds
+        if on is None:
+            on = not self.device.startswith("cuda")  # (see RONConfig.device_rounds)
+        if not (on and c.integrate and feeds and self.integrator is not None
                 and reference_depth is not None and c.rounds > 1):
             return None
         if self._rounds is None:
