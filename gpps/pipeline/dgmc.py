@@ -293,6 +293,9 @@ class DeviceDGMC(Stage):
         count = self.sweep_count
         count.zero_()
         sweeps = 0
+        # the change count is read every CHECK_EVERY sweeps on CUDA (a read is a device synchronisation),
+        # after every sweep on the CPU (a memory read: no sweep past the converged one)
+        every = CHECK_EVERY if self.device.startswith("cuda") else 1
         limit = h * w + CHECK_EVERY + 1  # Bellman-Ford: at most (region pixels + 1) sweeps change anything
         while True:
             first = 1 if sweeps == 0 else 0
@@ -307,7 +310,7 @@ class DeviceDGMC(Stage):
                      for a, b in parts])
             prev, cur = cur, prev
             sweeps += 1
-            if sweeps % CHECK_EVERY == 0:
+            if sweeps % every == 0:
                 if int(count.numpy().sum()) == 0:
                     break
                 count.zero_()
