@@ -75,7 +75,7 @@ def _diffs(x: ti.template(), nb: ti.template(), p):
     return dr, dl, dd, du
 
 
-def make_bini(F: dict, unroll: int = 8, serial: bool = False, block_sums: bool = False):
+def make_bini(F: dict, unroll: int = 8, serial: bool = False):
     """Build the BiNI kernels over the fields ``F``.
 
     Args:
@@ -93,11 +93,12 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False, block_sums: bool =
         serial: ``cg`` runs on one thread with local sums (the CPU build:
             Taichi's thread-pool dispatch of a loop costs more than a loop over
             ~1e5 pixels, and a sum into a field element is an atomic per pixel).
-        block_sums: ``cg``'s sums reduced in shared memory per block of
-            :data:`BLOCK` threads, one float64 atomic a block (the CUDA build: Taichi
+            Otherwise (the CUDA build) each loop's sums are reduced in shared memory
+            per block of :data:`BLOCK` threads, one float64 atomic a block: Taichi
             launches at least a saturating grid of threads, so its thread-local sums
-            still end in one atomic a pixel, and float64 atomics on one address
-            serialise: 77-148 us a loop on DiLiGenT bear's 40 670 pixels on an H100,
+            would end in one atomic a pixel, and float64 atomics on one address
+            serialise (77-148 us a loop on DiLiGenT bear's 40 670 pixels on an H100,
+            0.65 s for the map against 0.116 s with the block sums,
             perf/results/bini_launch_bear_H100.json).
 
     Returns:
@@ -113,12 +114,7 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False, block_sums: bool =
     if unroll % 6:
         raise ValueError(f"unroll: expected a multiple of 6 (direction buffers by 2, scalar columns by 3), got {unroll}")
     x, pix = F["x"], F["pix"]
-    if serial:
-        cg = _cg_serial_kernel(F, unroll)
-    elif block_sums:
-        cg = _cg_block_kernel(F, unroll)
-    else:
-        cg = _cg_kernel(F, unroll, serial)
+    cg = _cg_serial_kernel(F, unroll) if serial else _cg_block_kernel(F, unroll)
     K = {**_weight_kernels(F), "begin": _begin_kernel(F), "cg": cg}
 
     @ti.kernel
@@ -272,62 +268,6 @@ def _ap_fused_func(F: dict):
     return _ap_fused
 
 
-def _cg_kernel(F: dict, unroll: int, serial: bool):
-    """The kernel ``cg(n, tol2, maxit)`` over the fields ``F``: ``unroll`` gated Jacobi-PCG iterations
-    as two parallel loops each (see :func:`make_bini`)."""
-    x, r, z, p0, p1, q, dinv, sc = F["x"], F["r"], F["z"], F["p0"], F["p1"], F["q"], F["dinv"], F["sc"]
-    pqf, rrf, rzf, dnf = F["pq"], F["rr"], F["rz"], F["done"]
-    _ap_fused = _ap_fused_func(F)
-
-    @ti.kernel
-    def cg(n: ti.i32, tol2: ti.f64, maxit: ti.i32):
-        for t in ti.static(range(unroll)):
-            c, c1, c2 = ti.static(t % 3, (t + 2) % 3, (t + 1) % 3)  # columns of iterations t, t-1, t-2
-            pold, pnew = ti.static((p0, p1) if t % 2 == 0 else (p1, p0))
-            # (1) p_t = z_t + beta_t p_{t-1} (fused), q = A p_t, p_t . q; the stopping test of iteration t-1
-            ti.loop_config(serialize=serial)
-            for p in range(n):
-                done = ti.static(dnf[c1])[0] != 0 or ti.static(rrf[c1])[0] <= tol2 * sc[BB] or sc[ITS] >= maxit
-                beta = ti.static(rzf[c1])[0] / ti.static(rzf[c2])[0]
-                pq = x[p] * 0
-                if not done:
-                    pp, s = _ap_fused(p, beta, pold)
-                    q[p] = s
-                    pnew[p] = pp
-                    pq = pp * s
-                ti.static(pqf[c])[0] += pq
-                if p == 0:
-                    ti.static(dnf[c])[0] = ti.cast(done, ti.f64)
-                    if not done:  # once done, the last iteration's column keeps its |r|^2
-                        ti.static(rrf[c])[0] = 0
-                        ti.static(rzf[c])[0] = 0
-            # (2) alpha = r.z / p.q, x += alpha p, r -= alpha q, z = D^-1 r, |r|^2, r.z
-            ti.loop_config(serialize=serial)
-            for p in range(n):
-                done = ti.static(dnf[c])[0] != 0
-                pq = ti.static(pqf[c])[0]
-                rr = x[p] * 0
-                rz = x[p] * 0
-                if not done and pq != 0:
-                    a = ti.static(rzf[c1])[0] / pq
-                    x[p] += a * pnew[p]
-                    rv = r[p] - a * q[p]
-                    r[p] = rv
-                    zv = dinv[p] * rv
-                    z[p] = zv
-                    rr = rv * rv
-                    rz = rv * zv
-                ti.static(rrf[c])[0] += rr
-                ti.static(rzf[c])[0] += rz
-                if p == 0:
-                    ti.static(pqf[(t + 1) % 3])[0] = 0
-                    if not done:
-                        sc[ITS] += 1
-                        sc[TOTAL] += 1
-
-    return cg
-
-
 BLOCK = 128  # threads of a block in the block-sum CG build (a power of two)
 _LOG_BLOCK = BLOCK.bit_length() - 1
 
@@ -344,10 +284,11 @@ def _block_total(pad: ti.template(), tid):
 
 
 def _cg_block_kernel(F: dict, unroll: int):
-    """``cg`` with block sums (the CUDA build, see :func:`make_bini`): the iteration of :func:`_cg_kernel`,
-    each loop over ``n`` rounded up to whole blocks (the extra threads add 0), each sum tree-reduced in
-    shared memory and added to its field by one atomic a block.  The same arithmetic per pixel; only the
-    order of the float64 sums differs."""
+    """``cg`` with block sums (the CUDA build, see :func:`make_bini`): ``unroll`` gated Jacobi-PCG
+    iterations, each two parallel loops over ``n`` rounded up to whole blocks (the extra threads add 0):
+    (1) ``p_t = z_t + beta_t p_{t-1}`` (fused), ``q = A p_t``, ``p_t . q`` and the stopping test of
+    iteration t-1; (2) ``alpha = r.z / p.q``, ``x += alpha p``, ``r -= alpha q``, ``z = D^-1 r``, ``|r|^2``,
+    ``r.z``.  Each sum is tree-reduced in shared memory and added to its field by one atomic a block."""
     x, r, z, p0, p1, q, dinv, sc = F["x"], F["r"], F["z"], F["p0"], F["p1"], F["q"], F["dinv"], F["sc"]
     pqf, rrf, rzf, dnf = F["pq"], F["rr"], F["rz"], F["done"]
     _ap_fused = _ap_fused_func(F)

@@ -156,7 +156,7 @@ _LANES: dict = {}
 
 def get_solve_kernel_lanes(method, brdf, robust="none"):
     """The lights-parallel solve kernel (one block of lanes a pixel, launched tiled;
-    :func:`gpps.kernels.solve_kernels.solve_kernel_lanes_for`) of one nonlinear solver, reflectance model and
+    :func:`gpps.kernels.solve_kernels.solve_kernel_for` with ``lanes``) of one nonlinear solver, reflectance model and
     robust loss, in a Warp module of its own (:func:`module_name` + ``"_lanes"``), built once and cached."""
     key = specialisation_key(method, brdf, robust)
     if None in key or key[0] == "none":

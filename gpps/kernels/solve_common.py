@@ -203,14 +203,21 @@ def start_normal(s: int, ninit: wp.vec3, v: wp.vec3, hbright: wp.vec3, prm: Solv
 
 
 @wp.func
-def light_gram(weights: wp.array3d(dtype=wp.float32), i: int, j: int, p: wp.vec3, lights: LightParams):
-    """``sum_k [w_k != 0] l_k l_k^T`` over the pixel's valid lights (dark ones included)."""
+def light_gram_range(weights: wp.array3d(dtype=wp.float32), i: int, j: int, p: wp.vec3, lights: LightParams,
+                     k0: int, dk: int):
+    """``sum_k [w_k != 0] l_k l_k^T`` over the valid lights ``k0, k0 + dk, ...`` (dark ones included)."""
     a = wp.mat33(0.0)
-    for k in range(lights.count):
+    for k in range(k0, lights.count, dk):
         if weights[k, i, j] != 0.0:
             l = light_dir(lights, k, p)
             a += wp.outer(l, l)
     return a
+
+
+@wp.func
+def light_gram(weights: wp.array3d(dtype=wp.float32), i: int, j: int, p: wp.vec3, lights: LightParams):
+    """``sum_k [w_k != 0] l_k l_k^T`` over the pixel's valid lights (dark ones included)."""
+    return light_gram_range(weights, i, j, p, lights, 0, 1)
 
 
 @wp.func
@@ -242,17 +249,73 @@ class PixelSolution:
 
 
 @wp.func
-def brightest_half_vector(images: wp.array3d(dtype=wp.vec3), weights: wp.array3d(dtype=wp.float32), px: Pixel, lights: LightParams):
-    """Half vector ``normalize(l + v)`` of the brightest valid observation: where a highlight peaks."""
-    kb = int(0)
+def brightest_light(images: wp.array3d(dtype=wp.vec3), weights: wp.array3d(dtype=wp.float32), px: Pixel,
+                    lights: LightParams):
+    """``(grey value, light)`` of the first brightest valid observation among the lane's lights
+    ``px.lane, px.lane + px.lanes, ...`` (all of them on one lane); ``(-1, lights.count)`` when none."""
+    kb = int(lights.count)
     gb = float(-1.0)
-    for k in range(lights.count):
+    for k in range(px.lane, lights.count, px.lanes):
         if weights[k, px.i, px.j] != 0.0:
             gk = grey(images[k, px.i, px.j])
             if gk > gb:
                 gb = gk
                 kb = k
-    return wp.normalize(light_dir(lights, kb, px.p) + px.v)
+    return gb, kb
+
+
+@wp.func
+def half_vector_of(kb: int, px: Pixel, lights: LightParams):
+    """Half vector ``normalize(l + v)`` of light ``kb`` (light 0 when ``kb`` is ``lights.count``: none valid)."""
+    k = kb
+    if k >= lights.count:
+        k = 0
+    return wp.normalize(light_dir(lights, k, px.p) + px.v)
+
+
+@wp.func
+def brightest_half_vector(images: wp.array3d(dtype=wp.vec3), weights: wp.array3d(dtype=wp.float32), px: Pixel, lights: LightParams):
+    """Half vector ``normalize(l + v)`` of the brightest valid observation: where a highlight peaks."""
+    gb, kb = brightest_light(images, weights, px, lights)
+    return half_vector_of(kb, px, lights)
+
+
+@wp.func
+def weight_sum(weights: wp.array3d(dtype=wp.float32), px: Pixel, nl_: int):
+    """``sum |w_k|`` over the lane's lights ``px.lane, px.lane + px.lanes, ...`` (all of them on one lane)."""
+    wsum = float(0.0)
+    for k in range(px.lane, nl_, px.lanes):
+        wsum += wp.abs(weights[k, px.i, px.j])
+    return wsum
+
+
+@wp.func
+def store_solution_sum(
+    sol: PixelSolution,
+    flag: int,
+    wsum: float,
+    px: Pixel,
+    normals: wp.array2d(dtype=wp.vec3),
+    albedo: wp.array2d(dtype=wp.vec3),
+    residual: wp.array2d(dtype=wp.float32),
+    iterations: wp.array2d(dtype=wp.int32),
+    flags: wp.array2d(dtype=wp.int32),
+):
+    """Write a pixel's solution (lane 0 of its lanes); ``wsum``: the sum of its |weights| (all lights)."""
+    if px.lane == 0:
+        i = px.i
+        j = px.j
+        f = flag
+        if sol.best.converged == 0:
+            f = f | FLAG_NOT_CONVERGED
+        normals[i, j] = sol.best.n
+        albedo[i, j] = sol.best.kd
+        if wsum > 0.0:
+            residual[i, j] = wp.sqrt(2.0 * sol.best.cost / (3.0 * wsum))
+        else:
+            residual[i, j] = 0.0
+        iterations[i, j] = sol.total
+        flags[i, j] = f
 
 
 @wp.func
@@ -268,22 +331,8 @@ def store_solution(
     iterations: wp.array2d(dtype=wp.int32),
     flags: wp.array2d(dtype=wp.int32),
 ):
-    i = px.i
-    j = px.j
-    wsum = float(0.0)
-    for k in range(nl_):
-        wsum += wp.abs(weights[k, i, j])
-    f = flag
-    if sol.best.converged == 0:
-        f = f | FLAG_NOT_CONVERGED
-    normals[i, j] = sol.best.n
-    albedo[i, j] = sol.best.kd
-    if wsum > 0.0:
-        residual[i, j] = wp.sqrt(2.0 * sol.best.cost / (3.0 * wsum))
-    else:
-        residual[i, j] = 0.0
-    iterations[i, j] = sol.total
-    flags[i, j] = f
+    """Write a pixel's solution (one thread a pixel)."""
+    store_solution_sum(sol, flag, weight_sum(weights, px, nl_), px, normals, albedo, residual, iterations, flags)
 
 
 @wp.func
@@ -384,21 +433,12 @@ def lanes_sum6(x: vec6):
 def brightest_half_vector_lanes(images: wp.array3d(dtype=wp.vec3), weights: wp.array3d(dtype=wp.float32), px: Pixel,
                                 lights: LightParams):
     """:func:`brightest_half_vector` over the lanes: the same light (the first of the brightest valid ones)."""
-    kb = int(lights.count)
-    gb = float(-1.0)
-    for k in range(px.lane, lights.count, px.lanes):
-        if weights[k, px.i, px.j] != 0.0:
-            gk = grey(images[k, px.i, px.j])
-            if gk > gb:
-                gb = gk
-                kb = k
+    gb, kb = brightest_light(images, weights, px, lights)
     gm = wp.tile_max(wp.tile(gb))[0]
     if gb != gm:
         kb = lights.count
     kb = wp.tile_min(wp.tile(kb))[0]
-    if kb >= lights.count:
-        kb = 0  # no valid light: the one-thread version's default
-    return wp.normalize(light_dir(lights, kb, px.p) + px.v)
+    return half_vector_of(kb, px, lights)
 
 
 @wp.func
@@ -415,21 +455,5 @@ def store_solution_lanes(
     flags: wp.array2d(dtype=wp.int32),
 ):
     """:func:`store_solution` over the lanes: the weight sum reduced over the block, lane 0 writes."""
-    wsum = float(0.0)
-    for k in range(px.lane, nl_, px.lanes):
-        wsum += wp.abs(weights[k, px.i, px.j])
-    wsum = lanes_sum(wsum)
-    if px.lane == 0:
-        i = px.i
-        j = px.j
-        f = flag
-        if sol.best.converged == 0:
-            f = f | FLAG_NOT_CONVERGED
-        normals[i, j] = sol.best.n
-        albedo[i, j] = sol.best.kd
-        if wsum > 0.0:
-            residual[i, j] = wp.sqrt(2.0 * sol.best.cost / (3.0 * wsum))
-        else:
-            residual[i, j] = 0.0
-        iterations[i, j] = sol.total
-        flags[i, j] = f
+    wsum = lanes_sum(weight_sum(weights, px, nl_))
+    store_solution_sum(sol, flag, wsum, px, normals, albedo, residual, iterations, flags)

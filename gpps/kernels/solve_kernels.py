@@ -24,6 +24,7 @@ from gpps.kernels.solve_common import (
     lanes_sum,
     lanes_sum19,
     light_gram,
+    light_gram_range,
     make_pixel,
     store_least_squares,
     store_solution,
@@ -35,18 +36,21 @@ from gpps.kernels.solve_neighbours import neighbour_stats
 
 
 @wp.func
-def observation_weights(
+def observation_weights_range(
     images: wp.array3d(dtype=wp.vec3),
     valid: wp.array3d(dtype=wp.uint8),
     noise: wp.array(dtype=wp.float32),
     prm: SolverParams,
     i: int,
     j: int,
+    k0: int,
+    dk: int,
     nl_: int,
     gmax: float,
     weights: wp.array3d(dtype=wp.float32),
 ):
-    """Write the pixel's observation weights ``weights[:, i, j]`` and count its lit observations.
+    """Write the observation weights ``weights[k, i, j]`` of the lights ``k0, k0 + dk, ...`` and count the
+    lit ones among them.
 
     Weight 0: dropped (shadow below ``prm.shadow_threshold * gmax``, saturated,
     or not ``valid``); -1: dark (grey value within ``prm.lit_sigmas`` noise
@@ -54,10 +58,10 @@ def observation_weights(
     ``prm.lit_threshold * gmax`` and clear of the noise.
 
     Returns:
-        The number of lit observations.
+        The number of lit observations among those lights.
     """
     ninfo = int(0)
-    for k in range(nl_):
+    for k in range(k0, nl_, dk):
         o = images[k, i, j]
         ok = valid[k, i, j] != wp.uint8(0)
         if grey(o) < prm.shadow_threshold * gmax:
@@ -78,7 +82,24 @@ def observation_weights(
 
 
 @wp.func
-def least_squares_start(
+def observation_weights(
+    images: wp.array3d(dtype=wp.vec3),
+    valid: wp.array3d(dtype=wp.uint8),
+    noise: wp.array(dtype=wp.float32),
+    prm: SolverParams,
+    i: int,
+    j: int,
+    nl_: int,
+    gmax: float,
+    weights: wp.array3d(dtype=wp.float32),
+):
+    """Write the pixel's observation weights ``weights[:, i, j]`` (:func:`observation_weights_range`, all
+    lights) and return the number of its lit observations."""
+    return observation_weights_range(images, valid, noise, prm, i, j, 0, 1, nl_, gmax, weights)
+
+
+@wp.func
+def least_squares_sums(
     images: wp.array3d(dtype=wp.vec3),
     weights: wp.array3d(dtype=wp.float32),
     px: Pixel,
@@ -86,108 +107,16 @@ def least_squares_start(
     use_all: int,
     warm_ok: int,
 ):
-    """Woodham's Lambertian least squares ``I / E = kd (l . n)`` on the valid observations.
-
-    ``use_all`` 1: on every observation (the valid ones' lights are degenerate);
-    ``warm_ok`` 1: skipped (a valid warm start replaces it).
-
-    Returns:
-        ``(normal, albedo)``: the unit normal (the view direction when the
-        system is singular) and the RGB albedo (0 then).
-    """
-    i = px.i
-    j = px.j
-    p = px.p
-    a = wp.mat33(0.0)
-    bc0 = wp.vec3(0.0)
-    bc1 = wp.vec3(0.0)
-    bc2 = wp.vec3(0.0)
-    for k in range(lights.count):
-        if warm_ok == 0 and (use_all != 0 or weights[k, i, j] != 0.0):
-            l = light_dir(lights, k, p)
-            e = light_radiance(lights, k, p)
-            o = images[k, i, j]
-            y = wp.vec3(0.0)
-            for c in range(3):
-                if e[c] > 0.0:
-                    y[c] = o[c] / e[c]
-            a += wp.outer(l, l)
-            bc0 += y[0] * l
-            bc1 += y[1] * l
-            bc2 += y[2] * l
-    bg = bc0 + bc1 + bc2
-    ninit = px.v
-    kdw = wp.vec3(0.0)
-    det = wp.determinant(a)
-    fa = wp.sqrt(wp.ddot(a, a))
-    if wp.abs(det) > 1.0e-12 * fa * fa * fa and fa > 0.0:
-        ai = wp.inverse(a)
-        gvec = ai * bg
-        if wp.length(gvec) > 0.0:
-            ninit = wp.normalize(gvec)
-            kdw = wp.vec3(wp.dot(ai * bc0, ninit), wp.dot(ai * bc1, ninit), wp.dot(ai * bc2, ninit))
-    return ninit, kdw
-
-
-# ---------------------------------------------------------------- lights-parallel forms (one block a pixel)
-# The same per-light rules as above over the lane's lights ``px.lane, px.lane + px.lanes, ...`` (a lane writes
-# and reads only its own lights' weights), the sums reduced over the block (gpps.kernels.solve_common).
-
-
-@wp.func
-def observation_weights_lanes(images: wp.array3d(dtype=wp.vec3), valid: wp.array3d(dtype=wp.uint8),
-                              noise: wp.array(dtype=wp.float32), prm: SolverParams, px: Pixel, nl_: int, gmax: float,
-                              weights: wp.array3d(dtype=wp.float32)):
-    """:func:`observation_weights` over the lanes: each lane writes its lights' weights; the lit count of all."""
-    i = px.i
-    j = px.j
-    ninfo = float(0.0)
-    for k in range(px.lane, nl_, px.lanes):
-        o = images[k, i, j]
-        ok = valid[k, i, j] != wp.uint8(0)
-        if grey(o) < prm.shadow_threshold * gmax:
-            ok = False
-        if prm.saturation > 0.0 and wp.max(o[0], wp.max(o[1], o[2])) >= prm.saturation:
-            ok = False
-        w = float(0.0)
-        if ok:
-            w = 1.0
-            if grey(o) > prm.lit_threshold * gmax and grey(o) > prm.lit_sigmas * noise[k]:
-                ninfo += 1.0
-            if grey(o) <= prm.lit_sigmas * noise[k]:
-                w = -1.0
-        weights[k, i, j] = w
-    return int(lanes_sum(ninfo) + 0.5)
-
-
-@wp.func
-def light_gram_lanes(weights: wp.array3d(dtype=wp.float32), px: Pixel, lights: LightParams):
-    """:func:`gpps.kernels.solve_common.light_gram` over the lanes (the block's total)."""
+    """The normal equations of Woodham's least squares over the lane's lights ``px.lane, px.lane + px.lanes,
+    ...`` (all of them on one lane), packed as a :data:`vec19`: ``A = sum l l^T`` (row-major, 0..8) and
+    ``b_c = sum (I_c / E_c) l`` for the channels c (9..17).  ``use_all``, ``warm_ok``: as
+    :func:`least_squares_start`."""
     t = vec19()
     for k in range(px.lane, lights.count, px.lanes):
-        if weights[k, px.i, px.j] != 0.0:
+        if warm_ok == 0 and (use_all != 0 or weights[k, px.i, px.j] != 0.0):
             l = light_dir(lights, k, px.p)
-            for r in range(3):
-                for c in range(3):
-                    t[3 * r + c] += l[r] * l[c]
-    t = lanes_sum19(t)
-    return wp.mat33(t[0], t[1], t[2], t[3], t[4], t[5], t[6], t[7], t[8])
-
-
-@wp.func
-def least_squares_start_lanes(images: wp.array3d(dtype=wp.vec3), weights: wp.array3d(dtype=wp.float32), px: Pixel,
-                              lights: LightParams, use_all: int, warm_ok: int):
-    """:func:`least_squares_start` over the lanes: the normal equations summed over the block, then solved
-    by every lane alike."""
-    i = px.i
-    j = px.j
-    p = px.p
-    t = vec19()
-    for k in range(px.lane, lights.count, px.lanes):
-        if warm_ok == 0 and (use_all != 0 or weights[k, i, j] != 0.0):
-            l = light_dir(lights, k, p)
-            e = light_radiance(lights, k, p)
-            o = images[k, i, j]
+            e = light_radiance(lights, k, px.p)
+            o = images[k, px.i, px.j]
             y = wp.vec3(0.0)
             for c in range(3):
                 if e[c] > 0.0:
@@ -198,7 +127,13 @@ def least_squares_start_lanes(images: wp.array3d(dtype=wp.vec3), weights: wp.arr
                 t[9 + r] += y[0] * l[r]
                 t[12 + r] += y[1] * l[r]
                 t[15 + r] += y[2] * l[r]
-    t = lanes_sum19(t)
+    return t
+
+
+@wp.func
+def least_squares_solution(t: vec19, px: Pixel):
+    """``(normal, albedo)`` from the normal equations of :func:`least_squares_sums`: the unit normal (the
+    view direction when the system is singular) and the RGB albedo (0 then)."""
     a = wp.mat33(t[0], t[1], t[2], t[3], t[4], t[5], t[6], t[7], t[8])
     bc0 = wp.vec3(t[9], t[10], t[11])
     bc1 = wp.vec3(t[12], t[13], t[14])
@@ -217,82 +152,63 @@ def least_squares_start_lanes(images: wp.array3d(dtype=wp.vec3), weights: wp.arr
     return ninit, kdw
 
 
-def solve_kernel_lanes_for(solve_pixel, module, sfx: str):
-    """``solve_kernel_lanes``: :func:`solve_kernel_for`'s per-pixel solve (a nonlinear method) with one block of
-    lanes a pixel, launched tiled over ``(rows, W)`` (``solve_pixel``: the lanes build, see
-    :func:`gpps.kernels.solve_methods.solver_funcs`); the outputs and the inputs are those of ``solve_kernel``.
-    The lanes' sums differ from one thread's only in order (float rounding)."""
+@wp.func
+def least_squares_start(
+    images: wp.array3d(dtype=wp.vec3),
+    weights: wp.array3d(dtype=wp.float32),
+    px: Pixel,
+    lights: LightParams,
+    use_all: int,
+    warm_ok: int,
+):
+    """Woodham's Lambertian least squares ``I / E = kd (l . n)`` on the valid observations.
 
-    @wp.kernel(name="solve_kernel_lanes" + sfx, module=module, enable_backward=False)
-    def solve_kernel_lanes(
-        images: wp.array3d(dtype=wp.vec3),
-        mask: wp.array2d(dtype=wp.uint8),
-        valid: wp.array3d(dtype=wp.uint8),
-        depth: wp.array2d(dtype=wp.float32),
-        noise: wp.array(dtype=wp.float32),
-        cam: CameraParams,
-        lights: LightParams,
-        mat: MaterialParams,
-        prm: SolverParams,
-        weights: wp.array3d(dtype=wp.float32),
-        normals: wp.array2d(dtype=wp.vec3),
-        albedo: wp.array2d(dtype=wp.vec3),
-        residual: wp.array2d(dtype=wp.float32),
-        iterations: wp.array2d(dtype=wp.int32),
-        flags: wp.array2d(dtype=wp.int32),
-        cond: wp.array2d(dtype=wp.float32),
-    ):
-        t, j, lane = wp.tid()
-        i = t + prm.row0
-        nl_ = lights.count
-        nb = wp.block_dim()
-        if mask[i, j] == wp.uint8(0):
-            if prm.keep_unmasked != 0:
-                return
-            if lane == 0:
-                normals[i, j] = wp.vec3(0.0)
-                albedo[i, j] = wp.vec3(0.0)
-                residual[i, j] = 0.0
-                iterations[i, j] = 0
-                flags[i, j] = 0
-                cond[i, j] = 0.0
-            for k in range(lane, nl_, nb):
-                weights[k, i, j] = 0.0
-            return
-        px = make_pixel(cam, depth, i, j, prm)
-        px.lane = lane
-        px.lanes = nb
-        gmax = grey_max(images, i, j, nl_)
-        ninfo = observation_weights_lanes(images, valid, noise, prm, px, nl_, gmax, weights)
-        flag = int(0)
-        if ninfo < 3:
-            flag = flag | FLAG_FEW_OBSERVATIONS
-        gram = light_gram_lanes(weights, px, lights)
-        cnd = cond_frobenius(gram)
-        if lane == 0:
-            cond[i, j] = cnd
-        if cnd > prm.cond_threshold:
-            flag = flag | FLAG_ILL_CONDITIONED
-        use_all = int(0)
-        if cnd >= 1.0e29:
-            use_all = 1
-            flag = flag | FLAG_WOODHAM_FALLBACK
-        warm_ok = int(0)
-        nw = wp.vec3(0.0)
-        if prm.warm_start != 0:
-            nw = normals[i, j]
-            if wp.length(nw) > 0.5:
-                warm_ok = 1
-        ninit, kdw = least_squares_start_lanes(images, weights, px, lights, use_all, warm_ok)
-        if warm_ok != 0:
-            ninit = wp.normalize(nw)
-        sol = solve_pixel(ninit, gmax, images, weights, px, lights, mat, prm)
-        store_solution_lanes(sol, flag, weights, px, nl_, normals, albedo, residual, iterations, flags)
+    ``use_all`` 1: on every observation (the valid ones' lights are degenerate);
+    ``warm_ok`` 1: skipped (a valid warm start replaces it).
 
-    return solve_kernel_lanes
+    Returns:
+        ``(normal, albedo)``: the unit normal (the view direction when the
+        system is singular) and the RGB albedo (0 then).
+    """
+    return least_squares_solution(least_squares_sums(images, weights, px, lights, use_all, warm_ok), px)
 
 
-def solve_kernel_for(method, solve_pixel, module, sfx: str):
+# ---------------------------------------------------------------- lights-parallel forms (one block a pixel)
+# The same per-light rules as above over the lane's lights ``px.lane, px.lane + px.lanes, ...`` (a lane writes
+# and reads only its own lights' weights), the sums reduced over the block (gpps.kernels.solve_common).
+
+
+@wp.func
+def observation_weights_lanes(images: wp.array3d(dtype=wp.vec3), valid: wp.array3d(dtype=wp.uint8),
+                              noise: wp.array(dtype=wp.float32), prm: SolverParams, px: Pixel, nl_: int, gmax: float,
+                              weights: wp.array3d(dtype=wp.float32)):
+    """:func:`observation_weights` over the lanes: each lane writes its lights' weights; the lit count of all."""
+    n = observation_weights_range(images, valid, noise, prm, px.i, px.j, px.lane, px.lanes, nl_, gmax, weights)
+    return int(lanes_sum(float(n)) + 0.5)
+
+
+@wp.func
+def light_gram_lanes(weights: wp.array3d(dtype=wp.float32), px: Pixel, lights: LightParams):
+    """:func:`gpps.kernels.solve_common.light_gram` over the lanes (the block's total)."""
+    a = light_gram_range(weights, px.i, px.j, px.p, lights, px.lane, px.lanes)
+    t = vec19()
+    for r in range(3):
+        for c in range(3):
+            t[3 * r + c] = a[r, c]
+    t = lanes_sum19(t)
+    return wp.mat33(t[0], t[1], t[2], t[3], t[4], t[5], t[6], t[7], t[8])
+
+
+@wp.func
+def least_squares_start_lanes(images: wp.array3d(dtype=wp.vec3), weights: wp.array3d(dtype=wp.float32), px: Pixel,
+                              lights: LightParams, use_all: int, warm_ok: int):
+    """:func:`least_squares_start` over the lanes: the normal equations summed over the block, then solved
+    by every lane alike."""
+    t = lanes_sum19(least_squares_sums(images, weights, px, lights, use_all, warm_ok))
+    return least_squares_solution(t, px)
+
+
+def solve_kernel_for(method, solve_pixel, module, sfx: str, lanes: bool = False):
     """``solve_kernel``: the whole image's per-pixel solve, one thread a pixel.
 
     Args:
@@ -300,9 +216,15 @@ def solve_kernel_for(method, solve_pixel, module, sfx: str):
         solve_pixel: the nonlinear solve (:func:`gpps.kernels.solve_methods.solve_pixel_for`).
         module: Warp module of the kernel.
         sfx: key suffix of the kernel.
+        lanes: the lights-parallel build (a nonlinear ``method``; ``solve_pixel`` its lanes build, see
+            :func:`gpps.kernels.solve_methods.solver_funcs`): one block of lanes a pixel, launched tiled
+            over ``(rows, W, lanes)``; every per-light loop takes the lane's lights and its sums are
+            reduced over the block (the same sums in another order: equal up to float rounding).
     """
+    if lanes and method in ("none", None):
+        raise ValueError(f"lanes: expected a nonlinear method, got {method!r}")
 
-    @wp.kernel(name="solve_kernel" + sfx, module=module, enable_backward=False)
+    @wp.kernel(name="solve_kernel" + ("_lanes" if lanes else "") + sfx, module=module, enable_backward=False)
     def solve_kernel(
         images: wp.array3d(dtype=wp.vec3),
         mask: wp.array2d(dtype=wp.uint8),
@@ -340,33 +262,51 @@ def solve_kernel_for(method, solve_pixel, module, sfx: str):
             flags: (H, W) FLAG_* bits.
             cond: (H, W) Frobenius condition number of the valid lights' Gram matrix.
         """
-        t, j = wp.tid()
+        lane = int(0)
+        nb = int(1)
+        if wp.static(lanes):
+            t, j, lane = wp.tid()
+            nb = wp.block_dim()
+        else:
+            t, j = wp.tid()
         i = t + prm.row0
         nl_ = lights.count
         if mask[i, j] == wp.uint8(0):
             if prm.keep_unmasked != 0:
                 return
-            normals[i, j] = wp.vec3(0.0)
-            albedo[i, j] = wp.vec3(0.0)
-            residual[i, j] = 0.0
-            iterations[i, j] = 0
-            flags[i, j] = 0
-            cond[i, j] = 0.0
-            for k in range(nl_):
+            if lane == 0:
+                normals[i, j] = wp.vec3(0.0)
+                albedo[i, j] = wp.vec3(0.0)
+                residual[i, j] = 0.0
+                iterations[i, j] = 0
+                flags[i, j] = 0
+                cond[i, j] = 0.0
+            for k in range(lane, nl_, nb):
                 weights[k, i, j] = 0.0
             return
         px = make_pixel(cam, depth, i, j, prm)
+        px.lane = lane
+        px.lanes = nb
         # ---- observation validity (shadows, saturation, caller's mask)
         gmax = grey_max(images, i, j, nl_)
-        ninfo = observation_weights(images, valid, noise, prm, i, j, nl_, gmax, weights)
+        ninfo = int(0)
+        if wp.static(lanes):
+            ninfo = observation_weights_lanes(images, valid, noise, prm, px, nl_, gmax, weights)
+        else:
+            ninfo = observation_weights(images, valid, noise, prm, i, j, nl_, gmax, weights)
         flag = int(0)
         if ninfo < 3:
             # fewer than 3 lit observations: normal and albedo are not determined together
             flag = flag | FLAG_FEW_OBSERVATIONS
         # ---- lighting sensitivity (3.13): conditioning of the valid light directions
-        gram = light_gram(weights, i, j, px.p, lights)
+        gram = wp.mat33(0.0)
+        if wp.static(lanes):
+            gram = light_gram_lanes(weights, px, lights)
+        else:
+            gram = light_gram(weights, i, j, px.p, lights)
         cnd = cond_frobenius(gram)
-        cond[i, j] = cnd
+        if lane == 0:
+            cond[i, j] = cnd
         if cnd > prm.cond_threshold:
             flag = flag | FLAG_ILL_CONDITIONED
         # ---- Woodham least squares on the valid observations (I / E = kd (l . n))
@@ -381,7 +321,12 @@ def solve_kernel_for(method, solve_pixel, module, sfx: str):
             nw = normals[i, j]
             if wp.length(nw) > 0.5:
                 warm_ok = 1
-        ninit, kdw = least_squares_start(images, weights, px, lights, use_all, warm_ok)
+        ninit = wp.vec3(0.0)
+        kdw = wp.vec3(0.0)
+        if wp.static(lanes):
+            ninit, kdw = least_squares_start_lanes(images, weights, px, lights, use_all, warm_ok)
+        else:
+            ninit, kdw = least_squares_start(images, weights, px, lights, use_all, warm_ok)
         if warm_ok != 0:
             ninit = wp.normalize(nw)
         if wp.static(method == "none"):
@@ -393,7 +338,10 @@ def solve_kernel_for(method, solve_pixel, module, sfx: str):
                     store_least_squares(ninit, kdw, flag, use_all, images, weights, px, lights, normals, albedo, residual, iterations, flags)
                     return
             sol = solve_pixel(ninit, gmax, images, weights, px, lights, mat, prm)
-            store_solution(sol, flag, weights, px, nl_, normals, albedo, residual, iterations, flags)
+            if wp.static(lanes):
+                store_solution_lanes(sol, flag, weights, px, nl_, normals, albedo, residual, iterations, flags)
+            else:
+                store_solution(sol, flag, weights, px, nl_, normals, albedo, residual, iterations, flags)
 
     return solve_kernel
 
@@ -567,11 +515,11 @@ def smooth_kernel_for(run_method, module, sfx: str):
 
 
 def make_lanes_kernel(method, brdf, robust, module_name: str, sfx: str):
-    """The lights-parallel solve kernel (:func:`solve_kernel_lanes_for`) of one specialisation (a nonlinear
+    """The lights-parallel solve kernel (:func:`solve_kernel_for` with ``lanes``) of one specialisation (a nonlinear
     ``method``) in the Warp module ``module_name``."""
     module = wp.get_module(module_name)
     funcs = solver_funcs(method, brdf, robust, module, sfx, lanes=True)
-    return solve_kernel_lanes_for(funcs.solve_pixel, module, sfx)
+    return solve_kernel_for(method, funcs.solve_pixel, module, sfx, lanes=True)
 
 
 def make_kernels(method, brdf, robust, module_name: str, sfx: str):

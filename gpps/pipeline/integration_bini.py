@@ -193,10 +193,9 @@ def _acquire(n: int, unroll: int) -> dict:
     F["cap"], F["key"], F["unroll"] = cap, key, unroll
     # on the CPU one thread: Taichi's parallel dispatch costs more than it gains at these sizes, the more so
     # on shared cores (bear, 40k pixels, 2 busy cores: 2.1 s on two threads, 1.1 s on one)
-    arch = ti.lang.impl.current_cfg().arch
-    serial = arch == ti.cpu
-    # CUDA: the CG's sums reduced per block in shared memory (float64 atomics on one address serialise)
-    F["kernels"] = K.make_bini(F, unroll, serial=serial, block_sums=arch == ti.cuda)
+    # (CUDA: the CG's sums reduced per block in shared memory: float64 atomics on one address serialise)
+    serial = ti.lang.impl.current_cfg().arch == ti.cpu
+    F["kernels"] = K.make_bini(F, unroll, serial=serial)
     return F
 
 
