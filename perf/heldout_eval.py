@@ -1,7 +1,7 @@
 """Held-out evaluation on captures rendered by Mitsuba 3 (issues 24 and 25): not gpps's own image model.
 
 Eight fixed scenes (:data:`HELDOUT`: shape, material, texture, seed; seeds 1000+ are never used for training data),
-each rendered by :mod:`gpps.training.mitsuba_scenes` under {3, 12} x {directional, point} lights (perspective
+each rendered by :mod:`training/mitsuba_scenes.py` under {3, 12} x {directional, point} lights (perspective
 camera, path tracer with interreflections, cast shadows, exposure, shot and read noise, 16-bit unless ``--bits 8``),
 cached under ``$GPPS_CACHE_DIR/mitsuba_captures`` (``--root``).  Methods, MAEN (deg) inside the mask against the
 pixel-centre ground truth:
@@ -33,6 +33,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "training"))  # training/mitsuba_scenes.py
 from _common import write_results  # noqa: E402
 
 #: (name, shape, material, alpha, texture, seed)
@@ -50,7 +51,7 @@ METHODS = ("folder", "ls", "flat", "single")
 
 
 def _specs(args):
-    from gpps.training.mitsuba_scenes import CaptureSpec
+    from mitsuba_scenes import CaptureSpec
 
     for name, shape, material, alpha, texture, seed in HELDOUT:
         if args.scenes and name not in args.scenes:
@@ -144,7 +145,7 @@ def main():
     import json
 
     from gpps.io import read_capture
-    from gpps.training.mitsuba_scenes import make_capture
+    from mitsuba_scenes import make_capture
 
     t_all = time.perf_counter()
     captures = []

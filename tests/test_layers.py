@@ -11,9 +11,7 @@ Layers, lowest first (README, "Package map"):
 * ``flows``: ``gpps.flows`` (whole reconstructions);
 * ``api``: ``gpps`` itself (the public names);
 * ``cli``: ``gpps.cli`` and ``gpps.__main__`` (``python -m gpps``), which may use only the public face (``gpps`` and
-  ``gpps.io``);
-* ``training``: ``gpps.training`` (data generators for training and evaluation, optional dependencies such as
-  Mitsuba): it may import the layers up to ``api``, and no other layer imports it.
+  ``gpps.io``).
 
 Each layer may import the layers listed for it in ``ALLOWED``; imports inside functions count too.
 """
@@ -31,7 +29,7 @@ LAYER_OF_TOP = {
     "_check": "base", "names": "base", "_version": "base", "_runtime": "base", "_taichi": "base",
     "camera": "types", "lights": "types", "material": "types",
     "kernels": "kernels", "host": "host", "nn": "host", "io": "io", "pipeline": "pipeline", "flows": "flows",
-    "__init__": "api", "__main__": "cli", "cli": "cli", "training": "training",
+    "__init__": "api", "__main__": "cli", "cli": "cli",
 }
 ALLOWED = {
     "base": {"base"},
@@ -43,7 +41,6 @@ ALLOWED = {
     "flows": {"base", "types", "host", "io", "pipeline", "flows"},
     "api": {"base", "types", "host", "io", "pipeline", "flows", "api"},
     "cli": {"api", "cli", "public-io"},
-    "training": {"base", "types", "host", "io", "pipeline", "flows", "api", "training"},
 }
 
 

@@ -1,22 +1,25 @@
-"""Mitsuba 3 captures (gpps.training.mitsuba_scenes): gpps's frame and units, the folder they are written to,
+"""Mitsuba 3 captures (training/mitsuba_scenes.py): gpps's frame and units, the folder they are written to,
 their ground truth, determinism and quantisation.  Skipped without mitsuba (``pip install gpps[render]``)."""
 
 from __future__ import annotations
 
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.ndimage import binary_erosion
 
 mi = pytest.importorskip("mitsuba")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "training"))  # training/mitsuba_scenes.py
 
 from gpps.host.scenes import UNIFORM_ALBEDO, default_camera, make_scene  # noqa: E402
 from gpps.io import read_capture  # noqa: E402
 from gpps.io.formats import decode_image_file  # noqa: E402
 from gpps.lights import DirectionalLights, PointLights  # noqa: E402
 from gpps.material import Material  # noqa: E402
-from gpps.training.mitsuba_scenes import (  # noqa: E402
+from mitsuba_scenes import (  # noqa: E402
     MIN_FACING,
     SHAPES,
     CaptureSpec,
