@@ -23,7 +23,6 @@ import argparse
 import json
 import sys
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +32,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 from _common import timeit, write_results  # noqa: E402
+from cases import copy_counter  # noqa: E402
 from front_reference import propagate_front_host  # noqa: E402
 
 import gpps  # noqa: E402
@@ -43,44 +43,6 @@ from gpps.pipeline.front import propagate_front  # noqa: E402
 from gpps.pipeline.solver import PixelSolver, SolverConfig  # noqa: E402
 
 IMPLS = {"host": propagate_front_host, "device": propagate_front}
-
-
-@contextmanager
-def copy_counter():
-    """Count Warp copies (``warp.copy``, ``array.numpy``, ``warp.array(data=...)``; a call inside another counted
-    one is not counted again) while inside."""
-    wp = warp()
-    n = [0]
-    inside = [False]  # one transfer counts once (numpy() copies through warp.copy on CUDA)
-    cls = wp.array
-    old_copy, old_numpy, old_init = wp.copy, cls.numpy, cls.__init__
-
-    def counted(fn, *a, **k):
-        if inside[0]:
-            return fn(*a, **k)
-        n[0] += 1
-        inside[0] = True
-        try:
-            return fn(*a, **k)
-        finally:
-            inside[0] = False
-
-    def copy(*a, **k):
-        return counted(old_copy, *a, **k)
-
-    def numpy(self, *a, **k):
-        return counted(old_numpy, self, *a, **k)
-
-    def init(self, *a, **k):
-        if (a and a[0] is not None) or k.get("data") is not None:
-            return counted(old_init, self, *a, **k)
-        return old_init(self, *a, **k)
-
-    wp.copy, cls.numpy, cls.__init__ = copy, numpy, init
-    try:
-        yield n
-    finally:
-        wp.copy, cls.numpy, cls.__init__ = old_copy, old_numpy, old_init
 
 
 def scene(size: int, n_lights: int, device: str):

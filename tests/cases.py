@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -61,3 +62,43 @@ def run_case(scene_name, size, camera, light_kind, brdf, *, noise=0.0, solver="l
         "mean_iterations": float(nl.iterations[sc.mask].mean()),
         "seconds": dt,
     }
+
+
+@contextmanager
+def copy_counter():
+    """Count Warp copies (``warp.copy``, ``array.numpy``, ``warp.array(data=...)``; a call inside another counted
+    one is not counted again) while inside."""
+    from gpps._runtime import warp
+
+    wp = warp()
+    n = [0]
+    inside = [False]  # one transfer counts once (numpy() copies through warp.copy on CUDA)
+    cls = wp.array
+    old_copy, old_numpy, old_init = wp.copy, cls.numpy, cls.__init__
+
+    def counted(fn, *a, **k):
+        if inside[0]:
+            return fn(*a, **k)
+        n[0] += 1
+        inside[0] = True
+        try:
+            return fn(*a, **k)
+        finally:
+            inside[0] = False
+
+    def copy(*a, **k):
+        return counted(old_copy, *a, **k)
+
+    def numpy(self, *a, **k):
+        return counted(old_numpy, self, *a, **k)
+
+    def init(self, *a, **k):
+        if (a and a[0] is not None) or k.get("data") is not None:
+            return counted(old_init, self, *a, **k)
+        return old_init(self, *a, **k)
+
+    wp.copy, cls.numpy, cls.__init__ = copy, numpy, init
+    try:
+        yield n
+    finally:
+        wp.copy, cls.numpy, cls.__init__ = old_copy, old_numpy, old_init

@@ -4,8 +4,9 @@ rendered scenes and on every device, and no host<->device copy per ring."""
 
 import numpy as np
 import pytest
-
+from cases import copy_counter
 from front_reference import propagate_front_host
+
 from gpps._runtime import warp
 from gpps.host.dgmc import DGMCConfig, dgmc_start, front_rings
 from gpps.host.merge import ranks_better
@@ -119,36 +120,8 @@ def test_no_copies_per_ring(device):
     """Between two rings' progress reports nothing goes between host and device (warp.copy, which
     array.assign uses, array.numpy and warp.array(data=...) are counted)."""
     img, sc, solver, dg, sol, depth = _case(device, "sphere", 48, "orthographic", "blinn-phong", "directional", 3)
-    wp = warp()
-    n = [0]
-    inside = [False]  # one transfer counts once (numpy() copies through warp.copy on CUDA)
-    cls = wp.array
-    old_copy, old_numpy, old_init = wp.copy, cls.numpy, cls.__init__
-
-    def counted(fn, *a, **k):
-        if inside[0]:
-            return fn(*a, **k)
-        n[0] += 1
-        inside[0] = True
-        try:
-            return fn(*a, **k)
-        finally:
-            inside[0] = False
-
-    def copy(*a, **k):
-        return counted(old_copy, *a, **k)
-
-    def numpy(self, *a, **k):
-        return counted(old_numpy, self, *a, **k)
-
-    def init(self, *a, **k):
-        if (a and a[0] is not None) or k.get("data") is not None:
-            return counted(old_init, self, *a, **k)
-        return old_init(self, *a, **k)
-
     marks = []
-    wp.copy, cls.numpy, cls.__init__ = copy, numpy, init
-    try:
+    with copy_counter() as n:
         fr = propagate_front(solver, None, sc.mask, dg.highlight, sol, gaussian=dg.gaussian, mean=dg.mean,
                              progress=lambda k, _t, _m: marks.append(n[0]))
         end = n[0]
@@ -156,8 +129,6 @@ def test_no_copies_per_ring(device):
         n[0] = 0
         propagate_front_host(solver, None, sc.mask, dg.highlight, sol, gaussian=dg.gaussian, mean=dg.mean,
                              progress=lambda k, _t, _m: ref_marks.append(n[0]))
-    finally:
-        wp.copy, cls.numpy, cls.__init__ = old_copy, old_numpy, old_init
     assert fr.n_rings > 3 and len(marks) == fr.n_rings
     assert np.all(np.diff(marks) == 0), marks
     assert end - marks[-1] <= 7  # one fetch at the end: six outputs and the sources
