@@ -102,3 +102,46 @@ def test_parallel_auto_choice(device):
     assert not s._uses_lanes()
     with pytest.raises(ValueError, match="parallel"):
         SolverConfig(parallel="threads")
+
+
+@pytest.mark.parametrize("cpu_blocks", [False, True])
+def test_lights_parallel_degenerate_pixels(cpu_blocks, device, monkeypatch):
+    """Pixels the lanes must treat exactly as one thread does: nothing lit (all zeros), everything saturated,
+    only two observations left by ``valid``, and lanes beyond the light count (20 lights on 32 lanes: lanes
+    20-31 hold no light).  Flags, weights and cond must agree; the determined pixels' normals as above."""
+    import warp as wp
+
+    if cpu_blocks:
+        if device != "cpu":
+            pytest.skip("enable_cpu_blocks concerns the CPU backend")
+        monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    img, lights, sc, mat = _case("directional", n=20, size=16, device=device)
+    img = np.array(img, np.float32)
+    ii, jj = np.nonzero(sc.mask)
+    dark, sat, two = (ii[5], jj[5]), (ii[40], jj[40]), (ii[80], jj[80])
+    img[:, dark[0], dark[1]] = 0.0
+    img[:, sat[0], sat[1]] = 10.0
+    valid = np.ones(img.shape[:3], bool)
+    valid[2:, two[0], two[1]] = False
+    cfg = SolverConfig(solver="lm", robust="cauchy", irls_rounds=2, starts=3, saturation=5.0, neighbour_radius=0)
+    outs = []
+    for par in ("pixels", "lights"):
+        s = PixelSolver(img.shape[:3], sc.camera, lights, mat, replace(cfg, parallel=par), device=device)
+        s.upload(img, sc.mask, valid=valid)
+        s.step()
+        outs.append(s.fetch(("normals", "albedo", "residual", "iterations", "flags", "weights", "cond")))
+    a, b = outs
+    m = sc.mask
+    for px in (dark, sat, two):
+        assert a["flags"][px] == b["flags"][px] and a["flags"][px] & 2  # few observations, both ways
+        np.testing.assert_array_equal(np.sign(a["weights"][:, px[0], px[1]]), np.sign(b["weights"][:, px[0], px[1]]))
+        assert np.all(np.isfinite(b["normals"][px])) and np.isfinite(b["residual"][px])
+    if device == "cpu" and not cpu_blocks:
+        for k in a:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        return
+    np.testing.assert_array_equal(a["flags"][m] & ~NOT_CONVERGED, b["flags"][m] & ~NOT_CONVERGED)
+    ok = m & ((a["flags"] & 2) == 0)
+    na, nb = a["normals"][ok].astype(np.float64), b["normals"][ok].astype(np.float64)
+    ang = np.degrees(2.0 * np.arcsin(np.linalg.norm(na - nb, axis=-1) / 2.0))
+    assert np.mean(ang < 1e-2) >= 0.97
