@@ -141,7 +141,7 @@ def _scene(camera, size):
     return img, PointLights(L.positions), sc, float(sc.depth[sc.mask].mean())
 
 
-def _run(img, lights, sc, ref, device, *, device_rounds, rounds, spy=None):
+def _run(img, lights, sc, ref, device, *, device_rounds, rounds):
     cfg = RONConfig(rounds=rounds, tol=0.0, tol_normals_deg=0.0, device_rounds=device_rounds)
     ron = RON(img.shape[:3], sc.camera, lights, MAT, sc.mask, cfg, device=device)
     try:

@@ -50,12 +50,10 @@ from gpps.material import Material
 from gpps.names import (
     BRDF_NAMES,
     LIGHT_LANES,
-    LIGHTS_PARALLEL_MIN,
-    LIGHTS_PARALLEL_PAIRS_PER_IMAGE,
     ParallelName,
 )
 from gpps.pipeline.cpu_threads import cpu_threads, load_first, run_all
-from gpps.pipeline.params import camera_params, light_params, material_params
+from gpps.pipeline.params import camera_params, light_params, material_params, resolve_parallel, uses_lanes
 from gpps.pipeline.solver import (
     SolverConfig,
     check_light_configuration,
@@ -165,8 +163,7 @@ class MaterialScorer(Stage):
         robust = config.robust if config.irls_rounds > 0 else "none"
         self._robust = robust
         parallel = check_choice("parallel", config.parallel if parallel is None else parallel, ParallelName)
-        if parallel == "auto" and not (self.device.startswith("cuda") and n >= LIGHTS_PARALLEL_MIN):
-            parallel = "pixels"
+        parallel = resolve_parallel(parallel, self.device, n)
         self.parallel = parallel  # "auto" here: per launch (_uses_lanes)
         self._kernel = sb.get_batched_kernel(config.solver, brdf, robust) if parallel != "lights" else None
         self._kernel_lanes = (sb.get_batched_kernel(config.solver, brdf, robust, lanes=True)
@@ -445,9 +442,7 @@ class MaterialScorer(Stage):
 
     def _uses_lanes(self, pairs: int) -> bool:
         """Whether a launch of ``pairs`` (candidate, pixel) solves runs the lights-parallel build."""
-        if self.parallel != "auto":
-            return self.parallel == "lights"
-        return pairs <= LIGHTS_PARALLEL_PAIRS_PER_IMAGE * self.shape[0]
+        return uses_lanes(self.parallel, self.shape[0], pairs)
 
     def _set_candidates(self, candidates) -> int:
         if isinstance(candidates, Material):

@@ -15,6 +15,7 @@ from gpps.kernels.brdf import (
 )
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
+from gpps.names import LIGHTS_PARALLEL_MIN, LIGHTS_PARALLEL_PAIRS_PER_IMAGE
 
 
 def camera_params(camera, shape: tuple[int, int]):
@@ -77,3 +78,21 @@ def light_params(lights, device: str):
     lp.axis = wp.array(np.asarray(axes, np.float32), dtype=wp.vec3, device=device)
     lp.mu = wp.array(np.asarray(mu, np.float32), dtype=wp.float32, device=device)
     return lp
+
+
+def resolve_parallel(parallel: str, device: str, images: int) -> str:
+    """The build(s) a batched solve needs (:data:`gpps.names.ParallelName`): ``"auto"`` stays ``"auto"`` (chosen
+    per launch by :func:`uses_lanes`) only on CUDA with :data:`gpps.names.LIGHTS_PARALLEL_MIN` images or more,
+    else it is ``"pixels"``; ``"pixels"`` and ``"lights"`` as asked."""
+    if parallel == "auto" and not (str(device).startswith("cuda") and images >= LIGHTS_PARALLEL_MIN):
+        return "pixels"
+    return parallel
+
+
+def uses_lanes(parallel: str, images: int, pairs: int) -> bool:
+    """Whether a launch of ``pairs`` solves (pixels, or candidate x pixel pairs) over ``images`` lights runs the
+    lights-parallel build, for a :func:`resolve_parallel` choice: ``"auto"`` from at most
+    ``LIGHTS_PARALLEL_PAIRS_PER_IMAGE x images`` pairs (a latency-bound launch; measured in :mod:`gpps.names`)."""
+    if parallel != "auto":
+        return parallel == "lights"
+    return pairs <= LIGHTS_PARALLEL_PAIRS_PER_IMAGE * images

@@ -38,8 +38,6 @@ from gpps.names import (
     FLAG_NOT_CONVERGED,
     FLAG_WOODHAM_FALLBACK,
     LIGHT_LANES,
-    LIGHTS_PARALLEL_MIN,
-    LIGHTS_PARALLEL_PAIRS_PER_IMAGE,
     ROBUST_NAMES,
     SOLVER_NAMES,
     ParallelName,
@@ -49,7 +47,7 @@ from gpps.names import (
 from gpps.names import ROBUST_TAG as _ROBUST_TAG
 from gpps.names import SOLVER_TAG as _SOLVER_TAG
 from gpps.pipeline.cpu_threads import balanced_bounds, cpu_threads, run_all
-from gpps.pipeline.params import camera_params, light_params, material_params
+from gpps.pipeline.params import camera_params, light_params, material_params, resolve_parallel, uses_lanes
 from gpps.pipeline.stage import Stage
 
 AlbedoMode = Literal["rgb", "grey"]
@@ -511,19 +509,14 @@ class PixelSolver(Stage):
         self._solve_kernel, self._underdetermined_kernel, self._smooth_kernel = self._sk.get_solve_kernels(
             c.solver, self.material.brdf, robust
         )
-        cuda = self.device.startswith("cuda")
-        lanes = c.solver != "none" and (c.parallel == "lights" or (
-            c.parallel == "auto" and cuda and self.shape[0] >= LIGHTS_PARALLEL_MIN))
-        self._lanes_kernel = self._sk.get_solve_kernel_lanes(c.solver, self.material.brdf, robust) if lanes else None
+        self._parallel = resolve_parallel(c.parallel, self.device, self.shape[0]) if c.solver != "none" else "pixels"
+        self._lanes_kernel = (self._sk.get_solve_kernel_lanes(c.solver, self.material.brdf, robust)
+                              if self._parallel != "pixels" else None)
 
     def _uses_lanes(self) -> bool:
         """Whether the next pixelwise solve runs the lights-parallel kernel (``config.parallel``)."""
-        if self._lanes_kernel is None:
-            return False
-        if self.config.parallel == "lights":
-            return True
         pixels = int(self._mask_rows.sum()) if self._mask_rows is not None else self.shape[1] * self.shape[2]
-        return pixels <= LIGHTS_PARALLEL_PAIRS_PER_IMAGE * self.shape[0]
+        return uses_lanes(self._parallel, self.shape[0], pixels)
 
     @property
     def kernels(self) -> tuple:
