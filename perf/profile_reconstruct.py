@@ -5,7 +5,12 @@ functions by cumulative and by own time (``<case>_cumulative.txt``, ``<case>_tot
 timings (``profile.json``) to ``--out``.  On CUDA the host waits at synchronisation points (fetches), so a
 kernel's device time shows up in the function that fetches its result.
 
-Usage:  python perf/profile_reconstruct.py [FOLDER...] [--synthetic 256] [--images 3] [--device cuda:0] --out DIR
+With ``--trace`` (CUDA, needs torch) one more warm call runs under ``torch.profiler`` with CUDA activity
+tracing (CUPTI sees every kernel of the process: Warp's and Taichi's): ``<case>_kernels.json`` gets the GPU
+time per kernel name and the GPU busy time (the union of kernel and copy intervals) against the call's wall time,
+which separates device work from host overhead.
+
+Usage:  python perf/profile_reconstruct.py [FOLDER...] [--synthetic 256] [--images 3] [--device cuda:0] [--trace] --out DIR
 """
 
 from __future__ import annotations
@@ -32,6 +37,44 @@ def _stats(prof, key: str, top: int) -> str:
     s = io.StringIO()
     pstats.Stats(prof, stream=s).sort_stats(key).print_stats(top)
     return s.getvalue()
+
+
+def _trace(call) -> dict:
+    """One call under torch.profiler (CUDA activities): GPU time per kernel, busy time, wall time."""
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        t = time.perf_counter()
+        call()
+        torch.cuda.synchronize()
+        wall = time.perf_counter() - t
+    per: dict[str, list] = {}
+    spans = []
+    for e in prof.events():
+        if e.device_type.name != "CUDA":
+            continue
+        t0 = e.time_range.start
+        t1 = e.time_range.end
+        spans.append((t0, t1))
+        d = per.setdefault(e.name[:120], [0, 0.0])
+        d[0] += 1
+        d[1] += (t1 - t0) * 1e-6
+    spans.sort()
+    busy, cur0, cur1 = 0.0, None, None
+    for t0, t1 in spans:
+        if cur1 is None or t0 > cur1:
+            if cur1 is not None:
+                busy += cur1 - cur0
+            cur0, cur1 = t0, t1
+        else:
+            cur1 = max(cur1, t1)
+    if cur1 is not None:
+        busy += cur1 - cur0
+    rows = sorted(({"name": k, "count": v[0], "gpu_s": v[1]} for k, v in per.items()), key=lambda r: -r["gpu_s"])
+    return {"wall_s": wall, "gpu_busy_s": busy * 1e-6, "events": len(spans),
+            "span_s": (spans[-1][1] - spans[0][0]) * 1e-6 if spans else 0.0, "kernels": rows}
 
 
 def _synthetic(size: int, n: int, device):
@@ -61,6 +104,7 @@ def main(argv=None):
     ap.add_argument("--images", type=int, default=3)
     ap.add_argument("--device", default=None)
     ap.add_argument("--top", type=int, default=45)
+    ap.add_argument("--trace", action="store_true", help="one more warm call under torch.profiler (CUDA)")
     ap.add_argument("--out", required=True)
     a = ap.parse_args(argv)
     out = Path(a.out)
@@ -85,6 +129,10 @@ def main(argv=None):
         (out / f"{name}_tottime.txt").write_text(_stats(prof, "tottime", a.top))
         rows.append({"case": name, "cold_s": cold, "warm_s": warm, "profiled_s": profiled, "maen_deg": maen,
                      "timings": timings})
+        if a.trace:
+            tr = _trace(call)
+            (out / f"{name}_kernels.json").write_text(json.dumps(tr, indent=1))
+            rows[-1]["trace"] = {k: tr[k] for k in ("wall_s", "gpu_busy_s", "events", "span_s")}
         print(json.dumps(rows[-1], default=json_default), flush=True)
     (out / "profile.json").write_text(json.dumps({"device": a.device, "rows": rows}, indent=1, default=json_default))
 

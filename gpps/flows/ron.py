@@ -45,6 +45,7 @@ Point lights with an unknown depth start from a flat depth at
 
 from __future__ import annotations
 
+import importlib.util
 import time
 from dataclasses import dataclass, field, replace
 from typing import Callable, Literal
@@ -177,9 +178,10 @@ class RONConfig:
             The photometric material fit still takes the round's normals and depth on the host,
             the depth-rms rule the depth; a round whose normals have invalid pixels (NaN, zero,
             back-facing) is integrated on the host.  False: every round on the host (the reference).
-            None (default): True on the CPU; on CUDA False until the device rounds' tests have run on
-            a GPU (tests/test_ron_device.py, written and passed on the CPU only so far); True on
-            CUDA needs torch (the ``gpps[cuda]`` extra).
+            None (default): True on the CPU, and on CUDA where torch is installed (the ``gpps[cuda]``
+            extra: the zero-copy views between Warp and Taichi); without torch, CUDA keeps the host
+            rounds.  True on CUDA without torch raises ImportError.  (tests/test_ron_device.py
+            passed on the CPU and on an H100.)
     """
 
     rounds: int = 5
@@ -934,7 +936,8 @@ class RON:
         feeds = self.point or (estimating and c.material_rule == "depth-rms")
         on = c.device_rounds
         if on is None:
-            on = not self.device.startswith("cuda")  # (see RONConfig.device_rounds)
+            # (see RONConfig.device_rounds)
+            on = not self.device.startswith("cuda") or importlib.util.find_spec("torch") is not None
         if not (on and c.integrate and feeds and self.integrator is not None
                 and reference_depth is not None and c.rounds > 1):
             return None
