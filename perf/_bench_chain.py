@@ -334,6 +334,79 @@ def scorer_rows(ctx, n_images, samples, n_cand):
     ctx.keep.append(scorer)
 
 
+def scorer_lanes_rows(ctx, n_images, samples=500, n_cand=4):
+    """The scorer's lights-parallel build (``parallel="lights"``: one 32-lane block a (candidate, pixel)
+    solve), at the size where ``"auto"`` picks it: a later round's K x P <= 500 x N solves."""
+    from gpps.pipeline.material import MaterialScorer
+    from gpps.pipeline.solver import SolverConfig
+
+    t0 = time.perf_counter()
+    sc, mat, lights, img = ball_scene(ctx.size, n_images, ctx.device)
+    rng = np.random.default_rng(1)
+    idx = np.flatnonzero(sc.mask.ravel())
+    sample = np.zeros(sc.mask.size, bool)
+    sample[rng.choice(idx, min(samples, idx.size), replace=False)] = True
+    sample = sample.reshape(sc.mask.shape)
+    p = int(sample.sum())
+    fit = replace(SolverConfig(), starts=4, neighbour_radius=0, smoothness=0.0, warm_start=False)
+    scorer = MaterialScorer(img.shape[:3], sc.camera, lights, mat, fit, max_samples=p, max_candidates=n_cand,
+                            parallel="lights", device=ctx.device)
+    scorer.upload(img, sample)
+    cands = _candidates(mat, n_cand)
+    scorer.set_candidates(cands)
+    scorer.launch()
+    energies = scorer.fetch()
+    _sync(ctx)
+    ctx.log(f"[chain {ctx.size}] lanes scorer {n_images} images, K={n_cand}, P={p}: compile and first step "
+            f"{time.perf_counter() - t0:.1f}s")
+    name = f"scorer_solve_{n_images}img_lanes"
+    t = _time_or_register(ctx, name, "solve_batched_kernel", scorer.launch, inner=3)
+    if t is not None:
+        ev = scorer.iterations.numpy()[:n_cand, :p].astype(np.float64)
+        lit = lit_count(sc.normals[scorer.rows_host, scorer.cols_host], lights.directions)
+        (cb, cf), (sb, _) = COUNTS_CHAIN["scorer_solve"](ev, lit[None, :], n_images)
+        info = {"images": n_images, "candidates": n_cand, "samples": p, "lanes": 32,
+                "mean_evaluations": float(ev.mean()), "mean_lit": float(lit.mean()),
+                "energy_min": float(np.min(energies)),
+                "summary": f"K={n_cand} P={p} x 32 lanes, {ev.mean():.1f} evaluations/item",
+                "note": "the same work as the one-thread build (its bytes and FLOPs), spread over 32 lanes"}
+        row(ctx, name, t, cb * ev.size + sb * p, float(np.sum(cf)), extra=info)
+    ctx.keep.append(scorer)
+
+
+def pixel_solve_lanes_rows(ctx, n_images, pixels=500):
+    """PixelSolver's lights-parallel build on a DGMC-front-sized subset (a ring of ~``pixels`` pixels)."""
+    from gpps.pipeline.solver import PixelSolver, SolverConfig
+
+    t0 = time.perf_counter()
+    sc, mat, lights, img = ball_scene(ctx.size, n_images, ctx.device)
+    h, w = sc.mask.shape
+    yy, xx = np.mgrid[:h, :w]
+    rad = np.hypot(yy - (h - 1) / 2, xx - (w - 1) / 2)
+    ring = sc.mask & (np.abs(rad - 0.3 * h) < max(1.0, pixels / (4 * np.pi * 0.3 * h)))
+    ps = PixelSolver(img.shape[:3], sc.camera, lights, mat, replace(SolverConfig(), parallel="lights"),
+                     device=ctx.device)
+    ps.upload(img, sc.mask)
+    ps.set_mask(ring)
+    ps.step()
+    _sync(ctx)
+    ctx.log(f"[chain {ctx.size}] lanes pixel solve {n_images} images, {int(ring.sum())} px: compile and first "
+            f"solve {time.perf_counter() - t0:.1f}s")
+    name = f"pixel_solve_{n_images}img_lanes"
+    t = _time_or_register(ctx, name, "(solve|underdetermined)_kernel", ps.step, inner=2, per_launch=2)
+    if t is not None:
+        out = ps.fetch(("normals", "iterations"))
+        ev = out["iterations"][ring].astype(np.float64)
+        lit = lit_count(sc.normals[ring], lights.directions)
+        (pb, pf), (ab, _) = COUNTS_CHAIN["pixel_solve"](ev, lit, n_images)
+        row(ctx, name, t, pb * ev.size + ab * h * w, float(np.sum(pf)),
+            extra={"images": n_images, "mask_pixels": int(ev.size), "lanes": 32,
+                   "mean_evaluations": float(ev.mean()), "mean_lit": float(lit.mean()),
+                   "summary": f"{int(ev.size)} px x 32 lanes, {ev.mean():.1f} evaluations/px",
+                   "note": "solve_kernel (lights-parallel) + underdetermined_kernel on a ring subset"})
+    ctx.keep.append(ps)
+
+
 # ----------------------------------------------------------------------------- full-image pixel solve
 
 
@@ -404,7 +477,7 @@ def bini_rows(ctx):
     ctx.keep.append(bi)
 
 
-PARTS = ("dgmc", "scorer", "solve", "bini")
+PARTS = ("dgmc", "scorer", "solve", "lanes", "bini")
 
 
 def bench_chain(ctx, parts, images, samples, candidates, errors):
@@ -415,6 +488,7 @@ def bench_chain(ctx, parts, images, samples, candidates, errors):
         "dgmc": lambda: dgmc_rows(ctx, images),
         "scorer": lambda: [scorer_rows(ctx, n, samples, candidates) for n in dict.fromkeys((images, 3))],
         "solve": lambda: pixel_solve_rows(ctx, images),
+        "lanes": lambda: (scorer_lanes_rows(ctx, images), pixel_solve_lanes_rows(ctx, images)),
         "bini": lambda: bini_rows(ctx),
     }
     for part in parts:
