@@ -276,8 +276,12 @@ def test_device_rounds_config():
 
 
 def test_device_rounds_default_by_device(monkeypatch):
-    """``device_rounds=None`` (the default): the device rounds on the CPU, the host rounds on CUDA until the
-    device rounds have run on a GPU; an explicit True or False wins on every device."""
+    """``device_rounds=None`` (the default): the round's scalars on the device everywhere; step 3 there
+    too on the CPU, and on CUDA where torch is installed (its zero-copy views), else on the host; an
+    explicit False keeps every round on the host; an explicit True integrates on the device (and
+    raises later without torch); one round needs no device rounds."""
+    import importlib.util
+
     from gpps.flows.ron import RON
 
     assert RONConfig().device_rounds is None
@@ -286,23 +290,39 @@ def test_device_rounds_default_by_device(monkeypatch):
         point = True
         integrator = object()
         _rounds = None
+        _rounds_integ = False
 
-        def __init__(self, device, flag):
+        def __init__(self, device, flag, rounds=5):
             self.device = device
-            self.config = RONConfig(device_rounds=flag)
+            self.config = RONConfig(device_rounds=flag, rounds=rounds)
 
     made = []
 
     class Fake:
-        integrates = True
+        def __init__(self, solver, mask, integrator):
+            made.append(integrator)
 
-        def __init__(self, *a):
-            made.append(a)
+        def close(self):
+            pass
 
     monkeypatch.setattr("gpps.flows.ron.DeviceRounds", Fake)
-    for device, flag, want in (("cpu", None, True), ("cuda:0", None, False), ("cuda:0", True, True),
-                               ("cpu", False, False)):
-        p = Probe(device, flag)
-        p.solver = p.mask = None
-        got = RON._device_rounds(p, 1.0, False)
-        assert (got is not None) == want, (device, flag)
+    real = importlib.util.find_spec
+    for torch in (True, False):
+        monkeypatch.setattr(importlib.util, "find_spec",
+                            lambda name, *a, t=torch: (object() if t else None) if name == "torch" else real(name, *a))
+        for device, flag, rounds, want, integ in (
+                ("cpu", None, 5, True, True), ("cuda:0", None, 5, True, torch), ("cuda:0", True, 5, True, True),
+                ("cpu", False, 5, False, False), ("cuda:0", False, 5, False, False), ("cpu", None, 1, False, False)):
+            p = Probe(device, flag, rounds)
+            p.solver = p.mask = None
+            made.clear()
+            got = RON._device_rounds(p, 1.0, False)
+            assert (got is not None) == want, (device, flag, rounds, torch)
+            if want:
+                assert (made[-1] is not None) == integ, (device, flag, torch)
+                assert p._rounds_integ == integ
+    # no reference depth: the scalars on the device, step 3 on the host
+    p = Probe("cpu", None)
+    p.solver = p.mask = None
+    made.clear()
+    assert RON._device_rounds(p, None, False) is not None and made[-1] is None

@@ -411,6 +411,7 @@ class RON:
         self._frame_key = self._frame_depth = None  # the frame on the solver's device (see _frame)
         self._solver_mask = None  # the mask in the solver's buffer, when RON set it (see _set_mask)
         self._rounds = None  # the device side of the rounds (DeviceRounds), built at the first run that uses it
+        self._rounds_integ = False  # whether self._rounds integrates (step 3 on the device)
         self.integrator = None
         if self.config.integrate:
             # default, perspective: BiNI's n_z^2 confidence weighting: grazing rim normals (a few degrees off
@@ -580,7 +581,8 @@ class RON:
         from the best point.  Candidates are scored in batches (:meth:`_score`); ``progress(done,
         total, message)`` is told after each batch.  With ``material_warm`` and no grid (later rounds)
         the candidates are solved from one start per pixel: ``normals`` (H, W, 3), the round's
-        normals (solved with ``material``).
+        normals (solved with ``material``): a host array, or the solver's device buffer (gathered
+        at the sample pixels there).
         """
         c = self.config
         names = c.estimate
@@ -622,7 +624,11 @@ class RON:
             step = np.clip(2.0 * move, *_LATER_STEP)
             xatol = _XATOL
             if c.material_warm and normals is not None:
-                self._scorer_for(images, depth, valid, sample, material).set_start(normals[sample])
+                scorer = self._scorer_for(images, depth, valid, sample, material)
+                if isinstance(normals, np.ndarray):
+                    scorer.set_start(normals[sample])
+                else:
+                    scorer.set_start(frame=normals)
                 warm = True
         best = (float(score([x0])[0]), x0)
         if c.material_evals > 0:
@@ -881,7 +887,7 @@ class RON:
             # rule (4.19): otherwise the rounds' depths would be discarded, and only the final one is kept
             if c.integrate and (self.point or (estimating and c.material_rule == "depth-rms")):
                 t = time.perf_counter()
-                if on_device and dev.integrate(reference_depth, into_solver=self.point):
+                if on_device and dev.integrates and dev.integrate(reference_depth, into_solver=self.point):
                     # the depth is in the solver's buffer; the host gets it only for a host rule
                     cur_depth = dev.depth if not estimating else dev.depth_host()
                     if self.point:
@@ -898,7 +904,9 @@ class RON:
             if estimating:
                 t = time.perf_counter()
                 if c.material_rule == "photometric":
-                    nrm = out["normals"] if out is not None else self.solver.fetch(("normals",))["normals"]
+                    # the round's normals: host ones, or (device rounds) the solver's buffer, gathered
+                    # at the sample pixels on the device
+                    nrm = out["normals"] if out is not None else self.solver.normals
                     material, info = self._fit_material(
                         images, solve_depth, valid, material, sample, grid=(r == 1), normals=nrm,
                         progress=lambda d, t, msg: step(1 + 3 * r - 1 + d / max(t, 1), total, f"round {r}: {msg}"))
@@ -929,21 +937,27 @@ class RON:
         )
 
     def _device_rounds(self, reference_depth, estimating: bool):
-        """The device side of the rounds (:class:`DeviceRounds`, built once) when this run's rounds
-        integrate (point lights or the depth-rms rule) with a device-assembled integrator and a
-        reference depth; else None (every round on the host)."""
+        """The device side of the rounds (:class:`DeviceRounds`, built once), or None (every round on
+        the host: ``device_rounds=False``, or a single round).
+
+        The round's energy and normal change are reduced on the device whenever it is used (no
+        full-frame fetch a round).  Step 3 runs there too (:attr:`DeviceRounds.integrates`) when the
+        rounds' depth feeds back (point lights or the depth-rms rule), the integrator's config is one
+        :class:`DeviceSystem` builds, a reference depth is known, and on CUDA torch is installed
+        (zero-copy views; ``device_rounds=None`` falls back to the host's integration without it)."""
         c = self.config
-        feeds = self.point or (estimating and c.material_rule == "depth-rms")
-        on = c.device_rounds
-        if on is None:
-            # (see RONConfig.device_rounds)
-            on = not self.device.startswith("cuda") or importlib.util.find_spec("torch") is not None
-        if not (on and c.integrate and feeds and self.integrator is not None
-                and reference_depth is not None and c.rounds > 1):
+        if c.device_rounds is False or c.rounds <= 1:
             return None
-        if self._rounds is None:
-            self._rounds = DeviceRounds(self.solver, self.mask, self.integrator)
-        return self._rounds if self._rounds.integrates else None
+        feeds = self.point or (estimating and c.material_rule == "depth-rms")
+        integ = bool(c.integrate and feeds and self.integrator is not None and reference_depth is not None)
+        if integ and c.device_rounds is None and self.device.startswith("cuda"):
+            integ = importlib.util.find_spec("torch") is not None  # (see RONConfig.device_rounds)
+        if self._rounds is None or self._rounds_integ != integ:
+            if self._rounds is not None:
+                self._rounds.close()
+            self._rounds = DeviceRounds(self.solver, self.mask, self.integrator if integ else None)
+            self._rounds_integ = integ
+        return self._rounds
 
     def _start_depth(self, depth, reference_depth):
         """Checked start depth (H, W) (None without depth or point lights) and the reference depth

@@ -76,6 +76,7 @@ from gpps.kernels.solve_methods import solver_funcs
 __all__ = [
     "prepare_samples_kernel",
     "gather_samples_kernel",
+    "gather_start_kernel",
     "tile_reset_kernel",
     "tile_score_kernel",
     "tile_pick_kernel",
@@ -153,6 +154,32 @@ def prepare_samples_kernel(
     gmax[p] = g
     base_flags[p] = flag
     cond[p] = cnd
+
+
+@wp.kernel(enable_backward=False)
+def gather_start_kernel(
+    normals: wp.array2d(dtype=wp.vec3),
+    rows: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    ninit: wp.array(dtype=wp.vec3),
+    nwarm: wp.array(dtype=wp.vec3),
+):
+    """Warm starts of the sample pixels from a frame's normals (dim P), nothing through the host.
+
+    Args:
+        normals: (H, W) a solve's normals (e.g. :class:`PixelSolver`'s buffer).
+        rows, cols: (P,) the sample pixels' row and column.
+        ninit: (P,) the cold start (Woodham's normal), taken where the frame's normal is not
+            a unit vector (a pixel the solve left at zero): the host path's ``check_unit`` refuses those.
+        nwarm: (P,) out: the start normals.
+    """
+    p = wp.tid()
+    n = normals[rows[p], cols[p]]
+    ln = wp.length(n)
+    if ln > 0.999 and ln < 1.001:
+        nwarm[p] = n
+    else:
+        nwarm[p] = ninit[p]
 
 
 @wp.kernel(enable_backward=False)

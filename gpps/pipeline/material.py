@@ -53,7 +53,7 @@ from gpps.names import (
     ParallelName,
 )
 from gpps.pipeline.cpu_threads import cpu_threads, load_first, run_all
-from gpps.pipeline.params import camera_params, light_params, material_params, resolve_parallel, uses_lanes
+from gpps.pipeline.params import camera_params, light_params, resolve_parallel, uses_lanes
 from gpps.pipeline.solver import (
     SolverConfig,
     check_light_configuration,
@@ -373,7 +373,7 @@ class MaterialScorer(Stage):
                                self.cond],
                       device=self.device)
 
-    def set_start(self, normals=None, *, candidate: int | None = None) -> None:
+    def set_start(self, normals=None, *, candidate: int | None = None, frame=None) -> None:
         """The start normals of later warm steps (``step(..., warm=True)``): one start per pixel.
 
         Args:
@@ -381,18 +381,31 @@ class MaterialScorer(Stage):
                 order (as ``x[sample_mask]``), e.g. the normals RON solved this round.
             candidate: instead of ``normals``: the normals the last step solved for its
                 candidate ``candidate`` (a device copy, nothing comes back).
+            frame: instead of ``normals``: an (H, W) ``wp.vec3`` array on the scorer's device
+                (e.g. :attr:`PixelSolver.normals` after a round's solve), gathered at the sample
+                pixels on the device; a pixel whose normal there is not a unit vector starts
+                from Woodham's normal.
 
         Raises:
-            ValueError: neither or both given, wrong shape, no upload / step to take them from.
+            ValueError: not exactly one given, wrong shape or device, no upload / step to take them from.
         """
         self._check_open()
-        if (normals is None) == (candidate is None):
-            raise ValueError("normals, candidate: expected exactly one of them")
+        if sum(x is not None for x in (normals, candidate, frame)) != 1:
+            raise ValueError("normals, candidate, frame: expected exactly one of them")
         p = self.samples
         if p == 0:
             raise ValueError("set_start: expected an upload of the sample pixels first")
         wp = warp()
-        if candidate is not None:
+        if frame is not None:
+            h, w = self.shape[1:]
+            if not isinstance(frame, wp.array) or frame.dtype != wp.vec3 or frame.shape != (h, w):
+                raise ValueError(f"frame: expected an ({h}, {w}) wp.vec3 array, got "
+                                 f"{getattr(frame, 'shape', type(frame).__name__)}")
+            if str(frame.device) != str(self.ninit.device):
+                raise ValueError(f"frame: expected an array on {self.ninit.device}, got one on {frame.device}")
+            wp.launch(sb.gather_start_kernel, dim=p, inputs=[frame, self.rows, self.cols, self.ninit],
+                      outputs=[self.nwarm], device=self.device)
+        elif candidate is not None:
             k = int(candidate)
             if not 0 <= k < self.candidates:
                 raise ValueError(f"candidate: expected 0 <= candidate < {self.candidates} (the last step's), got {k}")
@@ -462,8 +475,8 @@ class MaterialScorer(Stage):
                 raise ValueError(f"candidates: expected {self.brdf!r} materials (the scorer's model), got {c.brdf!r}")
         host = self._mats_host
         for k, c in enumerate(cands):
-            mp = material_params(c)
-            host[k] = (mp.model, mp.ks, mp.shininess, mp.roughness, mp.f0, mp.eta_u, mp.eta_v)
+            # (the fields of material_params' struct, read straight from the Material: no Warp struct a candidate)
+            host[k] = (c.device_tag, c.ks, c.shininess, c.roughness, c.f0, c.eta_u, c.eta_v)
         self.mats.assign(host)
         return len(cands)
 
@@ -543,7 +556,8 @@ class MaterialScorer(Stage):
         out = {}
         for x in names:
             buf = self.flags_k if x == "flags" else getattr(self, x)
-            out[x] = np.array(buf.numpy()[:k, :p], copy=True)
+            # only the K scored rows cross (a view of the first K rows of the max_candidates buffer)
+            out[x] = np.array(buf[:k].numpy()[:, :p], copy=True)
         return out
 
     def run(self, images, sample_mask, candidates, *, depth=None, valid=None, noise=None, progress=None) -> np.ndarray:

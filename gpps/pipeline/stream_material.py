@@ -25,6 +25,8 @@ it settles, then one stencil every ``refine_every`` frames (:mod:`gpps.host.patt
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from gpps._runtime import warp
@@ -63,13 +65,15 @@ def lobe_value(material: Material, name: str) -> float:
 
 def with_lobe(material: Material, values: dict) -> Material:
     """``material`` with the scene parameters ``values`` (``"eta"`` sets ``eta_u = eta_v``)."""
-    d = material.to_dict()
+    d = {}
     for k, v in values.items():
         if k == "eta":
             d["eta_u"] = d["eta_v"] = float(v)
         else:
             d[k] = float(v)
-    return Material.from_dict(d)
+    # (dataclasses.replace: the checks of Material.__post_init__ without a dict round trip of every
+    # field, which cost ~0.1 ms a candidate in the material search's loop)
+    return replace(material, **d)
 
 
 class StreamMaterial(Stage):
