@@ -37,6 +37,7 @@ Only device code lives here; allocation and orchestration are in
 """
 
 from gpps._taichi import ti
+from gpps.kernels.block_sum import BLOCK, block_total
 
 # indices into the scalar field ``sc``
 BB, ENERGY, ITS, TOTAL = range(4)
@@ -268,21 +269,6 @@ def _ap_fused_func(F: dict):
     return _ap_fused
 
 
-BLOCK = 128  # threads of a block in the block-sum CG build (a power of two)
-_LOG_BLOCK = BLOCK.bit_length() - 1
-
-
-@ti.func
-def _block_total(pad: ti.template(), tid):
-    """Tree sum of the block's ``pad[0..BLOCK)`` into ``pad[0]`` (every thread of the block must call it)."""
-    ti.simt.block.sync()
-    for k in ti.static(range(_LOG_BLOCK)):
-        stride = ti.static(BLOCK >> (k + 1))
-        if tid < stride:
-            pad[tid] += pad[tid + stride]
-        ti.simt.block.sync()
-
-
 def _cg_block_kernel(F: dict, unroll: int):
     """``cg`` with block sums (the CUDA build, see :func:`make_bini`): ``unroll`` gated Jacobi-PCG
     iterations, each two parallel loops over ``n`` rounded up to whole blocks (the extra threads add 0):
@@ -311,7 +297,7 @@ def _cg_block_kernel(F: dict, unroll: int):
                     pnew[p] = pp
                     pq = pp * s
                 pad[tid] = pq
-                _block_total(pad, tid)
+                block_total(pad, tid)
                 if tid == 0:
                     ti.atomic_add(ti.static(pqf[c])[0], pad[0])
                 if p == 0:
@@ -339,8 +325,8 @@ def _cg_block_kernel(F: dict, unroll: int):
                     rz = rv * zv
                 pr[tid] = rr
                 pz[tid] = rz
-                _block_total(pr, tid)
-                _block_total(pz, tid)
+                block_total(pr, tid)
+                block_total(pz, tid)
                 if tid == 0:
                     ti.atomic_add(ti.static(rrf[c])[0], pr[0])
                     ti.atomic_add(ti.static(rzf[c])[0], pz[0])

@@ -81,6 +81,7 @@ Solver = Literal["multigrid", "jacobi", "direct", "dct"]
 Weighting = Literal["uniform", "normal"]
 Robust = Literal["none", "cauchy", "curl"]
 DType = Literal["float32", "float64"]
+CgSums = Literal["auto", "block", "atomic"]
 Progress = Callable[[float, float, str], None]
 
 
@@ -136,6 +137,12 @@ class IntegratorConfig:
         omega: Jacobi damping.
         check_every: iterations between residual checks (the only host syncs).
         coarsest: coarsen while ``max(h, w) > coarsest``.
+        cg_sums: how the multigrid CG's float64 dot products are summed on the device
+            (:mod:`gpps.kernels.poisson`): ``"block"`` tree-reduces each sum per CUDA block in shared
+            memory with one atomic a block (CUDA only); ``"atomic"`` adds every pixel's term into the
+            scalar (Taichi's CPU threads keep these sums thread-local, but on CUDA it is one float64
+            atomic a pixel on one address, serialised); ``"auto"``: ``"block"`` on CUDA, ``"atomic"``
+            on the CPU.  Both give the same CG up to the order of the float64 additions.
     """
 
     solver: Solver = "multigrid"
@@ -157,6 +164,7 @@ class IntegratorConfig:
     omega: float = 0.8
     check_every: int = 2
     coarsest: int = 8
+    cg_sums: CgSums = "auto"
 
     def __post_init__(self):
         check_choices(self)
@@ -646,15 +654,25 @@ class Integrator(Stage):
         t2 = time.perf_counter()
         return u, its, res, {"rhs": t1 - t0, "solve": t2 - t1}
 
+    def _block_sums(self) -> bool:
+        """Whether the CG sums run in the block build (``IntegratorConfig.cg_sums``)."""
+        mode = self.config.cg_sums
+        cuda = _taichi.current_device().startswith("cuda")
+        if mode == "block" and not cuda:
+            raise ValueError(f"cg_sums: 'block' needs Taichi on CUDA (shared arrays are CUDA-only), "
+                             f"got device {_taichi.current_device()!r}")
+        return mode == "block" or (mode == "auto" and cuda)
+
     def _iterate(self, progress, tol) -> tuple[int, float]:
         """Solve the system in the fields (``b``, the levels, the start in ``z``) to ``tol``: Jacobi or
         multigrid-preconditioned CG, reading one float64 scalar every ``check_every`` iterations.
         Returns ``(iterations, relative residual)``; the solution is left in ``z``."""
         d, cfg = self._dev, self.config
         h, w = self.shape
+        blk = self._block_sums()
         # |b|^2
         d["r"].fill(0)
-        K.residual_norm(d["r"], d["b"], d["q"], d["wx"], d["wy"], d["dg"], d["sc"], h, w)
+        K.residual_norm(d["r"], d["b"], d["q"], d["wx"], d["wy"], d["dg"], d["sc"], h, w, blk)
         bb = float(d["sc"][K.RR])
         tol2 = (tol ** 2) * bb
         cap = cfg.iterations_cap
@@ -663,24 +681,24 @@ class Integrator(Stage):
             res = 0.0
         elif cfg.solver == "jacobi":
             pairs = 8
-            K.residual_norm(d["z"], d["b"], d["r"], d["wx"], d["wy"], d["dg"], d["sc"], h, w)
+            K.residual_norm(d["z"], d["b"], d["r"], d["wx"], d["wy"], d["dg"], d["sc"], h, w, blk)
             rr = float(d["sc"][K.RR])
             while rr > tol2 and its < cap:
                 K.smooth(d["z"], d["b"], d["t"], d["wx"], d["wy"], d["dg"], 0, h, w, cfg.omega, pairs)
                 its += 2 * pairs
                 if its % (2 * pairs * cfg.check_every) == 0 or its >= cap:
-                    K.residual_norm(d["z"], d["b"], d["r"], d["wx"], d["wy"], d["dg"], d["sc"], h, w)
+                    K.residual_norm(d["z"], d["b"], d["r"], d["wx"], d["wy"], d["dg"], d["sc"], h, w, blk)
                     rr = float(d["sc"][K.RR])
                     if progress is not None:
                         progress(min(its, cap), cap, f"jacobi residual {math.sqrt(rr / bb):.2e}")
             res = math.sqrt(rr / bb)
         else:
-            args = (d["wx"], d["wy"], d["dg"], d["sc"], h, w)
+            args = (d["wx"], d["wy"], d["dg"], d["sc"], h, w, blk)
             K.cg_start(d["z"], d["b"], d["r"], d["e"], d["f"], *args)
             rr = float(d["sc"][K.RR])
             if rr > tol2:
                 self._vcycle()
-                K.cg_first_direction(d["r"], d["e"], d["p"], d["sc"], h, w)
+                K.cg_first_direction(d["r"], d["e"], d["p"], d["sc"], h, w, blk)
                 while its < cap:
                     K.cg_step(d["z"], d["r"], d["p"], d["q"], d["e"], d["f"], *args)
                     its += 1
@@ -693,6 +711,6 @@ class Integrator(Stage):
                         if cfg.dtype == "float32" and rr > 0.8 * rr_prev and rr < 1e-8 * bb:
                             break  # stagnation at the float32 precision floor
                     self._vcycle()
-                    K.cg_direction(d["r"], d["e"], d["p"], d["sc"], h, w)
+                    K.cg_direction(d["r"], d["e"], d["p"], d["sc"], h, w, blk)
             res = math.sqrt(rr / bb)
         return its, res
