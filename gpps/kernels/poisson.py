@@ -18,7 +18,10 @@ coarse operator is rediscretised from the fine edge weights (see
 unrolled per kernel (``ti.static``) to keep launches few; the conjugate
 gradient scalars live in a small float64 device field (dot products are
 accumulated in float64 whatever the field precision) so the solve runs without
-host syncs except the periodic residual check.
+host syncs except the periodic residual check.  The kernels that sum (the
+conjugate gradient's and ``residual_norm``) have two builds, picked by their
+last argument: per-pixel ``sc[K] +=`` (the CPU) and per-block tree sums in
+shared memory (CUDA, :mod:`gpps.kernels.block_sum`), the same arithmetic.
 
 Only device code lives here; allocation and orchestration are in
 :mod:`gpps.pipeline.integration`.
