@@ -25,7 +25,7 @@ import numpy as np
 
 from gpps import _taichi
 from gpps._runtime import warp
-from gpps.kernels.ron import round_sums_kernel
+from gpps.kernels.ron import ROUND_CHUNK, round_sums_kernel
 from gpps.pipeline.integration import Integrator
 from gpps.pipeline.integration_rounds import DeviceSystem
 from gpps.pipeline.solver import PixelSolver
@@ -94,8 +94,9 @@ class DeviceRounds(Stage):
         wp = warp()
         s = self.solver
         self.sums.zero_()
-        wp.launch(round_sums_kernel, dim=s.shape[1], inputs=[self.mask, s.residual, s.normals, self.prev, self.sums],
-                  device=self.device)
+        h, w = s.shape[1:]
+        wp.launch(round_sums_kernel, dim=(h, (w + ROUND_CHUNK - 1) // ROUND_CHUNK),
+                  inputs=[self.mask, s.residual, s.normals, self.prev, self.sums], device=self.device)
         wp.copy(self.prev, s.normals)
 
     def fetch(self) -> dict:
