@@ -990,7 +990,7 @@ class RON:
         self._frame(images, solve_depth, valid)
         self._set_mask(m)
         s.step()
-        ls = s.fetch(_OUTPUTS)
+        ls = s.fetch(("normals",))  # (only the start normals are read)
         s.set_config(c.solver)
         timings["least_squares"] += time.perf_counter() - t
         start, highlight, dg = ls["normals"], np.zeros(m.shape, bool), None

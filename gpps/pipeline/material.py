@@ -160,6 +160,7 @@ class MaterialScorer(Stage):
         self.prm = solver_params(config)
         # warm steps: one start per pixel, from ``nwarm`` (set_start)
         self.prm_warm = solver_params(replace(config, warm_start=True, starts=1))
+        self._cmds: dict = {}  # recorded launches of _launch_chunk
         robust = config.robust if config.irls_rounds > 0 else "none"
         self._robust = robust
         parallel = check_choice("parallel", config.parallel if parallel is None else parallel, ParallelName)
@@ -440,18 +441,29 @@ class MaterialScorer(Stage):
     def _launch_chunk(self, k: int, a: int, b: int, *, warm: bool = False) -> None:
         """One launch: candidates ``0..k`` x sample pixels ``a..b``, cold (Woodham's start, the config's
         multi-start) or ``warm`` (one start from :meth:`set_start`'s normals)."""
-        ninit, prm = (self.nwarm, self.prm_warm) if warm else (self.ninit, self.prm)
-        wp = warp()
-        args = dict(inputs=[self._strip_k, self.base_weights, self.points, self.views, ninit, self.gmax,
-                            self.flags, self.lp, self.mats, prm, int(a)],
-                    outputs=[self._weights_k, self.normals, self.albedo, self.residual, self.iterations,
-                             self.flags_k],
-                    device=self.device)
-        if self._uses_lanes(k * int(b - a)):
-            lanes = block_lanes(self.device, LIGHT_LANES)
-            wp.launch(self._kernel_lanes, dim=(k, int(b - a), lanes), block_dim=lanes, **args)
-        else:
-            wp.launch(self._kernel, dim=(k, int(b - a)), **args)
+        lanes = self._uses_lanes(k * int(b - a))
+        key = (bool(warm), int(k), int(a), int(b), lanes)
+        cmd = self._cmds.get(key)
+        if cmd is None:
+            # recorded once per (warm, K, pixel range, build): the ~17 arguments (three structs) are packed
+            # once, not at every candidate batch of the search (the buffers never change: the candidates
+            # are read from ``mats``, the sample from the strip)
+            ninit, prm = (self.nwarm, self.prm_warm) if warm else (self.ninit, self.prm)
+            args = dict(inputs=[self._strip_k, self.base_weights, self.points, self.views, ninit, self.gmax,
+                                self.flags, self.lp, self.mats, prm, int(a)],
+                        outputs=[self._weights_k, self.normals, self.albedo, self.residual, self.iterations,
+                                 self.flags_k],
+                        device=self.device, record_cmd=True)
+            wp = warp()
+            if lanes:
+                nl = block_lanes(self.device, LIGHT_LANES)
+                cmd = wp.launch(self._kernel_lanes, dim=(k, int(b - a), nl), block_dim=nl, **args)
+            else:
+                cmd = wp.launch(self._kernel, dim=(k, int(b - a)), **args)
+            if len(self._cmds) >= 256:
+                self._cmds.clear()
+            self._cmds[key] = cmd
+        cmd.launch()
 
     def _uses_lanes(self, pairs: int) -> bool:
         """Whether a launch of ``pairs`` (candidate, pixel) solves runs the lights-parallel build."""
@@ -570,7 +582,7 @@ class MaterialScorer(Stage):
         """Release the device buffers; the scorer refuses work afterwards."""
         for name in ("strip", "strip_valid", "rows", "cols", "sample_depth", "noise", "base_weights", "points",
                      "views", "ninit", "nwarm", "gmax", "flags", "cond", "mats", "normals", "albedo", "residual",
-                     "iterations", "flags_k", "_strip_k", "_weights_k", "lp", "_no_depth", "_no_valid"):
+                     "iterations", "flags_k", "_strip_k", "_weights_k", "lp", "_no_depth", "_no_valid", "_cmds"):
             self.__dict__.pop(name, None)
         self._closed = True
 
