@@ -68,7 +68,7 @@ from gpps.host.dgmc import DGMCConfig
 from gpps.lights import PointLights
 from gpps.material import Material
 from gpps.names import LOBE_PARAMETERS, LOBE_RANGES
-from gpps.pipeline.dgmc import dgmc_start_device
+from gpps.pipeline.dgmc import DeviceDGMC
 from gpps.pipeline.front import propagate_front
 from gpps.pipeline.integration import Integrator, IntegratorConfig
 from gpps.pipeline.material import MaterialScorer
@@ -982,7 +982,8 @@ class RON:
 
     def _least_squares_and_dgmc(self, images, solve_depth, valid, timings):
         """The start (Algorithm 2's first step): least squares (Woodham), then DGMC's highlight pixels and
-        starts (4.16-4.18, on the device: :func:`gpps.pipeline.dgmc.dgmc_start_device`, the host's decisions).  Returns ``(start normals (H, W, 3), highlight (H, W) bool, DGMC result or None)``."""
+        starts (4.16-4.18, on the device: :class:`gpps.pipeline.dgmc.DeviceDGMC`, the host's decisions).  Returns
+        ``(start normals (H, W, 3), highlight (H, W) bool, DGMC start maps (DGMCStart) or None)``."""
         c, m = self.config, self.mask
         t = time.perf_counter()
         s = self.solver
@@ -1000,8 +1001,13 @@ class RON:
             nrm = ls["normals"].astype(np.float64)
             ok = m & (np.abs(np.linalg.norm(nrm, axis=-1) - 1.0) < 1e-3)
             nrm[~ok] = (0.0, 0.0, 1.0)
-            dg = dgmc_start_device(images, m, nrm, lights=self.lights, config=c.dgmc_config, points=pts,
-                                   device=self.device)
+            # RGB frames: DGMC copies the solver's uploaded frame on the device (the same float32 values);
+            # grey ones go up again (DGMC keeps one channel where the solver replicated it to three)
+            rgb = np.ndim(images) == 4 and np.shape(images)[-1] == 3
+            with DeviceDGMC(self.shape, config=c.dgmc_config, device=self.device) as stage:
+                stage.upload(self.solver.images if rgb else images, m, nrm, lights=self.lights, points=pts)
+                stage.step()
+                dg = stage.fetch_start()
             start, highlight = dg.normals.astype(np.float32), dg.highlight
             timings["dgmc"] += time.perf_counter() - t
         return start, highlight, dg

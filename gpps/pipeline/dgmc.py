@@ -16,6 +16,8 @@ median) and the percentile rule run on the device (:func:`warp.utils.radix_sort_
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from gpps._check import as_array, as_mask, check_unit
@@ -33,7 +35,7 @@ from gpps.lights import DirectionalLights, PointLights
 from gpps.pipeline.cpu_threads import balanced_bounds, cpu_threads, load_first, run_all
 from gpps.pipeline.stage import Stage
 
-__all__ = ["DeviceDGMC", "dgmc_start_device"]
+__all__ = ["DeviceDGMC", "DGMCStart", "dgmc_start_device"]
 
 # sweeps between two convergence checks of the geodesic relaxation (each check waits for the device)
 CHECK_EVERY = 8
@@ -385,6 +387,14 @@ class DeviceDGMC(Stage):
             config=self.config,
         )
 
+    def fetch_start(self) -> "DGMCStart":
+        """The part of the last step a reconstruction reads (:class:`DGMCStart`): four (H, W) maps come back
+        instead of :meth:`fetch`'s fourteen (RON's start, its front's curvature similarity)."""
+        self._check_open()
+        _, h, w = self.shape
+        return DGMCStart(normals=self.out_normals.numpy().reshape(h, w, 3), highlight=self.region.numpy().astype(bool),
+                         gaussian=self.gc.numpy().astype(np.float32), mean=self.mc.numpy().astype(np.float32))
+
     def close(self) -> None:
         """Release the device buffers."""
         for name in list(vars(self)):
@@ -395,6 +405,18 @@ class DeviceDGMC(Stage):
     def _check_open(self) -> None:
         if self._closed:
             raise RuntimeError("DeviceDGMC: the stage is closed")
+
+
+@dataclass(frozen=True)
+class DGMCStart:
+    """What :meth:`DeviceDGMC.fetch_start` returns (the fields of :class:`gpps.host.dgmc.DGMCResult` of the same
+    names): ``normals`` (H, W, 3) float32 start normals, ``highlight`` (H, W) bool region, ``gaussian`` and
+    ``mean`` (H, W) float32 curvatures (4.16)."""
+
+    normals: np.ndarray
+    highlight: np.ndarray
+    gaussian: np.ndarray
+    mean: np.ndarray
 
 
 def dgmc_start_device(images, mask, normals, *, lights=None, config: DGMCConfig | None = None, points=None,
