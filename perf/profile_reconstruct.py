@@ -58,9 +58,10 @@ def _trace(call) -> dict:
         t0 = e.time_range.start
         t1 = e.time_range.end
         spans.append((t0, t1))
-        d = per.setdefault(e.name[:120], [0, 0.0])
+        d = per.setdefault(e.name[:120], [0, 0.0, []])
         d[0] += 1
         d[1] += (t1 - t0) * 1e-6
+        d[2].append(round((t1 - t0) * 1e-3, 2))
     spans.sort()
     busy, cur0, cur1 = 0.0, None, None
     for t0, t1 in spans:
@@ -72,7 +73,9 @@ def _trace(call) -> dict:
             cur1 = max(cur1, t1)
     if cur1 is not None:
         busy += cur1 - cur0
-    rows = sorted(({"name": k, "count": v[0], "gpu_s": v[1]} for k, v in per.items()), key=lambda r: -r["gpu_s"])
+    # each launch's duration (us, in launch order) for the kernels that took 1 ms or more in all
+    rows = sorted(({"name": k, "count": v[0], "gpu_s": v[1], **({"launches_us": v[2]} if v[1] >= 1e-3 else {})}
+                   for k, v in per.items()), key=lambda r: -r["gpu_s"])
     return {"wall_s": wall, "gpu_busy_s": busy * 1e-6, "events": len(spans),
             "span_s": (spans[-1][1] - spans[0][0]) * 1e-6 if spans else 0.0, "kernels": rows}
 
