@@ -61,10 +61,11 @@ def _jacobi_point(src: ti.template(), f: ti.template(), wx: ti.template(), wy: t
     return v
 
 
-@ti.kernel
-def smooth(e: ti.template(), f: ti.template(), t: ti.template(), wx: ti.template(), wy: ti.template(),
-           dg: ti.template(), off: ti.i32, h: ti.i32, w: ti.i32, omega: ti.template(), npairs: ti.template()):
-    """``2 * npairs`` damped Jacobi sweeps on ``A e = f`` (ping-pong through t)."""
+@ti.func
+def _sweeps(e: ti.template(), f: ti.template(), t: ti.template(), wx: ti.template(), wy: ti.template(),
+            dg: ti.template(), off: ti.template(), h: ti.template(), w: ti.template(), omega: ti.template(),
+            npairs: ti.template()):
+    """``2 * npairs`` damped Jacobi sweeps on ``A e = f`` at one level (ping-pong through t)."""
     for _ in ti.static(range(npairs)):
         for i, j in ti.ndrange(h, w):
             t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, omega)
@@ -72,16 +73,12 @@ def smooth(e: ti.template(), f: ti.template(), t: ti.template(), wx: ti.template
             e[i, off + j] = _jacobi_point(t, f, wx, wy, dg, i, j, off, h, w, omega)
 
 
-@ti.kernel
-def down(e: ti.template(), f: ti.template(), t: ti.template(), wx: ti.template(), wy: ti.template(),
-         dg: ti.template(), off: ti.i32, h: ti.i32, w: ti.i32, offc: ti.i32, hc: ti.i32, wc: ti.i32,
-         omega: ti.template(), npairs: ti.template()):
+@ti.func
+def _down(e: ti.template(), f: ti.template(), t: ti.template(), wx: ti.template(), wy: ti.template(),
+          dg: ti.template(), off: ti.template(), h: ti.template(), w: ti.template(), offc: ti.template(),
+          hc: ti.template(), wc: ti.template(), omega: ti.template(), npairs: ti.template()):
     """V-cycle descent at one level: pre-smooth from e = 0, residual, restrict."""
-    for _ in ti.static(range(npairs)):
-        for i, j in ti.ndrange(h, w):
-            t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, omega)
-        for i, j in ti.ndrange(h, w):
-            e[i, off + j] = _jacobi_point(t, f, wx, wy, dg, i, j, off, h, w, omega)
+    _sweeps(e, f, t, wx, wy, dg, off, h, w, omega, npairs)
     for i, j in ti.ndrange(h, w):
         d = dg[i, off + j]
         r = f[i, off + j] * 0
@@ -100,28 +97,53 @@ def down(e: ti.template(), f: ti.template(), t: ti.template(), wx: ti.template()
         e[ci, offc + cj] = 0
 
 
-@ti.kernel
-def up(e: ti.template(), f: ti.template(), t: ti.template(), wx: ti.template(), wy: ti.template(),
-       dg: ti.template(), off: ti.i32, h: ti.i32, w: ti.i32, offc: ti.i32, omega: ti.template(), npairs: ti.template()):
+@ti.func
+def _up(e: ti.template(), f: ti.template(), t: ti.template(), wx: ti.template(), wy: ti.template(),
+        dg: ti.template(), off: ti.template(), h: ti.template(), w: ti.template(), offc: ti.template(),
+        omega: ti.template(), npairs: ti.template()):
     """V-cycle ascent at one level: add the injected coarse correction, post-smooth."""
     for i, j in ti.ndrange(h, w):
         if dg[i, off + j] > 0:
             e[i, off + j] += e[i // 2, offc + j // 2]
-    for _ in ti.static(range(npairs)):
-        for i, j in ti.ndrange(h, w):
-            t[i, off + j] = _jacobi_point(e, f, wx, wy, dg, i, j, off, h, w, omega)
-        for i, j in ti.ndrange(h, w):
-            e[i, off + j] = _jacobi_point(t, f, wx, wy, dg, i, j, off, h, w, omega)
+    _sweeps(e, f, t, wx, wy, dg, off, h, w, omega, npairs)
 
 
-@ti.kernel
-def coarse_exact(e: ti.template(), f: ti.template(), cidx: ti.template(), pinv: ti.template(), n: ti.i32):
+@ti.func
+def _coarse_exact(e: ti.template(), f: ti.template(), cidx: ti.template(), pinv: ti.template(), n: ti.template()):
     """e = pinv(A_c) f on the coarsest level's n active cells (dense, exact)."""
     for k in range(n):
         s = f[cidx[k, 0], cidx[k, 1]] * 0
         for m in range(n):
             s += pinv[k, m] * f[cidx[m, 0], cidx[m, 1]]
         e[cidx[k, 0], cidx[k, 1]] = s
+
+
+@ti.kernel
+def smooth(e: ti.template(), f: ti.template(), t: ti.template(), wx: ti.template(), wy: ti.template(),
+           dg: ti.template(), off: ti.i32, h: ti.i32, w: ti.i32, omega: ti.template(), npairs: ti.template()):
+    """``2 * npairs`` damped Jacobi sweeps on ``A e = f`` (ping-pong through t)."""
+    _sweeps(e, f, t, wx, wy, dg, off, h, w, omega, npairs)
+
+
+@ti.kernel
+def down(e: ti.template(), f: ti.template(), t: ti.template(), wx: ti.template(), wy: ti.template(),
+         dg: ti.template(), off: ti.i32, h: ti.i32, w: ti.i32, offc: ti.i32, hc: ti.i32, wc: ti.i32,
+         omega: ti.template(), npairs: ti.template()):
+    """V-cycle descent at one level (:func:`_down`)."""
+    _down(e, f, t, wx, wy, dg, off, h, w, offc, hc, wc, omega, npairs)
+
+
+@ti.kernel
+def up(e: ti.template(), f: ti.template(), t: ti.template(), wx: ti.template(), wy: ti.template(),
+       dg: ti.template(), off: ti.i32, h: ti.i32, w: ti.i32, offc: ti.i32, omega: ti.template(), npairs: ti.template()):
+    """V-cycle ascent at one level (:func:`_up`)."""
+    _up(e, f, t, wx, wy, dg, off, h, w, offc, omega, npairs)
+
+
+@ti.kernel
+def coarse_exact(e: ti.template(), f: ti.template(), cidx: ti.template(), pinv: ti.template(), n: ti.i32):
+    """e = pinv(A_c) f on the coarsest level's n active cells (dense, exact)."""
+    _coarse_exact(e, f, cidx, pinv, n)
 
 
 # ----------------------------------------------------------------------------- conjugate gradient (level 0)
@@ -223,10 +245,10 @@ def residual_norm(x: ti.template(), b: ti.template(), r: ti.template(), wx: ti.t
             sc[RR] += _sq(v)
 
 
-@ti.kernel
-def cg_start(x: ti.template(), b: ti.template(), r: ti.template(), e: ti.template(), f: ti.template(),
-             wx: ti.template(), wy: ti.template(), dg: ti.template(), sc: ti.template(), h: ti.i32, w: ti.i32,
-             block: ti.template()):
+@ti.func
+def _cg_start(x: ti.template(), b: ti.template(), r: ti.template(), e: ti.template(), f: ti.template(),
+              wx: ti.template(), wy: ti.template(), dg: ti.template(), sc: ti.template(), h: ti.template(),
+              w: ti.template(), block: ti.template()):
     """r = b - A x, sc[RR] = |r|^2, and the preconditioner input f_0 = r, e_0 = 0."""
     sc[RR] = 0
     if ti.static(block):
@@ -242,9 +264,9 @@ def cg_start(x: ti.template(), b: ti.template(), r: ti.template(), e: ti.templat
             sc[RR] += _start_point(x, b, r, e, f, wx, wy, dg, i, j, h, w)
 
 
-@ti.kernel
-def cg_first_direction(r: ti.template(), e: ti.template(), p: ti.template(), sc: ti.template(), h: ti.i32,
-                       w: ti.i32, block: ti.template()):
+@ti.func
+def _cg_first_direction(r: ti.template(), e: ti.template(), p: ti.template(), sc: ti.template(), h: ti.template(),
+                        w: ti.template(), block: ti.template()):
     """p = M r (already in e), sc[RZ] = r . M r."""
     sc[RZ] = 0
     if ti.static(block):
@@ -263,10 +285,10 @@ def cg_first_direction(r: ti.template(), e: ti.template(), p: ti.template(), sc:
             sc[RZ] += _mul(r[i, j], e[i, j])
 
 
-@ti.kernel
-def cg_step(x: ti.template(), r: ti.template(), p: ti.template(), q: ti.template(), e: ti.template(),
-            f: ti.template(), wx: ti.template(), wy: ti.template(), dg: ti.template(), sc: ti.template(),
-            h: ti.i32, w: ti.i32, block: ti.template()):
+@ti.func
+def _cg_step(x: ti.template(), r: ti.template(), p: ti.template(), q: ti.template(), e: ti.template(),
+             f: ti.template(), wx: ti.template(), wy: ti.template(), dg: ti.template(), sc: ti.template(),
+             h: ti.template(), w: ti.template(), block: ti.template()):
     """q = A p; alpha = rz / p.q; x += alpha p; r -= alpha q; f_0 = r, e_0 = 0; sc[RR] = |r|^2."""
     sc[PQ] = 0
     if ti.static(block):
@@ -297,9 +319,9 @@ def cg_step(x: ti.template(), r: ti.template(), p: ti.template(), q: ti.template
             sc[RR] += _update_point(x, r, p, q, e, f, ti.cast(sc[ALPHA], x.dtype), i, j)
 
 
-@ti.kernel
-def cg_direction(r: ti.template(), e: ti.template(), p: ti.template(), sc: ti.template(), h: ti.i32, w: ti.i32,
-                 block: ti.template()):
+@ti.func
+def _cg_direction(r: ti.template(), e: ti.template(), p: ti.template(), sc: ti.template(), h: ti.template(),
+                  w: ti.template(), block: ti.template()):
     """rz' = r . M r; p = M r + (rz'/rz) p; rz = rz'."""
     sc[RZN] = 0
     if ti.static(block):
@@ -320,6 +342,91 @@ def cg_direction(r: ti.template(), e: ti.template(), p: ti.template(), sc: ti.te
     bt = ti.cast(beta, p.dtype)
     for i, j in ti.ndrange(h, w):
         p[i, j] = e[i, j] + bt * p[i, j]
+
+
+@ti.kernel
+def cg_start(x: ti.template(), b: ti.template(), r: ti.template(), e: ti.template(), f: ti.template(),
+             wx: ti.template(), wy: ti.template(), dg: ti.template(), sc: ti.template(), h: ti.i32, w: ti.i32,
+             block: ti.template()):
+    """r = b - A x, sc[RR] = |r|^2, and the preconditioner input f_0 = r, e_0 = 0 (:func:`_cg_start`)."""
+    _cg_start(x, b, r, e, f, wx, wy, dg, sc, h, w, block)
+
+
+@ti.kernel
+def cg_first_direction(r: ti.template(), e: ti.template(), p: ti.template(), sc: ti.template(), h: ti.i32,
+                       w: ti.i32, block: ti.template()):
+    """p = M r (already in e), sc[RZ] = r . M r (:func:`_cg_first_direction`)."""
+    _cg_first_direction(r, e, p, sc, h, w, block)
+
+
+@ti.kernel
+def cg_step(x: ti.template(), r: ti.template(), p: ti.template(), q: ti.template(), e: ti.template(),
+            f: ti.template(), wx: ti.template(), wy: ti.template(), dg: ti.template(), sc: ti.template(),
+            h: ti.i32, w: ti.i32, block: ti.template()):
+    """q = A p; alpha = rz / p.q; x += alpha p; r -= alpha q; f_0 = r, e_0 = 0; sc[RR] = |r|^2 (:func:`_cg_step`)."""
+    _cg_step(x, r, p, q, e, f, wx, wy, dg, sc, h, w, block)
+
+
+@ti.kernel
+def cg_direction(r: ti.template(), e: ti.template(), p: ti.template(), sc: ti.template(), h: ti.i32, w: ti.i32,
+                 block: ti.template()):
+    """rz' = r . M r; p = M r + (rz'/rz) p; rz = rz' (:func:`_cg_direction`)."""
+    _cg_direction(r, e, p, sc, h, w, block)
+
+
+# ----------------------------------------------------------------------------- fused PCG launches
+#
+# The kernels above launch one step each: a PCG iteration is cg_step, the V-cycle (down per level,
+# coarse_exact, up per level) and cg_direction, ~13 Taichi launches, and Taichi 1.7 spends ~60-100 us
+# of host time on each call (it re-derives every argument), more than the GPU spends on the iteration
+# at 256^2.  The two kernels below compose the same ti.funcs into one launch: Taichi runs a kernel's
+# top-level loops and serial statements as consecutive tasks with a global barrier between them, so
+# the arithmetic and its order are those of the separate kernels.  The level geometry ``geom`` is a
+# compile-time tuple ``((off, h, w), ...)`` per level, finest first (one compile per mask size), so the
+# V-cycle unrolls with ``ti.static``.
+
+
+@ti.func
+def _vcycle(e: ti.template(), f: ti.template(), t: ti.template(), wx: ti.template(), wy: ti.template(),
+            dg: ti.template(), cidx: ti.template(), pinv: ti.template(), nc: ti.template(), geom: ti.template(),
+            omega: ti.template(), npairs: ti.template()):
+    """One V-cycle e = M f at level 0: down per level, the coarsest level's exact solve, up per level."""
+    for k in ti.static(range(len(geom) - 1)):
+        _down(e, f, t, wx, wy, dg, ti.static(geom[k][0]), ti.static(geom[k][1]), ti.static(geom[k][2]),
+              ti.static(geom[k + 1][0]), ti.static(geom[k + 1][1]), ti.static(geom[k + 1][2]), omega, npairs)
+    _coarse_exact(e, f, cidx, pinv, nc)
+    for k in ti.static(range(len(geom) - 2, -1, -1)):
+        _up(e, f, t, wx, wy, dg, ti.static(geom[k][0]), ti.static(geom[k][1]), ti.static(geom[k][2]),
+            ti.static(geom[k + 1][0]), omega, npairs)
+
+
+@ti.kernel
+def pcg_start(x: ti.template(), b: ti.template(), r: ti.template(), e: ti.template(), f: ti.template(),
+              t: ti.template(), p: ti.template(), wx: ti.template(), wy: ti.template(), dg: ti.template(),
+              sc: ti.template(), cidx: ti.template(), pinv: ti.template(), nc: ti.i32, geom: ti.template(),
+              omega: ti.template(), npairs: ti.template(), block: ti.template()):
+    """The PCG's start in one launch: :func:`_cg_start`, the first V-cycle, :func:`_cg_first_direction`.
+
+    ``geom``: ((off, h, w), ...) per level, finest first (level 0 is the (h, w) image); ``nc``: active
+    cells of the coarsest level (rows of ``pinv`` and ``cidx`` in use).
+    """
+    _cg_start(x, b, r, e, f, wx, wy, dg, sc, ti.static(geom[0][1]), ti.static(geom[0][2]), block)
+    _vcycle(e, f, t, wx, wy, dg, cidx, pinv, nc, geom, omega, npairs)
+    _cg_first_direction(r, e, p, sc, ti.static(geom[0][1]), ti.static(geom[0][2]), block)
+
+
+@ti.kernel
+def pcg_iteration(x: ti.template(), r: ti.template(), p: ti.template(), q: ti.template(), e: ti.template(),
+                  f: ti.template(), t: ti.template(), wx: ti.template(), wy: ti.template(), dg: ti.template(),
+                  sc: ti.template(), cidx: ti.template(), pinv: ti.template(), nc: ti.i32, geom: ti.template(),
+                  omega: ti.template(), npairs: ti.template(), block: ti.template()):
+    """One PCG iteration in one launch: :func:`_cg_step` (sc[RR] = |r|^2 for the host's check), the
+    V-cycle, :func:`_cg_direction` (arguments as :func:`pcg_start`).  The V-cycle and the new direction
+    touch neither ``x`` nor sc[RR], so stopping after this launch leaves the same solution as stopping
+    after cg_step alone."""
+    _cg_step(x, r, p, q, e, f, wx, wy, dg, sc, ti.static(geom[0][1]), ti.static(geom[0][2]), block)
+    _vcycle(e, f, t, wx, wy, dg, cidx, pinv, nc, geom, omega, npairs)
+    _cg_direction(r, e, p, sc, ti.static(geom[0][1]), ti.static(geom[0][2]), block)
 
 
 # ----------------------------------------------------------------------------- right-hand side on the device

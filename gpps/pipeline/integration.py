@@ -82,6 +82,7 @@ Weighting = Literal["uniform", "normal"]
 Robust = Literal["none", "cauchy", "curl"]
 DType = Literal["float32", "float64"]
 CgSums = Literal["auto", "block", "atomic"]
+Launch = Literal["fused", "per-level"]
 Progress = Callable[[float, float, str], None]
 
 
@@ -143,6 +144,11 @@ class IntegratorConfig:
             scalar (Taichi's CPU threads keep these sums thread-local, but on CUDA it is one float64
             atomic a pixel on one address, serialised); ``"auto"``: ``"block"`` on CUDA, ``"atomic"``
             on the CPU.  Both give the same CG up to the order of the float64 additions.
+        launch: how the multigrid PCG is launched: ``"fused"``: one Taichi launch an iteration (cg_step,
+            the V-cycle over every level, cg_direction; :func:`gpps.kernels.poisson.pcg_iteration`) and
+            one for the start; ``"per-level"``: one launch per step and level (~13 an iteration).  The
+            same arithmetic in the same order; fused saves Taichi's host time per launch (60-100 us a
+            call on an H100's host, more than the GPU's 0.6 ms iteration at 256^2 spends in 13 calls).
     """
 
     solver: Solver = "multigrid"
@@ -165,6 +171,7 @@ class IntegratorConfig:
     check_every: int = 2
     coarsest: int = 8
     cg_sums: CgSums = "auto"
+    launch: Launch = "fused"
 
     def __post_init__(self):
         check_choices(self)
@@ -611,6 +618,11 @@ class Integrator(Stage):
         d["nc"] = nc
         self._levels_key = key
 
+    def _geometry(self) -> tuple:
+        """The level layout ``((off, h, w), ...)``, finest first, as the fused kernels' compile-time tuple."""
+        d = self._dev
+        return tuple((int(o), int(hh), int(ww)) for o, (hh, ww) in zip(d["offs"], d["shapes"]))
+
     def _vcycle(self):
         d, cfg = self._dev, self.config
         sh, of = d["shapes"], d["offs"]
@@ -663,6 +675,43 @@ class Integrator(Stage):
                              f"got device {_taichi.current_device()!r}")
         return mode == "block" or (mode == "auto" and cuda)
 
+    def _pcg_launches(self, blk: bool):
+        """``(start, iteration)`` closures of the multigrid PCG (``IntegratorConfig.launch``).
+
+        ``start``: r = b - A z, sc[RR] = |r|^2, the first V-cycle and direction (sc[RZ]); ``iteration``:
+        cg_step (sc[RR] = the new |r|^2), the V-cycle, the new direction.  Stopping after ``iteration``
+        leaves the solution of stopping after its cg_step (the V-cycle and cg_direction do not touch z
+        or sc[RR]); the per-level form runs ``start``'s V-cycle and ``iteration``'s after cg_step in the
+        same order, so both launch forms compute the same sequence.
+        """
+        d, cfg = self._dev, self.config
+        h, w = self.shape
+        if cfg.launch == "fused":
+            geom = self._geometry()
+            lv = (d["wx"], d["wy"], d["dg"], d["sc"], d["cidx"], d["pinv"], d["nc"], geom, cfg.omega,
+                  cfg.smooth_pairs, blk)
+
+            def start():
+                K.pcg_start(d["z"], d["b"], d["r"], d["e"], d["f"], d["t"], d["p"], *lv)
+
+            def iteration():
+                K.pcg_iteration(d["z"], d["r"], d["p"], d["q"], d["e"], d["f"], d["t"], *lv)
+
+            return start, iteration
+        args = (d["wx"], d["wy"], d["dg"], d["sc"], h, w, blk)
+
+        def start():
+            K.cg_start(d["z"], d["b"], d["r"], d["e"], d["f"], *args)
+            self._vcycle()
+            K.cg_first_direction(d["r"], d["e"], d["p"], d["sc"], h, w, blk)
+
+        def iteration():
+            K.cg_step(d["z"], d["r"], d["p"], d["q"], d["e"], d["f"], *args)
+            self._vcycle()
+            K.cg_direction(d["r"], d["e"], d["p"], d["sc"], h, w, blk)
+
+        return start, iteration
+
     def _iterate(self, progress, tol) -> tuple[int, float]:
         """Solve the system in the fields (``b``, the levels, the start in ``z``) to ``tol``: Jacobi or
         multigrid-preconditioned CG, reading one float64 scalar every ``check_every`` iterations.
@@ -693,14 +742,12 @@ class Integrator(Stage):
                         progress(min(its, cap), cap, f"jacobi residual {math.sqrt(rr / bb):.2e}")
             res = math.sqrt(rr / bb)
         else:
-            args = (d["wx"], d["wy"], d["dg"], d["sc"], h, w, blk)
-            K.cg_start(d["z"], d["b"], d["r"], d["e"], d["f"], *args)
+            start, iteration = self._pcg_launches(blk)
+            start()
             rr = float(d["sc"][K.RR])
             if rr > tol2:
-                self._vcycle()
-                K.cg_first_direction(d["r"], d["e"], d["p"], d["sc"], h, w, blk)
                 while its < cap:
-                    K.cg_step(d["z"], d["r"], d["p"], d["q"], d["e"], d["f"], *args)
+                    iteration()
                     its += 1
                     if its % cfg.check_every == 0 or its >= cap:
                         rr_prev, rr = rr, float(d["sc"][K.RR])  # the only host sync
@@ -710,7 +757,5 @@ class Integrator(Stage):
                             break
                         if cfg.dtype == "float32" and rr > 0.8 * rr_prev and rr < 1e-8 * bb:
                             break  # stagnation at the float32 precision floor
-                    self._vcycle()
-                    K.cg_direction(d["r"], d["e"], d["p"], d["sc"], h, w, blk)
             res = math.sqrt(rr / bb)
         return its, res
