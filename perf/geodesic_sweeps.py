@@ -1,0 +1,112 @@
+"""DGMC's geodesic K-nearest-boundary sweeps (``DeviceDGMC._geodesics``) on the 256^2 x 3 reconstruct case.
+
+The case is ``perf/profile_reconstruct.py``'s ``_synthetic``: perspective Cook-Torrance bumps, 3 directional lights
+on a ring, 16-bit, material "cook-torrance" to estimate.  One warm ``gpps.reconstruct`` call records the exact
+arguments it passes to :func:`gpps.pipeline.dgmc.dgmc_start_device`; a :class:`DeviceDGMC` built once on them
+runs ``upload`` + highlights + regions, then ``_geodesics`` is timed (median of ``--repeat`` after one warm-up,
+device-synchronised): total, sweeps and time per sweep.  The converged lists' SHA-256 is written too, so two
+versions of the kernels can be checked for identical lists.  Then ``--reconstruct`` warm ``gpps.reconstruct``
+calls give the median wall time and the median DGMC stage time (``timings["dgmc"]``).
+
+Usage:  python perf/geodesic_sweeps.py [--device cpu] [--size 256] [--repeat 5] [--reconstruct 3] [--name NAME]
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import statistics
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "perf"))
+
+from _common import write_results  # noqa: E402
+
+import gpps  # noqa: E402
+import gpps.flows.ron as ron  # noqa: E402
+
+
+def _case(size: int, n: int, device):
+    sc = gpps.make_scene("bumps", size, "perspective")
+    L = gpps.default_lights("directional", n, layout="ring" if n <= 4 else "spiral")
+    true = gpps.Material("cook-torrance", ks=0.8, roughness=0.2, f0=0.5)
+    img = gpps.render(sc, true, L, bits=16, device=device) / L.intensities[:, None, None, :]
+    lu = gpps.DirectionalLights(L.directions)
+
+    def call():
+        rec = gpps.reconstruct(img, sc.mask, lu, camera=sc.camera, material="cook-torrance", device=device)
+        return rec.timings, float(gpps.normal_errors(rec.normals, sc.normals, sc.mask)["mean"])
+    return call
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--images", type=int, default=3)
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--reconstruct", type=int, default=3, help="warm reconstruct calls (0: skip)")
+    ap.add_argument("--name", default="geodesic_sweeps")
+    a = ap.parse_args(argv)
+
+    from gpps._runtime import warp
+    from gpps.pipeline.dgmc import DeviceDGMC
+
+    wp = warp()
+    call = _case(a.size, a.images, a.device)
+    seen = {}
+    orig = ron.dgmc_start_device
+
+    def spy(images, mask, normals, **kw):
+        seen.update(images=images, mask=mask, normals=normals, kw=kw)
+        return orig(images, mask, normals, **kw)
+
+    ron.dgmc_start_device = spy
+    try:
+        call()  # cold: compiles; records DGMC's arguments
+    finally:
+        ron.dgmc_start_device = orig
+    kw = dict(seen["kw"])
+    cfg, device = kw.pop("config", None), kw.pop("device", a.device)
+    imgs = seen["images"]
+    st = DeviceDGMC(imgs.shape[:3], config=cfg, device=device)
+    st.upload(imgs, seen["mask"], seen["normals"], **kw)
+    st._highlights()
+    st._regions()
+    sync = lambda: wp.synchronize_device(device)  # noqa: E731
+    st._geodesics()  # warm-up
+    sync()
+    ts = []
+    for _ in range(a.repeat):
+        t = time.perf_counter()
+        st._geodesics()
+        sync()
+        ts.append(time.perf_counter() - t)
+    total = statistics.median(ts)
+    lists = hashlib.sha256(st.keys[0].numpy().tobytes() + st.srcs[0].numpy().tobytes()).hexdigest()
+    region = st.region.numpy().astype(bool)
+    row = {"size": a.size, "images": a.images, "k_nearest": int(st.config.k_nearest),
+           "region_pixels": int(region.sum()), "sweeps": int(st.sweeps),
+           "geodesics_s": total, "geodesics_runs_s": ts, "per_sweep_s": total / max(st.sweeps, 1),
+           "lists_sha256": lists}
+    print({k: v for k, v in row.items() if k != "geodesics_runs_s"}, flush=True)
+    if a.reconstruct:
+        walls, dgmc, maen = [], [], None
+        for _ in range(a.reconstruct):
+            t = time.perf_counter()
+            timings, maen = call()
+            walls.append(time.perf_counter() - t)
+            dgmc.append(float(timings["dgmc"]))
+        row.update(reconstruct_s=statistics.median(walls), reconstruct_runs_s=walls,
+                   dgmc_stage_s=statistics.median(dgmc), dgmc_stage_runs_s=dgmc, maen_deg=maen)
+        print({k: row[k] for k in ("reconstruct_s", "dgmc_stage_s", "maen_deg")}, flush=True)
+    path = write_results(a.name, device, {"command": " ".join(sys.argv), "rows": [row]})
+    print(path)
+
+
+if __name__ == "__main__":
+    main()
