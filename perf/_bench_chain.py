@@ -10,7 +10,8 @@ the stream), 16-bit with 0.5 % noise, divided by the light intensities.  Rows (`
 * ``dgmc_highlight``: one launch of :func:`gpps.kernels.dgmc.highlight_kernel` (moments + rank-one
   downdates, every flagging round);
 * ``dgmc_geodesic_sweep``: one min-plus sweep (``geodesic_relax_kernel`` with every region pixel active,
-  as in the first sweeps, + ``geodesic_copy_kernel``), from the converged lists: the sweep's full work;
+  as in the first sweeps; the stage ping-pongs the two list buffers, no copy), from the converged lists: the
+  sweep's full work;
 * ``dgmc_start_search``: one launch of ``select_kernel`` (4.17-4.18);
 * ``scorer_solve_<N>img``: one launch of the material scorer's batched solve
   (:mod:`gpps.kernels.solve_batched`, as :meth:`MaterialScorer.step` launches it) for K candidates x P
@@ -220,16 +221,12 @@ def dgmc_rows(ctx, n_images):
             extra={**info, "mean_rounds": float(np.mean(f + 1)),
                    "summary": f"{np.mean(f + 1):.2f} rounds/px, {int(f.sum())} flags"})
 
-    conn = int(cfg.connectivity)
-
-    def sweep():
+    def sweep():  # reads the converged lists (keys[0]) and writes the same lists into keys[1]
         wp.launch(dg.geodesic_relax_kernel, dim=(h, w),
-                  inputs=[st.mask, st.region, st.labels, conn, 1, st.keys[0], st.srcs[0], st.changed[0],
-                          st.keys[1], st.srcs[1], st.changed[1], st.counter, 0, 0], device=ctx.device)
-        wp.launch(dg.geodesic_copy_kernel, dim=(h, w),
-                  inputs=[st.changed[1], st.keys[1], st.srcs[1], st.keys[0], st.srcs[0], 0], device=ctx.device)
+                  inputs=[st.slots, 1, st.keys[0], st.srcs[0], st.changed[0], st.keys[1], st.srcs[1], st.changed[1],
+                          st.counter, 0, 0], device=ctx.device)
 
-    t = _time_or_register(ctx, "dgmc_geodesic_sweep", "geodesic_(relax|copy)_kernel", sweep, inner=10, per_launch=2)
+    t = _time_or_register(ctx, "dgmc_geodesic_sweep", "geodesic_relax_kernel", sweep, inner=10)
     srcs = st.srcs[0].numpy()
     k = srcs.shape[2]
     filled = (srcs >= 0).sum(-1)
@@ -241,7 +238,7 @@ def dgmc_rows(ctx, n_images):
             extra={**info, "region_pixels": int(c.size), "mean_list_length": float(c.mean()) if c.size else 0.0,
                    "changed_in_timed_sweeps": changed,
                    "summary": f"{c.size} region px, lists {c.mean() if c.size else 0:.1f}/{k}",
-                   "note": "every region pixel active (first-sweep work) on the converged lists; relax + copy"})
+                   "note": "every region pixel active (first-sweep work) on the converged lists; one relax launch"})
 
     def select():
         st._select()

@@ -12,7 +12,7 @@ NO_KEY = wp.constant(2147483647)
 
 vec8i = wp.types.vector(length=8, dtype=wp.int32)
 vec8d = wp.types.vector(length=8, dtype=wp.float64)
-# the 8 neighbour offsets in raster order (the order of the slots of geodesic_relax_kernel)
+# the 8 neighbour offsets in raster order (the order of the slots of geodesic_slots_kernel / geodesic_relax_kernel)
 OFF_I = wp.constant(vec8i(-1, -1, -1, 0, 0, 1, 1, 1))
 OFF_J = wp.constant(vec8i(-1, 0, 1, -1, 1, -1, 0, 1))
 
@@ -143,9 +143,36 @@ def borders(mask: wp.array2d(dtype=wp.uint8), region: wp.array2d(dtype=wp.uint8)
     return False
 
 
-@wp.kernel
-def geodesic_relax_kernel(mask: wp.array2d(dtype=wp.uint8), region: wp.array2d(dtype=wp.uint8),
-                          labels: wp.array2d(dtype=wp.int32), conn: int, first: int,
+@wp.kernel(enable_backward=False)
+def geodesic_slots_kernel(mask: wp.array2d(dtype=wp.uint8), region: wp.array2d(dtype=wp.uint8),
+                          labels: wp.array2d(dtype=wp.int32), conn: int, slots: wp.array2d(dtype=wp.int32)):
+    """The kinds of the 8 neighbour slots of every region pixel, once before the sweeps (they depend only on the
+    labels): bits ``2 sl, 2 sl + 1`` of ``slots[i, j]`` hold slot ``sl``'s kind (raster order of OFF_I / OFF_J):
+    1 = a list (same region), 2 = one direct source (a pixel on the region's outer boundary, :func:`borders`),
+    0 = none; -1 off the region."""
+    i, j = wp.tid()
+    h = mask.shape[0]
+    w = mask.shape[1]
+    if region[i, j] == wp.uint8(0):
+        slots[i, j] = -1
+        return
+    lab = labels[i, j]
+    code = int(0)
+    for sl in range(8):
+        a = i + OFF_I[sl]
+        b = j + OFF_J[sl]
+        sk = int(0)
+        if a >= 0 and a < h and b >= 0 and b < w:
+            if labels[a, b] == lab:
+                sk = 1
+            elif borders(mask, region, labels, conn, a, b, lab):
+                sk = 2
+        code = code | (sk << (2 * sl))
+    slots[i, j] = code
+
+
+@wp.kernel(enable_backward=False)
+def geodesic_relax_kernel(slots: wp.array2d(dtype=wp.int32), first: int,
                           old_key: wp.array3d(dtype=wp.int32), old_src: wp.array3d(dtype=wp.int32),
                           prev_changed: wp.array2d(dtype=wp.int32),
                           new_key: wp.array3d(dtype=wp.int32), new_src: wp.array3d(dtype=wp.int32),
@@ -153,10 +180,13 @@ def geodesic_relax_kernel(mask: wp.array2d(dtype=wp.uint8), region: wp.array2d(d
                           part: int):
     """One Jacobi min-plus sweep of the K-nearest-boundary lists (module docstring).
 
-    A region pixel whose 8 neighbours did not change in the previous sweep (and not the first sweep) is skipped:
-    its list cannot change (new == old for it, kept so by :func:`geodesic_copy_kernel`).
+    A region pixel none of whose 3x3 neighbourhood (itself included) changed in the previous sweep (and not the
+    first sweep) is skipped: its list cannot change.  Nothing is copied between sweeps: the stage swaps ``old`` and
+    ``new`` (ping-pong), and a skipped pixel's ``new`` already holds its current list, because it did not change
+    in the previous sweep (``new`` holds the list of two sweeps ago, equal to the last one).
 
     Args:
+        slots: (H, W) neighbour slot kinds from :func:`geodesic_slots_kernel`, -1 off the region.
         old_key, old_src: (H, W, K) lists of the previous sweep, nearest first: packed step counts and flat source
             indices (``row * W + column``); -1 sources (and NO_KEY) past the end.
         new_key, new_src: (H, W, K) out.
@@ -166,13 +196,13 @@ def geodesic_relax_kernel(mask: wp.array2d(dtype=wp.uint8), region: wp.array2d(d
     """
     t, j = wp.tid()
     i = t + row0
-    h = mask.shape[0]
-    w = mask.shape[1]
+    h = slots.shape[0]
+    w = slots.shape[1]
     kk = old_key.shape[2]
     changed[i, j] = 0
-    if region[i, j] == wp.uint8(0):
+    code = slots[i, j]
+    if code < 0:
         return
-    lab = labels[i, j]
     if first == 0:
         act = int(0)
         for di in range(-1, 2):
@@ -187,25 +217,12 @@ def geodesic_relax_kernel(mask: wp.array2d(dtype=wp.uint8), region: wp.array2d(d
     slot = vec8i()
     head = vec8i()
     step = vec8i()
-    n = int(0)
-    for di in range(-1, 2):
-        for dj in range(-1, 2):
-            if di != 0 or dj != 0:
-                a = i + di
-                b = j + dj
-                sk = int(0)
-                if a >= 0 and a < h and b >= 0 and b < w:
-                    if labels[a, b] == lab:
-                        sk = 1
-                    elif borders(mask, region, labels, conn, a, b, lab):
-                        sk = 2
-                slot[n] = sk
-                head[n] = 0
-                if di != 0 and dj != 0:
-                    step[n] = STEP_DIAG
-                else:
-                    step[n] = STEP_UNIT
-                n += 1
+    for sl in range(8):
+        slot[sl] = (code >> (2 * sl)) & 3
+        if OFF_I[sl] != 0 and OFF_J[sl] != 0:
+            step[sl] = STEP_DIAG
+        else:
+            step[sl] = STEP_UNIT
     # the current head of each slot (value, packed key, source; -1: exhausted), refreshed only when popped
     hval = vec8d()
     hkey = vec8i()
@@ -268,20 +285,6 @@ def geodesic_relax_kernel(mask: wp.array2d(dtype=wp.uint8), region: wp.array2d(d
     if diff != 0:
         changed[i, j] = 1
         wp.atomic_add(count, part, 1)
-
-
-@wp.kernel
-def geodesic_copy_kernel(changed: wp.array2d(dtype=wp.int32), new_key: wp.array3d(dtype=wp.int32),
-                         new_src: wp.array3d(dtype=wp.int32), old_key: wp.array3d(dtype=wp.int32),
-                         old_src: wp.array3d(dtype=wp.int32), row0: int):
-    """old = new on the pixels whose list changed (after it, both buffers hold the same lists); rows from ``row0``."""
-    t, j = wp.tid()
-    i = t + row0
-    if changed[i, j] == 0:
-        return
-    for t in range(new_key.shape[2]):
-        old_key[i, j, t] = new_key[i, j, t]
-        old_src[i, j, t] = new_src[i, j, t]
 
 
 @wp.kernel

@@ -97,6 +97,7 @@ class DeviceDGMC(Stage):
         self.keys = [wp.zeros((h, w, k), dtype=i32, device=d) for _ in range(2)]
         self.srcs = [wp.zeros((h, w, k), dtype=i32, device=d) for _ in range(2)]
         self.changed = [wp.zeros((h, w), dtype=i32, device=d) for _ in range(2)]
+        self.slots = wp.zeros((h, w), dtype=i32, device=d)
         self.f = [wp.zeros((h, w), dtype=f64, device=d) for _ in range(2)]
         self.tmp = wp.zeros((h, w), dtype=f64, device=d)
         self.deriv = [wp.zeros((h, w), dtype=f64, device=d) for _ in range(4)]
@@ -276,14 +277,18 @@ class DeviceDGMC(Stage):
         self._launch(dg.boundary_kernel, (h, w), [self.mask, self.region, self.labels, conn, self.boundary])
 
     def _geodesics(self) -> None:
-        """K-lists by Jacobi min-plus sweeps until a whole check interval changes nothing."""
+        """K-lists by Jacobi min-plus sweeps until a whole check interval changes nothing.
+
+        The two list buffers swap roles every sweep (ping-pong, no copy: :func:`geodesic_relax_kernel`); once a
+        sweep changes nothing both hold the converged lists, so ``keys[0]`` / ``srcs[0]`` are the result
+        whichever was written last."""
         _, h, w = self.shape
         k = int(self.config.k_nearest)
         conn = int(self.config.connectivity)
         for b in range(2):
             self._launch(dg.list_reset_kernel, (h, w, k), [self.keys[b], self.srcs[b], self.changed[b]])
+        self._launch(dg.geodesic_slots_kernel, (h, w), [self.mask, self.region, self.labels, conn, self.slots])
         old, new = 0, 1
-        prev, cur = 0, 1
         # CPU: the rows split across threads (Jacobi: a sweep reads only the last sweep's lists), balanced by
         # the region's pixels; each part counts its changes in its own slot
         parts = [(0, h)]
@@ -301,16 +306,12 @@ class DeviceDGMC(Stage):
         limit = h * w + CHECK_EVERY + 1  # Bellman-Ford: at most (region pixels + 1) sweeps change anything
         while True:
             first = 1 if sweeps == 0 else 0
-            ins = [self.mask, self.region, self.labels, conn, first, self.keys[old], self.srcs[old],
-                   self.changed[prev], self.keys[new], self.srcs[new], self.changed[cur], count]
+            ins = [self.slots, first, self.keys[old], self.srcs[old], self.changed[old], self.keys[new],
+                   self.srcs[new], self.changed[new], count]
             run_all([lambda a=a, b=b, q=q: wp.launch(dg.geodesic_relax_kernel, dim=(b - a, w), inputs=ins + [a, q],
                                                      device=self.device)
                      for q, (a, b) in enumerate(parts)])
-            cp = [self.changed[cur], self.keys[new], self.srcs[new], self.keys[old], self.srcs[old]]
-            run_all([lambda a=a, b=b: wp.launch(dg.geodesic_copy_kernel, dim=(b - a, w), inputs=cp + [a],
-                                                device=self.device)
-                     for a, b in parts])
-            prev, cur = cur, prev
+            old, new = new, old
             sweeps += 1
             if sweeps % every == 0:
                 if int(count.numpy().sum()) == 0:
