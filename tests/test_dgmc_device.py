@@ -219,6 +219,30 @@ def test_geodesic_lists_equal_dijkstra(device, seed, connectivity):
     assert (src[~region] == -1).all()
 
 
+def test_geodesic_lists_longer_than_the_thread_local_set(device):
+    """K above LIST_CAP: the sources past the first LIST_CAP are checked for repeats in the written list (global
+    memory) instead of the thread-local set; the lists are still scipy's, on a case with more than K boundary
+    pixels per region so that the long lists fill up."""
+    from gpps.kernels.dgmc_geodesic import LIST_CAP
+
+    img, mask, region, dirs, nrm = _blob_case(3, h=40, w=46)
+    k = LIST_CAP + 12
+    with DeviceDGMC(img.shape, config=H.DGMCConfig(k_nearest=k), device=device) as st:
+        res = st.run(img, mask, nrm, lights=dirs)
+        src, dist = st.candidates()
+    np.testing.assert_array_equal(res.highlight, region)
+    labels = res.highlights.labels
+    full = 0
+    for lab in range(1, res.highlights.n_regions + 1):
+        reg = labels == lab
+        pix, s_host, d_host = H.geodesic_candidates(reg, H.outer_boundary(reg, mask, 8), k)
+        for (i, j), sh, dh in zip(pix, s_host, d_host):
+            np.testing.assert_array_equal(src[i, j], sh)
+            np.testing.assert_allclose(dist[i, j], dh, rtol=0, atol=1e-12)
+            full += int(sh[LIST_CAP] >= 0)
+    assert full > 50  # many lists run past LIST_CAP
+
+
 def test_geodesic_corridor(device):
     """A U-shaped corridor of highlight pixels fed from one end: distances follow it (host test's numbers)."""
     mask = np.zeros((3, 6), bool)

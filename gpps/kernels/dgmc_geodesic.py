@@ -9,12 +9,21 @@ SQRT2 = wp.constant(wp.float64(1.4142135623730951))
 STEP_UNIT = wp.constant(65536)  # one unit step in the packed (a << 16) | b distance
 STEP_DIAG = wp.constant(1)  # one diagonal step
 NO_KEY = wp.constant(2147483647)
+NO_SRC = wp.constant(2147483647)  # an exhausted merge slot's source (after every real flat index)
+INF = wp.constant(wp.float64(wp.inf))
+LIST_CAP = wp.constant(32)  # sources of the list being merged kept thread-local for the duplicate check (K = 32 by default)
 
 vec8i = wp.types.vector(length=8, dtype=wp.int32)
 vec8d = wp.types.vector(length=8, dtype=wp.float64)
 # the 8 neighbour offsets in raster order (the order of the slots of geodesic_slots_kernel / geodesic_relax_kernel)
 OFF_I = wp.constant(vec8i(-1, -1, -1, 0, 0, 1, 1, 1))
 OFF_J = wp.constant(vec8i(-1, 0, 1, -1, 1, -1, 0, 1))
+# the packed step of each slot: diagonal or unit
+STEPS = wp.constant(vec8i(STEP_DIAG, STEP_UNIT, STEP_DIAG, STEP_UNIT, STEP_UNIT, STEP_DIAG, STEP_UNIT, STEP_DIAG))
+TAB_BITS = wp.constant(6)
+HASH_MUL = wp.constant(wp.uint32(2654435761))  # Knuth's multiplicative hash (2^32 / golden ratio)
+TAB_SIZE = wp.constant(64)  # 2 LIST_CAP: the set of taken sources is at most half full
+vectab = wp.types.vector(length=TAB_SIZE, dtype=wp.int32)
 
 
 # --------------------------------------------------------------------------- regions and boundaries
@@ -114,18 +123,6 @@ def key_value(key: int) -> wp.float64:
 
 
 @wp.func
-def key_less(ka: int, sa: int, kb: int, sb: int) -> bool:
-    """(distance, source) order: shorter first, ties to the smaller flat source index."""
-    va = key_value(ka)
-    vb = key_value(kb)
-    if va < vb:
-        return True
-    if va > vb:
-        return False
-    return sa < sb
-
-
-@wp.func
 def borders(mask: wp.array2d(dtype=wp.uint8), region: wp.array2d(dtype=wp.uint8), labels: wp.array2d(dtype=wp.int32),
             conn: int, a: int, b: int, lab: int) -> bool:
     """Pixel (a, b) is on the outer boundary of region ``lab`` (in the mask, off the region, conn-adjacent to it)."""
@@ -213,74 +210,82 @@ def geodesic_relax_kernel(slots: wp.array2d(dtype=wp.int32), first: int,
                     act = 1
         if act == 0:
             return
-    # the 8 neighbour slots: 1 = a list (same region), 2 = one direct source (a boundary pixel), 0 = none
-    slot = vec8i()
-    head = vec8i()
-    step = vec8i()
-    for sl in range(8):
-        slot[sl] = (code >> (2 * sl)) & 3
-        if OFF_I[sl] != 0 and OFF_J[sl] != 0:
-            step[sl] = STEP_DIAG
-        else:
-            step[sl] = STEP_UNIT
-    # the current head of each slot (value, packed key, source; -1: exhausted), refreshed only when popped
+    # the current head of each slot (value, packed key, source) and its position in the neighbour's list; an
+    # exhausted slot holds (+inf, NO_KEY, NO_SRC), which every live head precedes
     hval = vec8d()
     hkey = vec8i()
     hsrc = vec8i()
+    head = vec8i()
     for sl in range(8):
+        kind = (code >> (2 * sl)) & 3
         a = i + OFF_I[sl]
         b = j + OFF_J[sl]
-        hsrc[sl] = -1
-        if slot[sl] == 1:
+        hval[sl] = INF
+        hkey[sl] = NO_KEY
+        hsrc[sl] = NO_SRC
+        if kind == 1:
             cs = old_src[a, b, 0]
             if cs >= 0:
                 hsrc[sl] = cs
-                hkey[sl] = old_key[a, b, 0] + step[sl]
-        elif slot[sl] == 2:
+                hkey[sl] = old_key[a, b, 0] + STEPS[sl]
+                hval[sl] = key_value(hkey[sl])
+        elif kind == 2:
             hsrc[sl] = a * w + b
-            hkey[sl] = step[sl]
-        if hsrc[sl] >= 0:
+            hkey[sl] = STEPS[sl]
             hval[sl] = key_value(hkey[sl])
+            head[sl] = kk  # one entry only
+    # merge: pop the smallest (value, source) head, skip a source already taken (each neighbour list holds a
+    # source once, so a repeat comes from another slot, later and not nearer); the sources taken are kept in a
+    # thread-local vector for that check (the first LIST_CAP; any beyond are read back from new_src), and each
+    # entry is written once and compared with the old list's entry in the same pass
+    taken = vectab()
     cnt = int(0)
+    diff = int(0)
     while cnt < kk:
-        best = int(-1)
-        for sl in range(8):
-            if hsrc[sl] >= 0:
-                if best < 0:
-                    best = sl
-                elif hval[sl] < hval[best] or (hval[sl] == hval[best] and hsrc[sl] < hsrc[best]):
-                    best = sl
-        if best < 0:
+        best = int(0)
+        for sl in range(1, 8):
+            if hval[sl] < hval[best] or (hval[sl] == hval[best] and hsrc[sl] < hsrc[best]):
+                best = sl
+        bsrc = hsrc[best]
+        if bsrc == NO_SRC:
             break
         bkey = hkey[best]
-        bsrc = hsrc[best]
         # advance the popped slot
-        hsrc[best] = -1
-        if slot[best] == 1:
-            nh = head[best] + 1
-            head[best] = nh
-            if nh < kk:
-                a = i + OFF_I[best]
-                b = j + OFF_J[best]
-                cs = old_src[a, b, nh]
-                if cs >= 0:
-                    hsrc[best] = cs
-                    hkey[best] = old_key[a, b, nh] + step[best]
-                    hval[best] = key_value(hkey[best])
+        nh = head[best] + 1
+        head[best] = nh
+        hval[best] = INF
+        hkey[best] = NO_KEY
+        hsrc[best] = NO_SRC
+        if nh < kk:
+            a = i + OFF_I[best]
+            b = j + OFF_J[best]
+            cs = old_src[a, b, nh]
+            if cs >= 0:
+                hsrc[best] = cs
+                hkey[best] = old_key[a, b, nh] + STEPS[best]
+                hval[best] = key_value(hkey[best])
         dup = int(0)
-        for t in range(cnt):
+        # open-addressing set of the first LIST_CAP sources taken (source + 1; 0 = empty slot)
+        hh = int((wp.uint32(bsrc) * HASH_MUL) >> wp.uint32(32 - TAB_BITS))
+        while taken[hh] != 0 and taken[hh] != bsrc + 1:
+            hh = (hh + 1) & (TAB_SIZE - 1)
+        if taken[hh] != 0:
+            dup = 1
+        for t in range(LIST_CAP, cnt):
             if new_src[i, j, t] == bsrc:
                 dup = 1
         if dup == 0:
+            if cnt < LIST_CAP:
+                taken[hh] = bsrc + 1
             new_key[i, j, cnt] = bkey
             new_src[i, j, cnt] = bsrc
+            if old_src[i, j, cnt] != bsrc or old_key[i, j, cnt] != bkey:
+                diff = 1
             cnt += 1
     for t in range(cnt, kk):
         new_key[i, j, t] = NO_KEY
         new_src[i, j, t] = -1
-    diff = int(0)
-    for t in range(kk):
-        if new_src[i, j, t] != old_src[i, j, t] or new_key[i, j, t] != old_key[i, j, t]:
+        if old_src[i, j, t] != -1 or old_key[i, j, t] != NO_KEY:
             diff = 1
     if diff != 0:
         changed[i, j] = 1
