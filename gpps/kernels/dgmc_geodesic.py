@@ -123,6 +123,16 @@ def key_value(key: int) -> wp.float64:
 
 
 @wp.func
+def probe(taken: vectab, src: int) -> int:
+    """Slot of ``src`` in the open-addressing set ``taken`` (entries source + 1, 0 = empty): where it is, or the
+    empty slot where it would go."""
+    hh = int((wp.uint32(src) * HASH_MUL) >> wp.uint32(32 - TAB_BITS))
+    while taken[hh] != 0 and taken[hh] != src + 1:
+        hh = (hh + 1) & (TAB_SIZE - 1)
+    return hh
+
+
+@wp.func
 def borders(mask: wp.array2d(dtype=wp.uint8), region: wp.array2d(dtype=wp.uint8), labels: wp.array2d(dtype=wp.int32),
             conn: int, a: int, b: int, lab: int) -> bool:
     """Pixel (a, b) is on the outer boundary of region ``lab`` (in the mask, off the region, conn-adjacent to it)."""
@@ -252,23 +262,24 @@ def geodesic_relax_kernel(slots: wp.array2d(dtype=wp.int32), first: int,
         bkey = hkey[best]
         # advance the popped slot
         nh = head[best] + 1
-        head[best] = nh
         hval[best] = INF
         hkey[best] = NO_KEY
         hsrc[best] = NO_SRC
-        if nh < kk:
-            a = i + OFF_I[best]
-            b = j + OFF_J[best]
+        a = i + OFF_I[best]
+        b = j + OFF_J[best]
+        while nh < kk:
             cs = old_src[a, b, nh]
-            if cs >= 0:
+            if cs < 0:
+                break
+            if taken[probe(taken, cs)] == 0:
                 hsrc[best] = cs
                 hkey[best] = old_key[a, b, nh] + STEPS[best]
                 hval[best] = key_value(hkey[best])
+                break
+            nh += 1
+        head[best] = nh
         dup = int(0)
-        # open-addressing set of the first LIST_CAP sources taken (source + 1; 0 = empty slot)
-        hh = int((wp.uint32(bsrc) * HASH_MUL) >> wp.uint32(32 - TAB_BITS))
-        while taken[hh] != 0 and taken[hh] != bsrc + 1:
-            hh = (hh + 1) & (TAB_SIZE - 1)
+        hh = probe(taken, bsrc)
         if taken[hh] != 0:
             dup = 1
         for t in range(LIST_CAP, cnt):
