@@ -60,12 +60,14 @@ COUNTS_CHAIN = {
     "dgmc_highlight": lambda f, n: (
         (12 * n, 6 * n + 6 * n * (f + 1) + 190 * ((f + 1) * n - f * (f + 1) / 2) + 160 * (f * n - (f - 1) * f / 2)),
         (5 * n + 1, 0)),
-    # per region pixel with c of its K list entries filled: 8 neighbour slots (~10 each: bounds, labels,
-    # the boundary test) and heads (~6 each), then c pops, each: best of 8 slots (~3 ops a slot), advance
-    # (~10, incl. key_value in float64), duplicate scan of the entries kept (c/2 on average, 2 ops),
-    # store; the diff test over K (4 each).  Bytes: the old list read and the new one written (16 K),
-    # labels, region, changed; every pixel: region 1, changed written 4, read again by the copy 4.
-    "dgmc_geodesic_sweep": lambda c, k: ((16 * k + 5, 130 + 34 * c + c * c + 4 * k), (9, 0)),
+    # per region pixel with c of its K list entries filled: the activity test (9 reads ~20), 8 slot kinds
+    # decoded from one code and their heads (~15 each: key_value, the int64 head order), then c pops, each:
+    # best of 8 int64 heads (8), the set probe (~6), store and compare with the old entry (~6), the slot's
+    # refresh (~12); repeats passed over at refresh: ~5 per entry kept (8 neighbour lists share most sources;
+    # measured ~190 candidates for 32 entries on the 256^2 bumps case), ~12 ops each (load, probe); the
+    # K - c empty entries 4 each.  Bytes: the old list read and the new one written (16 K), the neighbours'
+    # lists are cache hits; every pixel: slot code 4, changed written 4 (no copy kernel: ping-pong buffers).
+    "dgmc_geodesic_sweep": lambda c, k: ((16 * k, 140 + 32 * c + 60 * c + 4 * (k - c)), (8, 0)),
     # per region pixel with a list: L loop steps (list entry loaded, 3 ops) and C full checks (q // w, q % w
     # ~20, GC/MC of the candidate 16 B, 2 abs/sub/mul/compare pairs ~10); the list 4 K once, own GC/MC 16,
     # key 4, normal of the source 24.  Every masked pixel: its normal 24, region 1; every pixel: mask 1 and

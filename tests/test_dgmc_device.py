@@ -312,3 +312,5 @@ def test_stage_bad_input_names_the_argument(device):
         DeviceDGMC(img.shape[:3], config={"ratio": 1.1}, device=device)
     with pytest.raises(ValueError, match=r"^shape: expected N >= 3"):
         DeviceDGMC((2, 8, 8), device=device)
+    with pytest.raises(ValueError, match=r"^shape: expected H W <= 2\^28 pixels"):
+        DeviceDGMC((3, 1 << 14, (1 << 14) + 1), device=device)  # refused before any allocation

@@ -25,7 +25,12 @@ Where the parallel form differs from the host's (and the seed's) and why the res
   ``p`` on a shortest ``q -> p`` path, every source nearer to ``u`` than ``q`` is nearer to ``p`` than ``q`` too, so
   ``q`` is among ``u``'s ``K`` nearest and reaches ``p`` through ``u``'s list.  Distances are carried as the exact
   counts ``(a, b)`` of unit and diagonal steps (``d = a + b sqrt(2)``, both packed in one int32), so sums do not
-  depend on the path's order and ties (equal ``(a, b)``) go to the smaller flat source index, as on the host.
+  depend on the path's order and ties (equal ``(a, b)``) go to the smaller flat source index, as on the host;
+  the merge compares heads as one int64 (:func:`gpps.kernels.dgmc_geodesic.head_order`: a scaled floor of ``d``
+  above the source index, exactly the ``(d, source)`` order, reasoned there).  How a sweep is computed (the slot
+  kinds once, ping-pong buffers, a thread-local set of the sources taken) changes its cost, not its lists: each
+  sweep is still ``new = the K smallest distinct-source entries of the neighbours' old lists (plus the edge
+  lengths) and of the adjacent boundary pixels``.
 * Curvatures (4.16): the same Gaussian-derivative filters (scipy's weights and ``reflect`` border) as separable
   passes, after the same fill of the pixels outside the mask (a mask-only index map from the host); float64
   sums in another order than scipy's, so ``GC``, ``MC`` agree to ``1e-12`` relative.

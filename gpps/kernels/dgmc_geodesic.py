@@ -9,20 +9,22 @@ SQRT2 = wp.constant(wp.float64(1.4142135623730951))
 STEP_UNIT = wp.constant(65536)  # one unit step in the packed (a << 16) | b distance
 STEP_DIAG = wp.constant(1)  # one diagonal step
 NO_KEY = wp.constant(2147483647)
-NO_SRC = wp.constant(2147483647)  # an exhausted merge slot's source (after every real flat index)
-INF = wp.constant(wp.float64(wp.inf))
-LIST_CAP = wp.constant(32)  # sources of the list being merged kept thread-local for the duplicate check (K = 32 by default)
+LIST_CAP = wp.constant(32)  # sources of the list being merged kept in a thread-local set (the default K = 32)
 
 vec8i = wp.types.vector(length=8, dtype=wp.int32)
-vec8d = wp.types.vector(length=8, dtype=wp.float64)
-# the 8 neighbour offsets in raster order (the order of the slots of geodesic_slots_kernel / geodesic_relax_kernel)
+vec8l = wp.types.vector(length=8, dtype=wp.int64)
+SRC_BITS = wp.constant(28)  # flat source indices below 2^28 in a merge head (DeviceDGMC checks H W)
+SRC_MASK = wp.constant(wp.int64((1 << 28) - 1))
+NO_HEAD = wp.constant(wp.int64(9223372036854775807))  # an exhausted merge slot (after every real head)
+# the 8 neighbour offsets in raster order (the order of the slots of geodesic_relax_kernel)
 OFF_I = wp.constant(vec8i(-1, -1, -1, 0, 0, 1, 1, 1))
 OFF_J = wp.constant(vec8i(-1, 0, 1, -1, 1, -1, 0, 1))
 # the packed step of each slot: diagonal or unit
 STEPS = wp.constant(vec8i(STEP_DIAG, STEP_UNIT, STEP_DIAG, STEP_UNIT, STEP_UNIT, STEP_DIAG, STEP_UNIT, STEP_DIAG))
+# the thread-local set of sources taken: open addressing, 2 LIST_CAP slots (at most half full), linear probing
 TAB_BITS = wp.constant(6)
+TAB_SIZE = wp.constant(64)
 HASH_MUL = wp.constant(wp.uint32(2654435761))  # Knuth's multiplicative hash (2^32 / golden ratio)
-TAB_SIZE = wp.constant(64)  # 2 LIST_CAP: the set of taken sources is at most half full
 vectab = wp.types.vector(length=TAB_SIZE, dtype=wp.int32)
 
 
@@ -123,6 +125,20 @@ def key_value(key: int) -> wp.float64:
 
 
 @wp.func
+def head_order(key: int, src: int) -> wp.int64:
+    """One int64 whose order is the (distance, source) order of merge heads (shorter first, ties to the smaller
+    flat source index): ``floor((a + b sqrt 2) 2^18)`` above the source's SRC_BITS bits, so the best of 8 heads is
+    one integer comparison each.
+
+    Why the order is exact: two different counts of the packed range (a < 2^15, b < 2^16) differ in length by
+    ``|da - db sqrt 2| = |da^2 - 2 db^2| / (|da| + |db| sqrt 2) >= 1 / (2^15 + 2^16 sqrt 2) > 2^-17`` (the
+    numerator is a non-zero integer: sqrt 2 is irrational), i.e. by more than 2 after the scaling; the scaled float64
+    length (< 2^35) is off by less than 1e-4, so the floors keep the lengths' order, and equal counts give equal
+    floors (the source decides, as in the float64 comparison of the host).  35 + 28 bits fit an int64."""
+    return (wp.int64(wp.floor(key_value(key) * wp.float64(262144.0))) << wp.int64(SRC_BITS)) | wp.int64(src)
+
+
+@wp.func
 def probe(taken: vectab, src: int) -> int:
     """Slot of ``src`` in the open-addressing set ``taken`` (entries source + 1, 0 = empty): where it is, or the
     empty slot where it would go."""
@@ -220,51 +236,49 @@ def geodesic_relax_kernel(slots: wp.array2d(dtype=wp.int32), first: int,
                     act = 1
         if act == 0:
             return
-    # the current head of each slot (value, packed key, source) and its position in the neighbour's list; an
-    # exhausted slot holds (+inf, NO_KEY, NO_SRC), which every live head precedes
-    hval = vec8d()
+    # the current head of each slot: its (distance, source) order as one int64 (head_order), its packed key and
+    # its position in the neighbour's list; an exhausted slot holds NO_HEAD, which every live head precedes
+    hcmp = vec8l()
     hkey = vec8i()
-    hsrc = vec8i()
     head = vec8i()
     for sl in range(8):
         kind = (code >> (2 * sl)) & 3
         a = i + OFF_I[sl]
         b = j + OFF_J[sl]
-        hval[sl] = INF
+        hcmp[sl] = NO_HEAD
         hkey[sl] = NO_KEY
-        hsrc[sl] = NO_SRC
         if kind == 1:
             cs = old_src[a, b, 0]
             if cs >= 0:
-                hsrc[sl] = cs
                 hkey[sl] = old_key[a, b, 0] + STEPS[sl]
-                hval[sl] = key_value(hkey[sl])
+                hcmp[sl] = head_order(hkey[sl], cs)
         elif kind == 2:
-            hsrc[sl] = a * w + b
             hkey[sl] = STEPS[sl]
-            hval[sl] = key_value(hkey[sl])
+            hcmp[sl] = head_order(hkey[sl], a * w + b)
             head[sl] = kk  # one entry only
-    # merge: pop the smallest (value, source) head, skip a source already taken (each neighbour list holds a
-    # source once, so a repeat comes from another slot, later and not nearer); the sources taken are kept in a
-    # thread-local vector for that check (the first LIST_CAP; any beyond are read back from new_src), and each
-    # entry is written once and compared with the old list's entry in the same pass
+    # merge: pop the smallest (distance, source) head, skip a source already taken (each neighbour list holds a
+    # source once, so a repeat comes from another slot, later and not nearer: the first pop of a source is its
+    # distance).  The first LIST_CAP sources taken are kept in a thread-local set (any beyond are looked up in
+    # new_src); a slot's next entry whose source is already in the set is passed over when the slot is
+    # refreshed (the set only grows, so it could only be popped as a repeat), which skips most repeats before
+    # the best-head scan.  Each entry is written once and compared with the old list's entry in the same pass.
     taken = vectab()
     cnt = int(0)
     diff = int(0)
     while cnt < kk:
         best = int(0)
         for sl in range(1, 8):
-            if hval[sl] < hval[best] or (hval[sl] == hval[best] and hsrc[sl] < hsrc[best]):
+            if hcmp[sl] < hcmp[best]:
                 best = sl
-        bsrc = hsrc[best]
-        if bsrc == NO_SRC:
+        bcmp = hcmp[best]
+        if bcmp == NO_HEAD:
             break
+        bsrc = int(bcmp & SRC_MASK)
         bkey = hkey[best]
         # advance the popped slot
         nh = head[best] + 1
-        hval[best] = INF
+        hcmp[best] = NO_HEAD
         hkey[best] = NO_KEY
-        hsrc[best] = NO_SRC
         a = i + OFF_I[best]
         b = j + OFF_J[best]
         while nh < kk:
@@ -272,9 +286,8 @@ def geodesic_relax_kernel(slots: wp.array2d(dtype=wp.int32), first: int,
             if cs < 0:
                 break
             if taken[probe(taken, cs)] == 0:
-                hsrc[best] = cs
                 hkey[best] = old_key[a, b, nh] + STEPS[best]
-                hval[best] = key_value(hkey[best])
+                hcmp[best] = head_order(hkey[best], cs)
                 break
             nh += 1
         head[best] = nh

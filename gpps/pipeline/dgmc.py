@@ -62,6 +62,9 @@ class DeviceDGMC(Stage):
         if len(tuple(shape)) != 3 or any(int(v) < 1 for v in shape):
             raise ValueError(f"shape: expected (N, H, W) with positive sizes, got {shape!r}")
         n, h, w = (int(v) for v in shape)
+        if h * w > 1 << dg.SRC_BITS:
+            raise ValueError(f"shape: expected H W <= 2^{dg.SRC_BITS} pixels (the geodesic merge keeps a flat pixel "
+                             f"index in {dg.SRC_BITS} bits), got {h} x {w}")
         if cfg.rule == "lambertian" and n < 3:
             raise ValueError(f"shape: expected N >= 3 images for rule='lambertian', got N = {n}")
         self.config = cfg
