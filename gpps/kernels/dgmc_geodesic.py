@@ -21,7 +21,8 @@ OFF_I = wp.constant(vec8i(-1, -1, -1, 0, 0, 1, 1, 1))
 OFF_J = wp.constant(vec8i(-1, 0, 1, -1, 1, -1, 0, 1))
 # the packed step of each slot: diagonal or unit
 STEPS = wp.constant(vec8i(STEP_DIAG, STEP_UNIT, STEP_DIAG, STEP_UNIT, STEP_UNIT, STEP_DIAG, STEP_UNIT, STEP_DIAG))
-# the thread-local set of sources taken: open addressing, 2 LIST_CAP slots (at most half full), linear probing
+# the thread-local set of the sources taken by the merge: open addressing with linear probing, entries
+# source + 1 (0 = empty), 2 LIST_CAP slots (at most half full, so a probe ends at the source or an empty slot)
 TAB_BITS = wp.constant(6)
 TAB_SIZE = wp.constant(64)
 HASH_MUL = wp.constant(wp.uint32(2654435761))  # Knuth's multiplicative hash (2^32 / golden ratio)
@@ -136,16 +137,6 @@ def head_order(key: int, src: int) -> wp.int64:
     length (< 2^35) is off by less than 1e-4, so the floors keep the lengths' order, and equal counts give equal
     floors (the source decides, as in the float64 comparison of the host).  35 + 28 bits fit an int64."""
     return (wp.int64(wp.floor(key_value(key) * wp.float64(262144.0))) << wp.int64(SRC_BITS)) | wp.int64(src)
-
-
-@wp.func
-def probe(taken: vectab, src: int) -> int:
-    """Slot of ``src`` in the open-addressing set ``taken`` (entries source + 1, 0 = empty): where it is, or the
-    empty slot where it would go."""
-    hh = int((wp.uint32(src) * HASH_MUL) >> wp.uint32(32 - TAB_BITS))
-    while taken[hh] != 0 and taken[hh] != src + 1:
-        hh = (hh + 1) & (TAB_SIZE - 1)
-    return hh
 
 
 @wp.func
@@ -285,14 +276,20 @@ def geodesic_relax_kernel(slots: wp.array2d(dtype=wp.int32), first: int,
             cs = old_src[a, b, nh]
             if cs < 0:
                 break
-            if taken[probe(taken, cs)] == 0:
+            # cs in the set? (linear probing from its hash; inlined: a wp.func would get the set by value)
+            ph = int((wp.uint32(cs) * HASH_MUL) >> wp.uint32(32 - TAB_BITS))
+            while taken[ph] != 0 and taken[ph] != cs + 1:
+                ph = (ph + 1) & (TAB_SIZE - 1)
+            if taken[ph] == 0:
                 hkey[best] = old_key[a, b, nh] + STEPS[best]
                 hcmp[best] = head_order(hkey[best], cs)
                 break
             nh += 1
         head[best] = nh
         dup = int(0)
-        hh = probe(taken, bsrc)
+        hh = int((wp.uint32(bsrc) * HASH_MUL) >> wp.uint32(32 - TAB_BITS))
+        while taken[hh] != 0 and taken[hh] != bsrc + 1:
+            hh = (hh + 1) & (TAB_SIZE - 1)
         if taken[hh] != 0:
             dup = 1
         for t in range(LIST_CAP, cnt):
