@@ -4,7 +4,9 @@ The case is ``perf/profile_reconstruct.py``'s ``_synthetic``: perspective Cook-T
 on a ring, 16-bit, material "cook-torrance" to estimate.  One warm ``gpps.reconstruct`` call records the exact
 arguments it passes to :func:`gpps.pipeline.dgmc.dgmc_start_device`; a :class:`DeviceDGMC` built once on them
 runs ``upload`` + highlights + regions, then ``_geodesics`` is timed (median of ``--repeat`` after one warm-up,
-device-synchronised): total, sweeps and time per sweep.  The converged lists' SHA-256 is written too, so two
+device-synchronised): total, sweeps and time per sweep, wall and the process's CPU time (on a shared CPU the CPU
+time is the steadier figure; with the CPU thread split it is the sum over the threads; the load averages before
+and after are written too).  The converged lists' SHA-256 is written too, so two
 versions of the kernels can be checked for identical lists.  Then ``--reconstruct`` warm ``gpps.reconstruct``
 calls give the median wall time and the median DGMC stage time (``timings["dgmc"]``).
 
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import os
 import statistics
 import sys
 import time
@@ -57,6 +60,7 @@ def main(argv=None):
     from gpps.pipeline.dgmc import DeviceDGMC
 
     wp = warp()
+    load0 = os.getloadavg()[0]
     call = _case(a.size, a.images, a.device)
     seen = {}
     orig = ron.dgmc_start_device
@@ -80,30 +84,38 @@ def main(argv=None):
     sync = lambda: wp.synchronize_device(device)  # noqa: E731
     st._geodesics()  # warm-up
     sync()
-    ts = []
+    ts, cpu = [], []
     for _ in range(a.repeat):
+        c = time.process_time()
         t = time.perf_counter()
         st._geodesics()
         sync()
         ts.append(time.perf_counter() - t)
+        cpu.append(time.process_time() - c)
     total = statistics.median(ts)
     lists = hashlib.sha256(st.keys[0].numpy().tobytes() + st.srcs[0].numpy().tobytes()).hexdigest()
     region = st.region.numpy().astype(bool)
     row = {"size": a.size, "images": a.images, "k_nearest": int(st.config.k_nearest),
            "region_pixels": int(region.sum()), "sweeps": int(st.sweeps),
            "geodesics_s": total, "geodesics_runs_s": ts, "per_sweep_s": total / max(st.sweeps, 1),
+           "geodesics_cpu_s": statistics.median(cpu), "geodesics_cpu_runs_s": cpu,
+           "threads": int(st.sweep_count.shape[0]) if not str(device).startswith("cuda") else 1,
            "lists_sha256": lists}
-    print({k: v for k, v in row.items() if k != "geodesics_runs_s"}, flush=True)
+    print({k: v for k, v in row.items() if not k.endswith("runs_s")}, flush=True)
     if a.reconstruct:
-        walls, dgmc, maen = [], [], None
+        walls, cpus, dgmc, maen = [], [], [], None
         for _ in range(a.reconstruct):
+            c = time.process_time()
             t = time.perf_counter()
             timings, maen = call()
             walls.append(time.perf_counter() - t)
+            cpus.append(time.process_time() - c)
             dgmc.append(float(timings["dgmc"]))
         row.update(reconstruct_s=statistics.median(walls), reconstruct_runs_s=walls,
+                   reconstruct_cpu_s=statistics.median(cpus), reconstruct_cpu_runs_s=cpus,
                    dgmc_stage_s=statistics.median(dgmc), dgmc_stage_runs_s=dgmc, maen_deg=maen)
-        print({k: row[k] for k in ("reconstruct_s", "dgmc_stage_s", "maen_deg")}, flush=True)
+        print({k: row[k] for k in ("reconstruct_s", "reconstruct_cpu_s", "dgmc_stage_s", "maen_deg")}, flush=True)
+    row["loadavg_1min_before_after"] = [load0, os.getloadavg()[0]]
     path = write_results(a.name, device, {"command": " ".join(sys.argv), "rows": [row]})
     print(path)
 
