@@ -1,8 +1,9 @@
 """DGMC's geodesic K-nearest-boundary sweeps (``DeviceDGMC._geodesics``) on the 256^2 x 3 reconstruct case.
 
 The case is ``perf/profile_reconstruct.py``'s ``_synthetic``: perspective Cook-Torrance bumps, 3 directional lights
-on a ring, 16-bit, material "cook-torrance" to estimate.  One warm ``gpps.reconstruct`` call records the exact
-arguments it passes to :func:`gpps.pipeline.dgmc.dgmc_start_device`; a :class:`DeviceDGMC` built once on them
+on a ring, 16-bit, material "cook-torrance" to estimate.  One ``gpps.reconstruct`` call records the exact
+arguments RON passes to :meth:`gpps.pipeline.dgmc.DeviceDGMC.upload` (and the stage's config and device); a
+:class:`DeviceDGMC` built once on them
 runs ``upload`` + highlights + regions, then ``_geodesics`` is timed (median of ``--repeat`` after one warm-up,
 device-synchronised): total, sweeps and time per sweep, wall and the process's CPU time (on a shared CPU the CPU
 time is the steadier figure; with the CPU thread split it is the sum over the threads; the load averages before
@@ -27,10 +28,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "perf"))
 
+import numpy as np  # noqa: E402
 from _common import write_results  # noqa: E402
 
 import gpps  # noqa: E402
-import gpps.flows.ron as ron  # noqa: E402
 
 
 def _case(size: int, n: int, device):
@@ -63,22 +64,24 @@ def main(argv=None):
     load0 = os.getloadavg()[0]
     call = _case(a.size, a.images, a.device)
     seen = {}
-    orig = ron.dgmc_start_device
+    orig = DeviceDGMC.upload
 
-    def spy(images, mask, normals, **kw):
-        seen.update(images=images, mask=mask, normals=normals, kw=kw)
-        return orig(images, mask, normals, **kw)
+    def spy(self, images, mask, normals, **kw):
+        # the solver's device frame is copied: its buffer is reused after DGMC
+        imgs = wp.clone(images) if isinstance(images, wp.array) else np.array(images)
+        seen.update(images=imgs, mask=np.array(mask), normals=np.array(normals), kw=kw, config=self.config,
+                    device=self.device)
+        return orig(self, images, mask, normals, **kw)
 
-    ron.dgmc_start_device = spy
+    DeviceDGMC.upload = spy
     try:
         call()  # cold: compiles; records DGMC's arguments
     finally:
-        ron.dgmc_start_device = orig
-    kw = dict(seen["kw"])
-    cfg, device = kw.pop("config", None), kw.pop("device", a.device)
+        DeviceDGMC.upload = orig
+    device = seen["device"]
     imgs = seen["images"]
-    st = DeviceDGMC(imgs.shape[:3], config=cfg, device=device)
-    st.upload(imgs, seen["mask"], seen["normals"], **kw)
+    st = DeviceDGMC(tuple(imgs.shape[:3]), config=seen["config"], device=device)
+    st.upload(imgs, seen["mask"], seen["normals"], **seen["kw"])
     st._highlights()
     st._regions()
     sync = lambda: wp.synchronize_device(device)  # noqa: E731
