@@ -14,9 +14,9 @@ LIST_CAP = wp.constant(32)  # sources of the list being merged kept in a thread-
 vec8i = wp.types.vector(length=8, dtype=wp.int32)
 vec8l = wp.types.vector(length=8, dtype=wp.int64)
 SRC_BITS = wp.constant(28)  # flat source indices below 2^28 in a merge head (DeviceDGMC checks H W)
-SRC_MASK = wp.constant(wp.int64((1 << 28) - 1))
+SRC_MASK = wp.constant(wp.int64((1 << SRC_BITS) - 1))
 NO_HEAD = wp.constant(wp.int64(9223372036854775807))  # an exhausted merge slot (after every real head)
-# the 8 neighbour offsets in raster order (the order of the slots of geodesic_relax_kernel)
+# the 8 neighbour offsets in raster order (the slots of geodesic_slots_kernel and geodesic_relax_kernel)
 OFF_I = wp.constant(vec8i(-1, -1, -1, 0, 0, 1, 1, 1))
 OFF_J = wp.constant(vec8i(-1, 0, 1, -1, 1, -1, 0, 1))
 # the packed step of each slot: diagonal or unit
@@ -203,7 +203,7 @@ def geodesic_relax_kernel(slots: wp.array2d(dtype=wp.int32), first: int,
         slots: (H, W) neighbour slot kinds from :func:`geodesic_slots_kernel`, -1 off the region.
         old_key, old_src: (H, W, K) lists of the previous sweep, nearest first: packed step counts and flat source
             indices (``row * W + column``); -1 sources (and NO_KEY) past the end.
-        new_key, new_src: (H, W, K) out.
+        new_key, new_src: (H, W, K) out.  Any K works: past LIST_CAP entries the repeat check reads new_src.
         changed: (H, W) out: 1 where the list changed; count[part] += their number.
         row0: first row of this launch (dim (rows, W)); a CPU launch split by rows across threads
             (gpps.pipeline.cpu_threads) gives each part its own slot ``part`` of ``count``.
