@@ -307,13 +307,21 @@ class DeviceDGMC(Stage):
         # after every sweep on the CPU (a memory read: no sweep past the converged one)
         every = CHECK_EVERY if self.device.startswith("cuda") else 1
         limit = h * w + CHECK_EVERY + 1  # Bellman-Ford: at most (region pixels + 1) sweeps change anything
+        # recorded launches (the arguments packed once): sweep 0, then the two ping-pong directions
+        cmds = {}
+
+        def sweep_cmds(first, old, new):
+            key = (first, old)
+            if key not in cmds:
+                ins = [self.slots, first, self.keys[old], self.srcs[old], self.changed[old], self.keys[new],
+                       self.srcs[new], self.changed[new], count]
+                cmds[key] = [wp.launch(dg.geodesic_relax_kernel, dim=(b - a, w), inputs=ins + [a, q],
+                                       device=self.device, record_cmd=True) for q, (a, b) in enumerate(parts)]
+            return cmds[key]
+
         while True:
             first = 1 if sweeps == 0 else 0
-            ins = [self.slots, first, self.keys[old], self.srcs[old], self.changed[old], self.keys[new],
-                   self.srcs[new], self.changed[new], count]
-            run_all([lambda a=a, b=b, q=q: wp.launch(dg.geodesic_relax_kernel, dim=(b - a, w), inputs=ins + [a, q],
-                                                     device=self.device)
-                     for q, (a, b) in enumerate(parts)])
+            run_all([c.launch for c in sweep_cmds(first, old, new)])
             old, new = new, old
             sweeps += 1
             if sweeps % every == 0:
