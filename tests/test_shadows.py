@@ -268,3 +268,26 @@ def test_bad_input_names_the_argument(device):
     st.close()
     with pytest.raises(RuntimeError, match="closed"):
         st.step()
+
+
+def test_on_a_solvers_buffers(device):
+    """The path RON would take: march on a PixelSolver's own depth and mask buffers (no copy) and AND the
+    visibility into its ``valid`` on the device; the solver's other observations are untouched."""
+    from gpps.material import Material
+    from gpps.pipeline.solver import PixelSolver, SolverConfig
+
+    sc = _scene("perspective", "box")
+    lights = _lights("directional", "box", sc.plane_depth)
+    n, (h, w) = len(lights), sc.depth.shape
+    images = np.full((n, h, w, 3), 0.5, np.float32)
+    solver = PixelSolver((n, h, w), sc.camera, lights, Material.default_for("lambertian"),
+                         SolverConfig(solver="none"), device=device)
+    valid0 = np.ones((n, h, w), bool)
+    valid0[:, :, :10] = False
+    solver.upload(images, sc.mask, depth=sc.depth, valid=valid0)
+    with CastShadows((n, h, w), sc.camera, lights, device=solver.device) as st:
+        st.step(depth=solver.depth, mask=solver.mask)
+        st.apply(solver.valid)
+        vis = st.fetch()
+    assert np.array_equal(vis, _march(device, sc, lights))
+    assert np.array_equal(solver.valid.numpy().astype(bool), valid0 & vis)
