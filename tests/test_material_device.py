@@ -366,3 +366,45 @@ def test_parallel_choice(device):
         assert b._uses_lanes(limit) == cuda and not b._uses_lanes(limit + 1)
     with MaterialScorer(shape, sc.camera, many, mat, fit_config(), parallel="lights", device=device) as c:
         assert c._uses_lanes(10 ** 9) and c._kernel is None
+
+
+@pytest.mark.parametrize("robust,light_kind,camera", [("none", "directional", "perspective"),
+                                                      ("cauchy", "point", "orthographic")])
+def test_split_starts_equal_one_thread_a_candidate(robust, light_kind, camera, device):
+    """The starts-parallel cold step (a thread a start, the best picked in start order, then finish_pixel)
+    gives the one-thread kernel's results: bitwise on the CPU (the same functions, the same order), and on
+    CUDA to the code generator's choices (another module); warm steps take the one-thread kernel either way."""
+    img, lights, sc, mat = make_case("bumps", 40, camera, light_kind, "cook-torrance", device=device)
+    depth = sc.depth if light_kind == "point" else None
+    sample = sample_mask(sc.mask, 150, seed=3)
+    cfg = fit_config(robust=robust, irls_rounds=2 if robust != "none" else 0)
+    cands = candidates_around(mat)
+    got = {}
+    for split in (False, True):
+        with MaterialScorer(img.shape[:3], sc.camera, lights, mat, cfg, max_samples=int(sample.sum()),
+                            max_candidates=len(cands), trim=TRIM, split_starts=split, device=device) as s:
+            assert s.split_starts is split
+            s.upload(img, sample, depth=depth)
+            s.step(cands)
+            got[split] = (s.fetch(), s.fetch_pixels())
+    (e0, p0), (e1, p1) = got[False], got[True]
+    if device.startswith("cuda"):
+        assert_energies_equal(e1, e0, scale_of(img, sc.mask))
+        cos = np.clip(np.sum(p0["normals"] * p1["normals"], -1), -1.0, 1.0)
+        assert np.mean(np.degrees(np.arccos(cos)) < 0.01) > 0.99
+    else:
+        assert np.array_equal(e0, e1)
+        for k in p0:
+            assert np.array_equal(p0[k], p1[k]), k
+
+
+def test_split_starts_choice(device):
+    img, lights, sc, mat = make_case("bumps", 24, "perspective", "directional", "cook-torrance", device=device)
+    with MaterialScorer(img.shape[:3], sc.camera, lights, mat, fit_config(), max_samples=50, device=device) as s:
+        assert s.split_starts is (device.startswith("cuda") and STARTS > 1)
+    with MaterialScorer(img.shape[:3], sc.camera, lights, mat, replace(fit_config(), starts=1), max_samples=50,
+                        device=device) as s:
+        assert s.split_starts is False
+    with pytest.raises(TypeError, match="split_starts"):
+        MaterialScorer(img.shape[:3], sc.camera, lights, mat, fit_config(), max_samples=50, split_starts="yes",
+                       device=device)

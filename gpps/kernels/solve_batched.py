@@ -62,6 +62,7 @@ from gpps.kernels.solve_common import (
     FLAG_ILL_CONDITIONED,
     FLAG_WOODHAM_FALLBACK,
     SolverParams,
+    StartResult,
     cond_frobenius,
     grey,
     grey_max,
@@ -82,6 +83,7 @@ __all__ = [
     "tile_pick_kernel",
     "tile_samples_kernel",
     "get_batched_kernel",
+    "get_batched_starts_kernels",
     "batched_module_name",
 ]
 
@@ -389,13 +391,126 @@ def batched_kernel_for(robust, solve_pixel, module, sfx: str, lanes: bool = Fals
     return solve_batched_kernel
 
 
+def batched_starts_kernels_for(robust, one_start, finish_pixel, module, sfx: str):
+    """The starts-parallel form of ``solve_batched_kernel`` (cold steps on CUDA, where a launch costs its slowest
+    thread): ``solve_starts_kernel`` (dim (K, chunk, S)) runs start ``s`` of candidate ``c`` and pixel ``p`` in
+    a thread of its own and writes its :class:`StartResult` to scratch (K, P, S) buffers;
+    ``solve_finish_kernel`` (dim (K, chunk)) picks the best start in start order by the rule of
+    :func:`gpps.kernels.solve_methods.solve_pixel_for` (the first strictly lower cost facing the camera), adds
+    up the evaluations, then runs ``finish_pixel`` (the least-squares start when none faced the camera, the
+    IRLS rounds) and stores the solution as the one-thread kernel does.  The same device functions on the same
+    inputs: each start's result equals the sequential loop's (the starts read the base weights, which is what
+    the loop's copy holds before any IRLS round)."""
+
+    @wp.kernel(name="solve_starts_kernel" + sfx, module=module, enable_backward=False)
+    def solve_starts_kernel(
+        strip_k: wp.array3d(dtype=wp.vec3),
+        base_k: wp.array3d(dtype=wp.float32),
+        points: wp.array(dtype=wp.vec3),
+        views: wp.array(dtype=wp.vec3),
+        ninit: wp.array(dtype=wp.vec3),
+        lights: LightParams,
+        mats: wp.array(dtype=MaterialParams),
+        prm: SolverParams,
+        first: int,
+        start_n: wp.array3d(dtype=wp.vec3),
+        start_kd: wp.array3d(dtype=wp.vec3),
+        start_cost: wp.array3d(dtype=wp.float32),
+        start_iters: wp.array3d(dtype=wp.int32),
+        start_conv: wp.array3d(dtype=wp.int32),
+    ):
+        """Start ``s`` of sample pixel ``first + t`` with candidate ``mats[c]`` (dim (K, chunk, S)); ``base_k``:
+        the (N, K, P) stride-0 view of the base weights."""
+        c, t, st = wp.tid()
+        p = first + t
+        px = strip_pixel(c, p, points[p], views[p], prm)
+        res = one_start(st, ninit[p], strip_k, base_k, px, lights, mats[c], prm)
+        start_n[c, p, st] = res.n
+        start_kd[c, p, st] = res.kd
+        start_cost[c, p, st] = res.cost
+        start_iters[c, p, st] = res.iters
+        start_conv[c, p, st] = res.converged
+
+    @wp.kernel(name="solve_finish_kernel" + sfx, module=module, enable_backward=False)
+    def solve_finish_kernel(
+        strip_k: wp.array3d(dtype=wp.vec3),
+        base_weights: wp.array3d(dtype=wp.float32),
+        points: wp.array(dtype=wp.vec3),
+        views: wp.array(dtype=wp.vec3),
+        ninit: wp.array(dtype=wp.vec3),
+        gmax: wp.array(dtype=wp.float32),
+        base_flags: wp.array(dtype=wp.int32),
+        lights: LightParams,
+        mats: wp.array(dtype=MaterialParams),
+        prm: SolverParams,
+        first: int,
+        start_n: wp.array3d(dtype=wp.vec3),
+        start_kd: wp.array3d(dtype=wp.vec3),
+        start_cost: wp.array3d(dtype=wp.float32),
+        start_iters: wp.array3d(dtype=wp.int32),
+        start_conv: wp.array3d(dtype=wp.int32),
+        weights_k: wp.array3d(dtype=wp.float32),
+        normals_k: wp.array2d(dtype=wp.vec3),
+        albedo_k: wp.array2d(dtype=wp.vec3),
+        residual_k: wp.array2d(dtype=wp.float32),
+        iterations_k: wp.array2d(dtype=wp.int32),
+        flags_k: wp.array2d(dtype=wp.int32),
+    ):
+        """The best of the starts of :data:`solve_starts_kernel`, then ``finish_pixel`` and the store (dim (K, chunk))."""
+        c, t = wp.tid()
+        p = first + t
+        nl_ = lights.count
+        if wp.static(robust != "none"):
+            for k in range(nl_):
+                weights_k[k, c, p] = base_weights[k, 0, p]
+        px = strip_pixel(c, p, points[p], views[p], prm)
+        best = StartResult()
+        best.cost = 1.0e30
+        best.n = ninit[p]
+        total = int(0)
+        for st in range(wp.max(prm.starts, 1)):
+            res = StartResult()
+            res.n = start_n[c, p, st]
+            res.kd = start_kd[c, p, st]
+            res.cost = start_cost[c, p, st]
+            res.iters = start_iters[c, p, st]
+            res.converged = start_conv[c, p, st]
+            total += res.iters
+            if res.cost < best.cost and wp.dot(res.n, px.v) > 0.0:
+                best = res
+        sol = finish_pixel(best, total, ninit[p], gmax[p], strip_k, weights_k, px, lights, mats[c], prm)
+        store_solution(sol, base_flags[p], weights_k, px, nl_, normals_k, albedo_k, residual_k, iterations_k,
+                       flags_k)
+
+    return solve_starts_kernel, solve_finish_kernel
+
+
 _BATCHED: dict = {}
+_BATCHED_STARTS: dict = {}
 
 
 def batched_module_name(method, brdf, robust, lanes: bool = False) -> str:
     """Name of the Warp module holding the batched kernel of one specialisation."""
     tag = _solve_module_name(method, brdf, robust).rsplit(".", 1)[1]
     return f"gpps.kernels.solve_batched.{tag}" + ("_lanes" if lanes else "")
+
+
+def get_batched_starts_kernels(method, brdf, robust="none"):
+    """The starts-parallel pair ``(solve_starts_kernel, solve_finish_kernel)`` of
+    :func:`batched_starts_kernels_for` for one solver, model and loss, in a Warp module of its own
+    (:func:`batched_module_name` + ``"_starts"``), built once and cached."""
+    key = specialisation_key(method, brdf, robust)
+    if None in key or key[0] == "none":
+        raise ValueError(f"method, brdf, robust: expected a nonlinear solver and fixed choices, got {key}")
+    k = _BATCHED_STARTS.get(key)
+    if k is None:
+        name = batched_module_name(*key) + "_starts"
+        sfx = "__starts_" + name.rsplit(".", 1)[1]
+        module = wp.get_module(name)
+        funcs = solver_funcs(*key, module, sfx)
+        k = batched_starts_kernels_for(key[2], funcs.one_start, funcs.finish_pixel, module, sfx)
+        _BATCHED_STARTS[key] = k
+    return k
 
 
 def get_batched_kernel(method, brdf, robust="none", lanes: bool = False):

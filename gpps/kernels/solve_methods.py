@@ -360,8 +360,10 @@ def solve_pixel_for(robust, run_method, spec_vg, module, sfx: str, lanes: bool =
             brightest light is found over the lanes and each lane reweights its own lights.
     """
 
-    @wp.func(name="solve_pixel" + sfx, module=module)
-    def solve_pixel(
+    @wp.func(name="finish_pixel" + sfx, module=module)
+    def finish_pixel(
+        best_in: StartResult,
+        total_in: int,
         ninit: wp.vec3,
         gmax: float,
         images: wp.array3d(dtype=wp.vec3),
@@ -371,27 +373,13 @@ def solve_pixel_for(robust, run_method, spec_vg, module, sfx: str, lanes: bool =
         mat: MaterialParams,
         prm: SolverParams,
     ):
-        """Multi-start nonlinear least squares, then IRLS rounds from the best start."""
+        """After the starts (``best_in``: the best visible one, cost 1e30 if none; ``total_in`` evaluations):
+        the least-squares start's run when no start ended facing the camera, then the IRLS rounds."""
         i = px.i
         j = px.j
         v = px.v
-        best = StartResult()
-        best.cost = 1.0e30
-        best.n = ninit
-        total = int(0)
-        nstarts = wp.max(prm.starts, 1)
-        if prm.warm_start != 0:
-            nstarts = 1
-        hbright = wp.vec3(0.0)
-        if wp.static(lanes):
-            hbright = brightest_half_vector_lanes(images, weights, px, lights)
-        else:
-            hbright = brightest_half_vector(images, weights, px, lights)
-        for s in range(nstarts):
-            res = run_method(start_normal(s, ninit, v, hbright, prm), images, weights, px, lights, mat, prm)
-            total += res.iters
-            if res.cost < best.cost and wp.dot(res.n, v) > 0.0:
-                best = res
+        best = best_in
+        total = total_in
         if best.cost >= 1.0e30:
             # every start ended facing away from the camera: keep the least-squares start
             best = run_method(ninit, images, weights, px, lights, mat, prm)
@@ -447,7 +435,55 @@ def solve_pixel_for(robust, run_method, spec_vg, module, sfx: str, lanes: bool =
         out.total = total
         return out
 
-    return solve_pixel
+    @wp.func(name="solve_pixel" + sfx, module=module)
+    def solve_pixel(
+        ninit: wp.vec3,
+        gmax: float,
+        images: wp.array3d(dtype=wp.vec3),
+        weights: wp.array3d(dtype=wp.float32),
+        px: Pixel,
+        lights: LightParams,
+        mat: MaterialParams,
+        prm: SolverParams,
+    ):
+        """Multi-start nonlinear least squares, then IRLS rounds from the best start (:func:`finish_pixel`)."""
+        v = px.v
+        best = StartResult()
+        best.cost = 1.0e30
+        best.n = ninit
+        total = int(0)
+        nstarts = wp.max(prm.starts, 1)
+        if prm.warm_start != 0:
+            nstarts = 1
+        hbright = wp.vec3(0.0)
+        if wp.static(lanes):
+            hbright = brightest_half_vector_lanes(images, weights, px, lights)
+        else:
+            hbright = brightest_half_vector(images, weights, px, lights)
+        for s in range(nstarts):
+            res = run_method(start_normal(s, ninit, v, hbright, prm), images, weights, px, lights, mat, prm)
+            total += res.iters
+            if res.cost < best.cost and wp.dot(res.n, v) > 0.0:
+                best = res
+        return finish_pixel(best, total, ninit, gmax, images, weights, px, lights, mat, prm)
+
+    @wp.func(name="one_start" + sfx, module=module)
+    def one_start(
+        s: int,
+        ninit: wp.vec3,
+        images: wp.array3d(dtype=wp.vec3),
+        weights: wp.array3d(dtype=wp.float32),
+        px: Pixel,
+        lights: LightParams,
+        mat: MaterialParams,
+        prm: SolverParams,
+    ):
+        """Start ``s`` of :func:`solve_pixel`'s multi-start alone (the starts-parallel build: one thread a
+        start, the best picked afterwards in start order by the same rule, then :func:`finish_pixel`)."""
+        hbright = brightest_half_vector(images, weights, px, lights)
+        return run_method(start_normal(s, ninit, px.v, hbright, prm), images, weights, px, lights, mat, prm)
+
+    return solve_pixel, finish_pixel, one_start
 
 
 def solver_funcs(method, brdf, robust, module=None, sfx: str = "", lanes: bool = False):
@@ -471,7 +507,8 @@ def solver_funcs(method, brdf, robust, module=None, sfx: str = "", lanes: bool =
     run_dogleg = dogleg_for(evaluate, module, sfx)
     run_bfgs = bfgs_for(evaluate, module, sfx)
     run_method = run_method_for(method, run_lm, run_dogleg, run_bfgs, module, sfx)
-    solve_pixel = solve_pixel_for(robust, run_method, spec_vg, module, sfx, lanes)
+    solve_pixel, finish_pixel, one_start = solve_pixel_for(robust, run_method, spec_vg, module, sfx, lanes)
     return SimpleNamespace(
-        evaluate=evaluate, run_lm=run_lm, run_dogleg=run_dogleg, run_bfgs=run_bfgs, run_method=run_method, solve_pixel=solve_pixel
+        evaluate=evaluate, run_lm=run_lm, run_dogleg=run_dogleg, run_bfgs=run_bfgs, run_method=run_method,
+        solve_pixel=solve_pixel, finish_pixel=finish_pixel, one_start=one_start,
     )

@@ -41,7 +41,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from gpps._check import as_array, as_mask, check_choice, check_number, check_unit
+from gpps._check import as_array, as_mask, check_bool, check_choice, check_number, check_unit
 from gpps._runtime import block_lanes, resolve_device, warp
 from gpps.kernels import solve_batched as sb
 from gpps.kernels.brdf import MaterialParams
@@ -119,6 +119,13 @@ class MaterialScorer(Stage):
             launch (measured: :mod:`gpps.names`), else "pixels"; on the CPU always "pixels".
             The two differ only in the order of the light sums (float rounding).  On the CPU a
             block runs as one lane unless ``warp.config.enable_cpu_blocks`` is set.
+        split_starts: cold steps of the one-thread build run each of the config's starts in a
+            thread of its own, then pick the best per (candidate, pixel) in start order (two
+            launches: :func:`gpps.kernels.solve_batched.batched_starts_kernels_for`; the same
+            energies up to the code generator's choices).  A GPU launch costs its slowest thread:
+            S sequential starts per thread are S times its critical path.  None (default): on
+            CUDA when ``config.starts > 1``; False on the CPU, whose launch runs its threads one
+            after another anyway (True there is for tests).
         device: Warp device (None: CUDA if present).
 
     Buffers (allocated once, N x K_max x P_max): the strip ``strip`` (N, 1, P_max)
@@ -129,7 +136,8 @@ class MaterialScorer(Stage):
     """
 
     def __init__(self, shape, camera, lights, brdf, config: SolverConfig, *, max_samples: int = 2000,
-                 max_candidates: int = 25, trim: float = 0.02, parallel: ParallelName | None = None, device=None):
+                 max_candidates: int = 25, trim: float = 0.02, parallel: ParallelName | None = None,
+                 split_starts: bool | None = None, device=None):
         wp = warp()
         n, h, w = check_problem(shape, lights)
         if isinstance(brdf, Material):
@@ -170,6 +178,15 @@ class MaterialScorer(Stage):
         self._kernel_lanes = (sb.get_batched_kernel(config.solver, brdf, robust, lanes=True)
                               if parallel != "pixels" else None)
         d, pm, km = self.device, int(self.max_samples), int(self.max_candidates)
+        if split_starts is not None:
+            check_bool("split_starts", split_starts)
+        ns = max(int(config.starts), 1)
+        self.split_starts = (bool(split_starts) if split_starts is not None
+                             else (self.device.startswith("cuda") and ns > 1)) and parallel != "lights"
+        if self.split_starts:
+            self._starts_kernels = sb.get_batched_starts_kernels(config.solver, brdf, robust)
+            self._start_bufs = [wp.zeros((km, pm, ns), dtype=dt, device=d)
+                                for dt in (wp.vec3, wp.vec3, wp.float32, wp.int32, wp.int32)]
         self.strip = wp.zeros((n, 1, pm), dtype=wp.vec3, device=d)
         self.strip_valid = wp.ones((n, 1, pm), dtype=wp.uint8, device=d)
         self.rows = wp.zeros(pm, dtype=wp.int32, device=d)
@@ -194,6 +211,7 @@ class MaterialScorer(Stage):
         self.flags_k = wp.zeros((km, pm), dtype=wp.int32, device=d)
         # one copy of the observations (and, without IRLS, of the weights) serves every candidate
         self._strip_k = _broadcast_k(wp, self.strip, km)
+        self._base_k = _broadcast_k(wp, self.base_weights, km)  # (the starts-parallel build's starts read it)
         if robust == "none":
             self._weights_k = _broadcast_k(wp, self.base_weights, km)
         else:
@@ -458,6 +476,17 @@ class MaterialScorer(Stage):
             if lanes:
                 nl = block_lanes(self.device, LIGHT_LANES)
                 cmd = wp.launch(self._kernel_lanes, dim=(k, int(b - a), nl), block_dim=nl, **args)
+            elif self.split_starts and not warm:
+                starts, finish = self._starts_kernels
+                ns = int(self._start_bufs[0].shape[2])
+                one = wp.launch(starts, dim=(k, int(b - a), ns), device=self.device, record_cmd=True,
+                                inputs=[self._strip_k, self._base_k, self.points, self.views, ninit, self.lp,
+                                        self.mats, prm, int(a)], outputs=self._start_bufs)
+                two = wp.launch(finish, dim=(k, int(b - a)), device=self.device, record_cmd=True,
+                                inputs=[self._strip_k, self.base_weights, self.points, self.views, ninit, self.gmax,
+                                        self.flags, self.lp, self.mats, prm, int(a)] + self._start_bufs,
+                                outputs=args["outputs"])
+                cmd = _Both(one, two)
             else:
                 cmd = wp.launch(self._kernel, dim=(k, int(b - a)), **args)
             if len(self._cmds) >= 256:
@@ -582,13 +611,25 @@ class MaterialScorer(Stage):
         """Release the device buffers; the scorer refuses work afterwards."""
         for name in ("strip", "strip_valid", "rows", "cols", "sample_depth", "noise", "base_weights", "points",
                      "views", "ninit", "nwarm", "gmax", "flags", "cond", "mats", "normals", "albedo", "residual",
-                     "iterations", "flags_k", "_strip_k", "_weights_k", "lp", "_no_depth", "_no_valid", "_cmds"):
+                     "iterations", "flags_k", "_strip_k", "_weights_k", "lp", "_no_depth", "_no_valid", "_cmds",
+                     "_base_k", "_start_bufs", "_starts_kernels"):
             self.__dict__.pop(name, None)
         self._closed = True
 
     def _check_open(self) -> None:
         if self._closed:
             raise ValueError("MaterialScorer: closed (its buffers were released)")
+
+
+class _Both:
+    """Two recorded launches run as one (the starts-parallel step)."""
+
+    def __init__(self, one, two):
+        self.one, self.two = one, two
+
+    def launch(self) -> None:
+        self.one.launch()
+        self.two.launch()
 
 
 def _broadcast_k(wp, base, k: int):
