@@ -32,6 +32,7 @@ Dask is an optional dependency (``pip install 'gpps[batch]'``), imported on firs
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
 import io
@@ -40,6 +41,7 @@ import os
 import shutil
 import socket
 import subprocess
+import tempfile
 import time
 import traceback
 import warnings
@@ -47,12 +49,17 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
+
 import gpps
 from gpps._check import GppsWarning
+from gpps.flows import tiled
 from gpps.flows.folder import FolderConfig, reconstruct_folder
 from gpps.io import atomic_dir, atomic_write, check_output_dir, read_marker, save_json
+from gpps.material import Material
+from gpps.pipeline.solver import SolverConfig
 
-__all__ = ["reconstruct_many", "BatchResult", "input_hash", "default_workers", "make_cluster",
+__all__ = ["reconstruct_many", "reconstruct_tiled", "tiled_solver", "BatchResult", "input_hash", "default_workers", "make_cluster",
            "SUMMARY_FIELDS", "BATCH_MARKER"]
 
 Progress = Callable[[float, float, str], None]
@@ -110,11 +117,21 @@ def default_workers(device: str | None = None) -> tuple[int, list[str]]:
     return max(1, (os.cpu_count() or 2) // 2), []
 
 
-def worker_env(gpus: list[str], index: int) -> dict:
+THREAD_VARIABLES = ("GPPS_CPU_THREADS", "TI_CPU_MAX_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
+                    "MKL_NUM_THREADS")
+"""The thread counts a CPU worker of the default cluster is given (Warp's row split, Taichi, BLAS): the cores
+shared out, so that two workers on two cores do not run four busy threads."""
+
+
+def worker_env(gpus: list[str], index: int, threads: int | None = None) -> dict:
     """Environment of the default cluster's worker ``index``: pinned to ``gpus[index % len(gpus)]`` when there
-    are GPUs; the kernel cache folder (``GPPS_CACHE_DIR``) and the Taichi settings are passed on."""
+    are GPUs; with ``threads``, each of :data:`THREAD_VARIABLES` not set in this process set to it; the kernel
+    cache folder (``GPPS_CACHE_DIR``) and the Taichi settings passed on."""
     env = {k: os.environ[k] for k in ("GPPS_CACHE_DIR", "WARP_CACHE_PATH", "ENABLE_TAICHI_HEADER_PRINT",
-                                       "TI_SKIP_VERSION_CHECK", "GPPS_CPU_THREADS") if k in os.environ}
+                                       "TI_SKIP_VERSION_CHECK", *THREAD_VARIABLES) if k in os.environ}
+    if threads is not None:
+        for k in THREAD_VARIABLES:
+            env.setdefault(k, str(int(threads)))
     if gpus:
         env["CUDA_VISIBLE_DEVICES"] = gpus[index % len(gpus)]
     return env
@@ -122,7 +139,10 @@ def worker_env(gpus: list[str], index: int) -> dict:
 
 def make_cluster(workers: int | None = None, *, device: str | None = None, dashboard_address: str | None = ":8787",
                  memory_limit="auto"):
-    """A :class:`distributed.LocalCluster` of worker processes (one thread each) for :func:`reconstruct_many`.
+    """A :class:`distributed.LocalCluster` of worker processes (one task thread each) for :func:`reconstruct_many`.
+
+    CPU workers share the cores out: each gets ``cores // workers`` threads for its pixel solves, Taichi
+    and BLAS (:data:`THREAD_VARIABLES`; a variable set in this process wins).
 
     Args:
         workers: worker processes; None: :func:`default_workers` (one per GPU, each pinned to it; else one
@@ -140,6 +160,7 @@ def make_cluster(workers: int | None = None, *, device: str | None = None, dashb
     n = n_default if workers is None else int(workers)
     if n < 1:
         raise ValueError(f"workers: expected an integer >= 1, got {workers!r}")
+    threads = None if gpus else max(1, (os.cpu_count() or 1) // n)
 
     class PinnedCluster(distributed.LocalCluster):
         """A LocalCluster whose worker ``k`` gets :func:`worker_env` ``(gpus, k)`` (its own GPU)."""
@@ -148,7 +169,7 @@ def make_cluster(workers: int | None = None, *, device: str | None = None, dashb
             spec = {}
             for name, s in super().new_worker_spec().items():  # (the spec is shared between workers: copied)
                 opts = dict(s.get("options", {}))
-                opts["env"] = {**opts.get("env", {}), **worker_env(gpus, int(name) if str(name).isdigit() else 0)}
+                opts["env"] = {**opts.get("env", {}), **worker_env(gpus, int(name) if str(name).isdigit() else 0, threads)}
                 spec[name] = {**s, "options": opts}
             return spec
 
@@ -224,7 +245,9 @@ def _complete(dest: Path, digest: str) -> dict | None:
 
 def _worker_name() -> str:
     try:
-        from distributed import get_worker  # only inside a task, on a worker (dask is installed there)
+        from distributed import (
+            get_worker,  # only inside a task, on a worker (dask is installed there)
+        )
 
         return get_worker().address
     except (ImportError, ValueError):
@@ -388,8 +411,17 @@ def reconstruct_many(folders, out, client=None, *, workers: int | None = None, s
     if client is not None and scheduler is not None:
         raise ValueError("client, scheduler: expected one of them, got both")
     out = _check_out(out, folders)
-    _, distributed = _dask()
     step = progress or (lambda *a: None)
+    with _client(client, scheduler, workers, device, dashboard_address) as (client, device):
+        return _run_batch(client, folders, names, out, cfg, lights=lights, mask=mask, ambient=ambient, device=device,
+                          overwrite=overwrite, step=step, t0=t0)
+
+
+@contextlib.contextmanager
+def _client(client, scheduler, workers, device, dashboard_address):
+    """``(client, the workers' device)``: the one given, one connected to ``scheduler``, or one of a new
+    :func:`make_cluster` cluster; closed at the end unless given."""
+    _, distributed = _dask()
     cluster = None
     if client is None:
         if scheduler is not None:
@@ -401,41 +433,194 @@ def reconstruct_many(folders, out, client=None, *, workers: int | None = None, s
     if cluster is not None and device not in (None, "auto", "cpu") and default_workers(device)[1]:
         device = None  # each pinned worker sees its own GPU as cuda:0
     device = None if device == "auto" else device
-    res = BatchResult(summary=out / "summary.csv", dashboard=getattr(client, "dashboard_link", None))
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        if not (out / BATCH_MARKER).is_file():
-            save_json(out / BATCH_MARKER, {"gpps": gpps.__version__, "written_by": "gpps batch"})
-        total = len(folders)
-        futures = {}
-        for k, (f, n) in enumerate(zip(folders, names)):
-            fut = client.submit(run_capture, str(f), str(out / n), cfg, lights=lights, mask=mask, ambient=ambient,
-                                device=device, overwrite=overwrite, key=f"gpps-capture-{k}-{n}-{time.time_ns()}", pure=False)
-            futures[fut] = k
-        step(0, total, f"{total} captures on {len(client.scheduler_info().get('workers', {}))} workers"
-                       + (f"; dashboard {res.dashboard}" if res.dashboard else ""))
-        rows: list[dict | None] = [None] * total
-        for fut in distributed.as_completed(list(futures)):
-            k = futures[fut]
-            try:
-                rows[k] = fut.result()
-            except Exception as e:  # the task itself was lost (a worker died more often than allowed)
-                rows[k] = {"folder": str(folders[k]), "name": names[k], "status": "failed",
-                           "error": f"{type(e).__name__}: {e}"}
-            done = [r for r in rows if r is not None]
-            _write_summary(res.summary, [r for r in rows if r is not None])
-            failed = sum(r["status"] == "failed" for r in done)
-            skipped = sum(r["status"] == "skipped" for r in done)
-            step(len(done), total, f"{len(done)}/{total} captures, {failed} failed, {skipped} skipped; "
-                                   f"{names[k]}: {rows[k]['status']}")
-        res.rows = rows
-        _write_summary(res.summary, rows)
-        _remove_leftovers(out, names)
+        yield client, device
     finally:
         if own:
             client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _run_batch(client, folders, names, out, cfg, *, lights, mask, ambient, device, overwrite, step, t0) -> BatchResult:
+    _, distributed = _dask()
+    res = BatchResult(summary=out / "summary.csv", dashboard=getattr(client, "dashboard_link", None))
+    out.mkdir(parents=True, exist_ok=True)
+    if not (out / BATCH_MARKER).is_file():
+        save_json(out / BATCH_MARKER, {"gpps": gpps.__version__, "written_by": "gpps batch"})
+    total = len(folders)
+    futures = {}
+    for k, (f, n) in enumerate(zip(folders, names)):
+        fut = client.submit(run_capture, str(f), str(out / n), cfg, lights=lights, mask=mask, ambient=ambient,
+                            device=device, overwrite=overwrite, key=f"gpps-capture-{k}-{n}-{time.time_ns()}", pure=False)
+        futures[fut] = k
+    step(0, total, f"{total} captures on {len(client.scheduler_info().get('workers', {}))} workers"
+                   + (f"; dashboard {res.dashboard}" if res.dashboard else ""))
+    rows: list[dict | None] = [None] * total
+    for fut in distributed.as_completed(list(futures)):
+        k = futures[fut]
+        try:
+            rows[k] = fut.result()
+        except Exception as e:  # the task itself was lost (a worker died more often than allowed)
+            rows[k] = {"folder": str(folders[k]), "name": names[k], "status": "failed",
+                       "error": f"{type(e).__name__}: {e}"}
+        done = [r for r in rows if r is not None]
+        _write_summary(res.summary, [r for r in rows if r is not None])
+        failed = sum(r["status"] == "failed" for r in done)
+        skipped = sum(r["status"] == "skipped" for r in done)
+        step(len(done), total, f"{len(done)}/{total} captures, {failed} failed, {skipped} skipped; "
+                               f"{names[k]}: {rows[k]['status']}")
+    res.rows = rows
+    _write_summary(res.summary, rows)
+    _remove_leftovers(out, names)
     res.seconds = time.perf_counter() - t0
     return res
 
+
+
+# ---------------------------------------------------------------------------------------------- large captures
+
+
+class _NpyWindow:
+    """A ``.npy`` file read a window at a time (dask.array's source; pickles as its path, so each task reads
+    only its block from storage the workers share)."""
+
+    def __init__(self, path):
+        arr = np.load(path, mmap_mode="r")
+        self.path, self.shape, self.dtype, self.ndim = str(path), arr.shape, arr.dtype, arr.ndim
+
+    def __getitem__(self, key):
+        return np.array(np.load(self.path, mmap_mode="r")[key])
+
+
+def _solve_block(block, **kwargs):
+    return tiled.solve_block(block, **kwargs)
+
+
+def _chunks(size: int, tile: int, halo: int) -> tuple[int, ...]:
+    """Tiles of ``tile`` pixels along a side of ``size``; a last tile narrower than the halo joins the one
+    before (dask's overlap needs every block at least as wide as the halo)."""
+    sizes = [tile] * (size // tile) + ([size % tile] if size % tile else [])
+    if len(sizes) > 1 and sizes[-1] < max(halo, 1):
+        sizes[-2] += sizes.pop()
+    return tuple(sizes)
+
+
+def tiled_solver(client, *, tile: int = 1024, scratch=None) -> Callable:
+    """A drop-in :func:`gpps.solve_normals` that solves the frame in ``tile`` x ``tile`` blocks on ``client``'s
+    workers (dask.array blocks with the halo the solver needs, :mod:`gpps.flows.tiled`).
+
+    The frame-wide steps (checks, noise levels) run here; the packed inputs go to a scratch ``.npy`` in
+    ``scratch`` (a folder the workers can read; None: the system's temporary folder), removed at the end.
+    Each block's result equals the untiled solve's at its pixels.
+    """
+    _dask()
+    import dask.array as da  # (numpy is a dependency of gpps: dask.array needs nothing more)
+    tile = int(tile)
+
+    def solve(images, mask, lights, *, camera=None, material=None, solver="lm", depth=None, robust=None, valid=None,
+              config=None, device=None, progress=None, **options):
+        t0 = time.perf_counter()
+        cfg = config if config is not None else SolverConfig(solver=solver, robust=robust or "none", **options)
+        material = Material("lambertian", ks=0.0) if material is None else material
+        prep = tiled.prepare(images, mask, lights, camera=camera, config=cfg, valid=valid, depth=depth)
+        n, h, w = prep["shape"]
+        r = prep["halo"]
+        if tile < max(r, 8):
+            raise ValueError(f"tile: expected at least the halo ({r} pixels) and 8, got {tile}")
+        t1 = time.perf_counter()
+        with tempfile.TemporaryDirectory(prefix=".gpps-tiles-", dir=scratch) as tmp:
+            path = Path(tmp) / "inputs.npy"
+            np.save(path, prep.pop("packed"))
+            x = da.from_array(_NpyWindow(path), chunks=(_chunks(h, tile, r), _chunks(w, tile, r), -1), asarray=True)
+            depth_map = {0: r, 1: r, 2: 0}
+            g = da.overlap.overlap(x, depth=depth_map, boundary="none")
+            y = g.map_blocks(_solve_block, dtype=np.float32, chunks=(g.chunks[0], g.chunks[1], (tiled.output_channels(n),)),
+                             n=n, shape=(h, w), lights=lights, camera=prep["camera"], material=material, config=cfg,
+                             noise=prep["noise"], has_valid=valid is not None, has_depth=depth is not None, device=device)
+            z = da.overlap.trim_internal(y, depth_map, boundary="none")
+            if progress:
+                progress(0, 1, f"normals: {x.numblocks[0] * x.numblocks[1]} tiles")
+            solved = client.compute(z, sync=True)
+        t2 = time.perf_counter()
+        if progress:
+            progress(1, 1, "normals: tiles assembled")
+        return tiled.unpack(solved, prep, np.asarray(mask, bool), config=cfg, material=material,
+                            timings={"setup": t1 - t0, "solve": t2 - t1, "total": time.perf_counter() - t0,
+                                     "tiles": int(x.numblocks[0] * x.numblocks[1]), "halo": r})
+
+    return solve
+
+
+_GIVEN = ("ks", "shininess", "roughness", "f0")
+
+
+def _sample_material(folder, config: FolderConfig, lights, mask, ambient, device) -> dict:
+    """The material RON estimates on a downscaled copy of the capture (a worker task)."""
+    res = reconstruct_folder(folder, config, lights=lights, mask=mask, ambient=ambient, device=device)
+    return res.report["material"]
+
+
+def reconstruct_tiled(folder, out, client=None, *, tile: int = 1024, workers: int | None = None,
+                      scheduler: str | None = None, config: FolderConfig | None = None, lights=None, mask=None,
+                      ambient: str | None = "auto", device: str | None = None, overwrite: bool = False,
+                      sample_size: int = 512, progress: Progress | None = None, dashboard_address: str | None = ":8787",
+                      **options) -> dict:
+    """One large capture: the per-pixel solve tiled over the cluster's workers, then the integration of the
+    assembled normal map; the outputs written to ``out`` as ``gpps reconstruct`` writes them.
+
+    The material is estimated once (RON, :func:`gpps.reconstruct_folder` on a copy downscaled to
+    ``sample_size`` pixels, on a worker) unless given or known (``known_material``), and shared by every
+    tile; then the capture runs as ``method="ppn"`` with that material given and
+    :func:`tiled_solver` as its per-pixel solve (:func:`gpps.reconstruct_folder`'s ``pixel_solve``): the
+    result equals ``reconstruct_folder(folder, <that config>)`` untiled.  Reading, the frame-wide checks,
+    the assembly and the integration run in this process (on ``device``).
+
+    Args:
+        folder, lights, mask, ambient: as :func:`gpps.reconstruct_folder`'s.
+        out: the output folder (new, empty, or an earlier gpps output with ``overwrite``).
+        client, workers, scheduler, dashboard_address: the cluster, as :func:`reconstruct_many`'s.
+        tile: tile side (pixels, at least the solver's halo, ``neighbour_radius``).
+        config, **options: :class:`gpps.FolderConfig` and field overrides (methods ``"ron"`` and ``"ppn"``).
+        sample_size: the longer side of the downscaled copy the material is estimated on.
+        device: this process's device (reading, integration); the workers use theirs.
+        progress: ``progress(done, total, message)``.
+
+    Returns:
+        The report as written (``report.json``), with ``tiled``: tile, halo, tiles, workers, the material's source.
+    """
+    cfg = _config(config, options)
+    if cfg.method not in ("ron", "ppn"):
+        raise ValueError(f"method: expected 'ron' or 'ppn' for a tiled capture, got {cfg.method!r}")
+    mask_file = mask if mask not in (None, "auto", "none") else None
+    inputs = [i for i in (folder, lights, mask_file) if i is not None]
+    check_output_dir(out, inputs=inputs, overwrite=overwrite, name="out")
+    step = progress or (lambda *a: None)
+    t0 = time.perf_counter()
+    local = None if device in (None, "auto") else device
+    with _client(client, scheduler, workers, device, dashboard_address) as (client, wdevice):
+        source = "given" if cfg.method == "ppn" or cfg.known_material or not cfg.estimate else None
+        if source is None:
+            step(0, 3, f"material: RON on a copy downscaled to {sample_size} px")
+            sample = replace(cfg, max_size=sample_size, integrate=False)
+            mat = client.submit(_sample_material, str(folder), sample, lights, mask, ambient, wdevice, pure=False).result()
+            given = {k: mat[k] for k in _GIVEN if k in mat}
+            if "eta_u" in mat:
+                given["eta"] = mat["eta_u"]
+            cfg = replace(cfg, brdf=mat["brdf"], **given)
+            source = f"RON on the capture downscaled to {sample_size} px: " + ", ".join(f"{k}={v:.4g}" for k, v in given.items())
+        cfg = replace(cfg, method="ppn")
+        step(1, 3, "normals: tiles")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", GppsWarning)
+            res = reconstruct_folder(folder, cfg, lights=lights, mask=mask, ambient=ambient, device=local,
+                                     pixel_solve=tiled_solver(client, tile=tile, scratch=Path(out).resolve().parent))
+        n_workers = len(client.scheduler_info().get("workers", {}))
+    t = res.report.get("timings", {})
+    res.report["tiled"] = {"tile": int(tile), "halo": t.pop("halo", None), "tiles": t.pop("tiles", None),
+                           "workers": n_workers, "material": source, "config": asdict(cfg)}
+    step(2, 3, "writing")
+    with atomic_dir(out, overwrite=overwrite, inputs=inputs, name="out") as tmp:
+        report = res.write(tmp, warnings=[str(w.message) for w in caught if issubclass(w.category, GppsWarning)], started=t0)
+    step(3, 3, "done")
+    return report

@@ -224,6 +224,12 @@ def test_default_cluster_pins_one_worker_per_gpu(monkeypatch):
         cluster.close()
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")
     assert batch.default_workers() == (n_cpu, [])
+    for k in batch.THREAD_VARIABLES:
+        monkeypatch.delenv(k, raising=False)
+    env = batch.worker_env([], 0, threads=3)
+    assert all(env[k] == "3" for k in batch.THREAD_VARIABLES) and "CUDA_VISIBLE_DEVICES" not in env
+    monkeypatch.setenv("GPPS_CPU_THREADS", "1")
+    assert batch.worker_env(["2"], 5, threads=3)["GPPS_CPU_THREADS"] == "1"  # the user's setting wins
 
 
 def test_missing_dask_names_the_extra(monkeypatch):
@@ -232,3 +238,59 @@ def test_missing_dask_names_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "distributed", None)
     with pytest.raises(ImportError, match=r"pip install 'gpps\[batch\]'"):
         batch._dask()
+
+
+# ---------------------------------------------------------------------------------------------- large captures
+
+
+@pytest.fixture(scope="module")
+def large_capture(tmp_path_factory):
+    """A 'large' capture for the tiled path, small enough for CI: a 150x150 perspective sphere, 4 lights, Blinn-Phong,
+    with attached shadows (a 45 deg slant: 948 rim pixels with fewer than 3 lit images), so that the neighbour pass
+    (radius 32) runs across the tile borders."""
+    root = tmp_path_factory.mktemp("large")
+    sc = gpps.make_scene("sphere", 150, "perspective", albedo="texture", seed=3)
+    lights = gpps.default_lights("directional", N_LIGHTS, slant_deg=45)
+    ds = gpps.render_dataset(sc, gpps.Material.default_for("blinn-phong"), lights, bits=16, seed=3, device="cpu")
+    return str(write_dataset(root / "big", ds))
+
+
+def test_tiled_solve_equals_the_untiled_one(large_capture, client, tmp_path, monkeypatch):
+    from gpps.flows import tiled
+    from gpps.host.metrics import angular_error
+
+    ref = gpps.reconstruct_folder(large_capture, gpps.FolderConfig(method="ppn", known_material=True), device="cpu")
+    flags = ref.report["flagged_pixels"]
+    rep = batch.reconstruct_tiled(large_capture, tmp_path / "tiled", client, tile=48, method="ppn", known_material=True,
+                                  device="cpu")
+    assert rep["tiled"]["tiles"] == 9 and rep["tiled"]["halo"] == 32 and rep["tiled"]["workers"] == 2
+    got = np.load(tmp_path / "tiled" / "normals.npy")
+    m = ref.mask
+    err = angular_error(got, ref.normals, m)[m]
+    assert err.max() < 1e-3, err.max()  # the same pixels to float32 rounding (the shifted principal point)
+    print(f"tiled against untiled: largest angle {err.max():.2e} deg, flagged pixels {flags}")
+    assert abs(rep["maen_deg"] - ref.report["maen_deg"]) < 1e-4
+    assert rep["flagged_pixels"] == flags
+    d_ref, d = ref.depth, np.load(tmp_path / "tiled" / "depth.npy")
+    fin = np.isfinite(d_ref)
+    assert np.array_equal(fin, np.isfinite(d)) and np.allclose(d[fin], d_ref[fin], atol=1e-4 * np.ptp(d_ref[fin]))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tiled"]  # the scratch inputs are gone
+    # the halo is what makes them equal: without it the neighbour pass misses pixels across the tile borders
+    monkeypatch.setattr(tiled, "halo", lambda config: 0)
+    batch.reconstruct_tiled(large_capture, tmp_path / "no_halo", client, tile=48, method="ppn", known_material=True,
+                            device="cpu", integrate=False)
+    bad = angular_error(np.load(tmp_path / "no_halo" / "normals.npy"), ref.normals, m)[m]
+    assert bad.max() > 0.1, bad.max()
+
+
+def test_tiled_material_from_a_downscaled_sample(large_capture, client, tmp_path):
+    """The material is RON's on the downscaled copy (a worker's), given to every tile."""
+    rep = batch.reconstruct_tiled(large_capture, tmp_path / "t", client, tile=80, sample_size=100, rounds=2, device="cpu")
+    sample = gpps.reconstruct_folder(large_capture, gpps.FolderConfig(max_size=100, integrate=False, rounds=2), device="cpu")
+    est = sample.report["material"]
+    assert rep["tiled"]["material"].startswith("RON on the capture downscaled to 100 px")
+    assert rep["method"] == "ppn"
+    assert all(rep["material"][k] == pytest.approx(est[k], rel=1e-9) for k in ("ks", "shininess")), (rep["material"], est)
+    assert rep["tiled"]["config"]["ks"] == pytest.approx(est["ks"], rel=1e-9)
+    with pytest.raises(ValueError, match="tile"):
+        batch.reconstruct_tiled(large_capture, tmp_path / "u", client, tile=16, known_material=True, method="ppn")
