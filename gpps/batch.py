@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import ctypes
 import hashlib
 import io
 import json
@@ -117,17 +118,19 @@ def default_workers(device: str | None = None) -> tuple[int, list[str]]:
     return max(1, (os.cpu_count() or 2) // 2), []
 
 
-THREAD_VARIABLES = ("GPPS_CPU_THREADS", "TI_CPU_MAX_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
-                    "MKL_NUM_THREADS")
-"""The thread counts a CPU worker of the default cluster is given (Warp's row split, Taichi, BLAS): the cores
-shared out, so that two workers on two cores do not run four busy threads."""
+THREAD_VARIABLES = ("TI_CPU_MAX_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+"""The thread counts a CPU worker of the default cluster is given (Taichi's CPU pool, BLAS): the cores shared
+out, so that two workers on two cores do not run four spinning pools.  ``GPPS_CPU_THREADS`` (Warp's row split)
+stays as in a ``gpps reconstruct`` process: it decides which threads run the pixel solves, and Taichi's CPU
+kernels leave flush-to-zero set on the thread that launched them, so another split would change results in
+their denormals (1e-40)."""
 
 
 def worker_env(gpus: list[str], index: int, threads: int | None = None) -> dict:
     """Environment of the default cluster's worker ``index``: pinned to ``gpus[index % len(gpus)]`` when there
     are GPUs; with ``threads``, each of :data:`THREAD_VARIABLES` not set in this process set to it; the kernel
-    cache folder (``GPPS_CACHE_DIR``) and the Taichi settings passed on."""
-    env = {k: os.environ[k] for k in ("GPPS_CACHE_DIR", "WARP_CACHE_PATH", "ENABLE_TAICHI_HEADER_PRINT",
+    cache folder (``GPPS_CACHE_DIR``), ``GPPS_CPU_THREADS`` and the Taichi settings passed on."""
+    env = {k: os.environ[k] for k in ("GPPS_CACHE_DIR", "WARP_CACHE_PATH", "ENABLE_TAICHI_HEADER_PRINT", "GPPS_CPU_THREADS",
                                        "TI_SKIP_VERSION_CHECK", *THREAD_VARIABLES) if k in os.environ}
     if threads is not None:
         for k in THREAD_VARIABLES:
@@ -141,8 +144,8 @@ def make_cluster(workers: int | None = None, *, device: str | None = None, dashb
                  memory_limit="auto"):
     """A :class:`distributed.LocalCluster` of worker processes (one task thread each) for :func:`reconstruct_many`.
 
-    CPU workers share the cores out: each gets ``cores // workers`` threads for its pixel solves, Taichi
-    and BLAS (:data:`THREAD_VARIABLES`; a variable set in this process wins).
+    CPU workers share the cores out: each gets ``cores // workers`` threads for Taichi and BLAS
+    (:data:`THREAD_VARIABLES`; a variable set in this process wins).
 
     Args:
         workers: worker processes; None: :func:`default_workers` (one per GPU, each pinned to it; else one
@@ -243,6 +246,17 @@ def _complete(dest: Path, digest: str) -> dict | None:
 # ---------------------------------------------------------------------------------------------- one capture
 
 
+def default_fp_environment() -> None:
+    """Reset this thread's floating-point environment to the default (glibc's ``fesetenv(FE_DFL_ENV)``; a no-op
+    elsewhere).  Taichi's CPU kernels leave flush-to-zero / denormals-are-zero set on the thread that launched
+    them; a capture on a worker that ran others before starts from the environment a fresh ``gpps reconstruct``
+    process has, so that its results are the same to the last bit."""
+    try:
+        ctypes.CDLL("libm.so.6").fesetenv(ctypes.c_void_p(-1))  # FE_DFL_ENV is ((const fenv_t *) -1)
+    except (OSError, AttributeError):
+        pass
+
+
 def _worker_name() -> str:
     try:
         from distributed import (
@@ -274,6 +288,7 @@ def run_capture(folder: str, dest: str, config: FolderConfig, *, lights=None, ma
             mask_file = mask if mask not in (None, "auto", "none") else None
             inputs = [i for i in (folder, lights, mask_file) if i is not None]
             check_output_dir(dest, inputs=inputs, overwrite=overwrite, name="out")  # before any computing
+            default_fp_environment()
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always", GppsWarning)
                 res = reconstruct_folder(folder, config, lights=lights, mask=mask, ambient=ambient, device=device)
