@@ -36,6 +36,7 @@ import contextlib
 import csv
 import ctypes
 import hashlib
+import importlib.util
 import io
 import json
 import os
@@ -457,9 +458,17 @@ def _client(client, scheduler, workers, device, dashboard_address):
             cluster.close()
 
 
+def _dashboard(client) -> str | None:
+    """The dashboard's URL: a remote scheduler's always; a local one's only where bokeh (which serves it) is installed."""
+    link = getattr(client, "dashboard_link", None)
+    if getattr(client, "cluster", None) is not None and importlib.util.find_spec("bokeh") is None:
+        return None
+    return link
+
+
 def _run_batch(client, folders, names, out, cfg, *, lights, mask, ambient, device, overwrite, step, t0) -> BatchResult:
     _, distributed = _dask()
-    res = BatchResult(summary=out / "summary.csv", dashboard=getattr(client, "dashboard_link", None))
+    res = BatchResult(summary=out / "summary.csv", dashboard=_dashboard(client))
     out.mkdir(parents=True, exist_ok=True)
     if not (out / BATCH_MARKER).is_file():
         save_json(out / BATCH_MARKER, {"gpps": gpps.__version__, "written_by": "gpps batch"})

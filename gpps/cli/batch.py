@@ -14,7 +14,7 @@ import sys
 
 import gpps
 from gpps.cli._output import as_options
-from gpps.cli._progress import bar
+from gpps.cli._progress import bar, quiet
 from gpps.cli.reconstruct import _OPTIONS, add_reconstruct_options, folder_config
 
 
@@ -40,16 +40,16 @@ def run(args) -> int:
     prog = bar("batch")
 
     def progress(done, total, message):
-        if done == 0 and "dashboard" in message:
+        if done == 0 and not quiet():  # names the cluster and its dashboard
             print(f"gpps batch: {message}", file=sys.stderr)
         prog(done, total, message)
 
     try:
         with as_options(*_OPTIONS, "workers", "scheduler"):
-            res = gpps.reconstruct_many(args.dirs, args.out, workers=args.workers, scheduler=args.scheduler, config=config,
-                                   lights=args.lights, mask=args.mask, ambient=args.ambient, device=args.device,
-                                   overwrite=args.overwrite, progress=progress,
-                                   dashboard_address=None if args.dashboard_address == "none" else args.dashboard_address)
+            res = gpps.reconstruct_many(
+                args.dirs, args.out, workers=args.workers, scheduler=args.scheduler, config=config, lights=args.lights,
+                mask=args.mask, ambient=args.ambient, device=args.device, overwrite=args.overwrite, progress=progress,
+                dashboard_address=None if args.dashboard_address == "none" else args.dashboard_address)
     except ImportError as e:
         print(f"gpps batch: error: {e}", file=sys.stderr)
         return 2
