@@ -34,6 +34,7 @@ _LAZY = {
     "reconstruct_folder": "gpps.flows.folder",
     "FolderConfig": "gpps.flows.folder",
     "FolderResult": "gpps.flows.folder",
+    "reconstruct_many": "gpps.batch",
     "calibrate_lights": "gpps.flows.calibration",
     "LightCalibration": "gpps.flows.calibration",
     "run_demo": "gpps.flows.demo",

@@ -9,7 +9,7 @@ Layers, lowest first (README, "Package map"):
 * ``io``: ``gpps.io`` (readers and writers);
 * ``pipeline``: ``gpps.pipeline`` (stages that own device buffers and launch);
 * ``flows``: ``gpps.flows`` (whole reconstructions);
-* ``api``: ``gpps`` itself (the public names);
+* ``api``: ``gpps`` itself (the public names) and ``gpps.batch`` (batches of captures on Dask);
 * ``cli``: ``gpps.cli`` and ``gpps.__main__`` (``python -m gpps``), which may use only the public face (``gpps`` and
   ``gpps.io``).
 
@@ -29,7 +29,7 @@ LAYER_OF_TOP = {
     "_check": "base", "names": "base", "_version": "base", "_runtime": "base", "_taichi": "base",
     "camera": "types", "lights": "types", "material": "types",
     "kernels": "kernels", "host": "host", "nn": "host", "io": "io", "pipeline": "pipeline", "flows": "flows",
-    "__init__": "api", "__main__": "cli", "cli": "cli",
+    "__init__": "api", "batch": "api", "__main__": "cli", "cli": "cli",
 }
 ALLOWED = {
     "base": {"base"},

@@ -19,7 +19,7 @@ import gpps
 from gpps.cli import _progress
 
 # Subcommand modules, in the order they appear in --help.
-SUBCOMMANDS = ["render", "reconstruct", "calibrate-lights", "integrate", "stream", "demo", "single"]
+SUBCOMMANDS = ["render", "reconstruct", "batch", "calibrate-lights", "integrate", "stream", "demo", "single"]
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):

@@ -28,6 +28,13 @@ def register(subparsers) -> None:
                                "light_directions.txt or light_positions.txt, light_intensities.txt, mask.png, K.txt, an *ambient* image")
     add_output_args(p, "output folder (normals.npy/.png, albedo.npy/.png, depth.npy/.tiff/.exr, mesh.ply/.obj, view.png, mask.png, "
                        "report.json; uncalibrated: lights_estimated.txt, light_intensities_estimated.txt)")
+    add_reconstruct_options(p)
+    p.add_argument("--json", action="store_true", help="print the report as JSON on stdout (progress stays on stderr)")
+    p.set_defaults(func=run)
+
+
+def add_reconstruct_options(p) -> None:
+    """The reconstruction's options (all but DIR, --out and --json): shared with ``gpps batch``."""
     p.add_argument("--uncalibrated", action="store_true", help="estimate the lights from the images even when light files are present "
                                                                "(without light files this is automatic)")
     p.add_argument("--lights", default=None, help="folder with the light files (e.g. from gpps calibrate-lights), rows in the images' order; "
@@ -64,8 +71,6 @@ def register(subparsers) -> None:
     p.add_argument("--pixel-size", type=float, default=None, help="orthographic camera (no K.txt): scene units per pixel; default: depth in pixels")
     p.add_argument("--reference-depth", "--depth", dest="reference_depth", type=float, default=None,
                    help="mean object distance (scene units): sets the depth's scale; needed for point lights unless depth_gt.npy exists")
-    p.add_argument("--json", action="store_true", help="print the report as JSON on stdout (progress stays on stderr)")
-    p.set_defaults(func=run)
 
 
 # the library's errors that name these settings name the options instead

@@ -404,7 +404,8 @@ def _reference_depth(ds, camera, lights, reference, source) -> tuple[float | Non
     return reference, source
 
 
-def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, report: dict, device, progress) -> dict:
+def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, report: dict, device, progress,
+                pixel_solve=None) -> dict:
     """The calibrated branch: the material, the reference depth, then the method (pps, ppn or ron).
 
     Returns:
@@ -434,7 +435,7 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
         report["timings"] = {"solve": time.perf_counter() - t}
         report["material"] = material.to_dict()
     elif config.method == "ppn" or config.solver == "none":
-        res = solve_normals(
+        res = (pixel_solve or solve_normals)(
             ds.images, ds.mask, lights, camera=camera, material=material, solver=config.solver,
             depth=None if not isinstance(lights, PointLights) else np.full((h, w), internal_reference, np.float32),
             valid=valid, device=device, progress=progress, **opts,
@@ -463,7 +464,7 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
 
 def reconstruct_folder(folder, config: FolderConfig | None = None, *, lights=None, mask=None, ambient: str | None = "auto",
                        device: str | None = None, progress: Progress | None = None,
-                       read_progress: Progress | None = None) -> FolderResult:
+                       read_progress: Progress | None = None, pixel_solve: Callable | None = None) -> FolderResult:
     """Normals, albedo, depth (and the lights, when not given) of the object in a capture folder.
 
     Args:
@@ -479,6 +480,9 @@ def reconstruct_folder(folder, config: FolderConfig | None = None, *, lights=Non
         device: Warp/Taichi device (None or "auto": CUDA if present).
         progress: optional ``progress(done, total, message)`` of the solve.
         read_progress: optional ``progress(done, total, message)`` while the images are read.
+        pixel_solve: a replacement for :func:`gpps.flows.photometric.solve_normals` (same arguments and
+            result) in the calibrated ``"ppn"`` solve: the tiled solve of :func:`gpps.batch.reconstruct_tiled`;
+            None: ``solve_normals``.  Other methods refuse it.
 
     Returns:
         :class:`FolderResult`; :meth:`FolderResult.write` writes it.
@@ -508,13 +512,16 @@ def reconstruct_folder(folder, config: FolderConfig | None = None, *, lights=Non
         report["input"]["automatic_mask"] = cap.automask
     if ds.mask.sum() < 10:
         raise ValueError(f"mask: expected at least 10 object pixels, got {int(ds.mask.sum())}")
+    if pixel_solve is not None and (uncalibrated or (config.method != "ppn" and config.solver != "none")):
+        raise ValueError(f"pixel_solve: expected a calibrated capture and method 'ppn', got "
+                         f"{'uncalibrated' if uncalibrated else repr(config.method)}")
     reference = config.reference_depth
     source = "--reference-depth" if reference is not None else None  # report.json's name for a given reference depth
     if uncalibrated:
         sol = _uncalibrated(cap, camera, report, device, progress)
         sol.update(depth=None, depth_mask=None)
     else:
-        sol = _calibrated(cap, camera, config, reference, source, report, device, progress)
+        sol = _calibrated(cap, camera, config, reference, source, report, device, progress, pixel_solve)
         reference, source = sol["reference"], sol["source"]
     normals = np.where(ds.mask[..., None], sol["normals"], 0.0).astype(np.float32)
     depth, dmask = sol["depth"], sol["depth_mask"]

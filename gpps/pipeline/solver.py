@@ -543,7 +543,7 @@ class PixelSolver(Stage):
         arr = rgb_images(images, self.shape)  # (as_images: finite and >= 0 checked there)
         return np.ascontiguousarray(arr, dtype=np.float32)
 
-    def upload(self, images, mask, *, depth=None, valid=None, init_normals=None) -> None:
+    def upload(self, images, mask, *, depth=None, valid=None, init_normals=None, noise=None) -> None:
         """Check and copy one frame's inputs into the device buffers.
 
         Args:
@@ -553,6 +553,8 @@ class PixelSolver(Stage):
                 required for point lights (per-pixel direction and 1/r^2), optional otherwise.
             valid: optional (N, H, W) bool: observations to use (e.g. unsaturated).
             init_normals: (H, W, 3) warm-start normals (with ``config.warm_start``).
+            noise: (N,) per-image noise levels to use instead of ``config.noise_level`` / the estimate
+                (a tile of a larger frame takes the whole frame's: :mod:`gpps.flows.tiled`).
 
         ``run(images, mask, ...)`` (:meth:`Stage.run`) is ``upload``, :meth:`step` and :meth:`fetch` in one.
         Also sets the per-image noise levels (:attr:`noise`, :attr:`noise_level`):
@@ -588,7 +590,9 @@ class PixelSolver(Stage):
             pts = self.camera.backproject(np.where(m, dep, 0.0))
             check_light_configuration(self.lights, np.median(pts[m], axis=0))
         c = self.config
-        if c.noise_level is None:
+        if noise is not None:
+            self.noise_level = as_array("noise", noise, shape=(n,)).astype(np.float32)
+        elif c.noise_level is None:
             self.noise_level = estimate_noise(img, m)
         else:
             self.noise_level = np.full(n, c.noise_level, np.float32)
