@@ -459,6 +459,11 @@ class MaterialScorer(Stage):
     def _launch_chunk(self, k: int, a: int, b: int, *, warm: bool = False) -> None:
         """One launch: candidates ``0..k`` x sample pixels ``a..b``, cold (Woodham's start, the config's
         multi-start) or ``warm`` (one start from :meth:`set_start`'s normals)."""
+        self._chunk_cmd(k, a, b, warm=warm).launch()
+
+    def _chunk_cmd(self, k: int, a: int, b: int, *, warm: bool = False):
+        """The recorded launch(es) of :meth:`_launch_chunk` (recorded at the first use; record on the calling
+        thread before launching from several: a CPU recording raced with another thread's launch (segfault))."""
         lanes = self._uses_lanes(k * int(b - a))
         key = (bool(warm), int(k), int(a), int(b), lanes)
         cmd = self._cmds.get(key)
@@ -492,7 +497,7 @@ class MaterialScorer(Stage):
             if len(self._cmds) >= 256:
                 self._cmds.clear()
             self._cmds[key] = cmd
-        cmd.launch()
+        return cmd
 
     def _uses_lanes(self, pairs: int) -> bool:
         """Whether a launch of ``pairs`` (candidate, pixel) solves runs the lights-parallel build."""
@@ -559,18 +564,19 @@ class MaterialScorer(Stage):
         if self.parallel == "lights":
             threads = 1  # Warp's CPU tile code keeps block scratch memory that concurrent launches share (segfault)
         kernels = [x for x in (self._kernel, self._kernel_lanes) if x is not None]
+        if self.split_starts:
+            kernels += list(self._starts_kernels)
         wp = warp()
         bounds = np.linspace(0, p, chunks + 1).round().astype(int)
-
-        def launcher(a0, b0):
-            return lambda: self._launch_chunk(k, int(a0), int(b0), warm=warm)
 
         if threads > 1:
             for kern in kernels:
                 load_first(kern, self.device)
         for a, b in zip(bounds[:-1], bounds[1:]):
             parts = np.linspace(a, b, threads + 1).round().astype(int)
-            run_all([launcher(x, y) for x, y in zip(parts[:-1], parts[1:]) if y > x])
+            # recorded here, on this thread; the threads only launch
+            cmds = [self._chunk_cmd(k, int(x), int(y), warm=warm) for x, y in zip(parts[:-1], parts[1:]) if y > x]
+            run_all([c.launch for c in cmds])
             if progress is not None or chunks > 1:
                 wp.synchronize_device(self.device)
             if progress is not None:
