@@ -10,9 +10,10 @@ absent), plus ``OUT/summary.csv``, one row per capture.
   default cluster has one worker per GPU when CUDA is present, each pinned to its GPU
   (``CUDA_VISIBLE_DEVICES``, the worker's device is then ``cuda:0``), else one per two CPU cores
   (:func:`default_workers`).  A worker process lives for the whole batch: the Warp modules it loaded, the
-  Taichi kernels it compiled and the integrator's field pool (:mod:`gpps.pipeline.integration`) serve every
-  later capture it gets; the compiled kernels are also cached on disk (``GPPS_CACHE_DIR``), which the
-  default cluster's workers inherit.
+  Taichi kernels it compiled, the integrator's field pool (:mod:`gpps.pipeline.integration`) and the stages'
+  device buffers (:mod:`gpps.pipeline.buffers`: the pixel solvers', the material scorer's and DGMC's, given
+  back when a reconstruction closes them) serve every later capture of the same size it gets; the compiled
+  kernels are also cached on disk (``GPPS_CACHE_DIR``), which the default cluster's workers inherit.
 * **Resume.**  Each capture's ``report.json`` records ``batch.input_hash``: SHA-256 over the capture's
   files (names and contents; the light folder and mask file when given), the reconstruction's options and
   the gpps version (:func:`input_hash`).  A capture whose output folder is complete (every file of its

@@ -422,7 +422,8 @@ class RON:
             self.integrator = Integrator(self.mask, camera=camera, config=icfg, device=taichi_device(self.device))
 
     def close(self) -> None:
-        """Free the integrator's Taichi fields, the device rounds' and the material scorer's buffers."""
+        """Free the integrator's Taichi fields, the device rounds', the material scorer's and the solvers'
+        buffers (the RON refuses work afterwards)."""
         if self._rounds is not None:
             self._rounds.close()
             self._rounds = None
@@ -432,6 +433,13 @@ class RON:
         if self.integrator is not None:
             self.integrator.close()
             self.integrator = None
+        # the solvers' buffers go back to the process's pool (gpps.pipeline.buffers): the next RON of this
+        # size (a loop over captures, gpps batch's workers) takes them instead of allocating its own
+        for name in ("solver", "_fit_solver"):
+            stage = getattr(self, name, None)
+            if stage is not None:
+                stage.close()
+                setattr(self, name, None)
 
     # ------------------------------------------------------------------ steps
 

@@ -73,45 +73,45 @@ class DeviceDGMC(Stage):
         d = self.device
         k = int(cfg.k_nearest)
         f64, i32, u8 = wp.float64, wp.int32, wp.uint8
-        self.images = wp.zeros((n, h, w), dtype=wp.vec3, device=d)
-        self.mask = wp.zeros((h, w), dtype=u8, device=d)
-        self.normals = wp.zeros((h, w), dtype=wp.vec3d, device=d)
-        self.points = wp.zeros((h, w), dtype=wp.vec3d, device=d)
-        self.lvec = wp.zeros(n, dtype=wp.vec3d, device=d)
-        self.laxis = wp.zeros(n, dtype=wp.vec3d, device=d)
-        self.lmu = wp.zeros(n, dtype=f64, device=d)
-        self.lint = wp.zeros(n, dtype=f64, device=d)
-        self.fill = wp.zeros((h, w, 2), dtype=i32, device=d)
-        self.sort_keys = wp.zeros(2 * h * w, dtype=f64, device=d)
-        self.sort_vals = wp.zeros(2 * h * w, dtype=i32, device=d)
-        self.rho = wp.zeros(1, dtype=f64, device=d)
-        self.levels = wp.zeros(n, dtype=f64, device=d)
-        self.flags = wp.zeros((n, h, w), dtype=u8, device=d)
-        self.saturated = wp.zeros((n, h, w), dtype=u8, device=d)
-        self.predicted = wp.zeros((n, h, w), dtype=wp.float32, device=d)
-        self.region = wp.zeros((h, w), dtype=u8, device=d)
-        self.labels = wp.zeros((h, w), dtype=i32, device=d)
-        self.roots = wp.zeros(h * w, dtype=i32, device=d)
-        self.numbers = wp.zeros(h * w, dtype=i32, device=d)
-        self.boundary = wp.zeros((h, w), dtype=i32, device=d)
-        self.counter = wp.zeros(1, dtype=i32, device=d)
+        self.images = self._buffer((n, h, w), wp.vec3, d)
+        self.mask = self._buffer((h, w), u8, d)
+        self.normals = self._buffer((h, w), wp.vec3d, d)
+        self.points = self._buffer((h, w), wp.vec3d, d)
+        self.lvec = self._buffer(n, wp.vec3d, d)
+        self.laxis = self._buffer(n, wp.vec3d, d)
+        self.lmu = self._buffer(n, f64, d)
+        self.lint = self._buffer(n, f64, d)
+        self.fill = self._buffer((h, w, 2), i32, d)
+        self.sort_keys = self._buffer(2 * h * w, f64, d)
+        self.sort_vals = self._buffer(2 * h * w, i32, d)
+        self.rho = self._buffer(1, f64, d)
+        self.levels = self._buffer(n, f64, d)
+        self.flags = self._buffer((n, h, w), u8, d)
+        self.saturated = self._buffer((n, h, w), u8, d)
+        self.predicted = self._buffer((n, h, w), wp.float32, d)
+        self.region = self._buffer((h, w), u8, d)
+        self.labels = self._buffer((h, w), i32, d)
+        self.roots = self._buffer(h * w, i32, d)
+        self.numbers = self._buffer(h * w, i32, d)
+        self.boundary = self._buffer((h, w), i32, d)
+        self.counter = self._buffer(1, i32, d)
         # the geodesic sweeps' change counts, one slot per CPU thread (gpps.pipeline.cpu_threads)
-        self.sweep_count = wp.zeros(max(1, cpu_threads()), dtype=i32, device=d)
-        self.keys = [wp.zeros((h, w, k), dtype=i32, device=d) for _ in range(2)]
-        self.srcs = [wp.zeros((h, w, k), dtype=i32, device=d) for _ in range(2)]
-        self.changed = [wp.zeros((h, w), dtype=i32, device=d) for _ in range(2)]
-        self.slots = wp.zeros((h, w), dtype=i32, device=d)
-        self.f = [wp.zeros((h, w), dtype=f64, device=d) for _ in range(2)]
-        self.tmp = wp.zeros((h, w), dtype=f64, device=d)
-        self.deriv = [wp.zeros((h, w), dtype=f64, device=d) for _ in range(4)]
-        self.gc = wp.zeros((h, w), dtype=f64, device=d)
-        self.mc = wp.zeros((h, w), dtype=f64, device=d)
+        self.sweep_count = self._buffer(max(1, cpu_threads()), i32, d)
+        self.keys = [self._buffer((h, w, k), i32, d) for _ in range(2)]
+        self.srcs = [self._buffer((h, w, k), i32, d) for _ in range(2)]
+        self.changed = [self._buffer((h, w), i32, d) for _ in range(2)]
+        self.slots = self._buffer((h, w), i32, d)
+        self.f = [self._buffer((h, w), f64, d) for _ in range(2)]
+        self.tmp = self._buffer((h, w), f64, d)
+        self.deriv = [self._buffer((h, w), f64, d) for _ in range(4)]
+        self.gc = self._buffer((h, w), f64, d)
+        self.mc = self._buffer((h, w), f64, d)
         self.weights = [wp.array(gaussian_derivative_weights(cfg.sigma, o), dtype=f64, device=d) for o in range(3)]
-        self.out_normals = wp.zeros((h, w), dtype=wp.vec3, device=d)
-        self.source = wp.zeros((h, w, 2), dtype=i32, device=d)
-        self.distance = wp.zeros((h, w), dtype=wp.float32, device=d)
-        self.rank = wp.zeros((h, w), dtype=i32, device=d)
-        self.tol_used = wp.zeros((h, w), dtype=wp.float32, device=d)
+        self.out_normals = self._buffer((h, w), wp.vec3, d)
+        self.source = self._buffer((h, w, 2), i32, d)
+        self.distance = self._buffer((h, w), wp.float32, d)
+        self.rank = self._buffer((h, w), i32, d)
+        self.tol_used = self._buffer((h, w), wp.float32, d)
         self.channels = 3
         self.light_kind = 0
         self.count = 0
@@ -408,7 +408,8 @@ class DeviceDGMC(Stage):
                          gaussian=self.gc.numpy().astype(np.float32), mean=self.mc.numpy().astype(np.float32))
 
     def close(self) -> None:
-        """Release the device buffers."""
+        """Give the device buffers back to the process's pool (:mod:`gpps.pipeline.buffers`)."""
+        self._release_buffers()
         for name in list(vars(self)):
             if name not in ("config", "shape", "device", "_closed"):
                 setattr(self, name, None)

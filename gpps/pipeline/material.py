@@ -185,45 +185,45 @@ class MaterialScorer(Stage):
                              else (self.device.startswith("cuda") and ns > 1)) and parallel != "lights"
         if self.split_starts:
             self._starts_kernels = sb.get_batched_starts_kernels(config.solver, brdf, robust)
-            self._start_bufs = [wp.zeros((km, pm, ns), dtype=dt, device=d)
+            self._start_bufs = [self._buffer((km, pm, ns), dt, d)
                                 for dt in (wp.vec3, wp.vec3, wp.float32, wp.int32, wp.int32)]
-        self.strip = wp.zeros((n, 1, pm), dtype=wp.vec3, device=d)
-        self.strip_valid = wp.ones((n, 1, pm), dtype=wp.uint8, device=d)
-        self.rows = wp.zeros(pm, dtype=wp.int32, device=d)
-        self.cols = wp.zeros(pm, dtype=wp.int32, device=d)
-        self.sample_depth = wp.ones(pm, dtype=wp.float32, device=d)
-        self.noise = wp.zeros(n, dtype=wp.float32, device=d)
+        self.strip = self._buffer((n, 1, pm), wp.vec3, d)
+        self.strip_valid = self._buffer((n, 1, pm), wp.uint8, d, fill=1)
+        self.rows = self._buffer(pm, wp.int32, d)
+        self.cols = self._buffer(pm, wp.int32, d)
+        self.sample_depth = self._buffer(pm, wp.float32, d, fill=1)
+        self.noise = self._buffer(n, wp.float32, d)
         self.noise_level = np.zeros(n, np.float32)
-        self.base_weights = wp.zeros((n, 1, pm), dtype=wp.float32, device=d)
-        self.points = wp.zeros(pm, dtype=wp.vec3, device=d)
-        self.views = wp.zeros(pm, dtype=wp.vec3, device=d)
-        self.ninit = wp.zeros(pm, dtype=wp.vec3, device=d)
-        self.nwarm = wp.zeros(pm, dtype=wp.vec3, device=d)
+        self.base_weights = self._buffer((n, 1, pm), wp.float32, d)
+        self.points = self._buffer(pm, wp.vec3, d)
+        self.views = self._buffer(pm, wp.vec3, d)
+        self.ninit = self._buffer(pm, wp.vec3, d)
+        self.nwarm = self._buffer(pm, wp.vec3, d)
         self.warm_ready = False
-        self.gmax = wp.zeros(pm, dtype=wp.float32, device=d)
-        self.flags = wp.zeros(pm, dtype=wp.int32, device=d)
-        self.cond = wp.zeros(pm, dtype=wp.float32, device=d)
-        self.mats = wp.zeros(km, dtype=MaterialParams, device=d)
-        self.normals = wp.zeros((km, pm), dtype=wp.vec3, device=d)
-        self.albedo = wp.zeros((km, pm), dtype=wp.vec3, device=d)
-        self.residual = wp.zeros((km, pm), dtype=wp.float32, device=d)
-        self.iterations = wp.zeros((km, pm), dtype=wp.int32, device=d)
-        self.flags_k = wp.zeros((km, pm), dtype=wp.int32, device=d)
+        self.gmax = self._buffer(pm, wp.float32, d)
+        self.flags = self._buffer(pm, wp.int32, d)
+        self.cond = self._buffer(pm, wp.float32, d)
+        self.mats = self._buffer(km, MaterialParams, d)
+        self.normals = self._buffer((km, pm), wp.vec3, d)
+        self.albedo = self._buffer((km, pm), wp.vec3, d)
+        self.residual = self._buffer((km, pm), wp.float32, d)
+        self.iterations = self._buffer((km, pm), wp.int32, d)
+        self.flags_k = self._buffer((km, pm), wp.int32, d)
         # one copy of the observations (and, without IRLS, of the weights) serves every candidate
         self._strip_k = _broadcast_k(wp, self.strip, km)
         self._base_k = _broadcast_k(wp, self.base_weights, km)  # (the starts-parallel build's starts read it)
         if robust == "none":
             self._weights_k = _broadcast_k(wp, self.base_weights, km)
         else:
-            self._weights_k = wp.zeros((n, km, pm), dtype=wp.float32, device=d)
+            self._weights_k = self._buffer((n, km, pm), wp.float32, d)
         self._mats_host = np.zeros(km, dtype=MaterialParams.numpy_dtype())
         self.samples = 0  # P of the current upload
         self.candidates = 0  # K of the last step
         self.rows_host = np.zeros(0, np.int64)
         self.cols_host = np.zeros(0, np.int64)
         # upload_device without depth / valid: never-read stand-ins of the gather's unused arguments
-        self._no_depth = wp.ones((1, 1), dtype=wp.float32, device=d)
-        self._no_valid = wp.ones((n, 1, 1), dtype=wp.uint8, device=d)
+        self._no_depth = self._buffer((1, 1), wp.float32, d, fill=1)
+        self._no_valid = self._buffer((n, 1, 1), wp.uint8, d, fill=1)
         self._device_noise = None
         self._closed = False
 
@@ -614,7 +614,9 @@ class MaterialScorer(Stage):
         return self.fetch()
 
     def close(self) -> None:
-        """Release the device buffers; the scorer refuses work afterwards."""
+        """Give the device buffers back to the process's pool (:mod:`gpps.pipeline.buffers`); the scorer
+        refuses work afterwards."""
+        self._release_buffers()
         for name in ("strip", "strip_valid", "rows", "cols", "sample_depth", "noise", "base_weights", "points",
                      "views", "ninit", "nwarm", "gmax", "flags", "cond", "mats", "normals", "albedo", "residual",
                      "iterations", "flags_k", "_strip_k", "_weights_k", "lp", "_no_depth", "_no_valid", "_cmds",

@@ -450,19 +450,19 @@ class PixelSolver(Stage):
         self.prm = self._params(self.config)
         self._select_kernels()
         d = self.device
-        self.images = wp.zeros((n, h, w), dtype=wp.vec3, device=d)
-        self.mask = wp.zeros((h, w), dtype=wp.uint8, device=d)
-        self.valid = wp.ones((n, h, w), dtype=wp.uint8, device=d)
-        self.depth = wp.ones((h, w), dtype=wp.float32, device=d)
-        self.noise = wp.zeros(n, dtype=wp.float32, device=d)
+        self.images = self._buffer((n, h, w), wp.vec3, d)
+        self.mask = self._buffer((h, w), wp.uint8, d)
+        self.valid = self._buffer((n, h, w), wp.uint8, d, fill=1)
+        self.depth = self._buffer((h, w), wp.float32, d, fill=1)
+        self.noise = self._buffer(n, wp.float32, d)
         self.noise_level = np.zeros(n, np.float32)
-        self.weights = wp.zeros((n, h, w), dtype=wp.float32, device=d)
-        self.normals = wp.zeros((h, w), dtype=wp.vec3, device=d)
-        self.albedo = wp.zeros((h, w), dtype=wp.vec3, device=d)
-        self.residual = wp.zeros((h, w), dtype=wp.float32, device=d)
-        self.iterations = wp.zeros((h, w), dtype=wp.int32, device=d)
-        self.flags = wp.zeros((h, w), dtype=wp.int32, device=d)
-        self.cond = wp.zeros((h, w), dtype=wp.float32, device=d)
+        self.weights = self._buffer((n, h, w), wp.float32, d)
+        self.normals = self._buffer((h, w), wp.vec3, d)
+        self.albedo = self._buffer((h, w), wp.vec3, d)
+        self.residual = self._buffer((h, w), wp.float32, d)
+        self.iterations = self._buffer((h, w), wp.int32, d)
+        self.flags = self._buffer((h, w), wp.int32, d)
+        self.cond = self._buffer((h, w), wp.float32, d)
         self.intensity_scale = 1.0
         self._row_bounds = None  # CPU: the solve launch's row ranges, one thread each (None: one launch)
         self._mask_rows = None  # mask pixels per row of the last upload (balances the CPU row ranges)
@@ -560,6 +560,7 @@ class PixelSolver(Stage):
         Also sets the per-image noise levels (:attr:`noise`, :attr:`noise_level`):
         ``config.noise_level`` or, when that is None, :func:`estimate_noise` of the frame.
         """
+        self._check_open()
         n, h, w = self.shape
         img = self._images(images)
         m = as_mask("mask", mask, (h, w))
@@ -692,6 +693,7 @@ class PixelSolver(Stage):
         (default: zeros there), so a re-solve of a few pixels costs little more than
         their solves (the DGMC front's rings, :class:`gpps.pipeline.front.DeviceFront`).
         """
+        self._check_open()
         self._launch_solve(progress, subset)
         if self.config.neighbour_radius > 0 and self._underdetermined_kernel is not None:
             self._recorded(("underdetermined",), self._underdetermined_kernel,
@@ -794,7 +796,8 @@ class PixelSolver(Stage):
         wp = warp()
         names = ("normals", "albedo", "residual", "iterations", "flags", "cond")
         if "_saved" not in self.__dict__:
-            self._saved = {k: wp.empty_like(getattr(self, k)) for k in names}
+            self._saved = {k: self._buffer(getattr(self, k).shape, getattr(self, k).dtype, self.device)
+                           for k in names}
         for k in names:
             wp.copy(self._saved[k], getattr(self, k))
 
@@ -846,6 +849,19 @@ class PixelSolver(Stage):
             self.step()
         return self.fetch(names)
 
+    def close(self) -> None:
+        """Give the device buffers back to the process's pool (:mod:`gpps.pipeline.buffers`); the solver
+        refuses work afterwards (its buffers are gone)."""
+        self._release_buffers()
+        for name in ("images", "mask", "valid", "depth", "noise", "weights", "normals", "albedo", "residual",
+                     "iterations", "flags", "cond", "_saved", "_cmds"):
+            self.__dict__.pop(name, None)
+        self._closed = True
+
+    def _check_open(self) -> None:
+        if self.__dict__.get("_closed", False):
+            raise ValueError("PixelSolver: closed (its buffers went back to the pool)")
+
     def fetch(self, names=("normals", "albedo", "residual", "iterations", "flags", "cond", "weights")) -> dict:
         """The current results as numpy arrays owned by the caller: ``normals`` (H, W, 3), ``albedo``
         (H, W, 3), ``residual`` (H, W), ``iterations`` (H, W), ``flags`` (H, W) (bits of
@@ -857,4 +873,5 @@ class PixelSolver(Stage):
         Args:
             names: the outputs to copy (default: all).
         """
+        self._check_open()
         return {k: np.array(getattr(self, k).numpy(), copy=True) for k in names}

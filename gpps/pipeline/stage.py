@@ -18,6 +18,8 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 
+from gpps.pipeline import buffers
+
 __all__ = ["Stage"]
 
 
@@ -38,7 +40,19 @@ class Stage(ABC):
         """Copy the results to the host and return them."""
 
     def close(self) -> None:
-        """Release the device buffers (the base class holds none)."""
+        """Release the device buffers: those taken with :meth:`_buffer` go back to the process's pool
+        (:mod:`gpps.pipeline.buffers`).  A subclass that overrides it calls :meth:`_release_buffers`."""
+        self._release_buffers()
+
+    def _buffer(self, shape, dtype, device, fill=0):
+        """A device buffer from the process's pool (zeroed, or filled with ``fill``), given back at :meth:`close`."""
+        a = buffers.take(shape, dtype, device, fill)
+        self.__dict__.setdefault("_pooled", []).append(a)
+        return a
+
+    def _release_buffers(self) -> None:
+        """Give the buffers of :meth:`_buffer` back to the pool (once)."""
+        buffers.give(self.__dict__.pop("_pooled", []))
 
     def run(self, *args, **kwargs):
         """``upload(*args, **kwargs)``, ``step()`` and ``fetch()``: the stage's one-shot form."""
