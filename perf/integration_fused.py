@@ -35,7 +35,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import statistics
 import subprocess
 import sys
@@ -47,16 +46,10 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "perf"))
 os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 
-_TASK = re.compile(r"^(?P<kernel>.+?)_c\d+_\d+_kernel_(?P<task>\d+_\w+)$")
-
-
-def _problem(size: int):
-    from gpps.host.scenes import make_scene
-
-    sc = make_scene("bumps", size, "perspective")
-    return sc.mask, sc.normals, sc.camera
+from _integration_common import TASK, med, problem, run_row  # noqa: E402
 
 
 def _config(launch: str, a):
@@ -77,18 +70,6 @@ def _loop(integ):
             iteration()
 
     return iterations
-
-
-def _med(fn, sync, repeat):
-    fn()
-    sync()
-    ts = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        sync()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
 
 
 def _host_med(fn, sync, repeat):
@@ -155,7 +136,7 @@ def _profile(a) -> dict:
     prog = impl.get_runtime().prog
     out = {}
     for size in map(int, a.sizes.split(",")):
-        mask, n, cam = _problem(size)
+        mask, n, cam = problem(size)
         for launch in a.launches.split(","):
             integ = Integrator(mask, cam, _config(launch, a), device=a.device)
             integ.run(n)  # compile, fill the fields
@@ -180,7 +161,7 @@ def _profile(a) -> dict:
             kernels: dict = {}
             for sign, rs in ((1.0, recs), (-1.0, recs0)):
                 for rec in rs:
-                    m = _TASK.match(rec.name)
+                    m = TASK.match(rec.name)
                     key = m["kernel"] if m else rec.name
                     kernels[key] = kernels.get(key, 0.0) + sign * rec.kernel_time * 1e3 / a.iters
             out[f"{size}/{launch}"] = {"iteration_us": total * 1e3 / a.iters,
@@ -224,28 +205,16 @@ def main(argv=None) -> int:
             pass
     rows, host_parts = [], {}
     for size in map(int, a.sizes.split(",")):
-        mask, n, cam = _problem(size)
+        mask, n, cam = problem(size)
         ref_depth = None
         for launch in a.launches.split(","):
             integ = Integrator(mask, cam, _config(launch, a), device=a.device)
-            res = integ.run(n)  # compile
-            walls, solves = [], []
-            for _ in range(a.repeat):
-                t0 = time.perf_counter()
-                res = integ.run(n)
-                walls.append(time.perf_counter() - t0)
-                solves.append(res.timings["solve"])
-            m = res.mask
+            res, row = run_row(integ, n, size, a.repeat, ref_depth, {"launch": launch})
             if ref_depth is None:
                 ref_depth = res.depth
-            row = {"size": size, "mask_pixels": int(m.sum()), "launch": launch, "iterations": res.iterations,
-                   "converged": res.converged, "solver_residual": res.solver_residual,
-                   "depth_max_diff_to_first_launch": float(np.max(np.abs(res.depth[m] - ref_depth[m]))),
-                   "depth_range": float(np.ptp(res.depth[m])),
-                   "run_ms": 1e3 * statistics.median(walls), "solve_ms": 1e3 * statistics.median(solves)}
             iterations = _loop(integ)
-            t_k = _med(lambda: iterations(a.iters), ti.sync, a.repeat)
-            t_0 = _med(lambda: iterations(0), ti.sync, a.repeat)
+            t_k = med(lambda: iterations(a.iters), ti.sync, a.repeat)
+            t_0 = med(lambda: iterations(0), ti.sync, a.repeat)
             row["iteration_wall_ms"] = 1e3 * (t_k - t_0) / a.iters
             h_k = _host_med(lambda: iterations(a.iters), ti.sync, a.repeat)
             h_0 = _host_med(lambda: iterations(0), ti.sync, a.repeat)
@@ -258,7 +227,7 @@ def main(argv=None) -> int:
             rows.append(row)
             print(f"{size:5d} {launch:9s} {row['mask_pixels']} px: {row['iterations']} it, run {row['run_ms']:.2f} ms "
                   f"(solve {row['solve_ms']:.2f}), iteration {row['iteration_wall_ms']:.3f} ms wall, "
-                  f"{row['iteration_host_ms']:.3f} ms host; depth diff {row['depth_max_diff_to_first_launch']:.2e}",
+                  f"{row['iteration_host_ms']:.3f} ms host; depth diff {row['depth_max_diff_to_first']:.2e}",
                   flush=True)
     if cuda and not a.no_profile:
         with tempfile.TemporaryDirectory() as tmp:

@@ -29,30 +29,21 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
-import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "perf"))
 os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 
-_TASK = re.compile(r"^(?P<kernel>.+?)_c\d+_\d+_kernel_(?P<task>\d+_\w+)$")
+from _integration_common import TASK, med, problem, run_row  # noqa: E402
+
 CG_KERNELS = ("cg_step", "cg_direction", "cg_start", "cg_first_direction", "residual_norm")
 VCYCLE_KERNELS = ("down", "up", "coarse_exact")
-
-
-def _problem(size: int):
-    from gpps.host.scenes import make_scene
-
-    sc = make_scene("bumps", size, "perspective")
-    return sc.mask, sc.normals, sc.camera
 
 
 def _config(build: str, a):
@@ -93,19 +84,6 @@ def _cg(integ):
     return restart, iteration, kernels
 
 
-def _med(fn, sync, repeat, inner=1):
-    fn()
-    sync()
-    ts = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        for _ in range(inner):
-            fn()
-        sync()
-        ts.append((time.perf_counter() - t0) / inner)
-    return statistics.median(ts)
-
-
 def _profile(a) -> dict:
     """Child process (``TI_KERNEL_PROFILER=1``): device time per task over ``--iters`` iterations, per build."""
     from gpps import _taichi
@@ -117,7 +95,7 @@ def _profile(a) -> dict:
     prog = impl.get_runtime().prog
     out = {}
     for size in map(int, a.sizes.split(",")):
-        mask, n, cam = _problem(size)
+        mask, n, cam = problem(size)
         for build in a.builds.split(","):
             integ = Integrator(mask, cam, _config(build, a), device=a.device)
             integ.run(n)  # compile, fill the fields
@@ -134,7 +112,7 @@ def _profile(a) -> dict:
             prog.update_kernel_profiler()
             tasks: dict = {}
             for rec in prog.get_kernel_profiler_records():
-                m = _TASK.match(rec.name)
+                m = TASK.match(rec.name)
                 key = f"{m['kernel']}/{m['task']}" if m else rec.name
                 tasks[key] = tasks.get(key, 0.0) + rec.kernel_time * 1e3 / a.iters  # ms -> us per iteration
             kernels: dict = {}
@@ -188,25 +166,13 @@ def main(argv=None) -> int:
             pass
     rows = []
     for size in map(int, a.sizes.split(",")):
-        mask, n, cam = _problem(size)
+        mask, n, cam = problem(size)
         ref_depth = None
         for build in a.builds.split(","):
             integ = Integrator(mask, cam, _config(build, a), device=a.device)
-            res = integ.run(n)  # compile
-            walls, solves = [], []
-            for _ in range(a.repeat):
-                t0 = time.perf_counter()
-                res = integ.run(n)
-                walls.append(time.perf_counter() - t0)
-                solves.append(res.timings["solve"])
-            m = res.mask
+            res, row = run_row(integ, n, size, a.repeat, ref_depth, {"build": build})
             if ref_depth is None:
                 ref_depth = res.depth
-            row = {"size": size, "mask_pixels": int(m.sum()), "build": build, "iterations": res.iterations,
-                   "converged": res.converged, "solver_residual": res.solver_residual,
-                   "depth_max_diff_to_first_build": float(np.max(np.abs(res.depth[m] - ref_depth[m]))),
-                   "depth_range": float(np.ptp(res.depth[m])),
-                   "run_ms": 1e3 * statistics.median(walls), "solve_ms": 1e3 * statistics.median(solves)}
             restart, iteration, kernels = _cg(integ)
 
             def iterations(k, restart=restart, iteration=iteration):
@@ -214,11 +180,11 @@ def main(argv=None) -> int:
                 for _ in range(k):
                     iteration()
 
-            t_k = _med(lambda: iterations(a.iters), ti.sync, a.repeat)
-            t_0 = _med(lambda: iterations(0), ti.sync, a.repeat)
+            t_k = med(lambda: iterations(a.iters), ti.sync, a.repeat)
+            t_0 = med(lambda: iterations(0), ti.sync, a.repeat)
             row["iteration_wall_ms"] = 1e3 * (t_k - t_0) / a.iters
             restart()
-            row["kernel_wall_us"] = {k: 1e6 * _med(fn, ti.sync, a.repeat, a.inner) for k, fn in kernels.items()}
+            row["kernel_wall_us"] = {k: 1e6 * med(fn, ti.sync, a.repeat, a.inner) for k, fn in kernels.items()}
             integ.close()
             rows.append(row)
             print(f"{size:5d} {build:6s} {row['mask_pixels']} px: {row['iterations']} it, run {row['run_ms']:.2f} ms "
