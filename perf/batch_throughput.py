@@ -40,7 +40,7 @@ def render_captures(root: Path, n: int, size: int) -> list[str]:
         scene = gpps.SCENE_NAMES[k % 3]
         sc = gpps.make_scene(scene, size, "orthographic", albedo="texture", seed=k)
         lights = gpps.default_lights("directional", 6, slant_deg=30 + (k % 5) * 3)
-        ds = gpps.render_dataset(sc, gpps.Material.default_for("blinn-phong"), lights, bits=16, seed=k, device="cpu")
+        ds = gpps.render_dataset(sc, gpps.Material.default_for("blinn-phong"), lights, bits=16, seed=k, device=None)  # (CUDA where present: its kit has no CPU backend)
         dirs.append(str(write_dataset(root / f"cap{k:03d}_{scene}", ds)))
     return dirs
 
@@ -83,7 +83,8 @@ def run_batch(dirs, out: Path, workers: int, device: str, options: dict) -> dict
 
 
 def run_sequential(dirs, out: Path, device: str) -> dict:
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    # this checkout first, then whatever the caller's PYTHONPATH holds (the GPU machine's kit lives there)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p)}
     t = time.perf_counter()
     for d in dirs:
         subprocess.run([sys.executable, "-m", "gpps", "--device", device, "--quiet", "reconstruct", d,
