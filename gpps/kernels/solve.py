@@ -56,6 +56,8 @@ and IRLS), :mod:`gpps.kernels.solve_neighbours` (the neighbour statistics) and
 :mod:`gpps.kernels.solve_kernels` (the kernels of one specialisation).
 """
 
+import warp as wp
+
 from gpps import names
 from gpps._check import check_choice
 
@@ -88,7 +90,8 @@ from gpps.kernels.solve_common import (
     store_solution,
     transport,
 )
-from gpps.kernels.solve_kernels import make_kernels, make_lanes_kernel
+from gpps.kernels.solve_kernels import make_kernels, make_lanes_kernel, prelude_for
+from gpps.kernels.solve_split import split_kernels_for
 from gpps.kernels.solve_methods import solver_funcs
 from gpps.kernels.solve_neighbours import (
     LINEAR_ITERS,
@@ -166,6 +169,26 @@ def get_solve_kernel_lanes(method, brdf, robust="none"):
         name = module_name(*key) + "_lanes"
         k = make_lanes_kernel(*key, module_name=name, sfx="__" + name.rsplit(".", 1)[1])
         _LANES[key] = k
+    return k
+
+
+_SPLIT: dict = {}
+
+
+def get_split_kernels(method, brdf, robust="none"):
+    """The starts-parallel kernels (:mod:`gpps.kernels.solve_split`) of one nonlinear solver, reflectance model
+    and robust loss, in a Warp module of their own (:func:`module_name` + ``"_split"``), built once and cached."""
+    key = specialisation_key(method, brdf, robust)
+    if None in key or key[0] == "none":
+        raise ValueError(f"method, brdf, robust: expected a nonlinear solver and fixed choices, got {key}")
+    k = _SPLIT.get(key)
+    if k is None:
+        name = module_name(*key) + "_split"
+        sfx = "__" + name.rsplit(".", 1)[1]
+        module = wp.get_module(name)
+        funcs = solver_funcs(*key, module, sfx)
+        k = split_kernels_for(prelude_for(module, sfx), funcs.one_start, funcs.finish_pixel, module, sfx)
+        _SPLIT[key] = k
     return k
 
 

@@ -208,6 +208,80 @@ def least_squares_start_lanes(images: wp.array3d(dtype=wp.vec3), weights: wp.arr
     return least_squares_solution(t, px)
 
 
+def prelude_for(module, sfx: str, lanes: bool = False):
+    """``pixel_prelude``: what a pixel's solve does before its nonlinear starts (shared by ``solve_kernel`` and
+    the starts-parallel kernels of :mod:`gpps.kernels.solve_split`): its :class:`Pixel`, the observation weights
+    (written to ``weights``), the flags, the lights' condition number (written to ``cond`` by lane 0) and
+    Woodham's least-squares start (or the warm start).  Returns ``(px, ninit, kdw, flag, use_all, gmax)``."""
+
+    @wp.func(name="pixel_prelude" + sfx, module=module)
+    def pixel_prelude(
+        images: wp.array3d(dtype=wp.vec3),
+        valid: wp.array3d(dtype=wp.uint8),
+        depth: wp.array2d(dtype=wp.float32),
+        noise: wp.array(dtype=wp.float32),
+        cam: CameraParams,
+        lights: LightParams,
+        prm: SolverParams,
+        i: int,
+        j: int,
+        lane: int,
+        nb: int,
+        weights: wp.array3d(dtype=wp.float32),
+        normals: wp.array2d(dtype=wp.vec3),
+        cond: wp.array2d(dtype=wp.float32),
+    ):
+        nl_ = lights.count
+        px = make_pixel(cam, depth, i, j, prm)
+        px.lane = lane
+        px.lanes = nb
+        # ---- observation validity (shadows, saturation, caller's mask)
+        gmax = grey_max(images, i, j, nl_)
+        ninfo = int(0)
+        if wp.static(lanes):
+            ninfo = observation_weights_lanes(images, valid, noise, prm, px, nl_, gmax, weights)
+        else:
+            ninfo = observation_weights(images, valid, noise, prm, i, j, nl_, gmax, weights)
+        flag = int(0)
+        if ninfo < 3:
+            # fewer than 3 lit observations: normal and albedo are not determined together
+            flag = flag | FLAG_FEW_OBSERVATIONS
+        # ---- lighting sensitivity (3.13): conditioning of the valid light directions
+        gram = wp.mat33(0.0)
+        if wp.static(lanes):
+            gram = light_gram_lanes(weights, px, lights)
+        else:
+            gram = light_gram(weights, i, j, px.p, lights)
+        cnd = cond_frobenius(gram)
+        if lane == 0:
+            cond[i, j] = cnd
+        if cnd > prm.cond_threshold:
+            flag = flag | FLAG_ILL_CONDITIONED
+        # ---- Woodham least squares on the valid observations (I / E = kd (l . n))
+        use_all = int(0)
+        if cnd >= 1.0e29:
+            use_all = 1
+            flag = flag | FLAG_WOODHAM_FALLBACK
+        # a valid warm start skips the least-squares start (a stream's per-frame path)
+        warm_ok = int(0)
+        nw = wp.vec3(0.0)
+        if prm.warm_start != 0 and prm.method != NONE:
+            nw = normals[i, j]
+            if wp.length(nw) > 0.5:
+                warm_ok = 1
+        ninit = wp.vec3(0.0)
+        kdw = wp.vec3(0.0)
+        if wp.static(lanes):
+            ninit, kdw = least_squares_start_lanes(images, weights, px, lights, use_all, warm_ok)
+        else:
+            ninit, kdw = least_squares_start(images, weights, px, lights, use_all, warm_ok)
+        if warm_ok != 0:
+            ninit = wp.normalize(nw)
+        return px, ninit, kdw, flag, use_all, gmax
+
+    return pixel_prelude
+
+
 def solve_kernel_for(method, solve_pixel, module, sfx: str, lanes: bool = False):
     """``solve_kernel``: the whole image's per-pixel solve, one thread a pixel.
 
@@ -223,6 +297,7 @@ def solve_kernel_for(method, solve_pixel, module, sfx: str, lanes: bool = False)
     """
     if lanes and method in ("none", None):
         raise ValueError(f"lanes: expected a nonlinear method, got {method!r}")
+    prelude = prelude_for(module, sfx + ("_lanes" if lanes else ""), lanes)
 
     @wp.kernel(name="solve_kernel" + ("_lanes" if lanes else "") + sfx, module=module, enable_backward=False)
     def solve_kernel(
@@ -284,51 +359,8 @@ def solve_kernel_for(method, solve_pixel, module, sfx: str, lanes: bool = False)
             for k in range(lane, nl_, nb):
                 weights[k, i, j] = 0.0
             return
-        px = make_pixel(cam, depth, i, j, prm)
-        px.lane = lane
-        px.lanes = nb
-        # ---- observation validity (shadows, saturation, caller's mask)
-        gmax = grey_max(images, i, j, nl_)
-        ninfo = int(0)
-        if wp.static(lanes):
-            ninfo = observation_weights_lanes(images, valid, noise, prm, px, nl_, gmax, weights)
-        else:
-            ninfo = observation_weights(images, valid, noise, prm, i, j, nl_, gmax, weights)
-        flag = int(0)
-        if ninfo < 3:
-            # fewer than 3 lit observations: normal and albedo are not determined together
-            flag = flag | FLAG_FEW_OBSERVATIONS
-        # ---- lighting sensitivity (3.13): conditioning of the valid light directions
-        gram = wp.mat33(0.0)
-        if wp.static(lanes):
-            gram = light_gram_lanes(weights, px, lights)
-        else:
-            gram = light_gram(weights, i, j, px.p, lights)
-        cnd = cond_frobenius(gram)
-        if lane == 0:
-            cond[i, j] = cnd
-        if cnd > prm.cond_threshold:
-            flag = flag | FLAG_ILL_CONDITIONED
-        # ---- Woodham least squares on the valid observations (I / E = kd (l . n))
-        use_all = int(0)
-        if cnd >= 1.0e29:
-            use_all = 1
-            flag = flag | FLAG_WOODHAM_FALLBACK
-        # a valid warm start skips the least-squares start (a stream's per-frame path)
-        warm_ok = int(0)
-        nw = wp.vec3(0.0)
-        if prm.warm_start != 0 and prm.method != NONE:
-            nw = normals[i, j]
-            if wp.length(nw) > 0.5:
-                warm_ok = 1
-        ninit = wp.vec3(0.0)
-        kdw = wp.vec3(0.0)
-        if wp.static(lanes):
-            ninit, kdw = least_squares_start_lanes(images, weights, px, lights, use_all, warm_ok)
-        else:
-            ninit, kdw = least_squares_start(images, weights, px, lights, use_all, warm_ok)
-        if warm_ok != 0:
-            ninit = wp.normalize(nw)
+        px, ninit, kdw, flag, use_all, gmax = prelude(images, valid, depth, noise, cam, lights, prm, i, j, lane, nb,
+                                                      weights, normals, cond)
         if wp.static(method == "none"):
             store_least_squares(ninit, kdw, flag, use_all, images, weights, px, lights, normals, albedo, residual, iterations, flags)
         else:

@@ -124,8 +124,8 @@ class MaterialScorer(Stage):
             launches: :func:`gpps.kernels.solve_batched.batched_starts_kernels_for`; the same
             energies up to the code generator's choices).  A GPU launch costs its slowest thread:
             S sequential starts per thread are S times its critical path.  None (default): on
-            CUDA when ``config.starts > 1``; False on the CPU, whose launch runs its threads one
-            after another anyway (True there is for tests).
+            CUDA when ``config.starts > 1`` (``config.split_starts`` when that is set); False on
+            the CPU, whose launch runs its threads one after another anyway (True there is for tests).
         device: Warp device (None: CUDA if present).
 
     Buffers (allocated once, N x K_max x P_max): the strip ``strip`` (N, 1, P_max)
@@ -181,6 +181,8 @@ class MaterialScorer(Stage):
         if split_starts is not None:
             check_bool("split_starts", split_starts)
         ns = max(int(config.starts), 1)
+        if split_starts is None:
+            split_starts = config.split_starts
         self.split_starts = (bool(split_starts) if split_starts is not None
                              else (self.device.startswith("cuda") and ns > 1)) and parallel != "lights"
         if self.split_starts:

@@ -150,6 +150,13 @@ class SolverConfig:
             (latency-bound launches, measured in :mod:`gpps.names`), else "pixels".  A
             "lights" solve on the CPU runs as one launch on one thread (and one lane unless
             ``warp.config.enable_cpu_blocks``): a testing aid.
+        split_starts: cold solves of one thread a pixel run each of the ``starts`` in a thread of its
+            own (:mod:`gpps.kernels.solve_split`: a prelude, the starts, the pick of the best in start
+            order and the IRLS rounds; three launches); the same results (bitwise on the CPU).  A GPU
+            launch costs its slowest thread, which runs ``starts`` solves one after another in the
+            one-kernel form.  None (default): on CUDA when ``starts > 1``; the CPU keeps the one
+            kernel (its launches run the threads one after another anyway; True there is for tests).
+            Also the default of :class:`gpps.pipeline.material.MaterialScorer`'s ``split_starts``.
     """
 
     solver: SolverName = "lm"
@@ -176,6 +183,7 @@ class SolverConfig:
     noise_level: float | None = None  # (after the older fields: positional construction keeps working)
     lit_sigmas: float = 3.0
     parallel: ParallelName = "auto"
+    split_starts: bool | None = None
 
     def __post_init__(self):
         check_choices(self)
@@ -196,6 +204,8 @@ class SolverConfig:
         if self.noise_level is not None:
             check_number("noise_level", self.noise_level, lo=0.0)
         check_number("lit_sigmas", self.lit_sigmas, lo=0.0)
+        if self.split_starts is not None:
+            check_bool("split_starts", self.split_starts)
         check_number("cond_threshold", self.cond_threshold, lo=1.0)
         check_number("lm_tau", self.lm_tau, lo=0.0, lo_open=True)
         check_number("dogleg_radius", self.dogleg_radius, lo=0.0, lo_open=True)
@@ -657,6 +667,9 @@ class PixelSolver(Stage):
             self._recorded(("solve_lanes", lanes, subset), self._lanes_kernel, ins + [prm], outs,
                            dim=(h, w, lanes), block_dim=lanes).launch()
             return
+        if not subset and self._uses_split():
+            self._launch_split(ins, outs)
+            return
         bounds = self._row_bounds
         threads = 1 if bounds is None else len(bounds)
         if progress is not None and not self.device.startswith("cuda") and self._mask_rows is not None:
@@ -681,6 +694,47 @@ class PixelSolver(Stage):
             if progress is not None:
                 done = float(self._mask_rows[:bounds[min(w0 + threads, len(bounds)) - 1][1]].sum())
                 progress(done, total, f"normals: {int(done)}/{int(total)} pixels")
+
+    def _uses_split(self) -> bool:
+        """Whether the next whole-image solve runs the starts-parallel kernels (``config.split_starts``)."""
+        c = self.config
+        on = c.split_starts if c.split_starts is not None else self.device.startswith("cuda")
+        return bool(on) and c.starts > 1 and not c.warm_start and c.solver != "none"
+
+    def _launch_split(self, ins, outs) -> None:
+        """The cold whole-image solve as :mod:`gpps.kernels.solve_split`'s three launches (recorded once per
+        config; the scratch of the starts, (S, H, W), from the buffer pool)."""
+        wp = warp()
+        c = self.config
+        n, h, w = self.shape
+        ns = int(c.starts)
+        key = ("split", ns, c.solver, self.material.brdf, c.robust, c.irls_rounds)
+        cmds = self.__dict__.setdefault("_cmds", {})
+        if key not in cmds:
+            robust = c.robust if c.irls_rounds > 0 else "none"
+            pre, starts, finish = self._sk.get_split_kernels(c.solver, self.material.brdf, robust)
+            sc = self.__dict__.get("_split_scratch")
+            if sc is None or sc[3].shape[0] != ns:
+                d = self.device
+                sc = (self._buffer((h, w), wp.vec3, d), self._buffer((h, w), wp.float32, d),
+                      self._buffer((h, w), wp.int32, d)) + tuple(
+                    self._buffer((ns, h, w), dt, d) for dt in (wp.vec3, wp.vec3, wp.float32, wp.int32, wp.int32))
+                self._split_scratch = sc
+            images, mask, valid, depth, noise, cam, lp, mp = ins
+            weights, normals, albedo, residual, iterations, flags, cond = outs
+            prm = self.prm
+            one = wp.launch(pre, dim=(h, w), inputs=[images, mask, valid, depth, noise, cam, lp, prm],
+                            outputs=[weights, normals, albedo, residual, iterations, flags, cond, *sc[:3]],
+                            device=self.device, record_cmd=True)
+            two = wp.launch(starts, dim=(h, w, ns), inputs=[images, mask, depth, cam, lp, mp, prm, weights, sc[0]],
+                            outputs=list(sc[3:]), device=self.device, record_cmd=True)
+            three = wp.launch(finish, dim=(h, w), inputs=[images, mask, depth, cam, lp, mp, prm, sc[0], sc[1], sc[2],
+                                                         *sc[3:]],
+                              outputs=[weights, normals, albedo, residual, iterations, flags], device=self.device,
+                              record_cmd=True)
+            cmds[key] = (one, two, three)
+        for cmd in cmds[key]:
+            cmd.launch()
 
     def step(self, progress=None, *, subset: bool = False) -> None:
         """Solve all pixels from the current buffers, no host sync (graph-capturable).
@@ -854,7 +908,7 @@ class PixelSolver(Stage):
         refuses work afterwards (its buffers are gone)."""
         self._release_buffers()
         for name in ("images", "mask", "valid", "depth", "noise", "weights", "normals", "albedo", "residual",
-                     "iterations", "flags", "cond", "_saved", "_cmds"):
+                     "iterations", "flags", "cond", "_saved", "_cmds", "_split_scratch"):
             self.__dict__.pop(name, None)
         self._closed = True
 
