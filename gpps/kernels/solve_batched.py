@@ -62,11 +62,11 @@ from gpps.kernels.solve_common import (
     FLAG_ILL_CONDITIONED,
     FLAG_WOODHAM_FALLBACK,
     SolverParams,
-    StartResult,
     cond_frobenius,
     grey,
     grey_max,
     light_gram,
+    pick_start,
     pixel_at,
     store_solution,
     store_solution_lanes,
@@ -464,20 +464,8 @@ def batched_starts_kernels_for(robust, one_start, finish_pixel, module, sfx: str
             for k in range(nl_):
                 weights_k[k, c, p] = base_weights[k, 0, p]
         px = strip_pixel(c, p, points[p], views[p], prm)
-        best = StartResult()
-        best.cost = 1.0e30
-        best.n = ninit[p]
-        total = int(0)
-        for st in range(wp.max(prm.starts, 1)):
-            res = StartResult()
-            res.n = start_n[c, p, st]
-            res.kd = start_kd[c, p, st]
-            res.cost = start_cost[c, p, st]
-            res.iters = start_iters[c, p, st]
-            res.converged = start_conv[c, p, st]
-            total += res.iters
-            if res.cost < best.cost and wp.dot(res.n, px.v) > 0.0:
-                best = res
+        best, total = pick_start(start_n, start_kd, start_cost, start_iters, start_conv, c, p, wp.max(prm.starts, 1),
+                                 ninit[p], px.v)
         sol = finish_pixel(best, total, ninit[p], gmax[p], strip_k, weights_k, px, lights, mats[c], prm)
         store_solution(sol, base_flags[p], weights_k, px, nl_, normals_k, albedo_k, residual_k, iterations_k,
                        flags_k)

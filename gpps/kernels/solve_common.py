@@ -161,6 +161,31 @@ class StartResult:
 
 
 @wp.func
+def pick_start(start_n: wp.array3d(dtype=wp.vec3), start_kd: wp.array3d(dtype=wp.vec3),
+               start_cost: wp.array3d(dtype=wp.float32), start_iters: wp.array3d(dtype=wp.int32),
+               start_conv: wp.array3d(dtype=wp.int32), a: int, b: int, nstarts: int, ninit: wp.vec3, v: wp.vec3):
+    """The best of the starts a starts-parallel solve kept in scratch at ``[a, b, s]``, by the multi-start loop's
+    rule (:func:`gpps.kernels.solve_methods.solve_pixel_for`): in start order, the first strictly lower cost of
+    a start that ended facing the camera (cost 1e30 and ``ninit`` if none did).  Returns ``(best, evaluations
+    of all starts)``."""
+    best = StartResult()
+    best.cost = 1.0e30
+    best.n = ninit
+    total = int(0)
+    for st in range(nstarts):
+        res = StartResult()
+        res.n = start_n[a, b, st]
+        res.kd = start_kd[a, b, st]
+        res.cost = start_cost[a, b, st]
+        res.iters = start_iters[a, b, st]
+        res.converged = start_conv[a, b, st]
+        total += res.iters
+        if res.cost < best.cost and wp.dot(res.n, v) > 0.0:
+            best = res
+    return best, total
+
+
+@wp.func
 def start_result(n: wp.vec3, ev: Eval, iters: int, converged: int):
     """The :class:`StartResult` of a run that ended at ``n`` with evaluation ``ev``."""
     res = StartResult()

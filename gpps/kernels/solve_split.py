@@ -8,9 +8,9 @@ another in its thread.  Here the same work takes three launches over the same pi
   ``gmax`` and flags kept in (H, W) scratch; pixels outside the mask get ``solve_kernel``'s zeros;
 * ``split_starts_kernel`` (dim (rows, W, S)): start ``s`` of a pixel in a thread of its own
   (:func:`gpps.kernels.solve_methods.solve_pixel_for`'s ``one_start``), its :class:`StartResult` to
-  (S, H, W) scratch;
-* ``split_finish_kernel`` (dim (rows, W)): the best start in start order by ``solve_pixel``'s rule (the
-  first strictly lower cost facing the camera), the evaluations summed, then ``finish_pixel`` (the
+  (H, W, S) scratch;
+* ``split_finish_kernel`` (dim (rows, W)): the best start (:func:`gpps.kernels.solve_common.pick_start`, the
+  multi-start loop's rule, as the material scorer's starts-parallel build), the evaluations summed, then ``finish_pixel`` (the
   least-squares fallback, the IRLS rounds) and the store.
 
 The same device functions on the same inputs (the starts read the weights the prelude wrote, as the loop does
@@ -21,7 +21,7 @@ may round differently.  Only cold solves of one thread a pixel (no warm start, n
 import warp as wp
 
 from gpps.kernels.brdf import CameraParams, LightParams, MaterialParams
-from gpps.kernels.solve_common import SolverParams, StartResult, make_pixel, store_solution
+from gpps.kernels.solve_common import SolverParams, make_pixel, pick_start, store_solution
 
 __all__ = ["split_kernels_for"]
 
@@ -93,11 +93,11 @@ def split_kernels_for(prelude, one_start, finish_pixel, module, sfx: str):
             return
         px = make_pixel(cam, depth, i, j, prm)
         res = one_start(st, ninit_buf[i, j], images, weights, px, lights, mat, prm)
-        start_n[st, i, j] = res.n
-        start_kd[st, i, j] = res.kd
-        start_cost[st, i, j] = res.cost
-        start_iters[st, i, j] = res.iters
-        start_conv[st, i, j] = res.converged
+        start_n[i, j, st] = res.n
+        start_kd[i, j, st] = res.kd
+        start_cost[i, j, st] = res.cost
+        start_iters[i, j, st] = res.iters
+        start_conv[i, j, st] = res.converged
 
     @wp.kernel(name="split_finish_kernel" + sfx, module=module, enable_backward=False)
     def split_finish_kernel(
@@ -129,20 +129,8 @@ def split_kernels_for(prelude, one_start, finish_pixel, module, sfx: str):
             return
         px = make_pixel(cam, depth, i, j, prm)
         ninit = ninit_buf[i, j]
-        best = StartResult()
-        best.cost = 1.0e30
-        best.n = ninit
-        total = int(0)
-        for st in range(wp.max(prm.starts, 1)):
-            res = StartResult()
-            res.n = start_n[st, i, j]
-            res.kd = start_kd[st, i, j]
-            res.cost = start_cost[st, i, j]
-            res.iters = start_iters[st, i, j]
-            res.converged = start_conv[st, i, j]
-            total += res.iters
-            if res.cost < best.cost and wp.dot(res.n, px.v) > 0.0:
-                best = res
+        best, total = pick_start(start_n, start_kd, start_cost, start_iters, start_conv, i, j, wp.max(prm.starts, 1),
+                                 ninit, px.v)
         sol = finish_pixel(best, total, ninit, gmax_buf[i, j], images, weights, px, lights, mat, prm)
         store_solution(sol, flag_buf[i, j], weights, px, lights.count, normals, albedo, residual, iterations, flags)
 

@@ -703,7 +703,7 @@ class PixelSolver(Stage):
 
     def _launch_split(self, ins, outs) -> None:
         """The cold whole-image solve as :mod:`gpps.kernels.solve_split`'s three launches (recorded once per
-        config; the scratch of the starts, (S, H, W), from the buffer pool)."""
+        config; the scratch of the starts, (H, W, S), from the buffer pool)."""
         wp = warp()
         c = self.config
         n, h, w = self.shape
@@ -714,11 +714,11 @@ class PixelSolver(Stage):
             robust = c.robust if c.irls_rounds > 0 else "none"
             pre, starts, finish = self._sk.get_split_kernels(c.solver, self.material.brdf, robust)
             sc = self.__dict__.get("_split_scratch")
-            if sc is None or sc[3].shape[0] != ns:
+            if sc is None or sc[3].shape[2] != ns:
                 d = self.device
                 sc = (self._buffer((h, w), wp.vec3, d), self._buffer((h, w), wp.float32, d),
                       self._buffer((h, w), wp.int32, d)) + tuple(
-                    self._buffer((ns, h, w), dt, d) for dt in (wp.vec3, wp.vec3, wp.float32, wp.int32, wp.int32))
+                    self._buffer((h, w, ns), dt, d) for dt in (wp.vec3, wp.vec3, wp.float32, wp.int32, wp.int32))
                 self._split_scratch = sc
             images, mask, valid, depth, noise, cam, lp, mp = ins
             weights, normals, albedo, residual, iterations, flags, cond = outs
