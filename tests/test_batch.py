@@ -318,3 +318,23 @@ def test_each_capture_starts_from_the_default_floating_point_environment():
     assert denormal() > 0.0
     if not flushed:
         pytest.skip("this Taichi build left denormals alone (nothing to reset)")
+
+
+def _worker_buffer_stats():
+    from gpps.pipeline import buffers
+
+    return buffers.stats()
+
+
+def test_workers_keep_their_stage_buffers_between_captures(captures, client, tmp_path):
+    """A worker's later captures of the same size take the device buffers its earlier ones gave back
+    (gpps.pipeline.buffers), instead of allocating their own."""
+    dirs, _ = captures
+    before = client.run(_worker_buffer_stats)
+    res = gpps.reconstruct_many(dirs, tmp_path / "out", client, device="cpu", **CONFIG)
+    assert res.ok
+    after = client.run(_worker_buffer_stats)
+    reused = sum(after[w]["reused"] - before.get(w, {"reused": 0})["reused"] for w in after)
+    # 6 captures of one size on 2 workers: at least 4 of them ran after an earlier one on the same worker,
+    # each taking back its pixel solver's buffers at least (13 arrays)
+    assert reused >= 4 * 13, (before, after)
