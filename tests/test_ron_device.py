@@ -13,7 +13,7 @@ from gpps.flows.ron import RON, RONConfig, normal_change_deg
 from gpps.flows.synthetic import default_lights, render
 from gpps.host.metrics import angular_error
 from gpps.host.scenes import make_scene
-from gpps.lights import PointLights
+from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
 from gpps.pipeline.integration import Integrator, IntegratorConfig
 from gpps.pipeline.integration_rounds import DeviceSystem
@@ -194,7 +194,9 @@ def test_device_rounds_match_host_rounds(camera, device, monkeypatch):
         d = _run(img, lights, sc, ref, device, device_rounds=True, rounds=4)
     finally:
         ref_integ.close()
-    assert len(got["host"]) == len(got["device"]) == len(same) == 3  # rounds 1-3 integrate (not the last)
+    # rounds 1-3 integrate (not the last): 3 depths handed to the solver; the device run's final depth
+    # is integrated on the device too (a 4th integrate, not handed to the solver)
+    assert len(got["host"]) == len(got["device"]) == 3 and len(same) == 4
     assert max(same) <= 2e-5, same
     for a, b in zip(got["host"], got["device"]):
         span = float(a[m].max() - a[m].min())
@@ -210,10 +212,42 @@ def test_device_rounds_match_host_rounds(camera, device, monkeypatch):
     e_h = angular_error(h.normals, sc.normals, m)[m].mean()
     e_d = angular_error(d.normals, sc.normals, m)[m].mean()
     assert abs(e_h - e_d) <= 1e-3, (e_h, e_d)
+    np.testing.assert_array_equal(h.depth_mask, d.depth_mask)  # (invalid normals dropped by the host's rule)
     span = float(h.depth[h.depth_mask].max() - h.depth[h.depth_mask].min())
     assert np.abs(h.depth - d.depth)[h.depth_mask].max() <= 1e-4 * span
     for k in ("albedo", "residual"):
         np.testing.assert_allclose(d.__dict__[k][m], h.__dict__[k][m], rtol=1e-2, atol=1e-4)
+
+
+@pytest.mark.parametrize("camera", ["perspective", "orthographic"])
+def test_final_depth_on_device_matches_host(camera, device, monkeypatch):
+    """Directional lights (the rounds' depth does not feed back): the device run integrates only the final
+    depth, once, on the device, from the solver's buffer (not handed to the solver); it equals the host
+    run's final depth within 1e-4 of the range (both to a relative residual of 1e-5 in float32, on normals
+    that agree to float rounding), with the same depth mask."""
+    sc = make_scene("sphere", 64, camera)
+    L = default_lights("directional", 3)
+    img = render(sc, MAT, L, bits=16, noise=0.0) / np.asarray(L.intensities, np.float32)[:, None, None, :]
+    lights = DirectionalLights(L.directions)
+    ref = float(sc.depth[sc.mask].mean())
+    calls = []
+    integrate = DeviceRounds.integrate
+
+    def spy(self, reference_depth, **kw):
+        calls.append(kw.get("into_solver", True))
+        return integrate(self, reference_depth, **kw)
+
+    monkeypatch.setattr(DeviceRounds, "integrate", spy)
+    h = _run(img, lights, sc, ref, device, device_rounds=False, rounds=3)
+    assert calls == []
+    d = _run(img, lights, sc, ref, device, device_rounds=True, rounds=3)
+    assert calls == [False]
+    np.testing.assert_array_equal(h.depth_mask, d.depth_mask)
+    m = h.depth_mask
+    span = float(h.depth[m].max() - h.depth[m].min())
+    assert np.abs(h.depth - d.depth)[m].max() <= 1e-4 * span, np.abs(h.depth - d.depth)[m].max() / span
+    assert np.all(d.depth[~m] == 0.0) and np.all(d.depth[m] > 0.0)
+    assert d.integration_residual <= 1e-5
 
 
 def _copy_spy(monkeypatch):

@@ -175,6 +175,7 @@ class RONConfig:
             the device (:class:`gpps.pipeline.ron_rounds.DeviceRounds`: the system assembled and
             solved there, the depth written into the solver's buffer, the round's energy and normal
             change reduced there; only scalars come back per round, the outputs once at the end).
+            The final depth is integrated there too when ``final_integrator`` is the rounds' one.
             The photometric material fit still takes the round's normals and depth on the host,
             the depth-rms rule the depth; a round whose normals have invalid pixels (NaN, zero,
             back-facing) is integrated on the host.  False: every round on the host (the reference).
@@ -929,9 +930,11 @@ class RON:
                 timings["material"] += time.perf_counter() - t
             step(1 + 3 * r, total, f"round {r}: material")
 
+        in_solver = out is None  # the final normals are the solver's buffer (device rounds)
         if out is None:  # device rounds: the outputs come back once
             out = self.solver.fetch(_OUTPUTS)
-        depth_out, depth_mask, ires = self._final_depth(out["normals"], reference_depth, timings)
+        depth_out, depth_mask, ires = self._final_depth(out["normals"], reference_depth, timings, dev=dev,
+                                                        in_solver=in_solver)
         step(total, total, "done")
         timings["total"] = time.perf_counter() - t_all
         estimated = {k: lobe_value(material, k) for k in c.estimate}
@@ -949,15 +952,16 @@ class RON:
         the host: ``device_rounds=False``, or a single round).
 
         The round's energy and normal change are reduced on the device whenever it is used (no
-        full-frame fetch a round).  Step 3 runs there too (:attr:`DeviceRounds.integrates`) when the
-        rounds' depth feeds back (point lights or the depth-rms rule), the integrator's config is one
+        full-frame fetch a round).  Step 3 runs there too (:attr:`DeviceRounds.integrates`), in the rounds
+        whose depth feeds back (point lights or the depth-rms rule) and for the final depth, when the
+        integrator's config is one
         :class:`DeviceSystem` builds, a reference depth is known, and on CUDA torch is installed
         (zero-copy views; ``device_rounds=None`` falls back to the host's integration without it)."""
         c = self.config
         if c.device_rounds is False or c.rounds <= 1:
             return None
-        feeds = self.point or (estimating and c.material_rule == "depth-rms")
-        integ = bool(c.integrate and feeds and self.integrator is not None and reference_depth is not None)
+        # (the device integration also serves the final depth, whether or not the rounds' depth feeds back)
+        integ = bool(c.integrate and self.integrator is not None and reference_depth is not None)
         if integ and c.device_rounds is None and self.device.startswith("cuda"):
             integ = importlib.util.find_spec("torch") is not None  # (see RONConfig.device_rounds)
         if self._rounds is None or self._rounds_integ != integ:
@@ -1020,14 +1024,30 @@ class RON:
             timings["dgmc"] += time.perf_counter() - t
         return start, highlight, dg
 
-    def _final_depth(self, normals, reference_depth, timings):
+    def _final_depth(self, normals, reference_depth, timings, *, dev=None, in_solver: bool = False):
         """The returned depth, from the final normals, by the final integrator (BiNI by default).
-        Returns ``(depth or None, depth mask, integration residual or None)``."""
+
+        With ``dev`` (the rounds' :class:`DeviceRounds`) and the rounds' integrator as the final one, a
+        system :class:`DeviceSystem` builds: integrated on the device (the same system, multigrid hierarchy
+        and CG as the host path, tests/test_ron_device.py) from the solver's buffer (``in_solver``: it
+        holds ``normals``) or from ``normals`` uploaded once; only the depth comes back (invalid normals
+        dropped from the depth mask, as on the host).  Returns ``(depth or None, depth mask, integration residual or
+        None)``: the host path's residual is recomputed in float64 on the host, the device path's is the
+        CG's own (the recurrence, device precision)."""
         c = self.config
         if not c.integrate:
             return None, np.zeros(self.mask.shape, bool), None
         t = time.perf_counter()
-        if c.final_integrator is None or c.final_integrator == self.integrator.config:
+        same = c.final_integrator is None or c.final_integrator == self.integrator.config
+        if same and dev is not None and dev.integrates and reference_depth is not None:
+            if dev.integrate(reference_depth, into_solver=False, normals=None if in_solver else normals):
+                # the pixels integrated: the mask, less invalid normals by the host's rule (the device
+                # dropped the same ones and filled them)
+                dmask = self.mask.copy() if dev.last["invalid"] == 0 else self.integrator._check_normals(normals)[1]
+                depth = np.where(dmask, dev.depth_host(), 0.0).astype(np.float32)
+                timings["integration"] += time.perf_counter() - t
+                return depth, dmask, float(dev.last["residual"])
+        if same:
             integ = self.integrator.run(normals, reference_depth=reference_depth)
         else:
             final = Integrator(self.mask, camera=self.camera, config=c.final_integrator, device=taichi_device(self.device))

@@ -68,16 +68,16 @@ class DeviceRounds(Stage):
         return self.system is not None
 
     def _view(self):
-        """Zero-copy views of the solver's normals and this depth buffer for Taichi (made once)."""
+        """Zero-copy views for Taichi of the solver's normals, this depth buffer and :attr:`prev` (made once)."""
         if self._views is None:
             wp = warp()
             if self.device.startswith("cuda"):
                 if importlib.util.find_spec("torch") is None:
                     raise ImportError("RON's device rounds on CUDA need PyTorch for zero-copy views of the Warp "
                                       "buffers: pip install 'gpps[cuda]' (or RONConfig(device_rounds=False))")
-                self._views = (wp.to_torch(self.solver.normals), wp.to_torch(self.depth))
+                self._views = (wp.to_torch(self.solver.normals), wp.to_torch(self.depth), wp.to_torch(self.prev))
             else:
-                self._views = (self.solver.normals.numpy(), self.depth.numpy())
+                self._views = (self.solver.normals.numpy(), self.depth.numpy(), self.prev.numpy())
         return self._views
 
     def upload(self, prev) -> None:
@@ -106,13 +106,20 @@ class DeviceRounds(Stage):
         cnt = max(cnt, 1.0)
         return {"energy": se / cnt, "change_deg": math.degrees(sa / cnt)}
 
-    def integrate(self, reference_depth: float, *, into_solver: bool = True) -> bool:
+    def integrate(self, reference_depth: float, *, into_solver: bool = True, normals=None) -> bool:
         """Step 3 on the device: the solver's normals to :attr:`depth` (filled, mean ``reference_depth``);
-        with ``into_solver`` copied into the solver's depth buffer.  False: some normal was invalid
-        (nothing written; integrate on the host)."""
+        with ``into_solver`` copied into the solver's depth buffer.  False: fewer than 2 normals were
+        valid (nothing written; integrate on the host).
+
+        ``normals``: (H, W, 3) host normals to integrate instead of the solver's (RON's final depth after
+        a round solved on the host): copied into :attr:`prev` (one upload), which the rounds no longer
+        need then."""
         if self.system is None:
             raise ValueError("integrator: expected one the device path supports, got none")
-        nrm, dep = self._view()
+        nrm, dep, prev = self._view()
+        if normals is not None:
+            self.upload(normals)
+            nrm = prev
         if self.device.startswith("cuda"):
             warp().synchronize_device(self.device)
         ok = self.system.step(nrm, dep, reference_depth=reference_depth)
