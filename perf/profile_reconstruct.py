@@ -137,6 +137,7 @@ def main(argv=None):
         profiled = time.perf_counter() - t
         (out / f"{name}_cumulative.txt").write_text(_stats(prof, "cumulative", a.top))
         (out / f"{name}_tottime.txt").write_text(_stats(prof, "tottime", a.top))
+        prof.dump_stats(str(out / f"{name}.pstats"))  # (for callers / callees offline: pstats.Stats(path))
         rows.append({"case": name, "cold_s": cold, "warm_s": warm, "warm_all_s": warm_all, "profiled_s": profiled,
                      "maen_deg": maen, "timings": timings, "timings_all": stages_all})
         if a.trace:
