@@ -896,7 +896,8 @@ class RON:
             # rule (4.19): otherwise the rounds' depths would be discarded, and only the final one is kept
             if c.integrate and (self.point or (estimating and c.material_rule == "depth-rms")):
                 t = time.perf_counter()
-                if on_device and dev.integrates and dev.integrate(reference_depth, into_solver=self.point):
+                if (on_device and dev.integrates and reference_depth is not None
+                        and dev.integrate(reference_depth, into_solver=self.point)):
                     # the depth is in the solver's buffer; the host gets it only for a host rule
                     cur_depth = dev.depth if not estimating else dev.depth_host()
                     if self.point:
@@ -953,15 +954,15 @@ class RON:
 
         The round's energy and normal change are reduced on the device whenever it is used (no
         full-frame fetch a round).  Step 3 runs there too (:attr:`DeviceRounds.integrates`), in the rounds
-        whose depth feeds back (point lights or the depth-rms rule) and for the final depth, when the
-        integrator's config is one
-        :class:`DeviceSystem` builds, a reference depth is known, and on CUDA torch is installed
+        whose depth feeds back (point lights or the depth-rms rule; with a reference depth) and for the
+        final depth, when the integrator's config is one
+        :class:`DeviceSystem` builds and on CUDA torch is installed
         (zero-copy views; ``device_rounds=None`` falls back to the host's integration without it)."""
         c = self.config
         if c.device_rounds is False or c.rounds <= 1:
             return None
         # (the device integration also serves the final depth, whether or not the rounds' depth feeds back)
-        integ = bool(c.integrate and self.integrator is not None and reference_depth is not None)
+        integ = bool(c.integrate and self.integrator is not None)
         if integ and c.device_rounds is None and self.device.startswith("cuda"):
             integ = importlib.util.find_spec("torch") is not None  # (see RONConfig.device_rounds)
         if self._rounds is None or self._rounds_integ != integ:
@@ -1039,12 +1040,16 @@ class RON:
             return None, np.zeros(self.mask.shape, bool), None
         t = time.perf_counter()
         same = c.final_integrator is None or c.final_integrator == self.integrator.config
-        if same and dev is not None and dev.integrates and reference_depth is not None:
-            if dev.integrate(reference_depth, into_solver=False, normals=None if in_solver else normals):
+        if same and dev is not None and dev.integrates:
+            ref = 1.0 if reference_depth is None else reference_depth  # (the device path always takes one)
+            if dev.integrate(ref, into_solver=False, normals=None if in_solver else normals):
                 # the pixels integrated: the mask, less invalid normals by the host's rule (the device
                 # dropped the same ones and filled them)
                 dmask = self.mask.copy() if dev.last["invalid"] == 0 else self.integrator._check_normals(normals)[1]
-                depth = np.where(dmask, dev.depth_host(), 0.0).astype(np.float32)
+                if reference_depth is None:
+                    depth = self.integrator.unreferenced(dev.depth_host(), dmask)
+                else:
+                    depth = np.where(dmask, dev.depth_host(), 0.0).astype(np.float32)
                 timings["integration"] += time.perf_counter() - t
                 return depth, dmask, float(dev.last["residual"])
         if same:
