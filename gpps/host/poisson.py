@@ -303,6 +303,33 @@ def build_levels(wx, wy, coarsest: int = 8, alpha: float = 0.5):
     return levels
 
 
+def coarsest_pinv(lx, ly, ncmax: int, col_offset: int, dtype) -> tuple[np.ndarray, np.ndarray, int]:
+    """The exact coarse solve of the multigrid V-cycle: the pseudo-inverse of the coarsest level's weighted
+    Laplacian over its active cells (diagonal > 0), for :func:`gpps.kernels.poisson.coarse_exact`.
+
+    Args:
+        lx, ly: (hc, wc) the coarsest level's edge weights (right and down neighbours).
+        ncmax: rows of the ``pinv`` buffer (>= the active cells).
+        col_offset: the level's first column in the packed level layout (added to ``cidx[:, 1]``).
+        dtype: the buffers' float dtype.
+
+    Returns:
+        ``(pinv (ncmax, ncmax), cidx (ncmax, 2) int32, nc)``: the active cells' pseudo-inverse in the top-left
+        ``nc x nc`` block (zeros elsewhere), and their (row, packed column) in raster order.
+    """
+    dgc = diagonal(lx, ly)
+    act = np.argwhere(dgc > 0)
+    nc = len(act)
+    pinv = np.zeros((ncmax, ncmax), dtype=dtype)
+    cidx = np.zeros((ncmax, 2), dtype=np.int32)
+    if nc:
+        A, _ = laplacian(lx, ly, dgc > 0)
+        pinv[:nc, :nc] = np.linalg.pinv(A.toarray(), hermitian=True)
+        cidx[:nc, 0] = act[:, 0]
+        cidx[:nc, 1] = act[:, 1] + col_offset
+    return pinv, cidx, nc
+
+
 def diagonal(wx, wy):
     d = wx.copy() + wy
     d[:, 1:] += wx[:, :-1]

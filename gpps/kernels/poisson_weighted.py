@@ -2,7 +2,7 @@
 
 :class:`gpps.pipeline.integration.Integrator` assembles its system on the host
 (:func:`gpps.host.poisson.pixel_gradients`, :func:`gpps.host.poisson.edge_system`,
-:func:`gpps.host.poisson.build_levels`, the coarsest pseudo-inverse by numpy).
+:func:`gpps.host.poisson.build_levels`, :func:`gpps.host.poisson.coarsest_pinv`).
 These kernels build the same system from a normal map that is already on the
 device (a solver's buffer), into the integrator's own fields, so that RON's
 rounds exchange depth and normals without a host round trip
@@ -17,12 +17,11 @@ rounds exchange depth and normals without a host round trip
   ``b = -div(w t)`` and the level-0 diagonal;
 * :func:`coarsen`: one level of ``build_levels`` (2x2 aggregation, coarse edge
   weight ``alpha`` times the crossing fine weights) and its diagonal;
-* :func:`coarsest_pinv`: the exact pseudo-inverse of the coarsest Laplacian as
-  ``(A + Q)^-1 - Q``, ``Q`` the orthogonal projector onto the per-component
-  constants (the null space), by Gauss-Jordan elimination of the SPD ``A + Q``
-  in float64: one serial task (at most ``coarsest^2 = 64`` cells by default,
-  about 0.3 M multiply-adds), laid out over the full coarsest grid (inactive
-  cells get zero rows, so their correction stays 0);
+* :func:`gather_level`: the coarsest level's edge weights into a small field: its
+  exact pseudo-inverse (at most ``coarsest^2 = 64`` cells by default) is computed on
+  the host by :func:`gpps.host.poisson.coarsest_pinv`, as for the host path (about 1 ms
+  with one 1 KB read; the Gauss-Jordan elimination this replaced ran as one serial
+  GPU task: 14.9 ms on an H100, perf/results/profile_256x3_H100_i);
 * :func:`label_init`, :func:`label_hook`, :func:`label_compress`: the connected components
   (4-neighbourhood) of the valid pixels when some mask pixel's normal was dropped, by parallel
   hooking of roots along edges (``atomic_min``: a parent index is always smaller) and pointer
@@ -196,86 +195,12 @@ def coarsen(wx: ti.template(), wy: ti.template(), dg: ti.template(), off: ti.i32
 
 
 @ti.kernel
-def coarsest_pinv(wx: ti.template(), wy: ti.template(), dg: ti.template(), pinv: ti.template(),
-                  cidx: ti.template(), a: ti.template(), clab: ti.template(), ccount: ti.template(),
-                  off: ti.i32, hc: ti.i32, wc: ti.i32):
-    """``pinv`` = the pseudo-inverse of the coarsest level's Laplacian over its full (hc, wc) grid, cell
-    ``k = i * wc + j`` at ``cidx[k] = (i, off + j)``; inactive cells (``dg = 0``) get zero rows and columns.
-
-    ``pinv(A) = (A + Q)^-1 - Q`` with ``Q = sum_c 1_c 1_c^T / n_c`` over the connected components ``c`` of the
-    active cells (found here by label propagation): ``Q`` projects onto ``A``'s null space, so ``A + Q``
-    is SPD and Gauss-Jordan needs no pivoting.  ``a``: (n, 2n) float64 scratch, ``clab``: (n,) i32,
-    ``ccount``: (n,) f64.  One serial task (the matrix is at most ``coarsest^2`` square)."""
-    ti.loop_config(serialize=True)
-    for _ in range(1):
-        n = hc * wc
-        for k in range(n):
-            i, j = k // wc, k % wc
-            cidx[k, 0] = i
-            cidx[k, 1] = off + j
-            clab[k] = -1
-            if dg[i, off + j] > 0:
-                clab[k] = k
-            ccount[k] = 0.0
-            for m in range(2 * n):
-                a[k, m] = 0.0
-        changed = True
-        while changed:
-            changed = False
-            for k in range(n):
-                i, j = k // wc, k % wc
-                if clab[k] >= 0:
-                    if j < wc - 1 and wx[i, off + j] > 0 and clab[k + 1] != clab[k]:
-                        lo = ti.min(clab[k], clab[k + 1])
-                        clab[k] = lo
-                        clab[k + 1] = lo
-                        changed = True
-                    if i < hc - 1 and wy[i, off + j] > 0 and clab[k + wc] != clab[k]:
-                        lo = ti.min(clab[k], clab[k + wc])
-                        clab[k] = lo
-                        clab[k + wc] = lo
-                        changed = True
-        for k in range(n):
-            if clab[k] >= 0:
-                ccount[clab[k]] += 1.0
-        # A + Q | I
-        for k in range(n):
-            i, j = k // wc, k % wc
-            a[k, n + k] = 1.0
-            if clab[k] < 0:
-                a[k, k] = 1.0
-            else:
-                a[k, k] += ti.cast(dg[i, off + j], ti.f64)
-                if j < wc - 1:
-                    v = ti.cast(wx[i, off + j], ti.f64)
-                    a[k, k + 1] -= v
-                    a[k + 1, k] -= v
-                if i < hc - 1:
-                    v = ti.cast(wy[i, off + j], ti.f64)
-                    a[k, k + wc] -= v
-                    a[k + wc, k] -= v
-                for m in range(n):
-                    if clab[m] == clab[k]:
-                        a[k, m] += 1.0 / ccount[clab[k]]
-        # Gauss-Jordan (SPD: no pivoting)
-        for p in range(n):
-            piv = 1.0 / a[p, p]
-            for m in range(2 * n):
-                a[p, m] *= piv
-            for k in range(n):
-                if k != p:
-                    f = a[k, p]
-                    if f != 0:
-                        for m in range(2 * n):
-                            a[k, m] -= f * a[p, m]
-        for k in range(n):
-            for m in range(n):
-                v = ti.cast(0, ti.f64)
-                if clab[k] >= 0 and clab[m] >= 0:
-                    v = a[k, n + m]
-                    if clab[m] == clab[k]:
-                        v -= 1.0 / ccount[clab[k]]
-                pinv[k, m] = ti.cast(v, pinv.dtype)
+def gather_level(wx: ti.template(), wy: ti.template(), off: ti.i32, hc: ti.i32, wc: ti.i32, out: ti.template()):
+    """The (hc, wc) level at packed column ``off`` of the edge weights into ``out[0 (wx) / 1 (wy), :hc, :wc]``
+    (float64): the coarsest level, for its pseudo-inverse on the host."""
+    for i, j in ti.ndrange(hc, wc):
+        out[0, i, j] = ti.cast(wx[i, off + j], ti.f64)
+        out[1, i, j] = ti.cast(wy[i, off + j], ti.f64)
 
 
 @ti.kernel

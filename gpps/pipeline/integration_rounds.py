@@ -5,7 +5,9 @@ builds the system ``Integrator.upload`` builds on the host (same checks, steps, 
 ``"normal"`` (BiNI's ``N_z^2``) weighting, perspective log-depth) in the integrator's own Taichi
 fields (:mod:`gpps.kernels.poisson_weighted`), with the multigrid hierarchy for those weights
 (``alpha = 1/2`` for uniform weights, 1 (Galerkin) for weighted ones, as ``Integrator._upload_levels``)
-and the coarsest level's exact pseudo-inverse computed there too, then runs the integrator's own
+and the coarsest level's exact pseudo-inverse (its at most 2 x 16 x 16 edge weights read back: the
+host's numpy pseudo-inverse, ``Integrator.set_coarsest``, ~1 ms, where one serial GPU task took 15 ms),
+then runs the integrator's own
 multigrid-preconditioned CG (``Integrator._iterate``, same tolerance, one float64 scalar read every
 ``check_every`` iterations) from ``u = 0`` (as RON's host rounds), and writes the depth (mean 0 per
 component, ``exp``, mean ``reference_depth`` per component: ``Integrator.fetch``; dropped pixels filled
@@ -36,7 +38,7 @@ from gpps.pipeline.stage import Stage
 
 __all__ = ["DeviceSystem"]
 
-# fields of closed device systems, by (Taichi device, H, W, coarsest cells, component slots): Taichi compiles
+# fields of closed device systems, by (Taichi device, H, W, the coarsest level's shape): Taichi compiles
 # the kernels for each set of fields (as the integrator's own pool, gpps.pipeline.integration._POOL)
 _POOL: dict = {}
 _POOL_LOCK = threading.Lock()
@@ -71,13 +73,12 @@ class DeviceSystem(Stage):
         self._weighted = int(integrator.config.weighting == "normal")
         lab, ncomp = ndimage.label(integrator.mask)
         hc, wc = d["shapes"][-1]
-        nco = hc * wc
-        self._key = (_taichi.current_device(), h, w, nco)
+        self._key = (_taichi.current_device(), h, w, hc, wc)
         with _POOL_LOCK:
             free = _POOL.get(self._key)
             F = free.pop() if free else None
         if F is None:
-            F = self._allocate(ti, h, w, nco)
+            F = self._allocate(ti, h, w, hc, wc)
         F["mask"].from_numpy(integrator.mask.astype(np.int32))
         # a component's label: its first pixel's flat index (as the device labelling's roots)
         first = np.full(ncomp + 1, h * w, np.int64)
@@ -89,7 +90,7 @@ class DeviceSystem(Stage):
         self.last = {}
 
     @staticmethod
-    def _allocate(ti, h, w, nco) -> dict:
+    def _allocate(ti, h, w, hc, wc) -> dict:
         fb = ti.FieldsBuilder()
         F = {}
         for name, dt in (("mask", ti.i32), ("lab", ti.i32), ("lab_mask", ti.i32), ("gj", ti.f64), ("gi", ti.f64), ("cj", ti.f64),
@@ -101,12 +102,8 @@ class DeviceSystem(Stage):
         for name in ("csum", "ccnt", "cden"):
             F[name] = ti.field(ti.f64)
             fb.dense(ti.i, h * w).place(F[name])  # indexed by a component's root pixel
-        F["a"] = ti.field(ti.f64)
-        fb.dense(ti.ij, (nco, 2 * nco)).place(F["a"])
-        F["clab"] = ti.field(ti.i32)
-        fb.dense(ti.i, nco).place(F["clab"])
-        F["ccount"] = ti.field(ti.f64)
-        fb.dense(ti.i, nco).place(F["ccount"])
+        F["lvl"] = ti.field(ti.f64)  # the coarsest level's edge weights (gather_level)
+        fb.dense(ti.ijk, (2, hc, wc)).place(F["lvl"])
         F["tree"] = fb.finalize()
         return F
 
@@ -144,8 +141,9 @@ class DeviceSystem(Stage):
         F["st"].fill(0)
         KW.assemble_pixels(normals, F["mask"], F["gj"], F["gi"], F["cj"], F["ci"], F["st"], persp, self._weighted,
                            *self._cam[1:], float(cfg.min_nz), h, w)
-        invalid = int(F["st"][KW.N_INVALID])
-        if F["st"][KW.N_VALID] < 2:
+        st = F["st"].to_numpy()  # (one read of the 8 statistics)
+        invalid = int(st[KW.N_INVALID])
+        if st[KW.N_VALID] < 2:
             self.last = {"invalid": invalid}
             return False
         if invalid:
@@ -160,9 +158,9 @@ class DeviceSystem(Stage):
             KW.coarsen(d["wx"], d["wy"], d["dg"], int(of[k]), sh[k][0], sh[k][1], int(of[k + 1]), sh[k + 1][0],
                        sh[k + 1][1], alpha)
         hc, wc = sh[-1]
-        KW.coarsest_pinv(d["wx"], d["wy"], d["dg"], d["pinv"], d["cidx"], F["a"], F["clab"], F["ccount"],
-                         int(of[len(sh) - 1]), hc, wc)
-        d["nc"] = hc * wc
+        KW.gather_level(d["wx"], d["wy"], int(of[len(sh) - 1]), hc, wc, F["lvl"])
+        lvl = F["lvl"].to_numpy()  # (2 x at most 16 x 16 values)
+        integ.set_coarsest(lvl[0], lvl[1])
         integ._levels_key = None  # the host path must upload its own levels again
         d["z"].fill(0)
         its, res = integ._iterate(None, cfg.tol)
