@@ -73,6 +73,8 @@ from gpps.pipeline.front import propagate_front
 from gpps.pipeline.integration import Integrator, IntegratorConfig
 from gpps.pipeline.material import MaterialScorer
 from gpps.pipeline.ron_rounds import DeviceRounds
+from gpps.pipeline.ron_shadows import RoundShadows
+from gpps.pipeline.shadows import ShadowConfig
 from gpps.pipeline.solver import PixelSolver, SolverConfig
 from gpps.pipeline.stream_material import lobe_value, with_lobe
 
@@ -88,6 +90,7 @@ __all__ = [
 
 MaterialSearch = Literal["pattern", "nelder-mead"]
 MaterialRule = Literal["photometric", "depth-rms"]
+ShadowFew = Literal["flag", "keep"]
 Progress = Callable[[float, float, str], None]
 
 # the scene parameters RON can estimate per model and their log-space search ranges (gpps.names: the
@@ -182,6 +185,19 @@ class RONConfig:
             extra: the zero-copy views between Warp and Taichi); without torch, CUDA keeps the host
             rounds.  True on CUDA without torch raises ImportError.  (tests/test_ron_device.py
             passed on the CPU and on an H100.)
+        cast_shadows: visibility from the shape (issue 25): from round 2 on, each light's cast-shadow mask
+            is marched over the previous round's integrated depth on the device
+            (:class:`gpps.pipeline.ron_shadows.RoundShadows`, :mod:`gpps.kernels.shadows`) and the shadowed
+            observations are left out of the round's solves and of the material fit's sample.  The masks
+            are recomputed every round from the caller's observations (``valid``), never accumulated.
+            Needs ``integrate``; the rounds then integrate a depth for directional lights too (its offset,
+            orthographic, or scale, perspective, does not change a directional light's shadows) and run
+            at least two.  DEFAULT_DOC
+        shadow_config: the march's settings (:class:`gpps.pipeline.shadows.ShadowConfig`).
+        shadow_few: a pixel the shadows would leave with fewer than 3 valid observations: ``"flag"``
+            (default) drops them anyway: the solver flags it ``FLAG_FEW_OBSERVATIONS`` (as every pixel with
+            fewer than 3 lit observations) and solves it in its neighbour pass (albedo from the
+            neighbours); ``"keep"``: the pixel keeps all its observations.  FEW_DOC
     """
 
     rounds: int = 5
@@ -207,12 +223,22 @@ class RONConfig:
     final_integrator: object = None  # IntegratorConfig of the returned depth (None: integrator's)
     seed: int = 0
     device_rounds: bool | None = None
+    cast_shadows: bool = False
+    shadow_config: ShadowConfig = field(default_factory=ShadowConfig)
+    shadow_few: ShadowFew = "flag"
 
     def __post_init__(self):
         check_choices(self)
         check_number("rounds", self.rounds, lo=1, integer=True)
         check_bool("dgmc", self.dgmc)
         check_bool("integrate", self.integrate)
+        check_bool("cast_shadows", self.cast_shadows)
+        if self.cast_shadows and not self.integrate:
+            raise ValueError("cast_shadows: expected integrate=True (the shadows are marched over the rounds' "
+                             "integrated depth), got integrate=False")
+        if not isinstance(self.shadow_config, ShadowConfig):
+            raise TypeError(f"shadow_config: expected gpps.pipeline.shadows.ShadowConfig, got "
+                            f"{type(self.shadow_config).__name__}")
         if self.device_rounds is not None:
             check_bool("device_rounds", self.device_rounds)
         check_number("seed", self.seed, lo=0, integer=True)
@@ -275,7 +301,11 @@ class RONResult:
         material_fit: per material update: the parameters, energy, evaluations,
             and ``identifiable`` (the energy's relative spread over the grid > 1e-3).
         integration_residual: relative residual of the last integration.
-        timings: seconds per stage (summed over rounds) and ``total``.
+        timings: seconds per stage (summed over rounds) and ``total``; ``shadows``: the cast-shadow pass.
+        shadows: per cast-shadow pass (``cast_shadows``; one a round from round 2): ``round`` (the round
+            whose solves it fed), ``dropped`` (observations left out), ``kept_pixels`` (pixels that kept
+            their observations, ``shadow_few="keep"``), ``few_pixels`` (pixels left with fewer than 3).
+        shadowed: (N, H, W) bool, the observations the last pass left out (None without a pass).
         warnings: messages of the :class:`gpps.GppsWarning` warnings issued
             (an estimate on its search bound, rounds that did not converge).
     """
@@ -299,6 +329,8 @@ class RONResult:
     integration_residual: float | None = None
     timings: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
+    shadows: list = field(default_factory=list)
+    shadowed: np.ndarray | None = None
 
 
 # the per-pixel outputs RON reads back from a solve
@@ -412,6 +444,7 @@ class RON:
         self._solver_mask = None  # the mask in the solver's buffer, when RON set it (see _set_mask)
         self._rounds = None  # the device side of the rounds (DeviceRounds), built at the first run that uses it
         self._rounds_integ = False  # whether self._rounds integrates (step 3 on the device)
+        self._shadows = None  # the cast-shadow pass (RoundShadows), built at the first run that uses it
         self.integrator = None
         if self.config.integrate:
             # default, perspective: BiNI's n_z^2 confidence weighting: grazing rim normals (a few degrees off
@@ -427,6 +460,9 @@ class RON:
         if self._rounds is not None:
             self._rounds.close()
             self._rounds = None
+        if self._shadows is not None:
+            self._shadows.close()
+            self._shadows = None
         if self._scorer is not None:
             self._scorer.close()
             self._scorer = None
@@ -814,13 +850,20 @@ class RON:
         self._last_move = None
         self._frame_key = self._frame_depth = self._solver_mask = None
         step = progress or (lambda *a: None)
-        timings = {"least_squares": 0.0, "dgmc": 0.0, "normals": 0.0, "integration": 0.0, "material": 0.0}
+        timings = {"least_squares": 0.0, "dgmc": 0.0, "normals": 0.0, "integration": 0.0, "material": 0.0,
+                   "shadows": 0.0}
         cur_depth, reference_depth = self._start_depth(depth, reference_depth)
+        shadows = c.cast_shadows and c.rounds > 1
+        rref = self._rounds_reference(reference_depth) if shadows else reference_depth
         solve_depth = cur_depth if self.point else None
         total = float(c.rounds * 3 + 2)
         step(0, total, "least squares")
         start, highlight, dg = self._least_squares_and_dgmc(images, solve_depth, valid, timings)
         step(1, total, "dgmc")
+        sh, shadow_stats, fit_valid = None, [], valid
+        if shadows:
+            sh = self._shadow_pass()
+            sh.capture()  # the caller's observations, as uploaded with the frame
 
         material = self.material
         estimating = bool(c.estimate)
@@ -831,7 +874,7 @@ class RON:
         converged = False
         integ = None
         # the rounds on the device (DeviceRounds): prev then lives in dev.prev (on_dev), out stays None
-        dev = self._device_rounds(reference_depth, estimating)
+        dev = self._device_rounds(rref, estimating)
         on_dev = False
         r = 0
         for r in range(1, c.rounds + 1):
@@ -887,26 +930,41 @@ class RON:
                     break
             if r == c.rounds:
                 break
-            if not (estimating or self.point):
+            if not (estimating or self.point or shadows):
                 # nothing that step 1 depends on changes: one round is the fixed point
                 converged = True
                 break
             # step 3: depth; it feeds back only through point lights (2.30-2.31) and the depth-rms
             # rule (4.19): otherwise the rounds' depths would be discarded, and only the final one is kept
-            if c.integrate and (self.point or (estimating and c.material_rule == "depth-rms")):
+            if c.integrate and (self.point or (estimating and c.material_rule == "depth-rms") or shadows):
                 t = time.perf_counter()
-                if on_device and dev.integrates and dev.integrate(reference_depth, into_solver=self.point):
+                on_dev_depth = False
+                if on_device and dev.integrates and dev.integrate(rref, into_solver=self.point):
                     # the depth is in the solver's buffer; the host gets it only for a host rule
                     cur_depth = dev.depth if not estimating else dev.depth_host()
+                    on_dev_depth = True
                     if self.point:
                         solve_depth = self._frame_depth = cur_depth
                 else:
                     nrm = out["normals"] if out is not None else self.solver.fetch(("normals",))["normals"]
-                    integ = self.integrator.run(nrm, reference_depth=reference_depth)
-                    cur_depth = self._fill_depth(integ.depth, integ.mask, reference_depth)
+                    integ = self.integrator.run(nrm, reference_depth=rref)
+                    cur_depth = self._fill_depth(integ.depth, integ.mask, rref)
                     if self.point:
                         solve_depth = cur_depth
                 timings["integration"] += time.perf_counter() - t
+                if shadows:
+                    # the next round's observations (and this round's material fit's): the original ones
+                    # less the cast shadows of this depth (on the device: no host copy of the depth)
+                    t = time.perf_counter()
+                    if on_dev_depth:
+                        sh.step(dev.depth)
+                    else:
+                        sh.upload(cur_depth)
+                        sh.step()
+                    shadow_stats.append({"round": r + 1, **sh.fetch()})
+                    if estimating and c.material_rule == "photometric":
+                        fit_valid = sh.valid_host()  # (the fit's sample is uploaded from the host)
+                    timings["shadows"] += time.perf_counter() - t
             step(1 + 3 * r - 1, total, f"round {r}: depth")
             # step 4: material
             if estimating:
@@ -916,7 +974,7 @@ class RON:
                     # at the sample pixels on the device
                     nrm = out["normals"] if out is not None else self.solver.normals
                     material, info = self._fit_material(
-                        images, solve_depth, valid, material, sample, grid=(r == 1), normals=nrm,
+                        images, solve_depth, fit_valid, material, sample, grid=(r == 1), normals=nrm,
                         progress=lambda d, t, msg: step(1 + 3 * r - 1 + d / max(t, 1), total, f"round {r}: {msg}"))
                 else:
                     if cur_depth is None:
@@ -932,6 +990,7 @@ class RON:
         if out is None:  # device rounds: the outputs come back once
             out = self.solver.fetch(_OUTPUTS)
         depth_out, depth_mask, ires = self._final_depth(out["normals"], reference_depth, timings)
+        shadowed = sh.shadowed() if sh is not None and shadow_stats else None
         step(total, total, "done")
         timings["total"] = time.perf_counter() - t_all
         estimated = {k: lobe_value(material, k) for k in c.estimate}
@@ -942,6 +1001,7 @@ class RON:
             energy=energies, normal_change_deg=changes, rounds=r, converged=converged,
             residual=out["residual"], iterations=out["iterations"], flags=out["flags"], highlight=highlight,
             start_normals=start, material_fit=fits, integration_residual=ires, timings=timings, warnings=notes,
+            shadows=shadow_stats, shadowed=shadowed,
         )
 
     def _device_rounds(self, reference_depth, estimating: bool):
@@ -956,7 +1016,7 @@ class RON:
         c = self.config
         if c.device_rounds is False or c.rounds <= 1:
             return None
-        feeds = self.point or (estimating and c.material_rule == "depth-rms")
+        feeds = self.point or (estimating and c.material_rule == "depth-rms") or c.cast_shadows
         integ = bool(c.integrate and feeds and self.integrator is not None and reference_depth is not None)
         if integ and c.device_rounds is None and self.device.startswith("cuda"):
             integ = importlib.util.find_spec("torch") is not None  # (see RONConfig.device_rounds)
@@ -966,6 +1026,25 @@ class RON:
             self._rounds = DeviceRounds(self.solver, self.mask, self.integrator if integ else None)
             self._rounds_integ = integ
         return self._rounds
+
+    def _rounds_reference(self, reference_depth) -> float | None:
+        """The mean depth of the rounds' integrations when they run for the cast shadows: the given one for
+        point lights (they move with it); for directional lights, whose shadows depend on neither the depth's
+        offset (orthographic) nor its scale (perspective), the given one or 1 (perspective) and, orthographic,
+        ``100 (H + W)`` pixel widths (the march needs depth > 0 in the mask whatever the relief)."""
+        if self.point:
+            return reference_depth
+        if self.camera.is_perspective:
+            return reference_depth if reference_depth is not None else 1.0
+        h, w = self.shape[1:]
+        return 100.0 * (h + w) * float(self.camera.pixel_size)
+
+    def _shadow_pass(self) -> RoundShadows:
+        """The cast-shadow pass on the solver (:class:`RoundShadows`, built once per RON)."""
+        if self._shadows is None:
+            c = self.config
+            self._shadows = RoundShadows(self.solver, self.mask, c.shadow_config, few=c.shadow_few)
+        return self._shadows
 
     def _start_depth(self, depth, reference_depth):
         """Checked start depth (H, W) (None without depth or point lights) and the reference depth
