@@ -4,8 +4,8 @@ The scene with cast shadows is tests/ron_shadow_scenes.py's Gaussian bump on a p
 Blinn-Phong, noise 0.002): images rendered by gpps's renderer times the exact visibility of each light, found by a
 3D march against the analytic height field (not by the depth-map march under test).  Measured on the CPU
 (perf/ron_shadows.py has the table): with 12 lights the MAEN over the pixels with a cast shadow falls from 1.86 to
-0.37 deg (directional) and from 1.45 to 0.30 deg (point); the observations dropped match the analytic cast shadows
-with IoU 0.84 / 0.86 at the default tolerance of 1 pixel width and 0.92 / 0.95 at 0.5.
+0.17 deg (directional) and from 1.45 to 0.13 deg (point); the observations dropped match the analytic cast shadows
+with IoU 0.92 / 0.95 at RON's default tolerance of 0.5 pixel widths (0.84 / 0.86 at the stage's default 1).
 """
 
 import numpy as np
@@ -52,26 +52,27 @@ def _maen(res, case, where):
 
 @pytest.mark.parametrize("kind", ["directional", "point"])
 def test_cast_shadows_lower_the_error_where_shadowed(device, kind):
-    """12 lights: the pass at least halves the MAEN on the shadowed pixels (1.86 -> 0.37 directional, 1.45 ->
-    0.30 point measured) and lowers it over the whole mask; the dropped observations are the analytic cast
-    shadows (IoU 0.84 / 0.86 measured at the default tolerance; 0.92 / 0.95 at tolerance 0.5)."""
+    """12 lights: the pass cuts the MAEN on the shadowed pixels to under a third (1.86 -> 0.17 directional,
+    1.45 -> 0.13 point measured; 0.37 / 0.30 at tolerance 1) and lowers it over the whole mask (0.49 -> 0.07,
+    0.50 -> 0.07); the dropped observations are the analytic cast shadows (IoU 0.92 / 0.95 measured at the
+    default tolerance of 0.5 pixel widths, 0.84 / 0.86 at 1)."""
     case = _case(kind, 12)
     where = case["shadow"].any(0)
     off = _ron(device, case, cast_shadows=False)
     on = _ron(device, case, cast_shadows=True)
-    tight = _ron(device, case, cast_shadows=True, shadow_config=ShadowConfig(tolerance_px=0.5))
-    e_off, e_on, e_tight = _maen(off, case, where), _maen(on, case, where), _maen(tight, case, where)
-    print(f"\n{kind}: shadowed-pixel MAEN off {e_off:.3f} on {e_on:.3f} tau 0.5 {e_tight:.3f}; whole "
+    loose = _ron(device, case, cast_shadows=True, shadow_config=ShadowConfig(tolerance_px=1.0))
+    e_off, e_on, e_loose = _maen(off, case, where), _maen(on, case, where), _maen(loose, case, where)
+    print(f"\n{kind}: shadowed-pixel MAEN off {e_off:.3f} on {e_on:.3f} tau 1 {e_loose:.3f}; whole "
           f"{_maen(off, case, case['mask']):.3f} / {_maen(on, case, case['mask']):.3f}")
     assert off.shadows == [] and off.shadowed is None and off.timings["shadows"] == 0.0
-    assert e_off > 1.2 and e_on < 0.5 * e_off and e_tight < 0.5 * e_off
-    assert _maen(on, case, case["mask"]) < _maen(off, case, case["mask"])
+    assert e_off > 1.2 and e_on < e_off / 3 and e_loose < 0.5 * e_off
+    assert _maen(on, case, case["mask"]) < 0.5 * _maen(off, case, case["mask"])
     assert on.timings["shadows"] > 0.0 and len(on.shadows) == on.rounds - 1
     assert on.shadows[-1]["dropped"] == int(on.shadowed.sum()) and on.shadows[-1]["few_pixels"] == 0
     cast = case["shadow"]
-    j_on, j_tight = iou(cast, on.shadowed & case["facing"]), iou(cast, tight.shadowed & case["facing"])
-    print(f"  IoU of the dropped cast shadows: tau 1 {j_on:.3f}, tau 0.5 {j_tight:.3f}")
-    assert j_on >= 0.8 and j_tight >= 0.9
+    j_on, j_loose = iou(cast, on.shadowed & case["facing"]), iou(cast, loose.shadowed & case["facing"])
+    print(f"  IoU of the dropped cast shadows: default (tau 0.5) {j_on:.3f}, tau 1 {j_loose:.3f}")
+    assert j_on >= 0.9 and j_loose >= 0.8
 
 
 def test_no_change_without_cast_shadows(device):
@@ -156,6 +157,13 @@ def test_few_observations_rule(device):
     assert np.all(flag.flags[few] & FLAG_FEW_OBSERVATIONS)
 
 
+def test_no_pass_without_integration(device):
+    """``integrate=False``: no depth, no pass (the default cast_shadows=True does not make it an error)."""
+    case = _case("directional", 12)
+    res = _ron(device, case, integrate=False)
+    assert res.shadows == [] and res.shadowed is None and res.rounds == 1 and res.depth is None
+
+
 def test_caller_valid_is_the_original(device):
     """Observations the caller marked invalid stay out and are not counted as dropped by the shadows."""
     case = dict(_case("directional", 12))
@@ -169,8 +177,6 @@ def test_caller_valid_is_the_original(device):
 def test_bad_config_names_the_argument():
     with pytest.raises(TypeError, match="cast_shadows"):
         RONConfig(cast_shadows=1)
-    with pytest.raises(ValueError, match="cast_shadows"):
-        RONConfig(cast_shadows=True, integrate=False)
     with pytest.raises(TypeError, match="shadow_config"):
         RONConfig(shadow_config={"tolerance_px": 1.0})
     with pytest.raises(ValueError, match="shadow_few"):

@@ -190,37 +190,44 @@ class RONConfig:
             (:class:`gpps.pipeline.ron_shadows.RoundShadows`, :mod:`gpps.kernels.shadows`) and the shadowed
             observations are left out of the round's solves and of the material fit's sample.  The masks
             are recomputed every round from the caller's observations (``valid``), never accumulated.
-            Needs ``integrate``; the rounds then integrate a depth for directional lights too (its offset,
-            orthographic, or scale, perspective, does not change a directional light's shadows); a pass
+            Only with ``integrate`` (without it there is no depth: no pass); the rounds then integrate a
+            depth for directional lights too (its offset, orthographic, or scale, perspective, does not
+            change a directional light's shadows); a pass
             that drops nothing after a round that dropped nothing ends the rounds when nothing else feeds
             back (directional lights, known material: one round on a scene without cast shadows).
             Default True.  Principle: the image model has no visibility term, so an observation in a cast
             shadow is an outlier the model can only explain by bending the normal away from its light
             (a dark one-sided term reads it as an attached shadow); the depth RON integrates anyway says
-            where the shadows are.  Measured (perf/ron_shadows.py, 64^2, perspective, CPU; MAEN deg over
-            the pixels with a cast shadow, off -> on): a Gaussian bump with exact analytic shadows, 12
-            lights 1.86 -> 0.37 (directional) and 1.45 -> 0.30 (point), whole mask 0.49 -> 0.12 and
-            0.50 -> 0.13; Mitsuba path-traced captures (seeds 2001-2003), whole mask with 12 lights,
-            sphere on a plane 18.30 -> 16.93 / 21.26 -> 19.81, five spheres 16.53 -> 15.63 / 17.86 ->
-            16.80, bumps 6.09 -> 5.54 / 6.39 -> 5.91; scenes without cast shadows (a sphere, the bump lit
-            near the view axis) unchanged to 0.01 deg.  With 3 lights the pass changes nothing under the
-            default ``shadow_few`` (every shadowed pixel keeps its 3 observations).  Limits: the depth
-            integrated from normals loses steep rims and depth steps (a box or hemisphere standing on a
-            plane comes out lower, its shadows shorter: IoU 0.3-0.45 of the dropped cast shadows against
-            the analytic ones there, against 0.84-0.86 on the smooth bump), and the march also drops
-            attached-shadow observations near the terminator (harmless in the measurements: the model
-            predicts about 0 there).  Cost: one integration and one march a round (the march of 12
-            lights over 64^2 pixels is milliseconds on the CPU).
-        shadow_config: the march's settings (:class:`gpps.pipeline.shadows.ShadowConfig`).
+            where the shadows are.  Measured (perf/ron_shadows.py, perf/results/ron_shadows_cpu.json: 64^2,
+            perspective, CPU, 12 lights directional / point, whole-mask MAEN deg off -> on): a Gaussian
+            bump with exact analytic shadows 0.49 -> 0.07 / 0.50 -> 0.07 (over the shadowed pixels 1.86 ->
+            0.17 / 1.45 -> 0.13), a hemisphere on a plane 2.64 -> 1.58 / 3.06 -> 1.43, a box on a plane
+            6.00 -> 5.63 / 6.37 -> 6.13; Mitsuba path-traced captures (seeds 2001-2003, Lambertian model):
+            sphere on a plane 18.30 -> 16.73 / 21.26 -> 19.62, five spheres 16.53 -> 15.34 / 17.86 ->
+            16.47, bumps 6.09 -> 5.48 / 6.39 -> 5.89; a sphere without cast shadows unchanged (0.08 / 0.09).
+            With 3 lights nothing changes under the default ``shadow_few`` (every shadowed pixel keeps its
+            3 observations; the rounds stop as before).  Limits: the depth integrated from normals loses
+            steep rims and depth steps (a box or hemisphere standing on a plane comes out lower, its
+            shadows shorter: IoU 0.03 / 0.41 of the dropped cast shadows against the analytic ones there,
+            0.92-0.95 on the smooth bump), and the march also drops attached-shadow observations near the
+            terminator (harmless with 12 lights: the model predicts about 0 there).  Cost: one integration
+            and one march a round, and rounds that a known material under directional lights did not run.
+        shadow_config: the march's settings (:class:`gpps.pipeline.shadows.ShadowConfig`); default a
+            tolerance of 0.5 pixel widths (the stage's default 1 was chosen for iid depth noise of 0.3 pixel
+            widths, harsher than the smooth errors of an integrated depth).  Measured (perf/ron_shadows.py
+            --tau 1 0.5, 12 lights, tolerance 1 -> 0.5): MAEN over the shadowed pixels of the analytic bump
+            0.37 -> 0.17 (directional) and 0.30 -> 0.13 (point), IoU of the dropped cast shadows 0.84 ->
+            0.92 and 0.86 -> 0.95; whole-mask MAEN of the six Mitsuba captures 0.02-0.33 deg lower.
         shadow_few: a pixel the shadows would leave with fewer than 3 valid observations: ``"keep"``
             (default): the pixel keeps all its observations (counted in ``RONResult.shadows``
             ``kept_pixels``); ``"flag"``: drops them anyway, and the solver flags the pixel
             ``FLAG_FEW_OBSERVATIONS`` (as every pixel with fewer than 3 lit observations) and solves it in its
-            neighbour pass (albedo from the neighbours).  Measured with 3 lights (whole-mask MAEN, keep ->
-            flag): the analytic bump 3.58 -> 4.33 (directional) and 5.27 -> 4.49 (point), the sphere without
-            cast shadows 0.36 -> 0.59 (point: attached-shadow observations dropped), Mitsuba 0.1-1.2 deg
-            better on four of six captures: mixed, and worse on a scene without cast shadows, so the
-            under-determined pixels keep their observations.
+            neighbour pass (albedo from the neighbours).  Measured with 3 lights (whole-mask MAEN, keep =
+            off -> flag): better on 9 of the 12 captures with cast shadows (bump point 5.27 -> 3.15,
+            hemisphere 8.10 -> 6.68 / 10.48 -> 9.38, Mitsuba 0.1-1.2 deg), equal on one, worse on the bump
+            under directional lights (3.58 -> 4.09), Mitsuba bumps under point lights (6.44 -> 7.03) and the sphere
+            without cast shadows under point lights (0.36 -> 0.63: attached-shadow observations dropped).
+            A scene without cast shadows must not get worse, so the under-determined pixels keep theirs.
     """
 
     rounds: int = 5
@@ -247,7 +254,7 @@ class RONConfig:
     seed: int = 0
     device_rounds: bool | None = None
     cast_shadows: bool = True
-    shadow_config: ShadowConfig = field(default_factory=ShadowConfig)
+    shadow_config: ShadowConfig = field(default_factory=lambda: ShadowConfig(tolerance_px=0.5))
     shadow_few: ShadowFew = "keep"
 
     def __post_init__(self):
@@ -256,9 +263,6 @@ class RONConfig:
         check_bool("dgmc", self.dgmc)
         check_bool("integrate", self.integrate)
         check_bool("cast_shadows", self.cast_shadows)
-        if self.cast_shadows and not self.integrate:
-            raise ValueError("cast_shadows: expected integrate=True (the shadows are marched over the rounds' "
-                             "integrated depth), got integrate=False")
         if not isinstance(self.shadow_config, ShadowConfig):
             raise TypeError(f"shadow_config: expected gpps.pipeline.shadows.ShadowConfig, got "
                             f"{type(self.shadow_config).__name__}")
@@ -877,7 +881,7 @@ class RON:
         timings = {"least_squares": 0.0, "dgmc": 0.0, "normals": 0.0, "integration": 0.0, "material": 0.0,
                    "shadows": 0.0}
         cur_depth, reference_depth = self._start_depth(depth, reference_depth)
-        shadows = c.cast_shadows and c.rounds > 1
+        shadows = c.cast_shadows and c.integrate and c.rounds > 1
         rref = self._rounds_reference(reference_depth) if shadows else reference_depth
         solve_depth = cur_depth if self.point else None
         total = float(c.rounds * 3 + 2)
