@@ -45,7 +45,7 @@ import numpy as np  # noqa: E402
 
 from _common import device_label  # noqa: E402
 
-MAT = ("blinn-phong", 0.4, 40.0)
+MAT = ("blinn-phong", 0.4, 40.0)  # tests/ron_shadow_scenes.MATERIAL
 ANALYTIC = ("hemisphere", "box")
 BUMP = ((0.25, 0.0, 0.0, 0.09),)  # tests/ron_shadow_scenes.py: (A, cx, cy, s) in image sides
 BUMP_SLANT = 70.0
@@ -53,44 +53,6 @@ MITSUBA = {"mts-sphere_on_plane": ("sphere_on_plane", "roughplastic", 0.2, False
            "mts-spheres": ("spheres", "diffuse", 0.2, False, 2002),
            "mts-bumps": ("bumps", "roughplastic", 0.15, True, 2003)}
 DEFAULT_SCENES = ("bumps", "hemisphere", "box", "sphere", "mts-sphere_on_plane", "mts-spheres", "mts-bumps")
-
-
-def analytic_lights(kind: str, n: int, size: int, plane_depth: float):
-    """3 lights on a ring at slant 45 deg (elevation 45) or ``n`` on a spiral (slants 15-60); point lights 3 S
-    units from the plane's centre in those directions (radiance about 1 there)."""
-    from gpps.lights import DirectionalLights, PointLights, ring_directions, spiral_directions
-
-    dirs = ring_directions(n, 45.0) if n <= 4 else spiral_directions(n, 15.0, 60.0)
-    if kind == "directional":
-        return DirectionalLights(dirs)
-    r = 3.0 * size
-    return PointLights(np.array([0.0, 0.0, -plane_depth]) + r * dirs, np.full((n, 3), r * r))
-
-
-def analytic_case(name: str, kind: str, n: int, size: int, noise: float = 0.002, seed: int = 0) -> dict:
-    """An analytic scene with its exact cast shadows (module docstring): the inputs of RON and the truth."""
-    from shadow_reference import box_scene, hemisphere_scene, perspective
-
-    from gpps.material import Material
-    from gpps.pipeline.render import Renderer, add_noise
-
-    dp = 4.75 * size
-    cam = perspective(dp, (size, size))
-    s = size / 128.0
-    if name == "hemisphere":
-        sc = hemisphere_scene(cam, shape=(size, size), plane_depth=dp, radius=0.3 * size)
-    else:
-        sc = box_scene(cam, shape=(size, size), plane_depth=dp, box=(-24 * s, 16 * s, -16 * s, 20 * s, 40 * s))
-    lights = analytic_lights(kind, n, size, dp)
-    mat = Material(MAT[0], ks=MAT[1], shininess=MAT[2])
-    with Renderer((size, size), cam, lights, mat) as r:
-        img = r.run(sc.depth, sc.mask, np.array([0.7, 0.6, 0.5]), normals=sc.normals)
-    vis = sc.visible(lights)
-    shadow = ~vis & sc.facing(lights)
-    img = add_noise(img * vis[..., None], noise, seed)
-    img = np.clip(img, 0.0, None).astype(np.float32)
-    return {"images": img, "mask": sc.mask, "camera": cam, "lights": lights, "material": mat, "normals": sc.normals,
-            "depth": sc.depth, "shadow": shadow, "reference_depth": float(sc.depth[sc.mask].mean())}
 
 
 def sphere_case(kind: str, n: int, size: int, noise: float = 0.002, seed: int = 0) -> dict:
@@ -204,7 +166,9 @@ def make_case(scene, kind, n, size):
 
         return bump_case(kind, n, size, bumps=BUMP, slant=BUMP_SLANT)
     if scene in ANALYTIC:
-        return analytic_case(scene, kind, n, size)
+        from ron_shadow_scenes import solid_case
+
+        return solid_case(scene, kind, n, size)
     if scene == "sphere":
         return sphere_case(kind, n, size)
     return mitsuba_case(scene, kind, n, size)

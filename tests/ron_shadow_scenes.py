@@ -139,3 +139,35 @@ def bump_case(kind: str, n: int, size: int = 64, noise: float = 0.002, seed: int
     return {"images": img, "mask": sc.mask, "camera": sc.camera, "lights": lights, "material": MATERIAL,
             "normals": sc.normals, "depth": sc.depth, "shadow": ~vis & sc.facing(lights), "visible": vis,
             "reference_depth": float(sc.depth.mean()), "scene": sc}
+
+
+def solid_case(name: str, kind: str, n: int, size: int = 64, camera: str = "perspective", noise: float = 0.002,
+               seed: int = 0) -> dict:
+    """tests/shadow_reference.py's hemisphere (radius 0.3 S) or box (0.31 S tall) on a plane filling the S x S image,
+    orthographic (1-unit pixel, plane at 4.75 S) or perspective (12 degrees, a 1-unit pixel on the plane); 3 lights
+    at slant 45 or ``n`` on a spiral (slants 15-60), point lights 3 S from the plane's centre.  Rendered, times the
+    exact visibility (ray-box / ray-sphere in 3D), with noise: RON's inputs and the truth."""
+    from shadow_reference import box_scene, hemisphere_scene, perspective
+
+    from gpps.camera import Orthographic
+
+    dp = 4.75 * size
+    cam = perspective(dp, (size, size)) if camera == "perspective" else Orthographic(1.0)
+    s = size / 128.0
+    if name == "hemisphere":
+        sc = hemisphere_scene(cam, shape=(size, size), plane_depth=dp, radius=0.3 * size)
+    else:
+        sc = box_scene(cam, shape=(size, size), plane_depth=dp, box=(-24 * s, 16 * s, -16 * s, 20 * s, 40 * s))
+    dirs = ring_directions(n, 45.0) if n <= 4 else spiral_directions(n, 15.0, 60.0)
+    if kind == "directional":
+        lights = DirectionalLights(dirs)
+    else:
+        r = 3.0 * size
+        lights = PointLights(np.array([0.0, 0.0, -dp]) + r * dirs, np.full((n, 3), r * r))
+    with Renderer((size, size), cam, lights, MATERIAL) as rd:
+        img = rd.run(sc.depth, sc.mask, np.array(ALBEDO), normals=sc.normals)
+    vis = sc.visible(lights)
+    img = np.clip(add_noise(img * vis[..., None], noise, seed), 0.0, None).astype(np.float32)
+    return {"images": img, "mask": sc.mask, "camera": cam, "lights": lights, "material": MATERIAL,
+            "normals": sc.normals, "depth": sc.depth, "shadow": ~vis & sc.facing(lights), "visible": vis,
+            "reference_depth": float(sc.depth[sc.mask].mean()), "scene": sc}
