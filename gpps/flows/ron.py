@@ -981,20 +981,12 @@ class RON:
                         solve_depth = cur_depth
                 timings["integration"] += time.perf_counter() - t
                 if shadows:
-                    # the next round's observations (and this round's material fit's): the original ones
-                    # less the cast shadows of this depth (on the device: no host copy of the depth)
-                    t = time.perf_counter()
-                    if on_dev_depth:
-                        sh.step(dev.depth)
-                    else:
-                        sh.upload(cur_depth)
-                        sh.step()
-                    shadow_stats.append({"round": r + 1, **sh.fetch()})
-                    if estimating and c.material_rule == "photometric":
-                        fit_valid = sh.valid_host()  # (the fit's sample is uploaded from the host)
-                    timings["shadows"] += time.perf_counter() - t
-                    if not (estimating or self.point) and shadow_stats[-1]["dropped"] == 0 and (
-                            len(shadow_stats) == 1 or shadow_stats[-2]["dropped"] == 0):
+                    # the next round's observations (and this round's material fit's)
+                    fitting = estimating and c.material_rule == "photometric"
+                    got = self._shadow_round(sh, dev.depth if on_dev_depth else cur_depth, r, shadow_stats,
+                                             timings, host_valid=fitting)
+                    fit_valid = got if fitting else fit_valid
+                    if not (estimating or self.point) and not any(x["dropped"] for x in shadow_stats[-2:]):
                         # the next round would see this round's observations again: the fixed point
                         converged = True
                         break
@@ -1071,6 +1063,23 @@ class RON:
             return reference_depth if reference_depth is not None else 1.0
         h, w = self.shape[1:]
         return 100.0 * (h + w) * float(self.camera.pixel_size)
+
+    def _shadow_round(self, sh: RoundShadows, depth, r: int, stats: list, timings: dict, *, host_valid: bool):
+        """The cast-shadow pass after round ``r``'s depth: the solver's observations become the original ones
+        less the shadows of ``depth`` (a Warp buffer on the solver's device, marched in place: the device
+        rounds; or a host array, uploaded).  Appends the pass's counts to ``stats``; returns the new
+        observations as an (N, H, W) bool host array with ``host_valid`` (the material fit's sample is
+        uploaded from the host), else None."""
+        t = time.perf_counter()
+        if isinstance(depth, np.ndarray):
+            sh.upload(depth)
+            sh.step()
+        else:
+            sh.step(depth)
+        stats.append({"round": r + 1, **sh.fetch()})
+        out = sh.valid_host() if host_valid else None
+        timings["shadows"] += time.perf_counter() - t
+        return out
 
     def _shadow_pass(self) -> RoundShadows:
         """The cast-shadow pass on the solver (:class:`RoundShadows`, built once per RON)."""
