@@ -12,7 +12,9 @@ The seed's real-time method is a loop, not one solve.  Each round of
          normal (later rounds); the lowest residual wins
       2. RGB albedo from those normals (the solver's variable projection: the
          closed-form least-squares albedo given the normal)
-      3. depth: integrate the normals (4.20, Taichi multigrid, warm-started)
+      3. depth: integrate the normals (4.20, Taichi multigrid, warm-started);
+         with ``cast_shadows`` each light's cast shadows are marched over it and
+         the shadowed observations leave the next solves and the material fit
       4. material: the parameters the caller did not give are updated
       5. = step 1 of the next round (normals with the recent albedo/material)
     until the energy and the normals stop changing, or the round cap

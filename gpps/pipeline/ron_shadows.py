@@ -55,9 +55,10 @@ class RoundShadows(Stage):
         self.shape = (n, h, w)
         self.few = few
         self.march = CastShadows(self.shape, solver.camera, solver.lights, config, device=self.device)
-        self.mask = wp.array(m.astype(np.uint8), dtype=wp.uint8, device=self.device)
-        self.valid0 = wp.ones((n, h, w), dtype=wp.uint8, device=self.device)
-        self.counts = wp.zeros(3, dtype=wp.int32, device=self.device)
+        self.mask = self._buffer((h, w), wp.uint8, self.device)
+        self.mask.assign(m.astype(np.uint8))
+        self.valid0 = self._buffer((n, h, w), wp.uint8, self.device, fill=1)
+        self.counts = self._buffer(3, wp.int32, self.device)
         self.steps = 0
 
     def capture(self) -> None:
@@ -101,6 +102,6 @@ class RoundShadows(Stage):
 
     def close(self) -> None:
         self.march.close()
+        self._release_buffers()  # (the pool's: a later RON of this size takes them)
         for name in ("mask", "valid0", "counts"):
             self.__dict__.pop(name, None)
-        self._release_buffers()
