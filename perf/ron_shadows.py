@@ -21,7 +21,10 @@ Scenes (no DiLiGenT):
 MAEN (deg) over the mask and over the *shadowed* pixels (those with at least one observation in a cast
 shadow: facing the light and hidden from it; analytic scenes: exact; Mitsuba: the ground-truth depth marched
 by :class:`gpps.pipeline.shadows.CastShadows`, only for selecting the pixels to report).  Also the dropped
-observations of the last pass and the seconds of the pass (``timings["shadows"]``).
+observations of the last pass, their IoU with those cast-shadow sets (facing observations only; for Mitsuba
+against the march over the true depth, so not an independent check there) and the seconds of the passes
+(``timings["shadows"]``).  Variants: ``off`` (``cast_shadows=False``) and ``on-<shadow_few>`` at RON's default
+tolerance (``--tau`` adds others).  Results: perf/results/ron_shadows_cpu.json (and .txt, the printed table).
 
 Usage:  python perf/ron_shadows.py [--size 64] [--lights 3 12] [--kinds directional point]
         [--scenes bumps hemisphere box sphere mts-sphere_on_plane ...] [--few keep flag] [--tau 1 0.5] [--out PATH]
