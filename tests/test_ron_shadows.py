@@ -137,6 +137,10 @@ def test_recomputed_not_accumulated(device):
     valid0[1, :, :8] = False
     try:
         solver.upload(np.full((n, 64, 64, 3), 0.5, np.float32), sc.mask, depth=sc.depth, valid=valid0)
+        with pytest.raises(ValueError, match="few"):
+            RoundShadows(solver, sc.mask, few="drop")
+        with pytest.raises(ValueError, match="mask"):
+            RoundShadows(solver, sc.mask[:, :10])
         with RoundShadows(solver, sc.mask, few="flag") as rs:
             rs.capture()
             rs.upload(sc.depth)

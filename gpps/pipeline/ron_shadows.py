@@ -39,10 +39,10 @@ class RoundShadows(Stage):
         solver: the :class:`PixelSolver` whose ``valid`` the pass rewrites (its camera, lights, device).
         mask: (H, W) bool, RON's mask (the pixels that occlude and whose observations are tested).
         config: :class:`ShadowConfig` of the march.
-        few: ``"flag"`` or ``"keep"`` (module docstring).
+        few: ``"keep"`` or ``"flag"`` (module docstring).
     """
 
-    def __init__(self, solver: PixelSolver, mask, config: ShadowConfig | None = None, few: str = "flag"):
+    def __init__(self, solver: PixelSolver, mask, config: ShadowConfig | None = None, few: str = "keep"):
         wp = warp()
         if few not in FEW_RULES:
             raise ValueError(f"few: expected one of {list(FEW_RULES)}, got {few!r}")
@@ -57,6 +57,7 @@ class RoundShadows(Stage):
         self.march = CastShadows(self.shape, solver.camera, solver.lights, config, device=self.device)
         self.mask = self._buffer((h, w), wp.uint8, self.device)
         self.mask.assign(m.astype(np.uint8))
+        self._mask_host = m.copy()
         self.valid0 = self._buffer((n, h, w), wp.uint8, self.device, fill=1)
         self.counts = self._buffer(3, wp.int32, self.device)
         self.steps = 0
@@ -68,7 +69,7 @@ class RoundShadows(Stage):
 
     def upload(self, depth) -> None:
         """A host depth map (H, W) (> 0 in the mask) for the next :meth:`step` without a device depth."""
-        self.march.upload(depth, self.mask.numpy().astype(bool))
+        self.march.upload(depth, self._mask_host)
 
     def step(self, depth=None) -> None:
         """The visibility of every light from ``depth`` (an (H, W) float32 Warp array on the solver's device,
