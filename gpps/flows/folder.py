@@ -458,7 +458,8 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
                       energy_per_round=rec.energy, rounds=rec.rounds, converged=rec.converged,
                       highlight_pixels=int(rec.highlight.sum()),
                       mean_iterations=float(rec.iterations[ds.mask].mean()),
-                      flagged_pixels=int(np.count_nonzero(rec.flags[ds.mask])))
+                      flagged_pixels=int(np.count_nonzero(rec.flags[ds.mask])),
+                      cast_shadows=rec.details.shadows)  # (RON's passes: observations dropped per round)
     return out
 
 

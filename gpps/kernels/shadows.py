@@ -57,7 +57,7 @@ import warp as wp
 
 from gpps.kernels.brdf import POINT, CameraParams, LightParams, pixel_point
 
-__all__ = ["cast_shadow_kernel", "min_depth_kernel", "and_visible_kernel"]
+__all__ = ["cast_shadow_kernel", "min_depth_kernel", "and_visible_kernel", "shadowed_valid_kernel"]
 
 BIG = wp.constant(1.0e30)
 
@@ -193,3 +193,49 @@ def and_visible_kernel(visible: wp.array3d(dtype=wp.uint8), valid: wp.array3d(dt
     k, i, j = wp.tid()
     if visible[k, i, j] == wp.uint8(0):
         valid[k, i, j] = wp.uint8(0)
+
+
+@wp.kernel(enable_backward=False)
+def shadowed_valid_kernel(valid0: wp.array3d(dtype=wp.uint8), visible: wp.array3d(dtype=wp.uint8),
+                          mask: wp.array2d(dtype=wp.uint8), keep_below: int, valid: wp.array3d(dtype=wp.uint8),
+                          counts: wp.array(dtype=wp.int32)):
+    """``valid = valid0 & visible`` per pixel (dim (H, W)), recomputed from ``valid0`` (nothing accumulates).
+
+    A mask pixel whose shadowed observations would leave it fewer than ``keep_below`` valid ones keeps
+    ``valid0`` instead (``keep_below = 0``: never; the solver then flags the pixels left with fewer than 3).
+    Off the mask ``valid = valid0``.
+
+    Args:
+        valid0: (N, H, W) the observations before shadows (1 = use).
+        visible: (N, H, W) 1 lit, 0 in a cast shadow.
+        mask: (H, W) 1 on the pixels the shadows apply to.
+        keep_below: see above.
+        valid: (N, H, W) out.
+        counts: (3,) int32, added to: [0] observations dropped, [1] pixels that kept ``valid0`` (the rule
+            above), [2] pixels left with fewer than 3 valid observations by the drop.
+    """
+    i, j = wp.tid()
+    n = valid0.shape[0]
+    on = mask[i, j] != wp.uint8(0)
+    c0 = int(0)
+    c = int(0)
+    if on:
+        for k in range(n):
+            if valid0[k, i, j] != wp.uint8(0):
+                c0 += 1
+                if visible[k, i, j] != wp.uint8(0):
+                    c += 1
+    drop = c0 - c
+    keep = (not on) or drop == 0 or c < keep_below
+    for k in range(n):
+        v = valid0[k, i, j]
+        if not keep and visible[k, i, j] == wp.uint8(0):
+            v = wp.uint8(0)
+        valid[k, i, j] = v
+    if drop > 0:
+        if keep:
+            wp.atomic_add(counts, 1, 1)
+        else:
+            wp.atomic_add(counts, 0, drop)
+            if c < 3:
+                wp.atomic_add(counts, 2, 1)
