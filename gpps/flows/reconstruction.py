@@ -102,8 +102,9 @@ def _material(material, estimate) -> tuple[Material, tuple[str, ...], dict]:
     bad = [k for k in names if k not in allowed]
     if bad:
         raise ValueError(f"estimate: the {mat.brdf} model has the estimable parameters {list(allowed)}, got {bad}")
-    # the Fresnel f0 of Cook-Torrance and Ashikhmin-Shirley is never estimated: a model name uses the default
-    fixed = {"f0": mat.f0} if isinstance(material, str) and mat.brdf in ("cook-torrance", "ashikhmin-shirley") else {}
+    # the Fresnel f0 of Cook-Torrance, Ashikhmin-Shirley and plastic (its index of refraction) is never
+    # estimated: a model name uses the default
+    fixed = {"f0": mat.f0} if isinstance(material, str) and mat.brdf in ("cook-torrance", "ashikhmin-shirley", "plastic") else {}
     return mat, names, fixed
 
 
