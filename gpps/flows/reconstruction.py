@@ -17,9 +17,10 @@ Which material parameters are estimated: pass ``material`` as a model name
 (:data:`gpps.flows.ron.LOBE_PARAMETERS`: ``ks`` and the lobe width) is
 estimated from the images; pass a :class:`gpps.material.Material` and its
 parameters are used as known, unless ``estimate`` names some of them.  The
-Cook-Torrance Fresnel ``f0`` is never estimated (it trades off against ``ks``
-with few images): the given or default value (0.5) is used and the result
-says so (``Reconstruction.fixed``).
+Fresnel ``f0`` of Cook-Torrance, Ashikhmin-Shirley and plastic (for plastic,
+the coating's index of refraction) is never estimated (it trades off against
+``ks`` with few images): the given or default value (0.5; plastic 0.04, index
+1.5) is used and the result says so (``Reconstruction.fixed``).
 """
 
 from __future__ import annotations
