@@ -12,7 +12,7 @@ identifiable when E(ior) has a clear minimum at the true index, above the spread
 Result (perf/results/plastic_ior_cpu.json): not identifiable.  The fit trades the index against ks (ks f0, the
 highlight's height at normal incidence, is what the images fix: at ior 2.0 and 2.5 the fitted ks is 0.44 and 0.26
 against the true 1.2 at 1.5; at 1.3 ks runs to its bound 3), the roughness stays at 0.15 whatever the index, and
-E(ior) has its minimum at the true index in 2 of 8 cases; with 1 % noise E varies by 0.3-5 % over 1.3-2.5, and
+E(ior) has its minimum at the true index in 2 of 8 cases; with 1 % noise E varies by 0.5-5.4 % over 1.3-2.5, and
 the normals' MAEN by at most 1.1 deg.  So plastic estimates ks and roughness only; the index is a setting.
 
 Writes ``perf/results/plastic_ior_cpu.json``.
