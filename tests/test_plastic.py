@@ -72,7 +72,7 @@ def test_dielectric_fresnel_known_values(device, eta):
     assert rp_b < 1e-28  # the reference is right: p-polarised light is not reflected at Brewster's angle
     c = np.concatenate([[1.0, 1e-4, brewster], np.linspace(0.01, 1.0, 400)]).astype(np.float32)
     got = _eval_fresnel(device, c, eta)
-    np.testing.assert_allclose(got[:, 0], got[:, 1], rtol=2 * F32, atol=0)  # renderer and Jacobian agree
+    np.testing.assert_allclose(got[:, 0], got[:, 1], rtol=8 * F32, atol=0)  # renderer and Jacobian agree (FMA may differ)
     assert got[0, 0] == pytest.approx(r0, rel=8 * F32)
     assert got[1, 0] == pytest.approx(1.0, abs=2e-3) and got[1, 0] < 1.0
     assert got[2, 0] == pytest.approx(0.5 * rs_b, rel=32 * F32)
