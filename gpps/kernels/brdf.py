@@ -293,21 +293,24 @@ def ashikhmin_shirley_spec(n: wp.vec3, l: wp.vec3, v: wp.vec3, eta_u: float, eta
 # --------------------------------------------------------------------------- dielectric coating (plastic)
 #
 # Not in the seed.  A smooth or rough dielectric coating (index of refraction eta, air outside) over a
-# diffuse base, the model of Mitsuba 3's ``plastic`` / ``roughplastic`` (W. Jakob, Mitsuba 3 plugin
-# reference) and PBRT's coated diffuse, after Weidlich & Wilkie, "Arbitrarily layered micro-facet
-# surfaces" (GRAPHITE 2007) and Kelemen & Szirmay-Kalos, "A microfacet based coupled specular-matte
-# BRDF model with importance sampling" (Eurographics 2001):
+# diffuse base: the model of Mitsuba 3's ``plastic`` (smooth) and ``roughplastic`` plugins (W. Jakob et
+# al., Mitsuba 3 plugin reference; roughplastic is "partly based on" Walter et al. 2007; for layered
+# coatings in general cf. Weidlich & Wilkie, "Arbitrarily layered micro-facet surfaces", GRAPHITE 2007),
+# in their linear mode (``nonlinear = false``):
 #
 #   specular: Cook-Torrance's microfacet lobe D G / (4 n.v) (2.22-2.28, the same Beckmann D and
-#             V-cavity G) with the exact unpolarised dielectric Fresnel F(h.v, eta) instead of Schlick's;
-#   diffuse:  kd max(n.l, 0) (1 - F(n.l, eta)) (1 - F(n.v, eta)): the light that the coating does not
-#             reflect enters, scatters in the base and leaves through the coating again.
+#             V-cavity G) with the exact unpolarised dielectric Fresnel F(h.v, eta) instead of Schlick's
+#             (Walter et al., "Microfacet models for refraction through rough surfaces", EGSR 2007, eq. 22);
+#   diffuse:  kd max(n.l, 0) (1 - F(n.l, eta)) (1 - F(n.v, eta)): the light the coating does not reflect
+#             enters, scatters in the base and leaves through the coating again (Mitsuba's smooth
+#             ``plastic``; ``roughplastic`` uses the rough coating's transmittance in place of 1 - F).
 #
-# The constants of the layered models (Mitsuba's 1 / (eta^2 (1 - F_dr,int)) for the internal
-# reflections, linear in the base albedo) are per-material factors of kd and are left in kd: kd is the
-# effective albedo, and stays linear (brdf_terms' contract).  The specular lobe carries the factor pi of
-# gpps's radiometry (the diffuse kd max(n.l, 0) is the Lambertian BRDF kd / pi lit by radiance pi E, see
-# training/mitsuba_scenes.py): ks = 1 is the physical coating (Mitsuba's specular_reflectance = 1).
+# Mitsuba's per-material factor of the diffuse term, 1 / (eta^2 (1 - F_dr,int)) (the light reflected back
+# inside the coating, linear in the base albedo), is left in kd: kd is the effective albedo and stays
+# linear (brdf_terms' contract).  The specular lobe carries the factor pi of gpps's radiometry (the diffuse
+# kd max(n.l, 0) is the Lambertian BRDF kd / pi lit by radiance pi E, see training/mitsuba_scenes.py), so
+# ks = 1 is the physical coating (Mitsuba's specular_reflectance = 1).  tests/test_plastic.py checks both
+# terms against Mitsuba's BSDFs (Beckmann roughplastic where both G are 1; plastic up to its constant).
 # eta is not a field of MaterialParams: f0 = ((eta - 1) / (eta + 1))^2 is, and eta is derived from it.
 
 
