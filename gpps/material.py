@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 from gpps._check import check_choice, check_choices, check_number
-from gpps.names import BRDF, BRDF_NAMES
+from gpps.names import BRDF, BRDF_NAMES, DEFAULT_F0
 from gpps.names import BRDF_TAG as _DEVICE_TAG
 
 __all__ = ["Material", "BRDF", "BRDF_NAMES"]
@@ -17,11 +18,18 @@ class Material:
 
     Attributes:
         brdf: the model: Lambertian (2.13), Phong (2.20), Blinn-Phong (2.21),
-            Cook-Torrance (2.22-2.29) or Ashikhmin-Shirley (5.1-5.2).
+            Cook-Torrance (2.22-2.29), Ashikhmin-Shirley (5.1-5.2) or plastic (a
+            dielectric coating over a diffuse base, :mod:`gpps.kernels.brdf`: Cook-Torrance's
+            microfacet lobe with the exact dielectric Fresnel, and a diffuse term that loses
+            what the coating reflects).
         ks: specular weight (>= 0), scalar: highlights take the light's colour.
         shininess: Phong / Blinn-Phong exponent n (> 0).
         roughness: Cook-Torrance RMS microfacet slope m (> 0).
-        f0: Fresnel reflectance at normal incidence (Schlick, 2.29), in [0, 1].
+        f0: Fresnel reflectance at normal incidence, in [0, 1]: Schlick's (2.29) for
+            Cook-Torrance and Ashikhmin-Shirley; for plastic it fixes the coating's index of
+            refraction ``ior = (1 + sqrt(f0)) / (1 - sqrt(f0))`` and must be < 1.  None (default):
+            :data:`gpps.names.DEFAULT_F0` of the model (0.5; plastic 0.04, i.e. ior 1.5).
+            :meth:`from_ior` sets it from an index of refraction.
         eta_u: Ashikhmin-Shirley exponent along the tangent u (> 0; the seed uses 10).
         eta_v: Ashikhmin-Shirley exponent along the tangent v (> 0).
     """
@@ -30,7 +38,7 @@ class Material:
     ks: float = 0.5
     shininess: float = 30.0
     roughness: float = 0.3
-    f0: float = 0.5
+    f0: float | None = None
     eta_u: float = 10.0
     eta_v: float = 10.0
 
@@ -39,13 +47,39 @@ class Material:
         object.__setattr__(self, "ks", check_number("ks", self.ks, lo=0.0))
         object.__setattr__(self, "shininess", check_number("shininess", self.shininess, lo=0.0, lo_open=True))
         object.__setattr__(self, "roughness", check_number("roughness", self.roughness, lo=0.0, lo_open=True))
-        object.__setattr__(self, "f0", check_number("f0", self.f0, lo=0.0, hi=1.0))
+        f0 = DEFAULT_F0[self.brdf] if self.f0 is None else self.f0
+        object.__setattr__(self, "f0", check_number("f0", f0, lo=0.0, hi=1.0))
+        if self.brdf == "plastic" and self.f0 >= 1.0:
+            raise ValueError(f"f0: plastic needs f0 < 1 (a finite index of refraction), got {f0!r}")
         object.__setattr__(self, "eta_u", check_number("eta_u", self.eta_u, lo=0.0, lo_open=True))
         object.__setattr__(self, "eta_v", check_number("eta_v", self.eta_v, lo=0.0, lo_open=True))
 
     @property
     def device_tag(self) -> int:
         return _DEVICE_TAG[self.brdf]
+
+    @property
+    def ior(self) -> float:
+        """Index of refraction with this ``f0`` at normal incidence: ``(1 + sqrt(f0)) / (1 - sqrt(f0))`` (inf at f0 = 1)."""
+        r = math.sqrt(self.f0)
+        return math.inf if r >= 1.0 else (1.0 + r) / (1.0 - r)
+
+    @staticmethod
+    def f0_from_ior(ior: float) -> float:
+        """Normal-incidence reflectance ``((ior - 1) / (ior + 1))^2`` of a dielectric of index ``ior`` >= 1 (air outside)."""
+        ior = check_number("ior", ior, lo=1.0)
+        return ((ior - 1.0) / (ior + 1.0)) ** 2
+
+    @classmethod
+    def from_ior(cls, brdf: str, ior: float, **params) -> "Material":
+        """``Material(brdf, f0=f0_from_ior(ior), **params)``, e.g. ``Material.from_ior("plastic", 1.49, roughness=0.2)``.
+
+        Raises:
+            ValueError: ``ior`` not a finite number >= 1, or ``f0`` also given.
+        """
+        if "f0" in params:
+            raise ValueError("f0: give either ior or f0, not both")
+        return cls(brdf, f0=cls.f0_from_ior(ior), **params)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -55,6 +89,11 @@ class Material:
         if not isinstance(d, dict):
             raise TypeError(f"material: expected a dict, got {type(d).__name__}")
         known = {k: d[k] for k in ("brdf", "ks", "shininess", "roughness", "f0", "eta_u", "eta_v") if k in d}
+        if d.get("ior") is not None:  # an index of refraction instead of f0 (e.g. a hand-written material.json)
+            f0 = cls.f0_from_ior(d["ior"])
+            if known.get("f0") is not None and not math.isclose(float(known["f0"]), f0, rel_tol=1e-6, abs_tol=1e-9):
+                raise ValueError(f"material: f0 {known['f0']!r} and ior {d['ior']!r} disagree (ior {d['ior']!r} is f0 {f0:.6g})")
+            known["f0"] = f0
         return cls(**known)
 
     @classmethod
@@ -67,4 +106,6 @@ class Material:
             "blinn-phong": cls("blinn-phong", ks=0.5, shininess=40.0),
             "cook-torrance": cls("cook-torrance", ks=0.6, roughness=0.25, f0=0.5),
             "ashikhmin-shirley": cls("ashikhmin-shirley", ks=0.8, eta_u=30.0, eta_v=30.0, f0=0.5),
+            # ks 1 is the physical coating (gpps.kernels.brdf.plastic_spec), ior 1.5 (f0 0.04)
+            "plastic": cls("plastic", ks=1.0, roughness=0.2),
         }[brdf]

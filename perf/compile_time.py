@@ -27,6 +27,7 @@ SPECIALISED = [
     ("lm", "blinn-phong", "none"),
     ("lm", "cook-torrance", "none"),
     ("lm", "lambertian", "none"),
+    ("lm", "plastic", "none"),
     ("dogleg", "blinn-phong", "none"),
     ("bfgs", "blinn-phong", "none"),
 ]

@@ -7,7 +7,7 @@ import numpy as np
 import warp as wp
 
 from gpps.kernels.brdf import LightParams, MaterialParams
-from gpps.kernels.jacobians import chart_normal, chart_normal_jacobian, diffuse_value_grad, specular_value_grad
+from gpps.kernels.jacobians import chart_normal, chart_normal_jacobian, diffuse_value_grad_of, specular_value_grad
 from gpps.kernels.solve import Pixel, evaluate
 
 
@@ -22,13 +22,13 @@ def terms_grad_kernel(
     mat: MaterialParams,
     out: wp.array2d(dtype=wp.float32),
 ):
-    """out[t] = (nl, s, d nl/dx0, d nl/dx1, d s/dx0, d s/dx1) at n(x)."""
+    """out[t] = (d, s, d d/dx0, d d/dx1, d s/dx0, d s/dx1) at n(x); d: the diffuse factor (nl; plastic's)."""
     t = wp.tid()
     n = chart_normal(n0[t], t1[t], t2[t], x[t])
     dn = chart_normal_jacobian(n0[t], t1[t], t2[t], x[t])
     dn0 = wp.vec3(dn[0, 0], dn[1, 0], dn[2, 0])
     dn1 = wp.vec3(dn[0, 1], dn[1, 1], dn[2, 1])
-    dg = diffuse_value_grad(n, l[t])
+    dg = diffuse_value_grad_of(mat, n, l[t], v[t])
     sg = specular_value_grad(mat, n, l[t], v[t])
     gd = wp.vec3(dg[1], dg[2], dg[3])
     gs = wp.vec3(sg[1], sg[2], sg[3])
@@ -95,6 +95,18 @@ def _schlick(f0, c):
     return f0 + (1 - f0) * (1 - c) ** 5
 
 
+def np_fresnel_dielectric(c, eta):
+    """Unpolarised dielectric Fresnel from Snell's law and the s / p amplitudes (not the kernels' closed form)."""
+    ct = np.sqrt(1.0 - (1.0 - c**2) / eta**2)
+    rs = (c - eta * ct) / (c + eta * ct)
+    rp = (eta * c - ct) / (eta * c + ct)
+    return 0.5 * (rs**2 + rp**2)
+
+
+def np_ior(f0):
+    return (1 + np.sqrt(f0)) / (1 - np.sqrt(f0))
+
+
 def np_specular(brdf, n, l, v, p):
     """Specular factor s(n, l, v) of each model, written from the seed's equations (float64).
 
@@ -128,14 +140,32 @@ def np_specular(brdf, n, l, v, p):
         zeta = (eu * hu**2 + ev * hv**2) / (hu**2 + hv**2)
         norm = np.sqrt((eu + 1) * (ev + 1)) / (8 * np.pi)
         s = np.where((nh > 0) & (vh > 0), norm * np.maximum(nh, 1e-300) ** zeta * _schlick(p["f0"], vh) * nl / (vh * np.maximum(nl, nv)), 0.0)
+    elif brdf == "plastic":
+        m = p["roughness"]
+        c2 = nh**2
+        d = np.exp(-(1 - c2) / c2 / m**2) / (np.pi * m**2 * c2**2)
+        g = np.minimum(1.0, np.minimum(2 * nh * nv / vh, 2 * nh * nl / vh))
+        f = np_fresnel_dielectric(np.clip(vh, 0, 1), np_ior(p["f0"]))
+        s = np.where((nh > 0) & (vh > 0), np.pi * d * g * f / (4 * nv), 0.0)
     else:
         raise ValueError(brdf)
     return np.where(ok, s, 0.0)
 
 
+def np_diffuse(brdf, n, l, v, p):
+    """The diffuse factor: max(n.l, 0); plastic: (n.l)(1 - F(n.l))(1 - F(n.v)) where n.l, n.v > 0."""
+    nl, nv = np.sum(n * l, -1), np.sum(n * v, -1)
+    if brdf != "plastic":
+        return np.maximum(nl, 0.0)
+    eta = np_ior(p["f0"])
+    ok = (nl > 0) & (nv > 0)
+    cl, cv = np.clip(nl, 1e-12, 1.0), np.clip(nv, 1e-12, 1.0)
+    return np.where(ok, cl * (1 - np_fresnel_dielectric(cl, eta)) * (1 - np_fresnel_dielectric(cv, eta)), 0.0)
+
+
 def np_terms(brdf, n, l, v, p):
     nl = np.sum(n * l, -1)
-    return np.maximum(nl, 0.0), np.where(nl > 0, np_specular(brdf, n, l, v, p), 0.0)
+    return np_diffuse(brdf, n, l, v, p), np.where(nl > 0, np_specular(brdf, n, l, v, p), 0.0)
 
 
 def np_reduced_cost(brdf, n, lights_dir, radiance, obs, weights, v, p, ks, grey=False):

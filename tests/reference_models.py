@@ -52,10 +52,40 @@ def ashikhmin_shirley(n, l, v, eu, ev, f0):  # (5.1)-(5.2) with A&S 2000's max(n
     return np.sqrt((eu + 1) * (ev + 1)) / (8 * np.pi) * nh**zeta / (vh * np.maximum(nl, nv)) * F * nl
 
 
+def fresnel_dielectric(c, eta):
+    """Unpolarised Fresnel reflectance from the s- and p-polarised amplitudes (Snell's law; light from outside, index eta)."""
+    c = np.asarray(c, np.float64)
+    sin_t2 = (1.0 - c**2) / eta**2
+    ct = np.sqrt(1.0 - sin_t2)
+    rs = (c - eta * ct) / (c + eta * ct)
+    rp = (eta * c - ct) / (eta * c + ct)
+    return 0.5 * (rs**2 + rp**2)
+
+
+def ior(f0):
+    return (1 + np.sqrt(f0)) / (1 - np.sqrt(f0))
+
+
+def plastic(n, l, v, m, f0):
+    """Coating lobe: pi x Beckmann D x V-cavity G x exact dielectric F(h.v) / (4 n.v), and the diffuse factor
+    (n.l)(1 - F(n.l))(1 - F(n.v)) (gpps.kernels.brdf's plastic)."""
+    eta = ior(f0)
+    h = normalize(l + v)
+    vh = dot(v, h)
+    s = np.pi * cook_torrance(n, l, v, m, 1.0) * fresnel_dielectric(vh, eta)  # Schlick with f0 = 1 is 1
+    nl, nv = np.clip(dot(n, l), 1e-12, None), np.clip(dot(n, v), 1e-12, None)
+    d = nl * (1 - fresnel_dielectric(nl, eta)) * (1 - fresnel_dielectric(nv, eta))
+    return d, s
+
+
 def terms(material, n, l, v):
-    """(cos, s) for a gpps.Material, with attached shadows."""
+    """(cos, s) for a gpps.Material, with attached shadows (plastic: its diffuse factor for cos)."""
     nl = dot(n, l)
     b = material.brdf
+    if b == "plastic":
+        d, s = plastic(n, l, v, material.roughness, material.f0)
+        lit = (nl > 0) & (dot(n, v) > 0)
+        return np.where(lit, d, 0.0), np.where(lit, s, 0.0)
     if b == "lambertian":
         s = np.zeros_like(nl)
     elif b == "phong":

@@ -14,6 +14,7 @@ MATERIALS = {
     "blinn-phong": Material("blinn-phong", ks=0.5, shininess=40.0),
     "cook-torrance": Material("cook-torrance", ks=0.6, roughness=0.25, f0=0.5),
     "ashikhmin-shirley": Material("ashikhmin-shirley", ks=0.8, eta_u=10.0, eta_v=60.0, f0=0.5),
+    "plastic": Material.from_ior("plastic", 1.5, ks=1.0, roughness=0.25),
 }
 M = 400  # random samples per model
 H = 1e-6  # central-difference step (float64)
@@ -57,7 +58,7 @@ def _samples(brdf, mat, rng):
             continue
         if brdf == "phong" and np.dot(2 * nl * n - l, v) < 0.05:
             continue
-        if brdf == "cook-torrance":
+        if brdf in ("cook-torrance", "plastic"):
             g1, g2 = 2 * nh * nv / vh, 2 * nh * nl / vh
             if abs(g1 - g2) < 1e-3 or abs(min(g1, g2) - 1) < 1e-3:
                 continue

@@ -55,7 +55,7 @@ def sample_mask(mask, n, seed=0, block=False):
 
 def candidates_around(mat: Material) -> list[Material]:
     """The true material and four others: ks and the lobe width moved by factors 0.25-4."""
-    lobe = {"blinn-phong": "shininess", "phong": "shininess", "cook-torrance": "roughness"}[mat.brdf]
+    lobe = {"blinn-phong": "shininess", "phong": "shininess", "cook-torrance": "roughness", "plastic": "roughness"}[mat.brdf]
     out = [mat]
     for fk, fl in ((0.25, 1.0), (1.0, 2.0), (2.0, 0.5), (0.5, 1.6)):
         d = mat.to_dict()
@@ -106,6 +106,7 @@ CASES_3 = [
     ("blinn-phong", "point", "orthographic"),
     ("cook-torrance", "directional", "orthographic"),
     ("cook-torrance", "point", "perspective"),
+    ("plastic", "directional", "perspective"),
 ]
 
 
@@ -137,7 +138,7 @@ def _many_lights_case(brdf, light_kind, n, size=32, noise=0.01, device=None):
     return img, Lu, sc, mat
 
 
-@pytest.mark.parametrize("brdf,light_kind", [("blinn-phong", "directional"), ("cook-torrance", "point")])
+@pytest.mark.parametrize("brdf,light_kind", [("blinn-phong", "directional"), ("cook-torrance", "point"), ("plastic", "point")])
 def test_energies_equal_pixel_solver_eight_noisy_images(brdf, light_kind, device):
     """8 images with noise, textured albedo, a dense patch in the sample (non-zero noise estimate), a
     ``valid`` mask and a shadow threshold: the energies still equal PixelSolver's, and identify the material."""
@@ -155,8 +156,10 @@ def test_energies_equal_pixel_solver_eight_noisy_images(brdf, light_kind, device
     # angle between unit normals, 2 asin(|a - b| / 2) in float64 (arccos of a float32 cosine resolves only ~0.02 deg)
     ang = np.degrees(2.0 * np.arcsin(np.linalg.norm(px["normals"].astype(np.float64) - ref_n, axis=-1) / 2.0))
     assert np.mean(ang < 1e-2) >= 0.99
-    # the test discriminates: the rendered material scores best, clearly
-    assert int(np.argmin(ref)) == 0 and np.sort(ref)[1] > 2.0 * ref[0]
+    # the test discriminates: the rendered material scores best, clearly (plastic's runner-up, twice ks at half
+    # the roughness, scores 1.46x: its default highlight, peak ks s = 0.25 at normal incidence, is dimmer than
+    # Cook-Torrance's 0.38 and its Fresnel rises toward grazing)
+    assert int(np.argmin(ref)) == 0 and np.sort(ref)[1] > (1.4 if brdf == "plastic" else 2.0) * ref[0]
 
 
 def test_robust_loss_and_chunked_progress(device):

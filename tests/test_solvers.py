@@ -177,7 +177,8 @@ def test_specialised_kernels_cached_and_selected(device):
 
 @pytest.mark.parametrize(
     "brdf,solver,robust",
-    [("cook-torrance", "lm", "cauchy"), ("phong", "dogleg", "none"), ("ashikhmin-shirley", "bfgs", "huber"), ("lambertian", "none", "none")],
+    [("cook-torrance", "lm", "cauchy"), ("phong", "dogleg", "none"), ("ashikhmin-shirley", "bfgs", "huber"), ("lambertian", "none", "none"),
+     ("plastic", "lm", "cauchy")],
 )
 def test_specialised_kernels_match_generic(device, brdf, solver, robust):
     """The specialised kernels give the results of the generic (run-time switch) build: bitwise on the CPU."""

@@ -24,7 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gpps.material import BRDF_NAMES, Material
+from gpps.material import Material
+from gpps.names import SEED_BRDF_NAMES
 from gpps.host.scenes import D0, HALF_EXTENT, default_camera
 
 __all__ = ["RandomScene", "random_shape", "random_albedo", "random_material", "random_light", "random_scene",
@@ -226,7 +227,7 @@ def random_albedo(shape, rng):
 
 def random_material(rng) -> Material:
     """One of the five models (Lambertian more often) with random parameters."""
-    brdf = str(rng.choice(BRDF_NAMES, p=[0.36, 0.16, 0.16, 0.16, 0.16]))
+    brdf = str(rng.choice(SEED_BRDF_NAMES, p=[0.36, 0.16, 0.16, 0.16, 0.16]))
     if brdf == "lambertian":
         return Material("lambertian", ks=0.0)
     return Material(

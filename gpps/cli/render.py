@@ -26,6 +26,7 @@ def register(sub):
     p.add_argument("--seed", type=int, default=0, help="seed of the noise and the texture")
     for name in ("ks", "shininess", "roughness", "f0", "eta_u", "eta_v"):
         p.add_argument(f"--{name.replace('_', '-')}", type=float, default=None, help=f"material {name} (default: per model)")
+    p.add_argument("--ior", type=float, default=None, help="index of refraction instead of --f0 (plastic: default 1.5)")
     add_output_args(p, "output folder (DiLiGenT-style capture with ground truth)")
     p.set_defaults(func=run)
 
@@ -36,6 +37,11 @@ def material_from_args(args) -> Material:
         v = getattr(args, name, None)
         if v is not None:
             m[name] = v
+    ior = getattr(args, "ior", None)
+    if ior is not None:
+        if getattr(args, "f0", None) is not None:
+            raise ValueError("ior: give either --ior or --f0, not both")
+        m["f0"] = Material.f0_from_ior(ior)
     return Material.from_dict(m)
 
 

@@ -17,9 +17,10 @@ Which material parameters are estimated: pass ``material`` as a model name
 (:data:`gpps.flows.ron.LOBE_PARAMETERS`: ``ks`` and the lobe width) is
 estimated from the images; pass a :class:`gpps.material.Material` and its
 parameters are used as known, unless ``estimate`` names some of them.  The
-Cook-Torrance Fresnel ``f0`` is never estimated (it trades off against ``ks``
-with few images): the given or default value (0.5) is used and the result
-says so (``Reconstruction.fixed``).
+Fresnel ``f0`` of Cook-Torrance, Ashikhmin-Shirley and plastic (for plastic,
+the coating's index of refraction) is never estimated (it trades off against
+``ks`` with few images): the given or default value (0.5; plastic 0.04, index
+1.5) is used and the result says so (``Reconstruction.fixed``).
 """
 
 from __future__ import annotations
@@ -102,8 +103,9 @@ def _material(material, estimate) -> tuple[Material, tuple[str, ...], dict]:
     bad = [k for k in names if k not in allowed]
     if bad:
         raise ValueError(f"estimate: the {mat.brdf} model has the estimable parameters {list(allowed)}, got {bad}")
-    # the Fresnel f0 of Cook-Torrance and Ashikhmin-Shirley is never estimated: a model name uses the default
-    fixed = {"f0": mat.f0} if isinstance(material, str) and mat.brdf in ("cook-torrance", "ashikhmin-shirley") else {}
+    # the Fresnel f0 of Cook-Torrance, Ashikhmin-Shirley and plastic (its index of refraction) is never
+    # estimated: a model name uses the default
+    fixed = {"f0": mat.f0} if isinstance(material, str) and mat.brdf in ("cook-torrance", "ashikhmin-shirley", "plastic") else {}
     return mat, names, fixed
 
 

@@ -9,14 +9,18 @@ Image model for one light and one colour channel c (seed 2.13, 2.20-2.22, 5.1)::
 
     I_c = E_c * ( kd_c * max(n.l, 0) + ks * s(n, l, v) )
 
+and for ``plastic`` (not in the seed: :func:`plastic_spec`, :func:`plastic_diffuse`) the
+diffuse cosine is replaced by ``max(n.l, 0) (1 - F(n.l)) (1 - F(n.v))``, what passes the
+dielectric coating on the way in and out (F: :func:`fresnel_dielectric`).
+
 where ``E_c`` is the light's RGB radiance at the point (intensity, times 1/r^2
 and the LED lobe for point lights, 2.30-2.31), ``kd`` the RGB albedo (diffuse
 colour), ``ks`` the scalar specular weight (specularities take the colour of
 the light) and ``s`` the model's specular term below.  Attached shadows:
 ``n.l <= 0`` gives 0 for both terms; ``n.v <= 0`` gives no specular term.
 
-:func:`brdf_terms` returns ``(max(n.l, 0), s)`` so that callers (renderer,
-solvers) can use the linearity in ``kd``.
+:func:`brdf_terms` returns ``(max(n.l, 0), s)`` (plastic: its diffuse factor) so that
+callers (renderer, solvers) can use the linearity in ``kd``.
 """
 
 import warp as wp
@@ -30,6 +34,7 @@ PHONG = wp.constant(names.PHONG)
 BLINN_PHONG = wp.constant(names.BLINN_PHONG)
 COOK_TORRANCE = wp.constant(names.COOK_TORRANCE)
 ASHIKHMIN_SHIRLEY = wp.constant(names.ASHIKHMIN_SHIRLEY)
+PLASTIC = wp.constant(names.PLASTIC)
 
 DIRECTIONAL = wp.constant(names.LIGHT_DIRECTIONAL)
 POINT = wp.constant(names.LIGHT_POINT)
@@ -42,11 +47,12 @@ class MaterialParams:
     """Per-scene material (all scalars; the albedo is a per-pixel map).
 
     Attributes:
-        model: device tag (LAMBERTIAN ... ASHIKHMIN_SHIRLEY).
+        model: device tag (LAMBERTIAN ... PLASTIC).
         ks: specular weight (>= 0).
         shininess: exponent n of Phong / Blinn-Phong (2.20, 2.21).
         roughness: RMS microfacet slope m of Cook-Torrance (2.27).
-        f0: reflectance at normal incidence for Schlick's Fresnel (2.29), in [0, 1].
+        f0: reflectance at normal incidence for Schlick's Fresnel (2.29), in [0, 1]; plastic:
+            the coating's, in [0, 1), which fixes its index of refraction (:func:`ior_from_f0`).
         eta_u: Ashikhmin-Shirley exponent along the tangent u (5.2).
         eta_v: Ashikhmin-Shirley exponent along the tangent v (5.2).
     """
@@ -284,6 +290,73 @@ def ashikhmin_shirley_spec(n: wp.vec3, l: wp.vec3, v: wp.vec3, eta_u: float, eta
     return norm * lobe * schlick(f0, vh) * nl / (vh * wp.max(nl, nv))
 
 
+# --------------------------------------------------------------------------- dielectric coating (plastic)
+#
+# Not in the seed.  A smooth or rough dielectric coating (index of refraction eta, air outside) over a
+# diffuse base: the model of Mitsuba 3's ``plastic`` (smooth) and ``roughplastic`` plugins (W. Jakob et
+# al., Mitsuba 3 plugin reference; roughplastic is "partly based on" Walter et al. 2007; for layered
+# coatings in general cf. Weidlich & Wilkie, "Arbitrarily layered micro-facet surfaces", GRAPHITE 2007),
+# in their linear mode (``nonlinear = false``):
+#
+#   specular: Cook-Torrance's microfacet lobe D G / (4 n.v) (2.22-2.28, the same Beckmann D and
+#             V-cavity G) with the exact unpolarised dielectric Fresnel F(h.v, eta) instead of Schlick's
+#             (Walter et al., "Microfacet models for refraction through rough surfaces", EGSR 2007, eq. 22);
+#   diffuse:  kd max(n.l, 0) (1 - F(n.l, eta)) (1 - F(n.v, eta)): the light the coating does not reflect
+#             enters, scatters in the base and leaves through the coating again (Mitsuba's smooth
+#             ``plastic``; ``roughplastic`` uses the rough coating's transmittance in place of 1 - F).
+#
+# Mitsuba's per-material factor of the diffuse term, 1 / (eta^2 (1 - F_dr,int)) (the light reflected back
+# inside the coating, linear in the base albedo), is left in kd: kd is the effective albedo and stays
+# linear (brdf_terms' contract).  The specular lobe carries the factor pi of gpps's radiometry (the diffuse
+# kd max(n.l, 0) is the Lambertian BRDF kd / pi lit by radiance pi E, see training/mitsuba_scenes.py), so
+# ks = 1 is the physical coating (Mitsuba's specular_reflectance = 1).  tests/test_plastic.py checks both
+# terms against Mitsuba's BSDFs (Beckmann roughplastic where both G are 1; plastic up to its constant).
+# eta is not a field of MaterialParams: f0 = ((eta - 1) / (eta + 1))^2 is, and eta is derived from it.
+
+
+@wp.func
+def ior_from_f0(f0: float):
+    """Index of refraction ``eta = (1 + sqrt(f0)) / (1 - sqrt(f0))`` whose normal-incidence reflectance is ``f0`` < 1."""
+    r = wp.sqrt(f0)
+    return (1.0 + r) / (1.0 - r)
+
+
+@wp.func
+def fresnel_dielectric(c: float, eta: float):
+    """Unpolarised Fresnel reflectance of a dielectric of relative index ``eta`` >= 1, light from outside.
+
+    ``F = 1/2 (g - c)^2 / (g + c)^2 (1 + ((c (g + c) - 1) / (c (g - c) + 1))^2)`` with
+    ``g = sqrt(eta^2 - 1 + c^2)`` and ``c`` in (0, 1] the cosine of the angle of incidence
+    (Cook & Torrance 1982, their Fresnel term; Walter et al. 2007, eq. 22): the mean of the s- and
+    p-polarised reflectances.  ``F(1) = ((eta - 1) / (eta + 1))^2``, ``F -> 1`` at grazing incidence.
+    """
+    g = wp.sqrt(eta * eta - 1.0 + c * c)
+    a = (g - c) / (g + c)
+    b = (c * (g + c) - 1.0) / (c * (g - c) + 1.0)
+    return 0.5 * a * a * (1.0 + b * b)
+
+
+@wp.func
+def plastic_spec(n: wp.vec3, l: wp.vec3, v: wp.vec3, m: float, eta: float):
+    """The coating's specular factor ``pi D G F(h.v, eta) / (4 n.v)``.
+
+    D and G are Cook-Torrance's (2.23-2.28, :func:`cook_torrance_spec` with Schlick's f0 = 1,
+    where his Fresnel is exactly 1); F is :func:`fresnel_dielectric`; pi: see the section comment.
+    """
+    vh = wp.dot(v, wp.normalize(l + v))
+    if vh <= 0.0:
+        return 0.0
+    return PI * cook_torrance_spec(n, l, v, m, 1.0) * fresnel_dielectric(vh, eta)
+
+
+@wp.func
+def plastic_diffuse(nl: float, nv: float, eta: float):
+    """The coated base's diffuse factor ``max(n.l, 0) (1 - F(n.l, eta)) (1 - F(n.v, eta))`` (0 unless n.l, n.v > 0)."""
+    if nl <= 0.0 or nv <= 0.0:
+        return 0.0
+    return nl * (1.0 - fresnel_dielectric(nl, eta)) * (1.0 - fresnel_dielectric(nv, eta))
+
+
 @wp.func
 def specular_term(mat: MaterialParams, n: wp.vec3, l: wp.vec3, v: wp.vec3):
     """The model's specular factor ``s(n, l, v)`` (without ``ks`` and light colour)."""
@@ -295,18 +368,25 @@ def specular_term(mat: MaterialParams, n: wp.vec3, l: wp.vec3, v: wp.vec3):
         return cook_torrance_spec(n, l, v, mat.roughness, mat.f0)
     if mat.model == ASHIKHMIN_SHIRLEY:
         return ashikhmin_shirley_spec(n, l, v, mat.eta_u, mat.eta_v, mat.f0)
+    if mat.model == PLASTIC:
+        return plastic_spec(n, l, v, mat.roughness, ior_from_f0(mat.f0))
     return 0.0
 
 
 @wp.func
 def brdf_terms(mat: MaterialParams, n: wp.vec3, l: wp.vec3, v: wp.vec3):
-    """``(max(n.l, 0), s)``: diffuse cosine (2.13) and specular factor; both 0 in attached shadow."""
+    """``(max(n.l, 0), s)``: diffuse cosine (2.13) and specular factor; both 0 in attached shadow.
+
+    Plastic: the diffuse factor is :func:`plastic_diffuse` (0 too when ``n.v <= 0``).
+    """
     nl = wp.dot(n, l)
     if nl <= 0.0:
         return wp.vec2(0.0, 0.0)
     s = float(0.0)
     if mat.model != LAMBERTIAN and wp.dot(n, v) > 0.0:
         s = specular_term(mat, n, l, v)
+    if mat.model == PLASTIC:
+        return wp.vec2(plastic_diffuse(nl, wp.dot(n, v), ior_from_f0(mat.f0)), s)
     return wp.vec2(nl, s)
 
 

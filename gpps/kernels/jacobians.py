@@ -9,7 +9,9 @@ specular term for ``n.v <= 0``, the lobes' own cut-offs) is the same as in
 :func:`gpps.kernels.brdf.brdf_terms`, so value and gradient are zero together.
 
 Models (seed numbering): Lambertian (2.13), Phong (2.19-2.20), Blinn-Phong
-(2.21 / 3.14), Cook-Torrance (2.22-2.29, 4.1), Ashikhmin-Shirley (5.1-5.2).
+(2.21 / 3.14), Cook-Torrance (2.22-2.29, 4.1), Ashikhmin-Shirley (5.1-5.2); and plastic
+(not the seed's, :func:`gpps.kernels.brdf.plastic_spec`), whose *diffuse* factor depends on
+the model too (:func:`diffuse_value_grad_of`).
 
 Normal parameterisation used by the solvers (no singularity near the camera
 axis): a chart around a base unit normal ``n0`` with an orthonormal tangent
@@ -27,7 +29,10 @@ from gpps.kernels.brdf import (
     LAMBERTIAN,
     PHONG,
     PI,
+    PLASTIC,
     MaterialParams,
+    fresnel_dielectric,
+    ior_from_f0,
     schlick,
     tangent_frame_u,
 )
@@ -206,4 +211,64 @@ def specular_value_grad(mat: MaterialParams, n: wp.vec3, l: wp.vec3, v: wp.vec3)
         return cook_torrance_value_grad(n, l, v, mat.roughness, mat.f0)
     if mat.model == ASHIKHMIN_SHIRLEY:
         return ashikhmin_shirley_value_grad(n, l, v, mat.eta_u, mat.eta_v, mat.f0)
+    if mat.model == PLASTIC:
+        return plastic_value_grad(n, l, v, mat.roughness, ior_from_f0(mat.f0))
     return wp.vec4(0.0)
+
+
+# --------------------------------------------------------------------------- dielectric coating (plastic)
+
+
+@wp.func
+def fresnel_dielectric_value_grad(c: float, eta: float):
+    """``(F, dF/dc)`` of :func:`gpps.kernels.brdf.fresnel_dielectric`.
+
+    ``F = a^2 (1 + b^2) / 2`` with ``a = (g - c) / (g + c)``, ``b = (c (g + c) - 1) / (c (g - c) + 1)``,
+    ``g = sqrt(eta^2 - 1 + c^2)``, ``dg/dc = c / g``: ``da/dc = -2 (eta^2 - 1) / (g (g + c)^2)`` and
+    ``db/dc = (P' Q - P Q') / Q^2`` with ``P' = g + c^2 / g + 2c``, ``Q' = g + c^2 / g - 2c``.
+    """
+    e2 = eta * eta - 1.0
+    g = wp.sqrt(e2 + c * c)
+    gc = g + c
+    a = (g - c) / gc
+    da = -2.0 * e2 / (g * gc * gc)
+    p = c * gc - 1.0
+    q = c * (g - c) + 1.0
+    b = p / q
+    t = g + c * c / g
+    db = ((t + 2.0 * c) * q - p * (t - 2.0 * c)) / (q * q)
+    return wp.vec2(0.5 * a * a * (1.0 + b * b), a * da * (1.0 + b * b) + a * a * b * db)
+
+
+@wp.func
+def plastic_value_grad(n: wp.vec3, l: wp.vec3, v: wp.vec3, m: float, eta: float):
+    """The coating's lobe ``pi D G F(h.v, eta) / (4 n.v)`` (:func:`gpps.kernels.brdf.plastic_spec`) and its gradient:
+    F depends on ``h.v`` only, so it is Cook-Torrance's with f0 = 1 (Schlick's F = 1) times ``pi F``."""
+    vh = wp.dot(v, wp.normalize(l + v))
+    if vh <= 0.0:
+        return wp.vec4(0.0)
+    return (PI * fresnel_dielectric(vh, eta)) * cook_torrance_value_grad(n, l, v, m, 1.0)
+
+
+@wp.func
+def plastic_diffuse_value_grad(n: wp.vec3, l: wp.vec3, v: wp.vec3, eta: float):
+    """``d = (n.l) T(n.l) T(n.v)``, ``T = 1 - F`` (:func:`gpps.kernels.brdf.plastic_diffuse`) and
+    ``dd/dn = (T_l T_v - (n.l) F'_l T_v) l - (n.l) T_l F'_v v``; 0 unless n.l, n.v > 0."""
+    nl = wp.dot(n, l)
+    nv = wp.dot(n, v)
+    if nl <= 0.0 or nv <= 0.0:
+        return wp.vec4(0.0)
+    fl = fresnel_dielectric_value_grad(nl, eta)
+    fv = fresnel_dielectric_value_grad(nv, eta)
+    tl = 1.0 - fl[0]
+    tv = 1.0 - fv[0]
+    return _vg(nl * tl * tv, (tl * tv - nl * fl[1] * tv) * l - (nl * tl * fv[1]) * v)
+
+
+@wp.func
+def diffuse_value_grad_of(mat: MaterialParams, n: wp.vec3, l: wp.vec3, v: wp.vec3):
+    """The material's diffuse factor and its gradient (run-time switch on ``mat.model``): plastic's
+    :func:`plastic_diffuse_value_grad`, the others' :func:`diffuse_value_grad` (2.13)."""
+    if mat.model == PLASTIC:
+        return plastic_diffuse_value_grad(n, l, v, ior_from_f0(mat.f0))
+    return diffuse_value_grad(n, l)

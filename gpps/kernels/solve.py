@@ -16,7 +16,8 @@ Unknowns: the normal, 2 degrees of freedom through the chart of
 singularity anywhere on the visible hemisphere), and the albedo (1 or 3
 channels).  The albedo enters linearly and is eliminated by *variable
 projection*: for a given normal ``kd_c = sum_k w a y / sum_k w a^2`` with
-``a_kc = E_kc max(n.l_k, 0)``, ``y_kc = I_kc - E_kc ks s_k``; the solvers then
+``a_kc = E_kc max(n.l_k, 0)`` (plastic: its diffuse factor, which depends on
+``n.v`` too, :func:`gpps.kernels.brdf.plastic_diffuse`), ``y_kc = I_kc - E_kc ks s_k``; the solvers then
 minimise the reduced cost ``F(x) = 1/2 sum_kc w_k (y_kc - kd_c(x) a_kc)^2`` over
 the 2 chart coordinates only, with its exact Jacobian (including
 ``d kd / dx``).  Each evaluation makes two passes over the N lights (N is a
@@ -36,7 +37,7 @@ It does not enter the albedo's elimination (the albedo is that of the lit
 observations, so the reduced cost and its exact Jacobian stay as above).
 
 Specialisation: Warp emits every ``@wp.func`` a kernel reaches, and a kernel
-that switched at run time between the solvers, the five reflectance models and
+that switched at run time between the solvers, the reflectance models and
 the robust losses carried all of them (NVRTC then inlines them at every call
 site).  :func:`get_solve_kernels` instead builds, once per
 ``(method, brdf, robust)``, the kernels in a Warp module of their own from

@@ -10,7 +10,7 @@ specialisation; ``module=None`` puts them in this file's module).
 
 import warp as wp
 
-from gpps.kernels.brdf import LightParams, MaterialParams, light_dir, light_radiance
+from gpps.kernels.brdf import LightParams, MaterialParams, ior_from_f0, light_dir, light_radiance
 from gpps.kernels.jacobians import (
     ashikhmin_shirley_value_grad,
     blinn_phong_value_grad,
@@ -18,7 +18,10 @@ from gpps.kernels.jacobians import (
     chart_normal_jacobian,
     cook_torrance_value_grad,
     diffuse_value_grad,
+    diffuse_value_grad_of,
     phong_value_grad,
+    plastic_diffuse_value_grad,
+    plastic_value_grad,
     specular_value_grad,
 )
 from gpps.kernels.solve_common import Eval, Pixel, lanes_sum6, lanes_sum19, vec6, vec19
@@ -47,18 +50,39 @@ def specular_value_grad_for(brdf, module, sfx: str):
                 return blinn_phong_value_grad(n, l, v, mat.shininess)
             elif wp.static(brdf == "cook-torrance"):
                 return cook_torrance_value_grad(n, l, v, mat.roughness, mat.f0)
-            else:
+            elif wp.static(brdf == "ashikhmin-shirley"):
                 return ashikhmin_shirley_value_grad(n, l, v, mat.eta_u, mat.eta_v, mat.f0)
+            else:
+                return plastic_value_grad(n, l, v, mat.roughness, ior_from_f0(mat.f0))
 
     return spec_vg
 
 
+def diffuse_value_grad_for(brdf, module, sfx: str):
+    """The diffuse factor and its gradient with the model fixed at code generation: plastic's
+    :func:`gpps.kernels.jacobians.plastic_diffuse_value_grad`, every other model's ``max(n.l, 0)``
+    (:func:`gpps.kernels.jacobians.diffuse_value_grad`); ``brdf=None``: the run-time switch
+    :func:`gpps.kernels.jacobians.diffuse_value_grad_of`."""
+    if brdf is None:
+        return diffuse_value_grad_of
 
-def light_terms_for(spec_vg, module, sfx: str):
+    @wp.func(name="diffuse_value_grad" + sfx, module=module)
+    def diff_vg(mat: MaterialParams, n: wp.vec3, l: wp.vec3, v: wp.vec3):
+        """Diffuse factor and its gradient in ``n``: ``(d, dd/dn)`` as a vec4 (0 in attached shadow)."""
+        if wp.static(brdf == "plastic"):
+            return plastic_diffuse_value_grad(n, l, v, ior_from_f0(mat.f0))
+        else:
+            return diffuse_value_grad(n, l)
+
+    return diff_vg
+
+
+def light_terms_for(spec_vg, diff_vg, module, sfx: str):
     """``light_terms``: one light's radiance, observation and model terms with their chart derivatives.
 
     Args:
         spec_vg: the specular value-and-gradient function (:func:`specular_value_grad_for`).
+        diff_vg: the diffuse value-and-gradient function (:func:`diffuse_value_grad_for`).
         module: Warp module of the function (None: this file's).
         sfx: key suffix of the function.
     """
@@ -79,7 +103,7 @@ def light_terms_for(spec_vg, module, sfx: str):
     ):
         """Light k at the pixel: radiance, observation, diffuse and specular values and their chart derivatives."""
         l = light_dir(lights, k, p)
-        dg = diffuse_value_grad(n, l)
+        dg = diff_vg(mat, n, l, v)
         sg = spec_vg(mat, n, l, v)
         gd = wp.vec3(dg[1], dg[2], dg[3])
         gs = wp.vec3(sg[1], sg[2], sg[3])

@@ -13,7 +13,7 @@ from types import SimpleNamespace
 import warp as wp
 
 from gpps.kernels.brdf import LightParams, MaterialParams, light_dir, light_radiance
-from gpps.kernels.jacobians import chart_normal, chart_normal_jacobian, diffuse_value_grad, tangent_basis_t1
+from gpps.kernels.jacobians import chart_normal, chart_normal_jacobian, tangent_basis_t1
 from gpps.kernels.solve_common import (
     BFGS,
     DOGLEG,
@@ -30,7 +30,7 @@ from gpps.kernels.solve_common import (
     start_result,
     transport,
 )
-from gpps.kernels.solve_cost import evaluate_for, light_terms_for, specular_value_grad_for
+from gpps.kernels.solve_cost import diffuse_value_grad_for, evaluate_for, light_terms_for, specular_value_grad_for
 
 
 def lm_for(evaluate, module, sfx: str):
@@ -347,13 +347,14 @@ def run_method_for(method, run_lm, run_dogleg, run_bfgs, module, sfx: str):
     return run_method
 
 
-def solve_pixel_for(robust, run_method, spec_vg, module, sfx: str, lanes: bool = False):
+def solve_pixel_for(robust, run_method, spec_vg, diff_vg, module, sfx: str, lanes: bool = False):
     """``solve_pixel``: multi-start, then the IRLS rounds of the robust loss (``robust=None``: switch on ``prm.robust``).
 
     Args:
         robust: ``"none"``, ``"huber"``, ``"cauchy"`` or None.
         run_method: the solver (:func:`run_method_for`).
         spec_vg: the specular value-and-gradient (:func:`gpps.kernels.solve_cost.specular_value_grad_for`).
+        diff_vg: the diffuse value-and-gradient (:func:`gpps.kernels.solve_cost.diffuse_value_grad_for`).
         module: Warp module of the function (None: this file's).
         sfx: key suffix of the function.
         lanes: the lights-parallel build (see :func:`gpps.kernels.solve_cost.evaluate_for`): the
@@ -400,7 +401,7 @@ def solve_pixel_for(robust, run_method, spec_vg, module, sfx: str, lanes: bool =
                         l = light_dir(lights, k, px.p)
                         e = light_radiance(lights, k, px.p)
                         o = images[k, i, j]
-                        dg = diffuse_value_grad(best.n, l)
+                        dg = diff_vg(mat, best.n, l, v)
                         sg = spec_vg(mat, best.n, l, v)
                         r2 = float(0.0)
                         for c in range(3):
@@ -502,12 +503,13 @@ def solver_funcs(method, brdf, robust, module=None, sfx: str = "", lanes: bool =
         ``run_method`` and ``solve_pixel``.
     """
     spec_vg = specular_value_grad_for(brdf, module, sfx)
-    evaluate = evaluate_for(light_terms_for(spec_vg, module, sfx), module, sfx, lanes)
+    diff_vg = diffuse_value_grad_for(brdf, module, sfx)
+    evaluate = evaluate_for(light_terms_for(spec_vg, diff_vg, module, sfx), module, sfx, lanes)
     run_lm = lm_for(evaluate, module, sfx)
     run_dogleg = dogleg_for(evaluate, module, sfx)
     run_bfgs = bfgs_for(evaluate, module, sfx)
     run_method = run_method_for(method, run_lm, run_dogleg, run_bfgs, module, sfx)
-    solve_pixel, finish_pixel, one_start = solve_pixel_for(robust, run_method, spec_vg, module, sfx, lanes)
+    solve_pixel, finish_pixel, one_start = solve_pixel_for(robust, run_method, spec_vg, diff_vg, module, sfx, lanes)
     return SimpleNamespace(
         evaluate=evaluate, run_lm=run_lm, run_dogleg=run_dogleg, run_bfgs=run_bfgs, run_method=run_method,
         solve_pixel=solve_pixel, finish_pixel=finish_pixel, one_start=one_start,
