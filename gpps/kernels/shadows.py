@@ -55,7 +55,7 @@ near the terminator the tolerance lets them pass: the solvers' model handles att
 
 import warp as wp
 
-from gpps.kernels.brdf import POINT, CameraParams, LightParams, pixel_point
+from gpps.kernels.brdf import POINT, CameraParams, LightParams, light_dir, pixel_point
 
 __all__ = ["cast_shadow_kernel", "min_depth_kernel", "and_visible_kernel", "shadowed_valid_kernel"]
 
@@ -195,11 +195,25 @@ def and_visible_kernel(visible: wp.array3d(dtype=wp.uint8), valid: wp.array3d(dt
         valid[k, i, j] = wp.uint8(0)
 
 
+@wp.func
+def cast_shadowed(visible: wp.array3d(dtype=wp.uint8), k: int, i: int, j: int, n: wp.vec3, p: wp.vec3,
+                  lights: LightParams, facing_min: float) -> bool:
+    """Observation ``k`` of pixel (i, j) is in a cast shadow: the march found the light hidden and the surface
+    faces it (``n . l > facing_min``).  Where it faces away the observation is in the attached shadow, which the
+    image model explains (its shading term is 0 there): it stays."""
+    if visible[k, i, j] != wp.uint8(0):
+        return False
+    return wp.dot(n, light_dir(lights, k, p)) > facing_min
+
+
 @wp.kernel(enable_backward=False)
 def shadowed_valid_kernel(valid0: wp.array3d(dtype=wp.uint8), visible: wp.array3d(dtype=wp.uint8),
-                          mask: wp.array2d(dtype=wp.uint8), keep_below: int, valid: wp.array3d(dtype=wp.uint8),
+                          mask: wp.array2d(dtype=wp.uint8), normals: wp.array2d(dtype=wp.vec3),
+                          depth: wp.array2d(dtype=wp.float32), cam: CameraParams, lights: LightParams,
+                          facing_min: float, keep_below: int, valid: wp.array3d(dtype=wp.uint8),
                           counts: wp.array(dtype=wp.int32)):
-    """``valid = valid0 & visible`` per pixel (dim (H, W)), recomputed from ``valid0`` (nothing accumulates).
+    """``valid = valid0 & not cast_shadowed`` per pixel (dim (H, W)), recomputed from ``valid0`` (nothing
+    accumulates); :func:`cast_shadowed` with the pixel's current ``normals`` and its point at ``depth``.
 
     A mask pixel whose shadowed observations would leave it fewer than ``keep_below`` valid ones keeps
     ``valid0`` instead (``keep_below = 0``: never; the solver then flags the pixels left with fewer than 3).
@@ -217,19 +231,21 @@ def shadowed_valid_kernel(valid0: wp.array3d(dtype=wp.uint8), visible: wp.array3
     i, j = wp.tid()
     n = valid0.shape[0]
     on = mask[i, j] != wp.uint8(0)
+    nrm = normals[i, j]
+    p = pixel_point(cam, i, j, depth[i, j])
     c0 = int(0)
     c = int(0)
     if on:
         for k in range(n):
             if valid0[k, i, j] != wp.uint8(0):
                 c0 += 1
-                if visible[k, i, j] != wp.uint8(0):
+                if not cast_shadowed(visible, k, i, j, nrm, p, lights, facing_min):
                     c += 1
     drop = c0 - c
     keep = (not on) or drop == 0 or c < keep_below
     for k in range(n):
         v = valid0[k, i, j]
-        if not keep and visible[k, i, j] == wp.uint8(0):
+        if not keep and cast_shadowed(visible, k, i, j, nrm, p, lights, facing_min):
             v = wp.uint8(0)
         valid[k, i, j] = v
     if drop > 0:

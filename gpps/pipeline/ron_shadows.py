@@ -5,8 +5,9 @@
 * :meth:`RoundShadows.capture` keeps a device copy of the solver's ``valid`` as uploaded (the caller's
   observation mask): the **original** observations;
 * :meth:`RoundShadows.step` marches over a depth map (a device buffer: the device rounds' integrated depth,
-  no host copy; or a host array, uploaded) and writes ``valid = original & visible`` into the solver's
-  ``valid`` (:data:`gpps.kernels.shadows.shadowed_valid_kernel`): recomputed from the original every round, so
+  no host copy; or a host array, uploaded) and writes ``valid = original & not cast-shadowed`` into the
+  solver's ``valid`` (:data:`gpps.kernels.shadows.shadowed_valid_kernel`; cast-shadowed: hidden from the light
+  and facing it, by the solver's current normals, :data:`FACING_MIN`): recomputed from the original every round, so
   an observation wrongly shadowed by one round's depth comes back when the next depth lights it;
 * a pixel the shadows would leave with fewer than 3 valid observations either keeps its original ones
   (``few="keep"``) or loses them (``few="flag"``: the solver flags it ``FLAG_FEW_OBSERVATIONS``, as every
@@ -30,6 +31,12 @@ __all__ = ["RoundShadows", "FEW_RULES"]
 
 #: the rules for a pixel the shadows would leave with fewer than 3 valid observations
 FEW_RULES = ("flag", "keep")
+#: an observation the march finds hidden is dropped only where the round's normal faces its light (n . l above
+#: this): behind the terminator the ray enters the object's own surface, an attached shadow that the image model
+#: already explains (shading 0), whose dark observations constrain the normal.  Measured on DiLiGenT ball (96
+#: images, no cast shadows; only a final check): without this test the pass dropped ~100,000 observations a round,
+#: MAEN 1.7876 -> 1.7961 deg
+FACING_MIN = 0.0
 
 
 class RoundShadows(Stage):
@@ -78,9 +85,11 @@ class RoundShadows(Stage):
         wp = warp()
         self.march.step(depth=depth, mask=self.mask)
         self.counts.zero_()
+        m = self.march
         wp.launch(shadowed_valid_kernel, dim=self.shape[1:],
-                  inputs=[self.valid0, self.march.visible, self.mask, 3 if self.few == "keep" else 0,
-                          self.solver.valid, self.counts], device=self.device)
+                  inputs=[self.valid0, m.visible, self.mask, self.solver.normals, m.depth if depth is None else depth,
+                          m.cam, m.lp, FACING_MIN, 3 if self.few == "keep" else 0, self.solver.valid, self.counts],
+                  device=self.device)
         self.steps += 1
 
     def restore(self) -> None:
