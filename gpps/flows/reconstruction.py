@@ -85,7 +85,20 @@ class Reconstruction:
     warnings: list = field(default_factory=list)
 
 
-def _material(material, estimate) -> tuple[Material, tuple[str, ...], dict]:
+def _material(material, estimate) -> tuple[Material, tuple[str, ...], dict, tuple[str, ...]]:
+    models: tuple[str, ...] = ()
+    if isinstance(material, (tuple, list)):
+        if not material or not all(isinstance(b, str) for b in material):
+            raise TypeError(f"material: expected a model name, a Material or a non-empty tuple of model names, "
+                            f"got {material!r}")
+        bad = [b for b in material if b not in BRDF_NAMES]
+        if bad:
+            raise ValueError(f"material: expected model names from {list(BRDF_NAMES)}, got {bad}")
+        if estimate != "auto":
+            raise ValueError(f"estimate: expected 'auto' with several models (each estimates its own lobe "
+                             f"parameters), got {estimate!r}")
+        models = tuple(material[1:])
+        material = material[0]
     if isinstance(material, str):
         if material not in BRDF_NAMES:
             raise ValueError(f"material: expected a gpps.material.Material or one of {list(BRDF_NAMES)}, got {material!r}")
@@ -106,7 +119,7 @@ def _material(material, estimate) -> tuple[Material, tuple[str, ...], dict]:
     # the Fresnel f0 of Cook-Torrance, Ashikhmin-Shirley and plastic (its index of refraction) is never
     # estimated: a model name uses the default
     fixed = {"f0": mat.f0} if isinstance(material, str) and mat.brdf in ("cook-torrance", "ashikhmin-shirley", "plastic") else {}
-    return mat, names, fixed
+    return mat, names, fixed, models
 
 
 def reconstruct(
@@ -133,8 +146,11 @@ def reconstruct(
         mask: (H, W) bool object mask.
         lights: :class:`DirectionalLights` or :class:`PointLights` (N, scene units).
         camera: :class:`Orthographic` (default) or :class:`Perspective`.
-        material: a model name (its scene parameters are estimated) or a
-            :class:`Material` (its parameters are known).
+        material: a model name (its scene parameters are estimated), a
+            :class:`Material` (its parameters are known), or a tuple of model
+            names (each one's parameters estimated in the first material fit,
+            the model with the lowest sampled residual kept: ``RONConfig.models``;
+            e.g. ``("cook-torrance", "plastic")``).
         estimate: ``"auto"`` (see above) or the names of parameters to estimate
             (``"ks"``, ``"shininess"``, ``"roughness"``, ``"eta"``).
         depth: (H, W) depth estimate (scene units > 0): for point lights, the
@@ -160,7 +176,7 @@ def reconstruct(
     n, h, w = img.shape[:3]
     if n < 3:
         raise ValueError(f"images: expected at least 3 images, got {n}")
-    mat, names, fixed = _material(material, estimate)
+    mat, names, fixed, models = _material(material, estimate)
     cfg = RONConfig() if config is None else config
     if not isinstance(cfg, RONConfig):
         raise TypeError(f"config: expected RONConfig, got {type(cfg).__name__}")
@@ -172,7 +188,7 @@ def reconstruct(
     if n > 6 and solver.robust == "none" and config is None:
         # many real images: shadows and inter-reflections; robust loss and shadow dropping
         solver = replace(solver, robust="cauchy", shadow_threshold=0.02, starts=min(solver.starts, 4))
-    cfg = replace(cfg, estimate=names, solver=solver)
+    cfg = replace(cfg, estimate=names, solver=solver, **({"models": models} if models else {}))
     if saturation is not None and cfg.dgmc_config.saturation is None:
         cfg = replace(cfg, dgmc_config=replace(cfg.dgmc_config, saturation=float(saturation)))
     val = None
@@ -193,7 +209,8 @@ def reconstruct(
         ron.close()
     return Reconstruction(
         normals=res.normals, albedo=res.albedo, depth=res.depth, mask=m, depth_mask=res.depth_mask,
-        material=res.material, estimated=res.estimated, fixed=fixed, energy=res.energy, rounds=res.rounds,
+        material=res.material, estimated=res.estimated,
+        fixed=_material(res.material.brdf, "auto")[2] if models else fixed, energy=res.energy, rounds=res.rounds,
         converged=res.converged, residual=res.residual, iterations=res.iterations, flags=res.flags,
         highlight=res.highlight, details=res, timings=res.timings, determined=determined,
         warnings=notes + list(res.warnings),

@@ -69,7 +69,7 @@ from gpps._taichi import taichi_device
 from gpps.host.dgmc import DGMCConfig
 from gpps.lights import PointLights
 from gpps.material import Material
-from gpps.names import LOBE_PARAMETERS, LOBE_RANGES
+from gpps.names import BRDF_NAMES, LOBE_PARAMETERS, LOBE_RANGES
 from gpps.pipeline.dgmc import DeviceDGMC
 from gpps.pipeline.front import propagate_front
 from gpps.pipeline.integration import Integrator, IntegratorConfig
@@ -233,6 +233,16 @@ class RONConfig:
             under directional lights (3.58 -> 4.09), Mitsuba bumps under point lights (6.44 -> 7.03) and the sphere
             without cast shadows under point lights (0.36 -> 0.63: attached-shadow observations dropped).
             A scene without cast shadows must not get worse, so the under-determined pixels keep theirs.
+        models: other reflectance models to compare with the material's (issue 25: e.g. ``("plastic",)``,
+            the dielectric coating, beside ``"cook-torrance"``): the first round's material fit runs for each
+            (its lobe parameters, :data:`gpps.names.LOBE_PARAMETERS`, from the model's
+            :meth:`Material.default_for`) on the same sample pixels, and the model with the lowest sampled
+            energy (trimmed mean of squared residuals at its best parameters) is kept for the later rounds
+            (``RONResult.material_fit[0]["models"]``: each one's energy).  Needs every lobe parameter of the
+            material estimated by the photometric rule.  () (default): the material's model only.  Measured on
+            Mitsuba captures (perf/plastic_vs_ct.py, perf/results/plastic_vs_ct_cpu.json, seeds 2501-2504):
+            the model with the lower residual also had the lower MAEN in 6 of 8 captures, the other two within
+            0.18 deg.
     """
 
     rounds: int = 5
@@ -261,10 +271,16 @@ class RONConfig:
     cast_shadows: bool = True
     shadow_config: ShadowConfig = field(default_factory=lambda: ShadowConfig(tolerance_px=0.5))
     shadow_few: ShadowFew = "keep"
+    models: tuple[str, ...] = ()
 
     def __post_init__(self):
         check_choices(self)
         check_number("rounds", self.rounds, lo=1, integer=True)
+        if not isinstance(self.models, (tuple, list)) or not all(isinstance(b, str) for b in self.models):
+            raise TypeError(f"models: expected a tuple of reflectance model names, got {self.models!r}")
+        object.__setattr__(self, "models", tuple(self.models))
+        for b in self.models:
+            check_choice("models", b, BRDF_NAMES)
         check_bool("dgmc", self.dgmc)
         check_bool("integrate", self.integrate)
         check_bool("cast_shadows", self.cast_shadows)
@@ -457,6 +473,10 @@ class RON:
         bad = [e for e in self.config.estimate if e not in allowed]
         if bad:
             raise ValueError(f"estimate: {material.brdf} has the parameters {list(allowed)}, got {bad}")
+        if self.config.models and (set(self.config.estimate) != set(allowed) or self.config.material_rule != "photometric"):
+            raise ValueError(f"models: comparing models needs every lobe parameter of {material.brdf} estimated "
+                             f"({list(allowed)}) by the photometric rule, got estimate={list(self.config.estimate)}, "
+                             f"material_rule={self.config.material_rule!r}")
         if self.config.material_rule == "depth-rms" and self.config.estimate and material.brdf != "cook-torrance":
             raise ValueError(f"material_rule: 'depth-rms' needs the cook-torrance model, got {material.brdf!r}")
         self.device = resolve_device(device)
@@ -469,8 +489,8 @@ class RON:
         self.point = isinstance(lights, PointLights)
         self.solver = PixelSolver(self.shape, camera, lights, material, self.config.solver, device=self.device)
         self._fit_solver = None
-        self._scorer = None  # the material fit's resident sample (MaterialScorer), built at the first fit
-        self._scored = None  # the inputs it holds
+        self._scorers: dict = {}  # the material fit's resident sample per model (MaterialScorer), built at its first fit
+        self._scored: dict = {}  # the inputs each holds
         self._batch = max(25, self.config.material_grid ** max(len(self.config.estimate), 1))
         self._last_move = None  # log-space move of the last material fit (sizes the next fit's simplex)
         self._frame_key = self._frame_depth = None  # the frame on the solver's device (see _frame)
@@ -496,9 +516,9 @@ class RON:
         if self._shadows is not None:
             self._shadows.close()
             self._shadows = None
-        if self._scorer is not None:
-            self._scorer.close()
-            self._scorer = None
+        for scorer in self._scorers.values():
+            scorer.close()
+        self._scorers.clear()
         if self.integrator is not None:
             self.integrator.close()
             self.integrator = None
@@ -622,15 +642,17 @@ class RON:
         when the images, depth or observation mask change (point lights move the depth each round)."""
         c = self.config
         inputs = (images, depth, valid, sample)
-        if self._scorer is None:
+        key = material.brdf  # (one scorer a model: RONConfig.models compares several)
+        if key not in self._scorers:
             fit = replace(c.solver, starts=c.material_starts, neighbour_radius=0, smoothness=0.0, warm_start=False)
-            self._scorer = MaterialScorer(self.shape, self.camera, self.lights, material, fit,
-                                          max_samples=int(sample.sum()), max_candidates=self._batch,
-                                          trim=c.material_trim, device=self.device)
-        if self._scored is None or any(a is not b for a, b in zip(self._scored, inputs)):
-            self._scorer.upload(images, sample, depth=depth, valid=valid)
-            self._scored = inputs
-        return self._scorer
+            self._scorers[key] = MaterialScorer(self.shape, self.camera, self.lights, material, fit,
+                                                max_samples=int(sample.sum()), max_candidates=self._batch,
+                                                trim=c.material_trim, device=self.device)
+        held = self._scored.get(key)
+        if held is None or any(a is not b for a, b in zip(held, inputs)):
+            self._scorers[key].upload(images, sample, depth=depth, valid=valid)
+            self._scored[key] = inputs
+        return self._scorers[key]
 
     def _score(self, images, depth, valid, materials: list, sample, *, warm: bool = False,
                progress=None) -> np.ndarray:
@@ -650,8 +672,35 @@ class RON:
             out.append(scorer.fetch())
         return np.concatenate(out)
 
+    def _select_model(self, images, depth, valid, material, sample, *, progress=None) -> tuple[Material, dict]:
+        """Step 4 of the first round with several models (``RONConfig.models``): each model's parameters
+        fitted (:meth:`_fit_material`, grid and search, on the same sample pixels), the model with the lowest
+        sampled energy kept.  The energies compare directly: the same pixels, observations and trimmed mean of
+        squared residuals, each model at its own best parameters.  ``info["models"]``: each model's energy.
+        """
+        c = self.config
+        cands = [material.brdf] + [b for b in c.models if b != material.brdf]
+        report = progress or (lambda *a: None)
+        best = None
+        energies = {}
+        for i, brdf in enumerate(cands):
+            mat = material if brdf == material.brdf else Material.default_for(brdf)
+            names = c.estimate if brdf == material.brdf else LOBE_PARAMETERS[brdf]
+
+            def part(d, t, msg, i=i, brdf=brdf):
+                report(i + d / max(t, 1.0), len(cands), f"{brdf} {msg}")
+
+            self._last_move = None
+            got, info = self._fit_material(images, depth, valid, mat, sample, grid=True, progress=part, names=names)
+            energies[brdf] = info["energy"]
+            if best is None or info["energy"] < best[1]["energy"]:
+                best = (got, info, self._last_move)
+        got, info, self._last_move = best
+        info = dict(info, models=energies)
+        return got, info
+
     def _fit_material(self, images, depth, valid, material, sample, *, grid: bool, progress=None,
-                      normals=None) -> tuple[Material, dict]:
+                      normals=None, names=None) -> tuple[Material, dict]:
         """Step 4, photometric: the estimated parameters minimising the sampled energy.
 
         In log-parameter space: a grid over the whole range (first round), then ``material_search``
@@ -659,10 +708,11 @@ class RON:
         total, message)`` is told after each batch.  With ``material_warm`` and no grid (later rounds)
         the candidates are solved from one start per pixel: ``normals`` (H, W, 3), the round's
         normals (solved with ``material``): a host array, or the solver's device buffer (gathered
-        at the sample pixels there).
+        at the sample pixels there).  ``names``: the parameters to fit (None: ``RONConfig.estimate``; the
+        model's own with :meth:`_select_model`).
         """
         c = self.config
-        names = c.estimate
+        names = c.estimate if names is None else tuple(names)
         lo = np.log([_RANGES[k][0] for k in names])
         hi = np.log([_RANGES[k][1] for k in names])
         evals = []
@@ -688,7 +738,7 @@ class RON:
         x0 = np.clip(np.log([lobe_value(material, k) for k in names]), lo, hi)
         step = (hi - lo) / max(c.material_grid - 1, 1)
         spread = None
-        if grid and c.material_grid > 1:
+        if grid and c.material_grid > 1 and names:
             axes = [np.linspace(a, b, c.material_grid) for a, b in zip(lo, hi)]
             pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(names))
             vals = score(list(pts))
@@ -708,7 +758,7 @@ class RON:
                     scorer.set_start(frame=normals)
                 warm = True
         best = (float(score([x0])[0]), x0)
-        if c.material_evals > 0:
+        if c.material_evals > 0 and names:  # (a model without lobe parameters: its one energy)
             if c.material_search == "pattern":
                 best = self._pattern_search(score, best, step, lo, hi, c.material_evals)
             else:
@@ -1006,9 +1056,14 @@ class RON:
                     # the round's normals: host ones, or (device rounds) the solver's buffer, gathered
                     # at the sample pixels on the device
                     nrm = out["normals"] if out is not None else self.solver.normals
-                    material, info = self._fit_material(
-                        images, solve_depth, fit_valid, material, sample, grid=(r == 1), normals=nrm,
-                        progress=lambda d, t, msg: step(1 + 3 * r - 1 + d / max(t, 1), total, f"round {r}: {msg}"))
+                    prog = lambda d, t, msg: step(1 + 3 * r - 1 + d / max(t, 1), total, f"round {r}: {msg}")  # noqa: E731
+                    if r == 1 and c.models:
+                        material, info = self._select_model(images, solve_depth, fit_valid, material, sample,
+                                                            progress=prog)
+                    else:
+                        material, info = self._fit_material(
+                            images, solve_depth, fit_valid, material, sample, grid=(r == 1), normals=nrm,
+                            progress=prog, names=LOBE_PARAMETERS[material.brdf] if c.models else None)
                 else:
                     if cur_depth is None:
                         raise ValueError("material_rule: 'depth-rms' needs integrate=True")
@@ -1028,7 +1083,7 @@ class RON:
         shadowed = sh.shadowed() if sh is not None and shadow_stats else None
         step(total, total, "done")
         timings["total"] = time.perf_counter() - t_all
-        estimated = {k: lobe_value(material, k) for k in c.estimate}
+        estimated = {k: lobe_value(material, k) for k in (LOBE_PARAMETERS[material.brdf] if c.models else c.estimate)}
         notes = self._notes(estimated, converged)
         return RONResult(
             normals=np.where(m[..., None], out["normals"], 0.0).astype(np.float32),
