@@ -201,13 +201,16 @@ class RONConfig:
             Default True.  Principle: the image model has no visibility term, so an observation in a cast
             shadow is an outlier the model can only explain by bending the normal away from its light
             (a dark one-sided term reads it as an attached shadow); the depth RON integrates anyway says
-            where the shadows are.  Measured (perf/ron_shadows.py, perf/results/ron_shadows_cpu.json: 64^2,
-            perspective, CPU, 12 lights directional / point, whole-mask MAEN deg off -> on): a Gaussian
-            bump with exact analytic shadows 0.49 -> 0.07 / 0.50 -> 0.07 (over the shadowed pixels 1.86 ->
-            0.17 / 1.45 -> 0.13), a hemisphere on a plane 2.64 -> 1.58 / 3.06 -> 1.43, a box on a plane
-            6.00 -> 5.63 / 6.37 -> 6.13; Mitsuba path-traced captures (seeds 2001-2003, Lambertian model):
-            sphere on a plane 18.30 -> 16.73 / 21.26 -> 19.62, five spheres 16.53 -> 15.34 / 17.86 ->
-            16.47, bumps 6.09 -> 5.48 / 6.39 -> 5.89; a sphere without cast shadows unchanged (0.08 / 0.09).
+            where the shadows are.  Only observations whose normal faces the light are dropped (behind the
+            terminator the march meets the object's own surface: an attached shadow, which the model explains;
+            :data:`gpps.pipeline.ron_shadows.FACING_MIN`).  Measured (perf/ron_shadows.py,
+            perf/results/ron_shadows_cpu.json: 64^2, perspective, CPU, 12 lights directional / point,
+            whole-mask MAEN deg off -> on): a Gaussian bump with exact analytic shadows 0.49 -> 0.07 / 0.50 ->
+            0.07 (over the shadowed pixels 1.86 -> 0.17 / 1.45 -> 0.13), a hemisphere on a plane 2.64 -> 1.70 /
+            3.06 -> 1.87, a box on a plane 6.00 -> 5.91 / 6.37 -> 6.25; Mitsuba path-traced captures (seeds
+            2001-2003, Lambertian model): sphere on a plane 18.30 -> 16.73 / 21.26 -> 19.62, five spheres
+            16.53 -> 15.33 / 17.86 -> 16.48, bumps 6.09 -> 5.48 / 6.39 -> 5.89; a sphere without cast shadows
+            unchanged (0.08 / 0.09; 31 / 152 observations dropped, 1378 / 2063 without the facing test).
             With 3 lights nothing could change under the default ``shadow_few`` (every shadowed pixel keeps
             its 3 observations), so there is no pass: the rounds and their cost stay as without it (the pass's
             integration every round took the 256^2 x 3 reconstruct on an H100 from 0.18 to 0.29 s for the
