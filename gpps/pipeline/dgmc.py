@@ -39,6 +39,8 @@ __all__ = ["DeviceDGMC", "DGMCStart", "dgmc_start_device"]
 
 # sweeps between two convergence checks of the geodesic relaxation (each check waits for the device)
 CHECK_EVERY = 8
+# min-label steps between two convergence checks of the region labelling (~20 steps on a 256^2 frame)
+LABEL_CHECK = 4
 
 
 class DeviceDGMC(Stage):
@@ -269,9 +271,12 @@ class DeviceDGMC(Stage):
         _, h, w = self.shape
         conn = int(self.config.connectivity)
         self._launch(dg.label_init_kernel, (h, w), [self.region, self.labels])
-        for it in range(h * w + 1):
+        # the changes are read every LABEL_CHECK steps (one host wait each): a step at the fixed point changes
+        # nothing (labels only decrease), so the steps after it leave the labels as they are
+        for it in range(0, h * w + 1, LABEL_CHECK):
             self.counter.zero_()
-            self._launch(dg.label_min_kernel, (h, w), [self.region, conn, self.labels, self.counter])
+            for _ in range(LABEL_CHECK):
+                self._launch(dg.label_min_kernel, (h, w), [self.region, conn, self.labels, self.counter])
             if int(self.counter.numpy()[0]) == 0:
                 break
         self._launch(dg.roots_kernel, (h, w), [self.labels, self.roots])
