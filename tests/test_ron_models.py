@@ -79,3 +79,33 @@ def test_models_config_errors():
     with pytest.raises(ValueError, match="estimate"):
         gpps.reconstruct(img, sc.mask, L, camera=sc.camera, material=("plastic", "cook-torrance"), estimate=("ks",),
                          device="cpu")
+
+
+def test_folder_and_cli_pass_the_models(tmp_path, monkeypatch, capsys):
+    """``FolderConfig(models=...)`` / ``gpps reconstruct --compare-models`` reach RON when every lobe parameter
+    is estimated; with a known parameter they are left out and the report says so; a bad name names the option."""
+    import gpps.flows.folder as folder
+    from gpps.cli import main
+    from gpps.io import write_dataset
+
+    sc = make_scene("sphere", 24, "orthographic")
+    ds = gpps.render_dataset(sc, COOK, default_lights("directional", 6), bits=16, seed=0, device="cpu")
+    cap = write_dataset(tmp_path / "cap", ds)
+    seen = []
+    real = folder.reconstruct
+
+    def spy(*a, config=None, **k):
+        seen.append(config.models)
+        return real(*a, config=config, **k)
+
+    monkeypatch.setattr(folder, "reconstruct", spy)
+    cfg = gpps.FolderConfig(brdf="cook-torrance", rounds=2, models=("plastic",), integrate=False)
+    res = gpps.reconstruct_folder(cap, cfg, device="cpu")
+    assert seen[-1] == ("plastic",) and set(res.report["timings"]) >= {"material"}
+    res = gpps.reconstruct_folder(cap, gpps.FolderConfig(brdf="cook-torrance", rounds=2, models=("plastic",),
+                                                         integrate=False, ks=0.6), device="cpu")
+    assert seen[-1] == () and "models" in res.report["models_ignored"]
+    with pytest.raises(ValueError, match="models"):
+        gpps.FolderConfig(models=("wood",))
+    assert main(["reconstruct", str(cap), "--compare-models", "wood", "--out", str(tmp_path / "o")]) == 2
+    assert "--compare-models: expected one of" in capsys.readouterr().err

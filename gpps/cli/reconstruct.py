@@ -67,6 +67,9 @@ def add_reconstruct_options(p) -> None:
                         "(smooth surfaces). RON's rounds move point lights with a Poisson depth either way")
     p.add_argument("--no-estimate", action="store_true", help="RON: do not estimate the material (defaults for what is not given)")
     p.add_argument("--rounds", type=int, default=5, help="RON: round cap")
+    p.add_argument("--compare-models", default=None, metavar="MODEL[,MODEL...]",
+                   help="RON: other reflectance models to fit beside --brdf's in the first material fit; the one with "
+                        "the lower residual is kept (e.g. plastic)")
     p.add_argument("--material-rule", default="photometric", choices=["photometric", "depth-rms"], help="RON material update (depth-rms: the seed's 4.19)")
     p.add_argument("--pixel-size", type=float, default=None, help="orthographic camera (no K.txt): scene units per pixel; default: depth in pixels")
     p.add_argument("--reference-depth", "--depth", dest="reference_depth", type=float, default=None,
@@ -79,6 +82,15 @@ _OPTIONS = ("rounds", "pixel_size", "reference_depth", "method")
 
 def folder_config(args) -> gpps.FolderConfig:
     """The :class:`gpps.FolderConfig` of the command's options (checked: errors name the options)."""
+    try:
+        return _folder_config(args)
+    except (ValueError, TypeError) as e:
+        if str(e).startswith("models:"):  # (FolderConfig.models is the --compare-models option)
+            raise type(e)("--compare-models" + str(e)[len("models"):]) from e
+        raise
+
+
+def _folder_config(args) -> gpps.FolderConfig:
     with as_options(*_OPTIONS):
         return gpps.FolderConfig(
             transfer=args.transfer, max_size=args.max_size, uncalibrated=args.uncalibrated, method=args.method,
@@ -87,6 +99,7 @@ def folder_config(args) -> gpps.FolderConfig:
             dgmc=not args.no_dgmc, integrate=not args.no_integrate, integration=args.integration,
             estimate=not args.no_estimate, rounds=args.rounds, material_rule=args.material_rule,
             pixel_size=args.pixel_size, reference_depth=args.reference_depth,
+            models=tuple(b.strip() for b in (args.compare_models or "").split(",") if b.strip()),
         )
 
 

@@ -33,7 +33,7 @@ from typing import Callable, Literal
 
 import numpy as np
 
-from gpps._check import GppsWarning, check_bool, check_choices, check_number
+from gpps._check import GppsWarning, check_bool, check_choice, check_choices, check_number
 from gpps.camera import Orthographic, Perspective, camera_from_K
 from gpps.flows.integrate import integrate_normals
 from gpps.flows.photometric import solve_normals
@@ -50,7 +50,7 @@ from gpps.io.formats import Transfer
 from gpps.io.outputs import apply_depth_convention, depth_convention, write_outputs
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
-from gpps.names import BRDF, RobustName, SolverName
+from gpps.names import BRDF, BRDF_NAMES, RobustName, SolverName
 from gpps.pipeline.integration import IntegratorConfig
 
 __all__ = ["FolderConfig", "FolderResult", "reconstruct_folder", "automatic_solver_options", "flip_decision",
@@ -97,6 +97,9 @@ class FolderConfig:
         estimate: RON: estimate the material parameters not given.
         rounds: RON's round cap (>= 1).
         material_rule: RON's material update (``"depth-rms"``: the seed's 4.19).
+        models: RON: other reflectance models to compare with ``brdf`` by their fit residual in the first
+            material fit (``RONConfig.models``; e.g. ``("plastic",)``); only when every lobe parameter is
+            estimated (no known parameters given, the photometric rule), else ignored with the report saying so.
         pixel_size: orthographic camera (no K.txt): scene units per pixel; None: depth in pixels.
         reference_depth: mean object distance (scene units): sets the depth's scale; needed for point
             lights unless the folder has ``depth_gt.npy``.
@@ -123,9 +126,15 @@ class FolderConfig:
     material_rule: MaterialRule = "photometric"
     pixel_size: float | None = None
     reference_depth: float | None = None
+    models: tuple[str, ...] = ()
 
     def __post_init__(self):
         check_choices(self)
+        if not isinstance(self.models, (tuple, list)) or not all(isinstance(b, str) for b in self.models):
+            raise TypeError(f"models: expected a tuple of reflectance model names, got {self.models!r}")
+        object.__setattr__(self, "models", tuple(self.models))
+        for b in self.models:
+            check_choice("models", b, BRDF_NAMES)
         for name in ("uncalibrated", "known_material", "dgmc", "integrate", "estimate"):
             check_bool(name, getattr(self, name))
         object.__setattr__(self, "rounds", check_number("rounds", self.rounds, lo=1, integer=True))
@@ -445,8 +454,14 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
                       mean_iterations=float(res.iterations[ds.mask].mean()),
                       flagged_pixels=int(np.count_nonzero(res.flags[ds.mask])))
     else:
+        # (comparing models needs every lobe parameter estimated by the photometric rule: RONConfig.models)
+        compare = (config.models if config.material_rule == "photometric"
+                   and set(estimate) == set(LOBE_PARAMETERS[material.brdf]) else ())
+        if config.models and not compare:
+            report["models_ignored"] = ("models: needs every lobe parameter of the model estimated by the "
+                                        "photometric rule (no known parameters)")
         cfg = RONConfig(rounds=config.rounds, dgmc=config.dgmc, integrate=config.integrate,
-                        material_rule=config.material_rule,
+                        material_rule=config.material_rule, models=compare,
                         final_integrator=IntegratorConfig(bilateral=True) if config.integration == "bini" else None)
         cfg = replace(cfg, solver=replace(cfg.solver, solver=config.solver, **opts))
         rec = reconstruct(ds.images, ds.mask, lights, camera=camera, material=material, estimate=estimate,
