@@ -102,6 +102,8 @@ def test_folder_and_cli_pass_the_models(tmp_path, monkeypatch, capsys):
     cfg = gpps.FolderConfig(brdf="cook-torrance", rounds=2, models=("plastic",), integrate=False)
     res = gpps.reconstruct_folder(cap, cfg, device="cpu")
     assert seen[-1] == ("plastic",) and set(res.report["timings"]) >= {"material"}
+    e = res.report["model_energies"]
+    assert set(e) == {"cook-torrance", "plastic"} and res.report["material"]["brdf"] == min(e, key=e.get)
     res = gpps.reconstruct_folder(cap, gpps.FolderConfig(brdf="cook-torrance", rounds=2, models=("plastic",),
                                                          integrate=False, ks=0.6), device="cpu")
     assert seen[-1] == () and "models" in res.report["models_ignored"]

@@ -475,6 +475,9 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
                       mean_iterations=float(rec.iterations[ds.mask].mean()),
                       flagged_pixels=int(np.count_nonzero(rec.flags[ds.mask])),
                       cast_shadows=rec.details.shadows)  # (RON's passes: observations dropped per round)
+        fits = rec.details.material_fit
+        if fits and "models" in fits[0]:  # (--compare-models: each model's sampled energy, the lowest kept)
+            report["model_energies"] = fits[0]["models"]
     return out
 
 
