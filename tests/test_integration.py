@@ -462,3 +462,33 @@ def test_diligent_true_normal_maps_within_1p2x_of_bini(name, data_root, device):
 def test_robust_config_rejects_bad_values(kw):
     with pytest.raises(ValueError, match=next(iter(kw))):
         IntegratorConfig(**kw)
+
+
+def test_perspective_depth_never_overflows_and_warns_on_absurd_range():
+    """A solved log-depth whose range would overflow exp (normals that are not integrable, e.g. a material fit gone
+    astray: seen in the Mitsuba dev set) gives a finite depth with the reference mean and a GppsWarning naming the
+    depth; a sane one warns nothing."""
+    import warnings as _w
+
+    from gpps import GppsWarning
+
+    h = w = 16
+    mask = np.ones((h, w), bool)
+    K = np.array([[40.0, 0, 7.5], [0, 40.0, 7.5], [0, 0, 1]])
+    integ = Integrator(mask, camera=Perspective(K), config=IntegratorConfig(solver="direct"))
+    flat = np.zeros((h, w, 3), np.float32)
+    flat[..., 2] = 1.0
+    try:
+        with _w.catch_warnings():
+            _w.simplefilter("error", GppsWarning)
+            r = integ.run(flat, reference_depth=5.0)
+        assert np.all(np.isfinite(r.depth))
+        integ.upload(flat, reference_depth=5.0)
+        integ.step()
+        integ._job["u"] = np.tile(np.linspace(0.0, 2000.0, w), (h, 1))  # exp(2000) overflows float64
+        with pytest.warns(GppsWarning, match="depth"):
+            r = integ.fetch()
+        assert np.all(np.isfinite(r.depth)) and np.all(r.depth[mask] >= 0.0)
+        assert float(r.depth[mask].mean()) == pytest.approx(5.0, rel=1e-4)
+    finally:
+        integ.close()

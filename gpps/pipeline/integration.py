@@ -42,6 +42,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Callable, Literal
 
@@ -49,7 +50,7 @@ import numpy as np
 from scipy import ndimage
 
 from gpps import _taichi
-from gpps._check import check_bool, check_choices, check_number
+from gpps._check import GppsWarning, check_bool, check_choices, check_number
 from gpps.camera import Orthographic, Perspective
 from gpps.host.poisson import (
     build_levels,
@@ -69,6 +70,11 @@ from gpps.host.poisson import (
 from gpps.kernels import poisson as K
 from gpps.pipeline.integration_bini import BilateralIntegrator, BiniConfig
 from gpps.pipeline.stage import Stage
+
+# the largest log-depth range within one part of a perspective depth before Integrator.fetch warns: a depth ratio of
+# e^14 ~ 1.2e6 (a photometric-stereo object spans a ratio of a few; beyond this the normals were not integrable, e.g.
+# a fit gone astray; the Mitsuba dev set's ridges_roughconductor under the plastic model overflowed exp at e^709)
+_MAX_LOG_SPAN = 14.0
 
 # device fields of closed integrators, by (Taichi device, H, W, coarsest, dtype): Taichi compiles its
 # kernels for each set of fields, so reusing them skips the compilation (BiNI's stage pools likewise)
@@ -459,9 +465,22 @@ class Integrator(Stage):
         log_depth = None
         if self.camera.is_perspective:
             log_depth = u
-            depth = np.where(valid, np.exp(u), 0.0)
+            labels, ncomp = self._components(valid)
+            top = np.full(ncomp + 1, -np.inf)
+            np.maximum.at(top, labels[valid], u[valid])
+            top = np.where(valid, top[labels], 0.0)
+            span = float(np.max(top - np.where(valid, u, top))) if valid.any() else 0.0
+            if not np.isfinite(span) or span > _MAX_LOG_SPAN:
+                warnings.warn(f"depth: the integrated depth spans a factor of e^{span:.3g} within one part: the "
+                              "normals are not integrable there (expected a ratio below "
+                              f"e^{_MAX_LOG_SPAN:g}); the depth is unreliable", GppsWarning, stacklevel=2)
             if reference_depth is not None:
+                # exp(u - max per part), scaled to the reference mean: no overflow whatever the log-depth's range
+                depth = np.where(valid, np.exp(u - top), 0.0)
                 depth = depth * (reference_depth / np.where(valid, self._comp_mean(depth, valid), 1.0))
+            else:
+                with np.errstate(over="ignore"):
+                    depth = np.where(valid, np.exp(u), 0.0)
         else:
             depth = u + (reference_depth if reference_depth is not None else 0.0)
         depth = np.where(valid, depth, 0.0).astype(np.float32)
