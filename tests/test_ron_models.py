@@ -83,7 +83,8 @@ def test_models_config_errors():
 
 def test_folder_and_cli_pass_the_models(tmp_path, monkeypatch, capsys):
     """``FolderConfig(models=...)`` / ``gpps reconstruct --compare-models`` reach RON when every lobe parameter
-    is estimated; with a known parameter they are left out and the report says so; a bad name names the option."""
+    is estimated; with a known parameter they are left out and the report says so; a bad name names the option;
+    ``FolderConfig(cast_shadows=...)`` reaches RON too."""
     import gpps.flows.folder as folder
     from gpps.cli import main
     from gpps.io import write_dataset
@@ -96,7 +97,10 @@ def test_folder_and_cli_pass_the_models(tmp_path, monkeypatch, capsys):
 
     def spy(*a, config=None, **k):
         seen.append(config.models)
+        shadows.append(config.cast_shadows)
         return real(*a, config=config, **k)
+
+    shadows = []
 
     monkeypatch.setattr(folder, "reconstruct", spy)
     cfg = gpps.FolderConfig(brdf="cook-torrance", rounds=2, models=("plastic",), integrate=False)
@@ -107,6 +111,9 @@ def test_folder_and_cli_pass_the_models(tmp_path, monkeypatch, capsys):
     res = gpps.reconstruct_folder(cap, gpps.FolderConfig(brdf="cook-torrance", rounds=2, models=("plastic",),
                                                          integrate=False, ks=0.6), device="cpu")
     assert seen[-1] == () and "models" in res.report["models_ignored"]
+    gpps.reconstruct_folder(cap, gpps.FolderConfig(brdf="cook-torrance", rounds=2, integrate=False, known_material=True,
+                                                   cast_shadows=True), device="cpu")
+    assert shadows == [False, False, True]  # (FolderConfig.cast_shadows reaches RON; off by default)
     with pytest.raises(ValueError, match="models"):
         gpps.FolderConfig(models=("wood",))
     assert main(["reconstruct", str(cap), "--compare-models", "wood", "--out", str(tmp_path / "o")]) == 2

@@ -89,7 +89,7 @@ def test_no_change_without_cast_shadows(device):
     # pass: a known material under directional lights stays one round, equal to the run without the pass
     case = bump_case("directional", 3, 64, bumps=BUMP, slant=25.0)
     off = _ron(device, case, cast_shadows=False)
-    on = _ron(device, case)
+    on = _ron(device, case, cast_shadows=True)
     assert on.rounds == off.rounds == 1 and on.converged and on.shadows == [] and on.shadowed is None
     np.testing.assert_array_equal(on.normals, off.normals)
 
@@ -225,7 +225,7 @@ def test_material_fit_sample_leaves_the_shadows_out(device, monkeypatch):
         return orig(self, images, sample, **kw)
 
     monkeypatch.setattr(MaterialScorer, "upload", spy)
-    res = _ron(device, case, estimate=("ks", "shininess"))
+    res = _ron(device, case, estimate=("ks", "shininess"), cast_shadows=True)
     assert seen and all(v is not None for v in seen) and len(res.shadows) >= 2
     first = res.shadows[0]["dropped"]
     assert first > 1000 and int((~seen[0]).sum()) == first

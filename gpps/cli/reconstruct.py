@@ -67,6 +67,9 @@ def add_reconstruct_options(p) -> None:
                         "(smooth surfaces). RON's rounds move point lights with a Poisson depth either way")
     p.add_argument("--no-estimate", action="store_true", help="RON: do not estimate the material (defaults for what is not given)")
     p.add_argument("--rounds", type=int, default=5, help="RON: round cap")
+    p.add_argument("--cast-shadows", action="store_true",
+                   help="RON: leave observations in cast shadows, marched over each round's depth, out of the next "
+                        "round's fit")
     p.add_argument("--compare-models", default=None, metavar="MODEL[,MODEL...]",
                    help="RON: other reflectance models to fit beside --brdf's in the first material fit; the one with "
                         "the lower residual is kept (e.g. plastic)")
@@ -100,6 +103,7 @@ def _folder_config(args) -> gpps.FolderConfig:
             estimate=not args.no_estimate, rounds=args.rounds, material_rule=args.material_rule,
             pixel_size=args.pixel_size, reference_depth=args.reference_depth,
             models=tuple(b.strip() for b in (args.compare_models or "").split(",") if b.strip()),
+            cast_shadows=args.cast_shadows,
         )
 
 

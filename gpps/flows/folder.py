@@ -100,6 +100,8 @@ class FolderConfig:
         models: RON: other reflectance models to compare with ``brdf`` by their fit residual in the first
             material fit (``RONConfig.models``; e.g. ``("plastic",)``); only when every lobe parameter is
             estimated (no known parameters given, the photometric rule), else ignored with the report saying so.
+        cast_shadows: RON: leave observations in cast shadows (marched over each round's depth) out of the
+            next round's fit (``RONConfig.cast_shadows``; off by default, see there).
         pixel_size: orthographic camera (no K.txt): scene units per pixel; None: depth in pixels.
         reference_depth: mean object distance (scene units): sets the depth's scale; needed for point
             lights unless the folder has ``depth_gt.npy``.
@@ -127,9 +129,11 @@ class FolderConfig:
     pixel_size: float | None = None
     reference_depth: float | None = None
     models: tuple[str, ...] = ()
+    cast_shadows: bool = False
 
     def __post_init__(self):
         check_choices(self)
+        check_bool("cast_shadows", self.cast_shadows)
         if not isinstance(self.models, (tuple, list)) or not all(isinstance(b, str) for b in self.models):
             raise TypeError(f"models: expected a tuple of reflectance model names, got {self.models!r}")
         object.__setattr__(self, "models", tuple(self.models))
@@ -461,7 +465,7 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
             report["models_ignored"] = ("models: needs every lobe parameter of the model estimated by the "
                                         "photometric rule (no known parameters)")
         cfg = RONConfig(rounds=config.rounds, dgmc=config.dgmc, integrate=config.integrate,
-                        material_rule=config.material_rule, models=compare,
+                        material_rule=config.material_rule, models=compare, cast_shadows=config.cast_shadows,
                         final_integrator=IntegratorConfig(bilateral=True) if config.integration == "bini" else None)
         cfg = replace(cfg, solver=replace(cfg.solver, solver=config.solver, **opts))
         rec = reconstruct(ds.images, ds.mask, lights, camera=camera, material=material, estimate=estimate,
