@@ -21,11 +21,13 @@ pixel-centre ground truth (the machinery of perf/heldout_eval.py):
   ``folder``;
 * ``pipeline_plastic``: the same with ``FolderConfig(brdf="plastic")`` (the dielectric-coating model; RON estimates
   its ks and roughness): the folder flow takes the model name, nothing else changes;
-* ``pipeline_noshadow`` (12 lights only): ``pipeline`` with RON's cast-shadow pass off.  FolderConfig has no switch
-  for it, so :class:`gpps.flows.ron.RONConfig` is replaced inside :mod:`gpps.flows.folder` for that call by one
-  whose ``cast_shadows`` defaults to False (``unittest.mock.patch``; everything else is ``reconstruct_folder``'s).
-  With 3 lights RON runs no pass under its default ``shadow_few="keep"`` (gpps/flows/ron.py: a pixel losing one
-  of 3 observations keeps them all), so the 3-light pipeline is the same with or without it and is not rerun.
+* ``pipeline_shadows`` (12 lights only): ``pipeline`` with RON's cast-shadow pass on
+  (``FolderConfig(cast_shadows=True)``).  With 3 lights RON runs no pass under its default ``shadow_few="keep"``
+  (gpps/flows/ron.py: a pixel losing one of 3 observations keeps them all), so it is not rerun there.
+
+The results in perf/results/dev_eval_cpu.* were measured while the pass was on by default (1ae2818): their
+``pipeline`` column is the pass on, and ``pipeline_noshadow`` (the pass off through a patched RONConfig) is today's
+default ``pipeline``.
 
 **DiLiGenT 10-image subset**: images 1, 10, 20, ..., 90 as the issue numbers them (1-based file names 001.png,
 010.png, 020.png, ..., 090.png; 0-based indices 0, 9, 19, ..., 89: :data:`DILIGENT_SUBSET`) of
@@ -38,14 +40,13 @@ Output: per-capture rows, a table of mean MAEN by material x light count x metho
 .md (``dev_eval_<GPU name>`` on CUDA; only for the full set of scenes)::
 
     python perf/dev_eval.py [--device cpu] [--size 128] [--spp 64] [--bits 16] [--lights 3,12]
-                            [--kinds directional,point] [--methods ls,pipeline,pipeline_plastic,pipeline_noshadow]
+                            [--kinds directional,point] [--methods ls,pipeline,pipeline_plastic,pipeline_shadows]
                             [--scenes bumps_plastic,...] [--no-diligent] [--render-only]
 """
 
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import platform
 import shutil
@@ -53,7 +54,6 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from unittest import mock
 
 import numpy as np
 
@@ -75,7 +75,7 @@ DEV = (
     ("ridges_diffuse", "ridges", "diffuse", 0.2, False, 3008),
     ("superquadric_plastic", "superquadric", "plastic", 0.2, False, 3009),
 )
-METHODS = ("ls", "pipeline", "pipeline_plastic", "pipeline_noshadow")
+METHODS = ("ls", "pipeline", "pipeline_plastic", "pipeline_shadows")
 #: the issue's "images 1, 10, 20, ..., 90" (1-based) as 0-based indices into filenames.txt
 DILIGENT_SUBSET = (0, 9, 19, 29, 39, 49, 59, 69, 79, 89)
 DILIGENT = Path(__file__).resolve().parents[2] / "shared" / "data" / "diligent"
@@ -109,6 +109,8 @@ def _config(method: str):
         return gpps.FolderConfig(solver="none", integrate=False)
     if method == "pipeline_plastic":
         return gpps.FolderConfig(brdf="plastic")
+    if method == "pipeline_shadows":
+        return gpps.FolderConfig(cast_shadows=True)
     return gpps.FolderConfig()
 
 
@@ -123,17 +125,11 @@ def _shadow_summary(report: dict):
 def _run(folder, method: str, device: str) -> dict:
     """One method on one capture folder: MAEN against the folder's normal_gt.npy, seconds, the material found."""
     import gpps
-    import gpps.flows.folder as folder_flow
-    from gpps.flows.ron import RONConfig
     from gpps.io import read_capture
 
     cfg = _config(method)
     t = time.perf_counter()
-    if method == "pipeline_noshadow":
-        with mock.patch.object(folder_flow, "RONConfig", functools.partial(RONConfig, cast_shadows=False)):
-            res = gpps.reconstruct_folder(folder, cfg, device=device)
-    else:
-        res = gpps.reconstruct_folder(folder, cfg, device=device)
+    res = gpps.reconstruct_folder(folder, cfg, device=device)
     dt = time.perf_counter() - t
     cap = read_capture(folder)
     out = {**_maen(res.normals, cap.dataset.normal_gt, cap.dataset.mask), "seconds": dt, "images": int(cap.dataset.images.shape[0])}
@@ -267,7 +263,7 @@ def _evaluate(captures, args) -> list[dict]:
     for name, spec, folder, info in captures:
         base = {"scene": name, "material": spec.material, "kind": spec.light_kind, "n_lights": spec.n_lights, "capture": folder.name}
         for m in args.methods:
-            if m == "pipeline_noshadow" and spec.n_lights <= 3:
+            if m == "pipeline_shadows" and spec.n_lights <= 3:
                 continue  # no cast-shadow pass with 3 lights (shadow_few="keep"): the same as pipeline
             rows.append({**base, "method": m, **_run(folder, m, args.device)})
         print("  ".join(f"{r['scene']}/{r['kind'][:3]}{r['n_lights']}/{r['method']}: {r['maen']:.2f} ({r['seconds']:.1f} s)"
