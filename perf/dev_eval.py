@@ -21,6 +21,8 @@ pixel-centre ground truth (the machinery of perf/heldout_eval.py):
   ``folder``;
 * ``pipeline_plastic``: the same with ``FolderConfig(brdf="plastic")`` (the dielectric-coating model; RON estimates
   its ks and roughness): the folder flow takes the model name, nothing else changes;
+* ``pipeline_compare``: the pipeline choosing between its Blinn-Phong and ``plastic`` by residual in the first
+  material fit (``FolderConfig(models=("plastic",))``, ``gpps reconstruct --compare-models plastic``);
 * ``pipeline_shadows`` (12 lights only): ``pipeline`` with RON's cast-shadow pass on
   (``FolderConfig(cast_shadows=True)``).  With 3 lights RON runs no pass under its default ``shadow_few="keep"``
   (gpps/flows/ron.py: a pixel losing one of 3 observations keeps them all), so it is not rerun there.
@@ -75,7 +77,7 @@ DEV = (
     ("ridges_diffuse", "ridges", "diffuse", 0.2, False, 3008),
     ("superquadric_plastic", "superquadric", "plastic", 0.2, False, 3009),
 )
-METHODS = ("ls", "pipeline", "pipeline_plastic", "pipeline_shadows")
+METHODS = ("ls", "pipeline", "pipeline_plastic", "pipeline_compare", "pipeline_shadows")
 #: the issue's "images 1, 10, 20, ..., 90" (1-based) as 0-based indices into filenames.txt
 DILIGENT_SUBSET = (0, 9, 19, 29, 39, 49, 59, 69, 79, 89)
 DILIGENT = Path(__file__).resolve().parents[2] / "shared" / "data" / "diligent"
@@ -111,6 +113,8 @@ def _config(method: str):
         return gpps.FolderConfig(brdf="plastic")
     if method == "pipeline_shadows":
         return gpps.FolderConfig(cast_shadows=True)
+    if method == "pipeline_compare":
+        return gpps.FolderConfig(models=("plastic",))
     return gpps.FolderConfig()
 
 
@@ -137,6 +141,8 @@ def _run(folder, method: str, device: str) -> dict:
     if method != "ls":
         mat = rep.get("material", {})
         out["material_model"] = {k: mat[k] for k in ("brdf", "ks", "shininess", "roughness", "f0") if k in mat}
+        if "model_energies" in rep:
+            out["model_energies"] = rep["model_energies"]
         out["rounds"] = rep.get("rounds")
         out["cast_shadows"] = _shadow_summary(rep)
     return out
@@ -230,6 +236,7 @@ def _parse(argv=None):
     ap.add_argument("--root", default=None, help="capture cache (default $GPPS_CACHE_DIR/mitsuba_captures)")
     ap.add_argument("--no-diligent", action="store_true", help="skip the DiLiGenT 10-image subset")
     ap.add_argument("--render-only", action="store_true")
+    ap.add_argument("--tag", default=None, help="results as dev_eval_<tag>.json/.md (default: the device's)")
     args = ap.parse_args(argv)
     args.lights = [int(x) for x in args.lights.split(",") if x]
     args.kinds = [x for x in args.kinds.split(",") if x]
@@ -318,7 +325,7 @@ def main(argv=None):
                    "seconds_total": total, "seconds_captures": t_render,
                    "captures": {c[2].name: {"render_s": c[3]["timings"]["render"], "mitsuba": c[3]["mitsuba"],
                                             "variant": c[3]["variant"], "exposure": c[3]["exposure"]} for c in captures}}
-        tag = "cpu" if args.device == "cpu" else device_label(args.device)
+        tag = args.tag or ("cpu" if args.device == "cpu" else device_label(args.device))
         RESULTS.mkdir(parents=True, exist_ok=True)
         path, md = RESULTS / f"dev_eval_{tag}.json", RESULTS / f"dev_eval_{tag}.md"
         payload = {"device": args.device, "device_name": device_label(args.device), "host": platform.node(), **payload}
