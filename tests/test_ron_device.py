@@ -370,3 +370,39 @@ def test_device_rounds_default_by_device(monkeypatch):
     p.solver = p.mask = None
     made.clear()
     assert RON._device_rounds(p, None, False) is not None and made[-1] is p.integrator
+
+
+def test_device_depth_never_overflows(device, monkeypatch):
+    """A solved log-depth whose range would overflow exp (normals that are not integrable) gives a finite depth
+    with the reference mean on the device (exp of the log-depth less its maximum per component, as the host's
+    Integrator.fetch), and ``fetch()["span"]`` reports the range that RON's final depth warns about.  (Before, exp
+    of the log-depth less its mean overflowed to inf.)"""
+    sc = make_scene("sphere", 32, "perspective")
+    ref = float(sc.depth[sc.mask].mean())
+    n = np.where(sc.mask[..., None], sc.normals, 0.0).astype(np.float32)
+    integ = Integrator(sc.mask, camera=sc.camera, config=IntegratorConfig(tol=1e-5, weighting="normal"),
+                       device=taichi_device(device))
+    try:
+        ds = DeviceSystem(integ)
+        d = integ._ensure_device()
+        h, w = sc.mask.shape
+        ramp = np.tile(np.linspace(0.0, 2000.0, w), (h, 1)).astype(d["np_dtype"])  # exp(2000) overflows float64
+
+        def fake_iterate(progress, tol):
+            d["z"].from_numpy(ramp)
+            return 1, 0.0
+
+        monkeypatch.setattr(integ, "_iterate", fake_iterate)
+        wn, wo, vn, vo = _views(device, n, np.zeros(sc.mask.shape, np.float32))
+        assert ds.step(vn, vo, reference_depth=ref)
+        got = ds.fetch()
+        dep = wo.numpy()
+        m = sc.mask
+        # finite everywhere; the valid pixels' depths have the reference mean before the fill (underflowed ones,
+        # depth 0, are then filled with that mean, as RON's _fill_depth does on the host)
+        assert np.all(np.isfinite(dep[m])) and np.all(dep[m] > 0.0)
+        assert got["fill"] == pytest.approx(ref, rel=1e-3)
+        assert got["span"] == pytest.approx(float(ramp[m].max() - ramp[m].min()), rel=1e-6)
+        ds.close()
+    finally:
+        integ.close()

@@ -72,7 +72,7 @@ from gpps.material import Material
 from gpps.names import BRDF_NAMES, LOBE_PARAMETERS, LOBE_RANGES
 from gpps.pipeline.dgmc import DeviceDGMC
 from gpps.pipeline.front import propagate_front
-from gpps.pipeline.integration import Integrator, IntegratorConfig
+from gpps.pipeline.integration import Integrator, IntegratorConfig, warn_log_depth_span
 from gpps.pipeline.material import MaterialScorer
 from gpps.pipeline.ron_rounds import DeviceRounds
 from gpps.pipeline.ron_shadows import RoundShadows
@@ -1239,6 +1239,8 @@ class RON:
                 # the pixels integrated: the mask, less invalid normals by the host's rule (the device
                 # dropped the same ones and filled them)
                 dmask = self.mask.copy() if dev.last["invalid"] == 0 else self.integrator._check_normals(normals)[1]
+                if self.camera.is_perspective:
+                    warn_log_depth_span(dev.last["span"])  # (as the host path's Integrator.fetch)
                 if reference_depth is None:
                     depth = self.integrator.unreferenced(dev.depth_host(), dmask)
                 else:

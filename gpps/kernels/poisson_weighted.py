@@ -40,7 +40,7 @@ precision where stored; sums in float64.  Only device code lives here.
 from gpps._taichi import ti
 
 # indices into the float64 statistics field ``st``
-C_SUM, N_VALID, N_INVALID, FILL_SUM, FILL_N, CHANGED = 0, 1, 2, 3, 4, 5
+C_SUM, N_VALID, N_INVALID, FILL_SUM, FILL_N, CHANGED, SPAN = 0, 1, 2, 3, 4, 5, 6
 
 
 @ti.kernel
@@ -245,35 +245,48 @@ def label_compress(lab: ti.template(), h: ti.i32, w: ti.i32):
 
 @ti.kernel
 def component_sums(z: ti.template(), cj: ti.template(), lab: ti.template(), csum: ti.template(),
-                   ccnt: ti.template(), h: ti.i32, w: ti.i32):
-    """Per component (``lab``, -1: none) of the valid pixels (``cj > 0``): the sum of ``z`` and the count."""
+                   ccnt: ti.template(), cmax: ti.template(), cmin: ti.template(), st: ti.template(), h: ti.i32,
+                   w: ti.i32):
+    """Per component (``lab``, -1: none) of the valid pixels (``cj > 0``): the sum of ``z``, the count, the
+    largest and smallest ``z``; ``st[SPAN]``: the largest ``max - min`` of a component."""
     for k in csum:
         csum[k] = 0.0
         ccnt[k] = 0.0
+        cmax[k] = -1.0e300
+        cmin[k] = 1.0e300
     for i, j in ti.ndrange(h, w):
         if cj[i, j] > 0 and lab[i, j] >= 0:
-            csum[lab[i, j]] += ti.cast(z[i, j], ti.f64)
+            v = ti.cast(z[i, j], ti.f64)
+            csum[lab[i, j]] += v
             ccnt[lab[i, j]] += 1.0
+            ti.atomic_max(cmax[lab[i, j]], v)
+            ti.atomic_min(cmin[lab[i, j]], v)
+    st[SPAN] = 0.0
+    for k in cmax:  # (one atomic a component, not a pixel)
+        if ccnt[k] > 0:
+            ti.atomic_max(st[SPAN], cmax[k] - cmin[k])
 
 
 @ti.kernel
-def depth_exp(z: ti.template(), cj: ti.template(), lab: ti.template(), csum: ti.template(), ccnt: ti.template(),
-              cden: ti.template(), h: ti.i32, w: ti.i32):
-    """Perspective: the per-component sums of ``exp(z - mean z)`` (the depth before scaling) into ``cden``."""
+def depth_exp(z: ti.template(), cj: ti.template(), lab: ti.template(), cmax: ti.template(), cden: ti.template(),
+              h: ti.i32, w: ti.i32):
+    """Perspective: the per-component sums of ``exp(z - max z)`` into ``cden`` (the depth before scaling, shifted
+    by the component's largest log-depth: no overflow whatever its range; the scale to the reference cancels it)."""
     for k in cden:
         cden[k] = 0.0
     for i, j in ti.ndrange(h, w):
         if cj[i, j] > 0 and lab[i, j] >= 0:
             l = lab[i, j]
-            cden[l] += ti.exp(ti.cast(z[i, j], ti.f64) - csum[l] / ccnt[l])
+            cden[l] += ti.exp(ti.cast(z[i, j], ti.f64) - cmax[l])
 
 
 @ti.kernel
 def depth_write(z: ti.template(), cj: ti.template(), lab: ti.template(), csum: ti.template(), ccnt: ti.template(),
-                cden: ti.template(), st: ti.template(), out: ti.types.ndarray(), perspective: ti.i32, ref: ti.f64,
-                h: ti.i32, w: ti.i32):
+                cmax: ti.template(), cden: ti.template(), st: ti.template(), out: ti.types.ndarray(),
+                perspective: ti.i32, ref: ti.f64, h: ti.i32, w: ti.i32):
     """The depth of the valid pixels into ``out`` (float32): ``u = z - mean z`` per component; perspective
-    ``exp(u) * ref / mean exp(u)``, orthographic ``u + ref`` (``Integrator.fetch``); ``st[FILL_SUM]``,
+    ``exp(u) * ref / mean exp(u)``, computed as ``exp(z - max z) * ref / mean exp(z - max z)`` (equal, and free
+    of overflow), orthographic ``u + ref`` (``Integrator.fetch``); ``st[FILL_SUM]``,
     ``st[FILL_N]``: their float32 values summed and counted (RON's fill value is their mean)."""
     st[FILL_SUM] = 0.0
     st[FILL_N] = 0.0
@@ -283,7 +296,7 @@ def depth_write(z: ti.template(), cj: ti.template(), lab: ti.template(), csum: t
             u = ti.cast(z[i, j], ti.f64) - csum[l] / ccnt[l]
             d = u + ref
             if perspective:
-                d = ti.exp(u) * (ref / (cden[l] / ccnt[l]))
+                d = ti.exp(ti.cast(z[i, j], ti.f64) - cmax[l]) * (ref / (cden[l] / ccnt[l]))
             d32 = ti.cast(d, ti.f32)
             out[i, j] = d32
             st[FILL_SUM] += ti.cast(d32, ti.f64)

@@ -76,6 +76,15 @@ from gpps.pipeline.stage import Stage
 # a fit gone astray; the Mitsuba dev set's ridges_roughconductor under the plastic model overflowed exp at e^709)
 _MAX_LOG_SPAN = 14.0
 
+def warn_log_depth_span(span: float) -> None:
+    """A :class:`GppsWarning` naming the depth when a perspective depth's log-depth ``span`` within one part (its
+    largest ``max - min``) is beyond :data:`_MAX_LOG_SPAN` or not finite (the host path and the device one)."""
+    if not np.isfinite(span) or span > _MAX_LOG_SPAN:
+        warnings.warn(f"depth: the integrated depth spans a factor of e^{span:.3g} within one part: the normals are "
+                      f"not integrable there (expected a ratio below e^{_MAX_LOG_SPAN:g}); the depth is unreliable",
+                      GppsWarning, stacklevel=3)
+
+
 # device fields of closed integrators, by (Taichi device, H, W, coarsest, dtype): Taichi compiles its
 # kernels for each set of fields, so reusing them skips the compilation (BiNI's stage pools likewise)
 _POOL: dict = {}
@@ -469,11 +478,7 @@ class Integrator(Stage):
             top = np.full(ncomp + 1, -np.inf)
             np.maximum.at(top, labels[valid], u[valid])
             top = np.where(valid, top[labels], 0.0)
-            span = float(np.max(top - np.where(valid, u, top))) if valid.any() else 0.0
-            if not np.isfinite(span) or span > _MAX_LOG_SPAN:
-                warnings.warn(f"depth: the integrated depth spans a factor of e^{span:.3g} within one part: the "
-                              "normals are not integrable there (expected a ratio below "
-                              f"e^{_MAX_LOG_SPAN:g}); the depth is unreliable", GppsWarning, stacklevel=2)
+            warn_log_depth_span(float(np.max(top - np.where(valid, u, top))) if valid.any() else 0.0)
             if reference_depth is not None:
                 # exp(u - max per part), scaled to the reference mean: no overflow whatever the log-depth's range
                 depth = np.where(valid, np.exp(u - top), 0.0)

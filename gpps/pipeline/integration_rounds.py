@@ -99,7 +99,7 @@ class DeviceSystem(Stage):
             fb.dense(ti.ij, (h, w)).place(F[name])
         F["st"] = ti.field(ti.f64)
         fb.dense(ti.i, 8).place(F["st"])
-        for name in ("csum", "ccnt", "cden"):
+        for name in ("csum", "ccnt", "cden", "cmax", "cmin"):
             F[name] = ti.field(ti.f64)
             fb.dense(ti.i, h * w).place(F[name])  # indexed by a component's root pixel
         F["lvl"] = ti.field(ti.f64)  # the coarsest level's edge weights (gather_level)
@@ -164,11 +164,12 @@ class DeviceSystem(Stage):
         integ._levels_key = None  # the host path must upload its own levels again
         d["z"].fill(0)
         its, res = integ._iterate(None, cfg.tol)
-        KW.component_sums(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], h, w)
+        KW.component_sums(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], F["cmax"], F["cmin"], F["st"], h, w)
         if persp:
-            KW.depth_exp(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], F["cden"], h, w)
+            KW.depth_exp(d["z"], F["cj"], F["lab"], F["cmax"], F["cden"], h, w)
         ref = float(reference_depth)
-        KW.depth_write(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], F["cden"], F["st"], out, persp, ref, h, w)
+        KW.depth_write(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], F["cmax"], F["cden"], F["st"], out, persp, ref,
+                       h, w)
         KW.depth_fill(F["cj"], F["lab"], F["mask"], F["st"], out, ref, float(outside), h, w)
         self.last = {"invalid": invalid, "iterations": int(its), "residual": float(res)}
         return True
@@ -186,12 +187,15 @@ class DeviceSystem(Stage):
 
     def fetch(self) -> dict:
         """The last :meth:`step`'s scalars: ``invalid`` (mask pixels with invalid normals), and after a
-        solve ``iterations``, ``residual`` (the CG's relative residual) and ``fill`` (the mean depth of
-        the valid pixels, one scalar read)."""
+        solve ``iterations``, ``residual`` (the CG's relative residual), ``fill`` (the mean depth of
+        the valid pixels) and ``span`` (the largest range of the solution within a component: the log-depth's
+        under perspective; one read of the statistics)."""
         out = dict(self.last)
         if "iterations" in out:
-            n = float(self._F["st"][KW.FILL_N])
-            out["fill"] = float(self._F["st"][KW.FILL_SUM]) / n if n > 0 else float("nan")
+            st = self._F["st"].to_numpy()  # (one read of the 8 statistics)
+            n = float(st[KW.FILL_N])
+            out["fill"] = float(st[KW.FILL_SUM]) / n if n > 0 else float("nan")
+            out["span"] = float(st[KW.SPAN])
         return out
 
     def close(self) -> None:
