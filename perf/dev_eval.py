@@ -63,6 +63,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "training"))  # training/mitsuba_scenes.py
 from _common import RESULTS, device_label  # noqa: E402
+from heldout_eval import _maen  # noqa: E402  (the one MAEN summary of the Mitsuba evaluations)
+from heldout_eval import _specs as heldout_specs  # noqa: E402
 
 #: (name, shape, material, alpha, texture, seed); seeds 3000+ (heldout_eval.HELDOUT: 1000-1007)
 DEV = (
@@ -86,22 +88,7 @@ TARGETS = {3: 2.5, 12: 1.5}
 
 
 def _specs(args):
-    from mitsuba_scenes import CaptureSpec
-
-    for name, shape, material, alpha, texture, seed in DEV:
-        if args.scenes and name not in args.scenes:
-            continue
-        for kind in args.kinds:
-            for n in args.lights:
-                yield name, CaptureSpec(shape=shape, material=material, alpha=alpha, texture=texture, light_kind=kind,
-                                        n_lights=n, size=args.size, spp=args.spp, bits=args.bits, seed=seed)
-
-
-def _maen(normals, gt, mask) -> dict:
-    from gpps.host.metrics import normal_errors
-
-    e = normal_errors(normals, gt, mask)
-    return {"maen": e["mean"], "median": e["median"], "under_10deg": e["under_10deg"]}
+    return heldout_specs(args, DEV)
 
 
 def _config(method: str):

@@ -50,10 +50,12 @@ HELDOUT = (
 METHODS = ("folder", "ls", "flat", "single")
 
 
-def _specs(args):
+def _specs(args, scenes=HELDOUT):
+    """``(name, CaptureSpec)`` of every scene of ``scenes`` (rows as :data:`HELDOUT`) under ``args``' lights,
+    size, samples and bits (``args.scenes``: a subset of the names).  perf/dev_eval.py passes its own scenes."""
     from mitsuba_scenes import CaptureSpec
 
-    for name, shape, material, alpha, texture, seed in HELDOUT:
+    for name, shape, material, alpha, texture, seed in scenes:
         if args.scenes and name not in args.scenes:
             continue
         for kind in args.kinds:
