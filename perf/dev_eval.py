@@ -23,6 +23,9 @@ pixel-centre ground truth (the machinery of perf/heldout_eval.py):
   its ks and roughness): the folder flow takes the model name, nothing else changes;
 * ``pipeline_compare``: the pipeline choosing between its Blinn-Phong and ``plastic`` by residual in the first
   material fit (``FolderConfig(models=("plastic",))``, ``gpps reconstruct --compare-models plastic``);
+* ``pipeline_refine``: ``pipeline`` with the depth refinement after RON's rounds (``FolderConfig(refine=True)``,
+  ``gpps reconstruct --refine``: :class:`gpps.pipeline.depth_refine.DepthRefiner`); ``pipeline_compare_refine``:
+  ``pipeline_compare`` with it;
 * ``pipeline_shadows`` (12 lights only): ``pipeline`` with RON's cast-shadow pass on
   (``FolderConfig(cast_shadows=True)``).  With 3 lights RON runs no pass under its default ``shadow_few="keep"``
   (gpps/flows/ron.py: a pixel losing one of 3 observations keeps them all), so it is not rerun there.
@@ -79,7 +82,8 @@ DEV = (
     ("ridges_diffuse", "ridges", "diffuse", 0.2, False, 3008),
     ("superquadric_plastic", "superquadric", "plastic", 0.2, False, 3009),
 )
-METHODS = ("ls", "pipeline", "pipeline_plastic", "pipeline_compare", "pipeline_shadows")
+METHODS = ("ls", "pipeline", "pipeline_plastic", "pipeline_compare", "pipeline_shadows", "pipeline_refine",
+           "pipeline_compare_refine")
 #: the issue's "images 1, 10, 20, ..., 90" (1-based) as 0-based indices into filenames.txt
 DILIGENT_SUBSET = (0, 9, 19, 29, 39, 49, 59, 69, 79, 89)
 DILIGENT = Path(__file__).resolve().parents[2] / "shared" / "data" / "diligent"
@@ -102,6 +106,10 @@ def _config(method: str):
         return gpps.FolderConfig(cast_shadows=True)
     if method == "pipeline_compare":
         return gpps.FolderConfig(models=("plastic",))
+    if method == "pipeline_refine":
+        return gpps.FolderConfig(refine=True)
+    if method == "pipeline_compare_refine":
+        return gpps.FolderConfig(models=("plastic",), refine=True)
     return gpps.FolderConfig()
 
 
@@ -128,6 +136,10 @@ def _run(folder, method: str, device: str) -> dict:
     if method != "ls":
         mat = rep.get("material", {})
         out["material_model"] = {k: mat[k] for k in ("brdf", "ks", "shininess", "roughness", "f0") if k in mat}
+        if "refinement" in rep:
+            ri = rep["refinement"]
+            out["refinement"] = {"accepted": ri["accepted"], "rejected": ri["rejected"], "sigma": ri["sigma"],
+                                 "energy_start": ri["start_energy"], "energy_end": ri["energy"][-1]}
         if "model_energies" in rep:
             out["model_energies"] = rep["model_energies"]
         out["rounds"] = rep.get("rounds")

@@ -70,6 +70,9 @@ def add_reconstruct_options(p) -> None:
     p.add_argument("--cast-shadows", action="store_true",
                    help="RON: leave observations in cast shadows, marched over each round's depth, out of the next "
                         "round's fit")
+    p.add_argument("--refine", action="store_true",
+                   help="RON: refine the depth itself after the rounds (robust misfit over every observation, normals "
+                        "tied to one surface)")
     p.add_argument("--compare-models", default=None, metavar="MODEL[,MODEL...]",
                    help="RON: other reflectance models to fit beside --brdf's in the first material fit; the one with "
                         "the lower residual is kept (e.g. plastic)")
@@ -103,7 +106,7 @@ def _folder_config(args) -> gpps.FolderConfig:
             estimate=not args.no_estimate, rounds=args.rounds, material_rule=args.material_rule,
             pixel_size=args.pixel_size, reference_depth=args.reference_depth,
             models=tuple(b.strip() for b in (args.compare_models or "").split(",") if b.strip()),
-            cast_shadows=args.cast_shadows,
+            cast_shadows=args.cast_shadows, refine=args.refine,
         )
 
 

@@ -102,6 +102,8 @@ class FolderConfig:
             estimated (no known parameters given, the photometric rule), else ignored with the report saying so.
         cast_shadows: RON: leave observations in cast shadows (marched over each round's depth) out of the
             next round's fit (``RONConfig.cast_shadows``; off by default, see there).
+        refine: RON: refine the depth itself after the rounds (robust misfit over every observation, normals
+            tied to the surface: ``RONConfig.refine``).
         pixel_size: orthographic camera (no K.txt): scene units per pixel; None: depth in pixels.
         reference_depth: mean object distance (scene units): sets the depth's scale; needed for point
             lights unless the folder has ``depth_gt.npy``.
@@ -130,10 +132,12 @@ class FolderConfig:
     reference_depth: float | None = None
     models: tuple[str, ...] = ()
     cast_shadows: bool = False
+    refine: bool = False
 
     def __post_init__(self):
         check_choices(self)
         check_bool("cast_shadows", self.cast_shadows)
+        check_bool("refine", self.refine)
         if not isinstance(self.models, (tuple, list)) or not all(isinstance(b, str) for b in self.models):
             raise TypeError(f"models: expected a tuple of reflectance model names, got {self.models!r}")
         object.__setattr__(self, "models", tuple(self.models))
@@ -466,6 +470,7 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
                                         "photometric rule (no known parameters)")
         cfg = RONConfig(rounds=config.rounds, dgmc=config.dgmc, integrate=config.integrate,
                         material_rule=config.material_rule, models=compare, cast_shadows=config.cast_shadows,
+                        refine=config.refine,
                         final_integrator=IntegratorConfig(bilateral=True) if config.integration == "bini" else None)
         cfg = replace(cfg, solver=replace(cfg.solver, solver=config.solver, **opts))
         rec = reconstruct(ds.images, ds.mask, lights, camera=camera, material=material, estimate=estimate,
@@ -479,6 +484,8 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
                       mean_iterations=float(rec.iterations[ds.mask].mean()),
                       flagged_pixels=int(np.count_nonzero(rec.flags[ds.mask])),
                       cast_shadows=rec.details.shadows)  # (RON's passes: observations dropped per round)
+        if rec.details.refinement is not None:
+            report["refinement"] = rec.details.refinement
         fits = rec.details.material_fit
         if fits and "models" in fits[0]:  # (--compare-models: each model's sampled energy, the lowest kept)
             report["model_energies"] = fits[0]["models"]

@@ -70,9 +70,11 @@ from gpps.host.dgmc import DGMCConfig
 from gpps.lights import PointLights
 from gpps.material import Material
 from gpps.names import BRDF_NAMES, LOBE_PARAMETERS, LOBE_RANGES
+from gpps.pipeline.depth_refine import DepthRefineConfig, DepthRefiner
 from gpps.pipeline.dgmc import DeviceDGMC
 from gpps.pipeline.front import propagate_front
 from gpps.pipeline.integration import Integrator, IntegratorConfig, warn_log_depth_span
+from gpps.pipeline.integration_rounds import DeviceSystem
 from gpps.pipeline.material import MaterialScorer
 from gpps.pipeline.ron_rounds import DeviceRounds
 from gpps.pipeline.ron_shadows import RoundShadows
@@ -254,6 +256,14 @@ class RONConfig:
             Mitsuba captures (perf/plastic_vs_ct.py, perf/results/plastic_vs_ct_cpu.json, seeds 2501-2504):
             the model with the lower residual also had the lower MAEN in 6 of 8 captures, the other two within
             0.18 deg.
+        refine: after the rounds, refine the depth itself (issue 25): the returned depth's log-depth (perspective)
+            or depth is the unknown, each pixel's normal that of the surface, a robust (Cauchy) misfit over every
+            valid observation, Levenberg-Marquardt steps solved by the rounds' integrator on the device
+            (:class:`gpps.pipeline.depth_refine.DepthRefiner`).  Pixels that lost observations (cast shadows,
+            saturation) take their normal from the surface their neighbours fix.  The returned normals are each
+            pixel's Levenberg-Marquardt normal at the refined surface, the depth the refined one.  Needs
+            ``integrate`` and a plain multigrid rounds' integrator.
+        refine_config: its settings (:class:`gpps.pipeline.depth_refine.DepthRefineConfig`).
     """
 
     rounds: int = 5
@@ -283,9 +293,15 @@ class RONConfig:
     shadow_config: ShadowConfig = field(default_factory=lambda: ShadowConfig(tolerance_px=0.5))
     shadow_few: ShadowFew = "keep"
     models: tuple[str, ...] = ()
+    refine: bool = False
+    refine_config: DepthRefineConfig = field(default_factory=DepthRefineConfig)
 
     def __post_init__(self):
         check_choices(self)
+        check_bool("refine", self.refine)
+        if not isinstance(self.refine_config, DepthRefineConfig):
+            raise TypeError(f"refine_config: expected gpps.pipeline.depth_refine.DepthRefineConfig, got "
+                            f"{type(self.refine_config).__name__}")
         check_number("rounds", self.rounds, lo=1, integer=True)
         if not isinstance(self.models, (tuple, list)) or not all(isinstance(b, str) for b in self.models):
             raise TypeError(f"models: expected a tuple of reflectance model names, got {self.models!r}")
@@ -366,6 +382,9 @@ class RONResult:
             none), ``dropped`` (observations left out), ``kept_pixels`` (pixels that kept
             their observations, ``shadow_few="keep"``), ``few_pixels`` (pixels left with fewer than 3).
         shadowed: (N, H, W) bool, the observations the last pass left out (None without a pass).
+        refinement: the depth refinement's record (``RONConfig.refine``): ``energy`` per accepted step
+            (robust misfit, image units squared), ``accepted``, ``rejected``, ``sigma`` (Cauchy's scale); None
+            without it.
         warnings: messages of the :class:`gpps.GppsWarning` warnings issued
             (an estimate on its search bound, rounds that did not converge).
     """
@@ -391,6 +410,7 @@ class RONResult:
     warnings: list = field(default_factory=list)
     shadows: list = field(default_factory=list)
     shadowed: np.ndarray | None = None
+    refinement: dict | None = None
 
 
 # the per-pixel outputs RON reads back from a solve
@@ -1091,6 +1111,10 @@ class RON:
             out = self.solver.fetch(_OUTPUTS)
         depth_out, depth_mask, ires = self._final_depth(out["normals"], reference_depth, timings, dev=dev,
                                                         in_solver=in_solver)
+        refinement = None
+        if c.refine and depth_out is not None:
+            step(total, total, "depth refinement")
+            depth_out, refinement = self._refine(out, depth_out, depth_mask, material, timings)
         shadowed = sh.shadowed() if sh is not None and shadow_stats else None
         step(total, total, "done")
         timings["total"] = time.perf_counter() - t_all
@@ -1102,7 +1126,7 @@ class RON:
             energy=energies, normal_change_deg=changes, rounds=r, converged=converged,
             residual=out["residual"], iterations=out["iterations"], flags=out["flags"], highlight=highlight,
             start_normals=start, material_fit=fits, integration_residual=ires, timings=timings, warnings=notes,
-            shadows=shadow_stats, shadowed=shadowed,
+            shadows=shadow_stats, shadowed=shadowed, refinement=refinement,
         )
 
     def _device_rounds(self, reference_depth, estimating: bool):
@@ -1257,6 +1281,30 @@ class RON:
                 final.close()
         timings["integration"] += time.perf_counter() - t
         return integ.depth, integ.mask, float(integ.residual)
+
+    def _refine(self, out: dict, depth, depth_mask, material, timings) -> tuple[np.ndarray, dict]:
+        """``RONConfig.refine``: the depth refinement from the final depth (its dropped pixels filled by the
+        mean), on the solver's frame; ``out``'s normals, albedo and residual are replaced.  Returns the refined
+        depth (0 outside ``depth_mask``) and the refiner's record."""
+        t = time.perf_counter()
+        if not DeviceSystem.supports(self.integrator.config):
+            raise ValueError("refine: expected a plain multigrid rounds' integrator (IntegratorConfig(solver="
+                             f"'multigrid'), not robust or bilateral), got {self.integrator.config}")
+        self.solver.set_material(material)
+        start = self._fill_depth(depth, depth_mask, None)
+        ref = DepthRefiner(self.solver, self.integrator, self.config.refine_config)
+        try:
+            ref.upload_from_solver(start)
+            ref.step()
+            got = ref.fetch()
+        finally:
+            ref.close()
+        m = self.mask
+        out["normals"] = got["normals"]
+        out["albedo"] = got["albedo"]
+        out["residual"] = np.where(m, got["residual"], out["residual"]).astype(np.float32)
+        timings["refine"] = time.perf_counter() - t
+        return np.where(depth_mask, got["depth"], 0.0).astype(np.float32), got["info"]
 
     def _notes(self, estimated: dict, converged: bool) -> list[str]:
         """Warnings of the run: estimates on their search bound, rounds that hit the cap."""

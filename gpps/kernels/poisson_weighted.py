@@ -99,6 +99,53 @@ def assemble_pixels(nrm: ti.types.ndarray(), mask: ti.template(), gj: ti.templat
         ci[i, j] = wi
 
 
+@ti.kernel
+def assemble_targets(steps: ti.types.ndarray(), conf: ti.types.ndarray(), mask: ti.template(), gj: ti.template(),
+                     gi: ti.template(), cj: ti.template(), ci: ti.template(), st: ti.template(), h: ti.i32, w: ti.i32):
+    """Per-pixel steps and confidences given directly (:mod:`gpps.kernels.depth_refine`'s targets): ``gj, gi``
+    from ``steps`` (H, W, 2), ``cj, ci`` from ``conf`` (H, W, 2) inside ``mask`` (valid where both confidences are
+    positive and finite, as :func:`assemble_pixels` counts them; ``st[C_SUM]`` sums ``cj``)."""
+    for i, j in ti.ndrange(h, w):
+        a = ti.cast(0, ti.f64)
+        c = ti.cast(0, ti.f64)
+        wj = ti.cast(0, ti.f64)
+        wi = ti.cast(0, ti.f64)
+        if mask[i, j] != 0:
+            a0 = ti.cast(steps[i, j, 0], ti.f64)
+            c0 = ti.cast(steps[i, j, 1], ti.f64)
+            x = ti.cast(conf[i, j, 0], ti.f64)
+            y = ti.cast(conf[i, j, 1], ti.f64)
+            ok = x > 0 and y > 0 and x < 1e300 and y < 1e300 and a0 == a0 and c0 == c0
+            if ok:
+                a, c, wj, wi = a0, c0, x, y
+                st[C_SUM] += wj
+                st[N_VALID] += 1.0
+            else:
+                st[N_INVALID] += 1.0
+        gj[i, j] = a
+        gi[i, j] = c
+        cj[i, j] = wj
+        ci[i, j] = wi
+
+
+@ti.kernel
+def depth_add(z: ti.template(), cj: ti.template(), lab: ti.template(), csum: ti.template(), ccnt: ti.template(),
+              base: ti.types.ndarray(), out: ti.types.ndarray(), perspective: ti.i32, h: ti.i32, w: ti.i32):
+    """``out = base`` moved by the increment ``z`` (mean 0 per component, :func:`component_sums` first): ``u(out) =
+    u(base) + z - mean z`` with ``u = log d`` (perspective) or ``d``, on the valid pixels (``cj > 0``); ``base``
+    elsewhere."""
+    for i, j in ti.ndrange(h, w):
+        d = ti.cast(base[i, j], ti.f64)
+        if cj[i, j] > 0 and lab[i, j] >= 0:
+            l = lab[i, j]
+            du = ti.cast(z[i, j], ti.f64) - csum[l] / ccnt[l]
+            if perspective:
+                d = d * ti.exp(du)
+            else:
+                d = d + du
+        out[i, j] = ti.cast(d, ti.f32)
+
+
 @ti.func
 def _flux_j(gj: ti.template(), cj: ti.template(), i, j, inv):
     """(weight, flux) of the edge (i, j)-(i, j+1); 0 where either pixel is not valid."""

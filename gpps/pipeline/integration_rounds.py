@@ -134,13 +134,52 @@ class DeviceSystem(Stage):
         integ, F = self.integrator, self._F
         if F is None:
             raise ValueError("DeviceSystem: expected an open stage, got a closed one")
-        d = integ._ensure_device()
         cfg = integ.config
         h, w = self.shape
         persp = self._cam[0]
         F["st"].fill(0)
         KW.assemble_pixels(normals, F["mask"], F["gj"], F["gi"], F["cj"], F["ci"], F["st"], persp, self._weighted,
                            *self._cam[1:], float(cfg.min_nz), h, w)
+        return self._solve_assembled(out, reference_depth, outside, self._weighted)
+
+    def step_increment(self, steps, conf, base, out) -> bool:
+        """Solve the weighted system of per-pixel step *increments* and confidences and move ``base`` by its
+        solution into ``out``, on the device: :class:`gpps.pipeline.depth_refine.DepthRefiner`'s Gauss-Newton
+        step (:mod:`gpps.kernels.depth_refine`).  Increments, not targets: with zero increments the solution
+        is zero and ``out = base`` (a target system would also pull ``base``'s edge differences toward the
+        average of its pixels' steps, a smoothing move no damping removes).
+
+        Args:
+            steps: (H, W, 2) float32 increments of the steps ``(du/dj, du/di)`` (views as :meth:`step` takes).
+            conf: (H, W, 2) float32 confidences (> 0: the pixel is in the system; divided by their mean,
+                as ``"normal"`` weighting does).
+            base: (H, W) float32 depth to move.
+            out: (H, W) float32: ``u(out) = u(base) + du`` with ``du`` of mean 0 per component (``u``: the
+                log-depth under perspective, the depth otherwise); ``base`` where a pixel is not in the system.
+
+        Returns:
+            False when fewer than 2 pixels have positive confidences (nothing written).
+        """
+        integ, F = self.integrator, self._F
+        if F is None:
+            raise ValueError("DeviceSystem: expected an open stage, got a closed one")
+        h, w = self.shape
+        F["st"].fill(0)
+        KW.assemble_targets(steps, conf, F["mask"], F["gj"], F["gi"], F["cj"], F["ci"], F["st"], h, w)
+        if not self._solve_system(1):
+            return False
+        d = integ._ensure_device()
+        KW.component_sums(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], F["cmax"], F["cmin"], F["st"], h, w)
+        KW.depth_add(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], base, out, self._cam[0], h, w)
+        return True
+
+    def _solve_system(self, weighted: int) -> bool:
+        """Edges, levels, the coarsest pseudo-inverse and the CG from ``z = 0`` once ``gj, gi, cj, ci`` and the
+        statistics are assembled; False (``last`` holds the invalid count) when fewer than 2 pixels are valid."""
+        integ, F = self.integrator, self._F
+        d = integ._ensure_device()
+        cfg = integ.config
+        h, w = self.shape
         st = F["st"].to_numpy()  # (one read of the 8 statistics)
         invalid = int(st[KW.N_INVALID])
         if st[KW.N_VALID] < 2:
@@ -150,10 +189,10 @@ class DeviceSystem(Stage):
             self._label(h, w)
         else:
             F["lab"].copy_from(F["lab_mask"])
-        KW.assemble_edges(F["gj"], F["gi"], F["cj"], F["ci"], F["st"], self._weighted, d["wx"], d["wy"], d["dg"],
+        KW.assemble_edges(F["gj"], F["gi"], F["cj"], F["ci"], F["st"], weighted, d["wx"], d["wy"], d["dg"],
                           d["b"], h, w)
         sh, of = d["shapes"], d["offs"]
-        alpha = 1.0 if self._weighted else 0.5  # Integrator._upload_levels' rule
+        alpha = 1.0 if weighted else 0.5  # Integrator._upload_levels' rule
         for k in range(len(sh) - 1):
             KW.coarsen(d["wx"], d["wy"], d["dg"], int(of[k]), sh[k][0], sh[k][1], int(of[k + 1]), sh[k + 1][0],
                        sh[k + 1][1], alpha)
@@ -164,6 +203,17 @@ class DeviceSystem(Stage):
         integ._levels_key = None  # the host path must upload its own levels again
         d["z"].fill(0)
         its, res = integ._iterate(None, cfg.tol)
+        self.last = {"invalid": invalid, "iterations": int(its), "residual": float(res)}
+        return True
+
+    def _solve_assembled(self, out, reference_depth, outside, weighted: int) -> bool:
+        """The rest of :meth:`step` once ``gj, gi, cj, ci`` and the statistics are assembled."""
+        if not self._solve_system(weighted):
+            return False
+        integ, F = self.integrator, self._F
+        d = integ._ensure_device()
+        h, w = self.shape
+        persp = self._cam[0]
         KW.component_sums(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], F["cmax"], F["cmin"], F["st"], h, w)
         if persp:
             KW.depth_exp(d["z"], F["cj"], F["lab"], F["cmax"], F["cden"], h, w)
@@ -171,7 +221,6 @@ class DeviceSystem(Stage):
         KW.depth_write(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], F["cmax"], F["cden"], F["st"], out, persp, ref,
                        h, w)
         KW.depth_fill(F["cj"], F["lab"], F["mask"], F["st"], out, ref, float(outside), h, w)
-        self.last = {"invalid": invalid, "iterations": int(its), "residual": float(res)}
         return True
 
     def _label(self, h, w) -> None:

@@ -1,0 +1,316 @@
+"""Device math of the depth-parameterised refinement (:class:`gpps.pipeline.depth_refine.DepthRefiner`).
+
+The unknown is the integrator's ``u`` (:mod:`gpps.host.poisson`): the log-depth under the perspective
+camera (the seed's perspective PS, 4.20 with ``u = log d``), the depth under the orthographic one.  A
+pixel's *steps* are ``u``'s differences per pixel, ``a = du/dj`` and ``c = du/di``, central where both
+neighbours are in the mask, one-sided where one is (0 where none is); its normal is the inverse of
+:func:`gpps.host.poisson.pixel_gradients` (which maps a normal to its steps)::
+
+    perspective:   n ~ (alpha, -gamma, 1 + alpha (j - cx) / fx + gamma (i - cy) / fy),   alpha = a fx, gamma = c fy
+    orthographic:  n ~ (alpha, -gamma, 1),                                                alpha = a / s, gamma = c / s
+
+(``alpha``, ``gamma``: the steps in slope units, the variables of the per-pixel model below).
+
+:func:`refine_eval_kernel` evaluates the image model (:mod:`gpps.kernels.brdf`: ``I = E (kd t_d + ks t_s)``,
+2.13, 2.20-2.31) of every valid observation of a pixel at the normal of the current ``u`` and at the four
+normals of ``alpha +- h``, ``gamma +- h`` (central differences, ``h`` = :data:`FD_STEP` in slope units).  The
+albedo is the weighted least-squares one of each normal (variable projection, as the pixel solver's 2.13),
+so the differences are those of the residual with the albedo eliminated.  Robust weights: Cauchy's
+``w = 1 / (1 + (r / sigma)^2)`` from the residual at the current normal with the previous albedo (fixed while
+the pixel's sums are taken: iteratively reweighted least squares).  Outputs per pixel: the Gauss-Newton
+Hessian ``H = J^T W J`` (2 x 2, in slope units), the gradient ``g = J^T W r`` and the new albedo; summed over
+the mask, float64: the robust energy ``sum rho(r)`` (``rho = sigma^2 / 2 log(1 + r^2 / sigma^2)``, or ``r^2 /
+2`` without the robust loss), the traces of ``H`` and the pixels.
+
+:func:`refine_targets_kernel` turns ``(H, g)`` and the Levenberg damping ``lambda`` into the integrator's
+system.  The model of a pixel, ``q(s) = g.(s - s0) + (s - s0)^T (H + lambda I) (s - s0) / 2``, couples its two
+steps; ``D = diag(H_aa + |H_ac|, H_cc + |H_ac|) + lambda I`` dominates ``H + lambda I`` (Gershgorin: ``D - H -
+lambda I`` is diagonally dominant with a non-negative diagonal), so ``g.(s - s0) + (s - s0)^T D (s - s0) / 2``
+is a majorant of ``q`` that touches it at ``s0`` (majorisation-minimisation: its minimiser cannot increase
+``q``) and it separates into the per-direction terms ``D_a (a - a*)^2 / 2 + D_c (c - c*)^2 / 2`` with ``a* =
+a0 - g_a / D_a``: the integrator's weighted least squares (4.20) for the increment of ``u``, with confidences
+``D`` and step increments ``a* - a0 = -g_a / D_a`` (in step units: ``c_j = D_a k_j^2``, ``-g_a / (D_a k_j)``;
+``k_j = fx`` or ``1 / s``).  A pixel with no
+usable observation has ``H = 0, g = 0``: confidence ``lambda`` toward its current step, so it follows its
+neighbours through integrability.  The kernel also writes the per-pixel Levenberg-Marquardt normal, the
+normal of ``s0 - (H + lambda I)^{-1} g`` (the pixel's own data where it has some, the surface's where not).
+
+Only device code lives here; nothing allocates.
+"""
+
+import warp as wp
+
+from gpps.kernels.brdf import CameraParams, LightParams, MaterialParams, brdf_terms, light_dir, light_radiance, pixel_point, view_dir
+
+#: central-difference step of the per-pixel Jacobian, in slope units (float32 residuals: ~1e-4 relative error)
+FD_STEP = wp.constant(1.0e-3)
+
+
+@wp.func
+def step_scale_j(cam: CameraParams):
+    """``alpha / a``: slope units per step unit along j."""
+    if cam.perspective != 0:
+        return cam.fx
+    return 1.0 / cam.pixel_size
+
+
+@wp.func
+def step_scale_i(cam: CameraParams):
+    """``gamma / c``: slope units per step unit along i."""
+    if cam.perspective != 0:
+        return cam.fy
+    return 1.0 / cam.pixel_size
+
+
+@wp.func
+def u_of(cam: CameraParams, d: float):
+    """The integrator's unknown at depth ``d``: ``log d`` (perspective) or ``d``."""
+    if cam.perspective != 0:
+        return wp.log(d)
+    return d
+
+
+@wp.func
+def steps_at(depth: wp.array2d(dtype=wp.float32), mask: wp.array2d(dtype=wp.uint8), cam: CameraParams, i: int, j: int):
+    """``(a, c)``: the steps of ``u`` at pixel (i, j) (central, one-sided or 0, see the module docstring)."""
+    h = depth.shape[0]
+    w = depth.shape[1]
+    u0 = u_of(cam, depth[i, j])
+    a = float(0.0)
+    c = float(0.0)
+    left = j > 0 and mask[i, j - 1] != wp.uint8(0)
+    right = j < w - 1 and mask[i, j + 1] != wp.uint8(0)
+    up = i > 0 and mask[i - 1, j] != wp.uint8(0)
+    down = i < h - 1 and mask[i + 1, j] != wp.uint8(0)
+    if left and right:
+        a = 0.5 * (u_of(cam, depth[i, j + 1]) - u_of(cam, depth[i, j - 1]))
+    elif right:
+        a = u_of(cam, depth[i, j + 1]) - u0
+    elif left:
+        a = u0 - u_of(cam, depth[i, j - 1])
+    if up and down:
+        c = 0.5 * (u_of(cam, depth[i + 1, j]) - u_of(cam, depth[i - 1, j]))
+    elif down:
+        c = u_of(cam, depth[i + 1, j]) - u0
+    elif up:
+        c = u0 - u_of(cam, depth[i - 1, j])
+    return wp.vec2(a, c)
+
+
+@wp.func
+def slope_normal(cam: CameraParams, i: int, j: int, alpha: float, gamma: float):
+    """The unit normal of the slopes ``(alpha, gamma)`` at pixel (i, j) (module docstring)."""
+    nz = float(1.0)
+    if cam.perspective != 0:
+        nz = 1.0 + alpha * (float(j) - cam.cx) / cam.fx + gamma * (float(i) - cam.cy) / cam.fy
+    return wp.normalize(wp.vec3(alpha, -gamma, nz))
+
+
+@wp.func
+def cauchy_weight(r: float, sigma: float, robust: int):
+    if robust == 0:
+        return 1.0
+    q = r / sigma
+    return 1.0 / (1.0 + q * q)
+
+
+@wp.func
+def cauchy_rho(r: float, sigma: float, robust: int):
+    if robust == 0:
+        return 0.5 * r * r
+    q = r / sigma
+    return 0.5 * sigma * sigma * wp.log(1.0 + q * q)
+
+
+@wp.func
+def albedo_of(num: wp.vec3, den: wp.vec3, fallback: wp.vec3):
+    out = fallback
+    for c in range(3):
+        if den[c] > 0.0:
+            out[c] = num[c] / den[c]
+    return out
+
+
+@wp.func
+def predict(e: wp.vec3, t: wp.vec2, kd: wp.vec3, ks: float):
+    return wp.cw_mul(e, kd * t[0] + wp.vec3(ks * t[1]))
+
+
+@wp.kernel(enable_backward=False)
+def refine_eval_kernel(
+    depth: wp.array2d(dtype=wp.float32),
+    mask: wp.array2d(dtype=wp.uint8),
+    images: wp.array3d(dtype=wp.vec3),
+    valid: wp.array3d(dtype=wp.uint8),
+    cam: CameraParams,
+    lights: LightParams,
+    mat: MaterialParams,
+    albedo_prev: wp.array2d(dtype=wp.vec3),
+    sigma: float,
+    robust: int,
+    hess: wp.array2d(dtype=wp.vec3),
+    grad: wp.array2d(dtype=wp.vec2),
+    albedo: wp.array2d(dtype=wp.vec3),
+    rms: wp.array2d(dtype=wp.float32),
+    sums: wp.array(dtype=wp.float64),
+):
+    """Per pixel (dim (H, W)): ``hess`` = (H_aa, H_ac, H_cc), ``grad`` = (g_a, g_c) (slope units), the new
+    ``albedo`` and ``rms`` (the root mean square residual of the used observations, unweighted); ``sums`` (3,)
+    float64, added to: [0] robust energy, [1] ``H_aa + H_cc``, [2] mask pixels.  Off the mask all zero."""
+    i, j = wp.tid()
+    if mask[i, j] == wp.uint8(0):
+        hess[i, j] = wp.vec3(0.0)
+        grad[i, j] = wp.vec2(0.0)
+        albedo[i, j] = wp.vec3(0.0)
+        rms[i, j] = 0.0
+        return
+    kj = step_scale_j(cam)
+    ki = step_scale_i(cam)
+    s = steps_at(depth, mask, cam, i, j)
+    al = s[0] * kj
+    ga = s[1] * ki
+    hh = FD_STEP
+    n0 = slope_normal(cam, i, j, al, ga)
+    n1 = slope_normal(cam, i, j, al + hh, ga)
+    n2 = slope_normal(cam, i, j, al - hh, ga)
+    n3 = slope_normal(cam, i, j, al, ga + hh)
+    n4 = slope_normal(cam, i, j, al, ga - hh)
+    p = pixel_point(cam, i, j, depth[i, j])
+    v = view_dir(cam, p)
+    kd0 = albedo_prev[i, j]
+    ks = mat.ks
+    nl = valid.shape[0]
+    # pass 1: the weighted least-squares albedo of each of the five normals
+    num0 = wp.vec3(0.0)
+    num1 = wp.vec3(0.0)
+    num2 = wp.vec3(0.0)
+    num3 = wp.vec3(0.0)
+    num4 = wp.vec3(0.0)
+    den0 = wp.vec3(0.0)
+    den1 = wp.vec3(0.0)
+    den2 = wp.vec3(0.0)
+    den3 = wp.vec3(0.0)
+    den4 = wp.vec3(0.0)
+    for k in range(nl):
+        if valid[k, i, j] != wp.uint8(0):
+            l = light_dir(lights, k, p)
+            e = light_radiance(lights, k, p)
+            obs = images[k, i, j]
+            t0 = brdf_terms(mat, n0, l, v)
+            t1 = brdf_terms(mat, n1, l, v)
+            t2 = brdf_terms(mat, n2, l, v)
+            t3 = brdf_terms(mat, n3, l, v)
+            t4 = brdf_terms(mat, n4, l, v)
+            r0 = predict(e, t0, kd0, ks) - obs
+            for c in range(3):
+                w = cauchy_weight(r0[c], sigma, robust)
+                y = obs[c] - e[c] * ks * t0[1]
+                num0[c] += w * e[c] * t0[0] * y
+                den0[c] += w * (e[c] * t0[0]) * (e[c] * t0[0])
+                y = obs[c] - e[c] * ks * t1[1]
+                num1[c] += w * e[c] * t1[0] * y
+                den1[c] += w * (e[c] * t1[0]) * (e[c] * t1[0])
+                y = obs[c] - e[c] * ks * t2[1]
+                num2[c] += w * e[c] * t2[0] * y
+                den2[c] += w * (e[c] * t2[0]) * (e[c] * t2[0])
+                y = obs[c] - e[c] * ks * t3[1]
+                num3[c] += w * e[c] * t3[0] * y
+                den3[c] += w * (e[c] * t3[0]) * (e[c] * t3[0])
+                y = obs[c] - e[c] * ks * t4[1]
+                num4[c] += w * e[c] * t4[0] * y
+                den4[c] += w * (e[c] * t4[0]) * (e[c] * t4[0])
+    kda = albedo_of(num0, den0, kd0)
+    kd1 = albedo_of(num1, den1, kd0)
+    kd2 = albedo_of(num2, den2, kd0)
+    kd3 = albedo_of(num3, den3, kd0)
+    kd4 = albedo_of(num4, den4, kd0)
+    # pass 2: residuals, central differences, the sums
+    haa = float(0.0)
+    hac = float(0.0)
+    hcc = float(0.0)
+    gaa = float(0.0)
+    gcc = float(0.0)
+    en = float(0.0)
+    sq = float(0.0)
+    cnt = int(0)
+    inv2h = 0.5 / hh
+    for k in range(nl):
+        if valid[k, i, j] != wp.uint8(0):
+            l = light_dir(lights, k, p)
+            e = light_radiance(lights, k, p)
+            obs = images[k, i, j]
+            t0 = brdf_terms(mat, n0, l, v)
+            rw = predict(e, t0, kd0, ks) - obs
+            r = predict(e, t0, kda, ks) - obs
+            ja = (predict(e, brdf_terms(mat, n1, l, v), kd1, ks) - predict(e, brdf_terms(mat, n2, l, v), kd2, ks)) * inv2h
+            jc = (predict(e, brdf_terms(mat, n3, l, v), kd3, ks) - predict(e, brdf_terms(mat, n4, l, v), kd4, ks)) * inv2h
+            for c in range(3):
+                w = cauchy_weight(rw[c], sigma, robust)
+                haa += w * ja[c] * ja[c]
+                hac += w * ja[c] * jc[c]
+                hcc += w * jc[c] * jc[c]
+                gaa += w * ja[c] * r[c]
+                gcc += w * jc[c] * r[c]
+                en += cauchy_rho(r[c], sigma, robust)
+                sq += r[c] * r[c]
+            cnt += 3
+    hess[i, j] = wp.vec3(haa, hac, hcc)
+    grad[i, j] = wp.vec2(gaa, gcc)
+    albedo[i, j] = kda
+    if cnt > 0:
+        rms[i, j] = wp.sqrt(sq / float(cnt))
+    else:
+        rms[i, j] = 0.0
+    wp.atomic_add(sums, 0, wp.float64(en))
+    wp.atomic_add(sums, 1, wp.float64(haa + hcc))
+    wp.atomic_add(sums, 2, wp.float64(1.0))
+
+
+@wp.kernel(enable_backward=False)
+def refine_targets_kernel(
+    depth: wp.array2d(dtype=wp.float32),
+    mask: wp.array2d(dtype=wp.uint8),
+    cam: CameraParams,
+    hess: wp.array2d(dtype=wp.vec3),
+    grad: wp.array2d(dtype=wp.vec2),
+    lam: float,
+    steps: wp.array3d(dtype=wp.float32),
+    conf: wp.array3d(dtype=wp.float32),
+    normals: wp.array2d(dtype=wp.vec3),
+):
+    """Per pixel (dim (H, W)): the majorant's step increments ``steps[i, j] = (a* - a0, c* - c0)`` and confidences
+    ``conf[i, j] = (c_j, c_i)`` (step units), and ``normals``: the Levenberg-Marquardt normal (module docstring).
+    Off the mask: zeros (the integrator drops the pixel)."""
+    i, j = wp.tid()
+    if mask[i, j] == wp.uint8(0):
+        steps[i, j, 0] = 0.0
+        steps[i, j, 1] = 0.0
+        conf[i, j, 0] = 0.0
+        conf[i, j, 1] = 0.0
+        normals[i, j] = wp.vec3(0.0)
+        return
+    kj = step_scale_j(cam)
+    ki = step_scale_i(cam)
+    s = steps_at(depth, mask, cam, i, j)
+    al = s[0] * kj
+    ga = s[1] * ki
+    hv = hess[i, j]
+    g = grad[i, j]
+    off = wp.abs(hv[1])
+    da = hv[0] + off + lam
+    dc = hv[2] + off + lam
+    steps[i, j, 0] = -(g[0] / da) / kj
+    steps[i, j, 1] = -(g[1] / dc) / ki
+    conf[i, j, 0] = da * kj * kj
+    conf[i, j, 1] = dc * ki * ki
+    # the pixel's own Levenberg-Marquardt step (2 x 2 solve)
+    a11 = hv[0] + lam
+    a12 = hv[1]
+    a22 = hv[2] + lam
+    det = a11 * a22 - a12 * a12
+    sa = al
+    sc = ga
+    if det > 0.0:
+        sa = al - (a22 * g[0] - a12 * g[1]) / det
+        sc = ga - (a11 * g[1] - a12 * g[0]) / det
+    normals[i, j] = slope_normal(cam, i, j, sa, sc)

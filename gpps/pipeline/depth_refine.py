@@ -1,0 +1,288 @@
+"""Depth-parameterised refinement: normals tied to one surface, robust loss on all images, on the device.
+
+After RON's rounds every pixel's normal was fitted on its own.  A pixel that lost observations (cast
+shadows, saturation, light bounced from another part) has too few left to fix its normal and keeps whatever
+the start gave it.  :class:`DepthRefiner` fits the *depth* instead: the unknown is the integrator's ``u``
+(log-depth under perspective, as the seed's perspective PS parameterises the surface; depth under the
+orthographic camera), a pixel's normal is the normal of ``u``'s differences (:mod:`gpps.kernels.depth_refine`),
+and the energy is the image model's robust misfit summed over every valid observation of every mask pixel::
+
+    E(u) = sum_pixels sum_(k, c) rho(I_kc - E_kc (kd_c t_d(n(u), l_k, v) + ks t_s(n(u), l_k, v)))
+
+with the albedo eliminated per pixel (weighted least squares) and ``rho`` Cauchy's loss of scale ``sigma``
+(``2.385`` times the median over the mask of the pixels' RMS residual at the start: Cauchy's 95 %-efficiency
+constant for the typical misfit of the start; observations far beyond it, what the model cannot explain,
+weigh little).  A pixel without observations has no term of its own: integrability through its neighbours is
+all that fixes its normal, with no smoothness weight chosen by hand.
+
+Minimised by Levenberg-Marquardt in the integrator's machinery: each iteration takes the per-pixel
+Gauss-Newton model (``H``, ``g`` in the two steps, central differences), majorises its 2 x 2 coupling by a
+diagonal (so the model separates into the integrator's per-direction weighted least squares), and solves
+that system with the integrator's multigrid-preconditioned CG on the device
+(:meth:`gpps.pipeline.integration_rounds.DeviceSystem.step_increment`: the increment of ``u``).
+The Levenberg damping ``lambda = mu * mean trace(H) / 2`` starts at ``mu = 1e-2`` (the
+usual Levenberg-Marquardt start, relative to the curvature) and is divided by 3 after an accepted step
+(the energy fell), multiplied by 4 after a rejected one; the refinement stops when an accepted step lowers the
+energy by less than ``tol`` of it, after ``max_iterations`` accepted steps, or when the damping passes
+``1e8`` times its start.  The images, observations, depth and albedo stay in device buffers (the pixel
+solver's frame: :meth:`DepthRefiner.upload_from_solver`); per iteration three float64 sums come back.
+
+Outputs: the refined depth, the Levenberg-Marquardt normals of its last model (each pixel's own data where it
+has some, the surface's normal where it has none, :func:`gpps.kernels.depth_refine.refine_targets_kernel`),
+the albedo and the per-pixel RMS residual.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from gpps import _taichi
+from gpps._check import check_choices, check_number
+from gpps._runtime import warp
+from gpps.kernels.depth_refine import refine_eval_kernel, refine_targets_kernel
+from gpps.pipeline.integration import Integrator
+from gpps.pipeline.integration_rounds import DeviceSystem
+from gpps.pipeline.params import camera_params, material_params
+from gpps.pipeline.stage import Stage
+
+__all__ = ["DepthRefineConfig", "DepthRefiner"]
+
+RobustLoss = Literal["cauchy", "none"]
+
+#: Cauchy's constant for 95 % efficiency under Gaussian residuals of unit scale
+CAUCHY_C = 2.385
+MU_START = 1e-2
+MU_DOWN = 3.0
+MU_UP = 4.0
+MU_SPAN = 1e8
+
+
+@dataclass(frozen=True)
+class DepthRefineConfig:
+    """Settings of :class:`DepthRefiner`.
+
+    Attributes:
+        robust: ``"cauchy"`` (default) or ``"none"`` (least squares).
+        max_iterations: the most accepted Levenberg-Marquardt steps.
+        tol: stop when an accepted step lowers the energy by less than this fraction.
+        sigma: Cauchy's scale (image units); None: from the start's residuals (module docstring).
+    """
+
+    robust: RobustLoss = "cauchy"
+    max_iterations: int = 8
+    tol: float = 1e-3
+    sigma: float | None = None
+
+    def __post_init__(self):
+        check_choices(self)
+        object.__setattr__(self, "max_iterations", check_number("max_iterations", self.max_iterations, lo=0, integer=True))
+        object.__setattr__(self, "tol", check_number("tol", self.tol, lo=0.0))
+        if self.sigma is not None:
+            object.__setattr__(self, "sigma", check_number("sigma", self.sigma, lo=0.0, lo_open=True))
+
+
+class DepthRefiner(Stage):
+    """The refinement of one pixel solver's frame (its images, observations, camera, lights and material).
+
+    Args:
+        solver: a :class:`gpps.pipeline.solver.PixelSolver` holding the frame (its ``images``, ``valid`` and,
+            with :meth:`upload_from_solver`, ``albedo`` buffers are read on its device).
+        integrator: the :class:`Integrator` whose fields, multigrid and CG solve the steps (plain
+            multigrid config: :meth:`DeviceSystem.supports`); its mask is the refinement's.
+        config: :class:`DepthRefineConfig`.
+    """
+
+    def __init__(self, solver, integrator: Integrator, config: DepthRefineConfig | None = None):
+        wp = warp()
+        self.config = config if config is not None else DepthRefineConfig()
+        if not isinstance(self.config, DepthRefineConfig):
+            raise TypeError(f"config: expected DepthRefineConfig, got {type(self.config).__name__}")
+        if not isinstance(integrator, Integrator):
+            raise TypeError(f"integrator: expected gpps.pipeline.integration.Integrator, got {type(integrator).__name__}")
+        n, h, w = solver.shape
+        if integrator.shape != (h, w):
+            raise ValueError(f"integrator: expected shape ({h}, {w}), got {integrator.shape}")
+        self.solver = solver
+        self.device = solver.device
+        self.shape = (h, w)
+        self.system = DeviceSystem(integrator)
+        self.integrator = integrator
+        d = self.device
+        self.cam = camera_params(solver.camera, (h, w))
+        self.mask = self._buffer((h, w), wp.uint8, d)
+        self.mask.assign(integrator.mask.astype(np.uint8))
+        self.depth = self._buffer((h, w), wp.float32, d, fill=1)
+        self.trial = self._buffer((h, w), wp.float32, d, fill=1)
+        self.albedo = self._buffer((h, w), wp.vec3, d)
+        self.albedo_new = self._buffer((h, w), wp.vec3, d)
+        self.hess = self._buffer((h, w), wp.vec3, d)
+        self.grad = self._buffer((h, w), wp.vec2, d)
+        self.rms = self._buffer((h, w), wp.float32, d)
+        self.normals = self._buffer((h, w), wp.vec3, d)
+        self.steps = self._buffer((h, w, 2), wp.float32, d)
+        self.conf = self._buffer((h, w, 2), wp.float32, d)
+        self.sums = wp.zeros(3, dtype=wp.float64, device=d)
+        self._views = None
+        self.last = {}
+
+    # ------------------------------------------------------------------ protocol
+
+    def upload(self, depth, albedo) -> None:
+        """The start: ``depth`` (H, W) inside the mask (scene units; > 0 for the perspective camera or point
+        lights) and ``albedo`` (H, W, 3).  The steps move ``u`` by increments of mean 0 per connected part of
+        the mask: each part keeps its mean ``u`` (mean log-depth, or mean depth), which fixes the scale.
+
+        Args:
+            depth: the surface to refine (RON's integrated depth).
+            albedo: the albedo the robust weights of the first step use.
+        """
+        h, w = self.shape
+        m = self.integrator.mask
+        dep = np.asarray(depth, dtype=np.float32)
+        if dep.shape != (h, w):
+            raise ValueError(f"depth: expected shape ({h}, {w}), got {dep.shape}")
+        self._check_depth(dep[m])
+        alb = np.asarray(albedo, dtype=np.float32)
+        if alb.shape != (h, w, 3):
+            raise ValueError(f"albedo: expected shape ({h}, {w}, 3), got {alb.shape}")
+        self.depth.assign(np.where(m, dep, 1.0).astype(np.float32))
+        self.albedo.assign(np.nan_to_num(alb))
+
+    def upload_from_solver(self, depth) -> None:
+        """As :meth:`upload` with the solver's albedo buffer (device to device)."""
+        h, w = self.shape
+        dep = np.asarray(depth, dtype=np.float32)
+        if dep.shape != (h, w):
+            raise ValueError(f"depth: expected shape ({h}, {w}), got {dep.shape}")
+        m = self.integrator.mask
+        self._check_depth(dep[m])
+        self.depth.assign(np.where(m, dep, 1.0).astype(np.float32))
+        warp().copy(self.albedo, self.solver.albedo)
+
+    def _check_depth(self, d) -> None:
+        if not np.all(np.isfinite(d)):
+            raise ValueError("depth: expected finite values inside the mask")
+        if (self.solver.camera.is_perspective or self.solver.lights.__class__.__name__ == "PointLights") and np.any(d <= 0):
+            raise ValueError("depth: expected values > 0 inside the mask (perspective camera or point lights)")
+
+    def step(self, progress=None) -> None:
+        """Levenberg-Marquardt on the depth (module docstring); ``progress(done, total, message)``."""
+        cfg = self.config
+        s = self.solver
+        # the material and lights as the solver has them now (RON's final material)
+        self._mp = material_params(s.material)
+        self._lp = s.lp
+        robust = 1 if cfg.robust == "cauchy" else 0
+        e0, tr, cnt = self._evaluate(self.depth, self.albedo, 1.0, 0)  # (unweighted: the start's misfit)
+        if cnt == 0:
+            raise ValueError("mask: expected at least one pixel to refine, got none")
+        sigma = cfg.sigma
+        if sigma is None:
+            rms = self.rms.numpy()[self.integrator.mask]
+            sigma = CAUCHY_C * float(np.median(rms))
+            if not sigma > 0:
+                sigma = CAUCHY_C * max(float(np.mean(rms)), 1e-12)
+        self.sigma = sigma
+        e0, tr, cnt = self._evaluate(self.depth, self.albedo, sigma, robust)
+        start_energy = e0
+        mu = MU_START
+        accepted = rejected = 0
+        history = [e0]
+        total = max(cfg.max_iterations, 1)
+        while accepted < cfg.max_iterations and mu < MU_START * MU_SPAN:
+            lam = mu * tr / (2.0 * max(cnt, 1.0))
+            if not lam > 0:
+                lam = 1e-12
+            self._targets(lam)
+            if not self._integrate():
+                break
+            e1, _, _ = self._evaluate(self.trial, self.albedo, sigma, robust)
+            if e1 < e0:
+                accepted += 1
+                self.depth, self.trial = self.trial, self.depth
+                self.albedo, self.albedo_new = self.albedo_new, self.albedo
+                e_prev = e0
+                e0, tr, cnt = self._evaluate(self.depth, self.albedo, sigma, robust)
+                history.append(e0)
+                mu /= MU_DOWN
+                if progress is not None:
+                    progress(accepted, total, f"depth refinement: energy {e0:.4g}")
+                if e_prev - e1 < cfg.tol * e_prev:
+                    break
+            else:
+                rejected += 1
+                mu *= MU_UP
+                # the model at the current depth again (the trial's evaluation overwrote it)
+                e0, tr, cnt = self._evaluate(self.depth, self.albedo, sigma, robust)
+        # the final model's normals and albedo at the accepted depth
+        lam = mu * tr / (2.0 * max(cnt, 1.0))
+        self._targets(lam if lam > 0 else 1e-12)
+        warp().copy(self.albedo, self.albedo_new)
+        self.last = {"energy": history, "start_energy": start_energy, "accepted": accepted, "rejected": rejected,
+                     "sigma": sigma, "mu": mu}
+
+    def fetch(self) -> dict:
+        """``depth`` (H, W) (0 outside the mask), ``normals`` (H, W, 3), ``albedo`` (H, W, 3), ``residual`` (H, W)
+        (RMS residual of the used observations at the final depth) and ``info`` (energies, steps, ``sigma``)."""
+        m = self.integrator.mask
+        return {
+            "depth": np.where(m, self.depth.numpy(), 0.0).astype(np.float32),
+            "normals": np.where(m[..., None], self.normals.numpy(), 0.0).astype(np.float32),
+            "albedo": np.where(m[..., None], self.albedo.numpy(), 0.0).astype(np.float32),
+            "residual": np.array(self.rms.numpy(), copy=True),
+            "info": dict(self.last),
+        }
+
+    def close(self) -> None:
+        """Give the buffers back and the device system's fields to their pool."""
+        self._views = None
+        if self.system is not None:
+            self.system.close()
+            self.system = None
+        super().close()
+
+    # ------------------------------------------------------------------ pieces
+
+    def _evaluate(self, depth, albedo_prev, sigma: float, robust: int) -> tuple[float, float, float]:
+        wp = warp()
+        s = self.solver
+        h, w = self.shape
+        self.sums.zero_()
+        wp.launch(refine_eval_kernel, dim=(h, w),
+                  inputs=[depth, self.mask, s.images, s.valid, self.cam, self._lp, self._mp, albedo_prev, float(sigma),
+                          int(robust)],
+                  outputs=[self.hess, self.grad, self.albedo_new, self.rms, self.sums], device=self.device)
+        e, tr, cnt = (float(v) for v in self.sums.numpy())
+        return e, tr, cnt
+
+    def _targets(self, lam: float) -> None:
+        wp = warp()
+        h, w = self.shape
+        wp.launch(refine_targets_kernel, dim=(h, w),
+                  inputs=[self.depth, self.mask, self.cam, self.hess, self.grad, float(lam)],
+                  outputs=[self.steps, self.conf, self.normals], device=self.device)
+
+    def _view(self, a):
+        if self.device.startswith("cuda"):
+            return warp().to_torch(a)
+        return a.numpy()
+
+    def _integrate(self) -> bool:
+        """The majorant's increment solved and :attr:`depth` moved by it into :attr:`trial`."""
+        wp = warp()
+        cuda = self.device.startswith("cuda")
+        if cuda and importlib.util.find_spec("torch") is None:
+            raise ImportError("the depth refinement on CUDA needs PyTorch for zero-copy views of the Warp buffers: "
+                              "pip install 'gpps[cuda]'")
+        if cuda:
+            wp.synchronize_device(self.device)
+        ok = self.system.step_increment(self._view(self.steps), self._view(self.conf), self._view(self.depth),
+                                        self._view(self.trial))
+        if cuda:
+            _taichi.ti.sync()
+        return ok
+
