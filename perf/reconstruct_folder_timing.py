@@ -1,6 +1,7 @@
 """``gpps.reconstruct_folder`` (what ``gpps reconstruct`` runs, without writing) on capture folders: wall time
 per call, per-stage timings, the longest stretch without a progress report and MAEN where ground truth exists.  Usage:
-``python perf/reconstruct_folder_timing.py FOLDER... [--device cuda:0] [--repeat 2] [--out FILE]``"""
+``python perf/reconstruct_folder_timing.py FOLDER... [--device cuda:0] [--repeat 2] [--refine] [--out FILE]``
+(``--refine``: ``FolderConfig(refine=True)``, the depth refinement after RON's rounds)."""
 
 from __future__ import annotations
 
@@ -25,7 +26,9 @@ def main(argv=None):
     ap.add_argument("--device", default=None)
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--refine", action="store_true", help="FolderConfig(refine=True)")
     a = ap.parse_args(argv)
+    cfg = gpps.FolderConfig(refine=a.refine)
     rows = []
     for folder in a.folders:
         for k in range(a.repeat):
@@ -37,17 +40,17 @@ def main(argv=None):
                 gaps.append(now - last[0])
                 last[0] = now
 
-            res = gpps.reconstruct_folder(folder, device=a.device, progress=progress)
+            res = gpps.reconstruct_folder(folder, cfg, device=a.device, progress=progress)
             wall = time.perf_counter() - t
             gaps.append(time.perf_counter() - last[0])
             rep = res.report
             row = {"folder": Path(folder).name, "call": k, "wall_s": wall, "maen_deg": rep.get("maen_deg"),
                    "timings": rep.get("timings"), "images": rep.get("images"), "shape": rep.get("shape"),
-                   "max_progress_gap_s": max(gaps)}
+                   "max_progress_gap_s": max(gaps), "refine": a.refine, "refinement": rep.get("refinement")}
             rows.append(row)
             print(json.dumps(row, default=json_default), flush=True)
     if a.out:
-        Path(a.out).write_text(json.dumps({"device": a.device, "rows": rows}, indent=1, default=json_default))
+        Path(a.out).write_text(json.dumps({"device": a.device, "refine": a.refine, "rows": rows}, indent=1, default=json_default))
 
 
 if __name__ == "__main__":
