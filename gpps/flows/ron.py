@@ -262,7 +262,13 @@ class RONConfig:
             (:class:`gpps.pipeline.depth_refine.DepthRefiner`).  Pixels that lost observations (cast shadows,
             saturation) take their normal from the surface their neighbours fix.  The returned normals are each
             pixel's Levenberg-Marquardt normal at the refined surface, the depth the refined one.  Needs
-            ``integrate`` and a plain multigrid rounds' integrator.
+            ``integrate`` and a plain multigrid rounds' integrator.  Off by default: on the Mitsuba development
+            set (perf/results/dev_eval_cpu_refine.md, 40 captures) it was better on 16 and worse on 24 (non-diffuse
+            means 18.42 -> 20.33 deg with 3 lights, 5.60 -> 8.16 with 12), better on height fields and concavities
+            (12 lights: bowl 3.08 -> 2.75, ridges 10.6 -> 7.1) and much worse where the depth is discontinuous
+            (sphere on a plane, 12 lights: 2.76 -> 9.88): a pixel's central differences across a depth edge give it a
+            wrong normal that one step from it cannot undo.  On the analytic bumps with exact cast shadows
+            (tests/test_depth_refine.py) it cuts the MAEN by 2-3x.
         refine_config: its settings (:class:`gpps.pipeline.depth_refine.DepthRefineConfig`).
     """
 

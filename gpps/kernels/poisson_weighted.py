@@ -17,6 +17,9 @@ rounds exchange depth and normals without a host round trip
   ``b = -div(w t)`` and the level-0 diagonal;
 * :func:`coarsen`: one level of ``build_levels`` (2x2 aggregation, coarse edge
   weight ``alpha`` times the crossing fine weights) and its diagonal;
+* :func:`assemble_targets`: per-pixel steps and confidences given directly (the depth refinement's
+  increments, :mod:`gpps.kernels.depth_refine`) instead of from normals; :func:`depth_add`: a depth moved by
+  the solved increment (``u + z - mean z`` per component);
 * :func:`gather_level`: the coarsest level's edge weights into a small field: its
   exact pseudo-inverse (at most ``coarsest^2 = 64`` cells by default) is computed on
   the host by :func:`gpps.host.poisson.coarsest_pinv`, as for the host path (about 1 ms
