@@ -132,6 +132,14 @@ def albedo_of(num: wp.vec3, den: wp.vec3, fallback: wp.vec3):
 
 
 @wp.func
+def albedo_terms(e: float, obs: float, t: wp.vec2, ks: float):
+    """One observation's terms of the albedo's normal equation in one channel: ``(A y, A^2)`` with ``A = E t_d``
+    and ``y = I - E ks t_s`` (the albedo is ``sum w A y / sum w A^2``)."""
+    a = e * t[0]
+    return wp.vec2(a * (obs - e * ks * t[1]), a * a)
+
+
+@wp.func
 def predict(e: wp.vec3, t: wp.vec2, kd: wp.vec3, ks: float):
     return wp.cw_mul(e, kd * t[0] + wp.vec3(ks * t[1]))
 
@@ -204,21 +212,21 @@ def refine_eval_kernel(
             r0 = predict(e, t0, kd0, ks) - obs
             for c in range(3):
                 w = cauchy_weight(r0[c], sigma, robust)
-                y = obs[c] - e[c] * ks * t0[1]
-                num0[c] += w * e[c] * t0[0] * y
-                den0[c] += w * (e[c] * t0[0]) * (e[c] * t0[0])
-                y = obs[c] - e[c] * ks * t1[1]
-                num1[c] += w * e[c] * t1[0] * y
-                den1[c] += w * (e[c] * t1[0]) * (e[c] * t1[0])
-                y = obs[c] - e[c] * ks * t2[1]
-                num2[c] += w * e[c] * t2[0] * y
-                den2[c] += w * (e[c] * t2[0]) * (e[c] * t2[0])
-                y = obs[c] - e[c] * ks * t3[1]
-                num3[c] += w * e[c] * t3[0] * y
-                den3[c] += w * (e[c] * t3[0]) * (e[c] * t3[0])
-                y = obs[c] - e[c] * ks * t4[1]
-                num4[c] += w * e[c] * t4[0] * y
-                den4[c] += w * (e[c] * t4[0]) * (e[c] * t4[0])
+                q0 = albedo_terms(e[c], obs[c], t0, ks) * w
+                q1 = albedo_terms(e[c], obs[c], t1, ks) * w
+                q2 = albedo_terms(e[c], obs[c], t2, ks) * w
+                q3 = albedo_terms(e[c], obs[c], t3, ks) * w
+                q4 = albedo_terms(e[c], obs[c], t4, ks) * w
+                num0[c] += q0[0]
+                den0[c] += q0[1]
+                num1[c] += q1[0]
+                den1[c] += q1[1]
+                num2[c] += q2[0]
+                den2[c] += q2[1]
+                num3[c] += q3[0]
+                den3[c] += q3[1]
+                num4[c] += q4[0]
+                den4[c] += q4[1]
     kda = albedo_of(num0, den0, kd0)
     kd1 = albedo_of(num1, den1, kd0)
     kd2 = albedo_of(num2, den2, kd0)
