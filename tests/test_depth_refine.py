@@ -18,7 +18,7 @@ from gpps.camera import Orthographic, Perspective
 from gpps.flows.ron import RON, RONConfig
 from gpps.host.metrics import normal_errors
 from gpps.host.poisson import pixel_gradients
-from gpps.kernels.depth_refine import refine_eval_kernel, refine_targets_kernel
+from gpps.kernels.depth_refine import refine_eval_kernel, refine_targets_kernel, residual_sample_kernel
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
 from gpps.pipeline.depth_refine import DepthRefineConfig, DepthRefiner
@@ -222,6 +222,40 @@ def test_eval_kernel_matches_numpy(device, cam_kind, light_kind, robust):
     assert sk[0] == pytest.approx(er, rel=1e-4)
     assert sk[1] == pytest.approx(tr, rel=2e-3)
     assert sk[2] == mask.sum()
+
+
+@pytest.mark.parametrize("cam_kind,light_kind", [("perspective", "point"), ("orthographic", "directional")])
+def test_residual_sample_matches_numpy(device, cam_kind, light_kind):
+    """The robust scale's sample: every observation of every 2nd pixel, |residual| averaged over the channels at the
+    depth's normal with the given albedo (numpy from the equations), -1 where off the mask or not valid."""
+    wp = warp()
+    cam, lights, mat, depth, mask, images, valid, albedo = _problem(cam_kind, light_kind, seed=5)
+    stride = 2
+    hs, ws = (H + 1) // 2, (W + 1) // 2
+    out = wp.zeros((N, hs, ws), dtype=wp.float32, device=device)
+    f = lambda a, dt: wp.array(a, dtype=dt, device=device)  # noqa: E731
+    wp.launch(residual_sample_kernel, dim=(N, hs, ws),
+              inputs=[f(depth, wp.float32), f(mask.astype(np.uint8), wp.uint8), f(images, wp.vec3),
+                      f(valid.astype(np.uint8), wp.uint8), camera_params(cam, (H, W)), light_params(lights, device),
+                      material_params(mat), f(albedo, wp.vec3), stride], outputs=[out], device=device)
+    got = out.numpy()
+    a, c = _steps_ref(cam, depth, mask)
+    kj, ki = _scales(cam)
+    pts = cam.backproject(depth.astype(np.float64))
+    for k in range(N):
+        for ai in range(hs):
+            for bj in range(ws):
+                i, j = ai * stride, bj * stride
+                if not (mask[i, j] and valid[k, i, j]):
+                    assert got[k, ai, bj] == -1.0
+                    continue
+                p = pts[i, j]
+                v = -p / np.linalg.norm(p) if cam.is_perspective else np.array([0.0, 0, 1])
+                n = _normal_ref(cam, i, j, a[i, j] * kj, c[i, j] * ki)
+                l, e = _light_ref(lights, k, p)
+                t = np.array(ref.terms(mat, n[None], l[None], v[None]))[:, 0]
+                r = e * (albedo[i, j] * t[0] + mat.ks * t[1]) - images[k, i, j]
+                assert got[k, ai, bj] == pytest.approx(np.abs(r).mean(), rel=1e-4, abs=1e-6)
 
 
 def test_gradient_is_the_energy_derivative(device):

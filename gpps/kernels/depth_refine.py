@@ -322,3 +322,34 @@ def refine_targets_kernel(
         sa = al - (a22 * g[0] - a12 * g[1]) / det
         sc = ga - (a11 * g[1] - a12 * g[0]) / det
     normals[i, j] = slope_normal(cam, i, j, sa, sc)
+
+
+@wp.kernel(enable_backward=False)
+def residual_sample_kernel(
+    depth: wp.array2d(dtype=wp.float32),
+    mask: wp.array2d(dtype=wp.uint8),
+    images: wp.array3d(dtype=wp.vec3),
+    valid: wp.array3d(dtype=wp.uint8),
+    cam: CameraParams,
+    lights: LightParams,
+    mat: MaterialParams,
+    albedo: wp.array2d(dtype=wp.vec3),
+    stride: int,
+    out: wp.array3d(dtype=wp.float32),
+):
+    """The absolute residuals (mean over the channels) of every observation of every ``stride``-th pixel in each
+    direction (dim (N, ceil(H / stride), ceil(W / stride))) at the normal of the current depth with ``albedo``:
+    ``out[k, a, b]`` for pixel ``(a stride, b stride)``; -1 where the pixel is off the mask or the observation
+    not valid.  The robust scale's sample (:class:`gpps.pipeline.depth_refine.DepthRefiner`)."""
+    k, a, b = wp.tid()
+    i = a * stride
+    j = b * stride
+    r = float(-1.0)
+    if mask[i, j] != wp.uint8(0) and valid[k, i, j] != wp.uint8(0):
+        s = steps_at(depth, mask, cam, i, j)
+        n = slope_normal(cam, i, j, s[0] * step_scale_j(cam), s[1] * step_scale_i(cam))
+        p = pixel_point(cam, i, j, depth[i, j])
+        v = view_dir(cam, p)
+        d = predict(light_radiance(lights, k, p), brdf_terms(mat, n, light_dir(lights, k, p), v), albedo[i, j], mat.ks) - images[k, i, j]
+        r = (wp.abs(d[0]) + wp.abs(d[1]) + wp.abs(d[2])) / 3.0
+    out[k, a, b] = r

@@ -10,9 +10,10 @@ and the energy is the image model's robust misfit summed over every valid observ
     E(u) = sum_pixels sum_(k, c) rho(I_kc - E_kc (kd_c t_d(n(u), l_k, v) + ks t_s(n(u), l_k, v)))
 
 with the albedo eliminated per pixel (weighted least squares) and ``rho`` Cauchy's loss of scale ``sigma``
-(``2.385`` times the median over the mask of the pixels' RMS residual at the start: Cauchy's 95 %-efficiency
-constant for the typical misfit of the start; observations far beyond it, what the model cannot explain,
-weigh little).  A pixel without observations has no term of its own: integrability through its neighbours is
+(``2.385`` times the residuals' robust scale at the start, ``1.4826`` times their median absolute value over
+the valid observations of a pixel grid: Cauchy's 95 %-efficiency constant for Gaussian residuals of that scale;
+observations far beyond it, what the model cannot explain, weigh little).  The scale is that of single
+observations: a per-pixel RMS would count each pixel's cast shadows into it.  A pixel without observations has no term of its own: integrability through its neighbours is
 all that fixes its normal, with no smoothness weight chosen by hand.
 
 Minimised by Levenberg-Marquardt in the integrator's machinery: each iteration takes the per-pixel
@@ -41,6 +42,7 @@ the albedo and the per-pixel RMS residual.
 from __future__ import annotations
 
 import importlib.util
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -49,7 +51,7 @@ import numpy as np
 from gpps import _taichi
 from gpps._check import check_choices, check_number
 from gpps._runtime import warp
-from gpps.kernels.depth_refine import refine_eval_kernel, refine_targets_kernel
+from gpps.kernels.depth_refine import refine_eval_kernel, refine_targets_kernel, residual_sample_kernel
 from gpps.pipeline.integration import Integrator
 from gpps.pipeline.integration_rounds import DeviceSystem
 from gpps.pipeline.params import camera_params, material_params
@@ -65,6 +67,8 @@ MU_START = 1e-2
 MU_DOWN = 3.0
 MU_UP = 4.0
 MU_SPAN = 1e8
+#: the most pixels whose residuals set the robust scale
+SCALE_PIXELS = 1 << 14
 
 
 @dataclass(frozen=True)
@@ -183,17 +187,11 @@ class DepthRefiner(Stage):
         self._mp = material_params(s.material)
         self._lp = s.lp
         robust = 1 if cfg.robust == "cauchy" else 0
-        e0, tr, cnt = self._evaluate(self.depth, self.albedo, 1.0, 0)  # (unweighted: the start's misfit)
-        if cnt == 0:
-            raise ValueError("mask: expected at least one pixel to refine, got none")
-        sigma = cfg.sigma
-        if sigma is None:
-            rms = self.rms.numpy()[self.integrator.mask]
-            sigma = CAUCHY_C * float(np.median(rms))
-            if not sigma > 0:
-                sigma = CAUCHY_C * max(float(np.mean(rms)), 1e-12)
+        sigma = cfg.sigma if cfg.sigma is not None else CAUCHY_C * self._scale()
         self.sigma = sigma
         e0, tr, cnt = self._evaluate(self.depth, self.albedo, sigma, robust)
+        if cnt == 0:
+            raise ValueError("mask: expected at least one pixel to refine, got none")
         start_energy = e0
         mu = MU_START
         accepted = rejected = 0
@@ -252,6 +250,28 @@ class DepthRefiner(Stage):
         super().close()
 
     # ------------------------------------------------------------------ pieces
+
+    def _scale(self) -> float:
+        """The residuals' robust scale at the start: 1.4826 times the median absolute residual (MAD about 0) of the
+        valid observations of a grid of at most :data:`SCALE_PIXELS` pixels (one read of their residuals)."""
+        wp = warp()
+        s = self.solver
+        h, w = self.shape
+        n = s.shape[0]
+        stride = max(1, int(math.ceil(math.sqrt(h * w / SCALE_PIXELS))))
+        hs, ws = (h + stride - 1) // stride, (w + stride - 1) // stride
+        out = wp.empty((n, hs, ws), dtype=wp.float32, device=self.device)
+        wp.launch(residual_sample_kernel, dim=(n, hs, ws),
+                  inputs=[self.depth, self.mask, s.images, s.valid, self.cam, self._lp, self._mp, self.albedo, stride],
+                  outputs=[out], device=self.device)
+        r = out.numpy()
+        r = r[r >= 0]
+        if r.size == 0:
+            raise ValueError("valid: expected observations on the mask to refine, got none")
+        mad = 1.4826 * float(np.median(r))
+        if not mad > 0:
+            mad = max(float(np.mean(r)), 1e-12)
+        return mad
 
     def _evaluate(self, depth, albedo_prev, sigma: float, robust: int) -> tuple[float, float, float]:
         wp = warp()
