@@ -190,7 +190,7 @@ def test_slope_normal_is_the_inverse_of_pixel_gradients(device, cam_kind):
     nrm = wp.zeros((H, W), dtype=wp.vec3, device=device)
     wp.launch(refine_targets_kernel, dim=(H, W),
               inputs=[wp.array(depth, dtype=wp.float32, device=device), wp.array(mask.astype(np.uint8), dtype=wp.uint8, device=device),
-                      camera_params(cam, (H, W)), hess, grad, 1.0], outputs=[steps, conf, nrm], device=device)
+                      camera_params(cam, (H, W)), hess, grad, 1.0, 1], outputs=[steps, conf, nrm], device=device)
     n = nrm.numpy()
     assert np.allclose(np.linalg.norm(n[mask], axis=-1), 1.0, atol=1e-5)
     gj, gi, _, _ = pixel_gradients(n.astype(np.float64), mask, cam, 1e-3)
@@ -364,9 +364,10 @@ def _ron(device, case, **cfg):
 def test_refinement_recovers_shadowed_pixels(device, kind):
     """4 lights on the Gaussian bumps with exact cast shadows (64^2, perspective, Blinn-Phong, noise 0.002):
     RON fits the shadowed pixels' remaining observations alone; the refinement ties them to the surface.
-    Measured on the CPU: whole-mask MAEN 1.24 -> 0.37 deg (directional), 1.02 -> 0.45 (point); over the pixels
-    with a cast shadow 10.2 -> 2.0 and 5.1 -> 0.8; depth error 0.24 -> 0.07 and 0.16 -> 0.08 units.  The
-    energy falls at every accepted step."""
+    Measured on the CPU (the surface's normals, the default): whole-mask MAEN 1.24 -> 0.43 deg (directional),
+    1.02 -> 0.47 (point); over the pixels with a cast shadow 10.2 -> 2.2 and 5.1 -> 1.6; depth error 0.24 -> 0.07
+    and 0.16 -> 0.07 units.  Each pixel's Levenberg-Marquardt step (``normals="pixel"``): 0.37 and 0.44, shadowed
+    2.0 and 0.8.  The energy falls at every accepted step."""
     case = bump_case(kind, 4, 64, slant=60.0)
     m = case["mask"]
     sh = case["shadow"].any(0)
@@ -378,17 +379,22 @@ def test_refinement_recovers_shadowed_pixels(device, kind):
           f"depth {e['off'][2]:.4f} -> {e['on'][2]:.4f}; {on.refinement['accepted']} steps")
     assert off.refinement is None and "refine" not in off.timings
     assert e["on"][0] < 0.5 * e["off"][0]
-    assert e["on"][1] < 0.3 * e["off"][1]
+    assert e["on"][1] < 0.4 * e["off"][1]
     assert e["on"][2] < 0.6 * e["off"][2]
     hist = on.refinement["energy"]
     assert on.refinement["accepted"] >= 1 and all(b < a for a, b in zip(hist, hist[1:]))
     assert on.timings["refine"] > 0.0
     assert np.all(np.isfinite(on.normals[m])) and np.allclose(np.linalg.norm(on.normals[m], axis=-1), 1.0, atol=1e-4)
+    px = _ron(device, case, refine=True, refine_config=DepthRefineConfig(normals="pixel"))
+    e_px = normal_errors(px.normals, case["normals"], m)["mean"]
+    print(f"  pixel normals: MAEN {e_px:.3f}")
+    assert e_px < 0.5 * e["off"][0]
+    assert np.allclose(px.depth[m], on.depth[m])  # (the same surface: only the returned normals differ)
 
 
 def test_refinement_keeps_a_scene_without_shadows(device):
     """12 lights from near the view axis (slant 25 deg: no cast shadows, every pixel well determined): the
-    refinement must not make it worse (measured 0.064 -> 0.058 deg)."""
+    refinement must not make it worse (measured 0.064 -> 0.048 deg)."""
     case = bump_case("directional", 12, 64, slant=25.0)
     m = case["mask"]
     off = _ron(device, case)

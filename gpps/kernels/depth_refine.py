@@ -32,8 +32,9 @@ a0 - g_a / D_a``: the integrator's weighted least squares (4.20) for the increme
 ``D`` and step increments ``a* - a0 = -g_a / D_a`` (in step units: ``c_j = D_a k_j^2``, ``-g_a / (D_a k_j)``;
 ``k_j = fx`` or ``1 / s``).  A pixel with no
 usable observation has ``H = 0, g = 0``: confidence ``lambda`` toward its current step, so it follows its
-neighbours through integrability.  The kernel also writes the per-pixel Levenberg-Marquardt normal, the
-normal of ``s0 - (H + lambda I)^{-1} g`` (the pixel's own data where it has some, the surface's where not).
+neighbours through integrability.  The kernel also writes the normals: the surface's (of ``s0``), or the
+per-pixel Levenberg-Marquardt normal, of ``s0 - (H + lambda I)^{-1} g`` (one step from the surface toward the
+pixel's own data).
 
 Only device code lives here; nothing allocates.
 """
@@ -282,13 +283,15 @@ def refine_targets_kernel(
     hess: wp.array2d(dtype=wp.vec3),
     grad: wp.array2d(dtype=wp.vec2),
     lam: float,
+    pixel_normals: int,
     steps: wp.array3d(dtype=wp.float32),
     conf: wp.array3d(dtype=wp.float32),
     normals: wp.array2d(dtype=wp.vec3),
 ):
     """Per pixel (dim (H, W)): the majorant's step increments ``steps[i, j] = (a* - a0, c* - c0)`` and confidences
-    ``conf[i, j] = (c_j, c_i)`` (step units), and ``normals``: the Levenberg-Marquardt normal (module docstring).
-    Off the mask: zeros (the integrator drops the pixel)."""
+    ``conf[i, j] = (c_j, c_i)`` (step units), and ``normals``: with ``pixel_normals`` the Levenberg-Marquardt
+    normal (module docstring), else the surface's (of ``s0``).  Off the mask: zeros (the integrator drops the
+    pixel)."""
     i, j = wp.tid()
     if mask[i, j] == wp.uint8(0):
         steps[i, j, 0] = 0.0
@@ -318,7 +321,7 @@ def refine_targets_kernel(
     det = a11 * a22 - a12 * a12
     sa = al
     sc = ga
-    if det > 0.0:
+    if pixel_normals != 0 and det > 0.0:
         sa = al - (a22 * g[0] - a12 * g[1]) / det
         sc = ga - (a11 * g[1] - a12 * g[0]) / det
     normals[i, j] = slope_normal(cam, i, j, sa, sc)
