@@ -64,6 +64,12 @@ def _problem(cam_kind, light_kind, seed=0):
     return cam, lights, mat, depth.astype(np.float32), mask, images.astype(np.float32), valid, albedo.astype(np.float32)
 
 
+def _central(device, shape=(H, W)):
+    """The kernels' ``(nref, k, min_nz)`` for central differences (k = 0)."""
+    wp = warp()
+    return wp.zeros(shape, dtype=wp.vec3, device=device), 0.0, 1e-3
+
+
 # ---------------------------------------------------------------------------------------------- numpy reference
 
 
@@ -166,7 +172,7 @@ def _launch_eval(device, cam, lights, mat, depth, mask, images, valid, albedo, s
     rms = wp.zeros((H, W), dtype=wp.float32, device=device)
     sums = wp.zeros(3, dtype=wp.float64, device=device)
     wp.launch(refine_eval_kernel, dim=(H, W),
-              inputs=[f(depth, wp.float32), f(mask.astype(np.uint8), wp.uint8), f(images, wp.vec3),
+              inputs=[f(depth, wp.float32), f(mask.astype(np.uint8), wp.uint8), *_central(device), f(images, wp.vec3),
                       f(valid.astype(np.uint8), wp.uint8), camera_params(cam, (H, W)), lp, material_params(mat),
                       f(albedo, wp.vec3), float(sigma), int(robust)],
               outputs=[hess, grad, alb, rms, sums], device=device)
@@ -190,7 +196,8 @@ def test_slope_normal_is_the_inverse_of_pixel_gradients(device, cam_kind):
     nrm = wp.zeros((H, W), dtype=wp.vec3, device=device)
     wp.launch(refine_targets_kernel, dim=(H, W),
               inputs=[wp.array(depth, dtype=wp.float32, device=device), wp.array(mask.astype(np.uint8), dtype=wp.uint8, device=device),
-                      camera_params(cam, (H, W)), hess, grad, 1.0, 1], outputs=[steps, conf, nrm], device=device)
+                      *_central(device), camera_params(cam, (H, W)), hess, grad, 1.0, 1], outputs=[steps, conf, nrm],
+              device=device)
     n = nrm.numpy()
     assert np.allclose(np.linalg.norm(n[mask], axis=-1), 1.0, atol=1e-5)
     gj, gi, _, _ = pixel_gradients(n.astype(np.float64), mask, cam, 1e-3)
@@ -235,7 +242,7 @@ def test_residual_sample_matches_numpy(device, cam_kind, light_kind):
     out = wp.zeros((N, hs, ws), dtype=wp.float32, device=device)
     f = lambda a, dt: wp.array(a, dtype=dt, device=device)  # noqa: E731
     wp.launch(residual_sample_kernel, dim=(N, hs, ws),
-              inputs=[f(depth, wp.float32), f(mask.astype(np.uint8), wp.uint8), f(images, wp.vec3),
+              inputs=[f(depth, wp.float32), f(mask.astype(np.uint8), wp.uint8), *_central(device), f(images, wp.vec3),
                       f(valid.astype(np.uint8), wp.uint8), camera_params(cam, (H, W)), light_params(lights, device),
                       material_params(mat), f(albedo, wp.vec3), stride], outputs=[out], device=device)
     got = out.numpy()

@@ -2,8 +2,11 @@
 
 The unknown is the integrator's ``u`` (:mod:`gpps.host.poisson`): the log-depth under the perspective
 camera (the seed's perspective PS, 4.20 with ``u = log d``), the depth under the orthographic one.  A
-pixel's *steps* are ``u``'s differences per pixel, ``a = du/dj`` and ``c = du/di``, central where both
-neighbours are in the mask, one-sided where one is (0 where none is); its normal is the inverse of
+pixel's *steps* are ``u``'s differences per pixel, ``a = du/dj`` and ``c = du/di``: where both neighbours are in
+the mask BiNI's blend of the forward and backward differences (weights from the one-sided differences through
+a sigmoid of sharpness ``k``, with the ``N_z`` factors of a reference normal map, :func:`one_sided`: the side
+across a depth edge weighs nothing, a smooth surface gets the central difference), one-sided where one
+neighbour is, 0 where none is; its normal is the inverse of
 :func:`gpps.host.poisson.pixel_gradients` (which maps a normal to its steps)::
 
     perspective:   n ~ (alpha, -gamma, 1 + alpha (j - cx) / fx + gamma (i - cy) / fy),   alpha = a fx, gamma = c fy
@@ -72,30 +75,70 @@ def u_of(cam: CameraParams, d: float):
 
 
 @wp.func
-def steps_at(depth: wp.array2d(dtype=wp.float32), mask: wp.array2d(dtype=wp.uint8), cam: CameraParams, i: int, j: int):
-    """``(a, c)``: the steps of ``u`` at pixel (i, j) (central, one-sided or 0, see the module docstring)."""
+def bini_factors(cam: CameraParams, nref: wp.vec3, i: int, j: int, min_nz: float):
+    """BiNI's ``(N_zj, N_zi)`` of the reference normal ``nref`` at pixel (i, j) (:func:`gpps.host.poisson.pixel_gradients`:
+    orthographic ``n_z / s``, perspective ``-f m``); ``(0, 0)`` for a zero normal (central differences then)."""
+    if wp.length(nref) < 1.0e-6:
+        return wp.vec2(0.0, 0.0)
+    n = wp.normalize(nref)
+    if cam.perspective != 0:
+        m = wp.min(n[0] * (float(j) - cam.cx) / cam.fx - n[1] * (float(i) - cam.cy) / cam.fy - n[2], -min_nz)
+        return wp.vec2(-cam.fx * m, -cam.fy * m)
+    den = wp.max(n[2], min_nz)
+    return wp.vec2(den / cam.pixel_size, den / cam.pixel_size)
+
+
+@wp.func
+def one_sided(um: float, u0: float, up: float, has_m: bool, has_p: bool, nz: float, k: float):
+    """A pixel's step along one axis from its one-sided differences ``d- = u0 - um``, ``d+ = up - u0``: both present,
+    BiNI's blend ``w+ d+ + (1 - w+) d-`` with ``w+ = sigmoid(k ((N_z d-)^2 - (N_z d+)^2))``
+    (:func:`gpps.host.poisson.bilateral_weights`: the side with the smaller jump weighs more; ``k = 0``: the
+    central difference); one present: it; none: 0."""
+    if has_m and has_p:
+        dm = u0 - um
+        dp = up - u0
+        x = k * ((nz * dm) * (nz * dm) - (nz * dp) * (nz * dp))
+        wpl = float(0.5)
+        if x > 40.0:
+            wpl = 1.0
+        elif x < -40.0:
+            wpl = 0.0
+        else:
+            wpl = 1.0 / (1.0 + wp.exp(-x))
+        return wpl * dp + (1.0 - wpl) * dm
+    if has_p:
+        return up - u0
+    if has_m:
+        return u0 - um
+    return 0.0
+
+
+@wp.func
+def steps_at(depth: wp.array2d(dtype=wp.float32), mask: wp.array2d(dtype=wp.uint8), cam: CameraParams,
+             nref: wp.array2d(dtype=wp.vec3), k: float, min_nz: float, i: int, j: int):
+    """``(a, c)``: the steps of ``u`` at pixel (i, j): :func:`one_sided` along j and along i, BiNI's weights from the
+    reference normals ``nref`` (module docstring)."""
     h = depth.shape[0]
     w = depth.shape[1]
     u0 = u_of(cam, depth[i, j])
-    a = float(0.0)
-    c = float(0.0)
     left = j > 0 and mask[i, j - 1] != wp.uint8(0)
     right = j < w - 1 and mask[i, j + 1] != wp.uint8(0)
     up = i > 0 and mask[i - 1, j] != wp.uint8(0)
     down = i < h - 1 and mask[i + 1, j] != wp.uint8(0)
-    if left and right:
-        a = 0.5 * (u_of(cam, depth[i, j + 1]) - u_of(cam, depth[i, j - 1]))
-    elif right:
-        a = u_of(cam, depth[i, j + 1]) - u0
-    elif left:
-        a = u0 - u_of(cam, depth[i, j - 1])
-    if up and down:
-        c = 0.5 * (u_of(cam, depth[i + 1, j]) - u_of(cam, depth[i - 1, j]))
-    elif down:
-        c = u_of(cam, depth[i + 1, j]) - u0
-    elif up:
-        c = u0 - u_of(cam, depth[i - 1, j])
-    return wp.vec2(a, c)
+    uL = u0
+    uR = u0
+    uU = u0
+    uD = u0
+    if left:
+        uL = u_of(cam, depth[i, j - 1])
+    if right:
+        uR = u_of(cam, depth[i, j + 1])
+    if up:
+        uU = u_of(cam, depth[i - 1, j])
+    if down:
+        uD = u_of(cam, depth[i + 1, j])
+    nz = bini_factors(cam, nref[i, j], i, j, min_nz)
+    return wp.vec2(one_sided(uL, u0, uR, left, right, nz[0], k), one_sided(uU, u0, uD, up, down, nz[1], k))
 
 
 @wp.func
@@ -149,6 +192,9 @@ def predict(e: wp.vec3, t: wp.vec2, kd: wp.vec3, ks: float):
 def refine_eval_kernel(
     depth: wp.array2d(dtype=wp.float32),
     mask: wp.array2d(dtype=wp.uint8),
+    nref: wp.array2d(dtype=wp.vec3),
+    edge_k: float,
+    min_nz: float,
     images: wp.array3d(dtype=wp.vec3),
     valid: wp.array3d(dtype=wp.uint8),
     cam: CameraParams,
@@ -175,7 +221,7 @@ def refine_eval_kernel(
         return
     kj = step_scale_j(cam)
     ki = step_scale_i(cam)
-    s = steps_at(depth, mask, cam, i, j)
+    s = steps_at(depth, mask, cam, nref, edge_k, min_nz, i, j)
     al = s[0] * kj
     ga = s[1] * ki
     hh = FD_STEP
@@ -279,6 +325,9 @@ def refine_eval_kernel(
 def refine_targets_kernel(
     depth: wp.array2d(dtype=wp.float32),
     mask: wp.array2d(dtype=wp.uint8),
+    nref: wp.array2d(dtype=wp.vec3),
+    edge_k: float,
+    min_nz: float,
     cam: CameraParams,
     hess: wp.array2d(dtype=wp.vec3),
     grad: wp.array2d(dtype=wp.vec2),
@@ -302,7 +351,7 @@ def refine_targets_kernel(
         return
     kj = step_scale_j(cam)
     ki = step_scale_i(cam)
-    s = steps_at(depth, mask, cam, i, j)
+    s = steps_at(depth, mask, cam, nref, edge_k, min_nz, i, j)
     al = s[0] * kj
     ga = s[1] * ki
     hv = hess[i, j]
@@ -331,6 +380,9 @@ def refine_targets_kernel(
 def residual_sample_kernel(
     depth: wp.array2d(dtype=wp.float32),
     mask: wp.array2d(dtype=wp.uint8),
+    nref: wp.array2d(dtype=wp.vec3),
+    edge_k: float,
+    min_nz: float,
     images: wp.array3d(dtype=wp.vec3),
     valid: wp.array3d(dtype=wp.uint8),
     cam: CameraParams,
@@ -349,7 +401,7 @@ def residual_sample_kernel(
     j = b * stride
     r = float(-1.0)
     if mask[i, j] != wp.uint8(0) and valid[k, i, j] != wp.uint8(0):
-        s = steps_at(depth, mask, cam, i, j)
+        s = steps_at(depth, mask, cam, nref, edge_k, min_nz, i, j)
         n = slope_normal(cam, i, j, s[0] * step_scale_j(cam), s[1] * step_scale_i(cam))
         p = pixel_point(cam, i, j, depth[i, j])
         v = view_dir(cam, p)

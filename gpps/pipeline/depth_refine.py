@@ -61,6 +61,7 @@ __all__ = ["DepthRefineConfig", "DepthRefiner"]
 
 RobustLoss = Literal["cauchy", "none"]
 RefinedNormals = Literal["surface", "pixel"]
+EdgeRule = Literal["bilateral", "central"]
 
 #: Cauchy's constant for 95 % efficiency under Gaussian residuals of unit scale
 CAUCHY_C = 2.385
@@ -85,6 +86,10 @@ class DepthRefineConfig:
             differences: what the refinement estimates); ``"pixel"``, each pixel's Levenberg-Marquardt step from
             the surface toward its own data (one unverified step: with 3 lights it overfits the model's misfit;
             Mitsuba bumps, plastic, 3 directional lights: surface 2.05 deg, pixel 3.41, RON 2.51).
+        edges: a pixel's differences where both neighbours are in the mask: ``"bilateral"`` (default), BiNI's
+            blend of the one-sided differences (its sharpness ``k``, the integrator's ``bilateral_k``, and ``N_z``
+            factors of the start's per-pixel normals, :func:`gpps.kernels.depth_refine.one_sided`): a pixel at
+            a depth edge takes its normal from its own side; ``"central"``: the central difference everywhere.
     """
 
     robust: RobustLoss = "cauchy"
@@ -92,6 +97,7 @@ class DepthRefineConfig:
     tol: float = 1e-3
     sigma: float | None = None
     normals: RefinedNormals = "surface"
+    edges: EdgeRule = "bilateral"
 
     def __post_init__(self):
         check_choices(self)
@@ -139,6 +145,7 @@ class DepthRefiner(Stage):
         self.grad = self._buffer((h, w), wp.vec2, d)
         self.rms = self._buffer((h, w), wp.float32, d)
         self.normals = self._buffer((h, w), wp.vec3, d)
+        self.nref = self._buffer((h, w), wp.vec3, d)
         self.steps = self._buffer((h, w, 2), wp.float32, d)
         self.conf = self._buffer((h, w, 2), wp.float32, d)
         self.sums = wp.zeros(3, dtype=wp.float64, device=d)
@@ -147,7 +154,7 @@ class DepthRefiner(Stage):
 
     # ------------------------------------------------------------------ protocol
 
-    def upload(self, depth, albedo) -> None:
+    def upload(self, depth, albedo, normals=None) -> None:
         """The start: ``depth`` (H, W) inside the mask (scene units; > 0 for the perspective camera or point
         lights) and ``albedo`` (H, W, 3).  The steps move ``u`` by increments of mean 0 per connected part of
         the mask: each part keeps its mean ``u`` (mean log-depth, or mean depth), which fixes the scale.
@@ -155,6 +162,8 @@ class DepthRefiner(Stage):
         Args:
             depth: the surface to refine (RON's integrated depth).
             albedo: the albedo the robust weights of the first step use.
+            normals: (H, W, 3) per-pixel normals whose ``N_z`` factors weigh the one-sided differences
+                (``edges="bilateral"``; None: central differences).
         """
         h, w = self.shape
         m = self.integrator.mask
@@ -167,9 +176,16 @@ class DepthRefiner(Stage):
             raise ValueError(f"albedo: expected shape ({h}, {w}, 3), got {alb.shape}")
         self.depth.assign(np.where(m, dep, 1.0).astype(np.float32))
         self.albedo.assign(np.nan_to_num(alb))
+        if normals is None:
+            self.nref.zero_()
+        else:
+            nrm = np.asarray(normals, dtype=np.float32)
+            if nrm.shape != (h, w, 3):
+                raise ValueError(f"normals: expected shape ({h}, {w}, 3), got {nrm.shape}")
+            self.nref.assign(np.nan_to_num(nrm))
 
     def upload_from_solver(self, depth) -> None:
-        """As :meth:`upload` with the solver's albedo buffer (device to device)."""
+        """As :meth:`upload` with the solver's albedo and normals buffers (device to device)."""
         h, w = self.shape
         dep = np.asarray(depth, dtype=np.float32)
         if dep.shape != (h, w):
@@ -178,6 +194,7 @@ class DepthRefiner(Stage):
         self._check_depth(dep[m])
         self.depth.assign(np.where(m, dep, 1.0).astype(np.float32))
         warp().copy(self.albedo, self.solver.albedo)
+        warp().copy(self.nref, self.solver.normals)
 
     def _check_depth(self, d) -> None:
         if not np.all(np.isfinite(d)):
@@ -257,6 +274,12 @@ class DepthRefiner(Stage):
 
     # ------------------------------------------------------------------ pieces
 
+    def _edges(self) -> tuple:
+        """``(nref, k, min_nz)`` of the kernels' step rule (``k = 0``: central differences)."""
+        ic = self.integrator.config
+        k = float(ic.bilateral_k) if self.config.edges == "bilateral" else 0.0
+        return self.nref, k, float(ic.min_nz)
+
     def _scale(self) -> float:
         """The residuals' robust scale at the start: 1.4826 times the median absolute residual (MAD about 0) of the
         valid observations of a grid of at most :data:`SCALE_PIXELS` pixels (one read of their residuals)."""
@@ -268,7 +291,8 @@ class DepthRefiner(Stage):
         hs, ws = (h + stride - 1) // stride, (w + stride - 1) // stride
         out = wp.empty((n, hs, ws), dtype=wp.float32, device=self.device)
         wp.launch(residual_sample_kernel, dim=(n, hs, ws),
-                  inputs=[self.depth, self.mask, s.images, s.valid, self.cam, self._lp, self._mp, self.albedo, stride],
+                  inputs=[self.depth, self.mask, *self._edges(), s.images, s.valid, self.cam, self._lp, self._mp,
+                          self.albedo, stride],
                   outputs=[out], device=self.device)
         r = out.numpy()
         r = r[r >= 0]
@@ -285,8 +309,8 @@ class DepthRefiner(Stage):
         h, w = self.shape
         self.sums.zero_()
         wp.launch(refine_eval_kernel, dim=(h, w),
-                  inputs=[depth, self.mask, s.images, s.valid, self.cam, self._lp, self._mp, albedo_prev, float(sigma),
-                          int(robust)],
+                  inputs=[depth, self.mask, *self._edges(), s.images, s.valid, self.cam, self._lp, self._mp, albedo_prev,
+                          float(sigma), int(robust)],
                   outputs=[self.hess, self.grad, self.albedo_new, self.rms, self.sums], device=self.device)
         e, tr, cnt = (float(v) for v in self.sums.numpy())
         return e, tr, cnt
@@ -295,7 +319,7 @@ class DepthRefiner(Stage):
         wp = warp()
         h, w = self.shape
         wp.launch(refine_targets_kernel, dim=(h, w),
-                  inputs=[self.depth, self.mask, self.cam, self.hess, self.grad, float(lam),
+                  inputs=[self.depth, self.mask, *self._edges(), self.cam, self.hess, self.grad, float(lam),
                           int(self.config.normals == "pixel")],
                   outputs=[self.steps, self.conf, self.normals], device=self.device)
 
