@@ -17,7 +17,7 @@ from gpps._taichi import taichi_device
 from gpps.camera import Orthographic, Perspective
 from gpps.flows.ron import RON, RONConfig
 from gpps.host.metrics import normal_errors
-from gpps.host.poisson import pixel_gradients
+from gpps.host.poisson import bilateral_weights, pixel_gradients
 from gpps.kernels.depth_refine import refine_eval_kernel, refine_targets_kernel, residual_sample_kernel
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
@@ -211,6 +211,64 @@ def test_slope_normal_is_the_inverse_of_pixel_gradients(device, cam_kind):
     assert np.all(s[mask] == 0.0)
     assert np.allclose(cf[mask][:, 0], kj * kj, rtol=1e-6) and np.allclose(cf[mask][:, 1], ki * ki, rtol=1e-6)
     assert np.all(cf[~mask] == 0.0)
+
+
+@pytest.mark.parametrize("cam_kind", ["perspective", "orthographic"])
+def test_bilateral_steps_match_bini_weights(device, cam_kind):
+    """Two tilted planes at different depths meeting at a vertical depth edge: the kernel's steps with BiNI's blend
+    (k = 2, N_z from the true normals) equal gpps.host.poisson.bilateral_weights' blend of the one-sided differences
+    (the integrator's BiNI code, independent), and the pixels beside the edge get their own plane's normal (under
+    0.5 deg) where central differences tilt them by tens of degrees."""
+    wp = warp()
+    h, w = 12, 16
+    cam = _camera(cam_kind)
+    jj, ii = np.meshgrid(np.arange(w), np.arange(h))
+    if cam.is_perspective:
+        u = np.log(4.0) + 0.002 * (jj - 8) + 0.001 * (ii - 6) + np.where(jj >= 8, 0.08, 0.0)
+        depth = np.exp(u)
+    else:
+        depth = 4.0 + 0.003 * jj + 0.002 * ii + np.where(jj >= 8, 0.3, 0.0)
+        u = depth
+    mask = np.ones((h, w), bool)
+    valid = mask.copy()
+    # the planes' own steps and normals (the pixel_gradients inverse of their steps)
+    a_true = np.full((h, w), 0.002 if cam.is_perspective else 0.003)
+    c_true = np.full((h, w), 0.001 if cam.is_perspective else 0.002)
+    kj, ki = _scales(cam)
+    n_true = np.stack([_normal_ref(cam, i, j, a_true[i, j] * kj, c_true[i, j] * ki) for i in range(h) for j in range(w)]).reshape(h, w, 3)
+    out = []
+    for k in (2.0, 0.0):
+        nrm = wp.zeros((h, w), dtype=wp.vec3, device=device)
+        z2 = wp.zeros((h, w, 2), dtype=wp.float32, device=device)
+        z2b = wp.zeros((h, w, 2), dtype=wp.float32, device=device)
+        wp.launch(refine_targets_kernel, dim=(h, w),
+                  inputs=[wp.array(depth.astype(np.float32), dtype=wp.float32, device=device),
+                          wp.array(mask.astype(np.uint8), dtype=wp.uint8, device=device),
+                          wp.array(n_true.astype(np.float32), dtype=wp.vec3, device=device), k, 1e-3,
+                          camera_params(cam, (h, w)), wp.zeros((h, w), dtype=wp.vec3, device=device),
+                          wp.zeros((h, w), dtype=wp.vec2, device=device), 1.0, 0],
+                  outputs=[z2, z2b, nrm], device=device)
+        out.append(nrm.numpy().astype(np.float64))
+    bil, cen = out
+    gj, gi, _, _ = pixel_gradients(bil, mask, cam, 1e-3)
+    _, _, nzj, nzi = pixel_gradients(n_true, mask, cam, 1e-3)
+    wx = np.zeros((h, w))
+    wx[:, :-1] = 1.0
+    wy = np.zeros((h, w))
+    wy[:-1, :] = 1.0
+    wpj, wpi, (dj, djm, di, dim) = bilateral_weights(u, valid, wx, wy, nzj, nzi, 2.0)
+    inner = np.zeros((h, w), bool)
+    inner[1:-1, 1:-1] = True
+    ref_j = wpj * dj + (1 - wpj) * djm
+    ref_i = wpi * di + (1 - wpi) * dim
+    scale = np.abs(u[:, 8] - u[:, 7]).max()
+    assert np.abs(gj - ref_j)[inner].max() < 1e-3 * scale
+    assert np.abs(gi - ref_i)[inner].max() < 1e-3 * scale
+    edge = inner & ((jj == 7) | (jj == 8))
+    e_bil = np.degrees(np.arccos(np.clip(np.sum(bil * n_true, -1), -1, 1)))
+    e_cen = np.degrees(np.arccos(np.clip(np.sum(cen * n_true, -1), -1, 1)))
+    assert e_bil[edge].max() < 0.5 and e_cen[edge].min() > 10.0
+    assert e_bil[inner & ~edge].max() < 0.05
 
 
 @pytest.mark.parametrize("cam_kind,light_kind", [("perspective", "directional"), ("perspective", "point"),
