@@ -196,8 +196,8 @@ def test_slope_normal_is_the_inverse_of_pixel_gradients(device, cam_kind):
     nrm = wp.zeros((H, W), dtype=wp.vec3, device=device)
     wp.launch(refine_targets_kernel, dim=(H, W),
               inputs=[wp.array(depth, dtype=wp.float32, device=device), wp.array(mask.astype(np.uint8), dtype=wp.uint8, device=device),
-                      *_central(device), camera_params(cam, (H, W)), hess, grad, 1.0, 1], outputs=[steps, conf, nrm],
-              device=device)
+                      *_central(device), camera_params(cam, (H, W)), hess, grad, 1.0, 1],
+              outputs=[steps, conf, wp.zeros((H, W, 2), dtype=wp.float32, device=device), nrm], device=device)
     n = nrm.numpy()
     assert np.allclose(np.linalg.norm(n[mask], axis=-1), 1.0, atol=1e-5)
     gj, gi, _, _ = pixel_gradients(n.astype(np.float64), mask, cam, 1e-3)
@@ -236,9 +236,10 @@ def test_bilateral_steps_match_bini_weights(device, cam_kind):
     c_true = np.full((h, w), 0.001 if cam.is_perspective else 0.002)
     kj, ki = _scales(cam)
     n_true = np.stack([_normal_ref(cam, i, j, a_true[i, j] * kj, c_true[i, j] * ki) for i in range(h) for j in range(w)]).reshape(h, w, 3)
-    out = []
+    out, shares = [], []
     for k in (2.0, 0.0):
         nrm = wp.zeros((h, w), dtype=wp.vec3, device=device)
+        wpl = wp.zeros((h, w, 2), dtype=wp.float32, device=device)
         z2 = wp.zeros((h, w, 2), dtype=wp.float32, device=device)
         z2b = wp.zeros((h, w, 2), dtype=wp.float32, device=device)
         wp.launch(refine_targets_kernel, dim=(h, w),
@@ -247,8 +248,9 @@ def test_bilateral_steps_match_bini_weights(device, cam_kind):
                           wp.array(n_true.astype(np.float32), dtype=wp.vec3, device=device), k, 1e-3,
                           camera_params(cam, (h, w)), wp.zeros((h, w), dtype=wp.vec3, device=device),
                           wp.zeros((h, w), dtype=wp.vec2, device=device), 1.0, 0],
-                  outputs=[z2, z2b, nrm], device=device)
+                  outputs=[z2, z2b, wpl, nrm], device=device)
         out.append(nrm.numpy().astype(np.float64))
+        shares.append(wpl.numpy())
     bil, cen = out
     gj, gi, _, _ = pixel_gradients(bil, mask, cam, 1e-3)
     _, _, nzj, nzi = pixel_gradients(n_true, mask, cam, 1e-3)
@@ -264,6 +266,9 @@ def test_bilateral_steps_match_bini_weights(device, cam_kind):
     scale = np.abs(u[:, 8] - u[:, 7]).max()
     assert np.abs(gj - ref_j)[inner].max() < 1e-3 * scale
     assert np.abs(gi - ref_i)[inner].max() < 1e-3 * scale
+    # the forward shares are BiNI's w+ (k = 2) and 1/2 (central)
+    assert np.abs(shares[0][..., 0] - wpj)[inner].max() < 1e-5 and np.abs(shares[0][..., 1] - wpi)[inner].max() < 1e-5
+    assert np.all(shares[1][inner] == 0.5)
     edge = inner & ((jj == 7) | (jj == 8))
     e_bil = np.degrees(np.arccos(np.clip(np.sum(bil * n_true, -1), -1, 1)))
     e_cen = np.degrees(np.arccos(np.clip(np.sum(cen * n_true, -1), -1, 1)))

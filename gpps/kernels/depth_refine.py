@@ -90,10 +90,11 @@ def bini_factors(cam: CameraParams, nref: wp.vec3, i: int, j: int, min_nz: float
 
 @wp.func
 def one_sided(um: float, u0: float, up: float, has_m: bool, has_p: bool, nz: float, k: float):
-    """A pixel's step along one axis from its one-sided differences ``d- = u0 - um``, ``d+ = up - u0``: both present,
-    BiNI's blend ``w+ d+ + (1 - w+) d-`` with ``w+ = sigmoid(k ((N_z d-)^2 - (N_z d+)^2))``
-    (:func:`gpps.host.poisson.bilateral_weights`: the side with the smaller jump weighs more; ``k = 0``: the
-    central difference); one present: it; none: 0."""
+    """``(step, w+)``: a pixel's step along one axis from its one-sided differences ``d- = u0 - um``, ``d+ = up - u0``
+    and the forward difference's weight.  Both present: BiNI's blend ``w+ d+ + (1 - w+) d-`` with ``w+ =
+    sigmoid(k ((N_z d-)^2 - (N_z d+)^2))`` (:func:`gpps.host.poisson.bilateral_weights`: the side with the smaller
+    jump weighs more; ``k = 0``: the central difference, ``w+ = 1/2``); one present: it (``w+`` 1 or 0); none:
+    ``(0, 1/2)``."""
     if has_m and has_p:
         dm = u0 - um
         dp = up - u0
@@ -105,19 +106,19 @@ def one_sided(um: float, u0: float, up: float, has_m: bool, has_p: bool, nz: flo
             wpl = 0.0
         else:
             wpl = 1.0 / (1.0 + wp.exp(-x))
-        return wpl * dp + (1.0 - wpl) * dm
+        return wp.vec2(wpl * dp + (1.0 - wpl) * dm, wpl)
     if has_p:
-        return up - u0
+        return wp.vec2(up - u0, 1.0)
     if has_m:
-        return u0 - um
-    return 0.0
+        return wp.vec2(u0 - um, 0.0)
+    return wp.vec2(0.0, 0.5)
 
 
 @wp.func
 def steps_at(depth: wp.array2d(dtype=wp.float32), mask: wp.array2d(dtype=wp.uint8), cam: CameraParams,
              nref: wp.array2d(dtype=wp.vec3), k: float, min_nz: float, i: int, j: int):
-    """``(a, c)``: the steps of ``u`` at pixel (i, j): :func:`one_sided` along j and along i, BiNI's weights from the
-    reference normals ``nref`` (module docstring)."""
+    """``(a, c, w+_j, w+_i)``: the steps of ``u`` at pixel (i, j) and their forward weights (:func:`one_sided` along
+    j and along i, BiNI's weights from the reference normals ``nref``: module docstring)."""
     h = depth.shape[0]
     w = depth.shape[1]
     u0 = u_of(cam, depth[i, j])
@@ -138,7 +139,9 @@ def steps_at(depth: wp.array2d(dtype=wp.float32), mask: wp.array2d(dtype=wp.uint
     if down:
         uD = u_of(cam, depth[i + 1, j])
     nz = bini_factors(cam, nref[i, j], i, j, min_nz)
-    return wp.vec2(one_sided(uL, u0, uR, left, right, nz[0], k), one_sided(uU, u0, uD, up, down, nz[1], k))
+    sj = one_sided(uL, u0, uR, left, right, nz[0], k)
+    si = one_sided(uU, u0, uD, up, down, nz[1], k)
+    return wp.vec4(sj[0], si[0], sj[1], si[1])
 
 
 @wp.func
@@ -335,6 +338,7 @@ def refine_targets_kernel(
     pixel_normals: int,
     steps: wp.array3d(dtype=wp.float32),
     conf: wp.array3d(dtype=wp.float32),
+    wplus: wp.array3d(dtype=wp.float32),
     normals: wp.array2d(dtype=wp.vec3),
 ):
     """Per pixel (dim (H, W)): the majorant's step increments ``steps[i, j] = (a* - a0, c* - c0)`` and confidences
@@ -347,6 +351,8 @@ def refine_targets_kernel(
         steps[i, j, 1] = 0.0
         conf[i, j, 0] = 0.0
         conf[i, j, 1] = 0.0
+        wplus[i, j, 0] = 0.5
+        wplus[i, j, 1] = 0.5
         normals[i, j] = wp.vec3(0.0)
         return
     kj = step_scale_j(cam)
@@ -363,6 +369,8 @@ def refine_targets_kernel(
     steps[i, j, 1] = -(g[1] / dc) / ki
     conf[i, j, 0] = da * kj * kj
     conf[i, j, 1] = dc * ki * ki
+    wplus[i, j, 0] = s[2]
+    wplus[i, j, 1] = s[3]
     # the pixel's own Levenberg-Marquardt step (2 x 2 solve)
     a11 = hv[0] + lam
     a12 = hv[1]
@@ -408,3 +416,76 @@ def residual_sample_kernel(
         d = predict(light_radiance(lights, k, p), brdf_terms(mat, n, light_dir(lights, k, p), v), albedo[i, j], mat.ks) - images[k, i, j]
         r = (wp.abs(d[0]) + wp.abs(d[1]) + wp.abs(d[2])) / 3.0
     out[k, a, b] = r
+
+
+@wp.func
+def pixel_energy(n: wp.vec3, kd0: wp.vec3, images: wp.array3d(dtype=wp.vec3), valid: wp.array3d(dtype=wp.uint8),
+                 lights: LightParams, mat: MaterialParams, p: wp.vec3, v: wp.vec3, i: int, j: int, sigma: float):
+    """The pixel's robust (Cauchy, scale ``sigma``) misfit at normal ``n``, its albedo the weighted least-squares one
+    (weights from the residuals with ``kd0``), as :func:`refine_eval_kernel` computes it at the current normal."""
+    num = wp.vec3(0.0)
+    den = wp.vec3(0.0)
+    nl = valid.shape[0]
+    for k in range(nl):
+        if valid[k, i, j] != wp.uint8(0):
+            e = light_radiance(lights, k, p)
+            t = brdf_terms(mat, n, light_dir(lights, k, p), v)
+            obs = images[k, i, j]
+            r0 = predict(e, t, kd0, mat.ks) - obs
+            for c in range(3):
+                q = albedo_terms(e[c], obs[c], t, mat.ks) * cauchy_weight(r0[c], sigma, 1)
+                num[c] += q[0]
+                den[c] += q[1]
+    kd = albedo_of(num, den, kd0)
+    en = float(0.0)
+    for k in range(nl):
+        if valid[k, i, j] != wp.uint8(0):
+            e = light_radiance(lights, k, p)
+            r = predict(e, brdf_terms(mat, n, light_dir(lights, k, p), v), kd, mat.ks) - images[k, i, j]
+            for c in range(3):
+                en += cauchy_rho(r[c], sigma, 1)
+    return en
+
+
+@wp.kernel(enable_backward=False)
+def select_normals_kernel(
+    depth: wp.array2d(dtype=wp.float32),
+    mask: wp.array2d(dtype=wp.uint8),
+    nref: wp.array2d(dtype=wp.vec3),
+    edge_k: float,
+    min_nz: float,
+    images: wp.array3d(dtype=wp.vec3),
+    valid: wp.array3d(dtype=wp.uint8),
+    cam: CameraParams,
+    lights: LightParams,
+    mat: MaterialParams,
+    albedo: wp.array2d(dtype=wp.vec3),
+    sigma: float,
+    scale: float,
+    threshold: float,
+    normals: wp.array2d(dtype=wp.vec3),
+    counts: wp.array(dtype=wp.int32),
+):
+    """Per pixel (dim (H, W)): ``normals`` = the surface's normal, or the reference (per-pixel) normal ``nref`` where
+    the pixel's own data reject the surface's: ``2 (E_surface - E_ref) / scale^2 > threshold`` (a likelihood-ratio
+    test of the two normal parameters the surface fixes, ``E``: :func:`pixel_energy` with Cauchy's ``sigma``,
+    ``scale`` the residuals' scale).  ``counts[0]`` += the pixels that keep ``nref``."""
+    i, j = wp.tid()
+    if mask[i, j] == wp.uint8(0):
+        normals[i, j] = wp.vec3(0.0)
+        return
+    s = steps_at(depth, mask, cam, nref, edge_k, min_nz, i, j)
+    ns = slope_normal(cam, i, j, s[0] * step_scale_j(cam), s[1] * step_scale_i(cam))
+    out = ns
+    nr = nref[i, j]
+    if wp.length(nr) > 1.0e-6:
+        nr = wp.normalize(nr)
+        p = pixel_point(cam, i, j, depth[i, j])
+        v = view_dir(cam, p)
+        kd0 = albedo[i, j]
+        es = pixel_energy(ns, kd0, images, valid, lights, mat, p, v, i, j, sigma)
+        er = pixel_energy(nr, kd0, images, valid, lights, mat, p, v, i, j, sigma)
+        if 2.0 * (es - er) > threshold * scale * scale:
+            out = nr
+            wp.atomic_add(counts, 0, 1)
+    normals[i, j] = out

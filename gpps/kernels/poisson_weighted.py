@@ -212,6 +212,68 @@ def assemble_edges(gj: ti.template(), gi: ti.template(), cj: ti.template(), ci: 
         b[i, j] = ti.cast(rhs, b.dtype)
 
 
+@ti.func
+def _flux_j_split(gj: ti.template(), cj: ti.template(), wpl: ti.types.ndarray(), i, j, inv):
+    """:func:`_flux_j` with the pixels' shares ``w+`` (forward) and ``1 - w+`` (backward) instead of 1/2 each."""
+    wgt = ti.cast(0, ti.f64)
+    flx = ti.cast(0, ti.f64)
+    a = cj[i, j] * inv * ti.cast(wpl[i, j, 0], ti.f64)
+    b = cj[i, j + 1] * inv * (1.0 - ti.cast(wpl[i, j + 1, 0], ti.f64))
+    if cj[i, j] > 0 and cj[i, j + 1] > 0 and a + b > 0:
+        wgt = a + b
+        flx = a * gj[i, j] + b * gj[i, j + 1]
+    return wgt, flx
+
+
+@ti.func
+def _flux_i_split(gi: ti.template(), ci: ti.template(), wpl: ti.types.ndarray(), i, j, inv):
+    """:func:`_flux_i` with the pixels' shares (``wpl[..., 1]``)."""
+    wgt = ti.cast(0, ti.f64)
+    flx = ti.cast(0, ti.f64)
+    a = ci[i, j] * inv * ti.cast(wpl[i, j, 1], ti.f64)
+    b = ci[i + 1, j] * inv * (1.0 - ti.cast(wpl[i + 1, j, 1], ti.f64))
+    if ci[i, j] > 0 and ci[i + 1, j] > 0 and a + b > 0:
+        wgt = a + b
+        flx = a * gi[i, j] + b * gi[i + 1, j]
+    return wgt, flx
+
+
+@ti.kernel
+def assemble_edges_split(gj: ti.template(), gi: ti.template(), cj: ti.template(), ci: ti.template(),
+                         wpl: ti.types.ndarray(), st: ti.template(), wx: ti.template(), wy: ti.template(),
+                         dg: ti.template(), b: ti.template(), h: ti.i32, w: ti.i32):
+    """:func:`assemble_edges` (weighted) with per-pixel forward shares ``wpl`` (H, W, 2) (BiNI's ``w+``; the host's
+    :func:`gpps.host.poisson.edge_system` with ``wpj, wpi``): edge weight ``c_a w+_a + c_b (1 - w+_b)``."""
+    inv = ti.cast(1, ti.f64)
+    if st[N_VALID] > 0 and st[C_SUM] > 0:
+        inv = st[N_VALID] / st[C_SUM]
+    for i, j in ti.ndrange(h, w):
+        ex = ti.cast(0, ti.f64)
+        fx_ = ti.cast(0, ti.f64)
+        ey = ti.cast(0, ti.f64)
+        fy_ = ti.cast(0, ti.f64)
+        d = ti.cast(0, ti.f64)
+        rhs = ti.cast(0, ti.f64)
+        if j < w - 1:
+            ex, fx_ = _flux_j_split(gj, cj, wpl, i, j, inv)
+        if i < h - 1:
+            ey, fy_ = _flux_i_split(gi, ci, wpl, i, j, inv)
+        d += ex + ey
+        rhs -= fx_ + fy_
+        if j > 0:
+            e0, f0 = _flux_j_split(gj, cj, wpl, i, j - 1, inv)
+            d += e0
+            rhs += f0
+        if i > 0:
+            e1, f1 = _flux_i_split(gi, ci, wpl, i - 1, j, inv)
+            d += e1
+            rhs += f1
+        wx[i, j] = ti.cast(ex, wx.dtype)
+        wy[i, j] = ti.cast(ey, wy.dtype)
+        dg[i, j] = ti.cast(d, dg.dtype)
+        b[i, j] = ti.cast(rhs, b.dtype)
+
+
 @ti.kernel
 def coarsen(wx: ti.template(), wy: ti.template(), dg: ti.template(), off: ti.i32, h: ti.i32, w: ti.i32,
             offc: ti.i32, hc: ti.i32, wc: ti.i32, alpha: ti.f64):

@@ -51,7 +51,7 @@ import numpy as np
 from gpps import _taichi
 from gpps._check import check_choices, check_number
 from gpps._runtime import warp
-from gpps.kernels.depth_refine import refine_eval_kernel, refine_targets_kernel, residual_sample_kernel
+from gpps.kernels.depth_refine import refine_eval_kernel, refine_targets_kernel, residual_sample_kernel, select_normals_kernel
 from gpps.pipeline.integration import Integrator
 from gpps.pipeline.integration_rounds import DeviceSystem
 from gpps.pipeline.params import camera_params, material_params
@@ -60,7 +60,7 @@ from gpps.pipeline.stage import Stage
 __all__ = ["DepthRefineConfig", "DepthRefiner"]
 
 RobustLoss = Literal["cauchy", "none"]
-RefinedNormals = Literal["surface", "pixel"]
+RefinedNormals = Literal["surface", "pixel", "test"]
 EdgeRule = Literal["bilateral", "central"]
 
 #: Cauchy's constant for 95 % efficiency under Gaussian residuals of unit scale
@@ -69,6 +69,8 @@ MU_START = 1e-2
 MU_DOWN = 3.0
 MU_UP = 4.0
 MU_SPAN = 1e8
+#: chi-square with 2 degrees of freedom at 1 %: the surface's normal is rejected beyond it (normals="test")
+CHI2_2_99 = 9.2103
 #: the most pixels whose residuals set the robust scale
 SCALE_PIXELS = 1 << 14
 
@@ -85,7 +87,10 @@ class DepthRefineConfig:
         normals: the returned normals: ``"surface"`` (default), the refined surface's (the normal of ``u``'s
             differences: what the refinement estimates); ``"pixel"``, each pixel's Levenberg-Marquardt step from
             the surface toward its own data (one unverified step: with 3 lights it overfits the model's misfit;
-            Mitsuba bumps, plastic, 3 directional lights: surface 2.05 deg, pixel 3.41, RON 2.51).
+            Mitsuba bumps, plastic, 3 directional lights: surface 2.05 deg, pixel 3.41, RON 2.51); ``"test"``,
+            the start's per-pixel normal where the pixel's own data reject the surface's (a likelihood-ratio test of
+            the two parameters the surface fixes: twice the robust energy difference over the residuals' squared
+            scale beyond chi-square(2) at 1 %, 9.21), else the surface's.
         edges: a pixel's differences where both neighbours are in the mask: ``"bilateral"`` (default), BiNI's
             blend of the one-sided differences (its sharpness ``k``, the integrator's ``bilateral_k``, and ``N_z``
             factors of the start's per-pixel normals, :func:`gpps.kernels.depth_refine.one_sided`): a pixel at
@@ -148,6 +153,7 @@ class DepthRefiner(Stage):
         self.nref = self._buffer((h, w), wp.vec3, d)
         self.steps = self._buffer((h, w, 2), wp.float32, d)
         self.conf = self._buffer((h, w, 2), wp.float32, d)
+        self.wplus = self._buffer((h, w, 2), wp.float32, d)
         self.sums = wp.zeros(3, dtype=wp.float64, device=d)
         self._views = None
         self.last = {}
@@ -210,7 +216,8 @@ class DepthRefiner(Stage):
         self._mp = material_params(s.material)
         self._lp = s.lp
         robust = 1 if cfg.robust == "cauchy" else 0
-        sigma = cfg.sigma if cfg.sigma is not None else CAUCHY_C * self._scale()
+        self.scale = cfg.sigma / CAUCHY_C if cfg.sigma is not None else self._scale()
+        sigma = CAUCHY_C * self.scale
         self.sigma = sigma
         e0, tr, cnt = self._evaluate(self.depth, self.albedo, sigma, robust)
         if cnt == 0:
@@ -249,8 +256,11 @@ class DepthRefiner(Stage):
         lam = mu * tr / (2.0 * max(cnt, 1.0))
         self._targets(lam if lam > 0 else 1e-12)
         warp().copy(self.albedo, self.albedo_new)
+        kept = None
+        if cfg.normals == "test":
+            kept = self._select(sigma, self.scale)
         self.last = {"energy": history, "start_energy": start_energy, "accepted": accepted, "rejected": rejected,
-                     "sigma": sigma, "mu": mu}
+                     "sigma": sigma, "mu": mu, "kept_pixel_normals": kept}
 
     def fetch(self) -> dict:
         """``depth`` (H, W) (0 outside the mask), ``normals`` (H, W, 3), ``albedo`` (H, W, 3), ``residual`` (H, W)
@@ -273,6 +283,19 @@ class DepthRefiner(Stage):
         super().close()
 
     # ------------------------------------------------------------------ pieces
+
+    def _select(self, sigma: float, scale: float) -> int:
+        """``normals="test"``: the surface's normals, or the start's where the data reject the surface's; returns
+        the pixels that kept the start's."""
+        wp = warp()
+        s = self.solver
+        h, w = self.shape
+        counts = wp.zeros(1, dtype=wp.int32, device=self.device)
+        wp.launch(select_normals_kernel, dim=(h, w),
+                  inputs=[self.depth, self.mask, *self._edges(), s.images, s.valid, self.cam, self._lp, self._mp,
+                          self.albedo, float(sigma), float(scale), CHI2_2_99],
+                  outputs=[self.normals, counts], device=self.device)
+        return int(counts.numpy()[0])
 
     def _edges(self) -> tuple:
         """``(nref, k, min_nz)`` of the kernels' step rule (``k = 0``: central differences)."""
@@ -321,7 +344,7 @@ class DepthRefiner(Stage):
         wp.launch(refine_targets_kernel, dim=(h, w),
                   inputs=[self.depth, self.mask, *self._edges(), self.cam, self.hess, self.grad, float(lam),
                           int(self.config.normals == "pixel")],
-                  outputs=[self.steps, self.conf, self.normals], device=self.device)
+                  outputs=[self.steps, self.conf, self.wplus, self.normals], device=self.device)
 
     def _view(self, a):
         if self.device.startswith("cuda"):
@@ -337,8 +360,9 @@ class DepthRefiner(Stage):
                               "pip install 'gpps[cuda]'")
         if cuda:
             wp.synchronize_device(self.device)
+        split = self._view(self.wplus) if self.config.edges == "bilateral" else None
         ok = self.system.step_increment(self._view(self.steps), self._view(self.conf), self._view(self.depth),
-                                        self._view(self.trial))
+                                        self._view(self.trial), split)
         if cuda:
             _taichi.ti.sync()
         return ok

@@ -142,7 +142,7 @@ class DeviceSystem(Stage):
                            *self._cam[1:], float(cfg.min_nz), h, w)
         return self._solve_assembled(out, reference_depth, outside, self._weighted)
 
-    def step_increment(self, steps, conf, base, out) -> bool:
+    def step_increment(self, steps, conf, base, out, wplus=None) -> bool:
         """Solve the weighted system of per-pixel step *increments* and confidences and move ``base`` by its
         solution into ``out``, on the device: :class:`gpps.pipeline.depth_refine.DepthRefiner`'s Gauss-Newton
         step (:mod:`gpps.kernels.depth_refine`).  Increments, not targets: with zero increments the solution
@@ -156,6 +156,8 @@ class DeviceSystem(Stage):
             base: (H, W) float32 depth to move.
             out: (H, W) float32: ``u(out) = u(base) + du`` with ``du`` of mean 0 per component (``u``: the
                 log-depth under perspective, the depth otherwise); ``base`` where a pixel is not in the system.
+            wplus: optional (H, W, 2) float32 forward shares of each pixel's term along j and i (BiNI's ``w+``;
+                None: 1/2, the central split).
 
         Returns:
             False when fewer than 2 pixels have positive confidences (nothing written).
@@ -166,14 +168,14 @@ class DeviceSystem(Stage):
         h, w = self.shape
         F["st"].fill(0)
         KW.assemble_targets(steps, conf, F["mask"], F["gj"], F["gi"], F["cj"], F["ci"], F["st"], h, w)
-        if not self._solve_system(1):
+        if not self._solve_system(1, wplus):
             return False
         d = integ._ensure_device()
         KW.component_sums(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], F["cmax"], F["cmin"], F["st"], h, w)
         KW.depth_add(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], base, out, self._cam[0], h, w)
         return True
 
-    def _solve_system(self, weighted: int) -> bool:
+    def _solve_system(self, weighted: int, wplus=None) -> bool:
         """Edges, levels, the coarsest pseudo-inverse and the CG from ``z = 0`` once ``gj, gi, cj, ci`` and the
         statistics are assembled; False (``last`` holds the invalid count) when fewer than 2 pixels are valid."""
         integ, F = self.integrator, self._F
@@ -189,8 +191,12 @@ class DeviceSystem(Stage):
             self._label(h, w)
         else:
             F["lab"].copy_from(F["lab_mask"])
-        KW.assemble_edges(F["gj"], F["gi"], F["cj"], F["ci"], F["st"], weighted, d["wx"], d["wy"], d["dg"],
-                          d["b"], h, w)
+        if wplus is None:
+            KW.assemble_edges(F["gj"], F["gi"], F["cj"], F["ci"], F["st"], weighted, d["wx"], d["wy"], d["dg"],
+                              d["b"], h, w)
+        else:
+            KW.assemble_edges_split(F["gj"], F["gi"], F["cj"], F["ci"], wplus, F["st"], d["wx"], d["wy"], d["dg"],
+                                    d["b"], h, w)
         sh, of = d["shapes"], d["offs"]
         alpha = 1.0 if weighted else 0.5  # Integrator._upload_levels' rule
         for k in range(len(sh) - 1):
