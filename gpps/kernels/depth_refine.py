@@ -154,6 +154,26 @@ def slope_normal(cam: CameraParams, i: int, j: int, alpha: float, gamma: float):
 
 
 @wp.func
+def surface_or_reference(depth: wp.array2d(dtype=wp.float32), mask: wp.array2d(dtype=wp.uint8),
+                         nref: wp.array2d(dtype=wp.vec3), cam: CameraParams, i: int, j: int, ns: wp.vec3):
+    """The returned normal of pixel (i, j): the surface's ``ns``, except on the mask's border (a neighbour missing
+    along j or i: the step there is a one-sided extrapolation, and at an occluding contour the surface is grazing,
+    so the depth does not fix the normal) or where ``ns`` faces away from the camera: there the reference
+    (per-pixel) normal, when it has one."""
+    h = depth.shape[0]
+    w = depth.shape[1]
+    inner = j > 0 and j < w - 1 and i > 0 and i < h - 1
+    if inner:
+        inner = (mask[i, j - 1] != wp.uint8(0) and mask[i, j + 1] != wp.uint8(0) and mask[i - 1, j] != wp.uint8(0)
+                 and mask[i + 1, j] != wp.uint8(0))
+    v = view_dir(cam, pixel_point(cam, i, j, depth[i, j]))
+    nr = nref[i, j]
+    if (not inner or wp.dot(ns, v) <= 0.0) and wp.length(nr) > 1.0e-6:
+        return wp.normalize(nr)
+    return ns
+
+
+@wp.func
 def cauchy_weight(r: float, sigma: float, robust: int):
     if robust == 0:
         return 1.0
@@ -343,7 +363,7 @@ def refine_targets_kernel(
 ):
     """Per pixel (dim (H, W)): the majorant's step increments ``steps[i, j] = (a* - a0, c* - c0)`` and confidences
     ``conf[i, j] = (c_j, c_i)`` (step units), and ``normals``: with ``pixel_normals`` the Levenberg-Marquardt
-    normal (module docstring), else the surface's (of ``s0``).  Off the mask: zeros (the integrator drops the
+    normal (module docstring), else the surface's (of ``s0``; :func:`surface_or_reference` on the mask's border).  Off the mask: zeros (the integrator drops the
     pixel)."""
     i, j = wp.tid()
     if mask[i, j] == wp.uint8(0):
@@ -381,7 +401,10 @@ def refine_targets_kernel(
     if pixel_normals != 0 and det > 0.0:
         sa = al - (a22 * g[0] - a12 * g[1]) / det
         sc = ga - (a11 * g[1] - a12 * g[0]) / det
-    normals[i, j] = slope_normal(cam, i, j, sa, sc)
+    n_out = slope_normal(cam, i, j, sa, sc)
+    if pixel_normals == 0:
+        n_out = surface_or_reference(depth, mask, nref, cam, i, j, n_out)
+    normals[i, j] = n_out
 
 
 @wp.kernel(enable_backward=False)
@@ -475,7 +498,8 @@ def select_normals_kernel(
         normals[i, j] = wp.vec3(0.0)
         return
     s = steps_at(depth, mask, cam, nref, edge_k, min_nz, i, j)
-    ns = slope_normal(cam, i, j, s[0] * step_scale_j(cam), s[1] * step_scale_i(cam))
+    ns = surface_or_reference(depth, mask, nref, cam, i, j,
+                              slope_normal(cam, i, j, s[0] * step_scale_j(cam), s[1] * step_scale_i(cam)))
     out = ns
     nr = nref[i, j]
     if wp.length(nr) > 1.0e-6:
