@@ -460,6 +460,12 @@ def test_refinement_recovers_shadowed_pixels(device, kind):
     print(f"  pixel normals: MAEN {e_px:.3f}")
     assert e_px < 0.5 * e["off"][0]
     assert np.allclose(px.depth[m], on.depth[m])  # (the same surface: only the returned normals differ)
+    tst = _ron(device, case, refine=True, refine_config=DepthRefineConfig(normals="test"))
+    e_t = normal_errors(tst.normals, case["normals"], m)["mean"]
+    kept = tst.refinement["kept_pixel_normals"]
+    print(f"  test normals: MAEN {e_t:.3f}, {kept} pixels kept their own")
+    assert e_t < 0.6 * e["off"][0] and 0 <= kept < m.sum()
+    assert on.refinement["kept_pixel_normals"] is None
 
 
 def test_refinement_keeps_a_scene_without_shadows(device):
