@@ -209,13 +209,14 @@ def _diligent_subset(obj: str, dst: Path) -> Path:
     return dst
 
 
-def _diligent(device: str) -> list[dict]:
+def _diligent(device: str, methods=()) -> list[dict]:
+    """The 10-image subsets of ball and bear: least squares, the pipeline, and the other ``methods`` asked for."""
     rows = []
     with tempfile.TemporaryDirectory(prefix="gpps-dev-diligent-") as tmp:
         for obj in ("ball", "bear"):
             folder = _diligent_subset(obj, Path(tmp) / obj)
             files = (folder / "filenames.txt").read_text().split()
-            for m in ("ls", "pipeline"):
+            for m in ("ls", "pipeline", *[x for x in methods if x not in ("ls", "pipeline", "pipeline_shadows")]):
                 r = {"object": obj, "method": m, "files": files, **_run(folder, m, device)}
                 rows.append(r)
                 print(f"diligent {obj} 10 images {m}: MAEN {r['maen']:.2f} deg ({r['seconds']:.1f} s)", flush=True)
@@ -306,7 +307,7 @@ def main(argv=None):
         "by_method_lights": _means(rows, lambda r: (r["method"], r["n_lights"])),
         "non_diffuse_by_method_lights": _means(non_diffuse, lambda r: (r["method"], r["n_lights"])),
     }
-    dil = [] if args.no_diligent else _diligent(args.device)
+    dil = [] if args.no_diligent else _diligent(args.device, args.methods)
     dil_table = _md_table(["object", "images (1-based)", "method", "MAEN deg", "seconds"],
                           [[r["object"], "1,10,20,...,90", r["method"], _fmt(r["maen"]), f"{r['seconds']:.1f}"] for r in dil])
     timing = _timing_table(rows, captures, t_render)

@@ -260,15 +260,15 @@ class RONConfig:
             or depth is the unknown, each pixel's normal that of the surface, a robust (Cauchy) misfit over every
             valid observation, Levenberg-Marquardt steps solved by the rounds' integrator on the device
             (:class:`gpps.pipeline.depth_refine.DepthRefiner`).  Pixels that lost observations (cast shadows,
-            saturation) take their normal from the surface their neighbours fix.  The returned normals are each
-            pixel's Levenberg-Marquardt normal at the refined surface, the depth the refined one.  Needs
+            saturation) take their normal from the surface their neighbours fix.  The returned normals are the refined
+            surface's (``refine_config.normals``; on the mask's border each pixel's own), the depth the refined one.  Needs
             ``integrate`` and a plain multigrid rounds' integrator.  Off by default: on the Mitsuba development
-            set (perf/results/dev_eval_cpu_refine.md, 40 captures) it was better on 16 and worse on 24 (non-diffuse
-            means 18.42 -> 20.33 deg with 3 lights, 5.60 -> 8.16 with 12), better on height fields and concavities
-            (12 lights: bowl 3.08 -> 2.75, ridges 10.6 -> 7.1) and much worse where the depth is discontinuous
-            (sphere on a plane, 12 lights: 2.76 -> 9.88): a pixel's central differences across a depth edge give it a
-            wrong normal that one step from it cannot undo.  On the analytic bumps with exact cast shadows
-            (tests/test_depth_refine.py) it cuts the MAEN by 2-3x.
+            set (perf/results/dev_eval_cpu_refine_table.md, 40 captures) it is better on 28 and worse on 12
+            (non-diffuse means 18.42 -> 17.00 deg with 3 lights, 5.60 -> 5.93 with 12), better on height fields,
+            concavities and rough conductors (12 lights: bowl 3.08 -> 2.52, ridges 10.6 -> 5.7), worse on reliefs of
+            one- or two-pixel facets (steps, 12 lights: 8.85 -> 14.4; a surface on the pixel grid cannot hold a wall
+            one pixel wide) and on the torus under point lights (10.8 -> 17.1): reliefs are what many users scan.
+            DiLiGenT, 96 images (final check, H100): ball 1.7875 -> 1.7475, bear 4.5741 -> 4.1360.
         refine_config: its settings (:class:`gpps.pipeline.depth_refine.DepthRefineConfig`).
     """
 

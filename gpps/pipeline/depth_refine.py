@@ -28,11 +28,11 @@ energy by less than ``tol`` of it, after ``max_iterations`` accepted steps, or w
 ``1e8`` times its start.  The images, observations, depth and albedo stay in device buffers (the pixel
 solver's frame: :meth:`DepthRefiner.upload_from_solver`); per iteration three float64 sums come back.
 
-Measured (CPU; the development set decides the default, DiLiGenT is the final check): the analytic Gaussian bumps
-with exact cast shadows, 4 lights, MAEN 1.24 -> 0.37 deg (directional) and 1.02 -> 0.45 (point); the Mitsuba
-development set (perf/results/dev_eval_cpu_refine.md) worse on 24 of 40 captures, where the depth is discontinuous
-(a pixel's differences across a depth edge) and with 3 lights; DiLiGenT 96 images (H100) ball 1.7875 -> 1.8001,
-bear 4.5741 -> 4.6960.  So RON runs it only when asked (``RONConfig.refine``).
+Measured (the development set decides the default, DiLiGenT is the final check): the analytic Gaussian bumps with
+exact cast shadows, 4 lights, MAEN 1.24 -> 0.43 deg (directional) and 1.02 -> 0.48 (point); the Mitsuba development
+set (perf/results/dev_eval_cpu_refine_table.md, 40 captures) better on 28 and worse on 12, worst on reliefs of
+one-pixel facets (steps) and the torus under point lights; DiLiGenT 96 images (H100) ball 1.7875 -> 1.7475, bear
+4.5741 -> 4.1360.  RON runs it when asked (``RONConfig.refine``: the reasons there).
 
 Outputs: the refined depth, its normals (``DepthRefineConfig.normals``: the surface's by default, or each pixel's
 Levenberg-Marquardt step toward its own data, :func:`gpps.kernels.depth_refine.refine_targets_kernel`), the
