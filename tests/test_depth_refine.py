@@ -399,6 +399,12 @@ def test_config_is_checked():
         RONConfig(refine=True, refine_config={"robust": "cauchy"})
     with pytest.raises(TypeError, match="refine"):
         RONConfig(refine="yes")
+    with pytest.raises(ValueError, match="refine: refines the integrated depth"):
+        RONConfig(refine=True, integrate=False)
+    import gpps
+
+    with pytest.raises(ValueError, match="refine: refines the integrated depth"):
+        gpps.FolderConfig(refine=True, integrate=False)
 
 
 def test_refiner_checks_its_inputs(device):
@@ -479,3 +485,15 @@ def test_refinement_keeps_a_scene_without_shadows(device):
     b = normal_errors(on.normals, case["normals"], m)["mean"]
     print(f"\nno shadows: MAEN {a:.4f} -> {b:.4f}")
     assert b <= a + 0.01
+
+
+def test_cli_refine_flag():
+    """``gpps reconstruct --refine`` sets FolderConfig.refine (off without the flag)."""
+    import argparse
+
+    from gpps.cli.reconstruct import add_reconstruct_options, folder_config
+
+    p = argparse.ArgumentParser()
+    add_reconstruct_options(p)
+    assert folder_config(p.parse_args(["--refine"])).refine is True
+    assert folder_config(p.parse_args([])).refine is False

@@ -138,6 +138,8 @@ class FolderConfig:
         check_choices(self)
         check_bool("cast_shadows", self.cast_shadows)
         check_bool("refine", self.refine)
+        if self.refine and not self.integrate:
+            raise ValueError("refine: refines the integrated depth, expected integrate=True, got integrate=False")
         if not isinstance(self.models, (tuple, list)) or not all(isinstance(b, str) for b in self.models):
             raise TypeError(f"models: expected a tuple of reflectance model names, got {self.models!r}")
         object.__setattr__(self, "models", tuple(self.models))
@@ -432,6 +434,8 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
     ds = cap.dataset
     n, h, w = ds.images.shape[:3]
     report["method"] = config.method
+    if config.refine and (config.method != "ron" or config.solver == "none"):
+        report["refine_ignored"] = "refine: runs after RON's rounds (method='ron' with a nonlinear solver)"
     lights = PointLights(ds.light_positions) if ds.light_positions is not None else DirectionalLights(ds.light_directions)
     report["lights"] = lights.kind
     material, estimate, given_names = _material(ds, config)
@@ -550,6 +554,8 @@ def reconstruct_folder(folder, config: FolderConfig | None = None, *, lights=Non
     if uncalibrated:
         sol = _uncalibrated(cap, camera, report, device, progress)
         sol.update(depth=None, depth_mask=None)
+        if config.refine:
+            report["refine_ignored"] = "refine: runs after RON's rounds, which an uncalibrated capture does not run"
     else:
         sol = _calibrated(cap, camera, config, reference, source, report, device, progress, pixel_solve)
         reference, source = sol["reference"], sol["source"]

@@ -305,6 +305,8 @@ class RONConfig:
     def __post_init__(self):
         check_choices(self)
         check_bool("refine", self.refine)
+        if self.refine and not self.integrate:
+            raise ValueError("refine: refines the integrated depth, expected integrate=True, got integrate=False")
         if not isinstance(self.refine_config, DepthRefineConfig):
             raise TypeError(f"refine_config: expected gpps.pipeline.depth_refine.DepthRefineConfig, got "
                             f"{type(self.refine_config).__name__}")
