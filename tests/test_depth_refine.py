@@ -474,6 +474,21 @@ def test_refinement_recovers_shadowed_pixels(device, kind):
     assert on.refinement["kept_pixel_normals"] is None
 
 
+def test_refinement_reports_progress(device):
+    """RON's progress callback hears each accepted refinement step."""
+    case = bump_case("directional", 4, 32)
+    msgs = []
+    n = len(case["lights"])
+    ron = RON((n,) + case["mask"].shape, case["camera"], case["lights"], case["material"], case["mask"],
+              RONConfig(refine=True), device=device)
+    try:
+        res = ron.run(case["images"], reference_depth=case["reference_depth"], progress=lambda d, t, m: msgs.append(m))
+    finally:
+        ron.close()
+    steps = [m for m in msgs if m.startswith("depth refinement: energy")]
+    assert len(steps) == res.refinement["accepted"] >= 1
+
+
 def test_refinement_keeps_a_scene_without_shadows(device):
     """12 lights from near the view axis (slant 25 deg: no cast shadows, every pixel well determined): the
     refinement must not make it worse (measured 0.064 -> 0.048 deg)."""

@@ -1122,7 +1122,8 @@ class RON:
         refinement = None
         if c.refine and depth_out is not None:
             step(total, total, "depth refinement")
-            depth_out, refinement = self._refine(out, depth_out, depth_mask, material, timings)
+            depth_out, refinement = self._refine(out, depth_out, depth_mask, material, timings,
+                                                 progress=lambda d, t, msg: step(total, total, msg))
         shadowed = sh.shadowed() if sh is not None and shadow_stats else None
         step(total, total, "done")
         timings["total"] = time.perf_counter() - t_all
@@ -1290,7 +1291,7 @@ class RON:
         timings["integration"] += time.perf_counter() - t
         return integ.depth, integ.mask, float(integ.residual)
 
-    def _refine(self, out: dict, depth, depth_mask, material, timings) -> tuple[np.ndarray, dict]:
+    def _refine(self, out: dict, depth, depth_mask, material, timings, progress=None) -> tuple[np.ndarray, dict]:
         """``RONConfig.refine``: the depth refinement from the final depth (its dropped pixels filled by the
         mean), on the solver's frame; ``out``'s normals, albedo and residual are replaced.  Returns the refined
         depth (0 outside ``depth_mask``) and the refiner's record."""
@@ -1303,7 +1304,7 @@ class RON:
         ref = DepthRefiner(self.solver, self.integrator, self.config.refine_config)
         try:
             ref.upload_from_solver(start)
-            ref.step()
+            ref.step(progress)
             got = ref.fetch()
         finally:
             ref.close()
