@@ -512,3 +512,28 @@ def test_cli_refine_flag():
     add_reconstruct_options(p)
     assert folder_config(p.parse_args(["--refine"])).refine is True
     assert folder_config(p.parse_args([])).refine is False
+
+
+def test_refinement_survives_ragged_masks_and_missing_observations(device):
+    """Isolated mask pixels (no neighbour: no step), a hole, two parts, and 40 % of the observations invalid: every
+    returned normal is a finite unit vector facing the camera and every depth finite and positive."""
+    case = bump_case("directional", 6, 48, slant=50.0)
+    m = case["mask"].copy()
+    m[10:14, :] = False  # two parts
+    m[30:34, 20:24] = False  # a hole
+    m[5, 5::6] = True
+    m[4, :] = m[6, :] = False  # a row of isolated pixels
+    rng = np.random.default_rng(1)
+    valid = rng.uniform(size=(6,) + m.shape) > 0.4
+    n = len(case["lights"])
+    ron = RON((n,) + m.shape, case["camera"], case["lights"], case["material"], m, RONConfig(refine=True), device=device)
+    try:
+        res = ron.run(case["images"], reference_depth=case["reference_depth"], valid=valid)
+    finally:
+        ron.close()
+    nrm = res.normals[m]
+    assert np.all(np.isfinite(nrm)) and np.allclose(np.linalg.norm(nrm, axis=-1), 1.0, atol=1e-4)
+    assert np.all(nrm[:, 2] > 0)
+    d = res.depth[res.depth_mask]
+    assert np.all(np.isfinite(d)) and np.all(d > 0)
+    assert res.refinement["accepted"] >= 0 and np.all(np.isfinite(res.refinement["energy"]))
