@@ -32,7 +32,11 @@ Measured (the development set decides the default, DiLiGenT is the final check):
 exact cast shadows, 4 lights, MAEN 1.24 -> 0.43 deg (directional) and 1.02 -> 0.48 (point); the Mitsuba development
 set (perf/results/dev_eval_cpu_refine_table.md, 40 captures) better on 28 and worse on 12, worst on reliefs of
 one-pixel facets (steps) and the torus under point lights; DiLiGenT 96 images (H100) ball 1.7875 -> 1.7475, bear
-4.5741 -> 4.1360.  RON runs it when asked (``RONConfig.refine``: the reasons there).
+4.5741 -> 4.1360.  RON runs it when asked (``RONConfig.refine``: the reasons there).  Where it loses, the energy
+is to blame, not the solver: started from the true depth of the Mitsuba sphere on a plane (surface normals 0.23
+deg), 8 steps lower the energy by 9 % (12 directional lights) and 18 % (12 point lights) and move the normals to 1.81
+and 7.97 deg: the model's misfit (interreflections, the BRDF) has its minimum off the true surface, most under point
+lights, whose shading the shape also moves through the light directions and fall-off.
 
 Outputs: the refined depth, its normals (``DepthRefineConfig.normals``: the surface's by default, or each pixel's
 Levenberg-Marquardt step toward its own data, :func:`gpps.kernels.depth_refine.refine_targets_kernel`), the
