@@ -56,6 +56,7 @@ from gpps import _taichi
 from gpps._check import check_choices, check_number
 from gpps._runtime import warp
 from gpps.kernels.depth_refine import refine_eval_kernel, refine_targets_kernel, residual_sample_kernel, select_normals_kernel
+from gpps.lights import PointLights
 from gpps.pipeline.integration import Integrator
 from gpps.pipeline.integration_rounds import DeviceSystem
 from gpps.pipeline.params import camera_params, material_params
@@ -162,6 +163,11 @@ class DepthRefiner(Stage):
         self.conf = self._buffer((h, w, 2), wp.float32, d)
         self.wplus = self._buffer((h, w, 2), wp.float32, d)
         self.sums = wp.zeros(3, dtype=wp.float64, device=d)
+        self.counts = wp.zeros(1, dtype=wp.int32, device=d)
+        # the robust scale's sample: every stride-th pixel in each direction, at most SCALE_PIXELS of them
+        self._stride = max(1, int(math.ceil(math.sqrt(h * w / SCALE_PIXELS))))
+        self.sample = self._buffer((n, (h + self._stride - 1) // self._stride, (w + self._stride - 1) // self._stride),
+                                   wp.float32, d)
         self._views = None
         self.last = {}
 
@@ -179,15 +185,10 @@ class DepthRefiner(Stage):
                 (``edges="bilateral"``; None: central differences).
         """
         h, w = self.shape
-        m = self.integrator.mask
-        dep = np.asarray(depth, dtype=np.float32)
-        if dep.shape != (h, w):
-            raise ValueError(f"depth: expected shape ({h}, {w}), got {dep.shape}")
-        self._check_depth(dep[m])
+        self._set_depth(depth)
         alb = np.asarray(albedo, dtype=np.float32)
         if alb.shape != (h, w, 3):
             raise ValueError(f"albedo: expected shape ({h}, {w}, 3), got {alb.shape}")
-        self.depth.assign(np.where(m, dep, 1.0).astype(np.float32))
         self.albedo.assign(np.nan_to_num(alb))
         if normals is None:
             self.nref.zero_()
@@ -199,21 +200,23 @@ class DepthRefiner(Stage):
 
     def upload_from_solver(self, depth) -> None:
         """As :meth:`upload` with the solver's albedo and normals buffers (device to device)."""
-        h, w = self.shape
-        dep = np.asarray(depth, dtype=np.float32)
-        if dep.shape != (h, w):
-            raise ValueError(f"depth: expected shape ({h}, {w}), got {dep.shape}")
-        m = self.integrator.mask
-        self._check_depth(dep[m])
-        self.depth.assign(np.where(m, dep, 1.0).astype(np.float32))
+        self._set_depth(depth)
         warp().copy(self.albedo, self.solver.albedo)
         warp().copy(self.nref, self.solver.normals)
 
-    def _check_depth(self, d) -> None:
+    def _set_depth(self, depth) -> None:
+        """Check ``depth`` (H, W) and copy it into :attr:`depth` (1 outside the mask)."""
+        h, w = self.shape
+        m = self.integrator.mask
+        dep = np.asarray(depth, dtype=np.float32)
+        if dep.shape != (h, w):
+            raise ValueError(f"depth: expected shape ({h}, {w}), got {dep.shape}")
+        d = dep[m]
         if not np.all(np.isfinite(d)):
             raise ValueError("depth: expected finite values inside the mask")
-        if (self.solver.camera.is_perspective or self.solver.lights.__class__.__name__ == "PointLights") and np.any(d <= 0):
+        if (self.solver.camera.is_perspective or isinstance(self.solver.lights, PointLights)) and np.any(d <= 0):
             raise ValueError("depth: expected values > 0 inside the mask (perspective camera or point lights)")
+        self.depth.assign(np.where(m, dep, 1.0).astype(np.float32))
 
     def step(self, progress=None) -> None:
         """Levenberg-Marquardt on the depth (module docstring); ``progress(done, total, message)``."""
@@ -299,7 +302,8 @@ class DepthRefiner(Stage):
         wp = warp()
         s = self.solver
         h, w = self.shape
-        counts = wp.zeros(1, dtype=wp.int32, device=self.device)
+        counts = self.counts
+        counts.zero_()
         wp.launch(select_normals_kernel, dim=(h, w),
                   inputs=[self.depth, self.mask, *self._edges(), s.images, s.valid, self.cam, self._lp, self._mp,
                           self.albedo, float(sigma), float(scale), CHI2_2_99],
@@ -317,14 +321,10 @@ class DepthRefiner(Stage):
         valid observations of a grid of at most :data:`SCALE_PIXELS` pixels (one read of their residuals)."""
         wp = warp()
         s = self.solver
-        h, w = self.shape
-        n = s.shape[0]
-        stride = max(1, int(math.ceil(math.sqrt(h * w / SCALE_PIXELS))))
-        hs, ws = (h + stride - 1) // stride, (w + stride - 1) // stride
-        out = wp.empty((n, hs, ws), dtype=wp.float32, device=self.device)
-        wp.launch(residual_sample_kernel, dim=(n, hs, ws),
+        out = self.sample
+        wp.launch(residual_sample_kernel, dim=out.shape,
                   inputs=[self.depth, self.mask, *self._edges(), s.images, s.valid, self.cam, self._lp, self._mp,
-                          self.albedo, stride],
+                          self.albedo, self._stride],
                   outputs=[out], device=self.device)
         r = out.numpy()
         r = r[r >= 0]
