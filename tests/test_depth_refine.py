@@ -475,7 +475,7 @@ def test_refinement_recovers_shadowed_pixels(device, kind):
 
 
 def test_refinement_reports_progress(device):
-    """RON's progress callback hears each accepted refinement step."""
+    """RON's progress callback hears the refinement's start and each of its steps, accepted or rejected."""
     case = bump_case("directional", 4, 32)
     msgs = []
     n = len(case["lights"])
@@ -487,6 +487,8 @@ def test_refinement_reports_progress(device):
         ron.close()
     steps = [m for m in msgs if m.startswith("depth refinement: energy")]
     assert len(steps) == res.refinement["accepted"] >= 1
+    assert sum(m.startswith("depth refinement: start energy") for m in msgs) == 1
+    assert sum(m.startswith("depth refinement: step rejected") for m in msgs) == res.refinement["rejected"]
 
 
 def test_refinement_keeps_a_scene_without_shadows(device):

@@ -237,6 +237,8 @@ class DepthRefiner(Stage):
         accepted = rejected = 0
         history = [e0]
         total = max(cfg.max_iterations, 1)
+        if progress is not None:
+            progress(0, total, f"depth refinement: start energy {e0:.4g}")
         while accepted < cfg.max_iterations and mu < MU_START * MU_SPAN:
             lam = mu * tr / (2.0 * max(cnt, 1.0))
             if not lam > 0:
@@ -260,6 +262,8 @@ class DepthRefiner(Stage):
             else:
                 rejected += 1
                 mu *= MU_UP
+                if progress is not None:
+                    progress(accepted, total, f"depth refinement: step rejected (energy {e1:.4g}), damping x{MU_UP:g}")
                 # the model at the current depth again (the trial's evaluation overwrote it)
                 e0, tr, cnt = self._evaluate(self.depth, self.albedo, sigma, robust)
         # the final model's normals and albedo at the accepted depth
