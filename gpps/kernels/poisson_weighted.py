@@ -150,29 +150,29 @@ def depth_add(z: ti.template(), cj: ti.template(), lab: ti.template(), csum: ti.
 
 
 @ti.func
-def _flux_j(gj: ti.template(), cj: ti.template(), i, j, inv):
-    """(weight, flux) of the edge (i, j)-(i, j+1); 0 where either pixel is not valid."""
+def _edge(ca, cb, ga, gb, sa, sb, inv):
+    """(weight, flux) of the edge between pixels a and b with confidences ``ca, cb``, steps ``ga, gb`` and the shares
+    ``sa, sb`` of their terms on this edge (1/2 each, or BiNI's ``w+`` / ``1 - w+``); 0 where either is not valid."""
     wgt = ti.cast(0, ti.f64)
     flx = ti.cast(0, ti.f64)
-    a = cj[i, j] * inv * 0.5
-    b = cj[i, j + 1] * inv * 0.5
-    if cj[i, j] > 0 and cj[i, j + 1] > 0 and a + b > 0:
+    a = ca * inv * sa
+    b = cb * inv * sb
+    if ca > 0 and cb > 0 and a + b > 0:
         wgt = a + b
-        flx = wgt * ((a * gj[i, j] + b * gj[i, j + 1]) / wgt)
+        flx = wgt * ((a * ga + b * gb) / wgt)
     return wgt, flx
+
+
+@ti.func
+def _flux_j(gj: ti.template(), cj: ti.template(), i, j, inv):
+    """(weight, flux) of the edge (i, j)-(i, j+1); 0 where either pixel is not valid."""
+    return _edge(cj[i, j], cj[i, j + 1], gj[i, j], gj[i, j + 1], 0.5, 0.5, inv)
 
 
 @ti.func
 def _flux_i(gi: ti.template(), ci: ti.template(), i, j, inv):
     """(weight, flux) of the edge (i, j)-(i+1, j)."""
-    wgt = ti.cast(0, ti.f64)
-    flx = ti.cast(0, ti.f64)
-    a = ci[i, j] * inv * 0.5
-    b = ci[i + 1, j] * inv * 0.5
-    if ci[i, j] > 0 and ci[i + 1, j] > 0 and a + b > 0:
-        wgt = a + b
-        flx = wgt * ((a * gi[i, j] + b * gi[i + 1, j]) / wgt)
-    return wgt, flx
+    return _edge(ci[i, j], ci[i + 1, j], gi[i, j], gi[i + 1, j], 0.5, 0.5, inv)
 
 
 @ti.kernel
@@ -215,27 +215,15 @@ def assemble_edges(gj: ti.template(), gi: ti.template(), cj: ti.template(), ci: 
 @ti.func
 def _flux_j_split(gj: ti.template(), cj: ti.template(), wpl: ti.types.ndarray(), i, j, inv):
     """:func:`_flux_j` with the pixels' shares ``w+`` (forward) and ``1 - w+`` (backward) instead of 1/2 each."""
-    wgt = ti.cast(0, ti.f64)
-    flx = ti.cast(0, ti.f64)
-    a = cj[i, j] * inv * ti.cast(wpl[i, j, 0], ti.f64)
-    b = cj[i, j + 1] * inv * (1.0 - ti.cast(wpl[i, j + 1, 0], ti.f64))
-    if cj[i, j] > 0 and cj[i, j + 1] > 0 and a + b > 0:
-        wgt = a + b
-        flx = a * gj[i, j] + b * gj[i, j + 1]
-    return wgt, flx
+    return _edge(cj[i, j], cj[i, j + 1], gj[i, j], gj[i, j + 1], ti.cast(wpl[i, j, 0], ti.f64),
+                 1.0 - ti.cast(wpl[i, j + 1, 0], ti.f64), inv)
 
 
 @ti.func
 def _flux_i_split(gi: ti.template(), ci: ti.template(), wpl: ti.types.ndarray(), i, j, inv):
     """:func:`_flux_i` with the pixels' shares (``wpl[..., 1]``)."""
-    wgt = ti.cast(0, ti.f64)
-    flx = ti.cast(0, ti.f64)
-    a = ci[i, j] * inv * ti.cast(wpl[i, j, 1], ti.f64)
-    b = ci[i + 1, j] * inv * (1.0 - ti.cast(wpl[i + 1, j, 1], ti.f64))
-    if ci[i, j] > 0 and ci[i + 1, j] > 0 and a + b > 0:
-        wgt = a + b
-        flx = a * gi[i, j] + b * gi[i + 1, j]
-    return wgt, flx
+    return _edge(ci[i, j], ci[i + 1, j], gi[i, j], gi[i + 1, j], ti.cast(wpl[i, j, 1], ti.f64),
+                 1.0 - ti.cast(wpl[i + 1, j, 1], ti.f64), inv)
 
 
 @ti.kernel
