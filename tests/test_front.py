@@ -11,7 +11,7 @@ from gpps._runtime import warp
 from gpps.host.dgmc import DGMCConfig, dgmc_start, front_rings
 from gpps.host.merge import ranks_better
 from gpps.names import FLAG_FEW_OBSERVATIONS
-from gpps.pipeline.front import DeviceFront, propagate_front
+from gpps.pipeline.front import DeviceFront, propagate_front, propagate_front_device
 from gpps.pipeline.solver import PixelSolver, SolverConfig
 
 _FIELDS = ("normals", "albedo", "residual", "flags", "iterations", "ring", "source", "won")
@@ -83,6 +83,35 @@ def test_device_front_equals_the_host_loop(device, scene, size, camera, brdf, li
     # the frame already on the solver (images=None, as RON calls it): the same front
     again = propagate_front(solver, None, sc.mask, hm, sol, keep_better=keep_better, **kw)
     _assert_same(again, ref)
+
+
+@pytest.mark.parametrize("keep_better", [True, False])
+def test_front_from_and_into_the_solver(device, keep_better):
+    """propagate_front_device (RON's device rounds): the solution read from the solver's outputs and the merge
+    written back there is the host path's (the fetched FrontResult merged into the solve), bit for bit: normals,
+    albedo, residual and flags replaced, the front's evaluations added; and the start normals it returns are the
+    sources' merged normals of FrontResult.source."""
+    img, sc, solver, dg, sol, depth = _case(device, "bumps", 64, "perspective", "cook-torrance", "directional", 3)
+    hm = dg.highlight
+    kw = dict(gaussian=dg.gaussian, mean=dg.mean, keep_better=keep_better)
+    ref = propagate_front(solver, None, sc.mask, hm, sol, **kw)
+    # the solver's outputs hold the solve `sol` again (the front left its rings' solves there)
+    solver.set_mask(sc.mask)
+    solver.step()
+    again = solver.fetch(("normals", "albedo", "residual", "iterations", "flags"))
+    for k in again:
+        np.testing.assert_array_equal(again[k], sol[k], err_msg=k)
+    pix, nrm = propagate_front_device(solver, sc.mask, hm, **kw)
+    got = solver.fetch(("normals", "albedo", "residual", "iterations", "flags"))
+    for k in ("normals", "albedo", "residual", "flags"):
+        np.testing.assert_array_equal(got[k], getattr(ref, k), err_msg=k)
+    np.testing.assert_array_equal(got["iterations"], sol["iterations"] + ref.iterations)
+    has = ref.source[..., 0] >= 0
+    assert has.sum() > 50
+    np.testing.assert_array_equal(np.sort(pix), np.flatnonzero(has.ravel()))
+    want = ref.normals[ref.source[..., 0], ref.source[..., 1]].reshape(-1, 3)
+    order = np.argsort(pix)
+    np.testing.assert_array_equal(nrm[order], want[np.sort(pix)])
 
 
 @pytest.mark.parametrize("parallel", ["pixels", "lights"])

@@ -11,6 +11,9 @@ per listed pixel (the work of a ring is its size, not the image's):
   (4.17-4.18) among its 8 neighbours solved before its ring;
 * :func:`scatter_mask_kernel`: the solver's (cleared) mask is set on a ring (:meth:`PixelSolver.select_pixels`);
 * :func:`front_start_kernel`: each ring pixel starts from its source's current normal;
+* :func:`front_write_back_kernel` (after the last ring, one thread a pixel): the merged solution back into the
+  solver's outputs (RON's device rounds read them there), the front's evaluations added to the solver's;
+* :func:`front_source_normals_kernel` (every ring pixel): the merged normal of each ring pixel's source;
 * :func:`front_merge_kernel`: the ring's solve replaces the current solution where it ranks better, the rule of
   :func:`gpps.host.merge.ranks_better` (a lower residual on a pixel without ``FLAG_FEW_OBSERVATIONS``), or
   everywhere on the ring without ``keep_better``.  Unlike :func:`gpps.kernels.merge.merge_saved_kernel` (the same
@@ -25,7 +28,8 @@ step by step in the same order, the first candidate when none qualifies; tests/t
 
 import warp as wp
 
-__all__ = ["front_source_kernel", "scatter_mask_kernel", "front_start_kernel", "front_merge_kernel"]
+__all__ = ["front_source_kernel", "scatter_mask_kernel", "front_start_kernel", "front_merge_kernel",
+           "front_write_back_kernel", "front_source_normals_kernel"]
 
 
 @wp.func
@@ -199,3 +203,60 @@ def front_merge_kernel(
     cur_residual[i, j] = residual[i, j]
     cur_flags[i, j] = flags[i, j]
     won[i, j] = wp.uint8(1)
+
+
+@wp.kernel(enable_backward=False)
+def front_write_back_kernel(
+    normals: wp.array2d(dtype=wp.vec3),
+    albedo: wp.array2d(dtype=wp.vec3),
+    residual: wp.array2d(dtype=wp.float32),
+    flags: wp.array2d(dtype=wp.int32),
+    solve_iterations: wp.array2d(dtype=wp.int32),
+    front_iterations: wp.array2d(dtype=wp.int32),
+    out_normals: wp.array2d(dtype=wp.vec3),
+    out_albedo: wp.array2d(dtype=wp.vec3),
+    out_residual: wp.array2d(dtype=wp.float32),
+    out_flags: wp.array2d(dtype=wp.int32),
+    out_iterations: wp.array2d(dtype=wp.int32),
+):
+    """The front's merged solution into the solver's outputs (dim (H, W)): what the host path builds from the
+    fetched :class:`gpps.host.dgmc.FrontResult` (``normals``, ``albedo``, ``residual``, ``flags`` replaced, the
+    front's evaluations added to the solve's: ``iterations + front iterations``), left on the device.
+
+    Args:
+        normals .. flags: (H, W) the front's merged solution.
+        solve_iterations: (H, W) the solution's evaluations (before the rings' solves overwrote the solver's).
+        front_iterations: (H, W) the front solves' evaluations (0 off the rings).
+        out_normals .. out_iterations: (H, W) out: the solver's outputs.
+    """
+    i, j = wp.tid()
+    out_normals[i, j] = normals[i, j]
+    out_albedo[i, j] = albedo[i, j]
+    out_residual[i, j] = residual[i, j]
+    out_flags[i, j] = flags[i, j]
+    out_iterations[i, j] = solve_iterations[i, j] + front_iterations[i, j]
+
+
+@wp.kernel(enable_backward=False)
+def front_source_normals_kernel(
+    pixels: wp.array(dtype=wp.int32),
+    sources: wp.array(dtype=wp.int32),
+    width: int,
+    normals: wp.array2d(dtype=wp.vec3),
+    out: wp.array(dtype=wp.vec3),
+):
+    """The merged normal of each ring pixel's source (dim: ring pixels), for RON's start normals (the host path
+    reads them from the fetched :class:`gpps.host.dgmc.FrontResult`); a pixel without a source (-1) gets zero.
+
+    Args:
+        pixels: (P,) flat ring pixels; sources: (P,) their sources' flat indices (-1: none).
+        width: W.
+        normals: (H, W) the front's merged normals.
+        out: (P,) out.
+    """
+    t = wp.tid()
+    q = sources[t]
+    if q < 0:
+        out[t] = wp.vec3(0.0, 0.0, 0.0)
+    else:
+        out[t] = normals[q // width, q % width]

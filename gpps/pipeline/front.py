@@ -39,7 +39,7 @@ from gpps.kernels import front as fk
 from gpps.names import FLAG_FEW_OBSERVATIONS
 from gpps.pipeline.stage import Stage
 
-__all__ = ["DeviceFront", "propagate_front"]
+__all__ = ["DeviceFront", "propagate_front", "propagate_front_device"]
 
 _SOLUTION = (("normals", 3), ("albedo", 3), ("residual", 0), ("flags", 0))
 _UNSOLVED = 1 << 30  # the level of pixels no ring solves (off the mask, unreached highlights)
@@ -75,11 +75,12 @@ class DeviceFront(Stage):
         self.residual = wp.zeros((h, w), dtype=wp.float32, device=d)
         self.flags = wp.zeros((h, w), dtype=wp.int32, device=d)
         self.iterations = wp.zeros((h, w), dtype=wp.int32, device=d)
+        self.solve_iterations = wp.zeros((h, w), dtype=wp.int32, device=d)  # the solution's (write_back adds them)
         self.won = wp.zeros((h, w), dtype=wp.uint8, device=d)
         self._plan = None
         self._closed = False
 
-    def upload(self, mask, highlight, solution: dict, *, gaussian=None, mean=None,
+    def upload(self, mask, highlight, solution: dict | None, *, gaussian=None, mean=None,
                config: DGMCConfig | None = None) -> None:
         """Find the rings (:func:`gpps.host.dgmc.front_rings`) and copy them, the curvatures and the solution in.
 
@@ -88,7 +89,9 @@ class DeviceFront(Stage):
             highlight: (H, W) bool highlight region (:attr:`gpps.host.dgmc.DGMCResult.highlight`).
             solution: dict with (H, W, 3) ``normals`` and ``albedo`` and (H, W) ``residual`` and ``flags`` of a
                 solve of the mask: the sources are its non-highlight pixels; with ``keep_better`` its highlight
-                pixels are the alternative each ring's solve must beat.
+                pixels are the alternative each ring's solve must beat.  None: the solver's outputs, as its last
+                step left them (copied on the device: no host round trip; :meth:`write_back` returns the merged
+                solution there).
             gaussian, mean: (H, W) curvatures (4.16); None: the test of 4.17-4.18 is skipped (nearest neighbour).
             config: :class:`gpps.host.dgmc.DGMCConfig` (tolerance, widen_factor, widen_steps).
         """
@@ -101,7 +104,7 @@ class DeviceFront(Stage):
         hl = np.asarray(highlight, bool)
         if hl.shape != (h, w):
             raise ValueError(f"highlight: expected shape ({h}, {w}), got {hl.shape}")
-        for k, c in _SOLUTION:
+        for k, c in (_SOLUTION if solution is not None else ()):
             shp = (h, w, c) if c else (h, w)
             if k not in solution:
                 raise ValueError(f"solution: expected a dict with '{k}', got keys {sorted(solution)}")
@@ -122,10 +125,21 @@ class DeviceFront(Stage):
             self.pixels[:pixels.size].assign(pixels.astype(np.int32))
             level = np.where(m & ~hl, 0, np.where(ring > 0, ring, _UNSOLVED)).astype(np.int32)
             self.level.assign(level)
-        self.normals.assign(np.asarray(solution["normals"], np.float32))
-        self.albedo.assign(np.asarray(solution["albedo"], np.float32))
-        self.residual.assign(np.asarray(solution["residual"], np.float32))
-        self.flags.assign(np.asarray(solution["flags"], np.int32))
+        if solution is None:
+            wp = warp()
+            s = self.solver
+            for k in ("normals", "albedo", "residual", "flags"):
+                wp.copy(getattr(self, k), getattr(s, k))
+            wp.copy(self.solve_iterations, s.iterations)
+        else:
+            self.normals.assign(np.asarray(solution["normals"], np.float32))
+            self.albedo.assign(np.asarray(solution["albedo"], np.float32))
+            self.residual.assign(np.asarray(solution["residual"], np.float32))
+            self.flags.assign(np.asarray(solution["flags"], np.int32))
+            if "iterations" in solution:
+                self.solve_iterations.assign(np.asarray(solution["iterations"], np.int32))
+            else:
+                self.solve_iterations.zero_()
         self.iterations.zero_()
         self.won.zero_()
         self._plan = (ring, pixels, sizes, starts, rows, curv, cfg)
@@ -181,6 +195,39 @@ class DeviceFront(Stage):
         finally:
             s.set_config(old)
 
+    def write_back(self) -> None:
+        """The merged solution into the solver's outputs, on the device (:func:`front_write_back_kernel`): its
+        ``normals``, ``albedo``, ``residual`` and ``flags`` become the front's, its ``iterations`` the solution's
+        (as uploaded) plus the front solves' (the host path's ``FrontResult`` merge); nothing is copied to the host."""
+        self._check_open()
+        if self._plan is None:
+            raise RuntimeError("write_back: upload() first")
+        s = self.solver
+        h, w = s.shape[1:]
+        warp().launch(fk.front_write_back_kernel, dim=(h, w),
+                      inputs=[self.normals, self.albedo, self.residual, self.flags, self.solve_iterations,
+                              self.iterations],
+                      outputs=[s.normals, s.albedo, s.residual, s.flags, s.iterations], device=self.device)
+
+    def fetch_sources(self) -> tuple[np.ndarray, np.ndarray]:
+        """The ring pixels that have a source and their sources' merged normals (one gather on the device, two small
+        copies): ``(pixels (M,) int64 flat indices, normals (M, 3) float32)``."""
+        self._check_open()
+        if self._plan is None:
+            raise RuntimeError("fetch_sources: upload() first")
+        pixels = self._plan[1]
+        if pixels.size == 0:
+            return np.zeros(0, np.int64), np.zeros((0, 3), np.float32)
+        wp = warp()
+        w = self.solver.shape[2]
+        out = wp.empty(pixels.size, dtype=wp.vec3, device=self.device)
+        wp.launch(fk.front_source_normals_kernel, dim=pixels.size,
+                  inputs=[self.pixels, self.sources, w, self.normals], outputs=[out], device=self.device)
+        src = self.sources.numpy()[:pixels.size]
+        nrm = out.numpy()
+        has = src >= 0
+        return pixels[has].astype(np.int64), nrm[has]
+
     def fetch(self) -> FrontResult:
         """The merged solution and the front's diagnostics (copies owned by the caller)."""
         self._check_open()
@@ -208,6 +255,23 @@ class DeviceFront(Stage):
     def _check_open(self) -> None:
         if self._closed:
             raise RuntimeError("DeviceFront: the stage is closed")
+
+
+def propagate_front_device(solver, mask, highlight, *, gaussian=None, mean=None, config: DGMCConfig | None = None,
+                           keep_better: bool = True, progress=None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`propagate_front` from the solver's outputs and back into them, on the device: the solver's last step
+    (a solve of the mask) is the solution the rings start from and must beat, and the merged solution replaces it
+    there (:meth:`DeviceFront.write_back`), for RON's device rounds; no frame crosses to the host.
+
+    Returns:
+        ``(pixels, normals)``: the flat indices (M,) of the ring pixels that had a source, and (M, 3) their sources'
+        merged normals (what the host path reads off ``FrontResult.source`` for RON's start normals).
+    """
+    with DeviceFront(solver) as front:
+        front.upload(mask, highlight, None, gaussian=gaussian, mean=mean, config=config)
+        front.step(keep_better=keep_better, progress=progress)
+        front.write_back()
+        return front.fetch_sources()
 
 
 def propagate_front(solver, images, mask, highlight, solution: dict, *, gaussian=None, mean=None, depth=None,
