@@ -72,7 +72,7 @@ from gpps.material import Material
 from gpps.names import BRDF_NAMES, LOBE_PARAMETERS, LOBE_RANGES
 from gpps.pipeline.depth_refine import DepthRefineConfig, DepthRefiner
 from gpps.pipeline.dgmc import DeviceDGMC
-from gpps.pipeline.front import propagate_front
+from gpps.pipeline.front import propagate_front, propagate_front_device
 from gpps.pipeline.integration import Integrator, IntegratorConfig, warn_log_depth_span
 from gpps.pipeline.integration_rounds import DeviceSystem
 from gpps.pipeline.material import MaterialScorer
@@ -697,6 +697,10 @@ class RON:
                progress=None) -> np.ndarray:
         """The sampled fit energy of each candidate material, a batch at a time.
 
+        ``materials``: a list of :class:`Material`, or ``(material, names, values (K, len(names)))``: ``material``
+        with its lobe parameters ``names`` set to each row (:meth:`MaterialScorer.lobe_candidates`, no Material
+        built per candidate).
+
         The sample pixels stay resident in a :class:`gpps.pipeline.material.MaterialScorer` (uploaded again
         only when the images, depth or observation mask change: point lights move the depth each round);
         each batch of up to ``max_candidates`` candidates is one launch.  The energies equal
@@ -704,10 +708,17 @@ class RON:
         warm start (:meth:`MaterialScorer.set_start`), one start per pixel.  ``progress(done, total,
         message)`` is passed to the scorer, which reports inside a batch on the CPU (chunked launches).
         """
-        scorer = self._scorer_for(images, depth, valid, sample, materials[0])
+        if isinstance(materials, tuple):  # (material, names, values (K, len(names))): lobe candidates
+            base, names, values = materials
+            scorer = self._scorer_for(images, depth, valid, sample, base)
+            batches = [scorer.lobe_candidates(base, names, values[i:i + self._batch])
+                       for i in range(0, len(values), self._batch)]
+        else:
+            scorer = self._scorer_for(images, depth, valid, sample, materials[0])
+            batches = [materials[i:i + self._batch] for i in range(0, len(materials), self._batch)]
         out = []
-        for i in range(0, len(materials), self._batch):
-            scorer.step(materials[i:i + self._batch], warm=warm, progress=progress)
+        for b in batches:
+            scorer.step(b, warm=warm, progress=progress)
             out.append(scorer.fetch())
         return np.concatenate(out)
 
@@ -766,7 +777,7 @@ class RON:
             def inside(d, t, msg):  # within this batch: candidates scored so far, in fractions
                 report(n0 + len(xs) * d / max(t, 1.0), n0 + len(xs) + c.material_evals, msg)
 
-            vals = self._score(images, depth, valid, [with_lobe(material, dict(zip(names, np.exp(x)))) for x in xs],
+            vals = self._score(images, depth, valid, (material, names, np.exp(np.array(xs, np.float64))),
                                sample, warm=warm, progress=inside if len(xs) > 4 else None)
             evals.extend(vals.tolist())
             report(len(evals), len(evals) + c.material_evals, f"material: {len(evals)} candidates scored")
@@ -1008,11 +1019,22 @@ class RON:
             front = r == 1 and highlight.any() and c.dgmc_config.start == "front"
             if r == 1 and (not highlight.any() or front):
                 init = None
-            on_device = dev is not None and not front  # (the front's merge is on the host)
+            # with the device rounds the front too stays there (its merge written back into the solver's outputs)
+            on_device = dev is not None
             out = self._solve(images, solve_depth, valid, material, init=init, init_mask=init_mask,
                               cold=(r <= c.cold_rounds or init is None), fetch=not on_device,
                               progress=lambda f: step(3 * r - 2 + f, total, f"round {r}: normals"))
-            if front:
+            if front and on_device:
+                tf = time.perf_counter()
+                self.solver.set_material(material)
+                pix, src_normals = propagate_front_device(self.solver, m, highlight, gaussian=dg.gaussian,
+                                                          mean=dg.mean, config=c.dgmc_config, keep_better=True)
+                start = start.copy()
+                start.reshape(-1, 3)[pix] = src_normals
+                timings["dgmc"] += time.perf_counter() - tf
+                t += time.perf_counter() - tf
+                self._solver_mask = None  # (the front solved its own masks)
+            elif front:
                 # DGMC on the solved front (4.16-4.18): highlight pixels start from their solved
                 # neighbours ring by ring; the lower residual wins per pixel
                 tf = time.perf_counter()
