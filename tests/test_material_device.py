@@ -203,6 +203,40 @@ def test_reupload_and_steps_reuse_buffers(device):
     assert_energies_equal(c, ref2, scale_of(img, sc.mask))
 
 
+@pytest.mark.parametrize("brdf", ["blinn-phong", "cook-torrance", "ashikhmin-shirley"])
+def test_lobe_candidates_equal_materials(brdf, device):
+    """lobe_candidates (the search's candidates packed without a Material each): the same device rows, hence the
+    same energies bit for bit, as the Materials with_lobe builds; and its checks."""
+    from gpps.names import LOBE_PARAMETERS
+    from gpps.pipeline.stream_material import with_lobe
+
+    mat = Material.default_for(brdf)
+    img, lights, sc, _ = make_case("sphere", 24, "perspective", "directional", brdf, device=device)
+    names = LOBE_PARAMETERS[brdf]
+    values = np.array([[0.3, 0.1 if brdf == "cook-torrance" else 20.0], [1.1, 0.4 if brdf == "cook-torrance" else 80.0],
+                       [0.02, 0.03 if brdf == "cook-torrance" else 2.0]])
+    cands = [with_lobe(mat, dict(zip(names, v))) for v in values]
+    with MaterialScorer(img.shape[:3], sc.camera, lights, mat, fit_config(), max_samples=64, max_candidates=4,
+                        device=device) as scorer:
+        scorer.upload(img, sample_mask(sc.mask, 60, seed=3))
+        scorer.step(cands)
+        rows = scorer._mats_host[:3].copy()
+        a = scorer.fetch()
+        scorer.step(scorer.lobe_candidates(mat, names, values))
+        np.testing.assert_array_equal(scorer._mats_host[:3], rows)
+        np.testing.assert_array_equal(scorer.fetch(), a)
+        with pytest.raises(ValueError, match="values: expected"):
+            scorer.lobe_candidates(mat, names, values[:, :1])
+        with pytest.raises(ValueError, match="max_candidates"):
+            scorer.lobe_candidates(mat, names, np.repeat(values, 2, 0))
+        with pytest.raises(ValueError, match=f"{names[0]} in"):
+            scorer.lobe_candidates(mat, names, values * np.array([100.0, 1.0]))
+        with pytest.raises(ValueError, match="names"):
+            scorer.lobe_candidates(mat, ("f0",), values[:, :1])
+        with pytest.raises(ValueError, match="material"):
+            scorer.lobe_candidates(Material.default_for("lambertian"), (), values[:, :0])
+
+
 def test_trimmed_energy():
     r = np.array([[3.0, 1.0, 2.0, 10.0], [0.5, 0.5, 0.5, 0.5]])
     np.testing.assert_allclose(trimmed_energy(r, 0.25), [(1 + 4 + 9) / 3, 0.25])

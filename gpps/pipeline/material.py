@@ -36,7 +36,7 @@ mask (tests/test_material_device.py).
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -50,6 +50,8 @@ from gpps.material import Material
 from gpps.names import (
     BRDF_NAMES,
     LIGHT_LANES,
+    LOBE_PARAMETERS,
+    LOBE_RANGES,
     ParallelName,
 )
 from gpps.pipeline.cpu_threads import cpu_threads, load_first, run_all
@@ -64,11 +66,13 @@ from gpps.pipeline.solver import (
 )
 from gpps.pipeline.stage import Stage
 
-__all__ = ["MaterialScorer", "trimmed_energy"]
+__all__ = ["LobeCandidates", "MaterialScorer", "trimmed_energy"]
 
 Progress = Callable[[float, float, str], None]
 
 _PIXEL_OUTPUTS = ("normals", "albedo", "residual", "iterations", "flags")
+# the MaterialParams fields each lobe parameter sets (gpps.pipeline.stream_material.with_lobe's rule)
+_LOBE_FIELDS = {"ks": ("ks",), "shininess": ("shininess",), "roughness": ("roughness",), "eta": ("eta_u", "eta_v")}
 
 
 def trimmed_energy(residual, trim: float) -> np.ndarray:
@@ -506,6 +510,19 @@ class MaterialScorer(Stage):
         return uses_lanes(self.parallel, self.shape[0], pairs)
 
     def _set_candidates(self, candidates) -> int:
+        if isinstance(candidates, LobeCandidates):
+            if candidates.material.brdf != self.brdf or candidates.values.shape[0] > self.max_candidates:
+                raise ValueError("candidates: expected lobe_candidates() of this scorer")
+            c = candidates.material
+            host = self._mats_host
+            k = candidates.values.shape[0]
+            row = (c.device_tag, c.ks, c.shininess, c.roughness, c.f0, c.eta_u, c.eta_v)
+            host[:k] = row
+            for i, n in enumerate(candidates.names):
+                for field in _LOBE_FIELDS[n]:
+                    host[field][:k] = candidates.values[:, i]
+            self.mats.assign(host)
+            return k
         if isinstance(candidates, Material):
             candidates = [candidates]
         try:
@@ -527,6 +544,29 @@ class MaterialScorer(Stage):
             host[k] = (c.device_tag, c.ks, c.shininess, c.roughness, c.f0, c.eta_u, c.eta_v)
         self.mats.assign(host)
         return len(cands)
+
+    def lobe_candidates(self, material: Material, names: Sequence[str], values) -> "LobeCandidates":
+        """K candidates that differ from ``material`` only in its lobe parameters ``names`` (``"eta"``:
+        ``eta_u = eta_v``), one row of ``values`` (K, len(names)) each, for :meth:`step`: packed for the device
+        without a :class:`Material` per candidate (the search's inner loop).  Each value must lie in the parameter's
+        range (:data:`gpps.names.LOBE_RANGES`), which keeps every candidate a valid material."""
+        if not isinstance(material, Material):
+            raise TypeError(f"material: expected gpps.Material, got {type(material).__name__}")
+        if material.brdf != self.brdf:
+            raise ValueError(f"material: expected a {self.brdf!r} material (the scorer's model), got {material.brdf!r}")
+        names = tuple(names)
+        bad = [n for n in names if n not in LOBE_PARAMETERS[self.brdf]]
+        if bad:
+            raise ValueError(f"names: expected parameters of {self.brdf!r} from {LOBE_PARAMETERS[self.brdf]}, got {bad}")
+        v = np.asarray(values, dtype=np.float64)
+        if v.ndim != 2 or v.shape[1] != len(names) or not 1 <= v.shape[0] <= self.max_candidates:
+            raise ValueError(f"values: expected (K, {len(names)}) with 1 <= K <= max_candidates={self.max_candidates}, "
+                             f"got {v.shape}")
+        for i, n in enumerate(names):
+            lo, hi = LOBE_RANGES[n]
+            if not np.all(np.isfinite(v[:, i])) or v[:, i].min() < lo * (1 - 1e-12) or v[:, i].max() > hi * (1 + 1e-12):
+                raise ValueError(f"values: expected {n} in [{lo:g}, {hi:g}], got {v[:, i].min():g} .. {v[:, i].max():g}")
+        return LobeCandidates(material, names, v)
 
     def step(self, candidates: Sequence[Material], *, warm: bool = False, progress: Progress | None = None,
              chunks: int | None = None) -> None:
@@ -640,6 +680,16 @@ class _Both:
     def launch(self) -> None:
         self.one.launch()
         self.two.launch()
+
+
+@dataclass(frozen=True)
+class LobeCandidates:
+    """Candidates of :meth:`MaterialScorer.lobe_candidates`: ``material`` with its lobe parameters ``names`` set to
+    each row of ``values`` (K, len(names))."""
+
+    material: Material
+    names: tuple
+    values: np.ndarray
 
 
 def _broadcast_k(wp, base, k: int):
