@@ -571,3 +571,26 @@ def test_front_bad_input(device):
         cold = PixelSolver(one.shape, sc.camera, one.lights, one.material, SolverConfig(), device=device)
         cold.upload(img, sc.mask)
         cold.resolve(sc.mask, sources["normals"])
+
+
+def test_fill_indices_nearest_inside_and_cached():
+    """fill_indices: each pixel's nearest mask pixel (brute force), itself inside; a repeated mask gets the kept
+    (read-only) result, another mask of the same bits but another shape its own."""
+    from scipy import ndimage as ndi
+
+    from gpps.host.dgmc import fill_indices
+
+    rng = np.random.default_rng(4)
+    m = ndi.binary_opening(rng.random((23, 31)) < 0.6)
+    idx = fill_indices(m)
+    inside = np.argwhere(m)
+    for i, j in [(0, 0), (5, 30), (22, 3), (11, 17)]:
+        d = ((inside - (i, j)) ** 2).sum(1)
+        assert ((idx[i, j] - (i, j)) ** 2).sum() == d.min()
+        assert m[tuple(idx[i, j])]
+    ii, jj = np.nonzero(m)
+    np.testing.assert_array_equal(idx[ii, jj], np.stack([ii, jj], -1))
+    again = fill_indices(m.copy())
+    assert again is idx and not again.flags.writeable
+    other = fill_indices(m.reshape(31, 23))
+    assert other.shape == (31, 23, 2) and other is not idx
