@@ -492,3 +492,25 @@ def test_perspective_depth_never_overflows_and_warns_on_absurd_range():
         assert float(r.depth[mask].mean()) == pytest.approx(5.0, rel=1e-4)
     finally:
         integ.close()
+
+
+def test_laplacian_pinv_equals_numpy_pinv():
+    """The coarsest level's pseudo-inverse ((A + P)^-1 - P by elimination) against numpy's eigen-decomposition
+    pinv, on weighted 8 x 8 grids with one and with several components."""
+    from gpps.host.poisson import diagonal, laplacian, laplacian_pinv
+
+    rng = np.random.default_rng(11)
+    for split in (False, True):
+        lx, ly = rng.random((8, 8)), rng.random((8, 8))
+        lx[:, -1] = 0
+        ly[-1, :] = 0
+        if split:
+            lx[:, 3] = 0
+            ly[4, :] = 0
+            lx[rng.random((8, 8)) < 0.2] = 0
+        A, _ = laplacian(lx, ly, diagonal(lx, ly) > 0)
+        A = A.toarray()
+        ref = np.linalg.pinv(A, hermitian=True)
+        got = laplacian_pinv(A)
+        assert np.abs(got - ref).max() <= 1e-10 * np.abs(ref).max()
+    assert laplacian_pinv(np.zeros((0, 0))).shape == (0, 0)
