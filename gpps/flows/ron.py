@@ -48,6 +48,7 @@ Point lights with an unknown depth start from a flat depth at
 from __future__ import annotations
 
 import importlib.util
+import itertools
 import time
 from dataclasses import dataclass, field, replace
 from typing import Callable, Literal
@@ -530,7 +531,11 @@ class RON:
         self._fit_solver = None
         self._scorers: dict = {}  # the material fit's resident sample per model (MaterialScorer), built at its first fit
         self._scored: dict = {}  # the inputs each holds
+        # candidates a launch (the scorer's max_candidates): the first fit's grid, or a speculative
+        # Nelder-Mead batch on CUDA (_speculate: up to 4 (d + 1)^2 + ... ~40 points for two parameters)
         self._batch = max(25, self.config.material_grid ** max(len(self.config.estimate), 1))
+        if self.device.startswith("cuda"):
+            self._batch = max(self._batch, 64)
         self._last_move = None  # log-space move of the last material fit (sizes the next fit's simplex)
         self._frame_key = self._frame_depth = None  # the frame on the solver's device (see _frame)
         self._solver_mask = None  # the mask in the solver's buffer, when RON set it (see _set_mask)
@@ -807,18 +812,18 @@ class RON:
                 else:
                     scorer.set_start(frame=normals)
                 warm = True
-        best = (float(score([x0])[0]), x0)
-        if c.material_evals > 0 and names:  # (a model without lobe parameters: its one energy)
-            if c.material_search == "pattern":
+        if c.material_evals > 0 and names and c.material_search != "pattern":
+            simplex = np.vstack([x0] + [x0 + np.eye(len(names))[i] * step[i] for i in range(len(names))])
+            # on CUDA a launch costs its slowest thread, not its candidates: score ahead every point the
+            # next step (warm: the next two steps) may read, in one batch (the same trajectory: Nelder-Mead
+            # reads only what it needs); the start is scored with the initial simplex
+            fx, xb, f_start = self._nelder_mead(score, simplex, None, c.material_evals, xatol,
+                                                speculate=self._speculate(warm))
+            best = (fx, np.clip(xb, lo, hi)) if fx < f_start else (f_start, x0)
+        else:
+            best = (float(score([x0])[0]), x0)
+            if c.material_evals > 0 and names:  # (a model without lobe parameters: its one energy)
                 best = self._pattern_search(score, best, step, lo, hi, c.material_evals)
-            else:
-                simplex = np.vstack([x0] + [x0 + np.eye(len(names))[i] * step[i] for i in range(len(names))])
-                # on CUDA a launch costs its slowest thread, not its candidates: score every point a
-                # step may need at once (the same trajectory: Nelder-Mead reads only what it needs)
-                fx, xb = self._nelder_mead(score, simplex, best[0], c.material_evals, xatol,
-                                           speculate=self.device.startswith("cuda"))
-                if fx < best[0]:
-                    best = (fx, np.clip(xb, lo, hi))
         start = np.clip(np.log([lobe_value(material, k) for k in names]), lo, hi)
         self._last_move = best[1] - start
         values = dict(zip(names, (float(v) for v in np.exp(best[1]))))
@@ -826,38 +831,79 @@ class RON:
                 "evaluations": len(evals), "grid": bool(grid), "identifiable": None if spread is None else spread > 1e-3}
         return with_lobe(material, values), info
 
+    def _speculate(self, warm: bool) -> int:
+        """How far Nelder-Mead scores ahead (:meth:`_nelder_mead`): on the CPU nothing (a candidate costs its
+        work); on CUDA a launch costs its slowest pixel solve, so a step's points together, and from warm
+        starts (one start a pixel: ~80k threads for 40 candidates, one wave) the next step's too."""
+        if not self.device.startswith("cuda"):
+            return 0
+        return 2 if warm else 1
+
     @staticmethod
-    def _nelder_mead(score, simplex, f0: float, maxfev: int, xatol: float, *, speculate: bool):
+    def _nelder_mead(score, simplex, f0: float | None, maxfev: int, xatol: float, *, speculate: int = 0):
         """Nelder-Mead (scipy's ``method="Nelder-Mead"``, standard coefficients, ``fatol`` infinite) that
-        scores in batches: the initial simplex (vertex 0 known: ``f0``) in one, and with ``speculate``
-        the reflection, expansion and both contractions of a step in one (a shrink's vertices always
-        together).  The trajectory and the result do not depend on ``speculate``: the method reads only
-        the values it needs, and ``maxfev`` counts only those.  Converged when every vertex lies within
-        ``xatol`` of the best (log units).
+        scores in batches.  The trajectory and the result do not depend on the batching: the method reads
+        only the values it needs, and ``maxfev`` counts only those; a batch only scores ahead the points
+        the next steps may read, whatever the values turn out to be.  Converged when every vertex lies
+        within ``xatol`` of the best (log units).
+
+        Batches (``speculate``):
+
+        * 0: the initial simplex in one batch, then each point when the method reads it;
+        * 1: also every point a step may read at once: its reflection, expansion, both contractions and
+          the shrink's vertices (on CUDA a launch costs its slowest thread, not its candidates);
+        * 2: also the points of the step after it, for each way this step can end without a shrink: each
+          of the four points replacing the worst vertex, at each rank it may take in the new order
+          (``4 (d + 1)`` simplices, whose step points are computed as the method will compute them, so
+          the cached values are the ones it reads); and the first step's points for every order of the
+          initial simplex (``d <= 3``).  Half the round trips of 1, for ~40 candidates a batch (d = 2).
 
         Args:
             score: ``score(xs) -> (K,) energies`` of a list of points.
             simplex: (d + 1, d) initial simplex, vertex 0 the start.
-            f0: the energy at vertex 0.
+            f0: the energy at vertex 0, or None (scored with the rest of the initial simplex).
             maxfev: the most evaluations the method needs (the initial simplex included).
             xatol: simplex size at convergence.
-            speculate: score every candidate point of a step in one batch.
+            speculate: 0, 1 or 2 (True: 1), as above.
 
         Returns:
-            ``(energy, x)`` of the best vertex.
+            ``(energy, x, f0)`` of the best vertex, and the energy at vertex 0.
         """
         rho, chi, psi, sigma = 1.0, 2.0, 0.5, 0.5
+        depth = int(speculate)
         sim = np.array(simplex, np.float64)
         d = sim.shape[1]
-        cache: dict = {tuple(sim[0]): float(f0)}
-        need = [1]  # vertex 0 counts (as scipy counts it)
+        cache: dict = {} if f0 is None else {tuple(sim[0]): float(f0)}
+        need = [0 if f0 is None else 1]  # vertex 0 counts (as scipy counts it)
 
         class _Budget(Exception):
             pass
 
-        def values(points, wanted):
-            """Energies of ``wanted`` (indices into ``points``); with ``speculate`` all of ``points`` scored."""
-            todo = [p for p in (points if speculate else [points[i] for i in wanted]) if tuple(p) not in cache]
+        def step_points(s):
+            """The reflection, expansion and the two contractions of the sorted simplex ``s``."""
+            xbar = s[:-1].sum(0) / d
+            return [(1 + rho) * xbar - rho * s[-1], (1 + rho * chi) * xbar - rho * chi * s[-1],
+                    (1 + psi * rho) * xbar - psi * rho * s[-1], (1 - psi) * xbar + psi * s[-1]]
+
+        def shrunk(s):
+            return s[0] + sigma * (s[1:] - s[0])
+
+        def ahead(s, pts):
+            """The points the step after this one (on the sorted ``s``, points ``pts``) may read."""
+            out = []
+            for q in pts:
+                for k in range(d + 1):  # q's rank among the kept vertices s[:-1]
+                    out += step_points(np.vstack([s[:k], q[None], s[k:-1]]))
+            return out
+
+        def values(points, wanted, extra=()):
+            """Energies of ``wanted`` (indices into ``points``); when one is not known yet, a batch scores it with
+            (speculating) the rest of ``points`` and the ``extra`` points."""
+            todo = []
+            if any(tuple(points[i]) not in cache for i in wanted):
+                todo = [p for p in (points if depth else [points[i] for i in wanted]) if tuple(p) not in cache]
+                if depth:
+                    todo += [p for p in extra if tuple(p) not in cache]
             uniq = list({tuple(p): p for p in todo}.values())
             if uniq:
                 for p, v in zip(uniq, score(uniq)):
@@ -870,17 +916,26 @@ class RON:
                 out.append(cache[tuple(points[i])])
             return out
 
-        fsim = np.array([float(f0)] + values(list(sim[1:]), list(range(d))))
+        first = []
+        if depth >= 2 and d <= 3:
+            for perm in itertools.permutations(range(d + 1)):
+                s0 = sim[list(perm)]
+                first += step_points(s0) + list(shrunk(s0))
+        x_start = tuple(sim[0])
+        fsim = np.full(d + 1, np.inf)
+        k0 = 0 if f0 is None else 1
+        if f0 is not None:
+            fsim[0] = float(f0)
         try:
+            fsim[k0:] = values(list(sim[k0:]), list(range(d + 1 - k0)), first)
             while True:
                 order = np.argsort(fsim, kind="stable")
                 sim, fsim = sim[order], fsim[order]
                 if np.max(np.abs(sim[1:] - sim[0])) <= xatol:
                     break
-                xbar = sim[:-1].sum(0) / d
-                pts = [(1 + rho) * xbar - rho * sim[-1], (1 + rho * chi) * xbar - rho * chi * sim[-1],
-                       (1 + psi * rho) * xbar - psi * rho * sim[-1], (1 - psi) * xbar + psi * sim[-1]]
-                (fxr,) = values(pts, [0])
+                pts = step_points(sim)
+                extra = list(shrunk(sim)) + (ahead(sim, pts) if depth >= 2 else [])
+                (fxr,) = values(pts, [0], extra)
                 shrink = False
                 if fxr < fsim[0]:
                     (fxe,) = values(pts, [1])
@@ -900,12 +955,15 @@ class RON:
                     else:
                         shrink = True
                 if shrink:
-                    sim[1:] = sim[0] + sigma * (sim[1:] - sim[0])
+                    sim[1:] = shrunk(sim)
                     fsim[1:] = values(list(sim[1:]), list(range(d)))
         except _Budget:
+            if not np.all(np.isfinite(fsim)):  # (within the initial simplex: the vertices read so far)
+                for i in range(k0, min(need[0], d + 1)):
+                    fsim[i] = cache[tuple(sim[i])]
             order = np.argsort(fsim, kind="stable")
             sim, fsim = sim[order], fsim[order]
-        return float(fsim[0]), sim[0]
+        return float(fsim[0]), sim[0], float(cache.get(x_start, np.inf))
 
     @staticmethod
     def _pattern_search(score, best, step, lo, hi, budget: int, xatol: float = 1e-3):
