@@ -850,9 +850,10 @@ class RON:
         Batches (``speculate``):
 
         * 0: the initial simplex in one batch, then each point when the method reads it;
-        * 1: also every point a step may read at once: its reflection, expansion, both contractions and
-          the shrink's vertices (on CUDA a launch costs its slowest thread, not its candidates);
-        * 2: also the points of the step after it, for each way this step can end without a shrink: each
+        * 1: also every point a step may read at once: its reflection, expansion and both contractions (on
+          CUDA a launch costs its slowest thread, not its candidates);
+        * 2: also the shrink's vertices, and the points of the step after it, for each way this step can end
+          without a shrink (``d <= 2``; larger ``d`` scores as 1): each
           of the four points replacing the worst vertex, at each rank it may take in the new order
           (``4 (d + 1)`` simplices, whose step points are computed as the method will compute them, so
           the cached values are the ones it reads); and the first step's points for every order of the
@@ -873,6 +874,8 @@ class RON:
         depth = int(speculate)
         sim = np.array(simplex, np.float64)
         d = sim.shape[1]
+        if d > 2:
+            depth = min(depth, 1)  # (ahead's vectorised centroid rounds as step_points' only for d <= 2)
         cache: dict = {} if f0 is None else {tuple(sim[0]): float(f0)}
         need = [0 if f0 is None else 1]  # vertex 0 counts (as scipy counts it)
 
@@ -889,12 +892,22 @@ class RON:
             return s[0] + sigma * (s[1:] - s[0])
 
         def ahead(s, pts):
-            """The points the step after this one (on the sorted ``s``, points ``pts``) may read."""
-            out = []
-            for q in pts:
-                for k in range(d + 1):  # q's rank among the kept vertices s[:-1]
-                    out += step_points(np.vstack([s[:k], q[None], s[k:-1]]))
-            return out
+            """The points the step after this one (on the sorted ``s``, points ``pts``) may read: for each point
+            ``q`` replacing the worst vertex and each rank ``k`` it may take among the kept ``s[:-1]``, the step
+            points of that simplex, all at once (vectorised over the ``4 (d + 1)`` simplices; for ``d <= 2`` the
+            centroid's sum has at most two terms, so it rounds as :func:`step_points` will round it)."""
+            q = np.asarray(pts)  # (4, d)
+            sims = np.empty((4, d + 1, d + 1, d))  # (q, k, vertex, coordinate)
+            for k in range(d + 1):
+                sims[:, k, :k] = s[:k]
+                sims[:, k, k] = q
+                sims[:, k, k + 1:] = s[k:-1]
+            sims = sims.reshape(-1, d + 1, d)
+            xbar = sims[:, :-1].sum(1) / d
+            w = sims[:, -1]
+            out = np.stack([(1 + rho) * xbar - rho * w, (1 + rho * chi) * xbar - rho * chi * w,
+                            (1 + psi * rho) * xbar - psi * rho * w, (1 - psi) * xbar + psi * w], 1)
+            return list(out.reshape(-1, d))
 
         def values(points, wanted, extra=()):
             """Energies of ``wanted`` (indices into ``points``); when one is not known yet, a batch scores it with
@@ -934,7 +947,8 @@ class RON:
                 if np.max(np.abs(sim[1:] - sim[0])) <= xatol:
                     break
                 pts = step_points(sim)
-                extra = list(shrunk(sim)) + (ahead(sim, pts) if depth >= 2 else [])
+                # (a cold solve's launch grows with its candidates: the shrink's only with the warm ones)
+                extra = list(shrunk(sim)) + ahead(sim, pts) if depth >= 2 else []
                 (fxr,) = values(pts, [0], extra)
                 shrink = False
                 if fxr < fsim[0]:
