@@ -104,6 +104,9 @@ _RANGES = LOBE_RANGES
 # Nelder-Mead's stopping size of the simplex (log units): the first fit only has to land in the optimum's
 # basin (every later fit starts from it with a simplex of at most _LATER_STEP and refines to _XATOL)
 _FIRST_XATOL, _XATOL = 0.05, 1e-3
+# Nelder-Mead scores two steps ahead (about this many candidates a batch for two parameters) when such a
+# launch has at most this many device threads (RON._speculate)
+_SPECULATE_CANDIDATES, _SPECULATE_THREADS = 40, 1 << 17
 # a later fit's initial simplex: twice the previous fit's move, within these bounds (log units)
 _LATER_STEP = (0.01, 0.15)
 
@@ -817,8 +820,8 @@ class RON:
             # on CUDA a launch costs its slowest thread, not its candidates: score ahead every point the
             # next step (warm: the next two steps) may read, in one batch (the same trajectory: Nelder-Mead
             # reads only what it needs); the start is scored with the initial simplex
-            fx, xb, f_start = self._nelder_mead(score, simplex, None, c.material_evals, xatol,
-                                                speculate=self._speculate(warm))
+            spec = self._speculate(self._scorer_for(images, depth, valid, sample, material), warm)
+            fx, xb, f_start = self._nelder_mead(score, simplex, None, c.material_evals, xatol, speculate=spec)
             best = (fx, np.clip(xb, lo, hi)) if fx < f_start else (f_start, x0)
         else:
             best = (float(score([x0])[0]), x0)
@@ -831,13 +834,18 @@ class RON:
                 "evaluations": len(evals), "grid": bool(grid), "identifiable": None if spread is None else spread > 1e-3}
         return with_lobe(material, values), info
 
-    def _speculate(self, warm: bool) -> int:
+    def _speculate(self, scorer: MaterialScorer, warm: bool) -> int:
         """How far Nelder-Mead scores ahead (:meth:`_nelder_mead`): on the CPU nothing (a candidate costs its
-        work); on CUDA a launch costs its slowest pixel solve, so a step's points together, and from warm
-        starts (one start a pixel: ~80k threads for 40 candidates, one wave) the next step's too."""
+        work); on CUDA a launch of a few candidates costs its slowest pixel solve, so a step's points together;
+        and the next step's too (~40 candidates) while such a launch stays within about three waves of an
+        H100 (_SPECULATE_THREADS: warm, one thread a sample pixel, a few images).  With many images the
+        lights-parallel build fills the device with a few candidates already (DiLiGenT's 96: material 139 ->
+        180 ms on ball when it scored ahead there)."""
         if not self.device.startswith("cuda"):
             return 0
-        return 2 if warm else 1
+        if warm and scorer.launch_threads(_SPECULATE_CANDIDATES, warm=True) <= _SPECULATE_THREADS:
+            return 2
+        return 1
 
     @staticmethod
     def _nelder_mead(score, simplex, f0: float | None, maxfev: int, xatol: float, *, speculate: int = 0):
