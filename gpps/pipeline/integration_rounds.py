@@ -4,7 +4,7 @@
 builds the system ``Integrator.upload`` builds on the host (same checks, steps, ``"uniform"`` or
 ``"normal"`` (BiNI's ``N_z^2``) weighting, perspective log-depth) in the integrator's own Taichi
 fields (:mod:`gpps.kernels.poisson_weighted`), with the multigrid hierarchy for those weights
-(``alpha = 1/2`` for uniform weights, 1 (Galerkin) for weighted ones, as ``Integrator._upload_levels``)
+(``coarse_alpha``: 1/2 for uniform weights, 2/3 for weighted ones, as ``Integrator._upload_levels``)
 and the coarsest level's exact pseudo-inverse (its at most 2 x 16 x 16 edge weights read back: the
 host's numpy pseudo-inverse, ``Integrator.set_coarsest``, ~1 ms, where one serial GPU task took 15 ms),
 then runs the integrator's own
@@ -33,7 +33,7 @@ from scipy import ndimage
 
 from gpps import _taichi
 from gpps.kernels import poisson_weighted as KW
-from gpps.pipeline.integration import Integrator, IntegratorConfig
+from gpps.pipeline.integration import Integrator, IntegratorConfig, coarse_alpha
 from gpps.pipeline.stage import Stage
 
 __all__ = ["DeviceSystem"]
@@ -168,16 +168,19 @@ class DeviceSystem(Stage):
         h, w = self.shape
         F["st"].fill(0)
         KW.assemble_targets(steps, conf, F["mask"], F["gj"], F["gi"], F["cj"], F["ci"], F["st"], h, w)
-        if not self._solve_system(1, wplus):
+        # (alpha 1: the refinement's Levenberg-Marquardt steps were validated with the Galerkin levels)
+        if not self._solve_system(1, wplus, alpha=1.0):
             return False
         d = integ._ensure_device()
         KW.component_sums(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], F["cmax"], F["cmin"], F["st"], h, w)
         KW.depth_add(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], base, out, self._cam[0], h, w)
         return True
 
-    def _solve_system(self, weighted: int, wplus=None) -> bool:
+    def _solve_system(self, weighted: int, wplus=None, alpha: float | None = None) -> bool:
         """Edges, levels, the coarsest pseudo-inverse and the CG from ``z = 0`` once ``gj, gi, cj, ci`` and the
-        statistics are assembled; False (``last`` holds the invalid count) when fewer than 2 pixels are valid."""
+        statistics are assembled; False (``last`` holds the invalid count) when fewer than 2 pixels are valid.
+        ``alpha``: the coarse levels' scale (None: :func:`gpps.pipeline.integration.coarse_alpha` of the system,
+        as the host path's)."""
         integ, F = self.integrator, self._F
         d = integ._ensure_device()
         cfg = integ.config
@@ -198,7 +201,8 @@ class DeviceSystem(Stage):
             KW.assemble_edges_split(F["gj"], F["gi"], F["cj"], F["ci"], wplus, F["st"], d["wx"], d["wy"], d["dg"],
                                     d["b"], h, w)
         sh, of = d["shapes"], d["offs"]
-        alpha = 1.0 if weighted else 0.5  # Integrator._upload_levels' rule
+        if alpha is None:
+            alpha = coarse_alpha(not weighted, False)  # (Integrator._upload_levels' rule; no IRLS here)
         for k in range(len(sh) - 1):
             KW.coarsen(d["wx"], d["wy"], d["dg"], int(of[k]), sh[k][0], sh[k][1], int(of[k + 1]), sh[k + 1][0],
                        sh[k + 1][1], alpha)
