@@ -90,14 +90,15 @@ def _synthetic(size: int, n: int, device):
 
     def call():
         rec = gpps.reconstruct(img, sc.mask, lu, camera=sc.camera, material="cook-torrance", device=device)
-        return rec.timings, gpps.normal_errors(rec.normals, sc.normals, sc.mask)["mean"]
+        # (the error is measured after the clock stops: it is the benchmark's, not the pipeline's work)
+        return rec.timings, lambda: gpps.normal_errors(rec.normals, sc.normals, sc.mask)["mean"]
     return call
 
 
 def _folder(folder: str, device):
     def call():
         res = gpps.reconstruct_folder(folder, device=device)
-        return res.report.get("timings"), res.report.get("maen_deg")
+        return res.report.get("timings"), lambda: res.report.get("maen_deg")
     return call
 
 
@@ -126,6 +127,7 @@ def main(argv=None):
             t = time.perf_counter()
             timings, maen = call()
             warm_all.append(time.perf_counter() - t)
+            maen = maen()
             stages_all.append(timings)
         warm = float(sorted(warm_all)[len(warm_all) // 2])  # median of the warm calls
         timings = stages_all[warm_all.index(warm)]

@@ -126,7 +126,7 @@ def _synthetic(size: int, n: int, device):
 
     def call():
         rec = gpps.reconstruct(img, sc.mask, lu, camera=sc.camera, material="cook-torrance", device=device)
-        return rec, gpps.normal_errors(rec.normals, sc.normals, sc.mask)["mean"]
+        return rec, lambda: gpps.normal_errors(rec.normals, sc.normals, sc.mask)["mean"]  # (after the clock)
     return call
 
 
@@ -147,6 +147,7 @@ def main(argv=None):
         t = time.perf_counter()
         rec, maen = call()
         warm.append(time.perf_counter() - t)
+        maen = maen()
     for owner, name, label in WRAPS:
         _wrap(owner, name, label)
     # (reconstruct is re-exported: wrap the public name too)
@@ -155,6 +156,7 @@ def main(argv=None):
     runs = max(1, a.repeat)
     for _ in range(runs):
         rec, maen = call()
+    maen = maen()
     rows = {k: {"calls": v[0] / runs, "ms": 1e3 * v[1] / runs} for k, v in sorted(TOTALS.items(),
                                                                                   key=lambda kv: -kv[1][1])}
     out = {"device": a.device, "size": a.synthetic, "images": a.images, "cold_s": cold, "warm_s": sorted(warm),
