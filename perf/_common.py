@@ -93,6 +93,25 @@ def bumps_frame(size: int, device: str, shift: int = 0, material=None):
     return sc, mat, L, uint16_frame(render(sc, mat, L, bits=16, device=device))
 
 
+def reconstruct_case(size: int, n: int, device):
+    """Issue 20's synthetic reconstruction (as ``perf/reconstruct_synthetic.py``): Cook-Torrance bumps (ks 0.8,
+    roughness 0.2), perspective, ``n`` directional lights, 16-bit, divided by the light intensities, the material
+    unknown.  Returns ``call() -> (Reconstruction, maen)`` where ``maen()`` measures the error after the caller's
+    clock stops (the benchmark's work, not the pipeline's)."""
+    import gpps
+
+    sc = gpps.make_scene("bumps", size, "perspective")
+    L = gpps.default_lights("directional", n, layout="ring" if n <= 4 else "spiral")
+    true = gpps.Material("cook-torrance", ks=0.8, roughness=0.2, f0=0.5)
+    img = gpps.render(sc, true, L, bits=16, device=device) / L.intensities[:, None, None, :]
+    lu = gpps.DirectionalLights(L.directions)
+
+    def call():
+        rec = gpps.reconstruct(img, sc.mask, lu, camera=sc.camera, material="cook-torrance", device=device)
+        return rec, lambda: float(gpps.normal_errors(rec.normals, sc.normals, sc.mask)["mean"])
+    return call
+
+
 def moving_bumps(size: int, device: str, positions: int = 8, material=None):
     """The stream benchmarks' scene: Blinn-Phong bumps, perspective, 3 directional lights, moved sideways.
 

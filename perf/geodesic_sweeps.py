@@ -29,21 +29,15 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "perf"))
 
 import numpy as np  # noqa: E402
-from _common import write_results  # noqa: E402
-
-import gpps  # noqa: E402
+from _common import reconstruct_case, write_results  # noqa: E402
 
 
 def _case(size: int, n: int, device):
-    sc = gpps.make_scene("bumps", size, "perspective")
-    L = gpps.default_lights("directional", n, layout="ring" if n <= 4 else "spiral")
-    true = gpps.Material("cook-torrance", ks=0.8, roughness=0.2, f0=0.5)
-    img = gpps.render(sc, true, L, bits=16, device=device) / L.intensities[:, None, None, :]
-    lu = gpps.DirectionalLights(L.directions)
+    case = reconstruct_case(size, n, device)
 
     def call():
-        rec = gpps.reconstruct(img, sc.mask, lu, camera=sc.camera, material="cook-torrance", device=device)
-        return rec.timings, float(gpps.normal_errors(rec.normals, sc.normals, sc.mask)["mean"])
+        rec, maen = case()
+        return rec.timings, maen()
     return call
 
 

@@ -28,9 +28,11 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "perf"))
 os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 
 import gpps  # noqa: E402
+from _common import reconstruct_case  # noqa: E402
 from gpps.io import json_default  # noqa: E402
 
 
@@ -82,16 +84,11 @@ def _trace(call) -> dict:
 
 
 def _synthetic(size: int, n: int, device):
-    sc = gpps.make_scene("bumps", size, "perspective")
-    L = gpps.default_lights("directional", n, layout="ring" if n <= 4 else "spiral")
-    true = gpps.Material("cook-torrance", ks=0.8, roughness=0.2, f0=0.5)
-    img = gpps.render(sc, true, L, bits=16, device=device) / L.intensities[:, None, None, :]
-    lu = gpps.DirectionalLights(L.directions)
+    case = reconstruct_case(size, n, device)
 
     def call():
-        rec = gpps.reconstruct(img, sc.mask, lu, camera=sc.camera, material="cook-torrance", device=device)
-        # (the error is measured after the clock stops: it is the benchmark's, not the pipeline's work)
-        return rec.timings, lambda: gpps.normal_errors(rec.normals, sc.normals, sc.mask)["mean"]
+        rec, maen = case()
+        return rec.timings, maen
     return call
 
 

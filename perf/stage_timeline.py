@@ -23,9 +23,11 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "perf"))
 os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 
 import gpps  # noqa: E402
+from _common import reconstruct_case  # noqa: E402
 from gpps.flows import ron as ron_mod  # noqa: E402
 from gpps.pipeline import dgmc as dgmc_mod  # noqa: E402
 from gpps.pipeline import front as front_mod  # noqa: E402
@@ -117,19 +119,6 @@ WRAPS = [
 ]
 
 
-def _synthetic(size: int, n: int, device):
-    sc = gpps.make_scene("bumps", size, "perspective")
-    L = gpps.default_lights("directional", n, layout="ring" if n <= 4 else "spiral")
-    true = gpps.Material("cook-torrance", ks=0.8, roughness=0.2, f0=0.5)
-    img = gpps.render(sc, true, L, bits=16, device=device) / L.intensities[:, None, None, :]
-    lu = gpps.DirectionalLights(L.directions)
-
-    def call():
-        rec = gpps.reconstruct(img, sc.mask, lu, camera=sc.camera, material="cook-torrance", device=device)
-        return rec, lambda: gpps.normal_errors(rec.normals, sc.normals, sc.mask)["mean"]  # (after the clock)
-    return call
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--synthetic", type=int, default=256)
@@ -138,7 +127,7 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
-    call = _synthetic(a.synthetic, a.images, a.device)
+    call = reconstruct_case(a.synthetic, a.images, a.device)
     t = time.perf_counter()
     call()
     cold = time.perf_counter() - t
