@@ -228,9 +228,9 @@ def test_cli_reconstruct_runs_pipeline(tmp_path, device):
 
 
 def test_nelder_mead_batches_follow_scipy():
-    """RON's batched Nelder-Mead equals scipy's (same vertices, same evaluation count) whether it scores ahead or
-    not: scoring each step's points together (what CUDA uses from cold starts) takes about half the launches,
-    scoring two steps ahead (CUDA, warm starts) about a quarter, each batch within the scorer's 64 candidates."""
+    """RON's batched Nelder-Mead equals scipy's (same vertices, same evaluation count), with the start given or
+    scored with the initial simplex, and speculative batches (what CUDA uses) give the same result in about
+    half the launches."""
     from scipy.optimize import minimize
 
     def rosen(x):
@@ -241,7 +241,7 @@ def test_nelder_mead_batches_follow_scipy():
         ref = minimize(rosen, x0, method="Nelder-Mead",
                        options={"initial_simplex": simplex, "maxfev": 200, "xatol": 1e-3, "fatol": np.inf})
         runs = {}
-        for spec in (0, 1, 2):
+        for spec in (False, True):
             for given in (True, False):
                 calls = []
 
@@ -253,16 +253,15 @@ def test_nelder_mead_batches_follow_scipy():
                                                  speculate=spec)
                 runs[spec, given] = (f, x, len(calls), sum(calls))
                 assert f == ref.fun and np.array_equal(x, ref.x), (spec, given)
-                assert f_start == rosen(x0) and max(calls) <= 64
-        assert runs[0, True][3] + 1 == ref.nfev  # vertex 0 was given
-        assert runs[0, False][3] == ref.nfev and runs[0, False][2] == runs[0, True][2]  # (x0 in the first batch)
-        assert runs[1, True][2] < 0.6 * runs[0, True][2]
-        assert runs[2, False][2] < 0.65 * runs[1, True][2]
+                assert f_start == rosen(x0)
+        assert runs[False, True][3] + 1 == ref.nfev  # vertex 0 was given
+        assert runs[False, False][3] == ref.nfev and runs[False, False][2] == runs[False, True][2]  # (x0 batched)
+        assert runs[True, True][2] < 0.6 * runs[False, True][2]
     # a budget stops it with the best vertex so far
     f, x, _ = RON._nelder_mead(lambda xs: np.array([rosen(x) for x in xs]), simplex, rosen(x0), 10, 1e-3,
-                               speculate=0)
+                               speculate=False)
     assert f <= rosen(x0)
-    for spec in (0, 2):  # a budget inside the initial simplex
+    for spec in (False, True):  # a budget inside the initial simplex
         f, x, f_start = RON._nelder_mead(lambda xs: np.array([rosen(x) for x in xs]), simplex, None, 2, 1e-3,
                                          speculate=spec)
         assert f_start == rosen(x0) and f <= rosen(x0) and np.isfinite(f)

@@ -48,7 +48,6 @@ Point lights with an unknown depth start from a flat depth at
 from __future__ import annotations
 
 import importlib.util
-import itertools
 import time
 from dataclasses import dataclass, field, replace
 from typing import Callable, Literal
@@ -104,9 +103,6 @@ _RANGES = LOBE_RANGES
 # Nelder-Mead's stopping size of the simplex (log units): the first fit only has to land in the optimum's
 # basin (every later fit starts from it with a simplex of at most _LATER_STEP and refines to _XATOL)
 _FIRST_XATOL, _XATOL = 0.05, 1e-3
-# Nelder-Mead scores two steps ahead (about this many candidates a batch for two parameters) when such a
-# launch has at most this many device threads (RON._speculate)
-_SPECULATE_CANDIDATES, _SPECULATE_THREADS = 40, 1 << 17
 # a later fit's initial simplex: twice the previous fit's move, within these bounds (log units)
 _LATER_STEP = (0.01, 0.15)
 
@@ -534,11 +530,7 @@ class RON:
         self._fit_solver = None
         self._scorers: dict = {}  # the material fit's resident sample per model (MaterialScorer), built at its first fit
         self._scored: dict = {}  # the inputs each holds
-        # candidates a launch (the scorer's max_candidates): the first fit's grid, or a speculative
-        # Nelder-Mead batch on CUDA (_speculate: up to 4 (d + 1)^2 + ... ~40 points for two parameters)
         self._batch = max(25, self.config.material_grid ** max(len(self.config.estimate), 1))
-        if self.device.startswith("cuda"):
-            self._batch = max(self._batch, 64)
         self._last_move = None  # log-space move of the last material fit (sizes the next fit's simplex)
         self._frame_key = self._frame_depth = None  # the frame on the solver's device (see _frame)
         self._solver_mask = None  # the mask in the solver's buffer, when RON set it (see _set_mask)
@@ -817,11 +809,11 @@ class RON:
                 warm = True
         if c.material_evals > 0 and names and c.material_search != "pattern":
             simplex = np.vstack([x0] + [x0 + np.eye(len(names))[i] * step[i] for i in range(len(names))])
-            # on CUDA a launch costs its slowest thread, not its candidates: score ahead every point the
-            # next step (warm: the next two steps) may read, in one batch (the same trajectory: Nelder-Mead
-            # reads only what it needs); the start is scored with the initial simplex
-            spec = self._speculate(self._scorer_for(images, depth, valid, sample, material), warm)
-            fx, xb, f_start = self._nelder_mead(score, simplex, None, c.material_evals, xatol, speculate=spec)
+            # on CUDA a launch costs its slowest thread, not its candidates: score every point a step may read
+            # in one batch (the same trajectory: Nelder-Mead reads only what it needs); the start is scored
+            # with the initial simplex
+            fx, xb, f_start = self._nelder_mead(score, simplex, None, c.material_evals, xatol,
+                                                speculate=self._speculate())
             best = (fx, np.clip(xb, lo, hi)) if fx < f_start else (f_start, x0)
         else:
             best = (float(score([x0])[0]), x0)
@@ -834,38 +826,22 @@ class RON:
                 "evaluations": len(evals), "grid": bool(grid), "identifiable": None if spread is None else spread > 1e-3}
         return with_lobe(material, values), info
 
-    def _speculate(self, scorer: MaterialScorer, warm: bool) -> int:
+    def _speculate(self) -> int:
         """How far Nelder-Mead scores ahead (:meth:`_nelder_mead`): on the CPU nothing (a candidate costs its
-        work); on CUDA a launch of a few candidates costs its slowest pixel solve, so a step's points together;
-        and the next step's too (~40 candidates) while such a launch stays within about three waves of an
-        H100 (_SPECULATE_THREADS: warm, one thread a sample pixel, a few images).  With many images the
-        lights-parallel build fills the device with a few candidates already (DiLiGenT's 96: material 139 ->
-        180 ms on ball when it scored ahead there)."""
-        if not self.device.startswith("cuda"):
-            return 0
-        if warm and scorer.launch_threads(_SPECULATE_CANDIDATES, warm=True) <= _SPECULATE_THREADS:
-            return 2
-        return 1
+        work); on CUDA a launch of a few candidates costs its slowest pixel solve, so a step's points together.
+        Two steps ahead (~40 candidates a batch, 34 launches instead of 50 on the 256^2 x 3 case) made the material
+        stage slower on the H100, 44 -> 56 ms (perf/material_speculation.py): the larger launches and batches cost
+        more than the round trips they saved."""
+        return 1 if self.device.startswith("cuda") else 0
 
     @staticmethod
     def _nelder_mead(score, simplex, f0: float | None, maxfev: int, xatol: float, *, speculate: int = 0):
         """Nelder-Mead (scipy's ``method="Nelder-Mead"``, standard coefficients, ``fatol`` infinite) that
-        scores in batches.  The trajectory and the result do not depend on the batching: the method reads
-        only the values it needs, and ``maxfev`` counts only those; a batch only scores ahead the points
-        the next steps may read, whatever the values turn out to be.  Converged when every vertex lies
-        within ``xatol`` of the best (log units).
-
-        Batches (``speculate``):
-
-        * 0: the initial simplex in one batch, then each point when the method reads it;
-        * 1: also every point a step may read at once: its reflection, expansion and both contractions (on
-          CUDA a launch costs its slowest thread, not its candidates);
-        * 2: also the shrink's vertices, and the points of the step after it, for each way this step can end
-          without a shrink (``d <= 2``; larger ``d`` scores as 1): each
-          of the four points replacing the worst vertex, at each rank it may take in the new order
-          (``4 (d + 1)`` simplices, whose step points are computed as the method will compute them, so
-          the cached values are the ones it reads); and the first step's points for every order of the
-          initial simplex (``d <= 3``).  Half the round trips of 1, for ~40 candidates a batch (d = 2).
+        scores in batches: the initial simplex in one (vertex 0 too unless ``f0`` is given), and with
+        ``speculate`` the reflection, expansion and both contractions of a step in one (a shrink's vertices
+        always together).  The trajectory and the result do not depend on ``speculate``: the method reads
+        only the values it needs, and ``maxfev`` counts only those.  Converged when every vertex lies within
+        ``xatol`` of the best (log units).
 
         Args:
             score: ``score(xs) -> (K,) energies`` of a list of points.
@@ -873,17 +849,15 @@ class RON:
             f0: the energy at vertex 0, or None (scored with the rest of the initial simplex).
             maxfev: the most evaluations the method needs (the initial simplex included).
             xatol: simplex size at convergence.
-            speculate: 0, 1 or 2 (True: 1), as above.
+            speculate: score every candidate point of a step in one batch (0 or 1; True: 1).
 
         Returns:
             ``(energy, x, f0)`` of the best vertex, and the energy at vertex 0.
         """
         rho, chi, psi, sigma = 1.0, 2.0, 0.5, 0.5
-        depth = int(speculate)
+        spec = bool(speculate)
         sim = np.array(simplex, np.float64)
         d = sim.shape[1]
-        if d > 2:
-            depth = min(depth, 1)  # (ahead's vectorised centroid rounds as step_points' only for d <= 2)
         cache: dict = {} if f0 is None else {tuple(sim[0]): float(f0)}
         need = [0 if f0 is None else 1]  # vertex 0 counts (as scipy counts it)
 
@@ -896,35 +870,12 @@ class RON:
             return [(1 + rho) * xbar - rho * s[-1], (1 + rho * chi) * xbar - rho * chi * s[-1],
                     (1 + psi * rho) * xbar - psi * rho * s[-1], (1 - psi) * xbar + psi * s[-1]]
 
-        def shrunk(s):
-            return s[0] + sigma * (s[1:] - s[0])
-
-        def ahead(s, pts):
-            """The points the step after this one (on the sorted ``s``, points ``pts``) may read: for each point
-            ``q`` replacing the worst vertex and each rank ``k`` it may take among the kept ``s[:-1]``, the step
-            points of that simplex, all at once (vectorised over the ``4 (d + 1)`` simplices; for ``d <= 2`` the
-            centroid's sum has at most two terms, so it rounds as :func:`step_points` will round it)."""
-            q = np.asarray(pts)  # (4, d)
-            sims = np.empty((4, d + 1, d + 1, d))  # (q, k, vertex, coordinate)
-            for k in range(d + 1):
-                sims[:, k, :k] = s[:k]
-                sims[:, k, k] = q
-                sims[:, k, k + 1:] = s[k:-1]
-            sims = sims.reshape(-1, d + 1, d)
-            xbar = sims[:, :-1].sum(1) / d
-            w = sims[:, -1]
-            out = np.stack([(1 + rho) * xbar - rho * w, (1 + rho * chi) * xbar - rho * chi * w,
-                            (1 + psi * rho) * xbar - psi * rho * w, (1 - psi) * xbar + psi * w], 1)
-            return list(out.reshape(-1, d))
-
-        def values(points, wanted, extra=()):
-            """Energies of ``wanted`` (indices into ``points``); when one is not known yet, a batch scores it with
-            (speculating) the rest of ``points`` and the ``extra`` points."""
+        def values(points, wanted):
+            """Energies of ``wanted`` (indices into ``points``); when one is not known yet, a batch scores it
+            (with ``speculate``, with the rest of ``points``)."""
             todo = []
             if any(tuple(points[i]) not in cache for i in wanted):
-                todo = [p for p in (points if depth else [points[i] for i in wanted]) if tuple(p) not in cache]
-                if depth:
-                    todo += [p for p in extra if tuple(p) not in cache]
+                todo = [p for p in (points if spec else [points[i] for i in wanted]) if tuple(p) not in cache]
             uniq = list({tuple(p): p for p in todo}.values())
             if uniq:
                 for p, v in zip(uniq, score(uniq)):
@@ -937,27 +888,20 @@ class RON:
                 out.append(cache[tuple(points[i])])
             return out
 
-        first = []
-        if depth >= 2 and d <= 3:
-            for perm in itertools.permutations(range(d + 1)):
-                s0 = sim[list(perm)]
-                first += step_points(s0) + list(shrunk(s0))
         x_start = tuple(sim[0])
         fsim = np.full(d + 1, np.inf)
         k0 = 0 if f0 is None else 1
         if f0 is not None:
             fsim[0] = float(f0)
         try:
-            fsim[k0:] = values(list(sim[k0:]), list(range(d + 1 - k0)), first)
+            fsim[k0:] = values(list(sim[k0:]), list(range(d + 1 - k0)))
             while True:
                 order = np.argsort(fsim, kind="stable")
                 sim, fsim = sim[order], fsim[order]
                 if np.max(np.abs(sim[1:] - sim[0])) <= xatol:
                     break
                 pts = step_points(sim)
-                # (a cold solve's launch grows with its candidates: the shrink's only with the warm ones)
-                extra = list(shrunk(sim)) + ahead(sim, pts) if depth >= 2 else []
-                (fxr,) = values(pts, [0], extra)
+                (fxr,) = values(pts, [0])
                 shrink = False
                 if fxr < fsim[0]:
                     (fxe,) = values(pts, [1])
@@ -977,7 +921,7 @@ class RON:
                     else:
                         shrink = True
                 if shrink:
-                    sim[1:] = shrunk(sim)
+                    sim[1:] = sim[0] + sigma * (sim[1:] - sim[0])
                     fsim[1:] = values(list(sim[1:]), list(range(d)))
         except _Budget:
             if not np.all(np.isfinite(fsim)):  # (within the initial simplex: the vertices read so far)

@@ -507,17 +507,6 @@ class MaterialScorer(Stage):
             self._cmds[key] = cmd
         return cmd
 
-    def launch_threads(self, k: int, *, warm: bool = False) -> int:
-        """Device threads of one :meth:`step` launch of ``k`` candidates on the current sample: ``k P`` times the
-        lanes a pixel gets (the lights-parallel build) or, cold and starts-parallel, its starts.  A caller that can
-        score ahead (RON's Nelder-Mead) compares it with what one wave of the device holds."""
-        pairs = int(k) * int(self.samples)
-        if self._uses_lanes(pairs):
-            return pairs * block_lanes(self.device, LIGHT_LANES)
-        if self.split_starts and not warm:
-            return pairs * int(self._start_bufs[0].shape[2])
-        return pairs
-
     def _uses_lanes(self, pairs: int) -> bool:
         """Whether a launch of ``pairs`` (candidate, pixel) solves runs the lights-parallel build."""
         return uses_lanes(self.parallel, self.shape[0], pairs)
