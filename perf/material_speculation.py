@@ -3,9 +3,9 @@ case (``perf/_common.reconstruct_case``) with the look-ahead RON picks (``RON._s
 in one batch on CUDA) and without (one point at a time), in alternation on one machine (the host's speed
 drifts between runs), reporting the median whole call, material stage and scoring launches of each.
 
-``perf/results/material_speculation_256x3_H100.json`` is this script's first version, run on the tree at fbc30f6, when RON could also score
-two steps ahead ("chosen" there) against one step ("one_step"): 56 against 44 ms of material stage on the
-H100, so two steps ahead was removed.
+``perf/results/material_speculation_256x3_H100.json`` is this script's first version, run on the tree at
+fbc30f6, when RON could also score two steps ahead ("chosen" there) against one step ("one_step"): 56 against
+44 ms of material stage on the H100, so two steps ahead was removed.
 
 Usage:  python perf/material_speculation.py [--size 256] [--images 3] [--device cuda:0] [--pairs 8] [--out FILE]
 """
