@@ -559,7 +559,8 @@ class MaterialScorer(Stage):
         names = tuple(names)
         bad = [n for n in names if n not in LOBE_PARAMETERS[self.brdf]]
         if bad:
-            raise ValueError(f"names: expected parameters of {self.brdf!r} from {LOBE_PARAMETERS[self.brdf]}, got {bad}")
+            raise ValueError(f"names: expected parameters of {self.brdf!r} from {LOBE_PARAMETERS[self.brdf]}, "
+                             f"got {bad}")
         v = np.asarray(values, dtype=np.float64)
         if v.ndim != 2 or v.shape[1] != len(names) or not 1 <= v.shape[0] <= self.max_candidates:
             raise ValueError(f"values: expected (K, {len(names)}) with 1 <= K <= max_candidates={self.max_candidates}, "
@@ -567,7 +568,8 @@ class MaterialScorer(Stage):
         for i, n in enumerate(names):
             lo, hi = LOBE_RANGES[n]
             if not np.all(np.isfinite(v[:, i])) or v[:, i].min() < lo * (1 - 1e-12) or v[:, i].max() > hi * (1 + 1e-12):
-                raise ValueError(f"values: expected {n} in [{lo:g}, {hi:g}], got {v[:, i].min():g} .. {v[:, i].max():g}")
+                raise ValueError(f"values: expected {n} in [{lo:g}, {hi:g}], "
+                                 f"got {v[:, i].min():g} .. {v[:, i].max():g}")
         return LobeCandidates(material, names, v)
 
     def step(self, candidates: Sequence[Material], *, warm: bool = False, progress: Progress | None = None,
