@@ -1048,32 +1048,25 @@ class RON:
             out = self._solve(images, solve_depth, valid, material, init=init, init_mask=init_mask,
                               cold=(r <= c.cold_rounds or init is None), fetch=not on_device,
                               progress=lambda f: step(3 * r - 2 + f, total, f"round {r}: normals"))
-            if front and on_device:
-                tf = time.perf_counter()
-                self.solver.set_material(material)
-                pix, src_normals = propagate_front_device(self.solver, m, highlight, gaussian=dg.gaussian,
-                                                          mean=dg.mean, config=c.dgmc_config, keep_better=True)
-                start = start.copy()
-                start.reshape(-1, 3)[pix] = src_normals
-                timings["dgmc"] += time.perf_counter() - tf
-                t += time.perf_counter() - tf
-                self._solver_mask = None  # (the front solved its own masks)
-            elif front:
+            if front:
                 # DGMC on the solved front (4.16-4.18): highlight pixels start from their solved
-                # neighbours ring by ring; the lower residual wins per pixel
+                # neighbours ring by ring; the lower residual wins per pixel; each front pixel started from
+                # its source's final (solved) normal, which becomes its start normal
                 tf = time.perf_counter()
                 self.solver.set_material(material)
-                # (the frame is on the solver's device: _solve put it there)
-                fr = propagate_front(self.solver, None, m, highlight, out, gaussian=dg.gaussian, mean=dg.mean,
-                                     depth=solve_depth, valid=valid, config=c.dgmc_config, keep_better=True)
-                for k in ("normals", "albedo", "residual", "flags"):
-                    out[k] = getattr(fr, k)
-                out["iterations"] = out["iterations"] + fr.iterations
-                # each front pixel started from its source's final (solved) normal
-                src = fr.source
-                has = src[..., 0] >= 0
                 start = start.copy()
-                start[has] = fr.normals[src[has, 0], src[has, 1]]
+                if on_device:  # (read from and merged into the solver's outputs: nothing but the sources back)
+                    pix, src_normals = propagate_front_device(self.solver, m, highlight, gaussian=dg.gaussian,
+                                                              mean=dg.mean, config=c.dgmc_config, keep_better=True)
+                    start.reshape(-1, 3)[pix] = src_normals
+                else:  # (the frame is on the solver's device: _solve put it there)
+                    fr = propagate_front(self.solver, None, m, highlight, out, gaussian=dg.gaussian, mean=dg.mean,
+                                         depth=solve_depth, valid=valid, config=c.dgmc_config, keep_better=True)
+                    for k in ("normals", "albedo", "residual", "flags"):
+                        out[k] = getattr(fr, k)
+                    out["iterations"] = out["iterations"] + fr.iterations
+                    has = fr.source[..., 0] >= 0
+                    start[has] = fr.normals[fr.source[has, 0], fr.source[has, 1]]
                 timings["dgmc"] += time.perf_counter() - tf
                 t += time.perf_counter() - tf
                 self._solver_mask = None  # (the front solved its own masks)

@@ -76,6 +76,7 @@ class DeviceFront(Stage):
         self.flags = wp.zeros((h, w), dtype=wp.int32, device=d)
         self.iterations = wp.zeros((h, w), dtype=wp.int32, device=d)
         self.solve_iterations = wp.zeros((h, w), dtype=wp.int32, device=d)  # the solution's (write_back adds them)
+        self.source_normals = wp.zeros(h * w, dtype=wp.vec3, device=d)  # each ring pixel's source's (fetch_sources)
         self.won = wp.zeros((h, w), dtype=wp.uint8, device=d)
         self._plan = None
         self._closed = False
@@ -220,11 +221,11 @@ class DeviceFront(Stage):
             return np.zeros(0, np.int64), np.zeros((0, 3), np.float32)
         wp = warp()
         w = self.solver.shape[2]
-        out = wp.empty(pixels.size, dtype=wp.vec3, device=self.device)
         wp.launch(fk.front_source_normals_kernel, dim=pixels.size,
-                  inputs=[self.pixels, self.sources, w, self.normals], outputs=[out], device=self.device)
-        src = self.sources.numpy()[:pixels.size]
-        nrm = out.numpy()
+                  inputs=[self.pixels, self.sources, w, self.normals], outputs=[self.source_normals],
+                  device=self.device)
+        src = self.sources[:pixels.size].numpy()  # (only the ring pixels' entries cross)
+        nrm = self.source_normals[:pixels.size].numpy()
         has = src >= 0
         return pixels[has].astype(np.int64), nrm[has]
 
@@ -248,7 +249,7 @@ class DeviceFront(Stage):
     def close(self) -> None:
         """Release the device buffers."""
         for name in ("pixels", "sources", "level", "gc", "mc", "normals", "albedo", "residual", "flags",
-                     "iterations", "won", "_plan"):
+                     "iterations", "solve_iterations", "source_normals", "won", "_plan"):
             setattr(self, name, None)
         self._closed = True
 
