@@ -59,6 +59,10 @@ ROBUST_TAG = {name: i for i, name in enumerate(ROBUST_NAMES)}  # none 0, huber 1
 ParallelName = Literal["auto", "pixels", "lights"]
 PARALLEL_NAMES: tuple[str, ...] = get_args(ParallelName)
 LIGHT_LANES = 32
+# where a stage may run its per-frame or per-step launches as a CUDA graph: "auto" (on CUDA, after a first eager
+# pass), "off" (launched from the host every time)
+GraphName = Literal["auto", "off"]
+GRAPH_NAMES: tuple[str, ...] = get_args(GraphName)
 LIGHTS_PARALLEL_MIN = 16
 LIGHTS_PARALLEL_PAIRS_PER_IMAGE = 500
 

@@ -185,3 +185,19 @@ def np_reduced_cost(brdf, n, lights_dir, radiance, obs, weights, v, p, ks, grey=
     kd = np.where(saa > 1e-20, np.maximum(say / np.where(saa > 0, saa, 1), 0.0), 0.0)
     r = y - kd * a
     return 0.5 * np.sum(w * r * r), kd, (np.sqrt(w) * r).ravel()
+
+
+@wp.kernel
+def valley_residual_kernel(
+    mats: wp.array(dtype=MaterialParams),
+    weights: wp.array(dtype=wp.float32),
+    residual: wp.array2d(dtype=wp.float32),
+):
+    """A fake material scorer's residuals (tests/test_material_search.py): ``residual[k, i] = w_i sqrt(f)`` with
+    ``f`` a curved valley in (log ks, log roughness) across the axes, minimum 0.01 at (log 0.4, log 0.2)."""
+    k, i = wp.tid()
+    a = wp.log(mats[k].ks) - wp.log(0.4)
+    b = wp.log(mats[k].roughness) - wp.log(0.2)
+    u = b - 0.3 * a - 0.5 * a * a
+    f = a * a + 8.0 * u * u + 0.01
+    residual[k, i] = weights[i] * wp.sqrt(f)

@@ -76,6 +76,7 @@ from gpps.pipeline.front import propagate_front, propagate_front_device
 from gpps.pipeline.integration import Integrator, IntegratorConfig, warn_log_depth_span
 from gpps.pipeline.integration_rounds import DeviceSystem
 from gpps.pipeline.material import MaterialScorer
+from gpps.pipeline.material_search import NelderMeadSearch
 from gpps.pipeline.ron_rounds import DeviceRounds
 from gpps.pipeline.ron_shadows import RoundShadows
 from gpps.pipeline.shadows import ShadowConfig
@@ -93,6 +94,7 @@ __all__ = [
 ]
 
 MaterialSearch = Literal["pattern", "nelder-mead"]
+MaterialLoop = Literal["auto", "host", "device"]
 MaterialRule = Literal["photometric", "depth-rms"]
 ShadowFew = Literal["flag", "keep"]
 Progress = Callable[[float, float, str], None]
@@ -150,6 +152,13 @@ class RONConfig:
             with a quadratic model whose ``3^d`` candidates are scored in one batch (fewer, fuller launches
             on the device; on rendered Cook-Torrance scenes it stopped further from the optimum than
             Nelder-Mead within the same budget: 0.38 against 0.13 deg MAEN on a 64^2 sphere).
+        material_loop: who drives Nelder-Mead's steps after its initial simplex: ``"device"``: each step's
+            points, trimmed energies and decision in device kernels around the scorer's solve, the loop a
+            CUDA graph with a conditional node where the device has them
+            (:class:`gpps.pipeline.material_search.NelderMeadSearch`: no host wait between steps, the same
+            trajectory); ``"host"``: the host decides each step from the fetched energies (a progress report
+            after every batch); ``"auto"`` (default): ``"device"`` on CUDA, ``"host"`` on the CPU (whose
+            launches run on the host anyway, and whose long batches want the progress reports).
         material_trim: fraction of worst pixel residuals left out of the fit's
             energy (robust to cast shadows and inter-reflections).
         material_starts: starts per pixel in the fit's cold per-pixel solves.
@@ -285,6 +294,7 @@ class RONConfig:
     material_grid: int = 5
     material_evals: int = 40
     material_search: MaterialSearch = "nelder-mead"
+    material_loop: MaterialLoop = "auto"
     material_trim: float = 0.02
     material_starts: int = 4
     material_warm: bool = True
@@ -530,6 +540,7 @@ class RON:
         self._fit_solver = None
         self._scorers: dict = {}  # the material fit's resident sample per model (MaterialScorer), built at its first fit
         self._scored: dict = {}  # the inputs each holds
+        self._searches: dict = {}  # NelderMeadSearch per (model, dimension), on its model's scorer
         self._batch = max(25, self.config.material_grid ** max(len(self.config.estimate), 1))
         self._last_move = None  # log-space move of the last material fit (sizes the next fit's simplex)
         self._frame_key = self._frame_depth = None  # the frame on the solver's device (see _frame)
@@ -555,6 +566,9 @@ class RON:
         if self._shadows is not None:
             self._shadows.close()
             self._shadows = None
+        for search in self._searches.values():
+            search.close()
+        self._searches.clear()
         for scorer in self._scorers.values():
             scorer.close()
         self._scorers.clear()
@@ -769,6 +783,7 @@ class RON:
         report = progress or (lambda *a: None)
 
         warm = False
+        device_scored = 0  # candidates the device search scored (NelderMeadSearch)
 
         def score(xs):
             xs = [np.clip(x, lo, hi) for x in xs]
@@ -809,11 +824,25 @@ class RON:
                 warm = True
         if c.material_evals > 0 and names and c.material_search != "pattern":
             simplex = np.vstack([x0] + [x0 + np.eye(len(names))[i] * step[i] for i in range(len(names))])
-            # on CUDA a launch costs its slowest thread, not its candidates: score every point a step may read
-            # in one batch (the same trajectory: Nelder-Mead reads only what it needs); the start is scored
-            # with the initial simplex
-            fx, xb, f_start = self._nelder_mead(score, simplex, None, c.material_evals, xatol,
-                                                speculate=self._speculate())
+            if self._device_loop() and c.material_evals > len(names) + 1:
+                # the initial simplex in one batch from the host, then every step on the device
+                f_init = score(list(simplex))
+                search = self._search_for(material.brdf, len(names))
+                search.upload(material, names, simplex, f_init, lo=lo, hi=hi, maxfev=c.material_evals,
+                              xatol=xatol)
+                search.step(warm=warm)
+                got = search.fetch()
+                fx, xb, f_start = got["energy"], got["x"], float(f_init[0])
+                device_scored = got["scored"]
+                report(len(evals) + device_scored, len(evals) + device_scored,
+                       f"material: {len(evals) + device_scored} candidates scored ({got['steps']} steps on the "
+                       "device)")
+            else:
+                # on CUDA a launch costs its slowest thread, not its candidates: score every point a step may
+                # read in one batch (the same trajectory: Nelder-Mead reads only what it needs); the start is
+                # scored with the initial simplex
+                fx, xb, f_start = self._nelder_mead(score, simplex, None, c.material_evals, xatol,
+                                                    speculate=self._speculate())
             best = (fx, np.clip(xb, lo, hi)) if fx < f_start else (f_start, x0)
         else:
             best = (float(score([x0])[0]), x0)
@@ -823,8 +852,22 @@ class RON:
         self._last_move = best[1] - start
         values = dict(zip(names, (float(v) for v in np.exp(best[1]))))
         info = {"rule": "photometric", "search": c.material_search, "warm": warm, "values": values, "energy": best[0],
-                "evaluations": len(evals), "grid": bool(grid), "identifiable": None if spread is None else spread > 1e-3}
+                "evaluations": len(evals) + device_scored, "grid": bool(grid),
+                "identifiable": None if spread is None else spread > 1e-3}
         return with_lobe(material, values), info
+
+    def _device_loop(self) -> bool:
+        """Whether Nelder-Mead's steps run on the device (``RONConfig.material_loop``)."""
+        loop = self.config.material_loop
+        return loop == "device" or (loop == "auto" and self.device.startswith("cuda"))
+
+    def _search_for(self, brdf: str, dims: int) -> NelderMeadSearch:
+        """The device search on model ``brdf``'s scorer (built at its first use, kept with the scorer: its
+        CUDA graphs replay in the later rounds)."""
+        key = (brdf, int(dims))
+        if key not in self._searches:
+            self._searches[key] = NelderMeadSearch(self._scorers[brdf], dims)
+        return self._searches[key]
 
     def _speculate(self) -> int:
         """How far Nelder-Mead scores ahead (:meth:`_nelder_mead`): on the CPU nothing (a candidate costs its

@@ -453,16 +453,27 @@ class MaterialScorer(Stage):
         self._check_open()
         self.candidates = self._set_candidates(candidates)
 
-    def launch(self) -> None:
+    def launch(self, *, count: int | None = None, warm: bool = False) -> None:
         """Score the candidates of the last :meth:`set_candidates` on the current sample: one launch of
         K x P threads, no copy and no host wait (graph-capturable; the candidates are read from the
-        device buffer ``mats``, so a captured launch scores whatever was set last)."""
+        device buffer ``mats``, so a captured launch scores whatever was set last).
+
+        Args:
+            count: score the first ``count`` rows of ``mats`` as they are on the device (rows a kernel wrote,
+                e.g. :class:`gpps.pipeline.material_search.NelderMeadSearch`'s), instead of the last
+                :meth:`set_candidates`' K.
+            warm: from :meth:`set_start`'s normals, one start per pixel (as ``step(..., warm=True)``).
+        """
         self._check_open()
         if self.samples == 0:
             raise ValueError("launch: expected an upload of the sample pixels first")
+        if count is not None:
+            self.candidates = check_number("count", count, lo=1, hi=self.max_candidates, integer=True)
         if self.candidates == 0:
             raise ValueError("launch: expected set_candidates first")
-        self._launch_chunk(self.candidates, 0, self.samples)
+        if warm and not self.warm_ready:
+            raise ValueError("warm: expected set_start(...) after the last upload")
+        self._launch_chunk(self.candidates, 0, self.samples, warm=bool(warm))
 
     def _launch_chunk(self, k: int, a: int, b: int, *, warm: bool = False) -> None:
         """One launch: candidates ``0..k`` x sample pixels ``a..b``, cold (Woodham's start, the config's

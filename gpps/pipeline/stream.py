@@ -55,7 +55,7 @@ from gpps.host.merge import ranks_better
 from gpps.kernels import stream as ks
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
-from gpps.names import FLAG_FEW_OBSERVATIONS, LOBE_RANGES
+from gpps.names import FLAG_FEW_OBSERVATIONS, LOBE_RANGES, GraphName
 from gpps.pipeline.dgmc import DeviceDGMC
 from gpps.pipeline.integration_device import StreamIntegrator
 from gpps.pipeline.solver import PixelSolver, SolverConfig
@@ -175,7 +175,7 @@ class StreamConfig:
     integration_iterations: int = 1
     first_tol: float = 1e-4
     reference_depth: float | None = None
-    graph: Literal["auto", "off"] = "auto"
+    graph: GraphName = "auto"
     capture_after: int = 2
     output: Output = "device"
     ring: int = 2

@@ -1,0 +1,281 @@
+"""RON's material search on the device: Nelder-Mead's step and the trimmed energy, as Warp kernels.
+
+Device math only; the stage :class:`gpps.pipeline.material_search.NelderMeadSearch` owns the buffers and launches
+these around :class:`gpps.pipeline.material.MaterialScorer`'s recorded solve, one search step per loop pass
+(a CUDA graph with a conditional while node on CUDA, so that the host does not wait for each step's energies):
+
+* :func:`search_points_kernel` (one thread a candidate, ``4 + d`` of them): from the sorted simplex ``sim``
+  (``d + 1`` vertices in log-parameter space, best first), the reflection, expansion, outside and inside
+  contraction of scipy's Nelder-Mead (coefficients 1, 2, 1/2, 1/2), then the ``d`` vertices of a shrink toward
+  the best: every point the step may read, scored in one launch (the reflection decides which are read); each
+  point clipped to the parameter bounds and written as a candidate material row (``exp`` of the log value into
+  the lobe fields, the rest copied from ``base_row[0]``: the rows :meth:`MaterialScorer.lobe_candidates` packs);
+* :func:`trimmed_rank_kernel`, :func:`trimmed_partial_kernel`, :func:`trimmed_energy_kernel`: each candidate's
+  trimmed energy, the mean of the ``keep`` smallest squared residuals (:func:`gpps.pipeline.material.trimmed_energy`),
+  without a sort: a sample value is kept when fewer than ``keep`` values precede it in the order (value, index),
+  which keeps exactly the multiset a partition keeps (ties broken by index); its square (float64, exact for a
+  float32 residual) is summed in a fixed order (strided partial sums, then the partials in order), so the energy
+  does not depend on the launch's scheduling; only the summation order differs from numpy's (float64 rounding);
+* :func:`search_step_kernel` (one thread): the Nelder-Mead decision on the scored points, the simplex update,
+  the stable re-sort and the test ``max |sim[i] - sim[0]| <= xatol``; it counts the evaluations the method reads
+  exactly as :meth:`gpps.flows.ron.RON._nelder_mead` does (``maxfev``: the search stops before a read past it) and
+  clears the loop's condition when the search has converged or spent its budget.
+
+The trajectory is the host method's: the same points in the same float64 arithmetic, the same comparisons;
+energies agree with the host's to float64 rounding of their sums, so a step can differ only where two energies
+tie to ~1e-16 relative.
+"""
+
+import warp as wp
+
+from gpps.kernels.brdf import MaterialParams
+
+__all__ = ["search_points_kernel", "trimmed_rank_kernel", "trimmed_partial_kernel", "trimmed_energy_kernel",
+           "search_step_kernel", "SEARCH_POINTS", "PARTIAL_LANES", "FIELD_KS", "FIELD_SHININESS",
+           "FIELD_ROUGHNESS", "FIELD_ETA", "STATUS_RUNNING", "STATUS_CONVERGED", "STATUS_BUDGET"]
+
+SEARCH_POINTS = 4  # reflection, expansion, outside and inside contraction (then the d shrink points)
+PARTIAL_LANES = 64  # strided partial sums per candidate of the trimmed energy
+# lobe fields of MaterialParams a search parameter sets (gpps.pipeline.material._LOBE_FIELDS, eta: both)
+FIELD_KS, FIELD_SHININESS, FIELD_ROUGHNESS, FIELD_ETA = 0, 1, 2, 3
+STATUS_RUNNING, STATUS_CONVERGED, STATUS_BUDGET = 0, 1, 2
+
+
+@wp.kernel(enable_backward=False)
+def search_points_kernel(
+    sim: wp.array2d(dtype=wp.float64),
+    d: int,
+    lo: wp.array(dtype=wp.float64),
+    hi: wp.array(dtype=wp.float64),
+    fields: wp.array(dtype=wp.int32),
+    base_row: wp.array(dtype=MaterialParams),
+    cand: wp.array2d(dtype=wp.float64),
+    mats: wp.array(dtype=MaterialParams),
+):
+    """Candidate ``c`` of the step (``4 + d`` threads): ``cand[c]`` (log space, unclipped) and its material row.
+
+    ``c < 4``: ``a xbar - b sim[d]`` with ``(a, b)`` = (2, 1), (3, 2), (1.5, 0.5), and ``0.5 xbar + 0.5 sim[d]``
+    (``xbar``: the mean of the ``d`` best vertices, summed in vertex order as numpy does); ``c = 4 + i``:
+    ``sim[0] + 0.5 (sim[i + 1] - sim[0])``.  The material row scores ``exp(clip(cand[c], lo, hi))``.
+    """
+    c = wp.tid()
+    base = base_row[0]
+    m = MaterialParams()
+    m.model = base.model
+    m.ks = base.ks
+    m.shininess = base.shininess
+    m.roughness = base.roughness
+    m.f0 = base.f0
+    m.eta_u = base.eta_u
+    m.eta_v = base.eta_v
+    one = wp.float64(1.0)
+    rho = wp.float64(1.0)
+    chi = wp.float64(2.0)
+    psi = wp.float64(0.5)
+    sigma = wp.float64(0.5)
+    for j in range(d):
+        x = wp.float64(0.0)
+        if c < 4:
+            xbar = wp.float64(0.0)
+            for i in range(d):
+                xbar = xbar + sim[i, j]
+            xbar = xbar / wp.float64(d)
+            w = sim[d, j]
+            if c == 0:
+                x = (one + rho) * xbar - rho * w
+            elif c == 1:
+                x = (one + rho * chi) * xbar - rho * chi * w
+            elif c == 2:
+                x = (one + psi * rho) * xbar - psi * rho * w
+            else:
+                x = (one - psi) * xbar + psi * w
+        else:
+            x = sim[0, j] + sigma * (sim[c - 3, j] - sim[0, j])
+        cand[c, j] = x
+        v = wp.float32(wp.exp(wp.min(wp.max(x, lo[j]), hi[j])))
+        f = fields[j]
+        if f == 0:
+            m.ks = v
+        elif f == 1:
+            m.shininess = v
+        elif f == 2:
+            m.roughness = v
+        else:
+            m.eta_u = v
+            m.eta_v = v
+    mats[c] = m
+
+
+@wp.func
+def _order_key(r: wp.float32) -> wp.float32:
+    """A residual's sort key: NaN last (as numpy's partition puts it), else the value."""
+    if wp.isnan(r):
+        return wp.float32(wp.inf)
+    return r
+
+
+@wp.kernel(enable_backward=False)
+def trimmed_rank_kernel(
+    residual: wp.array2d(dtype=wp.float32),
+    p: int,
+    keep: int,
+    contrib: wp.array2d(dtype=wp.float64),
+):
+    """``contrib[k, i]``: ``r[k, i]^2`` (float64) when fewer than ``keep`` sample values precede it in the order
+    (value, index), else 0; one thread a (candidate, pixel) pair, ``p`` comparisons each."""
+    k, i = wp.tid()
+    ri = _order_key(residual[k, i])
+    before = int(0)
+    for j in range(p):
+        rj = _order_key(residual[k, j])
+        if rj < ri or (rj == ri and j < i):
+            before += 1
+    v = wp.float64(0.0)
+    if before < keep:
+        r = wp.float64(residual[k, i])
+        v = r * r
+    contrib[k, i] = v
+
+
+@wp.kernel(enable_backward=False)
+def trimmed_partial_kernel(
+    contrib: wp.array2d(dtype=wp.float64),
+    p: int,
+    partial: wp.array2d(dtype=wp.float64),
+):
+    """``partial[k, t]``: the sum of ``contrib[k, i]`` over ``i = t, t + L, ...`` (``L`` the launch's second
+    dimension), in index order."""
+    k, t = wp.tid()
+    lanes = partial.shape[1]
+    s = wp.float64(0.0)
+    i = t
+    while i < p:
+        s = s + contrib[k, i]
+        i += lanes
+    partial[k, t] = s
+
+
+@wp.kernel(enable_backward=False)
+def trimmed_energy_kernel(
+    partial: wp.array2d(dtype=wp.float64),
+    keep: int,
+    energy: wp.array(dtype=wp.float64),
+):
+    """``energy[k]``: the partial sums of candidate ``k`` added in order, over ``keep``."""
+    k = wp.tid()
+    s = wp.float64(0.0)
+    for t in range(partial.shape[1]):
+        s = s + partial[k, t]
+    energy[k] = s / wp.float64(keep)
+
+
+@wp.func
+def _take(sim: wp.array2d(dtype=wp.float64), fsim: wp.array(dtype=wp.float64), cand: wp.array2d(dtype=wp.float64),
+          d: int, row: int, c: int, f: wp.float64):
+    """The worst vertex ``sim[row]`` becomes candidate ``c`` with energy ``f``."""
+    for j in range(d):
+        sim[row, j] = cand[c, j]
+    fsim[row] = f
+
+
+@wp.kernel(enable_backward=False)
+def search_step_kernel(
+    energy: wp.array(dtype=wp.float64),
+    cand: wp.array2d(dtype=wp.float64),
+    d: int,
+    maxfev: int,
+    xatol: wp.float64,
+    sim: wp.array2d(dtype=wp.float64),
+    fsim: wp.array(dtype=wp.float64),
+    state: wp.array(dtype=wp.int32),
+    cond: wp.array(dtype=wp.int32),
+):
+    """One Nelder-Mead step on the sorted simplex (one thread), :meth:`gpps.flows.ron.RON._nelder_mead`'s rules.
+
+    ``state``: [evaluations read, steps, status]; ``cond[0]`` is cleared (the loop ends) when the step finds the
+    simplex converged or a read would pass ``maxfev`` (the simplex is then left as it was, its best vertex the
+    result, as the host method returns it).
+    """
+    if cond[0] == 0:
+        return
+    need = state[0]
+    state[1] = state[1] + 1
+    last = d
+    budget = int(0)
+    shrink = int(0)
+    if need >= maxfev:
+        budget = 1
+    else:
+        need += 1
+        fxr = energy[0]
+        if fxr < fsim[0]:
+            if need >= maxfev:
+                budget = 1
+            else:
+                need += 1
+                fxe = energy[1]
+                if fxe < fxr:
+                    _take(sim, fsim, cand, d, last, 1, fxe)
+                else:
+                    _take(sim, fsim, cand, d, last, 0, fxr)
+        elif fxr < fsim[last - 1]:
+            _take(sim, fsim, cand, d, last, 0, fxr)
+        elif fxr < fsim[last]:
+            if need >= maxfev:
+                budget = 1
+            else:
+                need += 1
+                fxc = energy[2]
+                if fxc <= fxr:
+                    _take(sim, fsim, cand, d, last, 2, fxc)
+                else:
+                    shrink = 1
+        else:
+            if need >= maxfev:
+                budget = 1
+            else:
+                need += 1
+                fxcc = energy[3]
+                if fxcc < fsim[last]:
+                    _take(sim, fsim, cand, d, last, 3, fxcc)
+                else:
+                    shrink = 1
+        if shrink == 1:
+            if need + d > maxfev:  # a read of the shrink would pass the budget: the host keeps its best vertex
+                need = maxfev
+                budget = 1
+            else:
+                for i in range(1, d + 1):
+                    _take(sim, fsim, cand, d, i, 3 + i, energy[3 + i])
+                need += d
+    state[0] = need
+    if budget == 1:
+        state[2] = 2
+        cond[0] = 0
+        return
+    # stable insertion sort of the d + 1 vertices by energy (numpy's argsort(kind="stable"))
+    for i in range(1, d + 1):
+        f = fsim[i]
+        j = i
+        while j > 0 and fsim[j - 1] > f:
+            j -= 1
+        if j < i:
+            for q in range(d):
+                x = sim[i, q]
+                t = i
+                while t > j:
+                    sim[t, q] = sim[t - 1, q]
+                    t -= 1
+                sim[j, q] = x
+            t = i
+            while t > j:
+                fsim[t] = fsim[t - 1]
+                t -= 1
+            fsim[j] = f
+    size = wp.float64(0.0)
+    for i in range(1, d + 1):
+        for q in range(d):
+            size = wp.max(size, wp.abs(sim[i, q] - sim[0, q]))
+    if size <= xatol:
+        state[2] = 1
+        cond[0] = 0
