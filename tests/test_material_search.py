@@ -136,7 +136,7 @@ def test_valley_same_trajectory_as_host(x0, step, maxfev, xatol, device):
         assert sim_size > 0
     # every host read was scored once (speculate=0 scores exactly what is read, no repeats here)
     assert got["evaluations"] == min(scored, maxfev) or got["status"] == "budget"
-    assert got["scored"] == got["steps"] * 6
+    assert got["scored"] == got["steps"] * 4
 
 
 def test_valley_finds_the_minimum(device):
@@ -204,8 +204,8 @@ def test_material_scorer_same_trajectory_as_host(warm, device):
 
 
 def test_bad_input(device):
-    sc = ValleyScorer(device, max_candidates=5)
-    with pytest.raises(ValueError, match="max_candidates >= 6"):
+    sc = ValleyScorer(device, max_candidates=3)
+    with pytest.raises(ValueError, match="max_candidates >= 4"):
         NelderMeadSearch(sc, 2)
     with pytest.raises(ValueError, match="dims"):
         NelderMeadSearch(ValleyScorer(device), 0)

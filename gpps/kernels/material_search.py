@@ -1,25 +1,30 @@
 """RON's material search on the device: Nelder-Mead's step and the trimmed energy, as Warp kernels.
 
 Device math only; the stage :class:`gpps.pipeline.material_search.NelderMeadSearch` owns the buffers and launches
-these around :class:`gpps.pipeline.material.MaterialScorer`'s recorded solve, one search step per loop pass
-(a CUDA graph with a conditional while node on CUDA, so that the host does not wait for each step's energies):
+these around :class:`gpps.pipeline.material.MaterialScorer`'s recorded solve, one pass per loop iteration
+(a CUDA graph with a conditional while node on CUDA, so that the host does not wait for each step's energies).
+A pass scores :data:`SEARCH_POINTS` = 4 candidates, whatever the dimension d <= 4:
 
-* :func:`search_points_kernel` (one thread a candidate, ``4 + d`` of them): from the sorted simplex ``sim``
+* :func:`search_points_kernel` (one thread a candidate): in a step pass, from the sorted simplex ``sim``
   (``d + 1`` vertices in log-parameter space, best first), the reflection, expansion, outside and inside
-  contraction of scipy's Nelder-Mead (coefficients 1, 2, 1/2, 1/2), then the ``d`` vertices of a shrink toward
-  the best: every point the step may read, scored in one launch (the reflection decides which are read); each
-  point clipped to the parameter bounds and written as a candidate material row (``exp`` of the log value into
-  the lobe fields, the rest copied from ``base_row[0]``: the rows :meth:`MaterialScorer.lobe_candidates` packs);
+  contraction of scipy's Nelder-Mead (coefficients 1, 2, 1/2, 1/2): every point the step may read, scored in
+  one launch (the reflection decides which are read); in a shrink pass (the step before asked for a shrink,
+  which is rare) the ``d`` vertices shrunk toward the best, ``sim[0] + 1/2 (sim[i] - sim[0])`` (the rest of
+  the rows repeat the last).  Each point is clipped to the parameter bounds and written as a candidate
+  material row (``exp`` of the log value into the lobe fields, the rest copied from ``base_row[0]``: the rows
+  :meth:`MaterialScorer.lobe_candidates` packs).  Scoring the shrink points with every step instead would cost
+  nothing on a latency-bound launch but 4 + d candidates: a cold multi-start launch of 6 x 2000 x 4 threads
+  no longer fits one wave of the H100 at the solve's 216 registers a thread (4 x 2000 x 4 does);
 * :func:`trimmed_rank_kernel`, :func:`trimmed_partial_kernel`, :func:`trimmed_energy_kernel`: each candidate's
   trimmed energy, the mean of the ``keep`` smallest squared residuals (:func:`gpps.pipeline.material.trimmed_energy`),
   without a sort: a sample value is kept when fewer than ``keep`` values precede it in the order (value, index),
   which keeps exactly the multiset a partition keeps (ties broken by index); its square (float64, exact for a
   float32 residual) is summed in a fixed order (strided partial sums, then the partials in order), so the energy
   does not depend on the launch's scheduling; only the summation order differs from numpy's (float64 rounding);
-* :func:`search_step_kernel` (one thread): the Nelder-Mead decision on the scored points, the simplex update,
-  the stable re-sort and the test ``max |sim[i] - sim[0]| <= xatol``; it counts the evaluations the method reads
-  exactly as :meth:`gpps.flows.ron.RON._nelder_mead` does (``maxfev``: the search stops before a read past it) and
-  clears the loop's condition when the search has converged or spent its budget.
+* :func:`search_step_kernel` (one thread): the Nelder-Mead decision on the scored points (or the shrink), the
+  simplex update, the stable re-sort and the test ``max |sim[i] - sim[0]| <= xatol``; it counts the
+  evaluations the method reads exactly as :meth:`gpps.flows.ron.RON._nelder_mead` does (``maxfev``: the search
+  stops before a read past it) and clears the loop's condition when the search has converged or spent its budget.
 
 The trajectory is the host method's: the same points in the same float64 arithmetic, the same comparisons;
 energies agree with the host's to float64 rounding of their sums, so a step can differ only where two energies
@@ -34,11 +39,14 @@ __all__ = ["search_points_kernel", "trimmed_rank_kernel", "trimmed_partial_kerne
            "search_step_kernel", "SEARCH_POINTS", "PARTIAL_LANES", "FIELD_KS", "FIELD_SHININESS",
            "FIELD_ROUGHNESS", "FIELD_ETA", "STATUS_RUNNING", "STATUS_CONVERGED", "STATUS_BUDGET"]
 
-SEARCH_POINTS = 4  # reflection, expansion, outside and inside contraction (then the d shrink points)
+SEARCH_POINTS = 4  # candidates a pass: reflection, expansion, outside and inside contraction (or the d shrink points)
 PARTIAL_LANES = 64  # strided partial sums per candidate of the trimmed energy
 # lobe fields of MaterialParams a search parameter sets (gpps.pipeline.material._LOBE_FIELDS, eta: both)
 FIELD_KS, FIELD_SHININESS, FIELD_ROUGHNESS, FIELD_ETA = 0, 1, 2, 3
 STATUS_RUNNING, STATUS_CONVERGED, STATUS_BUDGET = 0, 1, 2
+# state slots of the search: evaluations read, passes, status, phase (0: a step pass next, 1: a shrink pass)
+STATE_NEED, STATE_PASSES, STATE_STATUS, STATE_PHASE = 0, 1, 2, 3
+STATE_SIZE = 4
 
 
 @wp.kernel(enable_backward=False)
@@ -49,14 +57,16 @@ def search_points_kernel(
     hi: wp.array(dtype=wp.float64),
     fields: wp.array(dtype=wp.int32),
     base_row: wp.array(dtype=MaterialParams),
+    state: wp.array(dtype=wp.int32),
     cand: wp.array2d(dtype=wp.float64),
     mats: wp.array(dtype=MaterialParams),
 ):
-    """Candidate ``c`` of the step (``4 + d`` threads): ``cand[c]`` (log space, unclipped) and its material row.
+    """Candidate ``c`` of the pass (4 threads): ``cand[c]`` (log space, unclipped) and its material row.
 
-    ``c < 4``: ``a xbar - b sim[d]`` with ``(a, b)`` = (2, 1), (3, 2), (1.5, 0.5), and ``0.5 xbar + 0.5 sim[d]``
-    (``xbar``: the mean of the ``d`` best vertices, summed in vertex order as numpy does); ``c = 4 + i``:
-    ``sim[0] + 0.5 (sim[i + 1] - sim[0])``.  The material row scores ``exp(clip(cand[c], lo, hi))``.
+    Step pass: ``a xbar - b sim[d]`` with ``(a, b)`` = (2, 1), (3, 2), (1.5, 0.5), and ``0.5 xbar + 0.5 sim[d]``
+    (``xbar``: the mean of the ``d`` best vertices, summed in vertex order as numpy does).  Shrink pass
+    (``state[STATE_PHASE] == 1``): ``sim[0] + 0.5 (sim[i + 1] - sim[0])`` for ``c = i < d`` (the last one
+    repeated above).  The material row scores ``exp(clip(cand[c], lo, hi))``.
     """
     c = wp.tid()
     base = base_row[0]
@@ -73,9 +83,13 @@ def search_points_kernel(
     chi = wp.float64(2.0)
     psi = wp.float64(0.5)
     sigma = wp.float64(0.5)
+    shrink = state[3] == 1
     for j in range(d):
         x = wp.float64(0.0)
-        if c < 4:
+        if shrink:
+            row = wp.min(c + 1, d)
+            x = sim[0, j] + sigma * (sim[row, j] - sim[0, j])
+        else:
             xbar = wp.float64(0.0)
             for i in range(d):
                 xbar = xbar + sim[i, j]
@@ -89,8 +103,6 @@ def search_points_kernel(
                 x = (one + psi * rho) * xbar - psi * rho * w
             else:
                 x = (one - psi) * xbar + psi * w
-        else:
-            x = sim[0, j] + sigma * (sim[c - 3, j] - sim[0, j])
         cand[c, j] = x
         v = wp.float32(wp.exp(wp.min(wp.max(x, lo[j]), hi[j])))
         f = fields[j]
@@ -190,11 +202,13 @@ def search_step_kernel(
     state: wp.array(dtype=wp.int32),
     cond: wp.array(dtype=wp.int32),
 ):
-    """One Nelder-Mead step on the sorted simplex (one thread), :meth:`gpps.flows.ron.RON._nelder_mead`'s rules.
+    """One pass of Nelder-Mead on the sorted simplex (one thread), :meth:`gpps.flows.ron.RON._nelder_mead`'s rules.
 
-    ``state``: [evaluations read, steps, status]; ``cond[0]`` is cleared (the loop ends) when the step finds the
-    simplex converged or a read would pass ``maxfev`` (the simplex is then left as it was, its best vertex the
-    result, as the host method returns it).
+    ``state``: [evaluations read, passes, status, phase].  A step pass decides from the reflection (and reads
+    what it needs of the other three); a shrink it asks for sets the phase and leaves the simplex for the next
+    pass, which scores the shrunk vertices and replaces them.  ``cond[0]`` is cleared (the loop ends) when the
+    simplex has converged or a read would pass ``maxfev`` (the simplex is then left as it was: its best vertex is
+    the result, as the host method returns it; a budget that ends inside a shrink leaves the best vertex too).
     """
     if cond[0] == 0:
         return
@@ -202,8 +216,16 @@ def search_step_kernel(
     state[1] = state[1] + 1
     last = d
     budget = int(0)
-    shrink = int(0)
-    if need >= maxfev:
+    if state[3] == 1:  # the shrink pass: the d shrunk vertices' energies
+        state[3] = 0
+        if need + d > maxfev:  # a read of the shrink passes the budget: the host keeps its best vertex
+            need = maxfev
+            budget = 1
+        else:
+            for i in range(1, d + 1):
+                _take(sim, fsim, cand, d, i, i - 1, energy[i - 1])
+            need += d
+    elif need >= maxfev:
         budget = 1
     else:
         need += 1
@@ -229,7 +251,7 @@ def search_step_kernel(
                 if fxc <= fxr:
                     _take(sim, fsim, cand, d, last, 2, fxc)
                 else:
-                    shrink = 1
+                    state[3] = 1
         else:
             if need >= maxfev:
                 budget = 1
@@ -239,19 +261,13 @@ def search_step_kernel(
                 if fxcc < fsim[last]:
                     _take(sim, fsim, cand, d, last, 3, fxcc)
                 else:
-                    shrink = 1
-        if shrink == 1:
-            if need + d > maxfev:  # a read of the shrink would pass the budget: the host keeps its best vertex
-                need = maxfev
-                budget = 1
-            else:
-                for i in range(1, d + 1):
-                    _take(sim, fsim, cand, d, i, 3 + i, energy[3 + i])
-                need += d
+                    state[3] = 1
     state[0] = need
     if budget == 1:
         state[2] = 2
         cond[0] = 0
+        return
+    if state[3] == 1:  # a shrink next: the simplex waits for its vertices' energies
         return
     # stable insertion sort of the d + 1 vertices by energy (numpy's argsort(kind="stable"))
     for i in range(1, d + 1):

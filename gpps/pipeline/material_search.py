@@ -8,7 +8,7 @@ each step launches the scorer, waits for its residuals, trims them on the host a
 well under a millisecond.  Here a step is five launches that read and write only device buffers
 (:mod:`gpps.kernels.material_search`)::
 
-    points (the step's 4 + d candidates into the scorer's material rows)
+    points (the pass's 4 candidates into the scorer's material rows: a step's, or a shrink's vertices)
     -> the scorer's recorded solve of those rows -> trimmed energies (rank, partial sums, energy)
     -> the Nelder-Mead decision, simplex update, sort and convergence test (clears the loop's condition)
 
@@ -65,27 +65,27 @@ class NelderMeadSearch(Stage):
             ``mats`` (K_max,) MaterialParams and ``residual`` (K_max, P_max) float32, and
             ``launch(count=K, warm=...)`` that scores the first K rows of ``mats`` into ``residual`` without a
             host wait).  It must hold its sample (an upload) when :meth:`step` runs.
-        dims: d, the number of searched parameters (1 to 4); a step scores ``4 + d`` candidates, so the scorer
-            needs ``max_candidates >= 4 + d``.
+        dims: d, the number of searched parameters (1 to 4); a pass scores 4 candidates, so the scorer needs
+            ``max_candidates >= 4``.
         graph: ``"auto"``: the loop as a CUDA graph with a conditional node where the device supports one
             (CUDA 12.4+ driver and toolkit), else from the host; ``"off"``: always from the host.
 
     Buffers (allocated once): the simplex ``sim`` (d + 1, d) and ``fsim`` (d + 1,) float64, the step's candidates
-    ``cand`` (4 + d, d) and their ``energy``, the trimmed-energy scratch ``contrib`` (4 + d, P_max) and ``partial``,
-    the bounds, the material base row, ``state`` [evaluations read, steps, status] and the loop condition.
+    ``cand`` (4, d) and their ``energy``, the trimmed-energy scratch ``contrib`` (4, P_max) and ``partial``,
+    the bounds, the material base row, ``state`` [evaluations read, passes, status, phase] and the loop condition.
     """
 
     def __init__(self, scorer, dims: int, *, graph: GraphName = "auto"):
         wp = warp()
         self.dims = check_number("dims", dims, lo=1, hi=MAX_DIMS, integer=True)
         self.graph = check_choice("graph", graph, GraphName)
-        kc = ms.SEARCH_POINTS + self.dims
+        kc = ms.SEARCH_POINTS
         for name in ("mats", "residual", "launch", "max_candidates", "max_samples", "trim", "device"):
             if not hasattr(scorer, name):
                 raise TypeError(f"scorer: expected a MaterialScorer (or an object with {name!r}), "
                                 f"got {type(scorer).__name__}")
         if int(scorer.max_candidates) < kc:
-            raise ValueError(f"scorer: expected max_candidates >= {kc} (4 + dims), got {scorer.max_candidates}")
+            raise ValueError(f"scorer: expected max_candidates >= {kc}, got {scorer.max_candidates}")
         self.scorer = scorer
         self.device = resolve_device(scorer.device)
         self.points = kc
@@ -100,7 +100,7 @@ class NelderMeadSearch(Stage):
         self.hi = self._buffer(d, wp.float64, dev)
         self.fields = self._buffer(d, wp.int32, dev)
         self.base = self._buffer(1, MaterialParams, dev)
-        self.state = self._buffer(3, wp.int32, dev)
+        self.state = self._buffer(ms.STATE_SIZE, wp.int32, dev)
         self.cond = self._buffer(1, wp.int32, dev)
         self._graphs: dict = {}
         self._host: dict | None = None  # the uploaded search's host-side result when it needs no step
@@ -163,16 +163,17 @@ class NelderMeadSearch(Stage):
         m = material
         row[0] = (m.device_tag, m.ks, m.shininess, m.roughness, m.f0, m.eta_u, m.eta_v)
         self.base.assign(row)
-        self.state.assign(np.array([need, 0, ms.STATUS_RUNNING], np.int32))
+        self.state.assign(np.array([need, 0, ms.STATUS_RUNNING, 0], np.int32))
         self.cond.assign(np.array([0 if converged else 1], np.int32))
 
     # ------------------------------------------------------------------ step
 
     def _pass(self, warm: bool, p: int, keep: int, maxfev: int, xatol: float) -> None:
-        """One search step: five launches (no host wait, graph-capturable)."""
+        """One search pass (a step, or a shrink's vertices): six launches (no host wait, graph-capturable)."""
         wp = warp()
         d, kc, dev = self.dims, self.points, self.device
-        wp.launch(ms.search_points_kernel, dim=kc, inputs=[self.sim, d, self.lo, self.hi, self.fields, self.base],
+        wp.launch(ms.search_points_kernel, dim=kc,
+                  inputs=[self.sim, d, self.lo, self.hi, self.fields, self.base, self.state],
                   outputs=[self.cand, self.scorer.mats], device=dev)
         self.scorer.launch(count=kc, warm=warm)
         res = self.scorer.residual
@@ -231,8 +232,8 @@ class NelderMeadSearch(Stage):
 
     def fetch(self) -> dict:
         """The search's result (one small copy): ``energy`` (float), ``x`` (d,) the best vertex (log space,
-        unclipped, as the host method returns it), ``evaluations`` read, ``steps`` taken, ``status``
-        (``"converged"`` or ``"budget"``) and ``scored`` (candidates solved: 4 + d a step)."""
+        unclipped, as the host method returns it), ``evaluations`` read, ``steps`` (passes: steps and shrinks),
+        ``status`` (``"converged"`` or ``"budget"``) and ``scored`` (candidates solved: 4 a pass)."""
         self._check_open()
         if self._spec is None:
             raise ValueError("fetch: expected upload() first")
