@@ -59,6 +59,12 @@ ROBUST_TAG = {name: i for i, name in enumerate(ROBUST_NAMES)}  # none 0, huber 1
 ParallelName = Literal["auto", "pixels", "lights"]
 PARALLEL_NAMES: tuple[str, ...] = get_args(ParallelName)
 LIGHT_LANES = 32
+# register cap of the starts-parallel cold whole-image solve's CUDA module (gpps.kernels.solve_split): its
+# H x W x starts threads are throughput-bound, and at the compiler's 216 registers a thread only 8 warps fit an
+# SM.  Measured on the H100 (perf/register_cap.py, 256^2 x 3 Cook-Torrance, 10 starts; the normals bit-identical):
+# no cap 4.54 ms a solve, 168: 4.29, 128: 3.26, 96: 3.41.  The latency-bound launches (the material scorer's, the
+# front's rings) keep the compiler's choice: a cap there only adds spill latency to their few threads.
+SPLIT_SOLVE_MAX_REGISTERS = 128
 # where a stage may run its per-frame or per-step launches as a CUDA graph: "auto" (on CUDA, after a first eager
 # pass), "off" (launched from the host every time)
 GraphName = Literal["auto", "off"]

@@ -187,6 +187,8 @@ def get_split_kernels(method, brdf, robust="none"):
         name = module_name(*key) + "_split"
         sfx = "__" + name.rsplit(".", 1)[1]
         module = wp.get_module(name)
+        # (CUDA only: the CPU build ignores it)
+        module.options["cuda_max_registers"] = names.SPLIT_SOLVE_MAX_REGISTERS
         funcs = solver_funcs(*key, module, sfx)
         k = split_kernels_for(prelude_for(module, sfx), funcs.one_start, funcs.finish_pixel, module, sfx)
         _SPLIT[key] = k

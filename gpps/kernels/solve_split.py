@@ -16,6 +16,8 @@ another in its thread.  Here the same work takes three launches over the same pi
 The same device functions on the same inputs (the starts read the weights the prelude wrote, as the loop does
 before any IRLS round), so on the CPU the results equal ``solve_kernel``'s bit for bit; on CUDA another module
 may round differently.  Only cold solves of one thread a pixel (no warm start, no lanes, a nonlinear method).
+On CUDA the module is compiled with a register cap (:data:`gpps.names.SPLIT_SOLVE_MAX_REGISTERS`: more threads
+resident for these throughput-bound launches; measured by perf/register_cap.py, same normals bit for bit).
 """
 
 import warp as wp
