@@ -286,3 +286,31 @@ def test_reconstruct_device_loop_equals_host_loop(device):
         assert d.estimated[k] == pytest.approx(v, rel=1e-9), (h.estimated, d.estimated)
     assert h.rounds == d.rounds
     np.testing.assert_allclose(d.normals[scene.mask], h.normals[scene.mask], atol=1e-5)
+
+
+def test_nan_energies_sort_last_as_numpy(device):
+    """A step whose energies are NaN (a degenerate sample) sorts them last, as the host's argsort does."""
+    import warp as wp
+
+    from gpps.kernels import material_search as ms
+
+    sim0 = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    f0 = np.array([1.0, 2.0, 3.0])
+    # every candidate NaN: the reflection is not better than anything -> inside contraction read (NaN) -> shrink
+    sim = wp.array(sim0, dtype=wp.float64, device=device)
+    fsim = wp.array(f0, dtype=wp.float64, device=device)
+    cand = wp.array(np.arange(8.0).reshape(4, 2), dtype=wp.float64, device=device)
+    energy = wp.array(np.full(4, np.nan), dtype=wp.float64, device=device)
+    state = wp.array(np.array([3, 0, 0, 0], np.int32), dtype=wp.int32, device=device)
+    cond = wp.array(np.array([1], np.int32), dtype=wp.int32, device=device)
+    args = dict(inputs=[energy, cand, 2, 40, wp.float64(1e-3)], outputs=[sim, fsim, state, cond], device=device)
+    wp.launch(ms.search_step_kernel, dim=1, **args)
+    assert state.numpy()[3] == 1  # a shrink next
+    # the shrink pass: vertex 1 gets a number, vertex 2 NaN; numpy's stable argsort puts NaN last
+    energy.assign(np.array([0.5, np.nan, 9.0, 9.0]))
+    cand.assign(np.array([[0.5, 0.0], [0.0, 0.5], [9.0, 9.0], [9.0, 9.0]]))
+    wp.launch(ms.search_step_kernel, dim=1, **args)
+    f = fsim.numpy()
+    ref = np.array([1.0, 0.5, np.nan])[np.argsort(np.array([1.0, 0.5, np.nan]), kind="stable")]
+    np.testing.assert_array_equal(f, ref)
+    np.testing.assert_array_equal(sim.numpy(), np.array([[0.5, 0.0], [0.0, 0.0], [0.0, 0.5]]))

@@ -190,6 +190,14 @@ def _take(sim: wp.array2d(dtype=wp.float64), fsim: wp.array(dtype=wp.float64), c
     fsim[row] = f
 
 
+@wp.func
+def _after(a: wp.float64, b: wp.float64) -> bool:
+    """Whether energy ``a`` sorts after ``b`` in numpy's order: larger, NaN after every number."""
+    if wp.isnan(a):
+        return not wp.isnan(b)
+    return a > b
+
+
 @wp.kernel(enable_backward=False)
 def search_step_kernel(
     energy: wp.array(dtype=wp.float64),
@@ -269,11 +277,11 @@ def search_step_kernel(
         return
     if state[3] == 1:  # a shrink next: the simplex waits for its vertices' energies
         return
-    # stable insertion sort of the d + 1 vertices by energy (numpy's argsort(kind="stable"))
+    # stable insertion sort of the d + 1 vertices by energy (numpy's argsort(kind="stable"), NaN last)
     for i in range(1, d + 1):
         f = fsim[i]
         j = i
-        while j > 0 and fsim[j - 1] > f:
+        while j > 0 and _after(fsim[j - 1], f):
             j -= 1
         if j < i:
             for q in range(d):
