@@ -20,7 +20,11 @@ the stream), 16-bit with 0.5 % noise, divided by the light intensities.  Rows (`
 * ``pixel_solve_<N>img``: :meth:`PixelSolver.step` on the whole image with the default
   :class:`SolverConfig` (10 starts, neighbour pass): the offline normals step;
 * ``bini_cg_iteration``: one Jacobi-PCG iteration of BiNI (one ``cg`` launch runs ``unroll`` of them;
-  time / unroll), float64.
+  time / unroll), float64;
+* ``search_trimmed_rank``: one launch of the device material search's trimmed-energy rank kernel
+  (:func:`gpps.kernels.material_search.trimmed_rank_kernel`, 4 candidates x P samples, P compares each);
+  ``search_pass_no_solve``: a search pass without the scorer's solve (points, rank, partial sums, energy,
+  Nelder-Mead step: :meth:`gpps.pipeline.material_search.NelderMeadSearch._pass`'s other five launches; no ratio).
 
 Counts (:data:`COUNTS_CHAIN`, by hand per item, documented there).  Unlike the stream's rows, the bytes
 are the *compulsory* traffic: every input element read once and every output written once (a
@@ -88,6 +92,10 @@ COUNTS_CHAIN = {
     # neighbours and A p (~25 FLOPs), p.q; loop 2 reads x, p_new, r, q, D^-1, writes x, r, z (64 B), 9 FLOPs
     # + 2 sums.
     "bini_cg_iteration": lambda: ((128, 36),),
+    # per (candidate, sample): P compares of the sample against every value of its row (load from cache, NaN
+    # key, two compares and an index compare, count: 5 ops each), the square 2; bytes: its residual read 4 and
+    # its float64 contribution written 8 (the row's other values: cache hits).
+    "search_trimmed_rank": lambda p: ((12, 5 * p + 2),),
 }
 
 
@@ -476,7 +484,63 @@ def bini_rows(ctx):
     ctx.keep.append(bi)
 
 
-PARTS = ("dgmc", "scorer", "solve", "lanes", "bini")
+PARTS = ("dgmc", "scorer", "solve", "lanes", "bini", "search")
+
+
+def search_rows(ctx, samples):
+    """The device material search's own kernels (3 images: RON's 256^2 x 3 case), around a filled scorer."""
+    from gpps.kernels import material_search as ms
+    from gpps.pipeline.material import MaterialScorer
+    from gpps.pipeline.material_search import NelderMeadSearch
+    from gpps.pipeline.solver import SolverConfig
+
+    wp = _wp()
+    sc, mat, lights, img = ball_scene(ctx.size, 3, ctx.device)
+    rng = np.random.default_rng(0)
+    idx = np.flatnonzero(sc.mask.ravel())
+    sample = np.zeros(sc.mask.size, bool)
+    sample[rng.choice(idx, min(samples, idx.size), replace=False)] = True
+    sample = sample.reshape(sc.mask.shape)
+    p = int(sample.sum())
+    fit = replace(SolverConfig(), starts=4, neighbour_radius=0, smoothness=0.0, warm_start=False)  # RON's fit
+    scorer = MaterialScorer(img.shape[:3], sc.camera, lights, mat, fit, max_samples=p, max_candidates=8,
+                            device=ctx.device)
+    scorer.upload(img, sample)
+    scorer.step(_candidates(mat, ms.SEARCH_POINTS))
+    search = NelderMeadSearch(scorer, 1)
+    x0 = np.log([mat.shininess])
+    search.upload(mat, ("shininess",), np.array([x0, x0 + 0.1]), np.array([1.0, 2.0]), lo=np.log([2.0]),
+                  hi=np.log([500.0]), maxfev=10 ** 9, xatol=0.0)
+    keep = max(1, int(round(p * (1.0 - float(scorer.trim)))))
+    kc = ms.SEARCH_POINTS
+
+    def rank():
+        wp.launch(ms.trimmed_rank_kernel, dim=(kc, p), inputs=[scorer.residual, p, keep], outputs=[search.contrib],
+                  device=ctx.device)
+
+    t = _time_or_register(ctx, "search_trimmed_rank", "trimmed_rank_kernel", rank, inner=20)
+    if t is not None:
+        ((cb, cf),) = COUNTS_CHAIN["search_trimmed_rank"](p)
+        row(ctx, "search_trimmed_rank", t, cb * kc * p, float(cf * kc * p),
+            extra={"candidates": kc, "samples": p, "summary": f"K={kc} P={p}, {p} compares/item"})
+
+    def rest():  # the pass less the scorer's solve (the condition stays set: xatol 0, no budget)
+        wp.launch(ms.search_points_kernel, dim=kc,
+                  inputs=[search.sim, 1, search.lo, search.hi, search.fields, search.base, search.state],
+                  outputs=[search.cand, scorer.mats], device=ctx.device)
+        rank()
+        wp.launch(ms.trimmed_partial_kernel, dim=(kc, ms.PARTIAL_LANES), inputs=[search.contrib, p],
+                  outputs=[search.partial], device=ctx.device)
+        wp.launch(ms.trimmed_energy_kernel, dim=kc, inputs=[search.partial, keep], outputs=[search.energy],
+                  device=ctx.device)
+        wp.launch(ms.search_step_kernel, dim=1, inputs=[search.energy, search.cand, 1, 10 ** 9, wp.float64(0.0)],
+                  outputs=[search.sim, search.fsim, search.state, search.cond], device=ctx.device)
+
+    if not ctx.driver:
+        t = ctx.graph_time(wp, rest, ctx.device, ctx.repeat, inner=10)
+        row(ctx, "search_pass_no_solve", t, extra={"candidates": kc, "samples": p,
+                                                   "note": "five launches of a search pass without the solve"})
+    ctx.keep.extend([search, scorer])
 
 
 def bench_chain(ctx, parts, images, samples, candidates, errors):
@@ -489,6 +553,7 @@ def bench_chain(ctx, parts, images, samples, candidates, errors):
         "solve": lambda: pixel_solve_rows(ctx, images),
         "lanes": lambda: (scorer_lanes_rows(ctx, images), pixel_solve_lanes_rows(ctx, images)),
         "bini": lambda: bini_rows(ctx),
+        "search": lambda: search_rows(ctx, samples),
     }
     for part in parts:
         try:
