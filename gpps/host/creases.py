@@ -54,6 +54,7 @@ __all__ = ["CreaseResult", "crease_edges", "crease_pieces", "bini_irls", "stitch
 INNERS = ("poisson", "bini")
 STITCHES = ("trapezoid", "continuity")
 REFINES = ("none", "bini")
+TARGETS = ("trapezoid", "mid")
 
 
 def _check_map(normals, mask):
@@ -111,13 +112,17 @@ def _second_difference(n, e):
     cnt = el.astype(float) + er
     side = (np.where(el[..., None], left, 0.0) + np.where(er[..., None], right, 0.0)) / np.maximum(cnt, 1)[..., None]
     mag = np.where(e, np.linalg.norm(d - side, axis=-1), 0.0)
+    # the normal must change across the edge itself (at least half the second difference): beside a mask border
+    # the one-sided side term makes the edge after a crease as large as the crease's own, and it must not win
+    # the suppression below
+    cand = np.where(np.linalg.norm(d, axis=-1) >= mag / 2, mag, 0.0)
     # non-maximum suppression along the axis: a crease's spike in the first difference leaves half its size in
     # the second differences of the two edges beside it; only the peak is the crease
     prev = np.zeros_like(mag)
-    prev[:, 1:] = mag[:, :-1]
+    prev[:, 1:] = cand[:, :-1]
     nxt = np.zeros_like(mag)
-    nxt[:, :-1] = mag[:, 1:]
-    return mag, (mag >= prev) & (mag >= nxt)
+    nxt[:, :-1] = cand[:, 1:]
+    return mag, (cand > 0) & (cand >= prev) & (cand >= nxt)
 
 
 def crease_edges(normals, mask, *, floor_deg: float = 2.0, z: float = 4.0, threshold_deg: float | None = None):
@@ -186,6 +191,45 @@ def _weighted_system(valid, ex, ey, gj, gi, nzj, nzi):
     scale = float(np.mean(nzj[valid] ** 2))
     wx, wy, tx, ty = edge_system(valid, gj, gi, nzj ** 2 / scale, nzi ** 2 / scale)
     return np.where(ex, wx, 0.0), np.where(ey, wy, 0.0), tx, ty
+
+
+def mid_normal_targets(n, valid, camera, min_nz: float = 1e-3):
+    """Edge targets from the mid-normal ``n_a + n_b`` of each edge, evaluated at the edge's midpoint.
+
+    For a surface whose cross-section along the edge is a circular arc (a plane, a sphere, a cylinder), the
+    chord's slope between two samples equals the tangent's slope at the bisecting normal, so this target is
+    exact there however steep the arc, where the trapezoid average of the two tangents (``(g_a + g_b) / 2``)
+    grows without bound toward a grazing rim.
+
+    Args:
+        n: (H, W, 3) unit normals.
+        valid: (H, W) bool.
+        camera: :class:`gpps.camera.Orthographic` or :class:`gpps.camera.Perspective`.
+        min_nz: slope bound (as :func:`gpps.host.poisson.pixel_gradients`).
+
+    Returns:
+        ``(tx, ty)``: (H, W) float64 targets of the j-edges ``(i, j)-(i, j+1)`` and i-edges ``(i, j)-(i+1, j)``
+        (0 where there is no edge), in ``u`` per pixel step.
+    """
+    h, w = valid.shape
+    ex, ey = _edges(valid)
+    out = []
+    for e, sl_a, sl_b, dj, di in ((ex, np.s_[:, :-1], np.s_[:, 1:], 0.5, 0.0), (ey, np.s_[:-1, :], np.s_[1:, :], 0.0, 0.5)):
+        m = np.zeros((h, w, 3))
+        m[sl_a] = n[sl_a] + n[sl_b]
+        nx, ny, nz = m[..., 0], m[..., 1], m[..., 2]
+        ln = np.maximum(np.linalg.norm(m, axis=-1), 1e-300)
+        with np.errstate(all="ignore"):
+            if camera.is_perspective:
+                cx, cy = camera.principal_point((h, w))
+                jj, ii = np.meshgrid(np.arange(w, dtype=np.float64) + dj, np.arange(h, dtype=np.float64) + di)
+                mm = np.minimum((nx * (jj - cx) / camera.fx - ny * (ii - cy) / camera.fy - nz) / ln, -min_nz)
+                t = -nx / ln / (camera.fx * mm) if dj else ny / ln / (camera.fy * mm)
+            else:
+                den = np.maximum(nz / ln, min_nz)
+                t = camera.pixel_size * nx / ln / den if dj else -camera.pixel_size * ny / ln / den
+        out.append(np.where(e, t, 0.0))
+    return tuple(out)
 
 
 def _jacobi_pcg(A, b, x, tol, maxit):
@@ -400,7 +444,8 @@ class CreaseResult:
 
 def integrate_creases(normals, mask, camera, *, inner: str = "poisson", stitch_mode: str = "trapezoid",
                       robust_stitch: bool = False, refine: str = "none", floor_deg: float = 2.0, z: float = 4.0,
-                      threshold_deg: float | None = None, min_nz: float = 1e-3, bini_k: float = 2.0):
+                      threshold_deg: float | None = None, min_nz: float = 1e-3, bini_k: float = 2.0,
+                      target: str = "trapezoid"):
     """Crease cut and stitch integration of a normal map (see the module docstring).
 
     Args:
@@ -415,6 +460,8 @@ def integrate_creases(normals, mask, camera, *, inner: str = "poisson", stitch_m
         floor_deg, z, threshold_deg: the crease test (:func:`crease_edges`).
         min_nz: slope bound of grazing normals (:func:`gpps.host.poisson.pixel_gradients`).
         bini_k: BiNI's ``k``.
+        target: the Poisson pieces' and the stitch's edge targets: ``"trapezoid"`` (N_z^2-weighted average of
+            the two pixels' steps, as (4.20)) or ``"mid"`` (:func:`mid_normal_targets`).
 
     Returns:
         :class:`CreaseResult`.
@@ -422,7 +469,8 @@ def integrate_creases(normals, mask, camera, *, inner: str = "poisson", stitch_m
     Raises:
         ValueError: bad shapes, camera or option.
     """
-    for name, v, ch in (("inner", inner, INNERS), ("stitch_mode", stitch_mode, STITCHES), ("refine", refine, REFINES)):
+    for name, v, ch in (("inner", inner, INNERS), ("stitch_mode", stitch_mode, STITCHES), ("refine", refine, REFINES),
+                        ("target", target, TARGETS)):
         if v not in ch:
             raise ValueError(f"{name}: expected one of {ch}, got {v!r}")
     _check_camera(camera)
@@ -436,6 +484,8 @@ def integrate_creases(normals, mask, camera, *, inner: str = "poisson", stitch_m
     labels, npc = crease_pieces(valid, kx, ky)
     gj, gi, nzj, nzi = _coefficients(n, valid, camera, min_nz)
     wx, wy, tx, ty = _weighted_system(valid, ex, ey, gj, gi, nzj, nzi)
+    if target == "mid":
+        tx, ty = mid_normal_targets(n, valid, camera, min_nz)
     t1 = time.perf_counter()
     if inner == "poisson":
         u, _, _, _ = solve_direct(valid, np.where(kx, wx, 0.0), np.where(ky, wy, 0.0), tx, ty, labels)
