@@ -49,7 +49,8 @@ from scipy.sparse.csgraph import connected_components
 
 from gpps.host.poisson import divergence_rhs, edge_system, laplacian, pixel_gradients, solve_direct
 
-__all__ = ["CreaseResult", "crease_edges", "crease_pieces", "bini_irls", "stitch", "integrate_creases"]
+__all__ = ["CreaseResult", "crease_edges", "crease_pieces", "bini_irls", "stitch", "stitch_cut_pieces",
+           "integrate_creases"]
 
 INNERS = ("poisson", "bini")
 STITCHES = ("trapezoid", "continuity")
@@ -413,6 +414,42 @@ def stitch(u, labels, n_pieces, cut_x, cut_y, wx, wy, tx, ty, *, mode: str = "tr
         c = c - gm[comp]
         c[0] = 0
     return np.where(labels > 0, u + c[labels], 0.0), c
+
+
+def stitch_cut_pieces(u, normals, valid, camera, cut_x, cut_y, *, min_nz: float = 1e-3):
+    """Set the free constants of the pieces of a solution integrated with the edges ``cut_x``, ``cut_y`` cut.
+
+    The pieces are the connected parts of ``valid`` without the cut edges; their constants (an offset of ``u``:
+    depth orthographic, log-depth perspective) come from :func:`stitch` over the cut edges with the mid-normal
+    targets (:func:`mid_normal_targets`) and the N_z^2 edge weights of (4.20).  A piece without cut edges to
+    another piece keeps its ``u`` exactly (its constant is 0.0).
+
+    Args:
+        u: (H, W) float64 solution of each piece (e.g. BiNI with the cut edges as missing neighbours).
+        normals: (H, W, 3) unit normals (gpps frame).
+        valid: (H, W) bool integrated pixels.
+        camera: :class:`gpps.camera.Orthographic` or :class:`gpps.camera.Perspective`.
+        cut_x, cut_y: (H, W) bool cut j-edges ``(i, j)-(i, j+1)`` and i-edges ``(i, j)-(i+1, j)``.
+        min_nz: slope bound of grazing normals (:func:`gpps.host.poisson.pixel_gradients`).
+
+    Returns:
+        ``(u_stitched, labels, n_pieces)``: (H, W) float64 ``u`` plus each piece's constant (0 outside
+        ``valid``), the (H, W) int pieces 1..n_pieces and their number.
+    """
+    _check_camera(camera)
+    n = np.asarray(normals, dtype=np.float64)
+    valid = np.asarray(valid, dtype=bool)
+    ex, ey = _edges(valid)
+    cut_x, cut_y = ex & np.asarray(cut_x, bool), ey & np.asarray(cut_y, bool)
+    labels, npc = crease_pieces(valid, ex & ~cut_x, ey & ~cut_y)
+    u = np.where(valid, np.asarray(u, np.float64), 0.0)
+    if not (cut_x.any() or cut_y.any()):
+        return u, labels, npc
+    gj, gi, nzj, nzi = _coefficients(n, valid, camera, min_nz)
+    wx, wy, _, _ = _weighted_system(valid, ex, ey, gj, gi, nzj, nzi)
+    tx, ty = mid_normal_targets(n, valid, camera, min_nz)
+    us, _ = stitch(u, labels, npc, cut_x, cut_y, wx, wy, tx, ty)
+    return us, labels, npc
 
 
 @dataclass
