@@ -16,7 +16,7 @@ import scipy.sparse as sp
 
 from discontinuity_scenes import SCENES, render_scene, surface_errors
 from gpps.camera import Orthographic, Perspective
-from gpps.flows.integrate import IntegratorConfig, integrate_normals
+from gpps.flows.integrate import Integrator, IntegratorConfig, integrate_normals
 from gpps.pipeline.integration_bini import BilateralIntegrator, BiniConfig, bini_coefficients
 
 
@@ -27,9 +27,11 @@ def _camera(sc):
 # ----------------------------------------------------------------------------- numpy reference (the paper's form)
 
 
-def _ops(valid, N_j, N_i):
-    """Sparse (n x n) ops ``A_right, A_left, A_down, A_up``: row p = N_p (u_q - u_p) or N_p (u_p - u_q)."""
+def _ops(valid, N_j, N_i, cuts=None):
+    """Sparse (n x n) ops ``A_right, A_left, A_down, A_up``: row p = N_p (u_q - u_p) or N_p (u_p - u_q); a neighbour
+    across a cut edge (``cuts = (cut_x, cut_y)``, the edges (i, j)-(i, j+1) and (i, j)-(i+1, j)) is missing."""
     h, w = valid.shape
+    cut_x, cut_y = cuts if cuts is not None else (np.zeros((h, w), bool), np.zeros((h, w), bool))
     idx = -np.ones((h, w), int)
     idx[valid] = np.arange(valid.sum())
     ii, jj = np.nonzero(valid)
@@ -39,6 +41,9 @@ def _ops(valid, N_j, N_i):
         qi, qj = ii + di, jj + dj
         ok = (qi >= 0) & (qi < h) & (qj >= 0) & (qj < w)
         ok[ok] = valid[qi[ok], qj[ok]]
+        # the edge's owner: its upper / left pixel
+        ei, ej = np.minimum(ii, qi), np.minimum(jj, qj)
+        ok[ok] = ~(cut_x if di == 0 else cut_y)[ei[ok], ej[ok]]
         rows = np.nonzero(ok)[0]
         q = idx[qi[ok], qj[ok]]
         c = Nf[ii[ok], jj[ok]] * sign
@@ -74,9 +79,9 @@ def _jacobi_pcg(A, b, x, tol, maxit=5000):
     return x, its
 
 
-def bini_reference(normals, valid, camera, k=2.0, max_iter=150, tol=1e-4, cg_tol=1e-3):
+def bini_reference(normals, valid, camera, k=2.0, max_iter=150, tol=1e-4, cg_tol=1e-3, cuts=None):
     Nj, Ni, mj, mi = bini_coefficients(normals, valid, camera)
-    A1, A2, A3, A4 = _ops(valid, Nj, Ni)
+    A1, A2, A3, A4 = _ops(valid, Nj, Ni, cuts)
     m1, m2 = mj[valid], mi[valid]
     b = np.concatenate([m1, m1, m2, m2])
     A = sp.vstack([A1, A2, A3, A4]).tocsr()
@@ -179,6 +184,78 @@ def test_discontinuity_suite(name, camera, device):
         assert out["bini"] <= 0.6 * out["poisson"], out
     if name == "rims":
         assert out["bini"] <= 0.95 * out["poisson"], out
+
+
+def _crease_cuts(sc):
+    """The cuts of a scene: every edge between two different surfaces, and the edges of one column of surface 0."""
+    lab = sc["labels"]
+    cut_x = np.zeros(lab.shape, bool)
+    cut_y = np.zeros(lab.shape, bool)
+    cut_x[:, :-1] = lab[:, :-1] != lab[:, 1:]
+    cut_y[:-1] = lab[:-1] != lab[1:]
+    j0 = lab.shape[1] // 2
+    cut_x[:, j0] |= lab[:, j0] == 0
+    return cut_x & sc["mask"], cut_y & sc["mask"]
+
+
+@pytest.mark.parametrize("camera", ["orthographic", "perspective"])
+def test_cut_edges_follow_the_reference_trajectory(camera, device):
+    # a cut edge is a missing neighbour on both sides: the scipy form with those rows removed takes the same IRLS
+    # and CG iterations to the same solution
+    sc = render_scene("overlap", 32, camera)
+    cam = _camera(sc)
+    cuts = _crease_cuts(sc)
+    assert cuts[0].any() and cuts[1].any()
+    ref, outer, its = bini_reference(sc["normals"], sc["mask"], cam, cuts=cuts)
+    with BilateralIntegrator(sc["mask"], cam, device=device, cuts=cuts) as bi:
+        res = bi.run(sc["normals"])
+    assert res.outer_iterations == outer and res.cg_iterations == its
+    ref0, _, _ = bini_reference(sc["normals"], sc["mask"], cam)
+    assert np.abs(ref - ref0)[sc["mask"]].max() > 1e-3 * np.ptp(ref0[sc["mask"]])  # the cuts change the solve
+    # each cut-free piece has its own constant (the CG's start 0 and its search directions set it): compare
+    # whole solutions, they are the same trajectory
+    assert np.abs(res.u - ref)[sc["mask"]].max() <= 1e-8 * np.ptp(ref[sc["mask"]])
+
+
+def test_no_cut_is_bitwise_uncut_and_the_table_does_not_leak(device):
+    sc = render_scene("figure", 24, "orthographic")
+    cam = _camera(sc)
+    m = sc["mask"]
+    with BilateralIntegrator(m, cam, device=device) as a:
+        ra = a.run(sc["normals"])
+        fa = a._F
+    # nothing cut, or only edges that leave the image or the mask (already missing neighbours): bitwise the same
+    none = np.zeros(m.shape, bool)
+    outside_x = none.copy()
+    outside_x[:, -1] = True
+    outside_x[:, :-1] |= ~(m[:, :-1] & m[:, 1:])
+    outside_y = none.copy()
+    outside_y[-1] = True
+    outside_y[:-1] |= ~(m[:-1] & m[1:])
+    for cuts in ((none, none), [outside_x, outside_y]):
+        with BilateralIntegrator(m, cam, device=device, cuts=cuts) as b:
+            rb = b.run(sc["normals"])
+        assert np.array_equal(rb.u, ra.u) and rb.cg_iterations == ra.cg_iterations and rb.energy == ra.energy
+    # a cut integrator takes the pooled buffers; the next uncut one on them rebuilds its neighbour table
+    with BilateralIntegrator(m, cam, device=device, cuts=_crease_cuts(sc)) as c:
+        rc = c.run(sc["normals"])
+        assert c._F is fa
+    assert not np.array_equal(rc.u, ra.u)
+    with BilateralIntegrator(m, cam, device=device) as d:
+        rd = d.run(sc["normals"])
+        assert d._F is fa
+    assert np.array_equal(rd.u, ra.u) and rd.cg_iterations == ra.cg_iterations
+
+
+def test_bad_cuts():
+    sc = render_scene("figure", 16, "orthographic")
+    m = sc["mask"]
+    z = np.zeros(m.shape, bool)
+    for bad in (z, (z,), (z, z, z), (z, z.astype(int)), (z, z[:, :-1]), (z[None], z), "cuts"):
+        with pytest.raises(ValueError, match="cuts"):
+            BilateralIntegrator(m, _camera(sc), cuts=bad)
+    with pytest.raises(ValueError, match="cuts"):
+        Integrator(m, _camera(sc), IntegratorConfig(solver="direct"), device="cpu").run(sc["normals"], cuts=(z, z))
 
 
 def test_config_pool_and_progress(device):

@@ -52,6 +52,7 @@ from scipy import ndimage
 from gpps import _taichi
 from gpps._check import GppsWarning, check_bool, check_choices, check_number
 from gpps.camera import Orthographic, Perspective
+from gpps.host.creases import stitch_cut_pieces
 from gpps.host.poisson import (
     build_levels,
     coarsest_pinv,
@@ -68,7 +69,7 @@ from gpps.host.poisson import (
     solve_direct,
 )
 from gpps.kernels import poisson as K
-from gpps.pipeline.integration_bini import BilateralIntegrator, BiniConfig
+from gpps.pipeline.integration_bini import BilateralIntegrator, BiniConfig, check_cuts
 from gpps.pipeline.stage import Stage
 
 # the largest log-depth range within one part of a perspective depth before Integrator.fetch warns: a depth ratio of
@@ -414,7 +415,7 @@ class Integrator(Stage):
 
     # ------------------------------------------------------------------ main entry
 
-    def upload(self, normals, warm_start=None, *, reference_depth: float | None = None) -> None:
+    def upload(self, normals, warm_start=None, *, reference_depth: float | None = None, cuts=None) -> None:
         """Check one normal map and set up its system (gradients, weights, warm start) for :meth:`step`.
 
         Args:
@@ -426,6 +427,12 @@ class Integrator(Stage):
             reference_depth: if given (> 0), each component's mean depth is set
                 to it; otherwise orthographic depth has mean 0 and perspective
                 log-depth has mean 0 (depth ~ 1) per component.
+            cuts: bilateral only: optional ``(cut_x, cut_y)`` (H, W) bool edges to cut
+                (:class:`~gpps.pipeline.integration_bini.BilateralIntegrator`); BiNI then
+                integrates the pieces they separate with the cut edges as missing
+                neighbours, and the pieces' constants are set from the cut edges'
+                mid-normal targets (:func:`gpps.host.creases.stitch_cut_pieces`).
+                ``None`` or nothing cut: BiNI unchanged.
 
         ``run(normals, warm_start, reference_depth=..., progress=...)`` integrates and returns the
         :class:`IntegrationResult` in one call.
@@ -438,6 +445,10 @@ class Integrator(Stage):
                 raise ValueError(f"reference_depth: expected a finite number > 0, got {reference_depth!r}")
         n, valid, n_invalid = self._check_normals(normals)
         warm = self._check_warm(warm_start)
+        if cuts is not None:
+            if not cfg.bilateral:
+                raise ValueError("cuts: expected None without bilateral=True (only BiNI takes cut edges), got cuts")
+            cuts = check_cuts(cuts, self.shape)
         gj, gi, nzj, nzi = pixel_gradients(n, valid, self.camera, cfg.min_nz)
         cj = ci = None
         if cfg.weighting == "normal":
@@ -453,7 +464,7 @@ class Integrator(Stage):
             u0 = np.where(valid, u0 - self._comp_mean(u0, valid), 0.0)
         timings = {"setup": time.perf_counter() - t0}
         self._job = {"t0": t0, "n": n, "valid": valid, "n_invalid": n_invalid, "u0": u0, "timings": timings,
-                     "reference_depth": reference_depth, "system": (gj, gi, nzj, nzi, cj, ci)}
+                     "reference_depth": reference_depth, "system": (gj, gi, nzj, nzi, cj, ci), "cuts": cuts}
 
     def step(self, progress: Progress | None = None) -> None:
         """Solve the uploaded system (BiNI's IRLS on the device, or the plain Poisson solve).
@@ -471,8 +482,13 @@ class Integrator(Stage):
         total_it = 0
         energy_log = None
         if cfg.bilateral:
-            bres = self._bini(valid).run(n, u0, progress=progress)
+            cuts = job["cuts"]
+            bres = self._bini(valid, cuts).run(n, u0, progress=progress)
             u = bres.u
+            if cuts is not None:
+                t_s = time.perf_counter()
+                u, _, _ = stitch_cut_pieces(u, n, valid, self.camera, *cuts, min_nz=cfg.min_nz)
+                timings["stitch"] = time.perf_counter() - t_s
             total_it, outer, energy_log = bres.cg_iterations, bres.outer_iterations, bres.energy
             true_res = solver_res = bres.residual
             converged = bres.converged
@@ -526,25 +542,26 @@ class Integrator(Stage):
         )
 
     def run(self, normals, warm_start=None, *, reference_depth: float | None = None,
-            progress: Progress | None = None) -> IntegrationResult:
-        """:meth:`upload`, :meth:`step` (with ``progress``) and :meth:`fetch`: one normal map to depth."""
-        self.upload(normals, warm_start, reference_depth=reference_depth)
+            progress: Progress | None = None, cuts=None) -> IntegrationResult:
+        """:meth:`upload` (with ``cuts``), :meth:`step` (with ``progress``) and :meth:`fetch`: one normal map to
+        depth."""
+        self.upload(normals, warm_start, reference_depth=reference_depth, cuts=cuts)
         self.step(progress)
         return self.fetch()
 
     # ------------------------------------------------------------------ solvers
 
-    def _bini(self, valid):
-        """The device BiNI stage for ``valid`` (kept while the valid pixels stay the same)."""
+    def _bini(self, valid, cuts=None):
+        """The device BiNI stage for ``valid`` and ``cuts`` (kept while both stay the same)."""
 
-        key = valid.tobytes()
+        key = valid.tobytes() + (b"" if cuts is None else b"cuts" + cuts[0].tobytes() + cuts[1].tobytes())
         if getattr(self, "_bini_key", None) != key:
             if getattr(self, "_bini_stage", None) is not None:
                 self._bini_stage.close()
             cfg = self.config
             bcfg = BiniConfig(k=float(cfg.bilateral_k), max_iter=cfg.bilateral_max_iter, tol=cfg.bilateral_tol,
                               cg_tol=cfg.bilateral_inner_tol, cg_max_iter=cfg.bilateral_cg_max_iter)
-            self._bini_stage = BilateralIntegrator(valid, self.camera, bcfg, device=self.device)
+            self._bini_stage = BilateralIntegrator(valid, self.camera, bcfg, device=self.device, cuts=cuts)
             self._bini_key = key
         return self._bini_stage
 

@@ -58,7 +58,7 @@ from gpps._taichi import ti
 from gpps.kernels import bini as K
 from gpps.pipeline.stage import Stage
 
-__all__ = ["BiniConfig", "BiniResult", "BilateralIntegrator", "bini_coefficients"]
+__all__ = ["BiniConfig", "BiniResult", "BilateralIntegrator", "bini_coefficients", "check_cuts"]
 
 
 @dataclass(frozen=True)
@@ -204,6 +204,33 @@ def _release(F: dict) -> None:
         _POOL.setdefault(F["key"], []).append(F)
 
 
+def check_cuts(cuts, shape):
+    """``cuts`` checked: ``None``, or a pair of (H, W) bool arrays (copied)."""
+    if cuts is None:
+        return None
+    if not isinstance(cuts, (tuple, list)) or len(cuts) != 2:
+        raise ValueError(f"cuts: expected None or a pair (cut_x, cut_y) of {shape} bool arrays, got {type(cuts).__name__}"
+                         + (f" of length {len(cuts)}" if isinstance(cuts, (tuple, list)) else ""))
+    out = []
+    for name, c in zip(("cut_x", "cut_y"), cuts):
+        a = np.asarray(c)
+        if a.shape != shape or a.dtype != bool:
+            raise ValueError(f"cuts: expected {name} an (H, W) = {shape} bool array, got shape {a.shape}, dtype {a.dtype}")
+        out.append(a.copy())
+    return tuple(out)
+
+
+def _apply_cuts(nb, ii, jj, cut_x, cut_y):
+    """Remove the cut edges from the neighbour table ``nb`` (right, left, down, up) of the pixels ``ii, jj``."""
+    h, w = cut_x.shape
+    nb[: ii.size, 0][cut_x[ii, jj]] = -1
+    left = jj > 0
+    nb[: ii.size, 1][left & cut_x[ii, np.maximum(jj - 1, 0)]] = -1
+    nb[: ii.size, 2][cut_y[ii, jj]] = -1
+    up = ii > 0
+    nb[: ii.size, 3][up & cut_y[np.maximum(ii - 1, 0), jj]] = -1
+
+
 class BilateralIntegrator(Stage):
     """BiNI over one set of valid pixels, with its device buffers.
 
@@ -212,9 +239,15 @@ class BilateralIntegrator(Stage):
         camera: :class:`gpps.camera.Orthographic` or :class:`gpps.camera.Perspective`.
         config: :class:`BiniConfig` (``None`` = BiNI's defaults).
         device: ``"auto"``, ``"cpu"`` or ``"cuda:0"`` (Taichi).
+        cuts: optional ``(cut_x, cut_y)``, two (H, W) bool arrays: ``cut_x[i, j]`` cuts the edge
+            ``(i, j)-(i, j+1)``, ``cut_y[i, j]`` the edge ``(i, j)-(i+1, j)`` (entries on edges that leave the
+            image or ``valid`` change nothing).  A cut edge is a missing neighbour on both sides, exactly as
+            a mask border (BiNI's own treatment: the one-sided difference across it is 0 and its equation
+            carries no coupling).  ``None``, or no edge cut, is BiNI unchanged (bitwise).
     """
 
-    def __init__(self, valid, camera, config: BiniConfig | None = None, device: str | None = "auto"):
+    def __init__(self, valid, camera, config: BiniConfig | None = None, device: str | None = "auto", *,
+                 cuts=None):
         v = np.asarray(valid, dtype=bool)
         if v.ndim != 2 or v.sum() < 2:
             raise ValueError(f"valid: expected an (H, W) bool mask with at least 2 pixels, got {v.shape}, "
@@ -226,6 +259,7 @@ class BilateralIntegrator(Stage):
         if not isinstance(self.config, BiniConfig):
             raise TypeError(f"config: expected BiniConfig, got {type(self.config).__name__}")
         self.device = device
+        self.cuts = check_cuts(cuts, v.shape)
         self.n = int(v.sum())
         self._F = None
         self._state = None  # the uploaded map's start energy, then the solve's diagnostics
@@ -245,6 +279,8 @@ class BilateralIntegrator(Stage):
         lab[ii + 1, jj + 1] = np.arange(n, dtype=np.int32)
         nb = np.full((F["cap"], 4), -1, dtype=np.int32)
         nb[:n] = np.stack([lab[ii + 1, jj + 2], lab[ii + 1, jj], lab[ii + 2, jj + 1], lab[ii, jj + 1]], axis=1)
+        if self.cuts is not None:
+            _apply_cuts(nb, ii, jj, *self.cuts)
         pix = np.zeros((F["cap"], 2), dtype=np.int32)
         pix[:n, 0], pix[:n, 1] = ii, jj
         F["nb"].from_numpy(nb)

@@ -1,0 +1,168 @@
+"""Crease cut and stitch (gpps.host.creases) against ray-cast ground truth and analytic continuous surfaces."""
+
+import numpy as np
+import pytest
+
+from crease_scenes import global_error, render_surface
+from discontinuity_scenes import render_scene, surface_errors
+from gpps.camera import Orthographic, Perspective
+from gpps.flows.integrate import Integrator, IntegratorConfig, integrate_normals, integrate_normals_creases
+from gpps.host.creases import crease_edges, integrate_creases, stitch_cut_pieces
+
+
+def _camera(sc):
+    return Perspective(sc["K"]) if "K" in sc else Orthographic(sc["pixel_size"])
+
+
+def test_planar_staircase_is_exact_per_piece():
+    # overlapping tilted planes with depth jumps (the suite's "steps", orthographic): each crease piece is one
+    # plane, integrated alone, so every piece is exact to rounding after its own offset; Poisson bends them
+    sc = render_scene("steps", 40, "orthographic")
+    r = integrate_creases(sc["normals"], sc["mask"], _camera(sc))
+    pieces, rng = surface_errors(r.depth, sc["depth"], sc["labels"], r.mask, False)
+    assert len(pieces) == 4
+    assert max(p["max"] for p in pieces) <= 1e-6 * rng
+    # the cut pieces are exactly the surfaces
+    for k in range(1, r.n_pieces + 1):
+        assert np.unique(sc["labels"][r.labels == k]).size == 1
+
+
+def test_planar_staircase_perspective_per_piece():
+    sc = render_scene("steps", 40, "perspective")
+    r = integrate_creases(sc["normals"], sc["mask"], _camera(sc), target="mid")
+    pieces, rng = surface_errors(r.depth, sc["depth"], sc["labels"], r.mask, True)
+    assert max(p["mean"] for p in pieces) <= 1e-5 * rng
+
+
+@pytest.mark.parametrize("camera", ["orthographic", "perspective"])
+def test_sphere_mid_normal_targets_are_exact(camera):
+    # a sphere's cross-sections are circles: the mid-normal target is the chord's slope, so the disc integrates
+    # to rounding (orthographic) or to the perspective cross-section's non-circularity (tiny)
+    sc = render_surface("sphere", 40, camera)
+    r = integrate_creases(sc["normals"], sc["mask"], _camera(sc), target="mid")
+    mean, _ = global_error(r.depth, sc["depth"], sc["mask"], camera == "perspective")
+    assert mean <= (1e-9 if camera == "orthographic" else 1e-4)
+
+
+@pytest.mark.parametrize("camera", ["orthographic", "perspective"])
+def test_continuous_ridge_is_stitched_back(camera):
+    # two planes meeting at a vertical fold, no depth jump: the fold is cut into two pieces and the stitch puts
+    # them back continuous, so one global offset / scale fits the whole map.  The fold lies 0.3 px from the
+    # midpoint of the edges it crosses, a sub-pixel position no integrator can see: the step across a cut edge
+    # is then uncertain by 0.3 of the slope change, for the uncut (Poisson) solve too
+    size = 40
+    sc = render_surface("ridge", size, camera)
+    r = integrate_creases(sc["normals"], sc["mask"], _camera(sc), target="mid")
+    assert r.n_pieces == 2 and r.info["cut_edges"] == size
+    mean, _ = global_error(r.depth, sc["depth"], sc["mask"], camera == "perspective")
+    rp = integrate_creases(sc["normals"], sc["mask"], _camera(sc), threshold_deg=89.0)  # nothing cut: Poisson
+    assert rp.n_pieces == 1 and rp.info["cut_edges"] == 0
+    ref, _ = global_error(rp.depth, sc["depth"], sc["mask"], camera == "perspective")
+    # stitched: as good as the uncut solve (both limited by the fold's unknown sub-pixel position), and small
+    assert mean <= 1.2 * ref and mean < 1e-2
+    # and no jump across the fold beyond the sub-pixel ambiguity: the estimate's step across the cut edges
+    # matches the true step to 0.35 of the slope change per pixel
+    u = np.log(r.depth) if camera == "perspective" else r.depth
+    g = np.log(sc["depth"]) if camera == "perspective" else sc["depth"]
+    ii, jj = np.nonzero(r.cut_x)
+    est = u[ii, jj + 1] - u[ii, jj]
+    tru = g[ii, jj + 1] - g[ii, jj]
+    slope_change = np.abs((g[ii, jj + 2] - g[ii, jj + 1]) - (g[ii, jj] - g[ii, jj - 1]))
+    assert np.all(np.abs(est - tru) <= 0.35 * slope_change + 1e-12)
+
+
+def test_clean_smooth_surface_is_not_cut():
+    sc = render_surface("bump", 40, "orthographic")
+    r = integrate_creases(sc["normals"], sc["mask"], _camera(sc))
+    assert r.info["cut_edges"] == 0 and r.n_pieces == 1
+
+
+def test_bad_input():
+    sc = render_scene("steps", 16, "orthographic")
+    cam = _camera(sc)
+    n, m = sc["normals"], sc["mask"]
+    with pytest.raises(ValueError, match="normals"):
+        integrate_creases(n[..., :2], m, cam)
+    with pytest.raises(ValueError, match="mask"):
+        integrate_creases(n, m.astype(int), cam)
+    with pytest.raises(ValueError, match="mask"):
+        integrate_creases(n, np.zeros_like(m), cam)
+    with pytest.raises(ValueError, match="camera"):
+        integrate_creases(n, m, None)
+    with pytest.raises(ValueError, match="inner"):
+        integrate_creases(n, m, cam, inner="multigrid")
+    with pytest.raises(ValueError, match="stitch_mode"):
+        integrate_creases(n, m, cam, stitch_mode="tree")
+    with pytest.raises(ValueError, match="target"):
+        integrate_creases(n, m, cam, target="central")
+    with pytest.raises(ValueError, match="floor_deg"):
+        crease_edges(n, m, floor_deg=-1.0)
+    with pytest.raises(ValueError, match="threshold_deg"):
+        crease_edges(n, m, threshold_deg=float("nan"))
+    with pytest.raises(ValueError, match="min_nz"):
+        integrate_creases(n, m, cam, min_nz=2.0)
+
+
+# ----------------------------------------------------------------------------- faithful BiNI with the creases cut
+
+
+@pytest.mark.parametrize("camera", ["orthographic", "perspective"])
+def test_bini_cut_planar_staircase_is_exact_per_piece(camera):
+    # BiNI with the crease edges as missing neighbours: each piece is one plane, whose one-sided equations the
+    # plane satisfies (orthographic exactly; perspective to BiNI's log-depth discretisation), so the error is
+    # the inner CG's: within the issue's 1e-3 of the range at BiNI's own tolerance (measured 6.9e-5 / 8.3e-5;
+    # uncut BiNI 6.4e-2 / 6.7e-2), and at rounding (float32 depth) / discretisation level with a tight one
+    sc = render_scene("steps", 40, camera)
+    persp = camera == "perspective"
+    for tol, bound in ((1e-3, 2e-4), (1e-10, 1e-8 if not persp else 2e-6)):
+        r, c = integrate_normals_creases(sc["normals"], sc["mask"], camera=_camera(sc), device="cpu",
+                                         bilateral_inner_tol=tol)
+        pieces, rng = surface_errors(r.depth.astype(np.float64), sc["depth"], sc["labels"], r.mask, persp)
+        assert len(pieces) == 4 and max(p["mean"] for p in pieces) <= bound * rng, (tol, pieces)
+        assert c["n_pieces"] == 4
+        for k in range(1, c["n_pieces"] + 1):
+            assert np.unique(sc["labels"][c["pieces"] == k]).size == 1
+
+
+@pytest.mark.parametrize("camera", ["orthographic", "perspective"])
+def test_bini_cut_without_creases_is_bini_bitwise(camera):
+    # (at 32 px the perspective bump's peak is cut: 6 edges; at 40 px nothing is)
+    sc = render_surface("bump", 40, camera)
+    cam = _camera(sc)
+    r, c = integrate_normals_creases(sc["normals"], sc["mask"], camera=cam, device="cpu", reference_depth=5.0)
+    r0 = integrate_normals(sc["normals"], sc["mask"], camera=cam, bilateral=True, device="cpu", reference_depth=5.0)
+    assert c["cut_edges"] == 0 and c["n_pieces"] == 1
+    assert np.array_equal(r.depth, r0.depth) and r.iterations == r0.iterations and r.energy == r0.energy
+
+
+def test_stitch_leaves_pieces_without_cut_edges_exactly():
+    # two mask components, creases only in the left one: the stitch gives the right one the constant 0.0
+    sc = render_scene("steps", 24, "orthographic")
+    sb = render_surface("bump", 24, "orthographic")
+    n = np.concatenate([sc["normals"], np.zeros((24, 1, 3)), sb["normals"]], axis=1)
+    m = np.concatenate([sc["mask"], np.zeros((24, 1), bool), sb["mask"]], axis=1)
+    lab = np.concatenate([sc["labels"] + 1, np.zeros((24, 25), int)], axis=1)  # the steps' surfaces 1..4
+    cut_x = np.zeros(m.shape, bool)
+    cut_y = np.zeros(m.shape, bool)
+    cut_x[:, :-1] = m[:, :-1] & m[:, 1:] & (lab[:, :-1] != lab[:, 1:])
+    cut_y[:-1] = m[:-1] & m[1:] & (lab[:-1] != lab[1:])
+    assert cut_x.sum() + cut_y.sum() > 0
+    rng = np.random.default_rng(0)
+    u = np.where(m, rng.normal(size=m.shape), 0.0)
+    us, labels, npc = stitch_cut_pieces(u, n, m, Orthographic(sc["pixel_size"]), cut_x, cut_y)
+    assert npc == 5 and np.array_equal(us[:, 25:], u[:, 25:])
+    assert not np.array_equal(us[:, :24], u[:, :24])
+    # each group of stitched pieces keeps its mean
+    assert us[:, :24][m[:, :24]].mean() == pytest.approx(u[:, :24][m[:, :24]].mean(), abs=1e-12)
+
+
+def test_bini_cut_bad_input():
+    sc = render_scene("steps", 16, "orthographic")
+    cam = _camera(sc)
+    n, m = sc["normals"], sc["mask"]
+    with pytest.raises(ValueError, match="threshold_deg"):
+        integrate_normals_creases(n, m, camera=cam, threshold_deg=0.0, device="cpu")
+    with pytest.raises(ValueError, match="normals"):
+        integrate_normals_creases(n[..., :2], m, camera=cam, device="cpu")
+    with pytest.raises(ValueError, match="cuts"):
+        Integrator(m, cam, IntegratorConfig(bilateral=True), device="cpu").run(n, cuts=(m, m[:-1]))
