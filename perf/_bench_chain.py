@@ -22,9 +22,10 @@ the stream), 16-bit with 0.5 % noise, divided by the light intensities.  Rows (`
 * ``bini_cg_iteration``: one Jacobi-PCG iteration of BiNI (one ``cg`` launch runs ``unroll`` of them;
   time / unroll), float64;
 * ``search_trimmed_rank``: one launch of the device material search's trimmed-energy rank kernel
-  (:func:`gpps.kernels.material_search.trimmed_rank_kernel`, 4 candidates x P samples, P compares each);
-  ``search_pass_no_solve``: a search pass without the scorer's solve (points, rank, partial sums, energy,
-  Nelder-Mead step: :meth:`gpps.pipeline.material_search.NelderMeadSearch._pass`'s other five launches; no ratio).
+  (:func:`gpps.kernels.material_search.trimmed_rank_kernel`, 4 candidates x P samples x P / RANK_SEGMENT
+  segments, P compares an item in all); ``search_pass_no_solve``: a search pass without the scorer's solve (points,
+  rank, contributions, partial sums, energy, Nelder-Mead step: :meth:`NelderMeadSearch._pass`'s other six
+  launches; no ratio).
 
 Counts (:data:`COUNTS_CHAIN`, by hand per item, documented there).  Unlike the stream's rows, the bytes
 are the *compulsory* traffic: every input element read once and every output written once (a
@@ -92,10 +93,10 @@ COUNTS_CHAIN = {
     # neighbours and A p (~25 FLOPs), p.q; loop 2 reads x, p_new, r, q, D^-1, writes x, r, z (64 B), 9 FLOPs
     # + 2 sums.
     "bini_cg_iteration": lambda: ((128, 36),),
-    # per (candidate, sample): P compares of the sample against every value of its row (load from cache, NaN
-    # key, two compares and an index compare, count: 5 ops each), the square 2; bytes: its residual read 4 and
-    # its float64 contribution written 8 (the row's other values: cache hits).
-    "search_trimmed_rank": lambda p: ((12, 5 * p + 2),),
+    # per (candidate, sample): P compares of the sample against every value of its row over its segments (load
+    # from cache, NaN key, two compares and an index compare, count: 5 ops each), one atomic add a segment;
+    # bytes: its residual read 4 and its int32 count added 4 (the row's other values: cache hits).
+    "search_trimmed_rank": lambda p: ((8, 5 * p),),
 }
 
 
@@ -514,9 +515,11 @@ def search_rows(ctx, samples):
     keep = max(1, int(round(p * (1.0 - float(scorer.trim)))))
     kc = ms.SEARCH_POINTS
 
-    def rank():
-        wp.launch(ms.trimmed_rank_kernel, dim=(kc, p), inputs=[scorer.residual, p, keep], outputs=[search.contrib],
-                  device=ctx.device)
+    seg = ms.RANK_SEGMENT
+
+    def rank():  # (the counts accumulate over the timed launches: the work is the same)
+        wp.launch(ms.trimmed_rank_kernel, dim=(kc, p, (p + seg - 1) // seg), inputs=[scorer.residual, p, seg],
+                  outputs=[search.before], device=ctx.device)
 
     t = _time_or_register(ctx, "search_trimmed_rank", "trimmed_rank_kernel", rank, inner=20)
     if t is not None:
@@ -529,6 +532,8 @@ def search_rows(ctx, samples):
                   inputs=[search.sim, 1, search.lo, search.hi, search.fields, search.base, search.state],
                   outputs=[search.cand, scorer.mats], device=ctx.device)
         rank()
+        wp.launch(ms.trimmed_contrib_kernel, dim=(kc, p), inputs=[scorer.residual, keep],
+                  outputs=[search.before, search.contrib], device=ctx.device)
         wp.launch(ms.trimmed_partial_kernel, dim=(kc, ms.PARTIAL_LANES), inputs=[search.contrib, p],
                   outputs=[search.partial], device=ctx.device)
         wp.launch(ms.trimmed_energy_kernel, dim=kc, inputs=[search.partial, keep], outputs=[search.energy],

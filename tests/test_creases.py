@@ -107,7 +107,7 @@ def test_bad_input():
 
 
 @pytest.mark.parametrize("camera", ["orthographic", "perspective"])
-def test_bini_cut_planar_staircase_is_exact_per_piece(camera):
+def test_bini_cut_planar_staircase_is_exact_per_piece(camera, device):
     # BiNI with the crease edges as missing neighbours: each piece is one plane, whose one-sided equations the
     # plane satisfies (orthographic exactly; perspective to BiNI's log-depth discretisation), so the error is
     # the inner CG's: within the 1e-3 of the range at BiNI's own tolerance (measured 6.9e-5 / 8.3e-5;
@@ -115,7 +115,7 @@ def test_bini_cut_planar_staircase_is_exact_per_piece(camera):
     sc = render_scene("steps", 40, camera)
     persp = camera == "perspective"
     for tol, bound in ((1e-3, 2e-4), (1e-10, 1e-8 if not persp else 2e-6)):
-        r, c = integrate_normals_creases(sc["normals"], sc["mask"], camera=_camera(sc), device="cpu",
+        r, c = integrate_normals_creases(sc["normals"], sc["mask"], camera=_camera(sc), device=device,
                                          bilateral_inner_tol=tol)
         pieces, rng = surface_errors(r.depth.astype(np.float64), sc["depth"], sc["labels"], r.mask, persp)
         assert len(pieces) == 4 and max(p["mean"] for p in pieces) <= bound * rng, (tol, pieces)
@@ -125,14 +125,19 @@ def test_bini_cut_planar_staircase_is_exact_per_piece(camera):
 
 
 @pytest.mark.parametrize("camera", ["orthographic", "perspective"])
-def test_bini_cut_without_creases_is_bini_bitwise(camera):
-    # (at 32 px the perspective bump's peak is cut: 6 edges; at 40 px nothing is)
+def test_bini_cut_without_creases_is_bini_bitwise(camera, device):
+    # (at 32 px the perspective bump's peak is cut: 6 edges; at 40 px nothing is).  Bitwise on the CPU; on CUDA
+    # BiNI's float64 block sums end in atomics (their order varies run to run), so two runs agree to rounding
     sc = render_surface("bump", 40, camera)
     cam = _camera(sc)
-    r, c = integrate_normals_creases(sc["normals"], sc["mask"], camera=cam, device="cpu", reference_depth=5.0)
-    r0 = integrate_normals(sc["normals"], sc["mask"], camera=cam, bilateral=True, device="cpu", reference_depth=5.0)
+    r, c = integrate_normals_creases(sc["normals"], sc["mask"], camera=cam, device=device, reference_depth=5.0)
+    r0 = integrate_normals(sc["normals"], sc["mask"], camera=cam, bilateral=True, device=device, reference_depth=5.0)
     assert c["cut_edges"] == 0 and c["n_pieces"] == 1
-    assert np.array_equal(r.depth, r0.depth) and r.iterations == r0.iterations and r.energy == r0.energy
+    if device == "cpu":
+        assert np.array_equal(r.depth, r0.depth) and r.iterations == r0.iterations and r.energy == r0.energy
+    else:
+        m = r0.mask
+        assert np.abs(r.depth - r0.depth)[m].max() <= 1e-5 * np.ptp(r0.depth[m])
 
 
 def test_stitch_leaves_pieces_without_cut_edges_exactly():
@@ -156,13 +161,13 @@ def test_stitch_leaves_pieces_without_cut_edges_exactly():
     assert us[:, :24][m[:, :24]].mean() == pytest.approx(u[:, :24][m[:, :24]].mean(), abs=1e-12)
 
 
-def test_bini_cut_bad_input():
+def test_bini_cut_bad_input(device):
     sc = render_scene("steps", 16, "orthographic")
     cam = _camera(sc)
     n, m = sc["normals"], sc["mask"]
     with pytest.raises(ValueError, match="threshold_deg"):
-        integrate_normals_creases(n, m, camera=cam, threshold_deg=0.0, device="cpu")
+        integrate_normals_creases(n, m, camera=cam, threshold_deg=0.0, device=device)
     with pytest.raises(ValueError, match="normals"):
-        integrate_normals_creases(n[..., :2], m, camera=cam, device="cpu")
+        integrate_normals_creases(n[..., :2], m, camera=cam, device=device)
     with pytest.raises(ValueError, match="cuts"):
-        Integrator(m, cam, IntegratorConfig(bilateral=True), device="cpu").run(n, cuts=(m, m[:-1]))
+        Integrator(m, cam, IntegratorConfig(bilateral=True), device=device).run(n, cuts=(m, m[:-1]))

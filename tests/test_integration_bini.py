@@ -218,6 +218,7 @@ def test_cut_edges_follow_the_reference_trajectory(camera, device):
 
 
 def test_no_cut_is_bitwise_uncut_and_the_table_does_not_leak(device):
+    """Bitwise on the CPU, to rounding on CUDA (see ``same``)."""
     sc = render_scene("figure", 24, "orthographic")
     cam = _camera(sc)
     m = sc["mask"]
@@ -232,10 +233,16 @@ def test_no_cut_is_bitwise_uncut_and_the_table_does_not_leak(device):
     outside_y = none.copy()
     outside_y[-1] = True
     outside_y[:-1] |= ~(m[:-1] & m[1:])
+    def same(rb, ra):
+        # bitwise on the CPU; on CUDA the float64 block sums end in atomics whose order varies run to run
+        if device == "cpu":
+            return np.array_equal(rb.u, ra.u) and rb.cg_iterations == ra.cg_iterations and rb.energy == ra.energy
+        return np.abs(rb.u - ra.u)[m].max() <= 1e-5 * np.ptp(ra.u[m])
+
     for cuts in ((none, none), [outside_x, outside_y]):
         with BilateralIntegrator(m, cam, device=device, cuts=cuts) as b:
             rb = b.run(sc["normals"])
-        assert np.array_equal(rb.u, ra.u) and rb.cg_iterations == ra.cg_iterations and rb.energy == ra.energy
+        assert same(rb, ra)
     # a cut integrator takes the pooled buffers; the next uncut one on them rebuilds its neighbour table
     with BilateralIntegrator(m, cam, device=device, cuts=_crease_cuts(sc)) as c:
         rc = c.run(sc["normals"])
@@ -244,7 +251,7 @@ def test_no_cut_is_bitwise_uncut_and_the_table_does_not_leak(device):
     with BilateralIntegrator(m, cam, device=device) as d:
         rd = d.run(sc["normals"])
         assert d._F is fa
-    assert np.array_equal(rd.u, ra.u) and rd.cg_iterations == ra.cg_iterations
+    assert same(rd, ra)
 
 
 def test_bad_cuts():

@@ -249,9 +249,20 @@ def test_trimmed_energy_kernels(p, trim, device):
     res = wp.array(r, dtype=wp.float32, device=device)
     keep = max(1, int(round(p * (1.0 - trim))))
     contrib = wp.zeros((k, p), dtype=wp.float64, device=device)
+    before = wp.zeros((k, p), dtype=wp.int32, device=device)
     partial = wp.zeros((k, ms.PARTIAL_LANES), dtype=wp.float64, device=device)
     energy = wp.zeros(k, dtype=wp.float64, device=device)
-    wp.launch(ms.trimmed_rank_kernel, dim=(k, p), inputs=[res, p, keep], outputs=[contrib], device=device)
+    seg = 37  # (segments that do not divide the row)
+    wp.launch(ms.trimmed_rank_kernel, dim=(k, p, (p + seg - 1) // seg), inputs=[res, p, seg], outputs=[before],
+              device=device)
+    ranks = before.numpy()
+    # the counts are the ranks in (value, index) order: a permutation of 0..p-1 per row
+    key = np.where(np.isnan(r), np.float32(np.inf), r)
+    for c in range(k):
+        np.testing.assert_array_equal(np.sort(ranks[c]), np.arange(p))
+        np.testing.assert_array_equal(np.argsort(ranks[c], kind="stable"), np.argsort(key[c], kind="stable"))
+    wp.launch(ms.trimmed_contrib_kernel, dim=(k, p), inputs=[res, keep], outputs=[before, contrib], device=device)
+    assert not before.numpy().any()  # cleared for the next pass
     wp.launch(ms.trimmed_partial_kernel, dim=(k, ms.PARTIAL_LANES), inputs=[contrib, p], outputs=[partial],
               device=device)
     wp.launch(ms.trimmed_energy_kernel, dim=k, inputs=[partial, keep], outputs=[energy], device=device)

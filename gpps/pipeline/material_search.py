@@ -9,7 +9,7 @@ well under a millisecond.  Here a step is five launches that read and write only
 (:mod:`gpps.kernels.material_search`)::
 
     points (the pass's 4 candidates into the scorer's material rows: a step's, or a shrink's vertices)
-    -> the scorer's recorded solve of those rows -> trimmed energies (rank, partial sums, energy)
+    -> the scorer's recorded solve of those rows -> trimmed energies (rank, contribution, partial sums, energy)
     -> the Nelder-Mead decision, simplex update, sort and convergence test (clears the loop's condition)
 
 and on CUDA the loop runs as one CUDA graph with a conditional while node (``wp.capture_while``, CUDA 12.4+):
@@ -71,7 +71,8 @@ class NelderMeadSearch(Stage):
             (CUDA 12.4+ driver and toolkit), else from the host; ``"off"``: always from the host.
 
     Buffers (allocated once): the simplex ``sim`` (d + 1, d) and ``fsim`` (d + 1,) float64, the step's candidates
-    ``cand`` (4, d) and their ``energy``, the trimmed-energy scratch ``contrib`` (4, P_max) and ``partial``,
+    ``cand`` (4, d) and their ``energy``, the trimmed-energy scratch ``before`` (rank counts), ``contrib``
+    (4, P_max) and ``partial``,
     the bounds, the material base row, ``state`` [evaluations read, passes, status, phase] and the loop condition.
     """
 
@@ -95,6 +96,7 @@ class NelderMeadSearch(Stage):
         self.cand = self._buffer((kc, d), wp.float64, dev)
         self.energy = self._buffer(kc, wp.float64, dev)
         self.contrib = self._buffer((kc, int(scorer.max_samples)), wp.float64, dev)
+        self.before = self._buffer((kc, int(scorer.max_samples)), wp.int32, dev)  # rank counts (zero between passes)
         self.partial = self._buffer((kc, ms.PARTIAL_LANES), wp.float64, dev)
         self.lo = self._buffer(d, wp.float64, dev)
         self.hi = self._buffer(d, wp.float64, dev)
@@ -169,7 +171,7 @@ class NelderMeadSearch(Stage):
     # ------------------------------------------------------------------ step
 
     def _pass(self, warm: bool, p: int, keep: int, maxfev: int, xatol: float) -> None:
-        """One search pass (a step, or a shrink's vertices): six launches (no host wait, graph-capturable)."""
+        """One search pass (a step, or a shrink's vertices): seven launches (no host wait, graph-capturable)."""
         wp = warp()
         d, kc, dev = self.dims, self.points, self.device
         wp.launch(ms.search_points_kernel, dim=kc,
@@ -177,7 +179,11 @@ class NelderMeadSearch(Stage):
                   outputs=[self.cand, self.scorer.mats], device=dev)
         self.scorer.launch(count=kc, warm=warm)
         res = self.scorer.residual
-        wp.launch(ms.trimmed_rank_kernel, dim=(kc, p), inputs=[res, p, keep], outputs=[self.contrib], device=dev)
+        seg = ms.RANK_SEGMENT
+        wp.launch(ms.trimmed_rank_kernel, dim=(kc, p, (p + seg - 1) // seg), inputs=[res, p, seg],
+                  outputs=[self.before], device=dev)
+        wp.launch(ms.trimmed_contrib_kernel, dim=(kc, p), inputs=[res, keep], outputs=[self.before, self.contrib],
+                  device=dev)
         wp.launch(ms.trimmed_partial_kernel, dim=(kc, ms.PARTIAL_LANES), inputs=[self.contrib, p],
                   outputs=[self.partial], device=dev)
         wp.launch(ms.trimmed_energy_kernel, dim=kc, inputs=[self.partial, keep], outputs=[self.energy], device=dev)
@@ -255,7 +261,8 @@ class NelderMeadSearch(Stage):
         """Give the buffers back to the pool and drop the graphs; the search refuses work afterwards."""
         self._graphs.clear()
         self._release_buffers()
-        for name in ("sim", "fsim", "cand", "energy", "contrib", "partial", "lo", "hi", "fields", "base", "state",
+        for name in ("sim", "fsim", "cand", "energy", "contrib", "before", "partial", "lo", "hi", "fields", "base",
+                     "state",
                      "cond", "scorer"):
             self.__dict__.pop(name, None)
         self._closed = True
