@@ -135,7 +135,11 @@ def integrate_normals_creases(
     Measured (perf/results/integration_creases_bini_cut_cpu.json): the ray-cast discontinuity suite within 1e-3
     of the depth range per piece at 128 px (both cameras), not at 48 px on the spheres (BiNI's own one-sided
     discretisation, 2e-3 to 1.4e-2); on the DiLiGenT maps NOT within 1.1x of BiNI's published errors (buddha
-    1.18x, cow 2.15x, goblet 1.13x), hence not a default.
+    1.18x, cow 2.15x, goblet 1.13x), hence not a default.  The options do not fix that
+    (perf/results/integration_creases_stitch_cpu.json): ``slits="drop"`` with ``cut_stitch="bini"`` gives
+    bear 1.18x (its 775 slits had given 0.29x), buddha 0.87x, cow 1.00x, goblet 0.99x, pot1 0.99x, pot2 1.00x,
+    and loses the suite's 1e-3 at 128 px on the overlapping spheres (6.3e-3 perspective): slits along occluding
+    rims were helping.
 
     Args:
         normals, mask, camera, reference_depth, warm_start, device, progress: as :func:`integrate_normals`.
