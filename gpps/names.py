@@ -36,6 +36,17 @@ LOBE_RANGES: dict[str, tuple[float, float]] = {
     "ks": (0.02, 3.0), "shininess": (2.0, 500.0), "roughness": (0.03, 0.8), "eta": (2.0, 500.0),
 }
 
+# ---------------------------------------------------------------- crease-cut normal integration (issue 21)
+# how the pieces of a crease-cut BiNI solve get their constants (gpps.host.creases.stitch_cut_pieces):
+# "mid": least squares on the cut edges' mid-normal targets (continuity); "bini": BiNI's own bilateral energy
+# restricted to the cut edges' one-sided equations, by its IRLS (a real jump keeps its one-sided side)
+CutStitchName = Literal["mid", "bini"]
+CUT_STITCH_NAMES: tuple[str, ...] = get_args(CutStitchName)
+# which crease cuts reach BiNI: "keep" all of them; "drop" the slits (cuts whose two pixels stay connected
+# through uncut edges: no new constant, only lost coupling)
+SlitsName = Literal["keep", "drop"]
+SLITS_NAMES: tuple[str, ...] = get_args(SlitsName)
+
 # ---------------------------------------------------------------- lights
 LIGHT_DIRECTIONAL, LIGHT_POINT = 0, 1  # device tags of gpps.kernels.brdf.LightParams.kind
 

@@ -15,12 +15,19 @@ today's default, device code on the CPU), ``cs_trap`` (cut + N_z^2 Poisson piece
 (the same with mid-normal targets), ``cs_cont`` (mid-normal pieces, continuity stitch), ``cs_bini`` (BiNI's IRLS
 per piece, cut edges as missing neighbours, trapezoid stitch), ``cs_mid_bini`` (cs_mid, then BiNI on the uncut
 graph from it), ``bini_cut`` (gpps.flows.integrate.integrate_normals_creases: the crease edges cut in the faithful
-device BiNI, the pieces stitched with mid-normal targets).  Times: one run each (seconds, this machine; the
+device BiNI, the pieces stitched with mid-normal targets), ``bini_cut_drop`` (the same with the slits dropped:
+only cuts that separate pieces), ``bini_cut_bstitch`` (every cut, pieces stitched by BiNI's bilateral energy of
+the cut edges), ``bini_cut_drop_bstitch`` (both).
+
+4. ``box``: tests/discontinuity_scenes.render_box (folds and occluding steps on one crease network), worst
+   per-piece and global (one offset / scale) error of the methods, and of the device BiNI with the TRUE surface
+   boundaries cut (``true_mid``, ``true_bstitch``: the stitches alone, detection aside).  Times: one run each (seconds, this machine; the
 DiLiGenT part times ``bini`` and ``bini_cut`` best of ``--repeat`` runs).
 
-Usage: python perf/integration_creases.py [--parts suite,robust,diligent] [--sizes 48,128] [--suite-methods ...]
+Usage: python perf/integration_creases.py [--parts suite,robust,box,diligent] [--sizes 48,128] [--suite-methods ...]
        [--robust-methods ...] [--diligent-methods ...] [--repeat N] [--out FILE]
-Writes perf/results/integration_creases_cpu.json (bini_cut: perf/results/integration_creases_bini_cut_cpu.json).
+Writes perf/results/integration_creases_cpu.json (bini_cut: perf/results/integration_creases_bini_cut_cpu.json;
+the slit / stitch variants: perf/results/integration_creases_stitch_cpu.json).
 """
 
 from __future__ import annotations
@@ -41,6 +48,14 @@ sys.path.insert(0, str(ROOT / "perf"))
 os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 
 BINI_MM = {"bear": 0.334, "buddha": 1.098, "cow": 0.058, "goblet": 9.018, "pot1": 0.635, "pot2": 0.220}
+# the crease-cut device BiNI's options (gpps.flows.integrate.integrate_normals_creases): slits dropped and / or the
+# pieces stitched by BiNI's own criterion (bini_cut itself: every cut kept, mid-normal stitch)
+CUT_VARIANTS = {
+    "bini_cut": dict(),
+    "bini_cut_drop": dict(slits="drop"),
+    "bini_cut_bstitch": dict(cut_stitch="bini"),
+    "bini_cut_drop_bstitch": dict(slits="drop", cut_stitch="bini"),
+}
 VARIANTS = {
     "cs_trap": dict(),
     "cs_mid": dict(target="mid"),
@@ -53,6 +68,7 @@ VARIANTS = {
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--parts", default="suite,robust,diligent")
+    ap.add_argument("--box-methods", default="bini," + ",".join(CUT_VARIANTS))
     ap.add_argument("--sizes", default="48,128")
     ap.add_argument("--suite-methods", default="poisson,bini," + ",".join(VARIANTS) + ",bini_cut")
     ap.add_argument("--robust-methods", default="poisson,bini,cs_trap,cs_mid")
@@ -71,7 +87,8 @@ def main(argv=None) -> int:
     _taichi.init("cpu")
     sizes = [int(s) for s in args.sizes.split(",")]
     parts = args.parts.split(",")
-    out = {"host": platform.node(), "cpu_count": os.cpu_count(), "variants": {k: str(v) for k, v in VARIANTS.items()},
+    out = {"host": platform.node(), "cpu_count": os.cpu_count(),
+           "variants": {k: str(v) for k, v in {**VARIANTS, **CUT_VARIANTS}.items()},
            "note": "suite: worst per-piece mean |error| / depth range; robust: mean |error| / range after one "
                    "global offset/scale; times: one run, seconds"}
     path = Path(args.out)
@@ -85,11 +102,11 @@ def main(argv=None) -> int:
         elif method == "bini":
             r = integrate_normals(n, mask, camera=cam, bilateral=True, device="cpu")
             d, m, info = r.depth.astype(np.float64), r.mask, {"outer": r.outer_iterations, "cg": r.iterations}
-        elif method == "bini_cut":
-            r, c = integrate_normals_creases(n, mask, camera=cam, device="cpu")
+        elif method in CUT_VARIANTS:
+            r, c = integrate_normals_creases(n, mask, camera=cam, device="cpu", **CUT_VARIANTS[method])
             d, m = r.depth.astype(np.float64), r.mask
             info = {"outer": r.outer_iterations, "cg": r.iterations, "pieces": c["n_pieces"], "cut": c["cut_edges"],
-                    "threshold_deg": c["threshold_deg"]}
+                    "slits": c["slits"], "threshold_deg": c["threshold_deg"], "stitch_s": r.timings.get("stitch", 0.0)}
         else:
             r = integrate_creases(n, mask, cam, **VARIANTS[method])
             d, m, info = r.depth, r.mask, {"pieces": r.n_pieces, "cut": r.info["cut_edges"],
@@ -153,6 +170,50 @@ def main(argv=None) -> int:
                         print(f"{size:4d} {camera[:6]:6s} {name:13s} {case:7s} " + " ".join(f"{row[m]:9.1e}" for m in methods),
                               flush=True)
         out["robust"] = rows
+        save_json(path, out)
+
+    if "box" in parts:
+        from crease_scenes import global_error
+        from discontinuity_scenes import render_box, surface_errors
+
+        from gpps.flows.integrate import Integrator, IntegratorConfig
+
+        rows = []
+        methods = args.box_methods.split(",")
+        print("box: worst per-piece / global mean |error| / range")
+        for size in sizes:
+            for camera in ("orthographic", "perspective"):
+                sc = render_box(size, camera)
+                cam = camera_of(sc)
+                persp = camera == "perspective"
+                row = dict(size=size, camera=camera)
+                m0, lab = sc["mask"], sc["labels"]
+                tcx = np.zeros(m0.shape, bool)
+                tcy = np.zeros(m0.shape, bool)
+                tcx[:, :-1] = m0[:, :-1] & m0[:, 1:] & (lab[:, :-1] != lab[:, 1:])
+                tcy[:-1] = m0[:-1] & m0[1:] & (lab[:-1] != lab[1:])
+                for method in methods + ["true_mid", "true_bstitch"]:
+                    if method.startswith("true_"):
+                        t = time.perf_counter()
+                        cfg = IntegratorConfig(bilateral=True, weighting="normal",
+                                               cut_stitch="mid" if method == "true_mid" else "bini")
+                        integ = Integrator(m0, cam, cfg, device="cpu")
+                        r = integ.run(sc["normals"], cuts=(tcx, tcy))
+                        integ.close()
+                        d, m, dt, info = r.depth.astype(np.float64), r.mask, time.perf_counter() - t, {
+                            "cut": int(tcx.sum() + tcy.sum()), "stitch_s": r.timings.get("stitch", 0.0)}
+                    else:
+                        d, m, dt, info = run(method, sc["normals"], m0, cam)
+                    pieces, rng = surface_errors(d, sc["depth"], lab, m, persp)
+                    row[method + "_piece"] = max(p["mean"] for p in pieces) / rng
+                    row[method + "_global"] = global_error(d, sc["depth"], m, persp)[0]
+                    row[method + "_s"] = dt
+                    row[method + "_info"] = info
+                rows.append(row)
+                print(f"{size:4d} {camera[:6]:6s} " + " ".join(
+                    f"{k} {row[k + '_piece']:.1e}/{row[k + '_global']:.1e}" for k in methods + ["true_mid", "true_bstitch"]),
+                    flush=True)
+        out["box"] = rows
         save_json(path, out)
 
     if "diligent" in parts:

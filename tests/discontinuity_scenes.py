@@ -152,6 +152,81 @@ def render_scene(name: str, size: int = 96, camera: str = "orthographic"):
 SCENES = ("steps", "overlap", "figure", "gaps", "rims")
 
 
+def _hit_polytope(o, d, planes):
+    """Entry depth of the convex polytope ``{X : n_k . X <= c_k}`` along the rays (inf where missed) and the
+    outward normal of the face the ray enters through."""
+    shape = d.shape[:-1] if o is None else o.shape[:-1]
+    t_in = np.zeros(shape)
+    t_out = np.full(shape, np.inf)
+    face = -np.ones(shape, int)
+    for k, (n, c) in enumerate(planes):
+        nd = d @ n
+        no = np.zeros(shape) if o is None else o @ n
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (c - no) / nd
+        enter = nd < 0
+        face = np.where(enter & (t > t_in), k, face)
+        t_in = np.where(enter, np.maximum(t_in, t), t_in)
+        t_out = np.where(nd > 0, np.minimum(t_out, t), t_out)
+        t_out = np.where((nd == 0) & (no > c), -np.inf, t_out)
+    hit = (t_in <= t_out) & (face >= 0)
+    normals = np.stack([planes[k][0] for k in range(len(planes))])[np.maximum(face, 0)]
+    return np.where(hit, t_in, np.inf), normals, np.where(hit, face, -1)
+
+
+def render_box(size: int = 96, camera: str = "orthographic"):
+    """A tilted box standing on a tilted ground plane: creases that are continuous and creases that are steps.
+
+    The box's top face (tilted) has two side faces that face the camera (left and lower in the image): they
+    join the top to the ground by two folds each side (top-side, side-ground), and the two sides meet at a
+    vertical edge, all continuous.  Its right and upper side faces turn away from the camera, so there the top
+    face's edge partly occludes the ground behind it: a depth step of the box's height that coincides with the
+    crease between the top's and the ground's normals.  The step's size is visible in the shading (the visible
+    sides span it), so with one global offset / scale the whole map has one right answer; a stitch that forces
+    continuity across the occluding edges, or one that also cuts the folds, misses it.
+
+    Returns:
+        as :func:`render_scene`; ``labels``: 0 ground, 1 top, 2 left side, 3 lower side (4, 5: the hidden sides,
+        never seen).
+    """
+    h = w = size
+    L = Z0 / (2 * F_PX)
+    s = 2 * L / w
+    o, d, f = _rays(h, w, camera, s)
+    back = Z0 + 0.35 * L
+
+    def unit(v):
+        v = np.asarray(v, float)
+        return v / np.linalg.norm(v)
+
+    ng = unit((0.1, 0.1, 1.0))
+    cg = ng @ np.array([0.0, 0.0, -back])
+    nt = unit((-0.15, 0.2, 1.0))
+    top_c = nt @ np.array([0.0, 0.0, -(back - 0.5 * L)])
+    zt = -(back - 0.5 * L)
+    planes = [
+        (nt, top_c),                                             # 1: top
+        (unit((-1.0, 0.0, 0.6)), unit((-1.0, 0.0, 0.6)) @ np.array([-0.45 * L, 0.0, zt])),  # 2: left, seen
+        (unit((0.0, -1.0, 0.6)), unit((0.0, -1.0, 0.6)) @ np.array([0.0, -0.4 * L, zt])),   # 3: lower, seen
+        (unit((1.0, 0.0, -0.25)), unit((1.0, 0.0, -0.25)) @ np.array([0.4 * L, 0.0, zt])),  # 4: right, hidden
+        (unit((0.0, 1.0, -0.25)), unit((0.0, 1.0, -0.25)) @ np.array([0.0, 0.45 * L, zt])),  # 5: upper, hidden
+        (-ng, -cg),                                              # the ground: the box stands on it
+    ]
+    tb, nb, fb = _hit_polytope(o, d, planes)
+    tg, ngr = _hit_plane(o, d, ng, cg, np.ones((h, w), bool))
+    closer = tb < tg
+    depth = np.where(closer, tb, tg)
+    normals = np.where(closer[..., None], nb, ngr)
+    labels = np.where(closer, fb + 1, 0)
+    out = dict(depth=depth, normals=normals / np.linalg.norm(normals, axis=-1, keepdims=True), labels=labels,
+               mask=np.isfinite(depth))
+    if camera == "perspective":
+        out["K"] = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
+    else:
+        out["pixel_size"] = s
+    return out
+
+
 def surface_errors(est, gt, labels, mask, perspective: bool, margin: int = 0):
     """Per-surface-piece depth error after aligning each piece's one free parameter.
 

@@ -4,10 +4,12 @@ import numpy as np
 import pytest
 
 from crease_scenes import global_error, render_surface
-from discontinuity_scenes import render_scene, surface_errors
+from discontinuity_scenes import render_box, render_scene, surface_errors
 from gpps.camera import Orthographic, Perspective
 from gpps.flows.integrate import Integrator, IntegratorConfig, integrate_normals, integrate_normals_creases
-from gpps.host.creases import crease_edges, integrate_creases, stitch_cut_pieces
+from gpps.host.creases import (_edges, crease_edges, crease_pieces, integrate_creases, separating_cuts, stitch_bini,
+                               stitch_cut_pieces)
+from gpps.host.poisson import pixel_gradients
 
 
 def _camera(sc):
@@ -171,3 +173,116 @@ def test_bini_cut_bad_input(device):
         integrate_normals_creases(n[..., :2], m, camera=cam, device=device)
     with pytest.raises(ValueError, match="cuts"):
         Integrator(m, cam, IntegratorConfig(bilateral=True), device=device).run(n, cuts=(m, m[:-1]))
+
+
+# ----------------------------------------------------------------------------- slits dropped, BiNI-criterion stitch
+
+
+def _true_cuts(labels, mask):
+    cut_x = np.zeros(mask.shape, bool)
+    cut_y = np.zeros(mask.shape, bool)
+    cut_x[:, :-1] = mask[:, :-1] & mask[:, 1:] & (labels[:, :-1] != labels[:, 1:])
+    cut_y[:-1] = mask[:-1] & mask[1:] & (labels[:-1] != labels[1:])
+    return cut_x, cut_y
+
+
+def test_separating_cuts_drop_exactly_the_slits():
+    # the staircase's true surface boundaries separate 4 pieces; add slits (a cut line ending inside a tread, and
+    # single cut edges inside the back plane) and cuts leaving the mask: only the separating ones survive, and
+    # the pieces' labels are those of the full cut
+    sc = render_scene("steps", 32, "orthographic")
+    m = sc["mask"].copy()
+    m[:, -3:] = False
+    cut_x, cut_y = _true_cuts(sc["labels"], m)
+    sep_x, sep_y = cut_x.copy(), cut_y.copy()
+    slit_x = np.zeros_like(cut_x)
+    slit_x[10:16, 20] = True  # a line of cut j-edges inside one surface, open at both ends
+    slit_x[2, 2] = True
+    slit_y = np.zeros_like(cut_y)
+    slit_y[3, 5] = True
+    slit_x &= ~cut_x
+    slit_y &= ~cut_y
+    out_x = np.zeros_like(cut_x)
+    out_x[:, -3] = True  # edges leaving the mask: not edges at all
+    ax, ay = cut_x | slit_x | out_x, cut_y | slit_y
+    kx, ky, labels, npc = separating_cuts(m, ax, ay)
+    assert np.array_equal(kx, sep_x) and np.array_equal(ky, sep_y)
+    full, nfull = crease_pieces(m, _edges(m)[0] & ~ax, _edges(m)[1] & ~ay)
+    assert npc == nfull == 4 and np.array_equal(labels, full)
+    # nothing left to drop: a second pass is the identity
+    kx2, ky2, labels2, _ = separating_cuts(m, kx, ky)
+    assert np.array_equal(kx2, kx) and np.array_equal(ky2, ky) and np.array_equal(labels2, labels)
+
+
+def test_slits_dropped_when_nothing_separates_is_bini_bitwise():
+    # the box's detected creases leak at its corners: one piece, every cut a slit; dropping them gives BiNI
+    sc = render_box(48, "orthographic")  # (at 40 px three pieces separate)
+    cam = _camera(sc)
+    r, c = integrate_normals_creases(sc["normals"], sc["mask"], camera=cam, device="cpu", slits="drop")
+    r0 = integrate_normals(sc["normals"], sc["mask"], camera=cam, bilateral=True, device="cpu")
+    assert c["n_pieces"] == 1 and c["cut_edges"] == 0 and c["slits"] > 0
+    assert np.array_equal(r.depth, r0.depth)
+
+
+@pytest.mark.parametrize("camera", ["orthographic", "perspective"])
+def test_bini_stitch_planar_staircase_exact_per_piece(camera):
+    # exact plane shapes with random constants per piece: the stitch only moves whole pieces, so each piece is
+    # still exact to rounding after its own alignment, whatever constants the criterion picks
+    sc = render_scene("steps", 32, camera)
+    persp = camera == "perspective"
+    m = sc["mask"]
+    cut_x, cut_y = _true_cuts(sc["labels"], m)
+    kx, ky, labels, npc = separating_cuts(m, cut_x, cut_y)
+    g = np.log(sc["depth"]) if persp else sc["depth"]
+    u = g + np.random.default_rng(1).normal(size=npc + 1)[labels]
+    gj, gi, nzj, nzi = pixel_gradients(sc["normals"], m, _camera(sc), 1e-3)
+    us, c, info = stitch_bini(u, labels, npc, kx, ky, m, gj, gi, nzj, nzi)
+    assert info["iterations"] >= 2 and len(info["energy"]) == info["iterations"]
+    d = np.exp(us) if persp else us
+    pieces, rng = surface_errors(d, sc["depth"], sc["labels"], m, persp)
+    assert max(p["max"] for p in pieces) <= 1e-12 * rng * (1e3 if persp else 1)
+    # the constants keep each connected group's pixel mean
+    assert us[m].mean() == pytest.approx(u[m].mean(), abs=1e-12)
+
+
+@pytest.mark.parametrize("camera", ["orthographic", "perspective"])
+def test_bini_stitch_continuous_on_the_ridge(camera):
+    # the fold's two planes from random constants: BiNI's criterion stitches them back continuous, as well as
+    # the mid-normal stitch (both limited by the fold's unknown sub-pixel position), far from the random start
+    size = 40
+    sc = render_surface("ridge", size, camera)
+    persp = camera == "perspective"
+    r, c = integrate_normals_creases(sc["normals"], sc["mask"], camera=_camera(sc), device="cpu",
+                                     cut_stitch="bini", bilateral_inner_tol=1e-10)
+    rm, _ = integrate_normals_creases(sc["normals"], sc["mask"], camera=_camera(sc), device="cpu",
+                                      bilateral_inner_tol=1e-10)
+    assert c["n_pieces"] == 2 and c["cut_edges"] == size
+    mean, _ = global_error(r.depth.astype(np.float64), sc["depth"], sc["mask"], persp)
+    ref, _ = global_error(rm.depth.astype(np.float64), sc["depth"], sc["mask"], persp)
+    assert mean <= 1.2 * ref + 1e-6 and mean < 1e-2
+    # no step across the fold beyond the sub-pixel ambiguity (0.35 of the slope change per pixel)
+    u = np.log(r.depth.astype(np.float64)) if persp else r.depth.astype(np.float64)
+    gt = np.log(sc["depth"]) if persp else sc["depth"]
+    ii, jj = np.nonzero(c["cut_x"])
+    est = u[ii, jj + 1] - u[ii, jj]
+    tru = gt[ii, jj + 1] - gt[ii, jj]
+    slope_change = np.abs((gt[ii, jj + 2] - gt[ii, jj + 1]) - (gt[ii, jj] - gt[ii, jj - 1]))
+    assert np.all(np.abs(est - tru) <= 0.35 * slope_change + 1e-5 * np.ptp(gt))
+
+
+def test_slits_and_stitch_bad_input():
+    sc = render_scene("steps", 16, "orthographic")
+    cam = _camera(sc)
+    n, m = sc["normals"], sc["mask"]
+    with pytest.raises(ValueError, match="slits"):
+        integrate_normals_creases(n, m, camera=cam, slits="some", device="cpu")
+    with pytest.raises(ValueError, match="cut_stitch"):
+        integrate_normals_creases(n, m, camera=cam, cut_stitch="continuity", device="cpu")
+    with pytest.raises(ValueError, match="mode"):
+        stitch_cut_pieces(np.zeros(m.shape), n, m, cam, m, m, mode="trapezoid")
+    with pytest.raises(ValueError, match="valid"):
+        separating_cuts(m.astype(int), m, m)
+    with pytest.raises(ValueError, match="cut_y"):
+        separating_cuts(m, m, m[:-1])
+    with pytest.raises(ValueError, match="cut_x"):
+        separating_cuts(m, m.astype(float), m)

@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from gpps.host.creases import crease_edges, crease_pieces
+from gpps._check import check_choice
+from gpps.host.creases import crease_edges, crease_pieces, separating_cuts
+from gpps.names import SLITS_NAMES
 from gpps.pipeline.integration import (
     IntegrationResult,
     Integrator,
@@ -108,6 +110,7 @@ def integrate_normals_creases(
     floor_deg: float = 2.0,
     z: float = 4.0,
     threshold_deg: float | None = None,
+    slits: str = "keep",
     reference_depth: float | None = None,
     warm_start=None,
     device: str = "auto",
@@ -121,35 +124,49 @@ def integrate_normals_creases(
        (``max(floor_deg, z sigma)``, peak edge only, the normal changing across the edge);
     2. device BiNI (:class:`gpps.pipeline.integration_bini.BilateralIntegrator`) with those edges as missing
        neighbours, so each piece is integrated on its own and BiNI's weights still cut the jumps inside it;
-    3. the pieces' constants (depth offsets, orthographic; log-depth offsets, perspective) by least squares over
-       the cut edges with mid-normal targets (:func:`gpps.host.creases.stitch_cut_pieces`).
+    3. the pieces' constants (depth offsets, orthographic; log-depth offsets, perspective) from the cut edges
+       (:func:`gpps.host.creases.stitch_cut_pieces`): least squares with mid-normal targets (``cut_stitch="mid"``,
+       the default) or BiNI's bilateral energy of the cut edges (``cut_stitch="bini"``).
 
     Without a crease the result is ``integrate_normals(bilateral=True)``'s, bitwise.  A cut edge whose two sides
     stay in one piece (a crease line that ends inside the surface) is a slit: the stitch does not see it and
-    BiNI loses the coupling across it.
+    BiNI loses the coupling across it (``slits="drop"`` keeps only the separating cuts).
 
     Measured (perf/results/integration_creases_bini_cut_cpu.json): the ray-cast discontinuity suite within 1e-3
     of the depth range per piece at 128 px (both cameras), not at 48 px on the spheres (BiNI's own one-sided
     discretisation, 2e-3 to 1.4e-2); on the DiLiGenT maps NOT within 1.1x of BiNI's published errors (buddha
-    1.18x, cow 2.15x, goblet 1.13x), hence not a default.
+    1.18x, cow 2.15x, goblet 1.13x), hence not a default.  The options do not fix that
+    (perf/results/integration_creases_stitch_cpu.json): ``slits="drop"`` with ``cut_stitch="bini"`` gives
+    bear 1.18x (its 775 slits had given 0.29x), buddha 0.87x, cow 1.00x, goblet 0.99x, pot1 0.99x, pot2 1.00x,
+    and loses the suite's 1e-3 at 128 px on the overlapping spheres (6.3e-3 perspective): slits along occluding
+    rims were helping.
 
     Args:
         normals, mask, camera, reference_depth, warm_start, device, progress: as :func:`integrate_normals`.
         floor_deg, z, threshold_deg: the crease test (:func:`gpps.host.creases.crease_edges`).
-        **options: further :class:`IntegratorConfig` fields (BiNI's ``bilateral_k`` ..., ``min_nz``).
+        slits: ``"keep"`` every crease cut, or ``"drop"`` the slits first
+            (:func:`gpps.host.creases.separating_cuts`: only cuts between different pieces reach BiNI; the
+            pieces are the same).
+        **options: further :class:`IntegratorConfig` fields (BiNI's ``bilateral_k`` ..., ``min_nz``,
+            ``cut_stitch``).
 
     Returns:
         ``(result, creases)``: the :class:`IntegrationResult` and a dict with ``cut_x``, ``cut_y`` ((H, W) bool
         cut edges), ``pieces`` ((H, W) int labels, 0 outside the result's mask), ``n_pieces``, ``cut_edges``,
-        ``threshold_deg``, ``sigma_deg``.
+        ``threshold_deg``, ``sigma_deg``, ``slits`` (the cut edges dropped as slits).
 
     Raises:
         ValueError: bad shapes or values, naming the argument.
     """
+    check_choice("slits", slits, SLITS_NAMES)
     cfg = IntegratorConfig(bilateral=True, weighting="normal", **options)
     integ = Integrator(mask, camera=camera, config=cfg, device=device)
     try:
         cut_x, cut_y, info = crease_edges(normals, integ.mask, floor_deg=floor_deg, z=z, threshold_deg=threshold_deg)
+        n_cut = int(cut_x.sum() + cut_y.sum())
+        if slits == "drop":
+            # the pixels BiNI integrates (the mask less invalid / back-facing normals): separation in its graph
+            cut_x, cut_y, _, _ = separating_cuts(integ._check_normals(normals)[1], cut_x, cut_y)
         res = integ.run(normals, warm_start=warm_start, reference_depth=reference_depth, progress=progress,
                         cuts=(cut_x, cut_y))
     finally:
@@ -160,5 +177,6 @@ def integrate_normals_creases(
     kx[:, :-1] = v[:, :-1] & v[:, 1:] & ~cut_x[:, :-1]
     ky[:-1] = v[:-1] & v[1:] & ~cut_y[:-1]
     pieces, npc = crease_pieces(v, kx, ky)
-    return res, dict(cut_x=cut_x, cut_y=cut_y, pieces=pieces, n_pieces=npc, cut_edges=int(cut_x.sum() + cut_y.sum()),
+    n_kept = int(cut_x.sum() + cut_y.sum())
+    return res, dict(cut_x=cut_x, cut_y=cut_y, pieces=pieces, n_pieces=npc, cut_edges=n_kept, slits=n_cut - n_kept,
                      **info)

@@ -47,9 +47,13 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import connected_components
 
+from gpps.names import CUT_STITCH_NAMES
+
+from gpps._check import check_choice
 from gpps.host.poisson import divergence_rhs, edge_system, laplacian, pixel_gradients, solve_direct
 
-__all__ = ["CreaseResult", "crease_edges", "crease_pieces", "bini_irls", "stitch", "stitch_cut_pieces",
+__all__ = ["CreaseResult", "crease_edges", "crease_pieces", "separating_cuts", "bini_irls", "stitch", "stitch_bini",
+           "stitch_cut_pieces",
            "integrate_creases"]
 
 INNERS = ("poisson", "bini")
@@ -179,6 +183,45 @@ def crease_pieces(valid, ex, ey):
     out = np.zeros((h, w), int)
     out[valid] = inv + 1
     return out, int(inv.max()) + 1
+
+
+def separating_cuts(valid, cut_x, cut_y):
+    """The cut edges that separate pieces; the others (slits) dropped.
+
+    A cut edge whose two pixels stay connected through uncut edges adds no free constant (nothing for a stitch
+    to set) and only removes the coupling across it.  Dropping such an edge joins two pixels of one piece, so
+    no piece changes: one pass removes every slit, the pieces (and their labels) stay those of the full cut,
+    and every kept cut still separates two pieces.
+
+    Args:
+        valid: (H, W) bool pixels.
+        cut_x, cut_y: (H, W) bool cut j-edges ``(i, j)-(i, j+1)`` and i-edges ``(i, j)-(i+1, j)`` (edges leaving
+            ``valid`` are ignored).
+
+    Returns:
+        ``(cut_x, cut_y, labels, n_pieces)``: the separating cuts (subsets of the input's edges inside
+        ``valid``), the (H, W) int pieces 1..n_pieces (0 outside ``valid``) and their number.
+
+    Raises:
+        ValueError: ``valid``, ``cut_x`` or ``cut_y`` not (H, W) bool arrays of one shape.
+    """
+    v = np.asarray(valid)
+    if v.ndim != 2 or v.dtype != bool:
+        raise ValueError(f"valid: expected an (H, W) bool array, got shape {v.shape}, dtype {v.dtype}")
+    cuts = []
+    for name, c in (("cut_x", cut_x), ("cut_y", cut_y)):
+        c = np.asarray(c)
+        if c.shape != v.shape or c.dtype != bool:
+            raise ValueError(f"{name}: expected an (H, W) = {v.shape} bool array, got shape {c.shape}, dtype {c.dtype}")
+        cuts.append(c)
+    ex, ey = _edges(v)
+    cx, cy = ex & cuts[0], ey & cuts[1]
+    labels, npc = crease_pieces(v, ex & ~cx, ey & ~cy)
+    sx = np.zeros_like(cx)
+    sy = np.zeros_like(cy)
+    sx[:, :-1] = cx[:, :-1] & (labels[:, :-1] != labels[:, 1:])
+    sy[:-1, :] = cy[:-1, :] & (labels[:-1, :] != labels[1:, :])
+    return sx, sy, labels, npc
 
 
 def _coefficients(n, valid, camera, min_nz):
@@ -416,13 +459,112 @@ def stitch(u, labels, n_pieces, cut_x, cut_y, wx, wy, tx, ty, *, mode: str = "tr
     return np.where(labels > 0, u + c[labels], 0.0), c
 
 
-def stitch_cut_pieces(u, normals, valid, camera, cut_x, cut_y, *, min_nz: float = 1e-3):
+def _bini_forward_weights(u, ex, ey, nzj, nzi, k):
+    """BiNI's forward weights ``w+ = sigmoid(k ((N D-)^2 - (N D+)^2))`` of ``u`` on the edges ``ex``, ``ey``
+    (a missing edge's difference is 0), clipped to ``[1e-12, 1 - 1e-12]`` so an edge's total weight stays > 0."""
+    out = []
+    for uu, e, nz in ((u, ex, nzj), (u.T, ey.T, nzi.T)):
+        dp = np.zeros_like(uu)
+        dp[:, :-1] = np.where(e[:, :-1], uu[:, 1:] - uu[:, :-1], 0.0)
+        dm = np.zeros_like(uu)
+        dm[:, 1:] = dp[:, :-1]
+        with np.errstate(over="ignore"):
+            wp = 1.0 / (1.0 + np.exp(-k * ((nz * dm) ** 2 - (nz * dp) ** 2)))
+        out.append(np.clip(wp, 1e-12, 1.0 - 1e-12))
+    return out[0], out[1].T
+
+
+def stitch_bini(u, labels, n_pieces, cut_x, cut_y, valid, gj, gi, nzj, nzi, *, k: float = 2.0, tol: float = 1e-4,
+                max_iter: int = 150):
+    """Per-piece constants by BiNI's own criterion: its bilateral energy restricted to the cut edges.
+
+    A cut edge ``e = (a, b)`` (``b`` the right / lower neighbour, ``a`` in piece ``P``, ``b`` in ``Q``, ``P != Q``)
+    owns two of BiNI's one-sided equations (Cao et al., ECCV 2022, (19)): ``a``'s forward one
+    ``w+_a (N_a D_e - m_a)^2`` and ``b``'s backward one ``w-_b (N_b D_e - m_b)^2``, with
+    ``D_e = u_b + c_Q - u_a - c_P``, ``m = N g`` and ``w-_b = 1 - w+_b``.  With the weights fixed this is a
+    weighted least squares in the constants ``c`` (edge weight ``W_e = N_a^2 w+_a + N_b^2 w-_b``, target
+    ``(N_a m_a w+_a + N_b m_b w-_b) / W_e``, solved by :func:`stitch`); the weights are then BiNI's
+    ``w+ = sigmoid(k ((N D-)^2 - (N D+)^2))`` of the stitched ``u + c[labels]`` on the uncut graph (20), and the
+    two steps repeat from ``w = 1/2`` (BiNI's start) until the energy's relative change is below ``tol``.  So a
+    crease whose two sides meet is stitched continuously (the weights stay near 1/2), while an edge whose
+    stitched difference is much larger than its neighbours' gets its weight moved to the one-sided equation
+    that does not cross it, as BiNI keeps a jump.  The pieces' shapes are not touched.
+
+    Args:
+        u: (H, W) per-piece solution (each piece's constant arbitrary).
+        labels: (H, W) int pieces 1..n_pieces (0 outside).
+        n_pieces: number of pieces.
+        cut_x, cut_y: (H, W) bool cut j- and i-edges (edges inside one piece are ignored).
+        valid: (H, W) bool pixels (the uncut graph is every edge inside ``valid``).
+        gj, gi, nzj, nzi: (H, W) per-pixel steps and N factors (:func:`gpps.host.poisson.pixel_gradients`).
+        k: BiNI's sigmoid sharpness.
+        tol: relative energy change that stops the iteration (BiNI's 1e-4).
+        max_iter: iterations at most.
+
+    Returns:
+        ``(u_stitched, c, info)``: (H, W) ``u + c[labels]`` (0 outside), the (n_pieces + 1,) constants (each
+        connected group of pieces keeps its pixels' mean) and ``info`` with ``iterations`` and ``energy`` (list).
+    """
+    valid = np.asarray(valid, bool)
+    ex, ey = _edges(valid)
+    cut_x = ex & np.asarray(cut_x, bool)
+    cut_y = ey & np.asarray(cut_y, bool)
+    cut_x[:, :-1] &= labels[:, :-1] != labels[:, 1:]
+    cut_y[:-1, :] &= labels[:-1, :] != labels[1:, :]
+    u = np.where(valid, np.asarray(u, np.float64), 0.0)
+    mj, mi = nzj * gj, nzi * gi
+    h, w = valid.shape
+    c = np.zeros(n_pieces + 1)
+    if not (cut_x.any() or cut_y.any()):
+        return u, c, {"iterations": 0, "energy": []}
+
+    def system(wpj, wpi):
+        """Edge weights, targets (for :func:`stitch`) and the two equations' weights of every cut edge."""
+        wx, wy, tx, ty = (np.zeros((h, w)) for _ in range(4))
+        parts = []
+        for W, T, cut, wp, nz, m, sa, sb in ((wx, tx, cut_x, wpj, nzj, mj, np.s_[:, :-1], np.s_[:, 1:]),
+                                             (wy, ty, cut_y, wpi, nzi, mi, np.s_[:-1, :], np.s_[1:, :])):
+            wa, wb = wp[sa], 1.0 - wp[sb]
+            tot = nz[sa] ** 2 * wa + nz[sb] ** 2 * wb
+            flux = nz[sa] * m[sa] * wa + nz[sb] * m[sb] * wb
+            on = cut[sa]
+            W[sa] = np.where(on, tot, 0.0)
+            with np.errstate(all="ignore"):
+                T[sa] = np.where(on, flux / tot, 0.0)
+            parts.append((on, wa, wb, nz[sa], nz[sb], m[sa], m[sb], sa, sb))
+        return wx, wy, tx, ty, parts
+
+    def energy(us, parts):
+        e = 0.0
+        for on, wa, wb, na, nb, ma, mb, sa, sb in parts:
+            d = us[sb] - us[sa]
+            e += float(np.sum((wa * (na * d - ma) ** 2 + wb * (nb * d - mb) ** 2)[on]))
+        return e
+
+    wpj = np.full((h, w), 0.5)
+    wpi = np.full((h, w), 0.5)
+    energies = []
+    us = u
+    for it in range(max_iter):
+        wx, wy, tx, ty, _ = system(wpj, wpi)
+        us, c = stitch(u, labels, n_pieces, cut_x, cut_y, wx, wy, tx, ty)
+        wpj, wpi = _bini_forward_weights(us, ex, ey, nzj, nzi, k)
+        e = energy(us, system(wpj, wpi)[4])
+        energies.append(e)
+        if it > 0 and (energies[-2] <= 0 or abs(e - energies[-2]) / energies[-2] < tol):
+            break
+    return us, c, {"iterations": len(energies), "energy": energies}
+
+
+def stitch_cut_pieces(u, normals, valid, camera, cut_x, cut_y, *, min_nz: float = 1e-3, mode: str = "mid",
+                      k: float = 2.0, tol: float = 1e-4):
     """Set the free constants of the pieces of a solution integrated with the edges ``cut_x``, ``cut_y`` cut.
 
     The pieces are the connected parts of ``valid`` without the cut edges; their constants (an offset of ``u``:
-    depth orthographic, log-depth perspective) come from :func:`stitch` over the cut edges with the mid-normal
-    targets (:func:`mid_normal_targets`) and the N_z^2 edge weights of (4.20).  A piece without cut edges to
-    another piece keeps its ``u`` exactly (its constant is 0.0).
+    depth orthographic, log-depth perspective) come from the cut edges: ``mode="mid"``: :func:`stitch` with the
+    mid-normal targets (:func:`mid_normal_targets`) and the N_z^2 edge weights of (4.20) (continuity);
+    ``mode="bini"``: :func:`stitch_bini` (BiNI's bilateral energy of the cut edges, its IRLS with ``k``,
+    ``tol``).  A piece without cut edges to another piece keeps its ``u`` exactly (its constant is 0.0).
 
     Args:
         u: (H, W) float64 solution of each piece (e.g. BiNI with the cut edges as missing neighbours).
@@ -431,12 +573,15 @@ def stitch_cut_pieces(u, normals, valid, camera, cut_x, cut_y, *, min_nz: float 
         camera: :class:`gpps.camera.Orthographic` or :class:`gpps.camera.Perspective`.
         cut_x, cut_y: (H, W) bool cut j-edges ``(i, j)-(i, j+1)`` and i-edges ``(i, j)-(i+1, j)``.
         min_nz: slope bound of grazing normals (:func:`gpps.host.poisson.pixel_gradients`).
+        mode: ``"mid"`` or ``"bini"`` (:data:`gpps.names.CUT_STITCH_NAMES`).
+        k, tol: ``mode="bini"``: BiNI's sigmoid sharpness and energy tolerance.
 
     Returns:
         ``(u_stitched, labels, n_pieces)``: (H, W) float64 ``u`` plus each piece's constant (0 outside
         ``valid``), the (H, W) int pieces 1..n_pieces and their number.
     """
     _check_camera(camera)
+    check_choice("mode", mode, CUT_STITCH_NAMES)
     n = np.asarray(normals, dtype=np.float64)
     valid = np.asarray(valid, dtype=bool)
     ex, ey = _edges(valid)
@@ -446,6 +591,9 @@ def stitch_cut_pieces(u, normals, valid, camera, cut_x, cut_y, *, min_nz: float 
     if not (cut_x.any() or cut_y.any()):
         return u, labels, npc
     gj, gi, nzj, nzi = _coefficients(n, valid, camera, min_nz)
+    if mode == "bini":
+        us, _, _ = stitch_bini(u, labels, npc, cut_x, cut_y, valid, gj, gi, nzj, nzi, k=k, tol=tol)
+        return us, labels, npc
     wx, wy, _, _ = _weighted_system(valid, ex, ey, gj, gi, nzj, nzi)
     tx, ty = mid_normal_targets(n, valid, camera, min_nz)
     us, _ = stitch(u, labels, npc, cut_x, cut_y, wx, wy, tx, ty)

@@ -69,6 +69,7 @@ from gpps.host.poisson import (
     solve_direct,
 )
 from gpps.kernels import poisson as K
+from gpps.names import CutStitchName
 from gpps.pipeline.integration_bini import BilateralIntegrator, BiniConfig, check_cuts
 from gpps.pipeline.stage import Stage
 
@@ -149,6 +150,9 @@ class IntegratorConfig:
         bilateral_tol: relative energy change that stops the IRLS (BiNI's 1e-4).
         bilateral_inner_tol: relative residual of each inner CG solve (BiNI's 1e-3).
         bilateral_cg_max_iter: CG iterations per inner solve at most (BiNI's 5000).
+        cut_stitch: with ``run(cuts=...)``: how the cut pieces get their constants, ``"mid"`` (mid-normal
+            continuity) or ``"bini"`` (BiNI's bilateral energy of the cut edges, with ``bilateral_k`` and
+            ``bilateral_tol``; :func:`gpps.host.creases.stitch_cut_pieces`).
         robust: ``"cauchy"``: a robust loss on the edge residuals of (4.20)
             by iteratively reweighted least squares: each edge's weight is
             multiplied by ``1 / (1 + (r / sigma)^2)``, ``r = u_q - u_p - t`` from
@@ -201,6 +205,7 @@ class IntegratorConfig:
     bilateral_tol: float = 1e-4
     bilateral_inner_tol: float = 1e-3
     bilateral_cg_max_iter: int = 5000
+    cut_stitch: CutStitchName = "mid"
     robust: Robust = "none"
     robust_scale: float = 2.0
     robust_iterations: int = 8
@@ -487,7 +492,8 @@ class Integrator(Stage):
             u = bres.u
             if cuts is not None:
                 t_s = time.perf_counter()
-                u, _, _ = stitch_cut_pieces(u, n, valid, self.camera, *cuts, min_nz=cfg.min_nz)
+                u, _, _ = stitch_cut_pieces(u, n, valid, self.camera, *cuts, min_nz=cfg.min_nz, mode=cfg.cut_stitch,
+                                            k=float(cfg.bilateral_k), tol=cfg.bilateral_tol)
                 timings["stitch"] = time.perf_counter() - t_s
             total_it, outer, energy_log = bres.cg_iterations, bres.outer_iterations, bres.energy
             true_res = solver_res = bres.residual
