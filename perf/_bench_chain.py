@@ -294,24 +294,32 @@ def _candidates(mat, k):
     return out[:k]
 
 
-def scorer_rows(ctx, n_images, samples, n_cand):
-    """The material scorer's batched solve: one launch of K candidates x P samples."""
+def _sample_scorer(ctx, n_images, samples, n_cand, *, seed=0, parallel=None):
+    """The chain scene, a random sample of ``samples`` mask pixels and a :class:`MaterialScorer` with RON's fit
+    config (4 starts, no neighbour pass) holding it: ``(scene, material, lights, images, scorer, P)``."""
     from gpps.pipeline.material import MaterialScorer
     from gpps.pipeline.solver import SolverConfig
 
-    wp = _wp()
-    t0 = time.perf_counter()
     sc, mat, lights, img = ball_scene(ctx.size, n_images, ctx.device)
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(seed)
     idx = np.flatnonzero(sc.mask.ravel())
     sample = np.zeros(sc.mask.size, bool)
     sample[rng.choice(idx, min(samples, idx.size), replace=False)] = True
     sample = sample.reshape(sc.mask.shape)
     p = int(sample.sum())
     fit = replace(SolverConfig(), starts=4, neighbour_radius=0, smoothness=0.0, warm_start=False)  # RON's fit
+    kw = {} if parallel is None else {"parallel": parallel}
     scorer = MaterialScorer(img.shape[:3], sc.camera, lights, mat, fit, max_samples=p, max_candidates=n_cand,
-                            device=ctx.device)
+                            device=ctx.device, **kw)
     scorer.upload(img, sample)
+    return sc, mat, lights, img, scorer, p
+
+
+def scorer_rows(ctx, n_images, samples, n_cand):
+    """The material scorer's batched solve: one launch of K candidates x P samples."""
+    wp = _wp()
+    t0 = time.perf_counter()
+    sc, mat, lights, img, scorer, p = _sample_scorer(ctx, n_images, samples, n_cand)
     cands = _candidates(mat, n_cand)
     scorer.step(cands)
     energies = scorer.fetch()
@@ -345,21 +353,8 @@ def scorer_rows(ctx, n_images, samples, n_cand):
 def scorer_lanes_rows(ctx, n_images, samples=500, n_cand=4):
     """The scorer's lights-parallel build (``parallel="lights"``: one 32-lane block a (candidate, pixel)
     solve), at the size where ``"auto"`` picks it: a later round's K x P <= 500 x N solves."""
-    from gpps.pipeline.material import MaterialScorer
-    from gpps.pipeline.solver import SolverConfig
-
     t0 = time.perf_counter()
-    sc, mat, lights, img = ball_scene(ctx.size, n_images, ctx.device)
-    rng = np.random.default_rng(1)
-    idx = np.flatnonzero(sc.mask.ravel())
-    sample = np.zeros(sc.mask.size, bool)
-    sample[rng.choice(idx, min(samples, idx.size), replace=False)] = True
-    sample = sample.reshape(sc.mask.shape)
-    p = int(sample.sum())
-    fit = replace(SolverConfig(), starts=4, neighbour_radius=0, smoothness=0.0, warm_start=False)
-    scorer = MaterialScorer(img.shape[:3], sc.camera, lights, mat, fit, max_samples=p, max_candidates=n_cand,
-                            parallel="lights", device=ctx.device)
-    scorer.upload(img, sample)
+    sc, mat, lights, img, scorer, p = _sample_scorer(ctx, n_images, samples, n_cand, seed=1, parallel="lights")
     cands = _candidates(mat, n_cand)
     scorer.set_candidates(cands)
     scorer.launch()
@@ -491,22 +486,10 @@ PARTS = ("dgmc", "scorer", "solve", "lanes", "bini", "search")
 def search_rows(ctx, samples):
     """The device material search's own kernels (3 images: RON's 256^2 x 3 case), around a filled scorer."""
     from gpps.kernels import material_search as ms
-    from gpps.pipeline.material import MaterialScorer
     from gpps.pipeline.material_search import NelderMeadSearch
-    from gpps.pipeline.solver import SolverConfig
 
     wp = _wp()
-    sc, mat, lights, img = ball_scene(ctx.size, 3, ctx.device)
-    rng = np.random.default_rng(0)
-    idx = np.flatnonzero(sc.mask.ravel())
-    sample = np.zeros(sc.mask.size, bool)
-    sample[rng.choice(idx, min(samples, idx.size), replace=False)] = True
-    sample = sample.reshape(sc.mask.shape)
-    p = int(sample.sum())
-    fit = replace(SolverConfig(), starts=4, neighbour_radius=0, smoothness=0.0, warm_start=False)  # RON's fit
-    scorer = MaterialScorer(img.shape[:3], sc.camera, lights, mat, fit, max_samples=p, max_candidates=8,
-                            device=ctx.device)
-    scorer.upload(img, sample)
+    sc, mat, lights, img, scorer, p = _sample_scorer(ctx, 3, samples, 8)
     scorer.step(_candidates(mat, ms.SEARCH_POINTS))
     search = NelderMeadSearch(scorer, 1)
     x0 = np.log([mat.shininess])
