@@ -140,6 +140,14 @@ def render_scene(name: str, size: int = 96, camera: str = "orthographic"):
         depth = np.where(closer, t, depth)
         normals = np.where(closer[..., None], nrm, normals)
         labels = np.where(closer, k, labels)
+    return _scene_dict(depth, normals, labels, camera, f, s, h, w)
+
+
+SCENES = ("steps", "overlap", "figure", "gaps", "rims")
+
+
+def _scene_dict(depth, normals, labels, camera, f, s, h, w):
+    """The scene dict of the renders: unit normals, the mask of the hit pixels, the camera's ``K`` or pixel size."""
     out = dict(depth=depth, normals=normals / np.linalg.norm(normals, axis=-1, keepdims=True), labels=labels,
                mask=np.isfinite(depth))
     if camera == "perspective":
@@ -147,9 +155,6 @@ def render_scene(name: str, size: int = 96, camera: str = "orthographic"):
     else:
         out["pixel_size"] = s
     return out
-
-
-SCENES = ("steps", "overlap", "figure", "gaps", "rims")
 
 
 def _hit_polytope(o, d, planes):
@@ -218,13 +223,7 @@ def render_box(size: int = 96, camera: str = "orthographic"):
     depth = np.where(closer, tb, tg)
     normals = np.where(closer[..., None], nb, ngr)
     labels = np.where(closer, fb + 1, 0)
-    out = dict(depth=depth, normals=normals / np.linalg.norm(normals, axis=-1, keepdims=True), labels=labels,
-               mask=np.isfinite(depth))
-    if camera == "perspective":
-        out["K"] = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
-    else:
-        out["pixel_size"] = s
-    return out
+    return _scene_dict(depth, normals, labels, camera, f, s, h, w)
 
 
 def surface_errors(est, gt, labels, mask, perspective: bool, margin: int = 0):
