@@ -139,12 +139,21 @@ def test_valley_same_trajectory_as_host(x0, step, maxfev, xatol, device):
     assert got["scored"] == got["steps"] * 4
 
 
-def test_valley_finds_the_minimum(device):
+@pytest.mark.parametrize("graph", ["auto", "off"])
+def test_valley_finds_the_minimum(graph, device):
+    """Both loop forms (on CUDA "auto" is a CUDA graph with a conditional node, "off" the host-driven loop;
+    on the CPU both are host-driven), the second search replaying the first's graph."""
+    import warp as wp
+
     sc = ValleyScorer(device)
     base = Material.default_for("cook-torrance")
     simplex = initial(np.log([1.0, 0.5]), np.array([0.5, 0.5]))
-    with NelderMeadSearch(sc, 2) as search:
+    with NelderMeadSearch(sc, 2, graph=graph) as search:
+        first = search.run(base, NAMES, simplex, sc.score(base, simplex), lo=LO, hi=HI, maxfev=400, xatol=1e-7)
         got = search.run(base, NAMES, simplex, sc.score(base, simplex), lo=LO, hi=HI, maxfev=400, xatol=1e-7)
+        assert search.uses_graph() == (graph == "auto" and device.startswith("cuda")
+                                       and bool(wp.is_conditional_graph_supported()))
+    assert first == {**got, "x": first["x"]} and np.array_equal(first["x"], got["x"])
     assert got["status"] == "converged"
     np.testing.assert_allclose(np.exp(got["x"]), [0.4, 0.2], rtol=1e-4)
     # trimmed: the outlier sample (weight 50) is left out; mean of (w_i^2) * f_min over the 7 kept of 9
