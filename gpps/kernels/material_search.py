@@ -72,15 +72,7 @@ def search_points_kernel(
     repeated above).  The material row scores ``exp(clip(cand[c], lo, hi))``.
     """
     c = wp.tid()
-    base = base_row[0]
-    m = MaterialParams()
-    m.model = base.model
-    m.ks = base.ks
-    m.shininess = base.shininess
-    m.roughness = base.roughness
-    m.f0 = base.f0
-    m.eta_u = base.eta_u
-    m.eta_v = base.eta_v
+    m = base_row[0]  # (a copy: the lobe fields set below do not touch the base row)
     one = wp.float64(1.0)
     rho = wp.float64(1.0)
     chi = wp.float64(2.0)
