@@ -80,6 +80,10 @@ SPLIT_SOLVE_MAX_REGISTERS = 128
 # pass), "off" (launched from the host every time)
 GraphName = Literal["auto", "off"]
 GRAPH_NAMES: tuple[str, ...] = get_args(GraphName)
+# how an iterative device solve is launched on CUDA: "tasks" (a Taichi launch per phase, the host polling),
+# "persistent" (one task whose phases meet at software grid barriers), "auto" (persistent on CUDA, tasks off it)
+LaunchName = Literal["auto", "tasks", "persistent"]
+LAUNCH_NAMES: tuple[str, ...] = get_args(LaunchName)
 LIGHTS_PARALLEL_MIN = 16
 LIGHTS_PARALLEL_PAIRS_PER_IMAGE = 500
 

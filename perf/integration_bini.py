@@ -25,7 +25,7 @@ Times are medians of ``--repeat`` runs after one warm-up run (compilation,
 numba's cache); gpps's solve ends with host reads of the result, so it is
 device-synchronised; dbini-torch is synchronised with ``torch.cuda.synchronize``.
 
-Usage: python perf/integration_bini.py [--device cpu|cuda:0] [--bini-path /tmp/bini] [--dbini]
+Usage: python perf/integration_bini.py [--device cpu|cuda:0] [--bini-path /tmp/bini] [--dbini] [--launch auto] [--compare-tasks]
        [--parts diligent,suite,mp] [--repeat 3] [--suite-size 128] [--mp-size 1024] [--out FILE]
 Writes perf/results/integration_bini_<device>.json (or --out).
 """
@@ -133,6 +133,9 @@ def main(argv=None) -> int:
     ap.add_argument("--suite-size", type=int, default=128)
     ap.add_argument("--mp-size", type=int, default=1024)
     ap.add_argument("--mp-bini", action="store_true", help="also run the reference on the ~1 MP map (minutes)")
+    ap.add_argument("--launch", default="auto", help="BiNI's launch on the device: auto, tasks or persistent")
+    ap.add_argument("--compare-tasks", action="store_true",
+                    help="diligent part: also time launch='tasks' (the per-phase launches) beside --launch")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
 
@@ -161,8 +164,10 @@ def main(argv=None) -> int:
            "note": "gpps = integrate_normals(bilateral=True) (BiNI's defaults, float64, device Jacobi-PCG); "
                    "times: median after one warm-up run"}
 
-    def gpps_bini(n, mask, cam):
-        return integrate_normals(n, mask, camera=cam, bilateral=True, device=args.device)
+    def gpps_bini(n, mask, cam, launch=args.launch):
+        return integrate_normals(n, mask, camera=cam, bilateral=True, device=args.device, bilateral_launch=launch)
+
+    out["launch"] = args.launch
 
     if "diligent" in parts:
         rows = []
@@ -176,6 +181,13 @@ def main(argv=None) -> int:
             row = dict(object=name, pixels=int(mask.sum()), gpps_mm=made(res.depth, res.mask, gt), bini_published_mm=BINI_MM[name],
                        outer_iterations=res.outer_iterations, cg_iterations=res.iterations, gpps_s=t_g, gpps_runs_s=ts_g)
             row["ratio_to_published"] = row["gpps_mm"] / BINI_MM[name]
+            if args.compare_tasks:
+                rt, t_t, ts_t = timed(lambda: gpps_bini(n, mask, cam, "tasks"), args.repeat)
+                row.update(tasks_s=t_t, tasks_runs_s=ts_t, tasks_mm=made(rt.depth, rt.mask, gt),
+                           tasks_outer_iterations=rt.outer_iterations, tasks_cg_iterations=rt.iterations,
+                           speedup_vs_tasks=t_t / t_g)
+                print(f"{name:8s} tasks launch: {t_t:.4f} s ({rt.outer_iterations} / {rt.iterations} iterations, "
+                      f"{row['tasks_mm']:.4f} mm); this launch {t_g:.4f} s: {t_t / t_g:.1f}x", flush=True)
             if bini:
                 (d, it), t_b, ts_b = timed(lambda: bini(n, mask, K=K), args.repeat)
                 row.update(bini_mm=made(d, mask, gt), bini_iterations=it, bini_s=t_b, bini_runs_s=ts_b,

@@ -139,14 +139,16 @@ def test_coefficients_are_the_surface_derivatives(camera):
         assert np.abs(Ni[1:-1, 1:-1] * di - mi[1:-1, 1:-1])[c].max() <= 1e-5 * scale
 
 
+@pytest.mark.parametrize("launch", ["tasks", "persistent"])
 @pytest.mark.parametrize("camera", ["orthographic", "perspective"])
 @pytest.mark.parametrize("name", ["figure", "overlap"])
-def test_device_bini_follows_the_reference_trajectory(name, camera, device):
-    # the same IRLS iterations, CG iterations and solution as the scipy form of the paper
+def test_device_bini_follows_the_reference_trajectory(name, camera, launch, device):
+    # the same IRLS iterations, CG iterations and solution as the scipy form of the paper, with either launch
+    # (the persistent one runs as one thread off CUDA: its arithmetic in order)
     sc = render_scene(name, 32, camera)
     cam = _camera(sc)
     ref, outer, its = bini_reference(sc["normals"], sc["mask"], cam)
-    with BilateralIntegrator(sc["mask"], cam, device=device) as bi:
+    with BilateralIntegrator(sc["mask"], cam, BiniConfig(launch=launch), device=device) as bi:
         res = bi.run(sc["normals"])
     assert res.converged and res.outer_iterations == outer and res.cg_iterations == its
     u = res.u - res.u[sc["mask"]].mean()
@@ -265,6 +267,29 @@ def test_bad_cuts():
         Integrator(m, _camera(sc), IntegratorConfig(solver="direct"), device="cpu").run(sc["normals"], cuts=(z, z))
 
 
+@pytest.mark.parametrize("camera", ["orthographic", "perspective"])
+def test_persistent_launch_is_the_tasks_launch(camera, device):
+    # the whole IRLS iteration in one task (grid barriers between its phases) against the tasks launch, on a
+    # larger map than the reference test (several blocks' worth of pixels a thread on CUDA), with a cap on the
+    # CG iterations that ends some inner solves early: the same iteration counts, energies and solution
+    # (to rounding: the tasks launch's system kernel sums in its own order; on CUDA both end in atomics)
+    sc = render_scene("overlap", 96, camera)
+    cam = _camera(sc)
+    got = {}
+    for launch in ("tasks", "persistent"):
+        with BilateralIntegrator(sc["mask"], cam, BiniConfig(launch=launch, cg_max_iter=40, max_iter=12),
+                                 device=device) as bi:
+            got[launch] = bi.run(sc["normals"])
+    a, b = got["tasks"], got["persistent"]
+    assert a.outer_iterations == b.outer_iterations == 12 and a.cg_iterations == b.cg_iterations
+    assert a.cg_iterations == 12 * 40  # every inner solve stopped by the cap
+    rng = np.ptp(a.u[sc["mask"]])
+    tol = 1e-12 if device == "cpu" else 1e-9
+    assert np.abs(a.u - b.u)[sc["mask"]].max() <= tol * rng
+    assert np.allclose(a.energy, b.energy, rtol=tol, atol=0) and abs(a.residual - b.residual) <= tol + 1e-12
+    assert np.abs(a.wj - b.wj).max() <= tol * 1e3 and np.abs(a.wi - b.wi).max() <= tol * 1e3
+
+
 def test_config_pool_and_progress(device):
     sc = render_scene("figure", 24, "orthographic")
     cam = _camera(sc)
@@ -276,9 +301,12 @@ def test_config_pool_and_progress(device):
     with BilateralIntegrator(sc["mask"] & (np.arange(24) > 2)[:, None], cam, device=device) as b:
         b.run(sc["normals"])
         assert b._F is fa  # the buffers (and compiled kernels) of the same size class are reused
-    for kw in (dict(k=0), dict(tol=1.0), dict(cg_tol=0), dict(max_iter=0), dict(cg_max_iter=1.5), dict(k=True)):
+    for kw in (dict(k=0), dict(tol=1.0), dict(cg_tol=0), dict(max_iter=0), dict(cg_max_iter=1.5), dict(k=True),
+               dict(launch="graph"), dict(launch=None), dict(blocks_per_sm=0)):
         with pytest.raises(ValueError, match=next(iter(kw))):
             BiniConfig(**kw)
+    with pytest.raises(TypeError, match="blocks_per_sm"):
+        BiniConfig(blocks_per_sm=2.5)
     with pytest.raises(ValueError, match="robust"):
         IntegratorConfig(bilateral=True, robust="curl")
     with pytest.raises(ValueError, match="bilateral_cg_max_iter"):

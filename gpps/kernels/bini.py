@@ -38,6 +38,7 @@ Only device code lives here; allocation and orchestration are in
 
 from gpps._taichi import ti
 from gpps.kernels.block_sum import BLOCK, block_total
+from gpps.kernels.grid_barrier import make_gsync
 
 # indices into the scalar field ``sc``
 BB, ENERGY, ITS, TOTAL = range(4)
@@ -381,3 +382,234 @@ def _cg_serial_kernel(F: dict, unroll: int):
                 ti.static(rzf[c])[0] = rz
 
     return cg_serial
+
+
+# slots of the persistent kernel's accumulators ``acc`` (f64): three per CG sum (the iteration mod 3),
+# then the start's r.z and |b|^2 and the energy
+A_PQ, A_RR, A_RZ, A_RZ0, A_BB, A_E, A_ITS = 0, 3, 6, 9, 10, 11, 12
+NACC = 13
+
+
+def make_irls_persistent(F: dict, nblocks: int, bd: int, cuda: bool):
+    """One IRLS iteration of BiNI (system assembly, the whole Jacobi-PCG solve, reweighting and energy) as
+    *one* task of ``nblocks x bd`` threads whose phases meet at software grid barriers.
+
+    The arithmetic is :func:`make_bini`'s (``begin``, ``cg``, ``reweight``): the same fused direction
+    update, the same stopping test (``|r|^2 <= tol^2 |b|^2`` after at least one iteration, or
+    ``maxit``), the same ``pq != 0`` guard.  What changes is the launch shape: the block build
+    launches two tasks per CG iteration and the host polls a flag every 6 iterations (on DiLiGenT
+    bear 447 launches of 6 iterations at about 160 us each, perf/results/bini_launch_bear_H100.json);
+    here a CG iteration is two phases and two grid barriers (about 2 us each on an H100,
+    perf/taichi_grid_barrier.py), and the host launches once per IRLS iteration.  Each sum is
+    tree-reduced per block in shared memory and added by one float64 atomic a block into a slot
+    of ``acc`` (the CG iteration mod 3: a slot is zeroed two iterations after every thread has
+    read it); every thread reads the finished sums after the barrier, so all of them take the
+    same branch and leave the CG loop together.
+
+    The barrier needs every block resident at once: a block that waits more than ``LIMIT`` polls
+    sets ``bar[1]`` and the iteration finishes with wrong values instead of hanging (the stage
+    checks the flag on its first launch and falls back to the block build).  Off CUDA it runs as
+    one thread (``nblocks = bd = 1``): every phase in order, sums in pixel order, which tests
+    its arithmetic against the serial build.
+
+    Args:
+        F: the fields of :func:`make_bini` plus ``acc`` (f64 (NACC,)) and ``bar`` (i32 (2,)).
+        nblocks, bd: the task's blocks and threads per block (``bd`` = :data:`BLOCK` on CUDA).
+        cuda: the CUDA build (shared-memory block sums) or the one-thread build.
+
+    Returns:
+        the kernel ``irls(n, tol2, maxit, k)``: on return ``x`` is the solve's result, ``wj, wi``
+        the new weights, and ``acc`` holds the energy (``A_E``), the CG iterations (``A_ITS``),
+        ``|b|^2`` (``A_BB``) and the last ``|r|^2`` (``A_RR + (its - 1) % 3``): one read for the host.
+    """
+    if cuda and bd != BLOCK:
+        raise ValueError(f"bd: expected {BLOCK} threads per block on CUDA, got {bd}")
+    if not cuda and nblocks * bd != 1:
+        raise ValueError(f"nblocks, bd: off CUDA the persistent kernel runs as one thread (1, 1), "
+                         f"got ({nblocks}, {bd})")
+    NT = nblocks * bd
+    x, b, r, z, p0, p1, q = F["x"], F["b"], F["r"], F["z"], F["p0"], F["p1"], F["q"]
+    Nj, Ni, mj, mi, wj, wi = F["Nj"], F["Ni"], F["mj"], F["mi"], F["wj"], F["wi"]
+    Wr, Wd, Fr, Fd, dinv, nb = F["Wr"], F["Wd"], F["Fr"], F["Fd"], F["dinv"], F["nb"]
+    acc, bar = F["acc"], F["bar"]
+    _ap_fused = _ap_fused_func(F)
+
+    if cuda:
+        gsync = make_gsync(bar, nblocks, bd)
+    else:
+        @ti.func
+        def gsync(tid, gen):  # one thread: the phases are in order
+            return gen + 1
+
+    @ti.func
+    def red(pad: ti.template(), tid, v, idx):
+        """``acc[idx] +=`` the block's sum of ``v`` (every thread of the block calls it)."""
+        if ti.static(cuda):
+            t = tid % bd
+            pad[t] = v
+            block_total(pad, t)
+            if t == 0:
+                ti.atomic_add(acc[idx], pad[0])
+        else:
+            acc[idx] += v
+
+    @ti.func
+    def _apply(v: ti.template(), p):
+        vp = v[p]
+        s = vp * 0
+        o = nb[p, 0]
+        if o >= 0:
+            s += Wr[p] * (vp - v[o])
+        o = nb[p, 1]
+        if o >= 0:
+            s += Wr[o] * (vp - v[o])
+        o = nb[p, 2]
+        if o >= 0:
+            s += Wd[p] * (vp - v[o])
+        o = nb[p, 3]
+        if o >= 0:
+            s += Wd[o] * (vp - v[o])
+        return s
+
+    @ti.func
+    def cg_iter(tid, gen, n, t, beta, rz_prev, pa: ti.template(), pb: ti.template(), pad: ti.template(),
+                pad2: ti.template()):
+        """CG iteration ``t`` (directions ``pa`` -> ``pb``): returns (gen, pq, |r|^2, r.z)."""
+        c = t % 3
+        pq = ti.cast(0, ti.f64)
+        for kk in range((n + NT - 1) // NT):
+            p = tid + kk * NT
+            if p < n:
+                pp, s = _ap_fused(p, beta, pa)
+                q[p] = s
+                pb[p] = pp
+                pq += pp * s
+        red(pad, tid, pq, A_PQ + c)
+        if tid == 0:  # the slot of iteration t + 1 (= t - 2, read by every thread before t - 1's barriers)
+            nx = (t + 1) % 3
+            acc[A_PQ + nx] = 0
+            acc[A_RR + nx] = 0
+            acc[A_RZ + nx] = 0
+        g = gsync(tid, gen)
+        pqt = acc[A_PQ + c]
+        rr = ti.cast(0, ti.f64)
+        rz = ti.cast(0, ti.f64)
+        if pqt != 0:
+            a = rz_prev / pqt
+            for kk in range((n + NT - 1) // NT):
+                p = tid + kk * NT
+                if p < n:
+                    x[p] += a * pb[p]
+                    rv = r[p] - a * q[p]
+                    r[p] = rv
+                    zv = dinv[p] * rv
+                    z[p] = zv
+                    rr += rv * rv
+                    rz += rv * zv
+        red(pad, tid, rr, A_RR + c)
+        red(pad2, tid, rz, A_RZ + c)
+        g = gsync(tid, g)
+        return g, pqt, acc[A_RR + c], acc[A_RZ + c]
+
+    @ti.kernel
+    def irls(n: ti.i32, tol2: ti.f64, maxit: ti.i32, k: ti.f64):
+        bar[0] = 0
+        for i in range(NACC):
+            acc[i] = 0
+        ti.loop_config(block_dim=bd, block_dim_adaptive=False)
+        for tid in range(NT):
+            pad = ti.simt.block.SharedArray((BLOCK,), ti.f64) if ti.static(cuda) else 0.0
+            pad2 = ti.simt.block.SharedArray((BLOCK,), ti.f64) if ti.static(cuda) else 0.0
+            gen = 1
+            # the system from the weights (make_bini's begin): edge weights and fluxes, then b and D^-1
+            for kk in range((n + NT - 1) // NT):
+                p = tid + kk * NT
+                if p < n:
+                    W1 = Wr[p] * 0
+                    F1 = Wr[p] * 0
+                    W2 = Wr[p] * 0
+                    F2 = Wr[p] * 0
+                    o = nb[p, 0]
+                    if o >= 0:
+                        W1 = Nj[p] * Nj[p] * wj[p] + Nj[o] * Nj[o] * (1 - wj[o])
+                        F1 = Nj[p] * mj[p] * wj[p] + Nj[o] * mj[o] * (1 - wj[o])
+                    o = nb[p, 2]
+                    if o >= 0:
+                        W2 = Ni[p] * Ni[p] * wi[p] + Ni[o] * Ni[o] * (1 - wi[o])
+                        F2 = Ni[p] * mi[p] * wi[p] + Ni[o] * mi[o] * (1 - wi[o])
+                    Wr[p] = W1
+                    Fr[p] = F1
+                    Wd[p] = W2
+                    Fd[p] = F2
+            gen = gsync(tid, gen)
+            for kk in range((n + NT - 1) // NT):
+                p = tid + kk * NT
+                if p < n:
+                    d = Wr[p] + Wd[p]
+                    v = -Fr[p] - Fd[p]
+                    o = nb[p, 1]
+                    if o >= 0:
+                        d += Wr[o]
+                        v += Fr[o]
+                    o = nb[p, 3]
+                    if o >= 0:
+                        d += Wd[o]
+                        v += Fd[o]
+                    b[p] = v
+                    dinv[p] = 1.0 / ti.max(d, 1e-5)
+            gen = gsync(tid, gen)
+            # the CG start: r = b - A x, z = D^-1 r, p_{-1} = 0
+            rz0 = ti.cast(0, ti.f64)
+            bb = ti.cast(0, ti.f64)
+            for kk in range((n + NT - 1) // NT):
+                p = tid + kk * NT
+                if p < n:
+                    rv = b[p] - _apply(x, p)
+                    zv = dinv[p] * rv
+                    r[p] = rv
+                    z[p] = zv
+                    p0[p] = 0
+                    rz0 += rv * zv
+                    bb += b[p] * b[p]
+            red(pad, tid, rz0, A_RZ0)
+            red(pad2, tid, bb, A_BB)
+            gen = gsync(tid, gen)
+            bbt = acc[A_BB]
+            rz_prev = acc[A_RZ0]
+            rz_pp = ti.cast(1.0, ti.f64)  # (multiplies p_{-1} = 0)
+            its = 0
+            while True:  # two iterations a pass: the directions ping-pong p0 -> p1 -> p0
+                if its >= maxit:
+                    break
+                gen, pq, rr, rz = cg_iter(tid, gen, n, its, rz_prev / rz_pp, rz_prev, p0, p1, pad, pad2)
+                rz_pp = rz_prev
+                rz_prev = rz
+                its += 1
+                if rr <= tol2 * bbt or its >= maxit:
+                    break
+                gen, pq, rr, rz = cg_iter(tid, gen, n, its, rz_prev / rz_pp, rz_prev, p1, p0, pad, pad2)
+                rz_pp = rz_prev
+                rz_prev = rz
+                its += 1
+                if rr <= tol2 * bbt:
+                    break
+            # BiNI's reweighting and the energy under the new weights
+            e = ti.cast(0, ti.f64)
+            for kk in range((n + NT - 1) // NT):
+                p = tid + kk * NT
+                if p < n:
+                    dr, dl, dd, du = _diffs(x, nb, p)
+                    a1, c1 = Nj[p], Ni[p]
+                    er, el, ed, eu = a1 * dr, a1 * dl, c1 * dd, c1 * du
+                    rr1, rl1, rd1, ru1 = er - mj[p], el - mj[p], ed - mi[p], eu - mi[p]
+                    w1 = _sigmoid(k * (el * el - er * er))
+                    w2 = _sigmoid(k * (eu * eu - ed * ed))
+                    wj[p] = w1
+                    wi[p] = w2
+                    e += w1 * rr1 * rr1 + (1 - w1) * rl1 * rl1 + w2 * rd1 * rd1 + (1 - w2) * ru1 * ru1
+            red(pad, tid, e, A_E)
+            if tid == 0:
+                acc[A_ITS] = its
+        # (the kernel's end orders everything before the host's read)
+
+    return irls

@@ -69,7 +69,7 @@ from gpps.host.poisson import (
     solve_direct,
 )
 from gpps.kernels import poisson as K
-from gpps.names import CutStitchName
+from gpps.names import CutStitchName, LaunchName
 from gpps.pipeline.integration_bini import BilateralIntegrator, BiniConfig, check_cuts
 from gpps.pipeline.stage import Stage
 
@@ -150,6 +150,9 @@ class IntegratorConfig:
         bilateral_tol: relative energy change that stops the IRLS (BiNI's 1e-4).
         bilateral_inner_tol: relative residual of each inner CG solve (BiNI's 1e-3).
         bilateral_cg_max_iter: CG iterations per inner solve at most (BiNI's 5000).
+        bilateral_launch: how BiNI's IRLS iterations are launched (:class:`BiniConfig`'s ``launch``):
+            ``"auto"`` (one persistent task an iteration on CUDA, tasks on the CPU), ``"tasks"`` or
+            ``"persistent"``; the same iterations either way.
         cut_stitch: with ``run(cuts=...)``: how the cut pieces get their constants, ``"mid"`` (mid-normal
             continuity) or ``"bini"`` (BiNI's bilateral energy of the cut edges, with ``bilateral_k`` and
             ``bilateral_tol``; :func:`gpps.host.creases.stitch_cut_pieces`).
@@ -205,6 +208,7 @@ class IntegratorConfig:
     bilateral_tol: float = 1e-4
     bilateral_inner_tol: float = 1e-3
     bilateral_cg_max_iter: int = 5000
+    bilateral_launch: LaunchName = "auto"
     cut_stitch: CutStitchName = "mid"
     robust: Robust = "none"
     robust_scale: float = 2.0
@@ -566,7 +570,8 @@ class Integrator(Stage):
                 self._bini_stage.close()
             cfg = self.config
             bcfg = BiniConfig(k=float(cfg.bilateral_k), max_iter=cfg.bilateral_max_iter, tol=cfg.bilateral_tol,
-                              cg_tol=cfg.bilateral_inner_tol, cg_max_iter=cfg.bilateral_cg_max_iter)
+                              cg_tol=cfg.bilateral_inner_tol, cg_max_iter=cfg.bilateral_cg_max_iter,
+                              launch=cfg.bilateral_launch)
             self._bini_stage = BilateralIntegrator(valid, self.camera, bcfg, device=self.device, cuts=cuts)
             self._bini_key = key
         return self._bini_stage

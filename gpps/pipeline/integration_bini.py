@@ -49,13 +49,17 @@ from __future__ import annotations
 
 import threading
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from gpps import _taichi
+from gpps._check import check_choices, check_number
+from gpps._runtime import warp
 from gpps._taichi import ti
 from gpps.kernels import bini as K
+from gpps.names import LaunchName
 from gpps.pipeline.stage import Stage
 
 __all__ = ["BiniConfig", "BiniResult", "BilateralIntegrator", "bini_coefficients", "check_cuts"]
@@ -73,7 +77,18 @@ class BiniConfig:
         cg_max_iter: CG iterations per inner solve at most.
         check_every: CG iterations per launch, a multiple of 6 (unrolled on the
             device, gated there by the stopping rule, so this never overshoots);
-            the host checks once per launch.
+            the host checks once per launch (the ``"tasks"`` launch).
+        launch: how an IRLS iteration runs.  ``"tasks"``: a launch for the system,
+            launches of ``check_every`` CG iterations (two Taichi tasks each) until
+            the host reads the done flag, one for the reweighting.  ``"persistent"``:
+            the whole iteration (system, CG to its tolerance, reweighting, energy)
+            as one task whose phases meet at software grid barriers
+            (:func:`gpps.kernels.bini.make_irls_persistent`; off CUDA one thread, a
+            test of its arithmetic).  ``"auto"``: persistent on CUDA, tasks on the CPU.
+            Same iterations and stopping rules either way.
+        blocks_per_sm: resident blocks of 128 threads per multiprocessor of the
+            persistent task (all must be resident at once: a GPU that cannot hold
+            them falls back to half as many, then to the tasks).
     """
 
     k: float = 2.0
@@ -82,8 +97,12 @@ class BiniConfig:
     cg_tol: float = 1e-3
     cg_max_iter: int = 5000
     check_every: int = 6
+    launch: LaunchName = "auto"
+    blocks_per_sm: int = 2
 
     def __post_init__(self):
+        check_choices(self)
+        check_number("blocks_per_sm", self.blocks_per_sm, lo=1, hi=16, integer=True)
         for name in ("k",):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < float("inf"):
@@ -185,6 +204,10 @@ def _acquire(n: int, unroll: int) -> dict:
     fb.dense(ti.ij, (cap, 2)).place(F["pix"])
     F["sc"] = ti.field(ti.f64)
     fb.dense(ti.i, K.NSC).place(F["sc"])
+    F["acc"] = ti.field(ti.f64)
+    fb.dense(ti.i, K.NACC).place(F["acc"])
+    F["bar"] = ti.field(ti.i32)
+    fb.dense(ti.i, 2).place(F["bar"])
     for name in ("pq", "rr", "rz", "done"):
         F[name] = [ti.field(ti.f64) for _ in range(3)]
         for f in F[name]:
@@ -196,6 +219,8 @@ def _acquire(n: int, unroll: int) -> dict:
     # (CUDA: the CG's sums reduced per block in shared memory: float64 atomics on one address serialise)
     serial = ti.lang.impl.current_cfg().arch == ti.cpu
     F["kernels"] = K.make_bini(F, unroll, serial=serial)
+    F["persistent"] = {}  # (nblocks, bd) -> the persistent IRLS kernel, built on first use
+    F["verified"] = set()  # the (nblocks, bd) whose grid barrier passed on this GPU
     return F
 
 
@@ -335,6 +360,9 @@ class BilateralIntegrator(Stage):
         """
         if self._state is None:
             raise ValueError("normals: expected upload(normals) before step(), got nothing uploaded")
+        if self._persistent_launch():
+            self._step_persistent(progress)
+            return
         cfg = self.config
         F = self._F
         kn = F["kernels"]
@@ -368,6 +396,99 @@ class BilateralIntegrator(Stage):
             e_old = e
         self._state.update(energies=energies, converged=converged, outer=outer, res=res,
                            total_cg=int(F["sc"][K.TOTAL]), t2=time.perf_counter())
+
+    # ------------------------------------------------------------------ the persistent launch
+
+    def _persistent_launch(self) -> bool:
+        """Whether :meth:`step` runs the persistent IRLS kernel (``config.launch``; see :class:`BiniConfig`)."""
+        launch = self.config.launch
+        if launch == "tasks" or getattr(self, "_bps", 1) == 0:  # (0: the GPU held no persistent grid)
+            return False
+        return launch == "persistent" or ti.lang.impl.current_cfg().arch == ti.cuda
+
+    def _grid(self) -> tuple[int, int]:
+        """(blocks, threads per block) of the persistent task: ``blocks_per_sm`` (or what the GPU held)
+        blocks of :data:`gpps.kernels.block_sum.BLOCK` threads per multiprocessor, no more than the pixels
+        need; off CUDA one thread."""
+        if ti.lang.impl.current_cfg().arch != ti.cuda:
+            return 1, 1
+        from gpps.kernels.block_sum import BLOCK
+        bps = getattr(self, "_bps", self.config.blocks_per_sm)
+        sms = int(warp().get_device("cuda:0").sm_count)
+        return max(1, min(sms * bps, -(-self.n // BLOCK))), BLOCK
+
+    def _kernel(self, grid):
+        F = self._F
+        kern = F["persistent"].get(grid)
+        if kern is None:
+            kern = F["persistent"][grid] = K.make_irls_persistent(F, *grid, cuda=grid[1] > 1)
+        return kern
+
+    def _launch_checked(self, n, tol2, maxit, k) -> bool:
+        """One persistent IRLS iteration; on its grid's first launch the barrier's timeout flag is read and,
+        if some block never became resident, the state is restored and False returned (the caller
+        retries with the new grid: half the blocks per multiprocessor, then the tasks)."""
+        F = self._F
+        grid = self._grid()
+        kern = self._kernel(grid)
+        if grid in F["verified"] or grid == (1, 1):
+            kern(n, tol2, maxit, k)
+            return True
+        saved = {name: F[name].to_numpy() for name in ("x", "wj", "wi")}
+        F["bar"].fill(0)
+        kern(n, tol2, maxit, k)
+        if int(F["bar"].to_numpy()[1]) == 0:
+            F["verified"].add(grid)
+            return True
+        for name, a in saved.items():
+            F[name].from_numpy(a)
+        F["bar"].fill(0)
+        bps = getattr(self, "_bps", self.config.blocks_per_sm)
+        if bps == 1:
+            warnings.warn("BilateralIntegrator: the GPU cannot hold the persistent kernel's blocks; using the "
+                          "tasks launch", RuntimeWarning, stacklevel=4)
+            self._bps = 0
+        else:
+            self._bps = bps // 2
+        return False
+
+    def _step_persistent(self, progress=None) -> None:
+        """:meth:`step` with ``launch="persistent"``: a launch and one read of the sums per IRLS iteration."""
+        cfg = self.config
+        F = self._F
+        n = self.n
+        e_old = self._state["e0"]
+        tol2 = cfg.cg_tol ** 2
+        energies = []
+        converged = False
+        outer = 0
+        total = 0
+        res = float("nan")
+        for it in range(cfg.max_iter):
+            # (only a grid's first launch can fail, and a grid is verified on a solve's first iteration:
+            # the state is then the uploaded start, restored)
+            while not self._launch_checked(n, tol2, cfg.cg_max_iter, float(cfg.k)):
+                if not self._persistent_launch():  # the GPU held no persistent grid: the tasks launch
+                    F["sc"].fill(0)
+                    return self.step(progress)
+            acc = F["acc"].to_numpy()
+            its = int(acc[K.A_ITS])
+            total += its
+            rr = float(acc[K.A_RR + (its - 1) % 3]) if its > 0 else float("nan")
+            bb = float(acc[K.A_BB])
+            res = float(np.sqrt(rr / bb)) if bb > 0 else 0.0
+            e = float(acc[K.A_E])
+            energies.append(e)
+            outer = it + 1
+            rel = abs(e - e_old) / e_old if e_old > 0 else 0.0
+            if progress is not None:
+                progress(outer, cfg.max_iter, f"BiNI energy {e:.4g}, relative change {rel:.2e}")
+            if rel < cfg.tol:
+                converged = True
+                break
+            e_old = e
+        self._state.update(energies=energies, converged=converged, outer=outer, res=res, total_cg=total,
+                           t2=time.perf_counter())
 
     def fetch(self) -> BiniResult:
         """The solution and diagnostics of the last :meth:`step` (:class:`BiniResult`)."""

@@ -33,13 +33,14 @@ from gpps._taichi import DirectLaunch
 from gpps.camera import Orthographic, Perspective
 from gpps.host.poisson import build_levels, diagonal, laplacian, level_shapes
 from gpps.kernels.poisson_fused import make_fused
+from gpps.names import LaunchName
 from gpps.pipeline.stage import Stage
 
 __all__ = ["StreamIntegratorConfig", "StreamIntegrator"]
 
 DType = Literal["float32", "float64"]
 Method = Literal["pcg", "multigrid"]
-Launch = Literal["auto", "tasks", "persistent"]
+Launch = LaunchName
 _BLOCK = 256  # threads per block of the persistent frame kernel
 _FUSED_MAX = 4  # multigrid cycles fused into the one-launch frame kernel (the streaming and cold counts)
 
