@@ -19,7 +19,7 @@ Means by material and light count are printed and written to ``perf/results/held
 the full set of scenes)::
 
     python perf/heldout_eval.py [--size 128] [--spp 64] [--lights 3,12] [--kinds directional,point]
-                                [--methods folder,ls,flat,single] [--scenes bumps,bowl] [--render-only]
+                                [--methods folder,ls,flat,single] [--scenes bumps,bowl] [--render-only] [--tag T]
 """
 
 from __future__ import annotations
@@ -135,6 +135,8 @@ def main():
     ap.add_argument("--generations", type=int, default=80, help="cuckoo generations of gpps single")
     ap.add_argument("--root", default=None, help="capture cache (default $GPPS_CACHE_DIR/mitsuba_captures)")
     ap.add_argument("--render-only", action="store_true")
+    ap.add_argument("--tag", default=None, help="results name suffix: perf/results/heldout_eval_<tag>_<device>.json "
+                    "(a partial run, e.g. --methods flat,single, must not replace the full table)")
     args = ap.parse_args()
     args.lights = [int(x) for x in args.lights.split(",") if x]
     args.kinds = [x for x in args.kinds.split(",") if x]
@@ -200,7 +202,8 @@ def main():
                    "rows": rows, "summary": summary, "table": table, "seconds_total": total, "seconds_captures": t_render,
                    "captures": {c[2].name: {"render_s": c[3]["timings"]["render"], "mitsuba": c[3]["mitsuba"],
                                             "variant": c[3]["variant"], "exposure": c[3]["exposure"]} for c in captures}}
-        print("wrote", write_results("heldout_eval", args.device, payload))
+        name = "heldout_eval" + (f"_{args.tag}" if args.tag else "")
+        print("wrote", write_results(name, args.device, payload))
 
 
 if __name__ == "__main__":

@@ -4,10 +4,12 @@ Runs on the GPU machine (PyTorch + the Warp kit; see /work/shared/device/README.
 
     source .device/b/install.sh && python3 training/train_single.py --out $OUT --minutes 5
 
-Data recipe (:mod:`shapes`): ``--train`` random scenes of seeds ``0..train-1`` (height
-fields, surfaces of revolution, smooth-union blobs; uniform / noise / cell / stripe / mixed RGB
-albedo, grey a third of the time; the five reflectance models with random parameters; directional
-or point lights; orthographic or perspective camera; noise, ambient, 8-bit quantisation), each
+Data recipe v2 (:mod:`shapes`, issue 24): ``--train`` random scenes of seeds ``0..train-1`` (height
+fields, surfaces of revolution, smooth-union blobs, composed solids occluding each other, objects on a
+support, reliefs; uniform / noise / cell / stripe / mixed RGB albedo, grey a third of the time, objects
+apart from their support; the five reflectance models and the dielectric plastic with random parameters;
+directional or point lights with cast shadows; orthographic or perspective camera; an indirect fill term,
+exposure with clipping, noise, 8-bit quantisation), each
 rendered under ``--lights`` random lights by gpps's Warp renderer; validation scenes use seeds
 ``TRAIN_SEED_LIMIT - 1 - k`` (never trained on).  Augmentation: flips and 90-degree rotations
 (normals rotated with the image) and a gamma in [0.8, 1.25] on the normalised input.
@@ -56,7 +58,7 @@ def build_dataset(seeds, size, n_lights, device, pool, log=None):
     Z = np.zeros((n, 1, size, size), np.float16)
     M = np.zeros((n, 1, size, size), np.uint8)
     rend = SceneRenderer(device)
-    stats = {"family": {}, "brdf": {}, "albedo": {}, "camera": {}, "lights": {}}
+    stats = {"family": {}, "brdf": {}, "albedo": {}, "camera": {}, "lights": {}, "shadows": {}}
     t0 = time.time()
     for k, sc in enumerate(pool.imap(_scene, [(size, int(s)) for s in seeds], chunksize=16)):
         sc, nrm, imgs, lights = render_random_sample(size, int(seeds[k]), rend, n_lights=n_lights, scene=sc)
@@ -66,7 +68,7 @@ def build_dataset(seeds, size, n_lights, device, pool, log=None):
         Z[k, 0] = sc.relative_height()
         M[k, 0] = sc.mask
         for key, val in (("family", sc.family), ("brdf", sc.material.brdf), ("albedo", sc.info["albedo"]),
-                         ("camera", sc.camera_kind), ("lights", lights.kind)):
+                         ("camera", sc.camera_kind), ("lights", lights.kind), ("shadows", str(sc.info["shadows"]))):
             stats[key][val] = stats[key].get(val, 0) + 1
         if log and (k + 1) % 1000 == 0:
             log(f"data {k + 1}/{n} {time.time() - t0:.1f}s")
@@ -315,7 +317,7 @@ def main(argv=None):
     np.savez(out / "single_net.npz", meta=np.array(json.dumps(meta)), **{k: v.astype(np.float32) for k, v in params.items()})
     report = {
         "recipe": {
-            "generator": "shapes.render_random_sample (gpps Warp Renderer, device %s)" % warp_device,
+            "generator": "shapes.render_random_sample, recipe v2 (gpps Warp Renderer + CastShadows, device %s)" % warp_device,
             "size": args.size, "train_scenes": args.train, "renders_per_train_scene": args.lights,
             "train_seeds": [0, int(args.train) - 1], "val_seeds": [int(va_seeds[-1]), int(va_seeds[0])],
             "val_scenes": args.val, "counts": stats,
