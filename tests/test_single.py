@@ -351,3 +351,55 @@ def test_cli_single(tmp_path):
     assert rep["depth"]["scale"] == "relative" and rep["depth"]["unit"] == "pixel"
     assert rep["pixels"] == int(sc.mask.sum()) and len(rep["light_directions"]) == 3
     assert main(["single", str(tmp_path / "missing.png"), "--out", str(out)]) == 2
+
+
+def test_explained_fraction_against_the_model():
+    # 1 where the observations are the Blinn-Phong model's own images, 1 - |r|^2/|I|^2 otherwise, negative where a
+    # lit model meets a dark (cast-shadowed) pixel, 0 for a black pixel
+    from gpps.host.single import explained_fraction
+
+    rng = np.random.default_rng(3)
+    P = 50
+    n = rng.normal(0, 0.3, (P, 3))
+    n[:, 2] = 1.0
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    view = np.tile([0.0, 0.0, 1.0], (P, 1))
+    L = np.array([[0.3, 0.2, 0.93], [-0.4, 0.1, 0.91], [0.0, -0.5, 0.87]])
+    L /= np.linalg.norm(L, axis=1, keepdims=True)
+    E = rng.uniform(0.5, 1.0, (3, 3))
+    kd = rng.uniform(0.2, 0.9, (P, 3))
+    ks, sh = 0.3, 20.0
+    I = np.zeros((3, P, 3))
+    for k in range(3):
+        a = np.maximum(n @ L[k], 0)
+        h = L[k] + view
+        h /= np.linalg.norm(h, axis=1, keepdims=True)
+        s = np.where(a > 0, np.maximum(np.sum(n * h, 1), 0) ** sh, 0)
+        I[k] = E[k] * (kd * a[:, None] + ks * s[:, None])
+    np.testing.assert_allclose(explained_fraction(I, n, view, L, E, kd, ks, sh), 1.0, atol=1e-12)
+    J = I.copy()
+    J[1, :5] = 0.0  # light 1 hidden from pixels 0-4: their residual is the model's whole image there
+    f = explained_fraction(J, n, view, L, E, kd, ks, sh)
+    want = 1 - np.sum(I[1, :5] ** 2, -1) / np.sum(J[:, :5] ** 2, axis=(0, 2))
+    np.testing.assert_allclose(f[:5], want, rtol=1e-12)
+    np.testing.assert_allclose(f[5:], 1.0, atol=1e-12)
+    J[:, 7] = 0.0
+    assert explained_fraction(J, n, view, L, E, kd, ks, sh)[7] == 0.0
+
+
+def test_unexplained_pixels_keep_the_prior(device):
+    # a clean Lambertian sphere is explained by the refined model (few pixels keep the prior); a threshold no fit
+    # reaches (min_explained=1) keeps the prior everywhere: the result is then the network's normals
+    from gpps.flows.single import SingleConfig, reconstruct_single
+    from gpps.pipeline.cuckoo import CuckooConfig
+
+    sc, _, imgs = _sphere_capture(32)
+    cfg = SingleConfig(cuckoo=CuckooConfig(nests=6, generations=10, seed=1), integrate=False)
+    a = reconstruct_single(imgs, sc.mask, config=cfg, device=device)
+    assert 0 <= a.kept_network < a.mask.sum() // 2  # a clean Lambertian sphere: the model explains it
+    strict = reconstruct_single(imgs, sc.mask, config=SingleConfig(cuckoo=cfg.cuckoo, integrate=False, min_explained=1.0),
+                                device=device)
+    assert strict.kept_network == strict.mask.sum()
+    np.testing.assert_allclose(strict.normals[strict.mask], strict.normals_net[strict.mask], atol=1e-6)
+    with pytest.raises(ValueError, match="min_explained"):
+        SingleConfig(min_explained=1.5)

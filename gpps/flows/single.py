@@ -40,6 +40,7 @@ from gpps.camera import Orthographic
 from gpps.flows.integrate import integrate_normals
 from gpps.host.single import (
     estimate_lights,
+    explained_fraction,
     factorization_normals,
     fit_highlights,
     integrable_normals,
@@ -80,6 +81,10 @@ class SingleConfig:
         init_spread: standard deviation of the nests' start around the current normal (n_x, n_y).
         net_size: the network's working resolution (longer side); None: the trained one.
         integrate: integrate the refined normals into depth.
+        min_explained: after the rounds, a pixel whose observations' energy the refined image model explains
+            less than this share of (:func:`gpps.host.single.explained_fraction`) keeps the network's normal:
+            its observations do not measure it (a cast shadow, interreflection, or lights estimated wrong).
+            0.5: the model must explain most of what was observed (0 keeps every refined normal).
         lights: the normals the first round's lights are fitted to, with three or more images:
             ``"integrability"`` (factorisation, integrability, GBR fitted to the network's
             normals: :func:`gpps.host.single.integrable_normals`), ``"factorization"`` (the whole 3x3 ambiguity
@@ -100,6 +105,7 @@ class SingleConfig:
     net_size: int | None = None
     integrate: bool = True
     lights: LightStart = "least-squares"
+    min_explained: float = 0.5
 
     def __post_init__(self):
         check_choices(self)
@@ -119,6 +125,7 @@ class SingleConfig:
             object.__setattr__(self, "highlight_prior_deg",
                                check_number("highlight_prior_deg", self.highlight_prior_deg, lo=0.0, lo_open=True, hi=90.0))
         object.__setattr__(self, "init_spread", check_number("init_spread", self.init_spread, lo=0.0))
+        object.__setattr__(self, "min_explained", check_number("min_explained", self.min_explained, lo=0.0, hi=1.0))
         if self.net_size is not None:
             n = check_number("net_size", self.net_size, lo=16, integer=True)
             object.__setattr__(self, "net_size", n)
@@ -141,6 +148,8 @@ class SingleResult:
         ks: estimated Blinn-Phong specular weight.
         depth: (H, W) depth from the refined normals (0 outside; None when not integrated).
         objective: per round, the mean objective before and after the search.
+        kept_network: pixels that kept the prior because the refined model explained less than
+            ``SingleConfig.min_explained`` of their observations.
         timings: seconds per stage.
         shininess: the Blinn-Phong exponent of the last round.
         highlights: per round, :attr:`HighlightFit.info` (empty unless ``specular="estimate"``).
@@ -160,6 +169,7 @@ class SingleResult:
     timings: dict = field(default_factory=dict)
     shininess: float = 30.0
     highlights: list = field(default_factory=list)
+    kept_network: int = 0
 
 
 def reconstruct_single(images, mask=None, *, camera=None, config: SingleConfig | None = None, net=None,
@@ -202,8 +212,10 @@ def reconstruct_single(images, mask=None, *, camera=None, config: SingleConfig |
     t1 = time.perf_counter()
     Ip, view = I[:, m], view_dirs(camera, (h, w), m)  # (N, P, 3), (P, 3)
     st = _first_lights(Ip, n_net[m].astype(np.float32), view, m, cfg, net)
+    kept = 0
     if cfg.rounds > 0:
         _refine(Ip, view, st, cfg, device, progress, total)
+        kept = _keep_unexplained(Ip, view, st, cfg)
     timings["refine"] = time.perf_counter() - t1
 
     normals = np.zeros((h, w, 3), np.float32)
@@ -223,7 +235,23 @@ def reconstruct_single(images, mask=None, *, camera=None, config: SingleConfig |
         mask=m, normals_net=n_net.astype(np.float32), normals_net_first=n_first, height_net=h_net, normals=normals,
         albedo=albedo, light_directions=st["dirs"], light_intensities=st["rgb"], ks=float(st["ks"]), depth=depth,
         objective=st["objective"], timings=timings, shininess=float(st["shin"]), highlights=st["highlights"],
+        kept_network=int(kept),
     )
+
+
+def _keep_unexplained(Ip, view, st: dict, cfg: SingleConfig) -> int:
+    """Where the refined image model explains less than ``cfg.min_explained`` of a pixel's observations'
+    energy (:func:`gpps.host.single.explained_fraction`), the observations do not measure its normal (a cast
+    shadow or interreflection the model lacks, lights that were estimated wrong): the pixel keeps the prior
+    (the network's normal, through the highlights' bas-relief when one was accepted) instead of a normal
+    fitted to what the model cannot explain.  Returns how many pixels kept it."""
+    frac = explained_fraction(Ip, st["normals"], view, st["dirs"], st["rgb"], st["kd"], float(st["ks"]), float(st["shin"]))
+    bad = frac < cfg.min_explained
+    if np.any(bad):
+        n = np.array(st["normals"], copy=True)
+        n[bad] = st["prior"][bad]
+        st["normals"] = n
+    return int(bad.sum())
 
 
 def _first_lights(Ip, npix, view, m, cfg: SingleConfig, net) -> dict:

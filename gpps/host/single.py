@@ -279,6 +279,31 @@ def fit_highlights(I, n, view, directions, intensities, albedo, *, prior_deg: fl
                         (b / bn).astype(np.float32), (kd * bn * scale).astype(np.float32), float(ks), sh, True, info)
 
 
+def explained_fraction(I, n, view, directions, intensities, albedo, ks: float, shininess: float) -> np.ndarray:
+    """Per pixel, the share of its observations' energy the Blinn-Phong image model explains:
+    ``1 - sum_k |I_k - E_k (kd max(n.l_k, 0) + ks s_k)|^2 / sum_k |I_k|^2`` (the model of
+    :func:`gpps.kernels.cuckoo.photometric_error`, without the prior term).
+
+    Args:
+        I: (N, P, 3) observations; n: (P, 3) unit normals; view: (P, 3) view directions.
+        directions, intensities: (N, 3) lights; albedo: (P, 3); ks, shininess: the specular lobe.
+
+    Returns:
+        (P,) float64, at most 1; negative where the model is farther from the observations than zero is
+        (a cast shadow the model lights, a light estimate that failed); 0 for a black pixel.
+    """
+    I = np.asarray(I, np.float64)
+    n = np.asarray(n, np.float64)
+    res = np.zeros(I.shape[1])
+    for k in range(I.shape[0]):
+        a = np.maximum(n @ directions[k], 0.0)
+        s = ks * _bp_spec(n, directions[k], view, shininess) if ks > 0 else 0.0
+        model = intensities[k] * (albedo * a[:, None] + (s * np.ones(1))[..., None] * (a > 0)[:, None])
+        res += np.sum((I[k] - model) ** 2, -1)
+    energy = np.sum(I**2, axis=(0, 2))
+    return np.where(energy > 0, 1.0 - res / np.maximum(energy, 1e-300), 0.0)
+
+
 def factorization_normals(I, prior, *, irls: int = 3, shadow: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
     """Uncalibrated Lambertian normals from N >= 3 images, their linear ambiguity fixed by a prior.
 
