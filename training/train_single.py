@@ -196,6 +196,8 @@ def main(argv=None):
     ap.add_argument("--device", default="cuda:0")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--smoke", action="store_true", help="random tensors instead of renders (tests the torch code only)")
+    ap.add_argument("--init", default=None, help="start from these weights (a single_net.npz): fine-tuning")
+    ap.add_argument("--warmup", type=int, default=300, help="learning-rate warm-up steps")
     args = ap.parse_args(argv)
 
     import torch
@@ -229,7 +231,14 @@ def main(argv=None):
     Xtr_t, Ntr_t, Ztr_t, Mtr_t = to(Xtr, torch.float16), to(Ntr, torch.float32), to(Ztr, torch.float32), to(Mtr, torch.bool)
     Xva_t, Nva_t, Zva_t, Mva_t = to(Xva[:, 0], torch.float32), to(Nva, torch.float32), to(Zva, torch.float32), to(Mva, torch.bool)
 
-    model = make_model(torch).to(dev).to(memory_format=torch.channels_last)
+    model = make_model(torch)
+    if args.init:
+        from gpps.nn.model import load_weights
+
+        init_params, init_meta = load_weights(args.init)
+        model.load_state_dict({k: torch.from_numpy(v) for k, v in init_params.items()})
+        log(f"initialised from {args.init} (trained {init_meta.get('steps')} steps, val MAEN {init_meta.get('val_maen_deg')})")
+    model = model.to(dev).to(memory_format=torch.channels_last)
     n_params = sum(p.numel() for p in model.parameters())
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
     use_amp = dev.type == "cuda"
@@ -268,7 +277,7 @@ def main(argv=None):
         frac = (time.time() - t_train) / budget
         if frac >= 1.0:
             break
-        lr = args.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0)))) * min(1.0, (step + 1) / 300)
+        lr = args.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0)))) * min(1.0, (step + 1) / max(args.warmup, 1))
         for g in opt.param_groups:
             g["lr"] = lr
         idx = torch.randint(0, ntr, (args.batch,), device=dev)
@@ -307,7 +316,7 @@ def main(argv=None):
     # a numpy check of the exported weights on one validation image
     from gpps.nn.model import SingleNet
 
-    meta = {"size": args.size, "steps": step, "train_seconds": round(t_train, 1), "val_maen_deg": final["maen_deg"],
+    meta = {"size": args.size, "steps": step, "init": args.init, "train_seconds": round(t_train, 1), "val_maen_deg": final["maen_deg"],
             "trained_with": f"torch {torch.__version__}", "parameters": n_params}
     net = SingleNet(params, meta)
     o_np = net.forward(Xva[0, 0].astype(np.float32))
@@ -325,7 +334,8 @@ def main(argv=None):
             "data_seconds": round(t_data, 1),
         },
         "model": {"parameters": n_params, "architecture": "gpps.nn.model docstring"},
-        "training": {"optimizer": "AdamW wd 1e-4", "lr": args.lr, "schedule": "300-step warm-up, cosine to 2% over the time budget",
+        "training": {"optimizer": "AdamW wd 1e-4", "lr": args.lr, "init": args.init,
+                     "schedule": f"{args.warmup}-step warm-up, cosine to 2% over the time budget",
                      "batch": args.batch, "steps": step, "seconds": round(t_train, 1), "depth_loss_weight": args.wd,
                      "mixed_precision": "bf16 autocast" if use_amp else "none", "device": str(dev)},
         "losses": {"normal": "6.10: -(1/m) sum N.N*", "depth": "6.11 with lambda 1/2 and gradient terms (spacing 2/S)"},
