@@ -403,3 +403,25 @@ def test_unexplained_pixels_keep_the_prior(device):
     np.testing.assert_allclose(strict.normals[strict.mask], strict.normals_net[strict.mask], atol=1e-6)
     with pytest.raises(ValueError, match="min_explained"):
         SingleConfig(min_explained=1.5)
+
+
+@pytest.mark.parametrize("tta", ["flips", "dihedral"])
+def test_test_time_augmentation_is_equivariant(tta):
+    # the mean over the mirror images (and transposes) makes the prediction exactly equivariant: a mirrored image
+    # gives the mirrored normals (n_x negated), a transposed one the transposed normals ((n_x, n_y) -> (-n_y, -n_x))
+    sc, _, imgs = _sphere_capture(64)
+    img = imgs[0] * (1 + 0.5 * np.arange(64)[None, :, None] / 64)  # break the sphere's own symmetry
+    net = SingleNet.load()
+    n, h = net.predict(img, sc.mask, size=64, tta=tta)
+    nf, hf = net.predict(img[:, ::-1], sc.mask[:, ::-1], size=64, tta=tta)
+    want = n[:, ::-1] * np.array([-1.0, 1.0, 1.0])
+    np.testing.assert_allclose(nf, want, atol=2e-5)
+    np.testing.assert_allclose(hf, h[:, ::-1], atol=2e-5)
+    if tta == "dihedral":
+        nt, _ = net.predict(img.transpose(1, 0, 2), sc.mask.T, size=64, tta=tta)
+        want = n.transpose(1, 0, 2)[..., [1, 0, 2]] * np.array([-1.0, -1.0, 1.0])
+        np.testing.assert_allclose(nt, want, atol=2e-5)
+    plain, _ = net.predict(img, sc.mask, size=64)
+    assert np.degrees(np.arccos(np.clip(np.sum(plain * n, -1), -1, 1)))[sc.mask].mean() < 10  # a mean, not noise
+    with pytest.raises(ValueError, match="tta"):
+        net.predict(img, sc.mask, tta="rotations")

@@ -39,6 +39,10 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed of the search")
     p.add_argument("--prior-weight", type=float, default=None, help="pull toward the network's normals (None: the search's default)")
     p.add_argument("--max-size", type=int, default=512, help="downscale images whose longer side exceeds this")
+    p.add_argument("--tta", choices=["none", "flips", "dihedral"], default="flips",
+                   help="the network's test-time augmentation: mean over the mirror images (flips), and their transposes")
+    p.add_argument("--min-explained", type=float, default=0.5,
+                   help="keep the network's normal where the refined model explains less of a pixel's observations")
     p.set_defaults(func=run)
 
 
@@ -73,7 +77,7 @@ def run(args) -> int:
             mask = cv2.resize(mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
     cfg = gpps.SingleConfig(
         cuckoo=gpps.CuckooConfig(nests=args.nests, generations=args.generations, beta=args.beta, p_c=args.pc, seed=args.seed),
-        rounds=args.rounds, prior_weight=args.prior_weight,
+        rounds=args.rounds, prior_weight=args.prior_weight, tta=args.tta, min_explained=args.min_explained,
     )
     device = None if args.device == "auto" else args.device
     res = gpps.reconstruct_single(imgs, mask, config=cfg, device=device, progress=bar("single"))

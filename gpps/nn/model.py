@@ -30,6 +30,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal, get_args
 
 import cv2
 import numpy as np
@@ -38,6 +39,8 @@ __all__ = ["ARCH", "SingleNet", "load_weights", "prepare_input", "conv3x3", "WEI
 
 WEIGHTS_PATH = Path(__file__).with_name("single_net.npz")
 NET_SIZE = 128  # the resolution the shipped network was trained at
+TTAName = Literal["none", "flips", "dihedral"]  # test-time augmentation of SingleNet.predict
+TTA_NAMES: tuple[str, ...] = get_args(TTAName)
 
 # (name, in_channels, out_channels) of the conv layers, in order; the training code uses the same table.
 ENC = [("enc0", 4, 16), ("enc1", 16, 32), ("enc2", 32, 64), ("enc3", 64, 96), ("enc4", 96, 128)]
@@ -193,7 +196,37 @@ class SingleNet:
             x = self._block(name, np.concatenate([_up2(x), skip], 0))
         return conv3x3(x, p["head.weight"], p["head.bias"])
 
-    def predict(self, image: np.ndarray, mask: np.ndarray | None = None, *, size: int | None = None):
+    def _forward_tta(self, x: np.ndarray, tta: str) -> np.ndarray:
+        """:meth:`forward`, averaged over the transforms of ``tta`` (see :meth:`predict`)."""
+        if tta not in TTA_NAMES:
+            raise ValueError(f"tta: expected one of {list(TTA_NAMES)}, got {tta!r}")
+        transposes = (False, True) if tta == "dihedral" else (False,)
+        flips = ((False, False),) if tta == "none" else ((False, False), (True, False), (False, True), (True, True))
+        acc = None
+        for tr in transposes:
+            for fj, fi in flips:
+                y = x.transpose(0, 2, 1) if tr else x
+                y = y[:, ::-1] if fi else y
+                y = y[:, :, ::-1] if fj else y
+                o = self.forward(np.ascontiguousarray(y))
+                o = o[:, :, ::-1] if fj else o  # undo in reverse order, mapping the normal components back
+                o = o[:, ::-1] if fi else o
+                o = np.array(o, copy=True)
+                if fj:
+                    o[0] = -o[0]
+                if fi:
+                    o[1] = -o[1]
+                if tr:
+                    o = o.transpose(0, 2, 1).copy()
+                    o[[0, 1]] = -o[[1, 0]]
+                if acc is None:
+                    acc = o
+                else:
+                    acc += o
+        return acc / (len(transposes) * len(flips))
+
+    def predict(self, image: np.ndarray, mask: np.ndarray | None = None, *, size: int | None = None,
+                tta: TTAName = "none"):
         """Normals (H, W, 3) and relative depth (H, W) of one image.
 
         The image is resized so that its longer side is ``size`` (default: the
@@ -201,6 +234,12 @@ class SingleNet:
         are resized back (normals renormalised).  The relative depth is in
         units of half the image's longer side, mean 0 over the mask; larger
         values are nearer the camera (it is a height).
+
+        ``tta``: test-time augmentation, the mean of the outputs for transformed copies of the input,
+        each mapped back (the training's own augmentations, so each copy is an image the network was
+        trained on): ``"none"``; ``"flips"``: the 4 mirror images (horizontal, vertical, both;
+        ``n_x``/``n_y`` negated back); ``"dihedral"``: those and their transposes (8; ``(n_x, n_y)`` ->
+        ``(-n_y, -n_x)``).  Costs that many forward passes.
 
         Returns:
             (normals, height): float32, zero outside the mask.
@@ -221,7 +260,7 @@ class SingleNet:
         oy, ox = (H - hs) // 2, (W - ws) // 2
         xp = np.zeros((4, H, W), np.float32)
         xp[:, oy : oy + hs, ox : ox + ws] = xs
-        out = self.forward(xp)[:, oy : oy + hs, ox : ox + ws]
+        out = self._forward_tta(xp, tta)[:, oy : oy + hs, ox : ox + ws]
         out = np.stack([cv2.resize(ch, (w, h), interpolation=cv2.INTER_LINEAR) for ch in out])
         n = out[:3].transpose(1, 2, 0)
         n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-8)
