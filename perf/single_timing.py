@@ -5,6 +5,8 @@ refinement and the integration on ``--device``.  The capture is a folder as ``gp
 ``perf/heldout_eval.py`` writes it (default: gpps's own sphere rendered here, 128^2, three directional lights).
 
     python perf/single_timing.py [--capture DIR] [--device cpu|cuda:0] [--repeat 3] [--out FILE]
+
+Writes perf/results/single_timing_<sphere | the capture's first word>_<device>.json (and a copy to --out).
 """
 
 from __future__ import annotations
@@ -61,7 +63,8 @@ def main(argv=None) -> int:
         rows.append(row)
         print(f"{name} {k} image(s) on {a.device}: {row['seconds']:.3f} s (first {ts[0]:.2f} s), "
               f"MAEN net {row['maen_net']:.2f} refined {row['maen']:.2f}", flush=True)
-    path = write_results("single_timing", a.device, {"capture": name, "repeat": a.repeat, "rows": rows})
+    tag = "sphere" if not a.capture else name.split("-")[0]
+    path = write_results(f"single_timing_{tag}", a.device, {"capture": name, "repeat": a.repeat, "rows": rows})
     if a.out:
         Path(a.out).write_text(path.read_text())
     print(f"wrote {path}")
