@@ -225,7 +225,7 @@ class PhotometricCuckoo(Stage):
         getattr(self.data, name).assign(a)
 
     def upload(self, images=None, view=None, prior=None, nests=None, *, light_dir=None, light_rgb=None, ks=None,
-               shininess=None, prior_weight=None, albedo_from_normal=None, restart: bool = True) -> None:
+               shininess=None, prior_weight=None, albedo_from_normal=None, weight=None, restart: bool = True) -> None:
         """Copy what is given into the stage's buffers (the rest stays as it was).
 
         Args:
@@ -238,10 +238,11 @@ class PhotometricCuckoo(Stage):
             ks, shininess: Blinn-Phong specular weight and exponent.
             prior_weight: weight of the prior term.
             albedo_from_normal: the albedo is the least-squares one for each habitat's normal.
+            weight: (P,) per-pixel weight of the reprojection error (default ones).
         """
         n, p = self.shape
         for name, a, shape in (("images", images, (n, p, 3)), ("view", view, (p, 3)), ("prior", prior, (p, 3)),
-                               ("light_dir", light_dir, (n, 3)), ("light_rgb", light_rgb, (n, 3))):
+                               ("light_dir", light_dir, (n, 3)), ("light_rgb", light_rgb, (n, 3)), ("weight", weight, (p,))):
             if a is not None:
                 self._put(name, a, shape)
         for name, v in (("ks", ks), ("shininess", shininess), ("prior_weight", prior_weight)):
