@@ -170,7 +170,9 @@ class SingleResult:
         light_intensities: (N, 3) estimated RGB intensities (relative).
         ks: estimated Blinn-Phong specular weight.
         depth: (H, W) depth from the refined normals (0 outside; None when not integrated).
-        objective: per round, the mean objective before and after the search.
+        objective: per round, the mean objective before and after the search (with ``prior_weight="map"``,
+            ``after`` is in the second search's MAP units, and ``sigma``, ``theta_median_deg`` and the
+            ``prior_weight`` it used are recorded).
         kept_network: pixels that kept the prior because the refined model explained less than
             ``SingleConfig.min_explained`` of their observations.
         timings: seconds per stage.
@@ -357,7 +359,7 @@ def _refine(Ip, view, st: dict, cfg: SingleConfig, device, progress, total: int)
     observations must be explained by a model close to them; where they disagree, the observations decide."""
     n_img, P = Ip.shape[:2]
     mode = cfg.prior_weight if cfg.prior_weight is not None else ("map" if n_img >= 3 else 0.05)
-    prior_w = mode if isinstance(mode, float) else 0.002
+    prior_w = mode if isinstance(mode, float) else (0.002 if n_img >= 3 else 0.05)  # ("map" starts at 0.002)
     stage = PhotometricCuckoo(n_img, P, config=cfg.cuckoo, device=device)
     stage.upload(Ip, view, st["prior"], _start_nests(st, cfg), prior_weight=prior_w, shininess=st["shin"],
                  albedo_from_normal=cfg.albedo == "least-squares")
