@@ -205,7 +205,9 @@ def test_device_rounds_match_host_rounds(camera, device, monkeypatch):
         np.testing.assert_array_equal(a[~m], b[~m])
     assert d.energy[0] == pytest.approx(h.energy[0], rel=1e-12)
     assert d.normal_change_deg[0] == pytest.approx(h.normal_change_deg[0], rel=1e-12)
-    np.testing.assert_allclose(d.energy, h.energy, rtol=1e-4)
+    # (an absolute floor of 1e-6 of round 1's energy: once the fit is exact the energy is float32 rounding of the
+    # depth fed to the point lights, 7e-12 against 8e-8 in the orthographic case, where 1e-4 relative is noise)
+    np.testing.assert_allclose(d.energy, h.energy, rtol=1e-4, atol=1e-6 * h.energy[0])
     np.testing.assert_allclose(d.normal_change_deg, h.normal_change_deg, atol=1e-3)
     a, b = h.normals[m].astype(np.float64), d.normals[m].astype(np.float64)
     ang = np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, -1)))
