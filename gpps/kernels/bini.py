@@ -128,55 +128,56 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
     return K
 
 
-def _weight_kernels(F: dict) -> dict:
-    """BiNI's energy and IRLS weight update over the fields ``F`` (see :func:`make_bini`).
+def _pixel_funcs(F: dict):
+    """The per-pixel ti.funcs over the fields ``F`` that the task kernels and the persistent kernel share:
 
-    Returns:
-        dict of kernels ``energy(n)``, ``reweight(n, k)``.
+    * ``edges(p)``: the edge weights and fluxes to the right / down neighbour from the IRLS weights
+      (``Wr, Fr, Wd, Fd`` at ``p``);
+    * ``rhs(p)``: ``b`` and the clipped Jacobi inverse ``dinv`` at ``p`` (after every pixel's ``edges``);
+    * ``apply(v, p)``: ``(A v)_p = sum_e W_e (v_p - v_q)`` over the edges of ``p``;
+    * ``residuals(p)``: the four one-sided residuals ``N D - m`` and the multiplied differences
+      ``(el, er, eu, ed)`` BiNI's weights compare;
+    * ``reweight(p, k)``: BiNI's new weights at ``p`` (written) and the pixel's energy under them.
     """
-    x, Nj, Ni, mj, mi, wj, wi, nb, sc = F["x"], F["Nj"], F["Ni"], F["mj"], F["mi"], F["wj"], F["wi"], F["nb"], F["sc"]
+    x, Nj, Ni, mj, mi, wj, wi, nb = F["x"], F["Nj"], F["Ni"], F["mj"], F["mi"], F["wj"], F["wi"], F["nb"]
+    Wr, Wd, Fr, Fd, b, dinv = F["Wr"], F["Wd"], F["Fr"], F["Fd"], F["b"], F["dinv"]
 
     @ti.func
-    def _residuals(p):
-        dr, dl, dd, du = _diffs(x, nb, p)
-        a, c = Nj[p], Ni[p]
-        return a * dr, a * dl, c * dd, c * du
-
-    @ti.kernel
-    def energy(n: ti.i32):
-        sc[ENERGY] = 0
-        for p in range(n):
-            er, el, ed, eu = _residuals(p)
-            rr, rl, rd, ru = er - mj[p], el - mj[p], ed - mi[p], eu - mi[p]
-            w1, w2 = wj[p], wi[p]
-            sc[ENERGY] += w1 * rr * rr + (1 - w1) * rl * rl + w2 * rd * rd + (1 - w2) * ru * ru
-
-    @ti.kernel
-    def reweight(n: ti.i32, k: ti.f64):
-        sc[ENERGY] = 0
-        for p in range(n):
-            er, el, ed, eu = _residuals(p)
-            rr, rl, rd, ru = er - mj[p], el - mj[p], ed - mi[p], eu - mi[p]
-            w1 = _sigmoid(k * (el * el - er * er))
-            w2 = _sigmoid(k * (eu * eu - ed * ed))
-            wj[p] = w1
-            wi[p] = w2
-            sc[ENERGY] += w1 * rr * rr + (1 - w1) * rl * rl + w2 * rd * rd + (1 - w2) * ru * ru
-
-    return {"energy": energy, "reweight": reweight}
-
-
-def _begin_kernel(F: dict):
-    """The kernel ``begin(n)`` over the fields ``F``: the system assembled from the weights, the CG started
-    (see :func:`make_bini`)."""
-    x, b, r, z, p0 = F["x"], F["b"], F["r"], F["z"], F["p0"]
-    Nj, Ni, mj, mi, wj, wi = F["Nj"], F["Ni"], F["mj"], F["mi"], F["wj"], F["wi"]
-    Wr, Wd, Fr, Fd, dinv, nb, sc = F["Wr"], F["Wd"], F["Fr"], F["Fd"], F["dinv"], F["nb"], F["sc"]
-    pqf, rrf, rzf, dnf = F["pq"], F["rr"], F["rz"], F["done"]
+    def edges(p):
+        W1 = Wr[p] * 0
+        F1 = Wr[p] * 0
+        W2 = Wr[p] * 0
+        F2 = Wr[p] * 0
+        o = nb[p, 0]
+        if o >= 0:
+            W1 = Nj[p] * Nj[p] * wj[p] + Nj[o] * Nj[o] * (1 - wj[o])
+            F1 = Nj[p] * mj[p] * wj[p] + Nj[o] * mj[o] * (1 - wj[o])
+        o = nb[p, 2]
+        if o >= 0:
+            W2 = Ni[p] * Ni[p] * wi[p] + Ni[o] * Ni[o] * (1 - wi[o])
+            F2 = Ni[p] * mi[p] * wi[p] + Ni[o] * mi[o] * (1 - wi[o])
+        Wr[p] = W1
+        Fr[p] = F1
+        Wd[p] = W2
+        Fd[p] = F2
 
     @ti.func
-    def _apply(v: ti.template(), p):
-        """(A v)_p = sum_e W_e (v_p - v_q) over the edges of p."""
+    def rhs(p):
+        d = Wr[p] + Wd[p]
+        v = -Fr[p] - Fd[p]
+        o = nb[p, 1]
+        if o >= 0:
+            d += Wr[o]
+            v += Fr[o]
+        o = nb[p, 3]
+        if o >= 0:
+            d += Wd[o]
+            v += Fd[o]
+        b[p] = v
+        dinv[p] = 1.0 / ti.max(d, 1e-5)
+
+    @ti.func
+    def apply(v: ti.template(), p):
         vp = v[p]
         s = vp * 0
         o = nb[p, 0]
@@ -193,38 +194,66 @@ def _begin_kernel(F: dict):
             s += Wd[o] * (vp - v[o])
         return s
 
+    @ti.func
+    def residuals(p):
+        dr, dl, dd, du = _diffs(x, nb, p)
+        a, c = Nj[p], Ni[p]
+        er, el, ed, eu = a * dr, a * dl, c * dd, c * du
+        return er - mj[p], el - mj[p], ed - mi[p], eu - mi[p], el, er, eu, ed
+
+    @ti.func
+    def reweight(p, k):
+        rr, rl, rd, ru, el, er, eu, ed = residuals(p)
+        w1 = _sigmoid(k * (el * el - er * er))
+        w2 = _sigmoid(k * (eu * eu - ed * ed))
+        wj[p] = w1
+        wi[p] = w2
+        return w1 * rr * rr + (1 - w1) * rl * rl + w2 * rd * rd + (1 - w2) * ru * ru
+
+    return {"edges": edges, "rhs": rhs, "apply": apply, "residuals": residuals, "reweight": reweight}
+
+
+def _weight_kernels(F: dict) -> dict:
+    """BiNI's energy and IRLS weight update over the fields ``F`` (see :func:`make_bini`).
+
+    Returns:
+        dict of kernels ``energy(n)``, ``reweight(n, k)``.
+    """
+    wj, wi, sc = F["wj"], F["wi"], F["sc"]
+    px = _pixel_funcs(F)
+    residuals, reweight_at = px["residuals"], px["reweight"]
+
+    @ti.kernel
+    def energy(n: ti.i32):
+        sc[ENERGY] = 0
+        for p in range(n):
+            rr, rl, rd, ru, _, _, _, _ = residuals(p)
+            w1, w2 = wj[p], wi[p]
+            sc[ENERGY] += w1 * rr * rr + (1 - w1) * rl * rl + w2 * rd * rd + (1 - w2) * ru * ru
+
+    @ti.kernel
+    def reweight(n: ti.i32, k: ti.f64):
+        sc[ENERGY] = 0
+        for p in range(n):
+            sc[ENERGY] += reweight_at(p, k)
+
+    return {"energy": energy, "reweight": reweight}
+
+
+def _begin_kernel(F: dict):
+    """The kernel ``begin(n)`` over the fields ``F``: the system assembled from the weights, the CG started
+    (see :func:`make_bini`)."""
+    x, b, r, z, p0, dinv, sc = F["x"], F["b"], F["r"], F["z"], F["p0"], F["dinv"], F["sc"]
+    pqf, rrf, rzf, dnf = F["pq"], F["rr"], F["rz"], F["done"]
+    px = _pixel_funcs(F)
+    edges, rhs, _apply = px["edges"], px["rhs"], px["apply"]
+
     @ti.kernel
     def begin(n: ti.i32):
         for p in range(n):
-            W1 = Wr[p] * 0
-            F1 = Wr[p] * 0
-            W2 = Wr[p] * 0
-            F2 = Wr[p] * 0
-            o = nb[p, 0]
-            if o >= 0:
-                W1 = Nj[p] * Nj[p] * wj[p] + Nj[o] * Nj[o] * (1 - wj[o])
-                F1 = Nj[p] * mj[p] * wj[p] + Nj[o] * mj[o] * (1 - wj[o])
-            o = nb[p, 2]
-            if o >= 0:
-                W2 = Ni[p] * Ni[p] * wi[p] + Ni[o] * Ni[o] * (1 - wi[o])
-                F2 = Ni[p] * mi[p] * wi[p] + Ni[o] * mi[o] * (1 - wi[o])
-            Wr[p] = W1
-            Fr[p] = F1
-            Wd[p] = W2
-            Fd[p] = F2
+            edges(p)
         for p in range(n):
-            d = Wr[p] + Wd[p]
-            v = -Fr[p] - Fd[p]
-            o = nb[p, 1]
-            if o >= 0:
-                d += Wr[o]
-                v += Fr[o]
-            o = nb[p, 3]
-            if o >= 0:
-                d += Wd[o]
-                v += Fd[o]
-            b[p] = v
-            dinv[p] = 1.0 / ti.max(d, 1e-5)
+            rhs(p)
         sc[BB] = 0
         ti.static(rzf[2])[0] = 0
         for p in range(n):
@@ -394,10 +423,11 @@ def make_irls_persistent(F: dict, nblocks: int, bd: int, cuda: bool):
     """One IRLS iteration of BiNI (system assembly, the whole Jacobi-PCG solve, reweighting and energy) as
     *one* task of ``nblocks x bd`` threads whose phases meet at software grid barriers.
 
-    The arithmetic is :func:`make_bini`'s (``begin``, ``cg``, ``reweight``): the same fused direction
-    update, the same stopping test (``|r|^2 <= tol^2 |b|^2`` after at least one iteration, or
-    ``maxit``), the same ``pq != 0`` guard.  What changes is the launch shape: the block build
-    launches two tasks per CG iteration and the host polls a flag every 6 iterations (on DiLiGenT
+    The arithmetic is :func:`make_bini`'s (``begin``, ``cg``, ``reweight``), through the same per-pixel
+    funcs (:func:`_pixel_funcs`, ``_ap_fused``): the same fused direction update, the same stopping test
+    (``|r|^2 <= tol^2 |b|^2`` after at least one iteration, or ``maxit``), the same ``pq != 0`` guard.
+    What changes is the launch shape: the block build launches two tasks per CG iteration and the host
+    polls a flag every 6 iterations (on DiLiGenT
     bear 447 launches of 6 iterations at about 160 us each, perf/results/bini_launch_bear_H100.json);
     here a CG iteration is two phases and two grid barriers (about 2 us each on an H100,
     perf/taichi_grid_barrier.py), and the host launches once per IRLS iteration.  Each sum is
@@ -428,11 +458,11 @@ def make_irls_persistent(F: dict, nblocks: int, bd: int, cuda: bool):
         raise ValueError(f"nblocks, bd: off CUDA the persistent kernel runs as one thread (1, 1), "
                          f"got ({nblocks}, {bd})")
     NT = nblocks * bd
-    x, b, r, z, p0, p1, q = F["x"], F["b"], F["r"], F["z"], F["p0"], F["p1"], F["q"]
-    Nj, Ni, mj, mi, wj, wi = F["Nj"], F["Ni"], F["mj"], F["mi"], F["wj"], F["wi"]
-    Wr, Wd, Fr, Fd, dinv, nb = F["Wr"], F["Wd"], F["Fr"], F["Fd"], F["dinv"], F["nb"]
+    x, b, r, z, p0, p1, q, dinv = F["x"], F["b"], F["r"], F["z"], F["p0"], F["p1"], F["q"], F["dinv"]
     acc, bar = F["acc"], F["bar"]
     _ap_fused = _ap_fused_func(F)
+    px = _pixel_funcs(F)
+    edges, rhs, _apply, reweight_at = px["edges"], px["rhs"], px["apply"], px["reweight"]
 
     if cuda:
         gsync = make_gsync(bar, nblocks, bd)
@@ -452,24 +482,6 @@ def make_irls_persistent(F: dict, nblocks: int, bd: int, cuda: bool):
                 ti.atomic_add(acc[idx], pad[0])
         else:
             acc[idx] += v
-
-    @ti.func
-    def _apply(v: ti.template(), p):
-        vp = v[p]
-        s = vp * 0
-        o = nb[p, 0]
-        if o >= 0:
-            s += Wr[p] * (vp - v[o])
-        o = nb[p, 1]
-        if o >= 0:
-            s += Wr[o] * (vp - v[o])
-        o = nb[p, 2]
-        if o >= 0:
-            s += Wd[p] * (vp - v[o])
-        o = nb[p, 3]
-        if o >= 0:
-            s += Wd[o] * (vp - v[o])
-        return s
 
     @ti.func
     def cg_iter(tid, gen, n, t, beta, rz_prev, pa: ti.template(), pb: ti.template(), pad: ti.template(),
@@ -525,38 +537,12 @@ def make_irls_persistent(F: dict, nblocks: int, bd: int, cuda: bool):
             for kk in range((n + NT - 1) // NT):
                 p = tid + kk * NT
                 if p < n:
-                    W1 = Wr[p] * 0
-                    F1 = Wr[p] * 0
-                    W2 = Wr[p] * 0
-                    F2 = Wr[p] * 0
-                    o = nb[p, 0]
-                    if o >= 0:
-                        W1 = Nj[p] * Nj[p] * wj[p] + Nj[o] * Nj[o] * (1 - wj[o])
-                        F1 = Nj[p] * mj[p] * wj[p] + Nj[o] * mj[o] * (1 - wj[o])
-                    o = nb[p, 2]
-                    if o >= 0:
-                        W2 = Ni[p] * Ni[p] * wi[p] + Ni[o] * Ni[o] * (1 - wi[o])
-                        F2 = Ni[p] * mi[p] * wi[p] + Ni[o] * mi[o] * (1 - wi[o])
-                    Wr[p] = W1
-                    Fr[p] = F1
-                    Wd[p] = W2
-                    Fd[p] = F2
+                    edges(p)
             gen = gsync(tid, gen)
             for kk in range((n + NT - 1) // NT):
                 p = tid + kk * NT
                 if p < n:
-                    d = Wr[p] + Wd[p]
-                    v = -Fr[p] - Fd[p]
-                    o = nb[p, 1]
-                    if o >= 0:
-                        d += Wr[o]
-                        v += Fr[o]
-                    o = nb[p, 3]
-                    if o >= 0:
-                        d += Wd[o]
-                        v += Fd[o]
-                    b[p] = v
-                    dinv[p] = 1.0 / ti.max(d, 1e-5)
+                    rhs(p)
             gen = gsync(tid, gen)
             # the CG start: r = b - A x, z = D^-1 r, p_{-1} = 0
             rz0 = ti.cast(0, ti.f64)
@@ -598,15 +584,7 @@ def make_irls_persistent(F: dict, nblocks: int, bd: int, cuda: bool):
             for kk in range((n + NT - 1) // NT):
                 p = tid + kk * NT
                 if p < n:
-                    dr, dl, dd, du = _diffs(x, nb, p)
-                    a1, c1 = Nj[p], Ni[p]
-                    er, el, ed, eu = a1 * dr, a1 * dl, c1 * dd, c1 * du
-                    rr1, rl1, rd1, ru1 = er - mj[p], el - mj[p], ed - mi[p], eu - mi[p]
-                    w1 = _sigmoid(k * (el * el - er * er))
-                    w2 = _sigmoid(k * (eu * eu - ed * ed))
-                    wj[p] = w1
-                    wi[p] = w2
-                    e += w1 * rr1 * rr1 + (1 - w1) * rl1 * rl1 + w2 * rd1 * rd1 + (1 - w2) * ru1 * ru1
+                    e += reweight_at(p, k)
             red(pad, tid, e, A_E)
             if tid == 0:
                 acc[A_ITS] = its

@@ -360,31 +360,24 @@ class BilateralIntegrator(Stage):
         """
         if self._state is None:
             raise ValueError("normals: expected upload(normals) before step(), got nothing uploaded")
-        if self._persistent_launch():
-            self._step_persistent(progress)
-            return
         cfg = self.config
-        F = self._F
-        kn = F["kernels"]
         n = self.n
         e_old = self._state["e0"]
         tol2 = cfg.cg_tol ** 2
-        last = (F["unroll"] - 1) % 3
+        iterate = self._iteration_persistent if self._persistent_launch() else self._iteration_tasks
         energies = []
         converged = False
         outer = 0
+        total = 0
         res = float("nan")
         for it in range(cfg.max_iter):
-            kn["begin"](n)
-            while True:
-                kn["cg"](n, tol2, cfg.cg_max_iter)
-                if F["done"][last][0] != 0:  # the only sync of the inner solve: once per launch
-                    break
-            kn["reweight"](n, float(cfg.k))
-            sc = F["sc"].to_numpy()
-            rr = float(F["rr"][(int(sc[K.ITS]) - 1) % 3][0])
-            res = float(np.sqrt(rr / sc[K.BB])) if sc[K.BB] > 0 else 0.0
-            e = float(sc[K.ENERGY])
+            out = iterate(n, tol2)
+            while out is None:  # the persistent grid did not fit (state restored): a smaller one, then the tasks
+                iterate = self._iteration_persistent if self._persistent_launch() else self._iteration_tasks
+                out = iterate(n, tol2)
+            e, rr, bb, its = out
+            total += its
+            res = float(np.sqrt(rr / bb)) if bb > 0 else 0.0
             energies.append(e)
             outer = it + 1
             rel = abs(e - e_old) / e_old if e_old > 0 else 0.0
@@ -394,8 +387,25 @@ class BilateralIntegrator(Stage):
                 converged = True
                 break
             e_old = e
-        self._state.update(energies=energies, converged=converged, outer=outer, res=res,
-                           total_cg=int(F["sc"][K.TOTAL]), t2=time.perf_counter())
+        self._state.update(energies=energies, converged=converged, outer=outer, res=res, total_cg=total,
+                           t2=time.perf_counter())
+
+    def _iteration_tasks(self, n, tol2) -> tuple[float, float, float, int]:
+        """One IRLS iteration as per-phase launches (system, CG launches until the done flag, reweighting):
+        ``(energy, last |r|^2, |b|^2, CG iterations)``."""
+        cfg = self.config
+        F = self._F
+        kn = F["kernels"]
+        last = (F["unroll"] - 1) % 3
+        kn["begin"](n)
+        while True:
+            kn["cg"](n, tol2, cfg.cg_max_iter)
+            if F["done"][last][0] != 0:  # the only sync of the inner solve: once per launch
+                break
+        kn["reweight"](n, float(cfg.k))
+        sc = F["sc"].to_numpy()
+        its = int(sc[K.ITS])
+        return float(sc[K.ENERGY]), float(F["rr"][(its - 1) % 3][0]), float(sc[K.BB]), its
 
     # ------------------------------------------------------------------ the persistent launch
 
@@ -452,43 +462,16 @@ class BilateralIntegrator(Stage):
             self._bps = bps // 2
         return False
 
-    def _step_persistent(self, progress=None) -> None:
-        """:meth:`step` with ``launch="persistent"``: a launch and one read of the sums per IRLS iteration."""
+    def _iteration_persistent(self, n, tol2) -> tuple[float, float, float, int] | None:
+        """One IRLS iteration as one persistent launch and one read of its sums, as
+        :meth:`_iteration_tasks` returns it; None when the grid did not fit (see :meth:`_launch_checked`)."""
         cfg = self.config
-        F = self._F
-        n = self.n
-        e_old = self._state["e0"]
-        tol2 = cfg.cg_tol ** 2
-        energies = []
-        converged = False
-        outer = 0
-        total = 0
-        res = float("nan")
-        for it in range(cfg.max_iter):
-            # (only a grid's first launch can fail, and a grid is verified on a solve's first iteration:
-            # the state is then the uploaded start, restored)
-            while not self._launch_checked(n, tol2, cfg.cg_max_iter, float(cfg.k)):
-                if not self._persistent_launch():  # the GPU held no persistent grid: the tasks launch
-                    F["sc"].fill(0)
-                    return self.step(progress)
-            acc = F["acc"].to_numpy()
-            its = int(acc[K.A_ITS])
-            total += its
-            rr = float(acc[K.A_RR + (its - 1) % 3]) if its > 0 else float("nan")
-            bb = float(acc[K.A_BB])
-            res = float(np.sqrt(rr / bb)) if bb > 0 else 0.0
-            e = float(acc[K.A_E])
-            energies.append(e)
-            outer = it + 1
-            rel = abs(e - e_old) / e_old if e_old > 0 else 0.0
-            if progress is not None:
-                progress(outer, cfg.max_iter, f"BiNI energy {e:.4g}, relative change {rel:.2e}")
-            if rel < cfg.tol:
-                converged = True
-                break
-            e_old = e
-        self._state.update(energies=energies, converged=converged, outer=outer, res=res, total_cg=total,
-                           t2=time.perf_counter())
+        if not self._launch_checked(n, tol2, cfg.cg_max_iter, float(cfg.k)):
+            return None
+        acc = self._F["acc"].to_numpy()
+        its = int(acc[K.A_ITS])
+        rr = float(acc[K.A_RR + (its - 1) % 3]) if its > 0 else float("nan")
+        return float(acc[K.A_E]), rr, float(acc[K.A_BB]), its
 
     def fetch(self) -> BiniResult:
         """The solution and diagnostics of the last :meth:`step` (:class:`BiniResult`)."""
