@@ -94,7 +94,8 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
         unroll: CG iterations per launch of ``cg`` (a multiple of 6).
         serial: ``cg`` runs on one thread with local sums (the CPU build:
             Taichi's thread-pool dispatch of a loop costs more than a loop over
-            ~1e5 pixels, and a sum into a field element is an atomic per pixel).
+            ~1e5 pixels, and a sum into a field element is an atomic per pixel); the
+            other kernels' sums then run in pixel order too (deterministic results).
             Otherwise (the CUDA build) each loop's sums are reduced in shared memory
             per block of :data:`BLOCK` threads, one float64 atomic a block: Taichi
             launches at least a saturating grid of threads, so its thread-local sums
@@ -117,7 +118,7 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
         raise ValueError(f"unroll: expected a multiple of 6 (direction buffers by 2, scalar columns by 3), got {unroll}")
     x, pix = F["x"], F["pix"]
     cg = _cg_serial_kernel(F, unroll) if serial else _cg_block_kernel(F, unroll)
-    K = {**_weight_kernels(F), "begin": _begin_kernel(F), "cg": cg}
+    K = {**_weight_kernels(F, serial), "begin": _begin_kernel(F, serial), "cg": cg}
 
     @ti.kernel
     def scatter(n: ti.i32, out: ti.types.ndarray()):
@@ -213,8 +214,11 @@ def _pixel_funcs(F: dict):
     return {"edges": edges, "rhs": rhs, "apply": apply, "residuals": residuals, "reweight": reweight}
 
 
-def _weight_kernels(F: dict) -> dict:
+def _weight_kernels(F: dict, serial: bool = False) -> dict:
     """BiNI's energy and IRLS weight update over the fields ``F`` (see :func:`make_bini`).
+
+    ``serial`` (the CPU build): the loops run on one thread, so their float64 sums are added in pixel order and
+    a result does not depend on how Taichi's threads were scheduled (a parallel loop's sums end in atomics).
 
     Returns:
         dict of kernels ``energy(n)``, ``reweight(n, k)``.
@@ -226,6 +230,7 @@ def _weight_kernels(F: dict) -> dict:
     @ti.kernel
     def energy(n: ti.i32):
         sc[ENERGY] = 0
+        ti.loop_config(serialize=serial)
         for p in range(n):
             rr, rl, rd, ru, _, _, _, _ = residuals(p)
             w1, w2 = wj[p], wi[p]
@@ -234,15 +239,16 @@ def _weight_kernels(F: dict) -> dict:
     @ti.kernel
     def reweight(n: ti.i32, k: ti.f64):
         sc[ENERGY] = 0
+        ti.loop_config(serialize=serial)
         for p in range(n):
             sc[ENERGY] += reweight_at(p, k)
 
     return {"energy": energy, "reweight": reweight}
 
 
-def _begin_kernel(F: dict):
+def _begin_kernel(F: dict, serial: bool = False):
     """The kernel ``begin(n)`` over the fields ``F``: the system assembled from the weights, the CG started
-    (see :func:`make_bini`)."""
+    (see :func:`make_bini`); ``serial`` as in :func:`_weight_kernels` (its sums in pixel order)."""
     x, b, r, z, p0, dinv, sc = F["x"], F["b"], F["r"], F["z"], F["p0"], F["dinv"], F["sc"]
     pqf, rrf, rzf, dnf = F["pq"], F["rr"], F["rz"], F["done"]
     px = _pixel_funcs(F)
@@ -256,6 +262,7 @@ def _begin_kernel(F: dict):
             rhs(p)
         sc[BB] = 0
         ti.static(rzf[2])[0] = 0
+        ti.loop_config(serialize=serial)
         for p in range(n):
             rv = b[p] - _apply(x, p)
             zv = dinv[p] * rv
