@@ -349,36 +349,52 @@ class Integrator(Stage):
         self._bini_key = None
         self._levels_key = None
         self._labels_key = None
+        self._mask_ij = None  # the mask's (rows, columns), computed on first use
         self._job = None  # the uploaded normal map's system, then its solution
 
     # ------------------------------------------------------------------ checks
 
     def _check_normals(self, normals):
+        """``(unit normals (H, W, 3) float64, valid (H, W) bool, invalid count)``: the normals normalised inside
+        the mask (0 outside it, and at the non-finite or zero-length ones), ``valid`` the mask's finite, non-zero,
+        camera-facing normals.  The arithmetic runs on the mask's pixels only (a masked map is often a small part
+        of its frame)."""
         n = np.asarray(normals)
         h, w = self.shape
         if n.ndim != 3 or n.shape != (h, w, 3):
             raise ValueError(f"normals: expected shape (H, W, 3) = ({h}, {w}, 3) matching the mask, got {n.shape}")
         if not np.issubdtype(n.dtype, np.number):
             raise ValueError(f"normals: expected a numeric array, got dtype {n.dtype}")
-        n = n.astype(np.float64)
+        ii, jj = self._mask_pixels()
+        v = n[ii, jj].astype(np.float64)
         with np.errstate(all="ignore"):
-            norm = np.linalg.norm(n, axis=-1)
+            norm = np.linalg.norm(v, axis=-1)
             ok = np.isfinite(norm) & (norm > 1e-6)
-            n = np.where(ok[..., None], n / np.where(ok, norm, 1.0)[..., None], 0.0)
+            v = np.where(ok[:, None], v / np.where(ok, norm, 1.0)[:, None], 0.0)
         if self.camera.is_perspective:
             cx, cy = self.camera.principal_point(self.shape)
-            jj, ii = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-            facing = n[..., 0] * (jj - cx) / self.camera.fx - n[..., 1] * (ii - cy) / self.camera.fy - n[..., 2] < 0
+            facing = (v[:, 0] * (jj.astype(np.float64) - cx) / self.camera.fx
+                      - v[:, 1] * (ii.astype(np.float64) - cy) / self.camera.fy - v[:, 2] < 0)
         else:
-            facing = n[..., 2] > 0
-        valid = self.mask & ok & facing
-        n_invalid = int(self.mask.sum() - valid.sum())
-        if valid.sum() < 2:
+            facing = v[:, 2] > 0
+        out = np.zeros((h, w, 3))
+        out[ii, jj] = v
+        valid = np.zeros((h, w), bool)
+        valid[ii, jj] = ok & facing
+        n_valid = int(np.count_nonzero(valid))
+        n_invalid = int(ii.size - n_valid)
+        if n_valid < 2:
             raise ValueError(
                 f"normals: expected at least 2 finite, non-zero, camera-facing normals inside the mask, "
-                f"got {int(valid.sum())} ({n_invalid} of {int(self.mask.sum())} invalid)"
+                f"got {n_valid} ({n_invalid} of {ii.size} invalid)"
             )
-        return n, valid, n_invalid
+        return out, valid, n_invalid
+
+    def _mask_pixels(self):
+        """The mask's (rows, columns), row-major (computed once)."""
+        if self._mask_ij is None:
+            self._mask_ij = np.nonzero(self.mask)
+        return self._mask_ij
 
     def _check_warm(self, warm_start):
         if warm_start is None:
@@ -458,11 +474,14 @@ class Integrator(Stage):
             if not cfg.bilateral:
                 raise ValueError("cuts: expected None without bilateral=True (only BiNI takes cut edges), got cuts")
             cuts = check_cuts(cuts, self.shape)
-        gj, gi, nzj, nzi = pixel_gradients(n, valid, self.camera, cfg.min_nz)
-        cj = ci = None
-        if cfg.weighting == "normal":
-            scale = float(np.mean(nzj[valid] ** 2))
-            cj, ci = nzj ** 2 / scale, nzi ** 2 / scale
+        system = None
+        if not cfg.bilateral:  # (BiNI forms its own system from the normals on the device)
+            gj, gi, nzj, nzi = pixel_gradients(n, valid, self.camera, cfg.min_nz)
+            cj = ci = None
+            if cfg.weighting == "normal":
+                scale = float(np.mean(nzj[valid] ** 2))
+                cj, ci = nzj ** 2 / scale, nzi ** 2 / scale
+            system = (gj, gi, nzj, nzi, cj, ci)
         u0 = None
         if warm is not None:
             if self.camera.is_perspective:
@@ -473,7 +492,7 @@ class Integrator(Stage):
             u0 = np.where(valid, u0 - self._comp_mean(u0, valid), 0.0)
         timings = {"setup": time.perf_counter() - t0}
         self._job = {"t0": t0, "n": n, "valid": valid, "n_invalid": n_invalid, "u0": u0, "timings": timings,
-                     "reference_depth": reference_depth, "system": (gj, gi, nzj, nzi, cj, ci), "cuts": cuts}
+                     "reference_depth": reference_depth, "system": system, "cuts": cuts}
 
     def step(self, progress: Progress | None = None) -> None:
         """Solve the uploaded system (BiNI's IRLS on the device, or the plain Poisson solve).
@@ -486,7 +505,6 @@ class Integrator(Stage):
             raise ValueError("normals: expected upload(normals) before step(), got nothing uploaded")
         cfg = self.config
         n, valid, u0, timings = job["n"], job["valid"], job["u0"], job["timings"]
-        gj, gi, nzj, nzi, cj, ci = job["system"]
         outer = 0
         total_it = 0
         energy_log = None
@@ -505,8 +523,7 @@ class Integrator(Stage):
             for key, v in bres.timings.items():
                 timings[key] = timings.get(key, 0.0) + v
         else:
-            u, total_it, outer, true_res, solver_res = self._poisson(n, valid, gj, gi, nzj, nzi, cj, ci, u0,
-                                                                      timings, progress)
+            u, total_it, outer, true_res, solver_res = self._poisson(n, valid, *job["system"], u0, timings, progress)
             converged = bool(solver_res <= cfg.tol)
         job.update(u=u, total_it=total_it, outer=outer, energy=energy_log, true_res=true_res, solver_res=solver_res,
                    converged=converged, progress=progress)
@@ -520,25 +537,37 @@ class Integrator(Stage):
         valid, timings, reference_depth, t0 = job["valid"], job["timings"], job["reference_depth"], job["t0"]
         u, true_res = job["u"], job["true_res"]
         t2 = time.perf_counter()
-        u = np.where(valid, u - self._comp_mean(u, valid), 0.0)
+        # on the valid pixels only (row-major, as the full-frame sums: the same values bit for bit)
+        labels, ncomp = self._components(valid)
+        vi, vj = np.nonzero(valid)
+        lab = labels[vi, vj]
+        cnt = np.maximum(np.bincount(lab, minlength=ncomp + 1), 1)
+
+        def part_mean(a):
+            return (np.bincount(lab, weights=a, minlength=ncomp + 1) / cnt)[lab]
+
+        uv = u[vi, vj]
+        uv = uv - part_mean(uv)
+        u = np.zeros(self.shape)
+        u[vi, vj] = uv
         log_depth = None
         if self.camera.is_perspective:
             log_depth = u
-            labels, ncomp = self._components(valid)
             top = np.full(ncomp + 1, -np.inf)
-            np.maximum.at(top, labels[valid], u[valid])
-            top = np.where(valid, top[labels], 0.0)
-            warn_log_depth_span(float(np.max(top - np.where(valid, u, top))) if valid.any() else 0.0)
+            np.maximum.at(top, lab, uv)
+            top = top[lab]
+            warn_log_depth_span(float(np.max(top - uv)) if uv.size else 0.0)
             if reference_depth is not None:
                 # exp(u - max per part), scaled to the reference mean: no overflow whatever the log-depth's range
-                depth = np.where(valid, np.exp(u - top), 0.0)
-                depth = depth * (reference_depth / np.where(valid, self._comp_mean(depth, valid), 1.0))
+                dv = np.exp(uv - top)
+                dv = dv * (reference_depth / part_mean(dv))
             else:
                 with np.errstate(over="ignore"):
-                    depth = np.where(valid, np.exp(u), 0.0)
+                    dv = np.exp(uv)
         else:
-            depth = u + (reference_depth if reference_depth is not None else 0.0)
-        depth = np.where(valid, depth, 0.0).astype(np.float32)
+            dv = uv + (reference_depth if reference_depth is not None else 0.0)
+        depth = np.zeros(self.shape, np.float32)
+        depth[vi, vj] = dv
         timings["post"] = time.perf_counter() - t2
         timings["total"] = time.perf_counter() - t0
         if job["progress"] is not None:

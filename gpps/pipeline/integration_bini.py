@@ -88,7 +88,11 @@ class BiniConfig:
             Same iterations and stopping rules either way.
         blocks_per_sm: resident blocks of 128 threads per multiprocessor of the
             persistent task (all must be resident at once: a GPU that cannot hold
-            them falls back to half as many, then to the tasks).
+            them falls back to half as many, then to the tasks).  No more blocks than the
+            pixels fill (one pixel a thread).  4: more resident warps hide more of each
+            phase's memory and barrier latency (on an H200, DiLiGenT bear's IRLS took
+            23.5 ms at 4, 26.8 at 2 and 30.1 at 1; buddha 66.3, 70.6 and 84.0:
+            perf/results/bini_persistent_cuda0_H200_s12.json).
     """
 
     k: float = 2.0
@@ -98,7 +102,7 @@ class BiniConfig:
     cg_max_iter: int = 5000
     check_every: int = 6
     launch: LaunchName = "auto"
-    blocks_per_sm: int = 2
+    blocks_per_sm: int = 4
 
     def __post_init__(self):
         check_choices(self)
@@ -157,21 +161,35 @@ def bini_coefficients(normals: np.ndarray, valid: np.ndarray, camera):
         four (H, W) float64 arrays, 0 outside ``valid``; ``N D = m`` along each
         axis for the true surface (``D`` the one-sided difference of ``u``).
     """
-    n = np.asarray(normals, dtype=np.float64)
-    nx, ny, nz = n[..., 0], n[..., 1], n[..., 2]
+    v = np.asarray(valid, dtype=bool)
+    ii, jj = np.nonzero(v)
+    out = []
+    for a in bini_coefficients_at(normals, ii, jj, camera, v.shape):
+        full = np.zeros(v.shape)
+        full[ii, jj] = a
+        out.append(full)
+    return tuple(out)
+
+
+def bini_coefficients_at(normals: np.ndarray, ii: np.ndarray, jj: np.ndarray, camera, shape):
+    """:func:`bini_coefficients` at the pixels ``(ii, jj)`` only: four (P,) float64 arrays, the same values.
+
+    Args:
+        normals: (H, W, 3) unit normals, gpps frame.
+        ii, jj: (P,) int rows and columns.
+        camera: :class:`gpps.camera.Orthographic` or :class:`gpps.camera.Perspective`.
+        shape: (H, W) of the image (the principal point's default).
+    """
+    n = np.asarray(normals)[ii, jj].astype(np.float64)
+    nx, ny, nz = n[:, 0], n[:, 1], n[:, 2]
     if camera.is_perspective:
-        h, w = valid.shape
-        cx, cy = camera.principal_point((h, w))
-        jj, ii = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-        base = nx * (jj - cx) - ny * (ii - cy)
+        cx, cy = camera.principal_point(tuple(shape))
+        base = nx * (jj.astype(np.float64) - cx) - ny * (ii.astype(np.float64) - cy)
         Nj = camera.fx * nz - base
         Ni = camera.fy * nz - base
     else:
         Nj = Ni = nz / camera.pixel_size
-    out = []
-    for a in (Nj, Ni, nx, -ny):
-        out.append(np.where(valid, a, 0.0))
-    return tuple(out)
+    return Nj, Ni, nx, -ny
 
 
 # ---------------------------------------------------------------------------- the buffer pool
@@ -342,8 +360,8 @@ class BilateralIntegrator(Stage):
         F = self._ensure()
         n = self.n
         ii, jj = self._ij
-        for name, a in zip(("Nj", "Ni", "mj", "mi"), bini_coefficients(normals, self.valid, self.camera)):
-            self._upload(name, a[ii, jj])
+        for name, a in zip(("Nj", "Ni", "mj", "mi"), bini_coefficients_at(normals, ii, jj, self.camera, self.shape)):
+            self._upload(name, a)
         F["wj"].fill(0.5)
         F["wi"].fill(0.5)
         self._upload("x", 0.0 if u0 is None else np.asarray(u0, np.float64)[ii, jj])
