@@ -11,9 +11,8 @@ once; a block that waits too long sets a flag instead of hanging (see
 """
 
 from gpps._taichi import ti
+from gpps.kernels.grid_barrier import make_gsync
 from gpps.kernels.poisson import _jacobi_point
-
-LIMIT = 1 << 20  # polls before a grid barrier gives up (a block that never became resident)
 
 
 def grid_funcs(ns, nblocks: int, bd: int):
@@ -35,29 +34,15 @@ def grid_funcs(ns, nblocks: int, bd: int):
         raise ValueError(f"nblocks, bd: off CUDA the persistent kernel runs as one thread (1, 1), got ({nblocks}, {bd})")
     NT = nblocks * bd
 
-    @ti.func
-    def gsync(tid, gen):
-        """Grid barrier number ``gen`` of this task (``bar[0]`` zeroed before it); returns ``gen + 1``."""
-        if ti.static(cuda):
-            ti.simt.grid.memfence()
-            ti.simt.block.sync()
-        if tid % bd == 0:
-            ti.atomic_add(bar[0], 1)
-            target = gen * nblocks
-            k = 0
-            while True:
-                if ti.atomic_or(bar[0], 0) >= target:
-                    break
-                k += 1
-                if k >= LIMIT:
-                    ti.atomic_or(bar[1], 1)
-                if k % 1024 == 0:
-                    if ti.atomic_or(bar[1], 0) != 0:
-                        break
-        if ti.static(cuda):
-            ti.simt.block.sync()
-            ti.simt.grid.memfence()
-        return gen + 1
+    if cuda:
+        # the warp-uniform grid barrier shared with BiNI's persistent IRLS (its first warp polls in step: a
+        # lone spinning lane beside its warp waiting at the block barrier deadlocked some kernels on an H100)
+        gsync = make_gsync(bar, nblocks, bd)
+    else:
+        @ti.func
+        def gsync(tid, gen):
+            """One thread: the phases run in order (grid barrier number ``gen``); returns ``gen + 1``."""
+            return gen + 1
 
     @ti.func
     def sweep(tid, gen, src: ti.template(), dst: ti.template(), off, h, w):
@@ -260,7 +245,7 @@ def persistent_builders(ns) -> dict:
 
         The barrier needs every block resident at once: ``nblocks`` must not exceed what the
         GPU holds (SMs times the blocks per SM that the kernel's registers allow).  A block
-        that waits more than ``LIMIT`` polls sets ``bar[1]`` and lets the frame finish with
+        that waits more than :data:`gpps.kernels.grid_barrier.LIMIT` polls sets ``bar[1]`` and lets the frame finish with
         wrong values instead of hanging; :class:`StreamIntegrator` checks the flag on its
         first frame and falls back to fewer blocks, then to :func:`frame`.  On the CPU
         (whose thread pool gives no such residency) it runs only as one thread,
