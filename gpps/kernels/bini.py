@@ -37,7 +37,7 @@ Only device code lives here; allocation and orchestration are in
 """
 
 from gpps._taichi import ti
-from gpps.kernels.block_sum import BLOCK, block_total
+from gpps.kernels.block_sum import BLOCK, block_total, block_total2
 from gpps.kernels.grid_barrier import make_gsync
 
 # indices into the scalar field ``sc``
@@ -126,7 +126,69 @@ def make_bini(F: dict, unroll: int = 8, serial: bool = False):
             out[pix[p, 0], pix[p, 1]] = x[p]
 
     K["scatter"] = scatter
+    K.update(_transfer_kernels(F))
     return K
+
+
+def _transfer_kernels(F: dict) -> dict:
+    """One-launch uploads and fetches of the stage's per-pixel arrays (each host array crosses once, where a
+    field's ``from_numpy`` / ``to_numpy`` a field would cost a launch and a copy each).
+
+    Returns:
+        dict of kernels over the ``cap`` entries of ``F`` (entries ``>= n`` are padding, set as by a zero
+        upload: 0, and -1 for the neighbours):
+        ``load_index(n, a)``: ``a`` (n, 6) int32: the neighbours (right, left, down, up) and the pixel's
+        (row, column) into ``nb`` and ``pix``;
+        ``load(n, a)``: ``a`` (n, 5) float64: ``Nj, Ni, mj, mi`` and the start ``x``; the weights ``wj, wi``
+        set to BiNI's 0.5 and the scalars ``sc`` zeroed;
+        ``gather(n, out)``: ``out`` (n, 3) float64 gets ``x, wj, wi``.
+    """
+    cap = F["cap"]
+    x, nb, pix, wj, wi, sc = F["x"], F["nb"], F["pix"], F["wj"], F["wi"], F["sc"]
+    Nj, Ni, mj, mi = F["Nj"], F["Ni"], F["mj"], F["mi"]
+
+    @ti.kernel
+    def load_index(n: ti.i32, a: ti.types.ndarray()):
+        for p in range(cap):
+            if p < n:
+                for k in ti.static(range(4)):
+                    nb[p, k] = a[p, k]
+                for k in ti.static(range(2)):
+                    pix[p, k] = a[p, 4 + k]
+            else:
+                for k in ti.static(range(4)):
+                    nb[p, k] = -1
+                for k in ti.static(range(2)):
+                    pix[p, k] = 0
+
+    @ti.kernel
+    def load(n: ti.i32, a: ti.types.ndarray()):
+        for p in range(cap):
+            if p < n:
+                Nj[p] = a[p, 0]
+                Ni[p] = a[p, 1]
+                mj[p] = a[p, 2]
+                mi[p] = a[p, 3]
+                x[p] = a[p, 4]
+            else:
+                Nj[p] = 0
+                Ni[p] = 0
+                mj[p] = 0
+                mi[p] = 0
+                x[p] = 0
+            wj[p] = 0.5
+            wi[p] = 0.5
+        for i in range(NSC):
+            sc[i] = 0
+
+    @ti.kernel
+    def gather(n: ti.i32, out: ti.types.ndarray()):
+        for p in range(n):
+            out[p, 0] = x[p]
+            out[p, 1] = wj[p]
+            out[p, 2] = wi[p]
+
+    return {"load_index": load_index, "load": load, "gather": gather}
 
 
 def _pixel_funcs(F: dict):
@@ -362,8 +424,7 @@ def _cg_block_kernel(F: dict, unroll: int):
                     rz = rv * zv
                 pr[tid] = rr
                 pz[tid] = rz
-                block_total(pr, tid)
-                block_total(pz, tid)
+                block_total2(pr, pz, tid)
                 if tid == 0:
                     ti.atomic_add(ti.static(rrf[c])[0], pr[0])
                     ti.atomic_add(ti.static(rzf[c])[0], pz[0])
@@ -491,6 +552,21 @@ def make_irls_persistent(F: dict, nblocks: int, bd: int, cuda: bool):
             acc[idx] += v
 
     @ti.func
+    def red2(pa: ti.template(), pb: ti.template(), tid, va, ia, vb, ib):
+        """:func:`red` of two sums in one block tree (``acc[ia] += sum va``, ``acc[ib] += sum vb``)."""
+        if ti.static(cuda):
+            t = tid % bd
+            pa[t] = va
+            pb[t] = vb
+            block_total2(pa, pb, t)
+            if t == 0:
+                ti.atomic_add(acc[ia], pa[0])
+                ti.atomic_add(acc[ib], pb[0])
+        else:
+            acc[ia] += va
+            acc[ib] += vb
+
+    @ti.func
     def cg_iter(tid, gen, n, t, beta, rz_prev, pa: ti.template(), pb: ti.template(), pad: ti.template(),
                 pad2: ti.template()):
         """CG iteration ``t`` (directions ``pa`` -> ``pb``): returns (gen, pq, |r|^2, r.z)."""
@@ -525,8 +601,7 @@ def make_irls_persistent(F: dict, nblocks: int, bd: int, cuda: bool):
                     z[p] = zv
                     rr += rv * rv
                     rz += rv * zv
-        red(pad, tid, rr, A_RR + c)
-        red(pad2, tid, rz, A_RZ + c)
+        red2(pad, pad2, tid, rr, A_RR + c, rz, A_RZ + c)
         g = gsync(tid, g)
         return g, pqt, acc[A_RR + c], acc[A_RZ + c]
 
@@ -564,8 +639,7 @@ def make_irls_persistent(F: dict, nblocks: int, bd: int, cuda: bool):
                     p0[p] = 0
                     rz0 += rv * zv
                     bb += b[p] * b[p]
-            red(pad, tid, rz0, A_RZ0)
-            red(pad2, tid, bb, A_BB)
+            red2(pad, pad2, tid, rz0, A_RZ0, bb, A_BB)
             gen = gsync(tid, gen)
             bbt = acc[A_BB]
             rz_prev = acc[A_RZ0]

@@ -51,6 +51,19 @@ def block_total(pad: ti.template(), tid):
 
 
 @ti.func
+def block_total2(pa: ti.template(), pb: ti.template(), tid):
+    """:func:`block_total` of two shared arrays in one tree (the same additions in the same order for each,
+    half the block barriers of two trees)."""
+    ti.simt.block.sync()
+    for k in ti.static(range(_LOG_BLOCK)):
+        stride = ti.static(BLOCK >> (k + 1))
+        if tid < stride:
+            pa[tid] += pa[tid + stride]
+            pb[tid] += pb[tid + stride]
+        ti.simt.block.sync()
+
+
+@ti.func
 def block_add(pad: ti.template(), k, v, dst: ti.template(), idx: ti.template()):
     """``dst[idx] += `` the sum of the block's float64 terms ``v`` (thread ``k`` of the loop; every thread
     of the block must call it): ``v`` into the shared array ``pad``, :func:`block_total`, one atomic."""

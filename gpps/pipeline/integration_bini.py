@@ -320,26 +320,18 @@ class BilateralIntegrator(Stage):
         ii, jj = np.nonzero(self.valid)
         lab = -np.ones((h + 2, w + 2), dtype=np.int32)
         lab[ii + 1, jj + 1] = np.arange(n, dtype=np.int32)
-        nb = np.full((F["cap"], 4), -1, dtype=np.int32)
-        nb[:n] = np.stack([lab[ii + 1, jj + 2], lab[ii + 1, jj], lab[ii + 2, jj + 1], lab[ii, jj + 1]], axis=1)
+        # one (n, 6) upload: the neighbours (right, left, down, up; -1 none) and the pixel's row, column
+        idx = np.empty((n, 6), dtype=np.int32)
+        idx[:, 0], idx[:, 1] = lab[ii + 1, jj + 2], lab[ii + 1, jj]
+        idx[:, 2], idx[:, 3] = lab[ii + 2, jj + 1], lab[ii, jj + 1]
         if self.cuts is not None:
-            _apply_cuts(nb, ii, jj, *self.cuts)
-        pix = np.zeros((F["cap"], 2), dtype=np.int32)
-        pix[:n, 0], pix[:n, 1] = ii, jj
-        F["nb"].from_numpy(nb)
-        F["pix"].from_numpy(pix)
+            _apply_cuts(idx, ii, jj, *self.cuts)
+        idx[:, 4], idx[:, 5] = ii, jj
+        F["kernels"]["load_index"](n, idx)
         self._ij = (ii, jj)
         self._F = F
         return F
 
-    def _upload(self, name, a):
-        F = self._F
-        buf = np.zeros(F["cap"])
-        buf[: self.n] = a
-        F[name].from_numpy(buf)
-
-    def _fetch(self, name):
-        return self._F[name].to_numpy()[: self.n]
 
     def close(self) -> None:
         """Give the device buffers back to the pool (they are reused by the next integrator)."""
@@ -360,12 +352,13 @@ class BilateralIntegrator(Stage):
         F = self._ensure()
         n = self.n
         ii, jj = self._ij
-        for name, a in zip(("Nj", "Ni", "mj", "mi"), bini_coefficients_at(normals, ii, jj, self.camera, self.shape)):
-            self._upload(name, a)
-        F["wj"].fill(0.5)
-        F["wi"].fill(0.5)
-        self._upload("x", 0.0 if u0 is None else np.asarray(u0, np.float64)[ii, jj])
-        F["sc"].fill(0)
+        # one (n, 5) upload: the coefficients and the start (the kernel also sets BiNI's weights 0.5 and
+        # zeroes the scalars)
+        a = np.empty((n, 5))
+        for k, c in enumerate(bini_coefficients_at(normals, ii, jj, self.camera, self.shape)):
+            a[:, k] = c
+        a[:, 4] = 0.0 if u0 is None else np.asarray(u0, np.float64)[ii, jj]
+        F["kernels"]["load"](n, a)
         F["kernels"]["energy"](n)
         self._state = {"e0": float(F["sc"][K.ENERGY]), "t0": t0, "t1": time.perf_counter()}
 
@@ -500,9 +493,11 @@ class BilateralIntegrator(Stage):
         u = np.zeros(self.shape)
         wjm = np.full(self.shape, 0.5)
         wim = np.full(self.shape, 0.5)
-        u[ii, jj] = self._fetch("x")
-        wjm[ii, jj] = self._fetch("wj")
-        wim[ii, jj] = self._fetch("wi")
+        got = np.empty((self.n, 3))
+        self._F["kernels"]["gather"](self.n, got)  # one fetch: x, wj, wi
+        u[ii, jj] = got[:, 0]
+        wjm[ii, jj] = got[:, 1]
+        wim[ii, jj] = got[:, 2]
         t3 = time.perf_counter()
         return BiniResult(u=u, outer_iterations=st["outer"], cg_iterations=st["total_cg"], energy=st["energies"],
                           converged=st["converged"], residual=st["res"], wj=wjm, wi=wim,
