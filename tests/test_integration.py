@@ -514,3 +514,38 @@ def test_laplacian_pinv_equals_numpy_pinv():
         got = laplacian_pinv(A)
         assert np.abs(got - ref).max() <= 1e-10 * np.abs(ref).max()
     assert laplacian_pinv(np.zeros((0, 0))).shape == (0, 0)
+
+
+@pytest.mark.parametrize("camera", ["orthographic", "perspective"])
+def test_normal_checks_on_the_mask_pixels_match_the_full_frame_rule(camera):
+    # Integrator._check_normals works on the mask's pixels only: inside the mask the normalised normals, the
+    # valid set and the invalid count of the full-frame rule (non-finite, zero-length and back-facing normals
+    # dropped), 0 outside the mask
+    h, w = 20, 24
+    rng = np.random.default_rng(3)
+    n = rng.normal(size=(h, w, 3))
+    n[..., 2] = np.abs(n[..., 2]) + 0.2
+    n *= rng.uniform(0.5, 2.0, size=(h, w, 1))
+    n[2, 3] = np.nan
+    n[4, 5] = 0.0
+    n[6, 7] = (0.1, 0.2, -0.9)  # back-facing
+    n[8, 9] = (np.inf, 0.0, 1.0)
+    m = np.zeros((h, w), bool)
+    m[1:18, 2:22] = True
+    cam = Perspective([[30.0, 0, 11.3], [0, 32.0, 9.6], [0, 0, 1]]) if camera == "perspective" else Orthographic(0.1)
+    got, valid, bad = Integrator(m, camera=cam)._check_normals(n)
+    # the full-frame rule, from the equations
+    norm = np.linalg.norm(n, axis=-1)
+    with np.errstate(all="ignore"):
+        ok = np.isfinite(norm) & (norm > 1e-6)
+        ref = np.where(ok[..., None], n / np.where(ok, norm, 1.0)[..., None], 0.0)
+    if cam.is_perspective:
+        cx, cy = cam.principal_point((h, w))
+        jj, ii = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+        facing = ref[..., 0] * (jj - cx) / cam.fx - ref[..., 1] * (ii - cy) / cam.fy - ref[..., 2] < 0
+    else:
+        facing = ref[..., 2] > 0
+    ref_valid = m & ok & facing
+    assert np.array_equal(valid, ref_valid) and bad == int(m.sum() - ref_valid.sum())
+    assert not valid[2, 3] and not valid[4, 5] and not valid[6, 7] and not valid[8, 9] and valid.sum() > 200
+    assert np.array_equal(got[m], ref[m]) and not got[~m].any()

@@ -344,3 +344,37 @@ def test_diligent_default_mode_within_1p1x_of_bini(name, data_root, device):
     made = float(np.mean(np.abs(np.median(g / d) * d - g)))
     assert res.converged and made <= 1.1 * BINI_MM[name], (made, BINI_MM[name])
     assert made == pytest.approx(BINI_MM[name], rel=0.01)
+
+
+@pytest.mark.parametrize("camera", ["orthographic", "perspective"])
+def test_coefficients_at_pixels_are_the_full_frame_ones(camera):
+    # the stage uploads bini_coefficients_at (the mask's pixels only): the same values as the full-frame form
+    from gpps.pipeline.integration_bini import bini_coefficients_at
+
+    sc = render_scene("overlap", 40, camera)
+    cam = _camera(sc)
+    m = sc["mask"]
+    ii, jj = np.nonzero(m)
+    full = bini_coefficients(sc["normals"], m, cam)
+    at = bini_coefficients_at(sc["normals"], ii, jj, cam, m.shape)
+    for f, a in zip(full, at):
+        assert a.shape == (ii.size,) and np.array_equal(f[ii, jj], a) and not f[~m].any()
+
+
+def test_pooled_buffers_carry_nothing_from_a_larger_map(device):
+    # two maps of one size class share the pooled buffers: a larger map run in between leaves values past the
+    # smaller one's pixel count, which the one-launch uploads must reset (bitwise on the CPU, rounding on CUDA)
+    small = render_scene("figure", 24, "perspective")
+    large = render_scene("overlap", 32, "perspective")
+    assert small["mask"].sum() < large["mask"].sum() <= 1024  # (one size class: 1024 entries)
+    runs = []
+    for sc in (small, large, small):
+        with BilateralIntegrator(sc["mask"], _camera(sc), device=device) as bi:
+            runs.append((bi.run(sc["normals"]), bi._F))
+    (a, fa), (_, fb), (c, fc) = runs
+    assert fa is fb is fc
+    m = small["mask"]
+    if device == "cpu":
+        assert np.array_equal(a.u, c.u) and a.energy == c.energy and a.cg_iterations == c.cg_iterations
+    else:
+        assert np.abs(a.u - c.u)[m].max() <= 1e-5 * np.ptp(a.u[m])
