@@ -92,7 +92,8 @@ class BiniConfig:
             pixels fill (one pixel a thread).  4: more resident warps hide more of each
             phase's memory and barrier latency (on an H200, DiLiGenT bear's IRLS took
             23.5 ms at 4, 26.8 at 2 and 30.1 at 1; buddha 66.3, 70.6 and 84.0:
-            perf/results/bini_persistent_cuda0_H200_s12.json).
+            perf/results/bini_persistent_cuda0_H200_s12.json; on all six maps 4 is faster
+            than 2 on five and equal on goblet, 6 equal to 4: ..._s12_six.json).
     """
 
     k: float = 2.0
@@ -331,7 +332,6 @@ class BilateralIntegrator(Stage):
         self._ij = (ii, jj)
         self._F = F
         return F
-
 
     def close(self) -> None:
         """Give the device buffers back to the pool (they are reused by the next integrator)."""
