@@ -368,15 +368,34 @@ def _ap_fused_func(F: dict):
     return _ap_fused
 
 
+def _cg_update_func(F: dict):
+    """The ti.func ``_cg_update(p, a, pdir)`` over the fields ``F`` (every CG build uses it): the step of pixel
+    ``p`` along the direction ``pdir`` (``x += a p``, ``r -= a q``, ``z = D^-1 r``); returns its terms of
+    ``|r|^2`` and ``r . z``."""
+    x, r, z, q, dinv = F["x"], F["r"], F["z"], F["q"], F["dinv"]
+
+    @ti.func
+    def _cg_update(p, a, pdir: ti.template()):
+        x[p] += a * pdir[p]
+        rv = r[p] - a * q[p]
+        r[p] = rv
+        zv = dinv[p] * rv
+        z[p] = zv
+        return rv * rv, rv * zv
+
+    return _cg_update
+
+
 def _cg_block_kernel(F: dict, unroll: int):
     """``cg`` with block sums (the CUDA build, see :func:`make_bini`): ``unroll`` gated Jacobi-PCG
     iterations, each two parallel loops over ``n`` rounded up to whole blocks (the extra threads add 0):
     (1) ``p_t = z_t + beta_t p_{t-1}`` (fused), ``q = A p_t``, ``p_t . q`` and the stopping test of
     iteration t-1; (2) ``alpha = r.z / p.q``, ``x += alpha p``, ``r -= alpha q``, ``z = D^-1 r``, ``|r|^2``,
     ``r.z``.  Each sum is tree-reduced in shared memory and added to its field by one atomic a block."""
-    x, r, z, p0, p1, q, dinv, sc = F["x"], F["r"], F["z"], F["p0"], F["p1"], F["q"], F["dinv"], F["sc"]
+    p0, p1, q, sc = F["p0"], F["p1"], F["q"], F["sc"]
     pqf, rrf, rzf, dnf = F["pq"], F["rr"], F["rz"], F["done"]
     _ap_fused = _ap_fused_func(F)
+    _cg_update = _cg_update_func(F)
 
     @ti.kernel
     def cg_block(n: ti.i32, tol2: ti.f64, maxit: ti.i32):
@@ -414,14 +433,9 @@ def _cg_block_kernel(F: dict, unroll: int):
                 rr = ti.cast(0, ti.f64)
                 rz = ti.cast(0, ti.f64)
                 if p < n and not done and pq != 0:
-                    a = ti.static(rzf[c1])[0] / pq
-                    x[p] += a * pnew[p]
-                    rv = r[p] - a * q[p]
-                    r[p] = rv
-                    zv = dinv[p] * rv
-                    z[p] = zv
-                    rr = rv * rv
-                    rz = rv * zv
+                    u, v = _cg_update(p, ti.static(rzf[c1])[0] / pq, pnew)
+                    rr = u
+                    rz = v
                 pr[tid] = rr
                 pz[tid] = rz
                 block_total2(pr, pz, tid)
@@ -439,9 +453,10 @@ def _cg_block_kernel(F: dict, unroll: int):
 
 def _cg_serial_kernel(F: dict, unroll: int):
     """``cg`` on one thread (the CPU build, see :func:`make_bini`)."""
-    x, r, z, p0, p1, q, dinv, sc = F["x"], F["r"], F["z"], F["p0"], F["p1"], F["q"], F["dinv"], F["sc"]
+    p0, p1, q, sc = F["p0"], F["p1"], F["q"], F["sc"]
     pqf, rrf, rzf, dnf = F["pq"], F["rr"], F["rz"], F["done"]
     _ap_fused = _ap_fused_func(F)
+    _cg_update = _cg_update_func(F)
 
     @ti.kernel
     def cg_serial(n: ti.i32, tol2: ti.f64, maxit: ti.i32):
@@ -466,13 +481,9 @@ def _cg_serial_kernel(F: dict, unroll: int):
                 if pq != 0:
                     a = ti.static(rzf[c1])[0] / pq
                     for p in range(n):
-                        x[p] += a * pnew[p]
-                        rv = r[p] - a * q[p]
-                        r[p] = rv
-                        zv = dinv[p] * rv
-                        z[p] = zv
-                        rr += rv * rv
-                        rz += rv * zv
+                        u, v = _cg_update(p, a, pnew)
+                        rr += u
+                        rz += v
                     sc[ITS] += 1
                     sc[TOTAL] += 1
                 ti.static(rrf[c])[0] = rr
@@ -529,6 +540,7 @@ def make_irls_persistent(F: dict, nblocks: int, bd: int, cuda: bool):
     x, b, r, z, p0, p1, q, dinv = F["x"], F["b"], F["r"], F["z"], F["p0"], F["p1"], F["q"], F["dinv"]
     acc, bar = F["acc"], F["bar"]
     _ap_fused = _ap_fused_func(F)
+    _cg_update = _cg_update_func(F)
     px = _pixel_funcs(F)
     edges, rhs, _apply, reweight_at = px["edges"], px["rhs"], px["apply"], px["reweight"]
 
@@ -594,13 +606,9 @@ def make_irls_persistent(F: dict, nblocks: int, bd: int, cuda: bool):
             for kk in range((n + NT - 1) // NT):
                 p = tid + kk * NT
                 if p < n:
-                    x[p] += a * pb[p]
-                    rv = r[p] - a * q[p]
-                    r[p] = rv
-                    zv = dinv[p] * rv
-                    z[p] = zv
-                    rr += rv * rv
-                    rz += rv * zv
+                    u, v = _cg_update(p, a, pb)
+                    rr += u
+                    rz += v
         red2(pad, pad2, tid, rr, A_RR + c, rz, A_RZ + c)
         g = gsync(tid, g)
         return g, pqt, acc[A_RR + c], acc[A_RZ + c]

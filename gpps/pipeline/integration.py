@@ -572,7 +572,6 @@ class Integrator(Stage):
         timings["total"] = time.perf_counter() - t0
         if job["progress"] is not None:
             job["progress"](1, 1, f"residual {true_res:.2e}")
-        _, ncomp = self._components(valid)
         return IntegrationResult(
             depth=depth, mask=valid, iterations=job["total_it"], residual=true_res, solver_residual=job["solver_res"],
             converged=job["converged"], n_invalid=job["n_invalid"], n_components=int(ncomp),
