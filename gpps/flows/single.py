@@ -305,10 +305,7 @@ def _first_lights(Ip, npix, view, m, cfg: SingleConfig, net) -> dict:
     dirs, rgb, kd, ks = estimate_lights(Ip, n_start, view, shininess=shin, specular=cfg.specular == "ks")
     st = {"normals": npix, "start": n_start, "prior": npix, "hl": None, "highlights": [], "objective": []}
     if cfg.specular == "estimate":
-        prior_deg = cfg.highlight_prior_deg
-        if prior_deg is None:
-            prior_deg = _prior_deg(cfg, net)
-        st["hl"] = {"prior_deg": prior_deg, "shininess_range": cfg.shininess_range}
+        st["hl"] = {"prior_deg": _prior_deg(cfg, net), "shininess_range": cfg.shininess_range}
         fit = fit_highlights(Ip, n_start, view, dirs, rgb, kd, shininess=shin, **st["hl"])
         dirs, rgb, kd, ks, shin = fit.directions, fit.intensities, fit.albedo, fit.ks, fit.shininess
         st["start"], st["prior"] = fit.normals, through_gbr(npix, fit.gbr)
