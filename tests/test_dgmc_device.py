@@ -314,3 +314,29 @@ def test_stage_bad_input_names_the_argument(device):
         DeviceDGMC((2, 8, 8), device=device)
     with pytest.raises(ValueError, match=r"^shape: expected H W <= 2\^28 pixels"):
         DeviceDGMC((3, 1 << 14, (1 << 14) + 1), device=device)  # refused before any allocation
+
+
+def test_step_without_starts_gives_the_front_its_maps_only(device):
+    """step(starts=False) (what RON's solved front reads): the highlight region and the curvatures equal the full
+    step's (and the host's); no start normals come back and the full result is refused."""
+    img, L, sc, nrm, _ = _scene("bumps", 48, "orthographic", "directional", 8)
+    h = H.dgmc_start(img, sc.mask, nrm, lights=L)
+    st = DeviceDGMC(img.shape[:3], device=device)
+    st.upload(img, sc.mask, nrm, lights=L)
+    st.step(starts=False)
+    part = st.fetch_start()
+    assert part.normals is None
+    assert h.highlight.sum() > 20
+    np.testing.assert_array_equal(part.highlight, h.highlight)
+    np.testing.assert_allclose(part.gaussian, h.gaussian, rtol=0, atol=1e-6 * float(np.abs(h.gaussian).max()))
+    np.testing.assert_allclose(part.mean, h.mean, rtol=0, atol=1e-6 * float(np.abs(h.mean).max()))
+    with pytest.raises(RuntimeError, match="starts=False"):
+        st.fetch()
+    with pytest.raises(RuntimeError, match="starts=False"):
+        st.candidates()
+    st.step()  # the full step again: everything as the host's
+    _assert_same(h, st.fetch())
+    full = st.fetch_start()
+    np.testing.assert_array_equal(full.highlight, part.highlight)
+    np.testing.assert_array_equal(full.gaussian, part.gaussian)
+    st.close()

@@ -390,7 +390,8 @@ class RONResult:
         highlight: (H, W) bool DGMC highlight region (False without DGMC).
         start_normals: (H, W, 3) the round-1 start: least squares, and on highlight
             pixels the DGMC start (with ``DGMCConfig.start="front"``, the solved
-            normal of the neighbour each was started from).
+            normal of the neighbour each was started from; least squares where no
+            ring reached).
         material_fit: per material update: the parameters, energy, evaluations,
             and ``identifiable`` (the energy's relative spread over the grid > 1e-3).
         integration_residual: relative residual of the last integration.
@@ -1325,11 +1326,16 @@ class RON:
             # RGB frames: DGMC copies the solver's uploaded frame on the device (the same float32 values);
             # grey ones go up again (DGMC keeps one channel where the solver replicated it to three)
             rgb = np.ndim(images) == 4 and np.shape(images)[-1] == 3
+            # the solved front (the default start) reads only the highlights and the curvatures: it picks its
+            # sources among the solved pixels itself (4.17-4.18), so the boundary mode's starts are not computed;
+            # its highlight pixels start from least squares until their ring's source is known (run())
+            front = c.dgmc_config.start == "front"
             with DeviceDGMC(self.shape, config=c.dgmc_config, device=self.device) as stage:
                 stage.upload(self.solver.images if rgb else images, m, nrm, lights=self.lights, points=pts)
-                stage.step()
+                stage.step(starts=not front)
                 dg = stage.fetch_start()
-            start, highlight = dg.normals.astype(np.float32), dg.highlight
+            start = (nrm if front else dg.normals).astype(np.float32)
+            highlight = dg.highlight
             timings["dgmc"] += time.perf_counter() - t
         return start, highlight, dg
 

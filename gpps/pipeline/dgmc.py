@@ -118,6 +118,7 @@ class DeviceDGMC(Stage):
         self.light_kind = 0
         self.count = 0
         self.sweeps = 0
+        self._starts = True
         self._uploaded = False
         self._closed = False
 
@@ -217,16 +218,27 @@ class DeviceDGMC(Stage):
 
     # ------------------------------------------------------------------ step
 
-    def step(self) -> None:
-        """Highlights, regions, boundaries, geodesic candidates, curvatures and the start search, on the device."""
+    def step(self, *, starts: bool = True) -> None:
+        """Highlights, regions, boundaries, geodesic candidates, curvatures and the start search, on the device.
+
+        Args:
+            starts: False: the highlights and the curvatures only (4.16), what DGMC's solved front
+                (``DGMCConfig.start="front"``, :mod:`gpps.pipeline.front`) reads: the front picks each ring
+                pixel's source among its solved neighbours itself (4.17-4.18), so the regions, the geodesic
+                candidates and the boundary start search (the ``"boundary"`` mode's starts) are skipped;
+                :meth:`fetch_start` then returns no start normals and :meth:`fetch` refuses.
+        """
         self._check_open()
         if not self._uploaded:
             raise RuntimeError("step: upload() a frame first")
         self._highlights()
-        self._regions()
-        self._geodesics()
+        if starts:
+            self._regions()
+            self._geodesics()
         self._curvatures()
-        self._select()
+        if starts:
+            self._select()
+        self._starts = bool(starts)
 
     def _launch(self, kernel, dim, inputs) -> None:
         warp().launch(kernel, dim=dim, inputs=inputs, device=self.device)
@@ -369,6 +381,8 @@ class DeviceDGMC(Stage):
     def candidates(self) -> tuple[np.ndarray, np.ndarray]:
         """The converged lists: ``(sources (H, W, K) int32 flat indices, -1 past the end; distances (H, W, K)
         float64, inf past the end)``, nearest first (the device form of :func:`gpps.host.dgmc.geodesic_candidates`)."""
+        if not self._starts:
+            raise RuntimeError("candidates: the last step ran with starts=False (no geodesic candidates)")
         wp = warp()
         _, h, w = self.shape
         k = int(self.config.k_nearest)
@@ -379,6 +393,9 @@ class DeviceDGMC(Stage):
     def fetch(self) -> DGMCResult:
         """The result of the last step, as :func:`gpps.host.dgmc.dgmc_start` returns it."""
         self._check_open()
+        if not self._starts:
+            raise RuntimeError("fetch: the last step ran with starts=False (no regions, candidates or starts); "
+                               "use fetch_start(), or step() with starts=True")
         m = self.mask.numpy().astype(bool)
         flags = self.flags.numpy().astype(bool)
         labels = self.labels.numpy()
@@ -406,10 +423,12 @@ class DeviceDGMC(Stage):
 
     def fetch_start(self) -> "DGMCStart":
         """The part of the last step a reconstruction reads (:class:`DGMCStart`): four (H, W) maps come back
-        instead of :meth:`fetch`'s fourteen (RON's start, its front's curvature similarity)."""
+        instead of :meth:`fetch`'s fourteen (RON's start, its front's curvature similarity); three after a step
+        with ``starts=False`` (``normals`` None)."""
         self._check_open()
         _, h, w = self.shape
-        return DGMCStart(normals=self.out_normals.numpy().reshape(h, w, 3), highlight=self.region.numpy().astype(bool),
+        nrm = self.out_normals.numpy().reshape(h, w, 3) if self._starts else None
+        return DGMCStart(normals=nrm, highlight=self.region.numpy().astype(bool),
                          gaussian=self.gc.numpy().astype(np.float32), mean=self.mc.numpy().astype(np.float32))
 
     def close(self) -> None:
@@ -428,10 +447,10 @@ class DeviceDGMC(Stage):
 @dataclass(frozen=True)
 class DGMCStart:
     """What :meth:`DeviceDGMC.fetch_start` returns (the fields of :class:`gpps.host.dgmc.DGMCResult` of the same
-    names): ``normals`` (H, W, 3) float32 start normals, ``highlight`` (H, W) bool region, ``gaussian`` and
-    ``mean`` (H, W) float32 curvatures (4.16)."""
+    names): ``normals`` (H, W, 3) float32 start normals (None after :meth:`DeviceDGMC.step` with
+    ``starts=False``), ``highlight`` (H, W) bool region, ``gaussian`` and ``mean`` (H, W) float32 curvatures (4.16)."""
 
-    normals: np.ndarray
+    normals: np.ndarray | None
     highlight: np.ndarray
     gaussian: np.ndarray
     mean: np.ndarray
