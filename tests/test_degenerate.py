@@ -162,3 +162,26 @@ def test_negative_images_refused(sphere):
     sc, L, img = sphere
     with pytest.raises(ValueError, match="images: expected values >= 0"):
         solve_normals(img - 0.5, sc.mask, L, device="cpu")
+
+
+def test_float_images_without_shading_are_an_error(sphere, device):
+    """Float images clipped everywhere (no saturation level given: nothing flags them) or constant carry no
+    shading: refused before any solve, naming the value."""
+    sc, L, img = sphere
+    with pytest.raises(ValueError, match=r"images: 100% of the observations inside the mask have one value, 1\b"):
+        gpps.reconstruct(np.ones_like(img), sc.mask, L, device=device)
+    with pytest.raises(ValueError, match=r"have one value, 0\.5"):
+        solve_normals(np.full_like(img, 0.5), sc.mask, L, device=device)
+
+
+def test_clipped_float_images_warn(sphere):
+    sc, L, img = sphere
+    peak = img.max(axis=-1)[:, sc.mask]
+    clipped = np.minimum(img / np.percentile(peak, 92), 1.0).astype(np.float32)  # ~8% of the observations at 1.0
+    with pytest.warns(GppsWarning, match=r"sit at the largest value 1: clipped \(saturated\)\? Pass saturation=1"):
+        res = solve_normals(clipped, sc.mask, L, device="cpu")
+    assert any("clipped" in w for w in res.warnings)
+    with warnings.catch_warnings(record=True) as caught:  # a saturation level given: the fit drops them
+        warnings.simplefilter("always")
+        res = solve_normals(clipped, sc.mask, L, saturation=1.0, device="cpu")
+    assert not any("clipped" in str(w.message) for w in caught) and not any("clipped" in w for w in res.warnings)

@@ -365,14 +365,17 @@ def test_masked_grey_is_numpys_channel_mean():
     a = np.array([[1, 4e-8, 4e-8], [4e-8, 4e-8, 1], [3e-8, 1, 3e-8]], np.float32)  # the order shows
     img = np.broadcast_to(a[None, None], (2, 3, 3, 3)).copy()
     mask = np.ones((3, 3), bool)
-    grey, bad = _masked_statistics(img, mask, None, None)
+    grey, bad, peak = _masked_statistics(img, mask, None, None)
     assert bad is None and _same(grey, img.mean(axis=-1)[:, mask])
+    np.testing.assert_array_equal(peak, img.max(axis=-1)[:, mask])
     rng = np.random.default_rng(5)
     for dtype in (np.float32, np.float64):
         img = rng.random((4, 9, 11, 3)).astype(dtype) ** 3
         mask = rng.random((9, 11)) > 0.4
-        grey, _ = _masked_statistics(img, mask, None, None)
+        grey, bad, peak = _masked_statistics(img, mask, None, 0.5)
         np.testing.assert_array_equal(grey, img.mean(axis=-1)[:, mask])
+        np.testing.assert_array_equal(peak, img.max(axis=-1)[:, mask])
+        np.testing.assert_array_equal(bad, img.max(axis=-1)[:, mask] >= 0.5)
         assert grey.dtype == dtype
         view = np.moveaxis(np.ascontiguousarray(np.moveaxis(img, -1, 1)), 1, -1)  # channels the slowest axis
         np.testing.assert_array_equal(_masked_statistics(view, mask, None, None)[0], img.mean(axis=-1)[:, mask])

@@ -108,6 +108,11 @@ UNLIT_FRACTION = 1e-3
 #: Below this share of determined mask pixels the input is degenerate (an error); below WARN_DETERMINED a warning.
 MIN_DETERMINED = 0.2
 WARN_DETERMINED = 0.5
+#: At or above this share of the mask's observations equal to their largest value the images carry no shading (an
+#: error); at or above CLIPPED_SHARE (and CLIPPED_MIN observations), with no saturation level given, a warning.
+CONSTANT_SHARE = 0.9
+CLIPPED_SHARE = 0.05
+CLIPPED_MIN = 16
 
 
 def _masked_statistics(img, mask, valid, saturation):
@@ -117,21 +122,23 @@ def _masked_statistics(img, mask, valid, saturation):
         img: (N, H, W, C) images; mask: (H, W) bool; valid: (N, H, W) or None; saturation: level or None.
 
     Returns:
-        ``(grey, bad)``: (N, P) ``img.mean(axis=-1)[:, mask]`` (the same values: numpy's mean over the
-        channel axis sums left to right, then divides by C; tests/test_host_overheads.py pins it), and
-        (N, P) bool ``max over channels >= saturation`` or not ``valid`` (None when neither is given).
-        One pass over each image (in cache), no (N, H, W) temporaries.
+        ``(grey, bad, peak)``: (N, P) ``img.mean(axis=-1)[:, mask]`` (the same values: numpy's mean over the
+        channel axis sums left to right, then divides by C; tests/test_host_overheads.py pins it), (N, P) bool
+        ``max over channels >= saturation`` or not ``valid`` (None when neither is given), and (N, P) the
+        max over channels.  One pass over each image (in cache), no (N, H, W) temporaries.
     """
     n, c = img.shape[0], img.shape[-1]
     if img.dtype not in (np.float32, np.float64) or c not in (1, 3):  # other inputs: the plain formula
         grey = img.mean(axis=-1)[:, mask]
-        bad = None if saturation is None else img.max(axis=-1)[:, mask] >= saturation
+        peak = img.max(axis=-1)[:, mask]
+        bad = None if saturation is None else peak >= saturation
         if valid is not None:
             inv = ~np.asarray(valid, bool)[:, mask]
             bad = inv if bad is None else bad | inv
-        return grey, bad
+        return grey, bad, peak
     idx = np.flatnonzero(mask)
     grey = np.empty((n, idx.size), img.dtype)
+    peak = np.empty((n, idx.size), img.dtype)
     bad = None if saturation is None and valid is None else np.zeros((n, idx.size), bool)
     val = None if valid is None else np.asarray(valid, bool)
     tmp = np.empty(mask.size, img.dtype)
@@ -142,18 +149,17 @@ def _masked_statistics(img, mask, valid, saturation):
             tmp += a[:, 2]
             tmp /= 3
             np.take(tmp, idx, out=grey[k])
+            np.maximum(a[:, 0], a[:, 1], out=tmp)
+            np.maximum(tmp, a[:, 2], out=tmp)
+            np.take(tmp, idx, out=peak[k])
         else:
             np.take(a[:, 0], idx, out=grey[k])
+            peak[k] = grey[k]
         if saturation is not None:
-            if c == 3:
-                np.maximum(a[:, 0], a[:, 1], out=tmp)
-                np.maximum(tmp, a[:, 2], out=tmp)
-                bad[k] = np.take(tmp, idx) >= saturation
-            else:
-                bad[k] = np.take(a[:, 0], idx) >= saturation
+            bad[k] = peak[k] >= saturation
         if val is not None:
             bad[k] |= ~np.take(val[k].reshape(-1), idx)
-    return grey, bad
+    return grey, bad, peak
 
 
 def check_observations(images, mask, lights, *, valid=None, saturation=None, reference_depth=None,
@@ -166,8 +172,11 @@ def check_observations(images, mask, lights, *, valid=None, saturation=None, ref
     where given).  Errors (ValueError naming the cause): every observation in
     the mask black; fewer than :data:`MIN_DETERMINED` of the mask pixels
     determined (all dark, all saturated, or the mask outside the lit area).
-    Warnings (:class:`gpps.GppsWarning`, messages appended to ``sink``): fewer
-    than :data:`WARN_DETERMINED` determined; a directional light behind the
+    Also an error: :data:`CONSTANT_SHARE` or more of the mask's observations with
+    their brightest channel at the largest value (no shading: e.g. float images clipped at 1.0 with no
+    ``saturation`` given).  Warnings (:class:`gpps.GppsWarning`, messages appended
+    to ``sink``): with no ``saturation``, :data:`CLIPPED_SHARE` or more (and
+    :data:`CLIPPED_MIN`) at that value (clipping); fewer than :data:`WARN_DETERMINED` determined; a directional light behind the
     object (``z <= 0``: it lights only surfaces that face away from the camera)
     or a point light at or beyond the object's mean depth.
 
@@ -185,7 +194,8 @@ def check_observations(images, mask, lights, *, valid=None, saturation=None, ref
     """
 
     img = images if images.ndim == 4 else images[..., None]
-    grey, bad = _masked_statistics(img, mask, valid, saturation)  # (N, P) grey values, (N, P) unusable or None
+    # (N, P) grey values, (N, P) unusable or None, (N, P) brightest channels
+    grey, bad, peak = _masked_statistics(img, mask, valid, saturation)
     scale = float(np.percentile(grey, 99.9)) if grey.size else 0.0
     if not scale > 0.0:
         outside = img.mean(axis=-1)[:, ~mask]
@@ -209,6 +219,15 @@ def check_observations(images, mask, lights, *, valid=None, saturation=None, ref
             cause = "too few lights reach each pixel"
         raise ValueError(f"images: only {100 * frac:.1f}% of the mask pixels have 3 or more usable (lit, "
                          f"unsaturated) observations; {cause}")
+    top = float(peak.max())
+    at_top = peak >= top
+    share = float(at_top.mean())
+    if share >= CONSTANT_SHARE:
+        raise ValueError(f"images: {100 * share:.0f}% of the observations inside the mask have one value, {top:g}, "
+                         "the largest: the images carry no shading to fit (over-exposed: saturated at that value?)")
+    if saturation is None and share >= CLIPPED_SHARE and int(np.count_nonzero(at_top)) >= CLIPPED_MIN:
+        warn(f"images: {100 * share:.1f}% of the observations inside the mask sit at the largest value {top:g}: "
+             f"clipped (saturated)? Pass saturation={top:g} to leave them out of the fit", sink)
     if frac < WARN_DETERMINED:
         warn(f"images: {100 * (1 - frac):.0f}% of the mask pixels have fewer than 3 usable (lit, unsaturated) "
              "observations; their normals rest on neighbours and priors", sink)
