@@ -115,6 +115,8 @@ def as_mask(name, m, shape=None, allow_empty=False) -> np.ndarray:
     if arr.dtype != bool:
         if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
             raise TypeError(f"{name}: expected a boolean or numeric (H, W) array, got {arr.dtype}")
+        if np.issubdtype(arr.dtype, np.floating) and not np.isfinite(arr).all():
+            raise ValueError(f"{name}: expected finite values (a pixel is inside when > 0), got NaN or inf")
         arr = arr > 0
     if not allow_empty and not arr.any():
         raise ValueError(f"{name}: expected at least one pixel inside the mask, got an empty mask")

@@ -185,3 +185,12 @@ def test_clipped_float_images_warn(sphere):
         warnings.simplefilter("always")
         res = solve_normals(clipped, sc.mask, L, saturation=1.0, device="cpu")
     assert not any("clipped" in str(w.message) for w in caught) and not any("clipped" in w for w in res.warnings)
+
+
+def test_float_mask_with_nan_is_refused(sphere):
+    sc, L, img = sphere
+    bad = np.where(sc.mask, np.nan, 0.0)  # NaN > 0 is False: it would read as an empty mask
+    with pytest.raises(ValueError, match=r"^mask: expected finite values"):
+        gpps.reconstruct(img, bad, L, device="cpu")
+    ok = solve_normals(img, sc.mask.astype(np.float32), L, solver="none", device="cpu")  # finite floats: > 0 inside
+    assert ok.normals[sc.mask].any()
