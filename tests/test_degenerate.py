@@ -164,21 +164,24 @@ def test_negative_images_refused(sphere):
         solve_normals(img - 0.5, sc.mask, L, device="cpu")
 
 
-def test_float_images_without_shading_are_an_error(sphere, device):
-    """Float images clipped everywhere (no saturation level given: nothing flags them) or constant carry no
-    shading: refused before any solve, naming the value."""
+def test_float_images_saturated_everywhere_are_an_error(sphere, device):
+    """Float images at their full scale (1.0) everywhere with no saturation level given (nothing flags them):
+    refused before any solve; one value below full scale everywhere (a flat target under a ring of lights gives
+    that) is a valid capture."""
     sc, L, img = sphere
-    with pytest.raises(ValueError, match=r"images: 100% of the observations inside the mask have one value, 1\b"):
+    with pytest.raises(ValueError, match=r"images: 100% of the observations inside the mask are at 1, the full "
+                                         r"scale: everything is saturated"):
         gpps.reconstruct(np.ones_like(img), sc.mask, L, device=device)
-    with pytest.raises(ValueError, match=r"have one value, 0\.5"):
-        solve_normals(np.full_like(img, 0.5), sc.mask, L, device=device)
+    d = np.array([[np.sin(0.5) * np.cos(a), np.sin(0.5) * np.sin(a), np.cos(0.5)] for a in (0.0, 2.1, 4.2)])
+    flat = solve_normals(np.full_like(img, 0.5), sc.mask, gpps.DirectionalLights(d), solver="none", device=device)
+    np.testing.assert_allclose(flat.normals[sc.mask], np.tile([0.0, 0.0, 1.0], (int(sc.mask.sum()), 1)), atol=1e-5)
 
 
 def test_clipped_float_images_warn(sphere):
     sc, L, img = sphere
     peak = img.max(axis=-1)[:, sc.mask]
     clipped = np.minimum(img / np.percentile(peak, 92), 1.0).astype(np.float32)  # ~8% of the observations at 1.0
-    with pytest.warns(GppsWarning, match=r"sit at the largest value 1: clipped \(saturated\)\? Pass saturation=1"):
+    with pytest.warns(GppsWarning, match=r"sit at 1, the full scale: clipped \(saturated\)\? Pass saturation=1"):
         res = solve_normals(clipped, sc.mask, L, device="cpu")
     assert any("clipped" in w for w in res.warnings)
     with warnings.catch_warnings(record=True) as caught:  # a saturation level given: the fit drops them

@@ -108,9 +108,12 @@ UNLIT_FRACTION = 1e-3
 #: Below this share of determined mask pixels the input is degenerate (an error); below WARN_DETERMINED a warning.
 MIN_DETERMINED = 0.2
 WARN_DETERMINED = 0.5
-#: At or above this share of the mask's observations equal to their largest value the images carry no shading (an
-#: error); at or above CLIPPED_SHARE (and CLIPPED_MIN observations), with no saturation level given, a warning.
-CONSTANT_SHARE = 0.9
+#: Float images with no saturation level given whose brightest observations sit at one of these values (the full
+#: scale of float or raw integer data) are taken as clipped there: at or above SATURATED_SHARE of the mask's
+#: observations an error (everything saturated), at or above CLIPPED_SHARE (and CLIPPED_MIN observations) a warning.
+#: (Any other repeated maximum is left alone: a flat target under a ring of lights gives one value everywhere.)
+CLIP_LEVELS = (1.0, 255.0, 1023.0, 4095.0, 16383.0, 65535.0)
+SATURATED_SHARE = 0.9
 CLIPPED_SHARE = 0.05
 CLIPPED_MIN = 16
 
@@ -172,13 +175,14 @@ def check_observations(images, mask, lights, *, valid=None, saturation=None, ref
     where given).  Errors (ValueError naming the cause): every observation in
     the mask black; fewer than :data:`MIN_DETERMINED` of the mask pixels
     determined (all dark, all saturated, or the mask outside the lit area).
-    Also an error: :data:`CONSTANT_SHARE` or more of the mask's observations with
-    their brightest channel at the largest value (no shading: e.g. float images clipped at 1.0 with no
-    ``saturation`` given).  Warnings (:class:`gpps.GppsWarning`, messages appended
-    to ``sink``): with no ``saturation``, :data:`CLIPPED_SHARE` or more (and
-    :data:`CLIPPED_MIN`) at that value (clipping); fewer than :data:`WARN_DETERMINED` determined; a directional light behind the
-    object (``z <= 0``: it lights only surfaces that face away from the camera)
-    or a point light at or beyond the object's mean depth.
+    With no ``saturation``, float images whose brightest channels top out at a
+    full-scale value (:data:`CLIP_LEVELS`, e.g. 1.0) are taken as clipped there:
+    :data:`SATURATED_SHARE` or more of the observations at it is an error, and
+    :data:`CLIPPED_SHARE` or more (and :data:`CLIPPED_MIN`) a warning.  Warnings
+    (:class:`gpps.GppsWarning`, messages appended to ``sink``): that clipping;
+    fewer than :data:`WARN_DETERMINED` determined; a directional light behind
+    the object (``z <= 0``: it lights only surfaces that face away from the
+    camera) or a point light at or beyond the object's mean depth.
 
     Args:
         images: (N, H, W, 3) or (N, H, W) float images (checked).
@@ -220,14 +224,15 @@ def check_observations(images, mask, lights, *, valid=None, saturation=None, ref
         raise ValueError(f"images: only {100 * frac:.1f}% of the mask pixels have 3 or more usable (lit, "
                          f"unsaturated) observations; {cause}")
     top = float(peak.max())
-    at_top = peak >= top
-    share = float(at_top.mean())
-    if share >= CONSTANT_SHARE:
-        raise ValueError(f"images: {100 * share:.0f}% of the observations inside the mask have one value, {top:g}, "
-                         "the largest: the images carry no shading to fit (over-exposed: saturated at that value?)")
-    if saturation is None and share >= CLIPPED_SHARE and int(np.count_nonzero(at_top)) >= CLIPPED_MIN:
-        warn(f"images: {100 * share:.1f}% of the observations inside the mask sit at the largest value {top:g}: "
-             f"clipped (saturated)? Pass saturation={top:g} to leave them out of the fit", sink)
+    if saturation is None and top in CLIP_LEVELS:
+        at_top = peak >= top
+        share = float(at_top.mean())
+        if share >= SATURATED_SHARE:
+            raise ValueError(f"images: {100 * share:.0f}% of the observations inside the mask are at {top:g}, the "
+                             "full scale: everything is saturated (over-exposed), there is no shading to fit")
+        if share >= CLIPPED_SHARE and int(np.count_nonzero(at_top)) >= CLIPPED_MIN:
+            warn(f"images: {100 * share:.1f}% of the observations inside the mask sit at {top:g}, the full scale: "
+                 f"clipped (saturated)? Pass saturation={top:g} to leave them out of the fit", sink)
     if frac < WARN_DETERMINED:
         warn(f"images: {100 * (1 - frac):.0f}% of the mask pixels have fewer than 3 usable (lit, unsaturated) "
              "observations; their normals rest on neighbours and priors", sink)

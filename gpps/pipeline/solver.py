@@ -577,14 +577,14 @@ class PixelSolver(Stage):
         if depth is None:
             if isinstance(self.lights, PointLights):
                 raise ValueError("depth: expected an (H, W) depth estimate for point lights (2.30-2.31), got None")
-            dep = np.ones((h, w), np.float32)
+            dep = None  # (ones, filled on the device)
         else:
             dep = as_array("depth", depth, shape=(h, w))
             if np.any(dep[m] <= 0):
                 raise ValueError("depth: expected values > 0 inside the mask")
             dep = np.where(m, dep, 1.0).astype(np.float32)
         if valid is None:
-            val = np.ones((n, h, w), np.uint8)
+            val = None  # (every observation: ones, filled on the device)
         else:
             val = np.asarray(valid)
             if val.shape != (n, h, w):
@@ -615,8 +615,14 @@ class PixelSolver(Stage):
         self.images.assign(img)
         self.mask.assign(m.astype(np.uint8))
         self._split_rows(m)
-        self.depth.assign(dep)
-        self.valid.assign(val)
+        if dep is None:
+            self.depth.fill_(1.0)
+        else:
+            self.depth.assign(dep)
+        if val is None:
+            self.valid.fill_(1)
+        else:
+            self.valid.assign(val)
 
     def step_subset(self, mask, config: SolverConfig) -> None:
         """Only the pixelwise solve kernel, on another (H, W) uint8 mask buffer and with ``config``'s settings
