@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import platform
+
 import numpy as np
 import pytest
 from cases import make_case
@@ -92,3 +94,48 @@ def test_scorer_split_equals_one_launch(monkeypatch):
             out[threads] = scorer.fetch_pixels()
     for k in out[1]:
         np.testing.assert_array_equal(out[1][k], out[3][k], err_msg=k)
+
+
+@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="reads and sets the x86-64 MXCSR flush-to-zero bit")
+def test_pool_tasks_run_in_the_callers_floating_point_mode(monkeypatch):
+    """Threads inherit the floating-point mode of the thread that made them, and Taichi's initialisation turns
+    flush-to-zero on in its thread: pool threads made earlier rounded denormal results otherwise (split
+    launches differing from run to run). run_all's tasks take the caller's mode."""
+    import ctypes
+    import threading
+
+    from gpps.pipeline import cpu_threads as ct
+
+    fegetenv, fesetenv = ct._libm()
+    saved = ctypes.create_string_buffer(ct._FENV_BYTES)
+    assert fegetenv(saved) == 0
+    monkeypatch.setattr(ct, "_POOL", None)
+    monkeypatch.setenv("GPPS_CPU_THREADS", "2")
+    try:
+        off = ctypes.create_string_buffer(saved.raw, ct._FENV_BYTES)
+        mx = int.from_bytes(off.raw[28:32], "little") & ~0x8040  # FTZ and DAZ off
+        off[28:32] = mx.to_bytes(4, "little")
+        assert fesetenv(off) == 0
+        made = threading.Barrier(2, timeout=30)
+        ct.run_all([made.wait, made.wait])  # both pool threads exist, made with flush-to-zero off
+        assert float((np.array([1e-30], np.float32) * np.float32(1e-9))[0]) > 0.0
+        on = ctypes.create_string_buffer(off.raw, ct._FENV_BYTES)
+        on[28:32] = (mx | 0x8000).to_bytes(4, "little")
+        assert fesetenv(on) == 0
+        small = np.array([1e-30], np.float32)  # normal; times 1e-9 a float32 denormal unless flushed
+        here = float((small * np.float32(1e-9))[0])
+        got = [None, None]
+
+        both = threading.Barrier(2, timeout=30)
+
+        def task(k):
+            def run():
+                both.wait()  # one task on each of the two threads
+                got[k] = float((small * np.float32(1e-9))[0])
+            return run
+
+        ct.run_all([task(0), task(1)])
+    finally:
+        fesetenv(saved)
+    assert here == 0.0  # flush-to-zero in this thread
+    assert got == [here, here]
