@@ -20,6 +20,7 @@ import threading
 
 import numpy as np
 
+from gpps import _fpenv
 from gpps._runtime import resolve_device
 
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
@@ -94,7 +95,9 @@ def init(device: str | None = "auto"):
             arch = ti.cuda if dev.startswith("cuda") else ti.cpu  # never ti.gpu: it crashes here
             # The cache folder comes from TI_OFFLINE_CACHE_FILE_PATH (set above).
             # ti.init prints "[Taichi] Starting on arch=..." unconditionally; library code never prints.
-            with contextlib.redirect_stdout(io.StringIO()):
+            # ti.init also turns flush-to-zero on in this thread: the caller's floating-point mode is put back
+            # (gpps._fpenv), so Warp's CPU kernels round alike in every thread and process
+            with contextlib.redirect_stdout(io.StringIO()), _fpenv.kept():
                 ti.init(arch=arch, offline_cache=True)
             _device = dev
         elif dev != _device:

@@ -123,9 +123,8 @@ def default_workers(device: str | None = None) -> tuple[int, list[str]]:
 THREAD_VARIABLES = ("TI_CPU_MAX_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 """The thread counts a CPU worker of the default cluster is given (Taichi's CPU pool, BLAS): the cores shared
 out, so that two workers on two cores do not run four spinning pools.  ``GPPS_CPU_THREADS`` (Warp's row split)
-stays as in a ``gpps reconstruct`` process: it decides which threads run the pixel solves, and Taichi's CPU
-kernels leave flush-to-zero set on the thread that launched them, so another split would change results in
-their denormals (1e-40)."""
+stays as in a ``gpps reconstruct`` process: it decides which threads run the pixel solves (each in its
+caller's floating-point mode, :func:`gpps.pipeline.cpu_threads.run_all`)."""
 
 
 def worker_env(gpus: list[str], index: int, threads: int | None = None) -> dict:
@@ -250,9 +249,10 @@ def _complete(dest: Path, digest: str) -> dict | None:
 
 def default_fp_environment() -> None:
     """Reset this thread's floating-point environment to the default (glibc's ``fesetenv(FE_DFL_ENV)``; a no-op
-    elsewhere).  Taichi's CPU kernels leave flush-to-zero / denormals-are-zero set on the thread that launched
-    them; a capture on a worker that ran others before starts from the environment a fresh ``gpps reconstruct``
-    process has, so that its results are the same to the last bit."""
+    elsewhere).  A capture on a worker that ran others before starts from the environment a fresh ``gpps
+    reconstruct`` process has, so that its results are the same to the last bit, whatever a task left set
+    (Taichi's initialisation turns flush-to-zero on in its thread: :func:`gpps._taichi.init` puts the
+    caller's mode back, :mod:`gpps._fpenv`; this reset covers any other code that changes it)."""
     try:
         ctypes.CDLL("libm.so.6").fesetenv(ctypes.c_void_p(-1))  # FE_DFL_ENV is ((const fenv_t *) -1)
     except (OSError, AttributeError):

@@ -5,8 +5,10 @@ and exit status 1; a worker killed mid-batch loses nothing; a second run skips e
 from __future__ import annotations
 
 import csv
+import ctypes
 import json
 import os
+import platform
 import signal
 import subprocess
 import sys
@@ -303,21 +305,32 @@ def test_tiled_material_from_a_downscaled_sample(large_capture, client, tmp_path
 
 
 def test_each_capture_starts_from_the_default_floating_point_environment():
-    """Taichi's CPU kernels leave flush-to-zero on the launching thread; a warm worker resets it per capture."""
+    """Taichi's initialisation turns flush-to-zero on in its thread: gpps puts the caller's mode back
+    (gpps._taichi.init), so Taichi work leaves denormals alone here; and a warm worker resets the mode per capture
+    (batch.default_fp_environment), whoever set it."""
     if not sys.platform.startswith("linux"):
         pytest.skip("fesetenv(FE_DFL_ENV) through glibc")
+    from gpps import _fpenv
     from gpps.flows.integrate import integrate_normals
 
     def denormal():  # (made here: with flush-to-zero set, even the conversion of 1e-39 gives 0)
         return float((np.array([1e-39], np.float32) * np.float32(1.0))[0])
 
     sc = gpps.make_scene("sphere", 24, "orthographic")
-    integrate_normals(sc.normals, sc.mask, device="cpu")
-    flushed = denormal() == 0.0
-    batch.default_fp_environment()
+    integrate_normals(sc.normals, sc.mask, device="cpu")  # (Taichi initialised here or earlier, kernels run)
     assert denormal() > 0.0
-    if not flushed:
-        pytest.skip("this Taichi build left denormals alone (nothing to reset)")
+    if platform.machine() not in ("x86_64", "AMD64"):
+        return
+    saved = _fpenv.get()
+    on = ctypes.create_string_buffer(saved.raw, len(saved.raw))
+    on[28:32] = (int.from_bytes(saved.raw[28:32], "little") | 0x8040).to_bytes(4, "little")  # FTZ and DAZ
+    try:
+        _fpenv.set_env(on)
+        assert denormal() == 0.0
+        batch.default_fp_environment()
+        assert denormal() > 0.0
+    finally:
+        _fpenv.set_env(saved)
 
 
 def _worker_buffer_stats():

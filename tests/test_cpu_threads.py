@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import platform
 
 import numpy as np
@@ -106,20 +107,22 @@ def test_pool_tasks_run_in_the_callers_floating_point_mode(monkeypatch):
 
     from gpps.pipeline import cpu_threads as ct
 
-    fegetenv, fesetenv = ct._libm()
-    saved = ctypes.create_string_buffer(ct._FENV_BYTES)
+    from gpps import _fpenv
+
+    fegetenv, fesetenv = _fpenv._libm()
+    saved = ctypes.create_string_buffer(_fpenv._FENV_BYTES)
     assert fegetenv(saved) == 0
     monkeypatch.setattr(ct, "_POOL", None)
     monkeypatch.setenv("GPPS_CPU_THREADS", "2")
     try:
-        off = ctypes.create_string_buffer(saved.raw, ct._FENV_BYTES)
+        off = ctypes.create_string_buffer(saved.raw, _fpenv._FENV_BYTES)
         mx = int.from_bytes(off.raw[28:32], "little") & ~0x8040  # FTZ and DAZ off
         off[28:32] = mx.to_bytes(4, "little")
         assert fesetenv(off) == 0
         made = threading.Barrier(2, timeout=30)
         ct.run_all([made.wait, made.wait])  # both pool threads exist, made with flush-to-zero off
         assert float((np.array([1e-30], np.float32) * np.float32(1e-9))[0]) > 0.0
-        on = ctypes.create_string_buffer(off.raw, ct._FENV_BYTES)
+        on = ctypes.create_string_buffer(off.raw, _fpenv._FENV_BYTES)
         on[28:32] = (mx | 0x8000).to_bytes(4, "little")
         assert fesetenv(on) == 0
         small = np.array([1e-30], np.float32)  # normal; times 1e-9 a float32 denormal unless flushed
@@ -139,3 +142,25 @@ def test_pool_tasks_run_in_the_callers_floating_point_mode(monkeypatch):
         fesetenv(saved)
     assert here == 0.0  # flush-to-zero in this thread
     assert got == [here, here]
+
+
+@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="reads the x86-64 MXCSR flush-to-zero bit")
+def test_taichi_init_leaves_the_callers_floating_point_mode():
+    """ti.init turns flush-to-zero on in its thread; gpps._taichi.init puts the caller's mode back (run in a
+    fresh process: Taichi initialises once a process)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = ("import numpy as np\n"
+            "from gpps import _fpenv, _taichi\n"
+            "def ftz():\n"
+            "    return bool(int.from_bytes(_fpenv.get().raw[28:32], 'little') & 0x8000)\n"
+            "before = ftz()\n"
+            "_taichi.init('cpu')\n"
+            "small = np.array([1e-30], np.float32) * np.float32(1e-9)\n"
+            "print(before, ftz(), float(small[0]) > 0.0)\n")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.split()[-3:] == ["False", "False", "True"], p.stdout

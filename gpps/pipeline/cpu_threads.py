@@ -13,8 +13,6 @@ may run on.
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -22,14 +20,13 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from gpps import _fpenv
 from gpps._runtime import warp
 
 __all__ = ["cpu_threads", "run_all", "balanced_bounds", "load_first"]
 
 _POOL: ThreadPoolExecutor | None = None
 _POOL_LOCK = threading.Lock()
-_LIBM = None  # (fegetenv, fesetenv), False where unavailable (_libm)
-_FENV_BYTES = 256  # room for any platform's fenv_t (x86-64 glibc: 32 bytes)
 
 
 def cpu_threads() -> int:
@@ -54,32 +51,10 @@ def load_first(kernel, device) -> None:
     warp().load_module(kernel.module, device=device)
 
 
-def _libm():
-    """The C math library's ``fegetenv`` / ``fesetenv`` (None where there is none to load)."""
-    global _LIBM
-    if _LIBM is None:
-        try:
-            lib = ctypes.CDLL(ctypes.util.find_library("m") or "libm.so.6")
-            _LIBM = (lib.fegetenv, lib.fesetenv)
-        except (OSError, AttributeError):  # pragma: no cover - no C math library
-            _LIBM = False
-    return _LIBM or None
-
-
-def _fp_env():
-    """This thread's floating-point environment (an opaque buffer for ``fesetenv``), or None."""
-    lib = _libm()
-    if lib is None:
-        return None
-    env = ctypes.create_string_buffer(_FENV_BYTES)
-    return env if lib[0](env) == 0 else None
-
-
 def _in_env(task, env):
     """``task`` run under the floating-point environment ``env`` (the caller's)."""
     def run():
-        if env is not None:
-            _libm()[1](env)
+        _fpenv.set_env(env)
         task()
     return run
 
@@ -87,12 +62,12 @@ def _in_env(task, env):
 def run_all(tasks: Sequence[Callable[[], None]]) -> None:
     """Run the tasks, concurrently on the shared pool when there are several; re-raise the first error.
 
-    Each task runs under the caller's floating-point environment (C ``fegetenv`` / ``fesetenv``): a thread
-    inherits the mode of the thread that created it, and Taichi's initialisation turns flush-to-zero on in
-    its thread (MXCSR 0x1fa0 -> 0x9fa0 on x86-64), so pool threads made before and after it rounded
-    denormal results differently, and which thread ran which part depended on timing (normals 7e-40 against
-    0 on 343 pixels of a rendered capture, run to run under load).  Now a split launch computes what one
-    launch on the calling thread computes, bit for bit.
+    Each task runs under the caller's floating-point environment (:mod:`gpps._fpenv`): a thread inherits the
+    mode of the thread that made it, so pool threads made while another mode was on (Taichi's initialisation
+    turns flush-to-zero on in its thread, or a caller's own setting) rounded denormal results otherwise, and
+    which thread ran which part depended on timing (normals 7e-40 against 0 on 343 pixels of a rendered
+    capture, run to run under load).  A split launch computes what one launch on the calling thread
+    computes, bit for bit.
     """
     global _POOL
     if len(tasks) <= 1:
@@ -104,7 +79,7 @@ def run_all(tasks: Sequence[Callable[[], None]]) -> None:
         if _POOL is None or _POOL._max_workers != n:  # noqa: SLF001 - size check only
             _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="gpps-cpu")
         pool = _POOL
-    env = _fp_env()
+    env = _fpenv.get()
     for f in [pool.submit(_in_env(t, env)) for t in tasks]:
         f.result()
 
