@@ -2,7 +2,7 @@
 
 Layers, lowest first (README, "Package map"):
 
-* ``base``: ``gpps._check``, ``gpps.names``, ``gpps._runtime``, ``gpps._taichi`` (checks, names, device runtime);
+* ``base``: ``gpps._check``, ``gpps.names``, ``gpps._runtime``, ``gpps._taichi``, ``gpps._fpenv`` (checks, names, device runtime);
 * ``types``: ``gpps.camera``, ``gpps.lights``, ``gpps.material`` (value types);
 * ``kernels``: ``gpps.kernels`` (device math only);
 * ``host``: ``gpps.host``, ``gpps.nn`` (numpy / scipy algorithms);
@@ -26,7 +26,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "gpps"
 
 LAYER_OF_TOP = {
-    "_check": "base", "names": "base", "_version": "base", "_runtime": "base", "_taichi": "base",
+    "_check": "base", "names": "base", "_version": "base", "_runtime": "base", "_taichi": "base", "_fpenv": "base",
     "camera": "types", "lights": "types", "material": "types",
     "kernels": "kernels", "host": "host", "nn": "host", "io": "io", "pipeline": "pipeline", "flows": "flows",
     "__init__": "api", "batch": "api", "__main__": "cli", "cli": "cli",
