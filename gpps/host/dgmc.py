@@ -115,7 +115,8 @@ class DGMCConfig:
             ``"front"`` (default): :func:`gpps.pipeline.front.propagate_front`, sources on the solved
             front moving inward ring by ring (4.1-4.6 cost evaluations per
             highlight pixel and under 0.01 deg on ``perf/dgmc_start.py``'s
-            scenes); ``"boundary"``: :func:`dgmc_start` as the seed states it,
+            scenes; the boundary candidates below are then not computed:
+            ``DeviceDGMC.step(starts=False)``); ``"boundary"``: :func:`dgmc_start` as the seed states it,
             sources on the region's outer boundary, one warm solve from them
             (7.9-13.2 evaluations and 4-13 deg there: no faster than the
             least-squares start).
