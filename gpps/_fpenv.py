@@ -15,7 +15,7 @@ import contextlib
 import ctypes
 import ctypes.util
 
-__all__ = ["get", "set_env", "kept"]
+__all__ = ["get", "set_env", "set_default", "kept"]
 
 _FENV_BYTES = 256  # room for any platform's fenv_t (x86-64 glibc: 32 bytes)
 _LIBM = None  # (fegetenv, fesetenv), or False where there is no C math library to load
@@ -47,6 +47,17 @@ def set_env(env) -> None:
     lib = _libm()
     if env is not None and lib is not None:
         lib[1](env)
+
+
+def set_default() -> None:
+    """Make the C library's default environment this thread's (glibc's ``FE_DFL_ENV``: round to nearest, no
+    flush-to-zero); nothing where the C library does not offer it."""
+    lib = _libm()
+    if lib is not None:
+        try:
+            lib[1](ctypes.c_void_p(-1))  # FE_DFL_ENV is ((const fenv_t *) -1) in glibc
+        except (OSError, ValueError):  # pragma: no cover - another C library
+            pass
 
 
 @contextlib.contextmanager

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import ctypes
 import hashlib
 import importlib.util
 import io
@@ -55,6 +54,7 @@ from typing import Callable
 import numpy as np
 
 import gpps
+from gpps import _fpenv
 from gpps._check import GppsWarning
 from gpps.flows import tiled
 from gpps.flows.folder import FolderConfig, reconstruct_folder
@@ -248,15 +248,12 @@ def _complete(dest: Path, digest: str) -> dict | None:
 
 
 def default_fp_environment() -> None:
-    """Reset this thread's floating-point environment to the default (glibc's ``fesetenv(FE_DFL_ENV)``; a no-op
+    """Reset this thread's floating-point environment to the default (:func:`gpps._fpenv.set_default`; a no-op
     elsewhere).  A capture on a worker that ran others before starts from the environment a fresh ``gpps
     reconstruct`` process has, so that its results are the same to the last bit, whatever a task left set
     (Taichi's initialisation turns flush-to-zero on in its thread: :func:`gpps._taichi.init` puts the
     caller's mode back, :mod:`gpps._fpenv`; this reset covers any other code that changes it)."""
-    try:
-        ctypes.CDLL("libm.so.6").fesetenv(ctypes.c_void_p(-1))  # FE_DFL_ENV is ((const fenv_t *) -1)
-    except (OSError, AttributeError):
-        pass
+    _fpenv.set_default()
 
 
 def _worker_name() -> str:

@@ -232,11 +232,10 @@ class DeviceDGMC(Stage):
         if not self._uploaded:
             raise RuntimeError("step: upload() a frame first")
         self._highlights()
+        self._curvatures()
         if starts:
             self._regions()
             self._geodesics()
-        self._curvatures()
-        if starts:
             self._select()
         self._starts = bool(starts)
 
