@@ -549,3 +549,19 @@ def test_normal_checks_on_the_mask_pixels_match_the_full_frame_rule(camera):
     assert np.array_equal(valid, ref_valid) and bad == int(m.sum() - ref_valid.sum())
     assert not valid[2, 3] and not valid[4, 5] and not valid[6, 7] and not valid[8, 9] and valid.sum() > 200
     assert np.array_equal(got[m], ref[m]) and not got[~m].any()
+
+
+def test_component_means_on_pixel_lists_equal_the_frame_form():
+    """component_means_at (the integrator's fetch, on the valid pixels) equals component_means bit for bit."""
+    from scipy import ndimage
+
+    from gpps.host.poisson import component_means, component_means_at
+
+    rng = np.random.default_rng(3)
+    valid = rng.random((40, 50)) > 0.45
+    labels, n = ndimage.label(valid)
+    a = rng.normal(size=valid.shape) * 1e3
+    full = component_means(a, valid, labels, n)
+    at = component_means_at(a[valid], labels[valid], n)
+    assert n > 3
+    np.testing.assert_array_equal(at, full[valid])

@@ -17,7 +17,7 @@ from scipy.special import expit
 
 __all__ = ["pixel_gradients", "edge_system", "divergence_rhs", "laplacian", "apply_laplacian", "build_levels", "level_shapes",
            "diagonal", "normal_equation_residual", "edge_residuals", "ls_energy", "bilateral_weights", "loop_curl",
-           "curl_edge_weights", "robust_edge_weights", "component_means", "solve_direct", "solve_dct"]
+           "curl_edge_weights", "robust_edge_weights", "component_means", "component_means_at", "solve_direct", "solve_dct"]
 
 
 def pixel_gradients(normals: np.ndarray, valid: np.ndarray, camera, min_nz: float):
@@ -413,6 +413,20 @@ def component_means(a, valid, labels, n: int) -> np.ndarray:
     mean = s / np.maximum(c, 1)
     mean[0] = 0
     return mean[labels]
+
+
+def component_means_at(values, labels, n: int) -> np.ndarray:
+    """(P,) each pixel's connected-component mean of ``values``, on a list of pixels: the form of
+    :func:`component_means` for a mask that is a small part of its frame.  Given the valid pixels in row-major
+    order, the sums (and the means) equal the frame form's bit for bit.
+
+    Args:
+        values: (P,) values at the pixels.
+        labels: (P,) their component labels (1..n).
+        n: the number of components.
+    """
+    s = np.bincount(labels, weights=values, minlength=n + 1)
+    return (s / np.maximum(np.bincount(labels, minlength=n + 1), 1))[labels]
 
 
 def solve_direct(valid, wx, wy, tx, ty, labels):

@@ -57,6 +57,7 @@ from gpps.host.poisson import (
     build_levels,
     coarsest_pinv,
     component_means,
+    component_means_at,
     curl_edge_weights,
     diagonal,
     divergence_rhs,
@@ -541,13 +542,8 @@ class Integrator(Stage):
         labels, ncomp = self._components(valid)
         vi, vj = np.nonzero(valid)
         lab = labels[vi, vj]
-        cnt = np.maximum(np.bincount(lab, minlength=ncomp + 1), 1)
-
-        def part_mean(a):
-            return (np.bincount(lab, weights=a, minlength=ncomp + 1) / cnt)[lab]
-
         uv = u[vi, vj]
-        uv = uv - part_mean(uv)
+        uv = uv - component_means_at(uv, lab, ncomp)
         u = np.zeros(self.shape)
         u[vi, vj] = uv
         log_depth = None
@@ -560,7 +556,7 @@ class Integrator(Stage):
             if reference_depth is not None:
                 # exp(u - max per part), scaled to the reference mean: no overflow whatever the log-depth's range
                 dv = np.exp(uv - top)
-                dv = dv * (reference_depth / part_mean(dv))
+                dv = dv * (reference_depth / component_means_at(dv, lab, ncomp))
             else:
                 with np.errstate(over="ignore"):
                     dv = np.exp(uv)
