@@ -76,6 +76,11 @@ LIGHT_LANES = 32
 # no cap 4.54 ms a solve, 168: 4.29, 128: 3.26, 96: 3.41.  The latency-bound launches (the material scorer's, the
 # front's rings) keep the compiler's choice: a cap there only adds spill latency to their few threads.
 SPLIT_SOLVE_MAX_REGISTERS = 128
+# lights whose reflectance terms the solver's cost evaluation keeps between its two passes (the albedo's normal
+# equations, then the residuals: gpps.kernels.solve_cost.evaluate_for); the lights after them are evaluated
+# again in the second pass.  4 covers the streamed triples and the 3-image captures, whose solves spend most of
+# their time in the specular lobe's value and gradient.
+SOLVE_TERM_CACHE = 4
 # where a stage may run its per-frame or per-step launches as a CUDA graph: "auto" (on CUDA, after a first eager
 # pass), "off" (launched from the host every time)
 GraphName = Literal["auto", "off"]

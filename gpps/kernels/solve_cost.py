@@ -10,6 +10,7 @@ specialisation; ``module=None`` puts them in this file's module).
 
 import warp as wp
 
+from gpps import names
 from gpps.kernels.brdf import LightParams, MaterialParams, ior_from_f0, light_dir, light_radiance
 from gpps.kernels.jacobians import (
     ashikhmin_shirley_value_grad,
@@ -25,6 +26,12 @@ from gpps.kernels.jacobians import (
     specular_value_grad,
 )
 from gpps.kernels.solve_common import Eval, Pixel, lanes_sum6, lanes_sum19, vec6, vec19
+
+# a light's terms between the evaluation's two passes: radiance (3), observation (3), diffuse and specular values
+# and their two chart derivatives (6); one row a light, the first TERM_CACHE lights of a thread
+TERM_CACHE = names.SOLVE_TERM_CACHE
+TERMS = 12
+term_cache = wp.types.matrix(shape=(TERM_CACHE, TERMS), dtype=wp.float32)
 
 
 def specular_value_grad_for(brdf, module, sfx: str):
@@ -149,9 +156,10 @@ def evaluate_for(light_terms, module, sfx: str, lanes: bool = False):
         """Variable-projection evaluation of the reduced cost at ``n(x)`` (4.2 with kd eliminated).
 
         Two passes over the lights: the albedo's normal equations (and their
-        derivatives) must be complete before the residuals can be formed, so
-        ``light_terms`` is evaluated twice per light; caching it would need
-        per-light scratch memory (N is a run-time size).
+        derivatives) must be complete before the residuals can be formed.  The
+        first ``TERM_CACHE`` lights' ``light_terms`` (a thread's first lights in
+        the lanes build) are kept in a local matrix between the passes; the
+        later lights' are evaluated again in pass 2 (N is a run-time size).
         """
         i = px.i
         j = px.j
@@ -176,24 +184,39 @@ def evaluate_for(light_terms, module, sfx: str, lanes: bool = False):
         if wp.static(lanes):
             k0 = px.lane
             dk = px.lanes
+        # the first TERM_CACHE lights' terms are kept for pass 2 (dark observations, w < 0, included: pass 2
+        # reads them); the values are the same as evaluating them again, so the sums are too
+        cache = term_cache()
         for k in range(k0, lights.count, dk):
             w = weights[k, i, j]
-            if w > 0.0:
+            slot = (k - k0) // dk
+            if w > 0.0 or (w < 0.0 and slot < TERM_CACHE):
                 e, obs, dval, sval, da0, da1, ds0, ds1 = light_terms(images, lights, mat, k, i, j, p, n, v, dn0, dn1)
-                wsum += w
-                for c in range(3):
-                    a = e[c] * dval
-                    y = obs[c] - e[c] * ks * sval
-                    a0 = e[c] * da0
-                    a1 = e[c] * da1
-                    y0 = -e[c] * ks * ds0
-                    y1 = -e[c] * ks * ds1
-                    saa[c] += w * a * a
-                    say[c] += w * a * y
-                    dsaa0[c] += w * 2.0 * a * a0
-                    dsaa1[c] += w * 2.0 * a * a1
-                    dsay0[c] += w * (a0 * y + a * y0)
-                    dsay1[c] += w * (a1 * y + a * y1)
+                if slot < TERM_CACHE:
+                    for c in range(3):
+                        cache[slot, c] = e[c]
+                        cache[slot, 3 + c] = obs[c]
+                    cache[slot, 6] = dval
+                    cache[slot, 7] = sval
+                    cache[slot, 8] = da0
+                    cache[slot, 9] = da1
+                    cache[slot, 10] = ds0
+                    cache[slot, 11] = ds1
+                if w > 0.0:
+                    wsum += w
+                    for c in range(3):
+                        a = e[c] * dval
+                        y = obs[c] - e[c] * ks * sval
+                        a0 = e[c] * da0
+                        a1 = e[c] * da1
+                        y0 = -e[c] * ks * ds0
+                        y1 = -e[c] * ks * ds1
+                        saa[c] += w * a * a
+                        say[c] += w * a * y
+                        dsaa0[c] += w * 2.0 * a * a0
+                        dsaa1[c] += w * 2.0 * a * a1
+                        dsay0[c] += w * (a0 * y + a * y0)
+                        dsay1[c] += w * (a1 * y + a * y1)
         if wp.static(lanes):
             t = vec19()
             for c in range(3):
@@ -238,7 +261,27 @@ def evaluate_for(light_terms, module, sfx: str, lanes: bool = False):
         for k in range(k0, lights.count, dk):
             w = weights[k, i, j]
             if w != 0.0:
-                e, obs, dval, sval, da0, da1, ds0, ds1 = light_terms(images, lights, mat, k, i, j, p, n, v, dn0, dn1)
+                slot = (k - k0) // dk
+                e = wp.vec3(0.0)
+                obs = wp.vec3(0.0)
+                dval = float(0.0)
+                sval = float(0.0)
+                da0 = float(0.0)
+                da1 = float(0.0)
+                ds0 = float(0.0)
+                ds1 = float(0.0)
+                if slot < TERM_CACHE:
+                    e = wp.vec3(cache[slot, 0], cache[slot, 1], cache[slot, 2])
+                    obs = wp.vec3(cache[slot, 3], cache[slot, 4], cache[slot, 5])
+                    dval = cache[slot, 6]
+                    sval = cache[slot, 7]
+                    da0 = cache[slot, 8]
+                    da1 = cache[slot, 9]
+                    ds0 = cache[slot, 10]
+                    ds1 = cache[slot, 11]
+                else:
+                    e, obs, dval, sval, da0, da1, ds0, ds1 = light_terms(images, lights, mat, k, i, j, p, n, v, dn0,
+                                                                         dn1)
                 for c in range(3):
                     a = e[c] * dval
                     r = obs[c] - e[c] * ks * sval - kd[c] * a
