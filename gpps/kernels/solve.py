@@ -21,7 +21,8 @@ projection*: for a given normal ``kd_c = sum_k w a y / sum_k w a^2`` with
 minimise the reduced cost ``F(x) = 1/2 sum_kc w_k (y_kc - kd_c(x) a_kc)^2`` over
 the 2 chart coordinates only, with its exact Jacobian (including
 ``d kd / dx``).  Each evaluation makes two passes over the N lights (N is a
-runtime size; nothing is stored per light except the weight buffer).
+runtime size): the first ``names.SOLVE_TERM_CACHE`` lights' reflectance terms are
+kept in a small local matrix between the passes, the later ones evaluated again.
 
 Observation weights ``w_k`` (the (N, H, W) buffer) are 0 for dropped
 observations (shadow: grey value below ``shadow_threshold`` times the pixel's
