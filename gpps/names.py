@@ -79,8 +79,12 @@ SPLIT_SOLVE_MAX_REGISTERS = 128
 # lights whose reflectance terms the solver's cost evaluation keeps between its two passes (the albedo's normal
 # equations, then the residuals: gpps.kernels.solve_cost.evaluate_for); the lights after them are evaluated
 # again in the second pass.  4 covers the streamed triples and the 3-image captures, whose solves spend most of
-# their time in the specular lobe's value and gradient.
+# their time in the specular lobe's value and gradient; it is the GPU's size (a thread's local matrix, zeroed at
+# each evaluation; the lights-parallel build gives each lane N / 32 lights).  The CPU build takes the smallest of
+# SOLVE_TERM_CACHE_CPU that holds all N lights (the largest beyond): 12 floats a light on the thread's stack, and
+# the zeroing costs less than a second evaluation of the lights (gpps.kernels.solve.term_cache_size).
 SOLVE_TERM_CACHE = 4
+SOLVE_TERM_CACHE_CPU = (4, 16, 128)
 # where a stage may run its per-frame or per-step launches as a CUDA graph: "auto" (on CUDA, after a first eager
 # pass), "off" (launched from the host every time)
 GraphName = Literal["auto", "off"]

@@ -197,6 +197,58 @@ def test_specialised_kernels_match_generic(device, brdf, solver, robust):
             np.testing.assert_allclose(spec[k], gen[k], rtol=1e-4, atol=1e-5, err_msg=k)
 
 
+
+def test_term_cache_size_tiers():
+    """The evaluation's kept lights: the GPU's fixed size; on the CPU the smallest tier holding every light."""
+    from gpps import names
+    from gpps.kernels import solve as sk
+
+    tiers = names.SOLVE_TERM_CACHE_CPU
+    assert sk.term_cache_size("cuda:0", 96) == names.SOLVE_TERM_CACHE
+    assert sk.term_cache_size("cpu", 1) == tiers[0]
+    for lo, hi in zip(tiers, tiers[1:]):
+        assert sk.term_cache_size("cpu", lo) == lo and sk.term_cache_size("cpu", lo + 1) == hi
+    assert sk.term_cache_size("cpu", 10 * tiers[-1]) == tiers[-1]
+    with pytest.raises(ValueError, match="lights"):
+        sk.term_cache_size("cpu", 0)
+    with pytest.raises(ValueError, match="cache"):
+        sk.get_solve_kernels("lm", "phong", "none", cache=0)
+    assert sk.module_name("lm", "phong", "none") + "_c16" == sk.module_name("lm", "phong", "none", cache=16)
+
+
+@pytest.mark.parametrize("lights", [3, 7])
+def test_term_cache_does_not_change_the_solve(device, lights):
+    """Keeping a light's terms between the evaluation's passes gives the values a second evaluation gives: a cache of
+    1, 4 and 16 lights (some lights kept, some evaluated again, dark observations among both) solve alike,
+    bitwise on the CPU; whole-image solves and the batched material kernel."""
+    from gpps.flows.synthetic import default_lights, render
+    from gpps.host.scenes import make_scene
+    from gpps.kernels import solve as sk
+    from gpps.kernels import solve_batched as sb
+    from gpps.material import Material
+
+    sc = make_scene("sphere", 24, "perspective")
+    mat = Material.default_for("cook-torrance")
+    L = default_lights("directional", lights, layout="spiral") if lights > 3 else default_lights("directional", 3)
+    img = render(sc, mat, L, bits=16, noise=0.002, device=device) / np.asarray(L.intensities, np.float32)[:, None, None, :]
+    Lu = DirectionalLights(L.directions)
+    cfg = SolverConfig(starts=3, max_iters=20)
+    ps = PixelSolver(img.shape[:3], sc.camera, Lu, mat, cfg, device=device)
+    runs = []
+    for cache in (1, 4, 16):
+        ps._solve_kernel, ps._underdetermined_kernel, ps._smooth_kernel = sk.get_solve_kernels(
+            "lm", "cook-torrance", "none", cache=cache)
+        runs.append(ps.run(img, sc.mask))
+    weights = ps.weights.numpy()
+    assert np.any(weights < 0) and np.any(weights > 0)  # dark observations took part
+    assert sb.get_batched_kernel("lm", "cook-torrance", "none", cache=16).module.name.endswith("_c16")
+    for other in runs[1:]:
+        for k in ("normals", "albedo", "residual", "iterations", "flags"):
+            if device == "cpu":
+                np.testing.assert_array_equal(runs[0][k], other[k], err_msg=k)
+            else:  # NVRTC may contract differently in the builds
+                np.testing.assert_allclose(runs[0][k], other[k], rtol=1e-4, atol=1e-5, err_msg=k)
+
 def test_smoothness_term_suppresses_noise(device):
     """The red-black smoothness sweeps lower the error of a noisy specular fit and barely move a clean one."""
     from cases import make_case

@@ -149,11 +149,38 @@ def specialisation_key(method, brdf, robust) -> tuple:
     return method, brdf, robust
 
 
-def module_name(method, brdf, robust) -> str:
-    """Name of the Warp module holding the kernels of one specialisation."""
+def module_name(method, brdf, robust, cache: int = names.SOLVE_TERM_CACHE) -> str:
+    """Name of the Warp module holding the kernels of one specialisation (``cache``: the evaluation's kept lights,
+    :func:`term_cache_size`; a suffix ``_c<cache>`` when it is not the default)."""
     method, brdf, robust = specialisation_key(method, brdf, robust)
     tag = "_".join("any" if s is None else s.replace("-", "_") for s in (method, brdf, robust))
-    return f"gpps.kernels.solve.{tag}"
+    return f"gpps.kernels.solve.{tag}" + cache_suffix(cache)
+
+
+def cache_suffix(cache: int) -> str:
+    """The module-name suffix of a term cache size: ``""`` for the default, else ``"_c<cache>"``."""
+    cache = int(cache)
+    if cache < 1:
+        raise ValueError(f"cache: expected at least 1 light, got {cache}")
+    return "" if cache == names.SOLVE_TERM_CACHE else f"_c{cache}"
+
+
+def term_cache_size(device: str, lights: int) -> int:
+    """The lights whose terms the solver's evaluation keeps between its passes, for a solve of ``lights``
+    images on ``device`` (:func:`gpps.kernels.solve_cost.evaluate_for`).
+
+    CUDA: ``names.SOLVE_TERM_CACHE`` (a thread's local matrix: more would only cost local memory and zeroing on
+    launches whose threads already wait on their slowest pixel).  CPU: the smallest of
+    ``names.SOLVE_TERM_CACHE_CPU`` that holds every light, the largest beyond it (later lights are evaluated
+    twice).  The results do not depend on it: the kept terms are the values a second evaluation gives.
+    """
+    lights = int(lights)
+    if lights < 1:
+        raise ValueError(f"lights: expected at least 1 image, got {lights}")
+    if not str(device).startswith("cpu"):
+        return names.SOLVE_TERM_CACHE
+    tiers = names.SOLVE_TERM_CACHE_CPU
+    return next((t for t in tiers if t >= lights), tiers[-1])
 
 
 _LANES: dict = {}
@@ -196,7 +223,7 @@ def get_split_kernels(method, brdf, robust="none"):
     return k
 
 
-def get_solve_kernels(method, brdf, robust="none"):
+def get_solve_kernels(method, brdf, robust="none", cache: int = names.SOLVE_TERM_CACHE):
     """``(solve_kernel, underdetermined_kernel, smooth_kernel)`` specialised for one solver, reflectance model and robust loss.
 
     Args:
@@ -204,6 +231,7 @@ def get_solve_kernels(method, brdf, robust="none"):
         brdf: a :data:`gpps.material.BRDF_NAMES` name (None: run-time ``mat.model``).
         robust: ``"none"``, ``"huber"`` or ``"cauchy"`` (None: run-time ``prm.robust``);
             ``"none"`` emits no IRLS round (``prm.irls_rounds`` must be 0).
+        cache: the lights the evaluation keeps between its passes (:func:`term_cache_size`).
 
     The pair is built once per normalised key (:func:`specialisation_key`) and
     cached; each pair lives in its own Warp module (:func:`module_name`), compiled
@@ -213,11 +241,12 @@ def get_solve_kernels(method, brdf, robust="none"):
     sees to it).
     """
     key = specialisation_key(method, brdf, robust)
-    ks = _KERNELS.get(key)
+    cache = int(cache)
+    ks = _KERNELS.get((key, cache))
     if ks is None:
-        name = module_name(*key)
-        ks = make_kernels(*key, module_name=name, sfx="__" + name.rsplit(".", 1)[1])
-        _KERNELS[key] = ks
+        name = module_name(*key, cache=cache)
+        ks = make_kernels(*key, module_name=name, sfx="__" + name.rsplit(".", 1)[1], cache=cache)
+        _KERNELS[(key, cache)] = ks
     return ks
 
 

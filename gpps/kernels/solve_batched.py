@@ -48,6 +48,8 @@ module (inlining, FMA contraction).
 
 import warp as wp
 
+from gpps import names
+
 from gpps.kernels.brdf import (
     CameraParams,
     LightParams,
@@ -56,7 +58,7 @@ from gpps.kernels.brdf import (
     view_dir,
 )
 from gpps.kernels.solve import module_name as _solve_module_name
-from gpps.kernels.solve import specialisation_key
+from gpps.kernels.solve import cache_suffix, specialisation_key
 from gpps.kernels.solve_common import (
     FLAG_FEW_OBSERVATIONS,
     FLAG_ILL_CONDITIONED,
@@ -477,10 +479,11 @@ _BATCHED: dict = {}
 _BATCHED_STARTS: dict = {}
 
 
-def batched_module_name(method, brdf, robust, lanes: bool = False) -> str:
-    """Name of the Warp module holding the batched kernel of one specialisation."""
+def batched_module_name(method, brdf, robust, lanes: bool = False, cache: int = names.SOLVE_TERM_CACHE) -> str:
+    """Name of the Warp module holding the batched kernel of one specialisation (``cache``:
+    :func:`gpps.kernels.solve.term_cache_size`)."""
     tag = _solve_module_name(method, brdf, robust).rsplit(".", 1)[1]
-    return f"gpps.kernels.solve_batched.{tag}" + ("_lanes" if lanes else "")
+    return f"gpps.kernels.solve_batched.{tag}" + ("_lanes" if lanes else "") + cache_suffix(cache)
 
 
 def get_batched_starts_kernels(method, brdf, robust="none"):
@@ -501,7 +504,7 @@ def get_batched_starts_kernels(method, brdf, robust="none"):
     return k
 
 
-def get_batched_kernel(method, brdf, robust="none", lanes: bool = False):
+def get_batched_kernel(method, brdf, robust="none", lanes: bool = False, cache: int = names.SOLVE_TERM_CACHE):
     """The batched solve kernel specialised for one solver, reflectance model and robust loss.
 
     Args:
@@ -511,6 +514,7 @@ def get_batched_kernel(method, brdf, robust="none", lanes: bool = False):
         robust: ``"none"``, ``"huber"`` or ``"cauchy"``; ``"none"`` emits no IRLS
             round (``prm.irls_rounds`` must be 0) and never writes ``weights_k``.
         lanes: the lights-parallel build (:func:`batched_kernel_for`; launch it tiled).
+        cache: the lights the evaluation keeps between its passes (:func:`gpps.kernels.solve.term_cache_size`).
 
     Built once per key and cached, in a Warp module of its own
     (:func:`batched_module_name`), compiled on first launch.
@@ -519,12 +523,13 @@ def get_batched_kernel(method, brdf, robust="none", lanes: bool = False):
     if None in key or key[0] == "none":
         raise ValueError(f"method, brdf, robust: expected a nonlinear solver and fixed choices, got {key}")
     lanes = bool(lanes)
-    k = _BATCHED.get((key, lanes))
+    cache = int(cache)
+    k = _BATCHED.get((key, lanes, cache))
     if k is None:
-        name = batched_module_name(*key, lanes=lanes)
+        name = batched_module_name(*key, lanes=lanes, cache=cache)
         sfx = "__batched_" + name.rsplit(".", 1)[1]
         module = wp.get_module(name)
-        funcs = solver_funcs(*key, module, sfx, lanes=lanes)
+        funcs = solver_funcs(*key, module, sfx, lanes=lanes, cache=cache)
         k = batched_kernel_for(key[2], funcs.solve_pixel, module, sfx, lanes=lanes)
-        _BATCHED[(key, lanes)] = k
+        _BATCHED[(key, lanes, cache)] = k
     return k

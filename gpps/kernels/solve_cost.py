@@ -28,10 +28,8 @@ from gpps.kernels.jacobians import (
 from gpps.kernels.solve_common import Eval, Pixel, lanes_sum6, lanes_sum19, vec6, vec19
 
 # a light's terms between the evaluation's two passes: radiance (3), observation (3), diffuse and specular values
-# and their two chart derivatives (6); one row a light, the first TERM_CACHE lights of a thread
-TERM_CACHE = names.SOLVE_TERM_CACHE
+# and their two chart derivatives (6); one row a light, a thread's first ``cache`` lights (evaluate_for)
 TERMS = 12
-term_cache = wp.types.matrix(shape=(TERM_CACHE, TERMS), dtype=wp.float32)
 
 
 def specular_value_grad_for(brdf, module, sfx: str):
@@ -128,18 +126,25 @@ def light_terms_for(spec_vg, diff_vg, module, sfx: str):
     return light_terms
 
 
-def evaluate_for(light_terms, module, sfx: str, lanes: bool = False):
+def evaluate_for(light_terms, module, sfx: str, lanes: bool = False, cache: int = names.SOLVE_TERM_CACHE):
     """``evaluate``: the reduced cost, its gradient and Gauss-Newton matrix at one normal.
 
     Args:
         light_terms: the per-light terms (:func:`light_terms_for`).
         module: Warp module of the function (None: this file's).
-        sfx: key suffix of the function.
+        sfx: key suffix of the function (distinct per ``cache`` too).
         lanes: the lights-parallel build: the pixel's lanes (``px.lane`` of ``px.lanes``, one
             block) each sum a strided share of the lights, and each pass's sums are reduced over
             the block before they are used (the same sums in another order: equal up to float
             rounding).  False: one thread sums every light in order.
+        cache: lights (a thread's first) whose terms pass 2 reads back from pass 1 instead of evaluating them
+            again: a local (cache, 12) matrix, zeroed at every evaluation (:func:`gpps.kernels.solve.term_cache_size`).
     """
+
+    size = int(cache)
+    if size < 1:
+        raise ValueError(f"cache: expected at least 1 light, got {cache}")
+    cache_t = wp.types.matrix(shape=(size, TERMS), dtype=wp.float32)
 
     @wp.func(name="evaluate" + sfx, module=module)
     def evaluate(
@@ -157,7 +162,7 @@ def evaluate_for(light_terms, module, sfx: str, lanes: bool = False):
 
         Two passes over the lights: the albedo's normal equations (and their
         derivatives) must be complete before the residuals can be formed.  The
-        first ``TERM_CACHE`` lights' ``light_terms`` (a thread's first lights in
+        first ``cache`` lights' ``light_terms`` (a thread's first lights in
         the lanes build) are kept in a local matrix between the passes; the
         later lights' are evaluated again in pass 2 (N is a run-time size).
         """
@@ -184,24 +189,24 @@ def evaluate_for(light_terms, module, sfx: str, lanes: bool = False):
         if wp.static(lanes):
             k0 = px.lane
             dk = px.lanes
-        # the first TERM_CACHE lights' terms are kept for pass 2 (dark observations, w < 0, included: pass 2
+        # the first `size` lights' terms are kept for pass 2 (dark observations, w < 0, included: pass 2
         # reads them); the values are the same as evaluating them again, so the sums are too
-        cache = term_cache()
+        kept = cache_t()
         for k in range(k0, lights.count, dk):
             w = weights[k, i, j]
             slot = (k - k0) // dk
-            if w > 0.0 or (w < 0.0 and slot < TERM_CACHE):
+            if w > 0.0 or (w < 0.0 and slot < size):
                 e, obs, dval, sval, da0, da1, ds0, ds1 = light_terms(images, lights, mat, k, i, j, p, n, v, dn0, dn1)
-                if slot < TERM_CACHE:
+                if slot < size:
                     for c in range(3):
-                        cache[slot, c] = e[c]
-                        cache[slot, 3 + c] = obs[c]
-                    cache[slot, 6] = dval
-                    cache[slot, 7] = sval
-                    cache[slot, 8] = da0
-                    cache[slot, 9] = da1
-                    cache[slot, 10] = ds0
-                    cache[slot, 11] = ds1
+                        kept[slot, c] = e[c]
+                        kept[slot, 3 + c] = obs[c]
+                    kept[slot, 6] = dval
+                    kept[slot, 7] = sval
+                    kept[slot, 8] = da0
+                    kept[slot, 9] = da1
+                    kept[slot, 10] = ds0
+                    kept[slot, 11] = ds1
                 if w > 0.0:
                     wsum += w
                     for c in range(3):
@@ -270,15 +275,15 @@ def evaluate_for(light_terms, module, sfx: str, lanes: bool = False):
                 da1 = float(0.0)
                 ds0 = float(0.0)
                 ds1 = float(0.0)
-                if slot < TERM_CACHE:
-                    e = wp.vec3(cache[slot, 0], cache[slot, 1], cache[slot, 2])
-                    obs = wp.vec3(cache[slot, 3], cache[slot, 4], cache[slot, 5])
-                    dval = cache[slot, 6]
-                    sval = cache[slot, 7]
-                    da0 = cache[slot, 8]
-                    da1 = cache[slot, 9]
-                    ds0 = cache[slot, 10]
-                    ds1 = cache[slot, 11]
+                if slot < size:
+                    e = wp.vec3(kept[slot, 0], kept[slot, 1], kept[slot, 2])
+                    obs = wp.vec3(kept[slot, 3], kept[slot, 4], kept[slot, 5])
+                    dval = kept[slot, 6]
+                    sval = kept[slot, 7]
+                    da0 = kept[slot, 8]
+                    da1 = kept[slot, 9]
+                    ds0 = kept[slot, 10]
+                    ds1 = kept[slot, 11]
                 else:
                     e, obs, dval, sval, da0, da1, ds0, ds1 = light_terms(images, lights, mat, k, i, j, p, n, v, dn0,
                                                                          dn1)

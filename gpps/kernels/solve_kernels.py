@@ -9,6 +9,8 @@ whose :func:`gpps.kernels.solve.get_solve_kernels` caches them).
 
 import warp as wp
 
+from gpps import names
+
 from gpps.kernels.brdf import CameraParams, LightParams, MaterialParams, light_dir, light_radiance
 from gpps.kernels.solve_common import (
     FLAG_ALBEDO_FROM_NEIGHBOURS,
@@ -554,19 +556,20 @@ def make_lanes_kernel(method, brdf, robust, module_name: str, sfx: str):
     return solve_kernel_for(method, funcs.solve_pixel, module, sfx, lanes=True)
 
 
-def make_kernels(method, brdf, robust, module_name: str, sfx: str):
+def make_kernels(method, brdf, robust, module_name: str, sfx: str, cache: int = names.SOLVE_TERM_CACHE):
     """``(solve_kernel, underdetermined_kernel, smooth_kernel)`` of one specialisation in the Warp module ``module_name``.
 
     Args:
         method, brdf, robust: the normalised key (:func:`gpps.kernels.solve.specialisation_key`).
         module_name: name of the Warp module (:func:`gpps.kernels.solve.module_name`).
         sfx: key suffix of the functions and kernels.
+        cache: the lights the evaluation keeps between its passes (:func:`gpps.kernels.solve.term_cache_size`).
 
     Returns:
         The three kernels; the last two are None for ``method="none"``.
     """
     module = wp.get_module(module_name)
-    funcs = solver_funcs(method, brdf, robust, module, sfx)
+    funcs = solver_funcs(method, brdf, robust, module, sfx, cache=cache)
     solve_kernel = solve_kernel_for(method, funcs.solve_pixel, module, sfx)
     if method == "none":
         return solve_kernel, None, None

@@ -12,6 +12,8 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from gpps import names
+
 from gpps.kernels.brdf import LightParams, MaterialParams, light_dir, light_radiance
 from gpps.kernels.jacobians import chart_normal, chart_normal_jacobian, tangent_basis_t1
 from gpps.kernels.solve_common import (
@@ -487,7 +489,8 @@ def solve_pixel_for(robust, run_method, spec_vg, diff_vg, module, sfx: str, lane
     return solve_pixel, finish_pixel, one_start
 
 
-def solver_funcs(method, brdf, robust, module=None, sfx: str = "", lanes: bool = False):
+def solver_funcs(method, brdf, robust, module=None, sfx: str = "", lanes: bool = False,
+                 cache: int = names.SOLVE_TERM_CACHE):
     """Define the solver functions for one ``(method, brdf, robust)``.
 
     ``None`` for any of them keeps that choice a run-time switch on
@@ -496,7 +499,8 @@ def solver_funcs(method, brdf, robust, module=None, sfx: str = "", lanes: bool =
     chosen branches are emitted.  ``module`` / ``sfx``: Warp module and key
     suffix of the functions (distinct per specialisation).  ``lanes``: the
     lights-parallel build (one block of lanes a pixel, launched tiled; see
-    :func:`gpps.kernels.solve_cost.evaluate_for`).
+    :func:`gpps.kernels.solve_cost.evaluate_for`).  ``cache``: the lights whose terms the evaluation keeps
+    between its passes (:func:`gpps.kernels.solve_cost.evaluate_for`; part of the specialisation).
 
     Returns:
         A namespace with ``evaluate``, ``run_lm``, ``run_dogleg``, ``run_bfgs``,
@@ -504,7 +508,7 @@ def solver_funcs(method, brdf, robust, module=None, sfx: str = "", lanes: bool =
     """
     spec_vg = specular_value_grad_for(brdf, module, sfx)
     diff_vg = diffuse_value_grad_for(brdf, module, sfx)
-    evaluate = evaluate_for(light_terms_for(spec_vg, diff_vg, module, sfx), module, sfx, lanes)
+    evaluate = evaluate_for(light_terms_for(spec_vg, diff_vg, module, sfx), module, sfx, lanes, cache)
     run_lm = lm_for(evaluate, module, sfx)
     run_dogleg = dogleg_for(evaluate, module, sfx)
     run_bfgs = bfgs_for(evaluate, module, sfx)

@@ -44,6 +44,7 @@ import numpy as np
 from gpps._check import as_array, as_mask, check_bool, check_choice, check_number, check_unit
 from gpps._runtime import block_lanes, resolve_device, warp
 from gpps.kernels import solve_batched as sb
+from gpps.kernels.solve import term_cache_size
 from gpps.kernels.brdf import MaterialParams
 from gpps.lights import PointLights
 from gpps.material import Material
@@ -180,7 +181,8 @@ class MaterialScorer(Stage):
         parallel = check_choice("parallel", config.parallel if parallel is None else parallel, ParallelName)
         parallel = resolve_parallel(parallel, self.device, n)
         self.parallel = parallel  # "auto" here: per launch (_uses_lanes)
-        self._kernel = sb.get_batched_kernel(config.solver, brdf, robust) if parallel != "lights" else None
+        self._kernel = (sb.get_batched_kernel(config.solver, brdf, robust, cache=term_cache_size(self.device, n))
+                        if parallel != "lights" else None)
         self._kernel_lanes = (sb.get_batched_kernel(config.solver, brdf, robust, lanes=True)
                               if parallel != "pixels" else None)
         d, pm, km = self.device, int(self.max_samples), int(self.max_candidates)

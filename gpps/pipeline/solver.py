@@ -517,7 +517,7 @@ class PixelSolver(Stage):
         c = self.config
         robust = c.robust if c.irls_rounds > 0 else "none"  # no reweighting round: no IRLS code
         self._solve_kernel, self._underdetermined_kernel, self._smooth_kernel = self._sk.get_solve_kernels(
-            c.solver, self.material.brdf, robust
+            c.solver, self.material.brdf, robust, cache=self._sk.term_cache_size(self.device, self.shape[0])
         )
         self._parallel = resolve_parallel(c.parallel, self.device, self.shape[0]) if c.solver != "none" else "pixels"
         self._lanes_kernel = (self._sk.get_solve_kernel_lanes(c.solver, self.material.brdf, robust)
