@@ -1,5 +1,6 @@
 """``gpps.reconstruct_folder`` (what ``gpps reconstruct`` runs, without writing) on capture folders: wall time
-per call, per-stage timings, the longest stretch without a progress report and MAEN where ground truth exists.  Usage:
+per call, per-stage timings, the longest stretches without a progress report (and the reports around them) and MAEN
+where ground truth exists.  Usage:
 ``python perf/reconstruct_folder_timing.py FOLDER... [--device cuda:0] [--repeat 2] [--refine] [--out FILE]``
 (``--refine``: ``FolderConfig(refine=True)``, the depth refinement after RON's rounds)."""
 
@@ -33,20 +34,23 @@ def main(argv=None):
     for folder in a.folders:
         for k in range(a.repeat):
             t = time.perf_counter()
-            last, gaps = [t], []
+            last, gaps = [t, "start"], []
 
             def progress(done, total, msg):  # the longest time the progress callback sat still
                 now = time.perf_counter()
-                gaps.append(now - last[0])
-                last[0] = now
+                gaps.append((now - last[0], last[1], str(msg)))
+                last[0], last[1] = now, str(msg)
 
             res = gpps.reconstruct_folder(folder, cfg, device=a.device, progress=progress)
             wall = time.perf_counter() - t
-            gaps.append(time.perf_counter() - last[0])
+            gaps.append((time.perf_counter() - last[0], last[1], "end"))
             rep = res.report
             row = {"folder": Path(folder).name, "call": k, "wall_s": wall, "maen_deg": rep.get("maen_deg"),
                    "timings": rep.get("timings"), "images": rep.get("images"), "shape": rep.get("shape"),
-                   "max_progress_gap_s": max(gaps), "refine": a.refine, "refinement": rep.get("refinement")}
+                   "max_progress_gap_s": max(g[0] for g in gaps), "refine": a.refine,
+                   "refinement": rep.get("refinement"),
+                   # the three longest stretches without a report: (seconds, the report before, the report after)
+                   "longest_gaps": sorted(gaps, key=lambda g: -g[0])[:3]}
             rows.append(row)
             print(json.dumps(row, default=json_default), flush=True)
     if a.out:

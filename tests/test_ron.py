@@ -100,7 +100,7 @@ def test_reconstruct_unknown_material(brdf, camera, kind, device):
     ref = float(sc.depth[sc.mask].mean())
     calls = []
     rec = gpps.reconstruct(img, sc.mask, L, camera=sc.camera, material=brdf, reference_depth=ref,
-                           saturation=sat, device=device, progress=lambda d, t, msg: calls.append((d, t)))
+                           saturation=sat, device=device, progress=lambda d, t, msg: calls.append((d, t, msg)))
     e = angular_error(rec.normals, sc.normals, sc.mask)[sc.mask]
     assert e.mean() <= 1.0, e.mean()
     # <= 1 % of the range at 256^2 (perf/reconstruct_synthetic.py); at 64^2 the integrator's own floor is higher
@@ -109,8 +109,13 @@ def test_reconstruct_unknown_material(brdf, camera, kind, device):
         assert rec.estimated[k] == pytest.approx(getattr(TRUE[brdf], k), rel=0.05)
     assert rec.energy[-1] < rec.energy[0]  # round 1 used the default material
     assert rec.rounds >= 2  # at least one material update
-    done = [d for d, _ in calls]
+    done = [d for d, _, _ in calls]
     assert done == sorted(done) and done[-1] == calls[-1][1]
+    # the stages that compile kernels at their first use report apart: least squares, DGMC, the solver's kernels
+    msgs = [m for _, _, m in calls]
+    order = ["least squares", "dgmc: highlights and curvatures", "round 1: normals: loading the solver's kernels",
+             "round 1: normals"]
+    assert [msgs.index(m) for m in order] == sorted(msgs.index(m) for m in order), msgs[:8]
 
 
 def test_warm_rounds_match_cold_rounds(device):

@@ -216,6 +216,24 @@ def test_term_cache_size_tiers():
     assert sk.module_name("lm", "phong", "none") + "_c16" == sk.module_name("lm", "phong", "none", cache=16)
 
 
+
+def test_solver_load_compiles_before_the_first_step(device):
+    """PixelSolver.load: the kernels the config's step launches are loaded (a second call and the step reuse them);
+    a closed solver refuses."""
+    img, L, sc, mat = _case(size=8)
+    ps = PixelSolver(img.shape[:3], sc.camera, L, mat, SolverConfig(starts=2, max_iters=5), device=device)
+    ps.load()
+    module = ps.kernels[0].module
+    assert module.execs, "load() left the solve module unloaded"
+    loaded = dict(module.execs)
+    ps.load()
+    out = ps.run(img, sc.mask)
+    assert dict(module.execs) == loaded  # the step launched what load() had built
+    assert np.isfinite(out["normals"][sc.mask]).all()
+    ps.close()
+    with pytest.raises(ValueError, match="closed"):
+        ps.load()
+
 @pytest.mark.parametrize("lights", [3, 7])
 def test_term_cache_does_not_change_the_solve(device, lights):
     """Keeping a light's terms between the evaluation's passes gives the values a second evaluation gives: a cache of

@@ -1061,7 +1061,8 @@ class RON:
         solve_depth = cur_depth if self.point else None
         total = float(c.rounds * 3 + 2)
         step(0, total, "least squares")
-        start, highlight, dg = self._least_squares_and_dgmc(images, solve_depth, valid, timings)
+        start, highlight, dg = self._least_squares_and_dgmc(images, solve_depth, valid, timings,
+                                                            report=lambda msg: step(0.5, total, msg))
         step(1, total, "dgmc")
         sh, shadow_stats, fit_valid = None, [], valid
         if shadows:
@@ -1089,6 +1090,13 @@ class RON:
                 init = None
             # with the device rounds the front too stays there (its merge written back into the solver's outputs)
             on_device = dev is not None
+            if r == 1:
+                # the solver's kernels compile at their first use in an installation (seconds on the CPU): told
+                # apart from the solve, whose progress comes as its rows finish
+                step(3 * r - 2, total, f"round {r}: normals: loading the solver's kernels")
+                self.solver.set_material(material)  # (the config is the cold solve's since least squares)
+                self.solver.load()
+                step(3 * r - 2, total, f"round {r}: normals")
             out = self._solve(images, solve_depth, valid, material, init=init, init_mask=init_mask,
                               cold=(r <= c.cold_rounds or init is None), fetch=not on_device,
                               progress=lambda f: step(3 * r - 2 + f, total, f"round {r}: normals"))
@@ -1302,10 +1310,11 @@ class RON:
         cur_depth = None if depth is None else np.where(m, depth, reference_depth or 1.0).astype(np.float32)
         return cur_depth, reference_depth
 
-    def _least_squares_and_dgmc(self, images, solve_depth, valid, timings):
+    def _least_squares_and_dgmc(self, images, solve_depth, valid, timings, report=None):
         """The start (Algorithm 2's first step): least squares (Woodham), then DGMC's highlight pixels and
         starts (4.16-4.18, on the device: :class:`gpps.pipeline.dgmc.DeviceDGMC`, the host's decisions).  Returns
-        ``(start normals (H, W, 3), highlight (H, W) bool, DGMC start maps (DGMCStart) or None)``."""
+        ``(start normals (H, W, 3), highlight (H, W) bool, DGMC start maps (DGMCStart) or None)``.  ``report(message)``:
+        told between the two (each compiles its kernels at its first use in an installation)."""
         c, m = self.config, self.mask
         t = time.perf_counter()
         s = self.solver
@@ -1318,6 +1327,8 @@ class RON:
         timings["least_squares"] += time.perf_counter() - t
         start, highlight, dg = ls["normals"], np.zeros(m.shape, bool), None
         if c.dgmc and self.material.brdf != "lambertian":
+            if report is not None:
+                report("dgmc: highlights and curvatures")
             t = time.perf_counter()
             pts = self.camera.backproject(np.where(m, solve_depth, 1.0)) if self.point else None
             nrm = ls["normals"].astype(np.float64)

@@ -241,7 +241,7 @@ def get_solve_kernels(method, brdf, robust="none", cache: int = names.SOLVE_TERM
     sees to it).
     """
     key = specialisation_key(method, brdf, robust)
-    cache = int(cache)
+    cache = int(cache) if key[0] != "none" else names.SOLVE_TERM_CACHE  # (least squares evaluates no model)
     ks = _KERNELS.get((key, cache))
     if ks is None:
         name = module_name(*key, cache=cache)

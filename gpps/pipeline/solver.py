@@ -533,6 +533,19 @@ class PixelSolver(Stage):
         """``(solve_kernel, underdetermined_kernel, smooth_kernel)`` that :meth:`step` uses (the last two None for solver "none")."""
         return self._solve_kernel, self._underdetermined_kernel, self._smooth_kernel
 
+    def load(self) -> None:
+        """Compile (first use in this installation) and load the kernels the current config's :meth:`step` launches,
+        now rather than at its first launch: a caller reporting progress can say so between the compile and the
+        solve (a cold kernel cache costs seconds a module on the CPU).  A no-op for loaded modules."""
+        self._check_open()
+        wp = warp()
+        kernels = [self._solve_kernel, self._lanes_kernel]
+        if self._uses_split():
+            robust = self.config.robust if self.config.irls_rounds > 0 else "none"
+            kernels += list(self._sk.get_split_kernels(self.config.solver, self.material.brdf, robust))
+        for module in {id(k.module): k.module for k in kernels if k is not None}.values():
+            wp.load_module(module, device=self.device)
+
     def set_config(self, config: SolverConfig) -> None:
         if not isinstance(config, SolverConfig):
             raise TypeError(f"config: expected PixelSolver.Config, got {type(config).__name__}")
