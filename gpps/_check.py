@@ -159,6 +159,16 @@ def albedo_map(name, a, shape) -> np.ndarray:
     return np.ascontiguousarray(arr, dtype=np.float32)
 
 
+def as_path(name, v):
+    """``v`` as a :class:`pathlib.Path` (a ``str`` or ``os.PathLike``); else a TypeError naming ``name``."""
+    import os
+    from pathlib import Path
+
+    if isinstance(v, (str, os.PathLike)) and not isinstance(v, bytes):
+        return Path(v)
+    raise TypeError(f"{name}: expected a path (str or os.PathLike), got {type(v).__name__}")
+
+
 def check_bool(name, v) -> bool:
     """``v`` as a bool (True/False or numpy bools only); TypeError naming ``name``."""
     if not isinstance(v, (bool, np.bool_)):

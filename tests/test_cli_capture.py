@@ -185,3 +185,18 @@ def test_diligent_jpegs_without_mask_match_pngs_with_mask(tmp_path, data_root):
 
     both = am & gm
     assert abs(maen(outs["jpg"][0], both) - maen(outs["png"][0], both)) < 0.5
+
+
+def test_folder_arguments_must_be_paths():
+    """A folder argument that is not a path: a TypeError naming it (os.fspath's own message named nothing)."""
+    import gpps
+    from gpps.io.capture import read_capture
+
+    with pytest.raises(TypeError, match="folder: expected a path"):
+        gpps.reconstruct_folder(np.zeros(3))
+    with pytest.raises(TypeError, match="folder: expected a path"):
+        gpps.calibrate_lights(np.zeros(3))
+    with pytest.raises(TypeError, match="dir: expected a path"):
+        read_capture(3)
+    with pytest.raises(FileNotFoundError, match="dir: folder not found"):
+        gpps.reconstruct_folder("/nonexistent/gpps/folder")

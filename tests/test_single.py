@@ -108,6 +108,17 @@ def test_prepare_input_scale_free():
         prepare_input(img, np.zeros((16, 16), bool))
 
 
+
+def test_prepare_images_refuses_empty_input():
+    """No image, or images of no pixels: a ValueError naming ``images`` (numpy's reduction error before)."""
+    from gpps.host.single import prepare_images
+
+    for shape in ((0, 16, 16, 3), (2, 0, 16, 3), (0, 16, 16)):
+        with pytest.raises(ValueError, match="images: expected at least one image"):
+            prepare_images(np.zeros(shape, np.float32))
+    I, m = prepare_images(np.ones((2, 8, 8, 3), np.float32))
+    assert I.shape == (2, 8, 8, 3) and m.all()
+
 def _sphere_capture(size=64, brdf="lambertian"):
     from gpps.lights import DirectionalLights, ring_directions
     from gpps.material import Material

@@ -87,7 +87,7 @@ def test_robust_loss_rejects_outliers():
 
 def test_bad_input_raises_value_errors():
     img, L, sc, mat = _case(size=16)
-    with pytest.raises(ValueError, match="lights"):
+    with pytest.raises(ValueError, match="images: expected at least 3 images, got 2"):
         solve_normals(img[:2], sc.mask, DirectionalLights(L.directions[:2]))
     with pytest.raises(ValueError, match="lights"):
         solve_normals(img, sc.mask, DirectionalLights(np.tile(L.directions[:1], (3, 1))))  # collinear

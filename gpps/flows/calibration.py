@@ -25,7 +25,7 @@ from typing import Callable
 import numpy as np
 from scipy import ndimage
 
-from gpps._check import check_choice, check_number
+from gpps._check import as_path, check_choice, check_number
 from gpps.camera import Orthographic, Perspective, camera_from_K
 from gpps.host.calibrate import (SphereFit, card_intensities, circle_points, disc_mask, find_outline, fit_sphere,
                                  highlight_direction, mask_outline, matte_intensities, triangulate_lights)
@@ -237,7 +237,7 @@ def calibrate_lights(folder, *, chrome=None, chrome_mask=None, sphere_radius=Non
     """
     transfer = check_choice("transfer", transfer, Transfer)
     min_contrast = check_number("min_contrast", min_contrast, lo=0.0, lo_open=True)
-    root = Path(folder)
+    root = as_path("folder", folder)
     # no object here: read with the mask "none" (no mask file, no automatic mask)
     cap = read_capture(root, transfer=transfer, ambient=None if ambient == "none" else ambient,
                        mask="none", normalise=False, progress=read_progress)

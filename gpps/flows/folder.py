@@ -33,7 +33,7 @@ from typing import Callable, Literal
 
 import numpy as np
 
-from gpps._check import GppsWarning, check_bool, check_choice, check_choices, check_number
+from gpps._check import GppsWarning, as_path, check_bool, check_choice, check_choices, check_number
 from gpps.camera import Orthographic, Perspective, camera_from_K
 from gpps.flows.integrate import integrate_normals
 from gpps.flows.photometric import solve_normals
@@ -527,6 +527,7 @@ def reconstruct_folder(folder, config: FolderConfig | None = None, *, lights=Non
             ``method="pps"`` without a perspective camera and directional lights, degenerate images.
     """
     started = time.perf_counter()
+    folder = as_path("folder", folder)
     config = FolderConfig() if config is None else config
     if not isinstance(config, FolderConfig):
         raise TypeError(f"config: expected FolderConfig, got {type(config).__name__}")

@@ -308,6 +308,8 @@ def solve_normals(
         raise ValueError("config: pass either config or solver/robust/options, not both")
     img, m, lights, camera = check_inputs(images, mask, lights, camera)
     n, h, w = img.shape[:3]
+    if n < 3:  # (a normal and an albedo need 3 observations: as gpps.reconstruct says)
+        raise ValueError(f"images: expected at least 3 images, got {n}")
     if valid is not None and np.shape(valid) != (n, h, w):
         raise ValueError(f"valid: expected shape ({n}, {h}, {w}), got {np.shape(valid)}")
     notes: list[str] = []

@@ -33,6 +33,8 @@ def prepare_images(images, mask=None) -> tuple[np.ndarray, np.ndarray]:
             a = a[None] if a.shape[-1] == 3 else a[..., None]
     if a.ndim != 4 or a.shape[-1] not in (1, 3):
         raise ValueError(f"images: expected (H, W), (H, W, 3) or N of them, got shape {np.shape(images)}")
+    if 0 in a.shape[:3]:
+        raise ValueError(f"images: expected at least one image of at least 1 x 1 pixels, got shape {np.shape(images)}")
     if a.shape[-1] == 1:
         a = np.repeat(a, 3, -1)
     a = np.nan_to_num(a, nan=0.0, posinf=0.0, neginf=0.0)

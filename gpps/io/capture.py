@@ -35,6 +35,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from gpps._check import as_path
 from gpps.host.automask import automatic_mask
 from gpps.io import Dataset, read_K, read_matrix
 from gpps.io.formats import IMAGE_EXTENSIONS, Transfer, decode_image_file, read_image_file
@@ -218,7 +219,7 @@ def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = No
         ValueError: no images, images of different sizes, side files of the
             wrong shape, ``max_size`` < 8.
     """
-    root = Path(root)
+    root = as_path("dir", root)
     if not root.is_dir():
         raise FileNotFoundError(f"dir: folder not found: {root}")
     if max_size is not None and (int(max_size) != max_size or max_size < 8):
