@@ -201,6 +201,30 @@ def test_read_capture_errors(tmp_path):
         read_capture(tmp_path)
 
 
+
+def test_read_npy_names_the_argument(tmp_path):
+    """A .npy that is text, pickled objects or not numeric: a ValueError naming the argument (no unpickling)."""
+    from gpps.cli import main
+    from gpps.io import read_npy
+
+    good = np.arange(6, dtype=np.float32).reshape(2, 3)
+    np.save(tmp_path / "good.npy", good)
+    np.testing.assert_array_equal(read_npy(tmp_path / "good.npy"), good)
+    (tmp_path / "text.npy").write_text("hello")
+    np.save(tmp_path / "obj.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    np.save(tmp_path / "str.npy", np.array(["a", "b"]))
+    for f in ("text.npy", "obj.npy", "str.npy"):
+        with pytest.raises(ValueError, match="normals: expected a numeric .npy array"):
+            read_npy(tmp_path / f, name="normals")
+    with pytest.raises(FileNotFoundError, match="normals: file not found"):
+        read_npy(tmp_path / "missing.npy", name="normals")
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "mask.png"), np.full((4, 4), 255, np.uint8))
+    assert main(["--device", "cpu", "integrate", str(tmp_path / "text.npy"), "--mask", str(tmp_path / "mask.png"),
+                 "--out", str(tmp_path / "out")]) == 2
+    assert not (tmp_path / "out").exists()
+
 def test_automatic_mask_fills_holes_and_drops_speckle():
     from gpps.host.automask import AutoMaskConfig, automatic_mask
 

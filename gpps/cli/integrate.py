@@ -20,8 +20,8 @@ import gpps
 from gpps import Orthographic, Perspective
 from gpps.cli._output import add_output_args, prepare_out, warning_messages
 from gpps.cli._progress import bar
-from gpps.io import (apply_depth_convention, atomic_dir, depth_convention, read_image, read_K, read_mask, save_json,
-                     write_outputs)
+from gpps.io import (apply_depth_convention, atomic_dir, depth_convention, read_image, read_K, read_mask, read_npy,
+                     save_json, write_outputs)
 
 
 def register(subparsers) -> None:
@@ -57,7 +57,7 @@ def _read_normals(path: Path) -> np.ndarray:
     if not path.is_file():
         raise FileNotFoundError(f"normals: file not found: {path}")
     if path.suffix.lower() == ".npy":
-        n = np.load(path)
+        n = read_npy(path, name="normals")
     else:
         img = read_image(path, dtype=np.float64)  # RGB order, in [0, 1]
         if img.shape[-1] != 3:

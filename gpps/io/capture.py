@@ -37,7 +37,7 @@ import numpy as np
 
 from gpps._check import as_path
 from gpps.host.automask import automatic_mask
-from gpps.io import Dataset, read_K, read_matrix
+from gpps.io import Dataset, read_K, read_matrix, read_npy
 from gpps.io.formats import IMAGE_EXTENSIONS, Transfer, decode_image_file, read_image_file
 
 __all__ = ["Capture", "read_capture", "list_images", "find_side_file", "SIDE_IMAGE_STEMS"]
@@ -324,8 +324,8 @@ def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = No
         li32 = li.astype(np.float32)
         _each(lambda k: np.divide(images[k], li32[k], out=images[k]), range(n))
         normalised = True
-    ngt = np.load(root / "normal_gt.npy").astype(np.float32) if (root / "normal_gt.npy").is_file() and scale == 1.0 else None
-    dgt = np.load(root / "depth_gt.npy") if (root / "depth_gt.npy").is_file() and scale == 1.0 else None
+    ngt = read_npy(root / "normal_gt.npy").astype(np.float32) if (root / "normal_gt.npy").is_file() and scale == 1.0 else None
+    dgt = read_npy(root / "depth_gt.npy") if (root / "depth_gt.npy").is_file() and scale == 1.0 else None
     mat = json.loads((root / "material.json").read_text()) if (root / "material.json").is_file() else None
     ds = Dataset(images=images.astype(np.float32, copy=False), mask=m, light_directions=ld, light_positions=lp, light_intensities=li,
                  K=K, normal_gt=ngt, depth_gt=dgt, material=mat, filenames=list(names), normalised=normalised)

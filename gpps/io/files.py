@@ -33,6 +33,7 @@ __all__ = [
     "atomic_write",
     "atomic_dir",
     "save_npy",
+    "read_npy",
     "save_json",
     "json_default",
     "save_txt",
@@ -362,6 +363,23 @@ def read_mask(path) -> np.ndarray:
     return np.any(m > 0.5, axis=-1)
 
 
+def read_npy(path, *, name: str | None = None) -> np.ndarray:
+    """Read a ``.npy`` array (no pickled objects); a file that is not one is a ValueError naming ``name``
+    (numpy's own messages say neither which argument nor, for a text file, what is wrong)."""
+    path = Path(path)
+    name = name or path.name
+    if not path.is_file():
+        raise FileNotFoundError(f"{name}: file not found: {path}")
+    try:
+        a = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as e:
+        raise ValueError(f"{name}: expected a numeric .npy array, could not read {path} ({e})") from None
+    if not isinstance(a, np.ndarray) or a.dtype.kind not in "biuf":
+        got = getattr(a, "dtype", type(a).__name__)
+        raise ValueError(f"{name}: expected a numeric .npy array, got {got} in {path}")
+    return a
+
+
 def read_matrix(path, *, shape=None, name: str | None = None) -> np.ndarray:
     """Read a whitespace/comma separated numeric text matrix (float64)."""
     path = Path(path)
@@ -475,8 +493,8 @@ def read_dataset(root, *, normalise: bool = True, indices=None) -> Dataset:
         if np.any(li_sel <= 0):
             raise ValueError("light_intensities.txt: expected positive intensities")
         images = (images / li_sel[:, None, None, :].astype(np.float32)).astype(np.float32)
-    ngt = np.load(root / "normal_gt.npy").astype(np.float32) if (root / "normal_gt.npy").is_file() else None
-    dgt = np.load(root / "depth_gt.npy") if (root / "depth_gt.npy").is_file() else None
+    ngt = read_npy(root / "normal_gt.npy").astype(np.float32) if (root / "normal_gt.npy").is_file() else None
+    dgt = read_npy(root / "depth_gt.npy") if (root / "depth_gt.npy").is_file() else None
     mat = json.loads((root / "material.json").read_text()) if (root / "material.json").is_file() else None
     return Dataset(
         images=images,
