@@ -197,3 +197,27 @@ def test_float_mask_with_nan_is_refused(sphere, device):
         gpps.reconstruct(img, bad, L, device=device)
     ok = solve_normals(img, sc.mask.astype(np.float32), L, solver="none", device=device)  # finite floats: > 0 inside
     assert ok.normals[sc.mask].any()
+
+
+def test_single_image_saturated_or_clipped():
+    """The single-image flow checks clipping as the calibrated ones do (gpps.names.CLIP_LEVELS): an over-exposed
+    8-bit photograph (255 everywhere) is refused before the network runs; one with 5 % or more of its observations
+    at the full scale warns; an unclipped one does not."""
+    from gpps.host.single import prepare_images
+
+    sc = make_scene("sphere", 32, "orthographic")
+    L = default_lights("directional", 1)
+    img = render(sc, gpps.Material("lambertian", ks=0.0), L, bits=16)[0]  # (H, W, 3) in [0, 1]
+    white = np.full(img.shape, 255, np.uint8)
+    with pytest.raises(ValueError, match=r"images: 100% of the object's observations are at 1, the full scale: "
+                                         r"everything is saturated"):
+        prepare_images(white, sc.mask)
+    with pytest.raises(ValueError, match="everything is saturated"):
+        gpps.reconstruct_single(white, sc.mask)
+    peak = img.max(axis=-1)[sc.mask]
+    clipped = np.round(255 * np.minimum(img / np.percentile(peak, 90), 1.0)).astype(np.uint8)  # ~10 % at 255
+    with pytest.warns(GppsWarning, match=r"observations sit at 1, the full scale: clipped"):
+        prepare_images(clipped, sc.mask)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", GppsWarning)
+        prepare_images(np.round(200 * img / peak.max()).astype(np.uint8), sc.mask)

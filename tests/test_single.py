@@ -116,7 +116,7 @@ def test_prepare_images_refuses_empty_input():
     for shape in ((0, 16, 16, 3), (2, 0, 16, 3), (0, 16, 16)):
         with pytest.raises(ValueError, match="images: expected at least one image"):
             prepare_images(np.zeros(shape, np.float32))
-    I, m = prepare_images(np.ones((2, 8, 8, 3), np.float32))
+    I, m = prepare_images(np.full((2, 8, 8, 3), 0.5, np.float32))
     assert I.shape == (2, 8, 8, 3) and m.all()
 
 def _sphere_capture(size=64, brdf="lambertian"):

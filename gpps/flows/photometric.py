@@ -25,6 +25,7 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from gpps import names
 from gpps._check import IMAGE_FULL_SCALE, as_array, as_images, as_mask, warn
 from gpps._runtime import warp
 from gpps.camera import Orthographic, Perspective
@@ -108,14 +109,12 @@ UNLIT_FRACTION = 1e-3
 #: Below this share of determined mask pixels the input is degenerate (an error); below WARN_DETERMINED a warning.
 MIN_DETERMINED = 0.2
 WARN_DETERMINED = 0.5
-#: Float images with no saturation level given whose brightest observations sit at one of these values (the full
-#: scale of float or raw integer data) are taken as clipped there: at or above SATURATED_SHARE of the mask's
-#: observations an error (everything saturated), at or above CLIPPED_SHARE (and CLIPPED_MIN observations) a warning.
-#: (Any other repeated maximum is left alone: a flat target under a ring of lights gives one value everywhere.)
-CLIP_LEVELS = (1.0, 255.0, 1023.0, 4095.0, 16383.0, 65535.0)
-SATURATED_SHARE = 0.9
-CLIPPED_SHARE = 0.05
-CLIPPED_MIN = 16
+#: Float images with no saturation level given whose brightest observations sit at one of the full-scale values of
+#: :data:`gpps.names.CLIP_LEVELS` are taken as clipped there (the rule and its shares: gpps.names).
+CLIP_LEVELS = names.CLIP_LEVELS
+SATURATED_SHARE = names.SATURATED_SHARE
+CLIPPED_SHARE = names.CLIPPED_SHARE
+CLIPPED_MIN = names.CLIPPED_MIN
 
 
 def _masked_statistics(img, mask, valid, saturation):

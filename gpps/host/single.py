@@ -10,7 +10,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize
 
-from gpps._check import as_images, check_number
+from gpps import names
+from gpps._check import as_images, check_number, warn
 from gpps.host.gbr import integrability_gbr
 
 
@@ -46,8 +47,27 @@ def prepare_images(images, mask=None) -> tuple[np.ndarray, np.ndarray]:
     m = m & (a.max(axis=(0, 3)) > 0)
     if m.sum() < 16:
         raise ValueError(f"mask: expected at least 16 lit object pixels, got {int(m.sum())}")
+    _check_clipping(a, m)
     p = float(np.percentile(a[:, m].max(-1), 99.0))
     return (a / max(p, 1e-12)).astype(np.float32), m
+
+
+def _check_clipping(a, m) -> None:
+    """The images' clipping, as the calibrated flows check it (gpps.names.CLIP_LEVELS): the object's observations
+    whose brightest channel sits at the full scale (1 for integer images, which arrive scaled; a raw level for
+    floats).  90 % or more: a ValueError (everything saturated: no shading to read); 5 % or more: a warning."""
+    peak = a[:, m].max(-1)  # (N, P)
+    top = float(peak.max())
+    if top not in names.CLIP_LEVELS:
+        return
+    at_top = peak >= top
+    share = float(at_top.mean())
+    if share >= names.SATURATED_SHARE:
+        raise ValueError(f"images: {100 * share:.0f}% of the object's observations are at {top:g}, the full scale: "
+                         "everything is saturated (over-exposed), there is no shading to read")
+    if share >= names.CLIPPED_SHARE and int(np.count_nonzero(at_top)) >= names.CLIPPED_MIN:
+        warn(f"images: {100 * share:.1f}% of the object's observations sit at {top:g}, the full scale: clipped "
+             "(saturated) highlights or over-exposure; the network and the search read them as they are")
 
 
 def view_dirs(camera, shape, mask):
