@@ -213,7 +213,9 @@ def test_read_npy_names_the_argument(tmp_path):
     (tmp_path / "text.npy").write_text("hello")
     np.save(tmp_path / "obj.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
     np.save(tmp_path / "str.npy", np.array(["a", "b"]))
-    for f in ("text.npy", "obj.npy", "str.npy"):
+    np.savez(tmp_path / "arch.npz", a=good)
+    (tmp_path / "arch.npz").rename(tmp_path / "arch.npy")
+    for f in ("text.npy", "obj.npy", "str.npy", "arch.npy"):
         with pytest.raises(ValueError, match="normals: expected a numeric .npy array"):
             read_npy(tmp_path / f, name="normals")
     with pytest.raises(FileNotFoundError, match="normals: file not found"):

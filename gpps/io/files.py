@@ -374,9 +374,11 @@ def read_npy(path, *, name: str | None = None) -> np.ndarray:
         a = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as e:
         raise ValueError(f"{name}: expected a numeric .npy array, could not read {path} ({e})") from None
-    if not isinstance(a, np.ndarray) or a.dtype.kind not in "biuf":
-        got = getattr(a, "dtype", type(a).__name__)
-        raise ValueError(f"{name}: expected a numeric .npy array, got {got} in {path}")
+    if not isinstance(a, np.ndarray):  # (an .npz archive: np.load opened it)
+        a.close()
+        raise ValueError(f"{name}: expected a numeric .npy array, got an .npz archive in {path}")
+    if a.dtype.kind not in "biuf":
+        raise ValueError(f"{name}: expected a numeric .npy array, got {a.dtype} in {path}")
     return a
 
 
