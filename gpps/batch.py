@@ -55,7 +55,7 @@ import numpy as np
 
 import gpps
 from gpps import _fpenv
-from gpps._check import GppsWarning
+from gpps._check import GppsWarning, as_path
 from gpps.flows import tiled
 from gpps.flows.folder import FolderConfig, reconstruct_folder
 from gpps.io import atomic_dir, atomic_write, check_output_dir, read_marker, save_json
@@ -418,7 +418,13 @@ def reconstruct_many(folders, out, client=None, *, workers: int | None = None, s
     """
     t0 = time.perf_counter()
     cfg = _config(config, options)
-    folders = [Path(f) for f in ([folders] if isinstance(folders, (str, os.PathLike)) else folders)]
+    if isinstance(folders, (str, os.PathLike)):
+        folders = [folders]
+    try:
+        folders = list(folders)
+    except TypeError:
+        raise TypeError(f"folders: expected a folder path or a sequence of them, got {type(folders).__name__}") from None
+    folders = [as_path(f"folders[{k}]", f) for k, f in enumerate(folders)]
     if not folders:
         raise ValueError("folders: expected at least one capture folder, got none")
     names = _names(folders)

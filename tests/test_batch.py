@@ -187,6 +187,10 @@ def test_outputs_of_others_are_refused_before_anything_runs(captures, tmp_path):
         gpps.reconstruct_many([dirs[0], twin], tmp_path / "o")
     with pytest.raises(TypeError, match="rounds_cap"):
         gpps.reconstruct_many(dirs, tmp_path / "o", rounds_cap=2)
+    with pytest.raises(TypeError, match="folders: expected a folder path or a sequence of them, got int"):
+        gpps.reconstruct_many(5, tmp_path / "o")
+    with pytest.raises(TypeError, match=r"folders\[1\]: expected a path"):
+        gpps.reconstruct_many([dirs[0], 3], tmp_path / "o")
     assert not (tmp_path / "o").exists()
 
 
