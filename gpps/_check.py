@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import functools
+import os
 import warnings
 from dataclasses import fields
+from pathlib import Path
 from types import UnionType
 from typing import Literal, Union, get_args, get_origin, get_type_hints
 
 import numpy as np
+
+from gpps import names
 
 
 class GppsWarning(UserWarning):
@@ -159,11 +163,32 @@ def albedo_map(name, a, shape) -> np.ndarray:
     return np.ascontiguousarray(arr, dtype=np.float32)
 
 
+def clipping(peak) -> tuple[str | None, float, float]:
+    """The clipping rule of images given without a saturation level (:data:`gpps.names.CLIP_LEVELS`).
+
+    Args:
+        peak: the observations' brightest channels (any shape, non-empty).
+
+    Returns:
+        ``(verdict, full scale, share)``: ``verdict`` ``"saturated"`` (``names.SATURATED_SHARE`` or more of the
+        observations at the full scale: an error for the caller), ``"clipped"`` (``names.CLIPPED_SHARE`` or more and
+        ``names.CLIPPED_MIN`` observations: a warning) or None; ``full scale`` the maximum (None-verdict also when it
+        is not a full-scale value); ``share`` the fraction of observations at it.
+    """
+    top = float(np.max(peak))
+    if top not in names.CLIP_LEVELS:
+        return None, top, 0.0
+    at_top = np.asarray(peak) >= top
+    share = float(at_top.mean())
+    if share >= names.SATURATED_SHARE:
+        return "saturated", top, share
+    if share >= names.CLIPPED_SHARE and int(np.count_nonzero(at_top)) >= names.CLIPPED_MIN:
+        return "clipped", top, share
+    return None, top, share
+
+
 def as_path(name, v):
     """``v`` as a :class:`pathlib.Path` (a ``str`` or ``os.PathLike``); else a TypeError naming ``name``."""
-    import os
-    from pathlib import Path
-
     if isinstance(v, (str, os.PathLike)) and not isinstance(v, bytes):
         return Path(v)
     raise TypeError(f"{name}: expected a path (str or os.PathLike), got {type(v).__name__}")

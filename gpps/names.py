@@ -110,8 +110,8 @@ FLAG_NAMES = {
     FLAG_ALBEDO_FROM_NEIGHBOURS: "albedo_from_neighbours",
 }
 
-# clipping of images given without a saturation level (gpps.flows.photometric.check_observations, the single-image
-# flow's gpps.host.single.prepare_images): observations whose brightest channel sits at one of these values (the
+# clipping of images given without a saturation level (gpps._check.clipping, for check_observations and the
+# single-image flow's gpps.host.single.prepare_images): observations whose brightest channel sits at one of these values (the
 # full scale of float or raw integer data; integer images arrive scaled to 1) are taken as clipped there: at or
 # above SATURATED_SHARE of the mask's observations an error (everything saturated), at or above CLIPPED_SHARE (and
 # CLIPPED_MIN observations) a warning.  (Any other repeated maximum is left alone: a flat target under a ring of

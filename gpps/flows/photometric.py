@@ -25,8 +25,7 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from gpps import names
-from gpps._check import IMAGE_FULL_SCALE, as_array, as_images, as_mask, warn
+from gpps._check import IMAGE_FULL_SCALE, as_array, as_images, as_mask, clipping, warn
 from gpps._runtime import warp
 from gpps.camera import Orthographic, Perspective
 from gpps.lights import DirectionalLights, PointLights
@@ -109,12 +108,6 @@ UNLIT_FRACTION = 1e-3
 #: Below this share of determined mask pixels the input is degenerate (an error); below WARN_DETERMINED a warning.
 MIN_DETERMINED = 0.2
 WARN_DETERMINED = 0.5
-#: Float images with no saturation level given whose brightest observations sit at one of the full-scale values of
-#: :data:`gpps.names.CLIP_LEVELS` are taken as clipped there (the rule and its shares: gpps.names).
-CLIP_LEVELS = names.CLIP_LEVELS
-SATURATED_SHARE = names.SATURATED_SHARE
-CLIPPED_SHARE = names.CLIPPED_SHARE
-CLIPPED_MIN = names.CLIPPED_MIN
 
 
 def _masked_statistics(img, mask, valid, saturation):
@@ -175,9 +168,9 @@ def check_observations(images, mask, lights, *, valid=None, saturation=None, ref
     the mask black; fewer than :data:`MIN_DETERMINED` of the mask pixels
     determined (all dark, all saturated, or the mask outside the lit area).
     With no ``saturation``, float images whose brightest channels top out at a
-    full-scale value (:data:`CLIP_LEVELS`, e.g. 1.0) are taken as clipped there:
-    :data:`SATURATED_SHARE` or more of the observations at it is an error, and
-    :data:`CLIPPED_SHARE` or more (and :data:`CLIPPED_MIN`) a warning.  Warnings
+    full-scale value (:data:`gpps.names.CLIP_LEVELS`, e.g. 1.0) are taken as clipped there
+    (:func:`gpps._check.clipping`): ``names.SATURATED_SHARE`` or more of the observations at it is an error,
+    ``names.CLIPPED_SHARE`` or more (and ``names.CLIPPED_MIN``) a warning.  Warnings
     (:class:`gpps.GppsWarning`, messages appended to ``sink``): that clipping;
     fewer than :data:`WARN_DETERMINED` determined; a directional light behind
     the object (``z <= 0``: it lights only surfaces that face away from the
@@ -222,16 +215,13 @@ def check_observations(images, mask, lights, *, valid=None, saturation=None, ref
             cause = "too few lights reach each pixel"
         raise ValueError(f"images: only {100 * frac:.1f}% of the mask pixels have 3 or more usable (lit, "
                          f"unsaturated) observations; {cause}")
-    top = float(peak.max())
-    if saturation is None and top in CLIP_LEVELS:
-        at_top = peak >= top
-        share = float(at_top.mean())
-        if share >= SATURATED_SHARE:
-            raise ValueError(f"images: {100 * share:.0f}% of the observations inside the mask are at {top:g}, the "
-                             "full scale: everything is saturated (over-exposed), there is no shading to fit")
-        if share >= CLIPPED_SHARE and int(np.count_nonzero(at_top)) >= CLIPPED_MIN:
-            warn(f"images: {100 * share:.1f}% of the observations inside the mask sit at {top:g}, the full scale: "
-                 f"clipped (saturated)? Pass saturation={top:g} to leave them out of the fit", sink)
+    verdict, top, share = clipping(peak) if saturation is None else (None, 0.0, 0.0)
+    if verdict == "saturated":
+        raise ValueError(f"images: {100 * share:.0f}% of the observations inside the mask are at {top:g}, the "
+                         "full scale: everything is saturated (over-exposed), there is no shading to fit")
+    if verdict == "clipped":
+        warn(f"images: {100 * share:.1f}% of the observations inside the mask sit at {top:g}, the full scale: "
+             f"clipped (saturated)? Pass saturation={top:g} to leave them out of the fit", sink)
     if frac < WARN_DETERMINED:
         warn(f"images: {100 * (1 - frac):.0f}% of the mask pixels have fewer than 3 usable (lit, unsaturated) "
              "observations; their normals rest on neighbours and priors", sink)

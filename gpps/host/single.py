@@ -10,8 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize
 
-from gpps import names
-from gpps._check import as_images, check_number, warn
+from gpps._check import as_images, check_number, clipping, warn
 from gpps.host.gbr import integrability_gbr
 
 
@@ -53,19 +52,15 @@ def prepare_images(images, mask=None) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _check_clipping(a, m) -> None:
-    """The images' clipping, as the calibrated flows check it (gpps.names.CLIP_LEVELS): the object's observations
-    whose brightest channel sits at the full scale (1 for integer images, which arrive scaled; a raw level for
-    floats).  90 % or more: a ValueError (everything saturated: no shading to read); 5 % or more: a warning."""
-    peak = a[:, m].max(-1)  # (N, P)
-    top = float(peak.max())
-    if top not in names.CLIP_LEVELS:
-        return
-    at_top = peak >= top
-    share = float(at_top.mean())
-    if share >= names.SATURATED_SHARE:
+    """The images' clipping, as the calibrated flows check it (:func:`gpps._check.clipping`): the object's
+    observations whose brightest channel sits at the full scale (1 for integer images, which arrive scaled; a raw
+    level for floats).  90 % or more: a ValueError (everything saturated: no shading to read); 5 % or more: a
+    warning."""
+    verdict, top, share = clipping(a[:, m].max(-1))
+    if verdict == "saturated":
         raise ValueError(f"images: {100 * share:.0f}% of the object's observations are at {top:g}, the full scale: "
                          "everything is saturated (over-exposed), there is no shading to read")
-    if share >= names.CLIPPED_SHARE and int(np.count_nonzero(at_top)) >= names.CLIPPED_MIN:
+    if verdict == "clipped":
         warn(f"images: {100 * share:.1f}% of the object's observations sit at {top:g}, the full scale: clipped "
              "(saturated) highlights or over-exposure; the network and the search read them as they are")
 
