@@ -85,6 +85,9 @@ SPLIT_SOLVE_MAX_REGISTERS = 128
 # the zeroing costs less than a second evaluation of the lights (gpps.kernels.solve.term_cache_size).
 SOLVE_TERM_CACHE = 4
 SOLVE_TERM_CACHE_CPU = (4, 16, 128)
+# the stream integrator's tolerance mode stops in float32 after this many residual checks in a row that do not halve
+# the best |r|^2 (its floor; gpps.pipeline.integration_device.StreamIntegrator.step)
+STALL_CHECKS = 3
 # where a stage may run its per-frame or per-step launches as a CUDA graph: "auto" (on CUDA, after a first eager
 # pass), "off" (launched from the host every time)
 GraphName = Literal["auto", "off"]
