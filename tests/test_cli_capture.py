@@ -138,6 +138,15 @@ def test_reconstruct_errors_name_the_argument(tmp_path, capsys):
     raw, _, _ = _raw_folder(tmp_path, n=4, size=24)
     assert main(["reconstruct", str(raw), "--max-size", "2", "--out", str(tmp_path / "o")]) == 2
     assert "max_size" in capsys.readouterr().err
+    # both light files: the point lights are used, and their missing distance says so
+    (tmp_path / "both").mkdir()
+    _, _, lights = _raw_folder(tmp_path / "both", n=4, size=24)
+    np.savetxt(tmp_path / "both" / "raw" / "light_directions.txt", lights.directions)
+    np.savetxt(tmp_path / "both" / "raw" / "light_positions.txt", 10 * lights.directions)
+    assert main(["reconstruct", str(tmp_path / "both" / "raw"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "expected the object's distance for point lights" in err and "remove it for directional lights" in err
+    assert not (tmp_path / "o").exists()
 
 
 def test_diligent_jpegs_without_mask_match_pngs_with_mask(tmp_path, data_root):

@@ -201,6 +201,35 @@ def test_read_capture_errors(tmp_path):
         read_capture(tmp_path)
 
 
+def test_read_capture_side_files(tmp_path):
+    """material.json that is not a JSON object is a ValueError naming it (before any image is decoded); a
+    ground-truth file of another size than the images is a GppsWarning naming it, and is left out."""
+    from gpps import GppsWarning
+    from gpps.io import save_png, save_txt
+    from gpps.io.capture import read_capture
+
+    sc, lights, imgs = _scene_images(n=4, size=16)
+    for k, im in enumerate(imgs):
+        save_png(tmp_path / f"{k:02d}.png", im, bits=16)
+    save_txt(tmp_path / "light_directions.txt", lights.directions)
+    np.save(tmp_path / "normal_gt.npy", sc.normals.astype(np.float32))
+    np.save(tmp_path / "depth_gt.npy", np.ones((10, 16)))
+    with pytest.warns(GppsWarning, match=r"depth_gt.npy: expected shape \(16, 16\).*got \(10, 16\)"):
+        cap = read_capture(tmp_path)
+    assert cap.dataset.depth_gt is None and cap.dataset.normal_gt.shape == (16, 16, 3)
+    (tmp_path / "depth_gt.npy").unlink()
+    for text, match in (("{brdf: phong", "could not parse"), ("[1, 2]", "got a list"),
+                        (b"\xff\xfe\x00", "could not parse")):
+        if isinstance(text, bytes):
+            (tmp_path / "material.json").write_bytes(text)
+        else:
+            (tmp_path / "material.json").write_text(text)
+        with pytest.raises(ValueError, match=f"material.json: expected a JSON object.*{match}"):
+            read_capture(tmp_path)
+    (tmp_path / "material.json").write_text('{"brdf": "blinn-phong", "shininess": 40}')
+    assert read_capture(tmp_path).dataset.material == {"brdf": "blinn-phong", "shininess": 40}
+
+
 
 def test_read_npy_names_the_argument(tmp_path):
     """A .npy that is text, pickled objects or not numeric: a ValueError naming the argument (no unpickling)."""

@@ -418,7 +418,10 @@ def _reference_depth(ds, camera, lights, reference, source) -> tuple[float | Non
         source = "depth_gt.npy"
     if isinstance(lights, PointLights):
         if reference is None:
-            raise ValueError("reference_depth: expected the object's distance for point lights (light_positions.txt), got none")
+            both = (" (light_positions.txt is used when a folder has both it and light_directions.txt: remove it"
+                    " for directional lights)" if ds.light_directions is not None else "")
+            raise ValueError("reference_depth: expected the object's distance for point lights (light_positions.txt), "
+                             f"got none{both}")
         source = "light_positions.txt" + (f" (distance from {source})" if source else "")
     return reference, source
 

@@ -35,7 +35,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from gpps._check import as_path
+from gpps._check import as_path, warn
 from gpps.host.automask import automatic_mask
 from gpps.io import Dataset, read_K, read_matrix, read_npy
 from gpps.io.formats import IMAGE_EXTENSIONS, Transfer, decode_image_file, read_image_file
@@ -192,6 +192,36 @@ def _ambient_path(root: Path, names: list[str], ambient) -> Path | None:
     return amb_path
 
 
+def _ground_truth(path: Path, shape: tuple, scale: float) -> np.ndarray | None:
+    """A ground-truth side file (``normal_gt.npy`` (H, W, 3), ``depth_gt.npy`` (H, W)) of the images' ``shape``,
+    or None: absent, the images were downscaled (``scale`` != 1: it no longer matches), or of another shape
+    (a :class:`~gpps.GppsWarning` names the file and both shapes; the reconstruction does not need it, only
+    the report's errors)."""
+    if not path.is_file() or scale != 1.0:
+        return None
+    a = read_npy(path)
+    if a.shape != tuple(shape):
+        warn(f"{path.name}: expected shape {tuple(shape)} (the images' size), got {a.shape} in {path}; ignored "
+             "(no errors against it in the report)")
+        return None
+    return a
+
+
+def _material_file(path: Path) -> dict | None:
+    """``material.json`` as a dict (None when absent); a file that is not a JSON object is a ValueError naming it."""
+    if not path.is_file():
+        return None
+    try:
+        mat = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"material.json: expected a JSON object such as {{\"brdf\": \"blinn-phong\", "
+                         f"\"shininess\": 40}}, could not parse {path} ({e})") from None
+    if not isinstance(mat, dict):
+        raise ValueError(f"material.json: expected a JSON object (the material's name and parameters), got a "
+                         f"{type(mat).__name__} in {path}")
+    return mat
+
+
 def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = None, ambient: str | None = "auto",
                  mask=None, automask=None, normalise: bool = True, lights=None, progress=None) -> Capture:
     """Read a photometric-stereo folder as users have it.
@@ -255,6 +285,7 @@ def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = No
         elif li.shape[1] != 3:
             raise ValueError(f"light_intensities.txt: expected {n} rows of 1 or 3 values, got shape {li.shape}")
     K = read_K(root / "K.txt") if (root / "K.txt").is_file() else None
+    mat = _material_file(root / "material.json")  # (before the images are decoded: a bad file fails at once)
     raws, formats = _decode_images(root, names, transfer, step)
     h, w = raws[0].data.shape[:2]
     amb_path = _ambient_path(root, names, ambient)
@@ -324,9 +355,9 @@ def read_capture(root, *, transfer: Transfer = "auto", max_size: int | None = No
         li32 = li.astype(np.float32)
         _each(lambda k: np.divide(images[k], li32[k], out=images[k]), range(n))
         normalised = True
-    ngt = read_npy(root / "normal_gt.npy").astype(np.float32) if (root / "normal_gt.npy").is_file() and scale == 1.0 else None
-    dgt = read_npy(root / "depth_gt.npy") if (root / "depth_gt.npy").is_file() and scale == 1.0 else None
-    mat = json.loads((root / "material.json").read_text()) if (root / "material.json").is_file() else None
+    ngt = _ground_truth(root / "normal_gt.npy", (h, w, 3), scale)
+    dgt = _ground_truth(root / "depth_gt.npy", (h, w), scale)
+    ngt = None if ngt is None else ngt.astype(np.float32)
     ds = Dataset(images=images.astype(np.float32, copy=False), mask=m, light_directions=ld, light_positions=lp, light_intensities=li,
                  K=K, normal_gt=ngt, depth_gt=dgt, material=mat, filenames=list(names), normalised=normalised)
     fmts = [{"format": f, "bits": b, "transfer": t, "images": c} for (f, b, t), c in formats.items()]
