@@ -99,3 +99,22 @@ def test_cli_bad_input(tmp_path, capsys):
     rc = main(["--device", "cpu", "integrate", str(tmp_path / "n.npy"), "--mask", str(tmp_path / "mask.png"),
                "--out", str(tmp_path / "o")])
     assert rc == 2 and "normals: expected" in capsys.readouterr().err
+
+
+def test_cli_integrate_errors_name_the_options(tmp_path, capsys):
+    """The library's checks of gpps integrate's values come back naming the command's options."""
+    import cv2
+    from gpps.cli import main
+    from gpps.host.scenes import make_scene
+
+    sc = make_scene("sphere", 16, "orthographic")
+    np.save(tmp_path / "n.npy", sc.normals.astype(np.float32))
+    cv2.imwrite(str(tmp_path / "mask.png"), sc.mask.astype(np.uint8) * 255)
+    base = ["--device", "cpu", "integrate", str(tmp_path / "n.npy"), "--mask", str(tmp_path / "mask.png"),
+            "--out", str(tmp_path / "o")]
+    for extra, want in ((["--k", "-1"], "--k: expected"), (["--reference-depth", "-3"], "--reference-depth: expected"),
+                        (["--method", "poisson", "--tol", "2"], "--tol: expected"),
+                        (["--pixel-size", "-2"], "--pixel-size: expected")):
+        assert main(base + extra) == 2
+        assert f"error: {want}" in capsys.readouterr().err, extra
+        assert not (tmp_path / "o").exists()

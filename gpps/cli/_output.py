@@ -30,14 +30,16 @@ def warning_messages(args) -> list[str]:
 
 
 @contextlib.contextmanager
-def as_options(*names: str):
+def as_options(*names: str, **options: str):
     """Errors that name one of ``names`` first (a library argument or config field: ``"rounds: expected ..."``)
-    name the command's option instead (``"--rounds: expected ..."``), as the command's own checks would."""
+    name the command's option instead (``"--rounds: expected ..."``), as the command's own checks would;
+    ``options`` maps arguments whose option is named otherwise (``bilateral_k="--k"``)."""
     try:
         yield
     except (ValueError, TypeError, FileNotFoundError) as e:
         msg = str(e)
-        for name in names:
+        pairs = [(name, "--" + name.replace("_", "-")) for name in names] + list(options.items())
+        for name, option in pairs:
             if msg.startswith((name + ":", name + " ")):
-                raise type(e)("--" + name.replace("_", "-") + msg[len(name):]) from e
+                raise type(e)(option + msg[len(name):]) from e
         raise

@@ -18,7 +18,7 @@ import numpy as np
 
 import gpps
 from gpps import Orthographic, Perspective
-from gpps.cli._output import add_output_args, prepare_out, warning_messages
+from gpps.cli._output import add_output_args, as_options, prepare_out, warning_messages
 from gpps.cli._progress import bar
 from gpps.io import (apply_depth_convention, atomic_dir, depth_convention, read_image, read_K, read_mask, read_npy,
                      save_json, write_outputs)
@@ -76,7 +76,8 @@ def run(args) -> int:
     mask = read_mask(args.mask)
     if mask.shape != normals.shape[:2]:
         raise ValueError(f"mask: expected shape {normals.shape[:2]} matching the normals, got {mask.shape}")
-    camera = Perspective(read_K(args.K)) if args.K else Orthographic(args.pixel_size)
+    with as_options("pixel_size"):
+        camera = Perspective(read_K(args.K)) if args.K else Orthographic(args.pixel_size)
     poisson_opts = [f"--{k}" for k in ("solver", "tol", "robust") if getattr(args, k) is not None]
     method = args.method or ("bini" if args.bilateral or not poisson_opts else "poisson")
     if method == "bini" and poisson_opts:
@@ -84,15 +85,17 @@ def run(args) -> int:
                          f"with them, got --method bini")
     if args.bilateral and method != "bini":
         raise ValueError("--bilateral: expected no --method poisson with it")
-    if method == "bini":
-        res = gpps.integrate_normals(normals, mask, camera=camera, bilateral=True, bilateral_k=float(args.k),
-                                reference_depth=args.reference_depth, device=args.device, progress=bar("integrate"))
-    else:
-        res = gpps.integrate_normals(
-            normals, mask, camera=camera, solver=args.solver or "multigrid",
-            tol=1e-5 if args.tol is None else args.tol, robust=args.robust or "none",
-            reference_depth=args.reference_depth, device=args.device, progress=bar("integrate"),
-        )
+    with as_options("reference_depth", "tol", "solver", "robust", bilateral_k="--k"):
+        if method == "bini":
+            res = gpps.integrate_normals(normals, mask, camera=camera, bilateral=True, bilateral_k=float(args.k),
+                                         reference_depth=args.reference_depth, device=args.device,
+                                         progress=bar("integrate"))
+        else:
+            res = gpps.integrate_normals(
+                normals, mask, camera=camera, solver=args.solver or "multigrid",
+                tol=1e-5 if args.tol is None else args.tol, robust=args.robust or "none",
+                reference_depth=args.reference_depth, device=args.device, progress=bar("integrate"),
+            )
     with atomic_dir(out, overwrite=args.overwrite, inputs=inputs, name="--out") as tmp:
         _write(tmp, res, camera, args, method, normals, mask)
     print(f"integrate ({method}): {int(res.mask.sum())} pixels, {res.outer_iterations} outer / {res.iterations} "
