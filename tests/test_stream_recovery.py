@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from gpps.host.metrics import angular_error, normal_errors
+from gpps.names import FLAG_FEW_OBSERVATIONS
 
 
 def _frames(size=32, n=6, seed=0):
@@ -230,12 +231,48 @@ def test_frame_stats_kernel_matches_numpy(device, shape):
     stats.zero_()
     redo = wp.zeros((h, w), dtype=wp.uint8, device=device)
     r_d, m_d = wp.array(res, device=device), wp.array(mask, dtype=wp.uint8, device=device)
-    wp.launch(ks.residual_sum, dim=(h, w), inputs=[r_d, m_d], outputs=[stats], device=device)
+    flags = rng.integers(0, 32, (h, w)).astype(np.int32)  # (FLAG_FEW_OBSERVATIONS = 2: left out of the sum)
+    wp.launch(ks.residual_sum, dim=(h, w), inputs=[r_d, m_d, wp.array(flags, dtype=wp.int32, device=device)],
+              outputs=[stats], device=device)
     wp.launch(ks.mark_jumps, dim=(h, w), inputs=[r_d, wp.array(prev, device=device), m_d,
                                                 wp.array([thr], dtype=wp.float32, device=device), factor],
               outputs=[redo, stats], device=device)
     got = stats.numpy().astype(np.float64).sum(axis=0)
     want = (mask > 0) & (res > np.maximum(thr, factor * prev))
-    np.testing.assert_allclose(got[ks.STAT_RESIDUAL], res[mask > 0].sum(), rtol=1e-5)
+    det = (mask > 0) & ((flags & FLAG_FEW_OBSERVATIONS) == 0)
+    np.testing.assert_allclose(got[ks.STAT_RESIDUAL], res[det].sum(), rtol=1e-5)
+    assert got[ks.STAT_DETERMINED] == det.sum() and 0 < det.sum() < (mask > 0).sum()
     np.testing.assert_array_equal(redo.numpy() > 0, want)
     assert got[ks.STAT_REDONE] == want.sum()
+
+
+def test_stream_without_a_mask_on_a_dark_background(device):
+    """A stream given no mask (every pixel) of an object on a black background accepts its frames: the pixels
+    with no lit observation borrow their neighbours' albedo and misfit their black observations, which said
+    nothing about the model but, counted in the residual check, rejected every frame ("the model does not fit
+    the frame, 152% of the signal").  The object's normals are those of the masked stream."""
+    import gpps
+
+    sc = gpps.make_scene("sphere", 32, "orthographic")
+    L = gpps.default_lights("directional", 3)
+    frame = (np.clip(gpps.render(sc, gpps.Material("lambertian"), L, bits=16), 0, 1) * 65535).astype(np.uint16)
+    lights = gpps.DirectionalLights(L.directions)
+    got = {}
+    for name, mask in (("all", None), ("object", sc.mask)):
+        st = gpps.Stream((32, 32), sc.camera, lights, gpps.Material("lambertian"), mask=mask,
+                         config=gpps.StreamConfig(output="numpy"), device=device)
+        rs = [st.run(frame) for _ in range(3)]
+        assert all(r.ok for r in rs), [r.error for r in rs]
+        assert 0.3 < rs[-1].checks["determined_fraction"] < 1.0  # (the background, attached shadows)
+        got[name] = rs[-1].normals
+        st.close()
+    det = sc.mask & (frame.astype(np.float64).mean(-1) > 100).all(0)  # the object's pixels lit by all 3 lights
+    assert normal_errors(got["all"], sc.normals, det)["mean"] < 0.5
+    assert angular_error(got["all"], got["object"], det).max() < 0.1
+    # a frame of which no pixel has 3 lit observations is refused by name
+    dark = frame.copy()
+    dark[2] = 0
+    st = gpps.Stream((32, 32), sc.camera, lights, gpps.Material("lambertian"), config=gpps.StreamConfig(output="numpy"),
+                     device=device)
+    r = st.run(dark)
+    assert not r.ok and "3 lit observations" in r.error, r.error

@@ -5,6 +5,10 @@ Device math only; :mod:`gpps.pipeline.stream` owns the buffers and launches.
 
 import warp as wp
 
+from gpps import names
+
+FLAG_FEW_OBSERVATIONS = wp.constant(names.FLAG_FEW_OBSERVATIONS)
+
 
 def _make_convert(dtype, tag: str):
     @wp.kernel(name="convert_" + tag, enable_backward=False)
@@ -52,6 +56,7 @@ STAT_HF = 3  # sum of |Immerkaer Laplacian| of the grey values over interior mas
 STAT_HF_GREY = 4  # sum of grey values over the same interior pixels
 STAT_RESIDUAL = 5  # sum of the per-pixel residual after the solve
 STAT_REDONE = 6  # pixels re-solved cold
+STAT_DETERMINED = 7  # mask pixels whose solve had 3 or more valid observations (the residual's pixels)
 N_STATS = 8
 # the sums are spread over this many slots (rows of the (STAT_SLOTS, N_STATS) array, picked by pixel) so that
 # a frame's atomics do not all hit one address: the host adds the slots up after its one read-back
@@ -169,12 +174,18 @@ def frame_stats(images: wp.array3d(dtype=wp.vec3), mask: wp.array2d(dtype=wp.uin
 
 @wp.kernel(enable_backward=False)
 def residual_sum(residual: wp.array2d(dtype=wp.float32), mask: wp.array2d(dtype=wp.uint8),
-                 stats: wp.array2d(dtype=wp.float32)):
-    """stats[:, STAT_RESIDUAL] += the residual summed over the mask (slotted)."""
+                 flags: wp.array2d(dtype=wp.int32), stats: wp.array2d(dtype=wp.float32)):
+    """stats[:, STAT_RESIDUAL] += the residual summed over the mask pixels the solve determined (no
+    ``FLAG_FEW_OBSERVATIONS``: 3 or more valid observations), stats[:, STAT_DETERMINED] += their count (slotted).
+
+    An under-determined pixel's residual says nothing about the model: one with no lit observation (a dark
+    background, an attached shadow under every light) borrows its neighbours' albedo and so "misfits" its
+    black observations by whatever that albedo predicts."""
     i, j = wp.tid()
-    if mask[i, j] != 0:
+    if mask[i, j] != 0 and (flags[i, j] & FLAG_FEW_OBSERVATIONS) == 0:
         slot = (i * mask.shape[1] + j) % STAT_SLOTS
         wp.atomic_add(stats, slot, STAT_RESIDUAL, residual[i, j])
+        wp.atomic_add(stats, slot, STAT_DETERMINED, 1.0)
 
 
 @wp.kernel(enable_backward=False)

@@ -255,8 +255,10 @@ class StreamResult:
         error: None, or why the frame was rejected (then the arrays are None).
         seconds: host wall time of :meth:`Stream.process` for this frame.
         checks: the frame's sanity statistics (``lit_fraction``,
-            ``saturated_fraction``, ``noise_ratio``, ``residual``, ``redone``
-            pixels), when the check ran.
+            ``saturated_fraction``, ``noise_ratio``, ``residual`` (mean over the
+            pixels the solve determined), ``determined_fraction`` (of the mask's
+            pixels, with 3 or more valid observations), ``redone`` pixels), when
+            the check ran.
         material: the stream's material after this frame: the known one, or in
             full mode the current estimate (what the next frame is solved with).
     """
@@ -568,7 +570,8 @@ class Stream(Stage):
                             inputs=[self.solver.residual, self._kept_res, self.solver.mask, self._level,
                                     float(self.config.jump_factor)], outputs=[self._redo])
             else:
-                args = dict(kernel=ks.residual_sum, dim=self.shape, inputs=[self.solver.residual, self.solver.mask])
+                args = dict(kernel=ks.residual_sum, dim=self.shape,
+                            inputs=[self.solver.residual, self.solver.mask, self.solver.flags])
             args["outputs"] = [*args.get("outputs", []), self._fstats]
             cmd = wp.launch(**args, device=self.device, record_cmd=True)
             self._cmds[(name, key)] = cmd
@@ -584,7 +587,9 @@ class Stream(Stage):
             "lit_fraction": s[ks.STAT_LIT] / max(nobs, 1.0),
             "saturated_fraction": s[ks.STAT_SATURATED] / max(nobs, 1.0),
             "noise_ratio": s[ks.STAT_HF] / (6.0 * s[ks.STAT_HF_GREY]) if s[ks.STAT_HF_GREY] > 0 else 0.0,
-            "residual": s[ks.STAT_RESIDUAL] / max(self._mask_n, 1.0),
+            # (per determined pixel: an under-determined one's residual is no evidence of a misfit)
+            "residual": s[ks.STAT_RESIDUAL] / max(s[ks.STAT_DETERMINED], 1.0),
+            "determined_fraction": s[ks.STAT_DETERMINED] / max(self._mask_n, 1.0),
             "grey": grey,
             "redone": int(s[ks.STAT_REDONE]),
         }
@@ -593,6 +598,8 @@ class Stream(Stage):
         why = None
         if lit < c.min_lit_fraction or (lv is not None and lit < 0.5 * lv["lit_fraction"]):
             why = f"only {100 * lit:.1f}% of the observations are lit (a dark frame, or lights that did not fire)"
+        elif got["determined_fraction"] == 0.0:
+            why = "no pixel has 3 lit observations (lights that did not fire, or a frame of shadows)"
         elif sat > c.max_saturated_fraction or (lv is not None and sat > lv["saturated_fraction"] + 0.25):
             why = f"{100 * sat:.1f}% of the observations are saturated (over-exposed)"
         elif hf > c.max_noise_ratio or (lv is not None and hf > max(c.noise_factor * lv["noise_ratio"], 0.05)):
