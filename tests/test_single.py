@@ -342,7 +342,7 @@ def test_single_config_validation():
     assert SingleConfig(shininess_range=[2, 100]).shininess_range == (2.0, 100.0)
 
 
-def test_cli_single(tmp_path):
+def test_cli_single(tmp_path, capsys):
     from gpps.cli import main
     from gpps.io import save_png
 
@@ -365,6 +365,9 @@ def test_cli_single(tmp_path):
     assert rep["depth"]["scale"] == "relative" and rep["depth"]["unit"] == "pixel"
     assert rep["pixels"] == int(sc.mask.sum()) and len(rep["light_directions"]) == 3
     assert main(["single", str(tmp_path / "missing.png"), "--out", str(out)]) == 2
+    for opt, val in (("--pc", "1.5"), ("--nests", "0"), ("--rounds", "-1")):  # errors name the options
+        assert main(["--device", "cpu", "single", paths[0], opt, val, "--out", str(tmp_path / "bad")]) == 2
+        assert f"error: {opt}: expected" in capsys.readouterr().err
 
 
 def test_explained_fraction_against_the_model():

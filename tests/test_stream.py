@@ -121,6 +121,44 @@ def test_cli_stream_synthetic(tmp_path, device):
     assert main(["--device", device, "stream", "--out", str(tmp_path)]) == 2  # neither SOURCE nor --synthetic
 
 
+def test_cli_stream_folder_without_a_mask(tmp_path, device, capsys):
+    """A folder of frame triples with no mask.png (every pixel) of an object on a black background: its frames
+    pass (they were all rejected as a misfit); a folder whose every frame is rejected exits 2, naming the first
+    reason, and keeps report.json with every frame's."""
+    import json
+
+    import cv2
+
+    import gpps
+    from gpps.cli import main
+
+    sc = gpps.make_scene("sphere", 32, "orthographic")
+    L = gpps.default_lights("directional", 3)
+    img = (np.clip(gpps.render(sc, gpps.Material("lambertian"), L, bits=16), 0, 1) * 65535).astype(np.uint16)
+    src = tmp_path / "src"
+    src.mkdir()
+    np.savetxt(src / "light_directions.txt", L.directions)
+    (src / "material.json").write_text('{"brdf": "lambertian"}')
+    for f in range(3):
+        for k in range(3):
+            cv2.imwrite(str(src / f"{f:03d}_{k}.png"), img[k][..., ::-1])
+    assert main(["--device", device, "stream", str(src), "--out", str(tmp_path / "a")]) == 0
+    rep = json.loads((tmp_path / "a" / "report.json").read_text())
+    assert rep["frames"] == 3 and rep["errors"] == []
+    (src / "001_1.png").unlink()  # a frame the folder cannot give says which file is missing
+    assert main(["--device", device, "stream", str(src), "--out", str(tmp_path / "c")]) == 0
+    rep = json.loads((tmp_path / "c" / "report.json").read_text())
+    assert rep["errors"] == [{"index": 1, "error": "frame 001: missing or unreadable 001_1.png"}]
+    cv2.imwrite(str(src / "001_1.png"), img[1][..., ::-1])
+    for f in range(3):  # lights that did not fire: the third image black in every frame
+        cv2.imwrite(str(src / f"{f:03d}_2.png"), np.zeros_like(img[2]))
+    capsys.readouterr()
+    assert main(["--device", device, "stream", str(src), "--out", str(tmp_path / "b")]) == 2
+    assert "every frame (3) was rejected; the first: frame: rejected" in capsys.readouterr().err
+    rep = json.loads((tmp_path / "b" / "report.json").read_text())
+    assert rep["frames"] == 3 and len(rep["errors"]) == 3
+
+
 @pytest.mark.parametrize("camera", ["orthographic", "perspective"])
 def test_stream_integrator_several_components_matches_direct(camera):
     """Each mask component gets its own constant (mean depth = reference), as the direct solver gives."""

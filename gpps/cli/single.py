@@ -19,7 +19,7 @@ import numpy as np
 
 import gpps
 from gpps import Orthographic
-from gpps.cli._output import add_output_args, prepare_out, warning_messages
+from gpps.cli._output import add_output_args, as_options, prepare_out, warning_messages
 from gpps.cli._progress import bar
 from gpps.io import (apply_depth_convention, atomic_dir, depth_convention, read_image, read_mask, save_json, save_npy,
                      save_png, write_outputs)
@@ -75,10 +75,12 @@ def run(args) -> int:
         imgs = [cv2.resize(i, size, interpolation=cv2.INTER_AREA) for i in imgs]
         if mask is not None:
             mask = cv2.resize(mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
-    cfg = gpps.SingleConfig(
-        cuckoo=gpps.CuckooConfig(nests=args.nests, generations=args.generations, beta=args.beta, p_c=args.pc, seed=args.seed),
-        rounds=args.rounds, prior_weight=args.prior_weight, tta=args.tta, min_explained=args.min_explained,
-    )
+    with as_options("nests", "generations", "beta", "seed", "rounds", "prior_weight", "min_explained", p_c="--pc"):
+        cfg = gpps.SingleConfig(
+            cuckoo=gpps.CuckooConfig(nests=args.nests, generations=args.generations, beta=args.beta, p_c=args.pc,
+                                     seed=args.seed),
+            rounds=args.rounds, prior_weight=args.prior_weight, tta=args.tta, min_explained=args.min_explained,
+        )
     device = None if args.device == "auto" else args.device
     res = gpps.reconstruct_single(imgs, mask, config=cfg, device=device, progress=bar("single"))
     m = res.mask

@@ -13,6 +13,8 @@ Sources:
 Every ``--save-every``-th result is written to ``OUT/frame_<index>/``
 (``normals.npy``, ``albedo.npy``, ``depth.npy``, ``normals.png``); a
 ``report.json`` ends the run (frames, errors with their indices, frames per second).
+A frame the folder cannot give (a missing image, images of different sizes) is an error naming the
+files; the stream goes on.  The exit status is 2 when every frame was rejected (the report stays).
 The output folder is written as a temporary sibling and renamed when the stream
 ends; Ctrl-C ends a live stream normally (``"interrupted": true`` in the report),
 any other failure leaves nothing behind.
@@ -31,7 +33,7 @@ import numpy as np
 
 import gpps
 from gpps import BRDF_NAMES, DirectionalLights, Material, Orthographic, Perspective, PointLights
-from gpps.cli._output import add_output_args, prepare_out, warning_messages
+from gpps.cli._output import add_output_args, as_options, prepare_out, warning_messages
 from gpps.cli._progress import quiet
 from gpps.io import atomic_dir, read_K, read_mask, read_matrix, save_json, save_npy, save_png
 
@@ -99,16 +101,21 @@ def _folder(args):
         if m:
             groups.setdefault(m.group(1), {})[int(m.group(2))] = p
     videos = [next(iter(sorted(root.glob(f"light{k}.*"))), None) for k in range(n)]
+    reasons: dict = {}  # frame index -> why the folder could not give it (missing or mismatched images)
     if groups:
         keys = sorted(groups)
         first = cv2.imread(str(groups[keys[0]][0]), cv2.IMREAD_UNCHANGED)
 
         def frames():
-            for key in keys:
+            for index, key in enumerate(keys):
                 g = groups[key]
                 ims = [cv2.imread(str(g[k]), cv2.IMREAD_UNCHANGED) if k in g else None for k in range(n)]
-                if any(im is None for im in ims) or len({im.shape for im in ims}) != 1:
-                    yield np.zeros((0,), np.uint8)  # reported as a bad frame by the stream
+                missing = [f"{key}_{k}.png" for k in range(n) if ims[k] is None]
+                if missing or len({im.shape for im in ims}) != 1:
+                    # reported as a bad frame by the stream, with this reason
+                    reasons[index] = (f"frame {key}: " + (f"missing or unreadable {', '.join(missing)}" if missing else
+                                      f"images of different sizes {[im.shape[:2] for im in ims]}"))
+                    yield np.zeros((0,), np.uint8)
                     continue
                 arr = np.stack(ims)
                 yield arr[..., ::-1].copy() if arr.ndim == 4 else arr  # BGR -> RGB
@@ -133,7 +140,7 @@ def _folder(args):
     h, w = first.shape[:2]
     cam = Perspective(read_K(root / "K.txt")) if (root / "K.txt").is_file() else Orthographic()
     mask = read_mask(root / "mask.png") if (root / "mask.png").is_file() else np.ones((h, w), bool)
-    return (h, w), cam, L, mat, mask, frames()
+    return (h, w), cam, L, mat, mask, frames(), reasons
 
 
 def run(args) -> int:
@@ -143,9 +150,11 @@ def run(args) -> int:
         raise ValueError(f"--save-every: expected an integer >= 0, got {args.save_every}")
     inputs = [args.source]
     out = prepare_out(args, inputs=inputs)
-    shape, cam, L, mat, mask, frames = _synthetic(args) if args.synthetic else _folder(args)
-    cfg = gpps.StreamConfig(iterations=args.iterations, integration_iterations=args.integration_iterations,
-                       reference_depth=args.reference_depth, output="numpy" if args.save_every else "device")
+    with as_options("size"):
+        shape, cam, L, mat, mask, frames, reasons = (*_synthetic(args), {}) if args.synthetic else _folder(args)
+    with as_options("iterations", "integration_iterations", "reference_depth"):
+        cfg = gpps.StreamConfig(iterations=args.iterations, integration_iterations=args.integration_iterations,
+                                reference_depth=args.reference_depth, output="numpy" if args.save_every else "device")
     st = gpps.Stream(shape, cam, L, mat, mask=mask, config=cfg, device=None if args.device == "auto" else args.device)
     errors, n, t0, last = [], 0, time.perf_counter(), time.perf_counter()
     interrupted = False
@@ -156,7 +165,7 @@ def run(args) -> int:
             for r in st.iterate(frames):
                 n += 1
                 if not r.ok:
-                    errors.append({"index": r.index, "error": r.error})
+                    errors.append({"index": r.index, "error": reasons.get(r.index, r.error)})
                 elif args.save_every and r.index % args.save_every == 0:
                     d = tmp / f"frame_{r.index:06d}"
                     save_npy(d / "normals.npy", r.normals)
@@ -180,4 +189,8 @@ def run(args) -> int:
                                         "errors": errors, "interrupted": interrupted,
                                         "stream_seconds": st.stats["seconds"], "device": st.device,
                                         "warnings": warning_messages(args)})
+    if n and len(errors) == n:  # (the report stays: it has every frame's reason)
+        print(f"gpps stream: error: every frame ({n}) was rejected; the first: {errors[0]['error']} "
+              f"(report in {out})", file=sys.stderr)
+        return 2
     return 0
