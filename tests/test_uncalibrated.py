@@ -339,3 +339,24 @@ def test_channel_choice(lambertian_capture):
         UncalibratedConfig(source_color=(0, 0, 0))
     with pytest.raises(ValueError, match="final_solver"):
         UncalibratedConfig(final_solver="newton")
+
+
+def test_uncalibrated_folder_with_three_images(tmp_path):
+    """Three images and no light file: the pixels outside the light-evidence set (lit in too few images: with 3
+    images none has 3 lit observations) are solved by least squares beside the evidence pixels, taking their
+    neighbours' albedo; solved on their own they failed the observation check ('only 0.0% of the mask pixels
+    have 3 or more usable observations')."""
+    import gpps
+    from gpps.io import save_png
+
+    sc = gpps.make_scene("sphere", 32, "orthographic")
+    L = gpps.default_lights("directional", 6)
+    imgs = np.clip(gpps.render(sc, gpps.Material("lambertian"), L, bits=16, device="cpu"), 0, 1)[:3]
+    for k, im in enumerate(imgs):
+        save_png(tmp_path / f"{k}.png", im, bits=16)
+    save_png(tmp_path / "mask.png", sc.mask.astype(np.uint8) * 255)
+    res = gpps.reconstruct_folder(tmp_path, device="cpu")
+    assert res.report["method"] == "uncalibrated" and len(res.report["images_used"]) == 3
+    assert 0 < res.report["light_evidence_pixels"] < sc.mask.sum()  # (some pixels took the least-squares branch)
+    n = res.normals[sc.mask]
+    assert np.isfinite(n).all() and np.allclose(np.linalg.norm(n, axis=-1), 1.0, atol=1e-4)

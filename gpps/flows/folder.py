@@ -336,7 +336,10 @@ def _uncalibrated(cap: Capture, camera, report: dict, device, progress) -> dict:
     intens = np.repeat(np.asarray(res.light_intensities, np.float64)[:, None], 3, 1)
     rest = ds.mask & ~evidence
     if rest.any():
-        ls = solve_normals(imgs_used / intens[:, None, None, :].astype(np.float32), rest, DirectionalLights(ldirs),
+        # least squares over the whole mask, kept on the rest: its pixels lack lit observations by construction
+        # (with 3 images none has 3), so on their own they fail the solve's observation check; beside the
+        # evidence pixels the under-determined ones take their neighbours' albedo
+        ls = solve_normals(imgs_used / intens[:, None, None, :].astype(np.float32), ds.mask, DirectionalLights(ldirs),
                            camera=camera, solver="none", device=device)
         normals = np.where(rest[..., None], ls.normals, normals)
         albedo = np.where(rest[..., None], ls.albedo, albedo)
