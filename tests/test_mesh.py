@@ -118,3 +118,36 @@ def test_cli_integrate_errors_name_the_options(tmp_path, capsys):
         assert main(base + extra) == 2
         assert f"error: {want}" in capsys.readouterr().err, extra
         assert not (tmp_path / "o").exists()
+
+
+def test_cli_says_a_repeated_warning_once(tmp_path, capsys, monkeypatch):
+    """A GppsWarning issued many times (a stage that checks the same lights at every step) is printed once with
+    its count and listed once in report.json."""
+    import json
+    import warnings
+
+    import cv2
+
+    import gpps
+    from gpps.cli import main
+    from gpps.host.scenes import make_scene
+
+    sc = make_scene("sphere", 16, "orthographic")
+    np.save(tmp_path / "n.npy", sc.normals.astype(np.float32))
+    cv2.imwrite(str(tmp_path / "mask.png"), sc.mask.astype(np.uint8) * 255)
+    real = gpps.integrate_normals
+
+    def noisy(*a, **k):
+        for _ in range(3):
+            warnings.warn("lights: the same thing again", gpps.GppsWarning)
+        warnings.warn("another thing", gpps.GppsWarning)
+        return real(*a, **k)
+
+    monkeypatch.setattr(gpps, "integrate_normals", noisy)
+    assert main(["--device", "cpu", "integrate", str(tmp_path / "n.npy"), "--mask", str(tmp_path / "mask.png"),
+                 "--out", str(tmp_path / "o")]) == 0
+    err = capsys.readouterr().err
+    assert err.count("warning: lights: the same thing again (3 times)") == 1
+    assert err.count("warning: another thing") == 1 and "another thing (" not in err
+    rep = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert rep["warnings"] == ["lights: the same thing again", "another thing"]

@@ -92,11 +92,14 @@ def main(argv: list[str] | None = None) -> int:
         except (ValueError, TypeError, OSError) as e:
             print(f"gpps {args.command}: error: {e}", file=sys.stderr)
             status = 2
+    counts: dict = {}  # each distinct GppsWarning once, with how often it was issued
     for w in caught:
         if issubclass(w.category, gpps.GppsWarning):
-            print(f"gpps {args.command}: warning: {w.message}", file=sys.stderr)
+            counts[str(w.message)] = counts.get(str(w.message), 0) + 1
         else:
             warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+    for msg, k in counts.items():
+        print(f"gpps {args.command}: warning: {msg}" + (f" ({k} times)" if k > 1 else ""), file=sys.stderr)
     return status
 
 

@@ -25,8 +25,10 @@ def prepare_out(args, inputs=()) -> Path:
 
 
 def warning_messages(args) -> list[str]:
-    """The :class:`gpps.GppsWarning` messages issued so far by this command (for report.json)."""
-    return [str(w.message) for w in getattr(args, "warnings", []) if issubclass(w.category, gpps.GppsWarning)]
+    """The distinct :class:`gpps.GppsWarning` messages issued so far by this command, in the order first issued
+    (for report.json; a stage that checks the same lights at every step says it once)."""
+    seen = [str(w.message) for w in getattr(args, "warnings", []) if issubclass(w.category, gpps.GppsWarning)]
+    return list(dict.fromkeys(seen))
 
 
 @contextlib.contextmanager
