@@ -163,6 +163,34 @@ def test_calibrate_lights_cli_errors(tmp_path, capsys):
     assert "no highlight" in capsys.readouterr().err
 
 
+def test_calibrate_lights_checks_its_outlines(tmp_path):
+    """Circles, the card and the radii are checked by name before any sphere is fitted; one circle may be given
+    as (cx, cy, r) and one radius as a number (both crashed: 'cannot unpack non-iterable int object', "'float'
+    object is not iterable")."""
+    import gpps
+    from gpps.io import save_png
+
+    for k in range(3):
+        save_png(tmp_path / f"{k}.png", np.zeros((20, 20)), bits=8)
+    cases = [(dict(chrome=(10, 10, -3)), ValueError, r"chrome: expected a radius r > 0"),
+             (dict(chrome=(100, 100, 5)), ValueError, r"chrome: expected a circle on the 20 x 20 image"),
+             (dict(chrome=[(10, 10, 5), (4, 5)]), ValueError, r"chrome\[1\]: expected \(cx, cy, r\)"),
+             (dict(chrome=(np.nan, 1, 2)), ValueError, "chrome: expected finite numbers"),
+             (dict(chrome=[]), ValueError, "chrome: expected at least one circle"),
+             (dict(chrome="abc"), TypeError, "chrome: expected a circle"),
+             (dict(matte=(10, 10)), ValueError, r"matte: expected \(cx, cy, r\)"),
+             (dict(card=(1, 2, 3)), ValueError, r"card: expected \(x0, y0, x1, y1\)"),
+             (dict(card=(50, 50, 60, 60)), ValueError, "card: expected a rectangle on the 20 x 20 image"),
+             (dict(chrome=(10, 10, 5), sphere_radius="x"), TypeError, "sphere_radius: expected a radius"),
+             (dict(chrome=(10, 10, 5), sphere_radius=-1.0), ValueError, "sphere_radius: expected one radius > 0")]
+    for kw, err, match in cases:
+        with pytest.raises(err, match=match):
+            gpps.calibrate_lights(tmp_path, **kw)
+    for kw in (dict(chrome=(10, 10, 5)), dict(chrome=[(10, 10, 5)], sphere_radius=0.5)):  # accepted: no highlight
+        with pytest.raises(ValueError, match="no highlight on the mirror sphere"):
+            gpps.calibrate_lights(tmp_path, **kw)
+
+
 def test_card_intensities_formula():
     from gpps.host.calibrate import card_intensities
 

@@ -62,7 +62,7 @@ def run(args) -> int:
     """Calibrate with :func:`gpps.calibrate_lights` and write the light files into ``--out``."""
     inputs = [i for i in (args.dir, args.chrome_mask, args.K) if i is not None]
     out = prepare_out(args, inputs=inputs)
-    with as_options("chrome_mask", "sphere_radius", "min_contrast"):
+    with as_options("chrome", "chrome_mask", "sphere_radius", "min_contrast", "matte", "card"):
         cal = gpps.calibrate_lights(
             args.dir, chrome=args.chrome, chrome_mask=args.chrome_mask, sphere_radius=args.sphere_radius,
             matte=args.matte, card=args.card, card_normal=args.card_normal, K=args.K, transfer=args.transfer,

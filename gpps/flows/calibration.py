@@ -109,6 +109,51 @@ def _read_mask(path, shape) -> np.ndarray:
     return m
 
 
+def _numbers(name: str, value, k: int, form: str) -> np.ndarray:
+    """``value`` as ``k`` finite floats; anything else is an error naming ``name`` and the ``form`` expected."""
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name}: expected {form} ({k} numbers), got {value!r}") from None
+    if a.shape != (k,):
+        raise ValueError(f"{name}: expected {form} ({k} numbers), got {value!r}")
+    if not np.isfinite(a).all():
+        raise ValueError(f"{name}: expected finite numbers {form}, got {value!r}")
+    return a
+
+
+def _circle(name: str, value, shape) -> tuple[float, float, float]:
+    """One outline ``(cx, cy, r)`` (pixels), checked: ``r > 0`` and the disc overlaps the (H, W) image."""
+    cx, cy, r = (float(v) for v in _numbers(name, value, 3, "(cx, cy, r)"))
+    if r <= 0:
+        raise ValueError(f"{name}: expected a radius r > 0 (pixels), got {r:g}")
+    h, w = shape
+    if cx + r < 0 or cx - r > w - 1 or cy + r < 0 or cy - r > h - 1:
+        raise ValueError(f"{name}: expected a circle on the {w} x {h} image, got ({cx:g}, {cy:g}, {r:g})")
+    return cx, cy, r
+
+
+def _circles(name: str, value, shape) -> list[tuple[float, float, float]] | None:
+    """None, one circle ``(cx, cy, r)`` or a sequence of them, as a list of checked circles."""
+    if value is None:
+        return None
+    if isinstance(value, (str, bytes)):
+        raise TypeError(f"{name}: expected a circle (cx, cy, r) or a sequence of them, got {value!r}")
+    try:
+        one = np.ndim(value) == 1 and len(value) == 3 and all(np.ndim(v) == 0 for v in value)
+    except ValueError:  # (a ragged sequence: numpy cannot size it)
+        one = False
+    if one:
+        return [_circle(name, value, shape)]
+    try:
+        items = list(value)
+    except TypeError:
+        raise TypeError(f"{name}: expected a circle (cx, cy, r) or a sequence of them, got {value!r}") from None
+    if not items:
+        raise ValueError(f"{name}: expected at least one circle (cx, cy, r), got an empty sequence")
+    return [_circle(f"{name}[{i}]", c, shape) for i, c in enumerate(items)]
+
+
 def _mirror_spheres(root: Path, images, camera, chrome, chrome_mask) -> tuple[list[SphereFit], list[str]]:
     """The mirror spheres' fits and where their outlines came from: given circles, a mask (one blob each,
     blobs under 20 % of the largest ignored), else found in the images."""
@@ -212,10 +257,12 @@ def calibrate_lights(folder, *, chrome=None, chrome_mask=None, sphere_radius=Non
     Args:
         folder: one image per light of a mirror sphere (same order rules as :func:`gpps.io.read_capture`);
             optional ``K.txt``, ``chrome_mask.*``, ``matte_mask.*``, ``card_mask.*``.
-        chrome: mirror sphere outlines as circles ``[(cx, cy, r), ...]`` (pixels); None: ``chrome_mask``.
+        chrome: mirror sphere outlines as circles ``[(cx, cy, r), ...]`` or one ``(cx, cy, r)`` (pixels);
+            None: ``chrome_mask``.
         chrome_mask: mask image of the mirror sphere(s), one blob each; None: ``chrome_mask.*`` in
             ``folder`` if present, else the outline is found in the images.
-        sphere_radius: the mirror spheres' radii (scene units): one for all or one per sphere; with
+        sphere_radius: the mirror spheres' radii (scene units): one (a number or a 1-sequence) for all or
+            one per sphere; with
             two spheres and a perspective camera, the lights' positions.
         matte: a matte sphere's outline ``(cx, cy, r)`` (pixels) for intensities; None: ``matte_mask.*``.
         card: a grey card rectangle ``(x0, y0, x1, y1)`` (pixels: columns x0..x1, rows y0..y1) for
@@ -249,13 +296,29 @@ def calibrate_lights(folder, *, chrome=None, chrome_mask=None, sphere_radius=Non
     else:
         K = ds.K
     camera = camera_from_K(K) if K is not None else Orthographic()
+    chrome = _circles("chrome", chrome, (h, w))
+    if matte is not None:
+        matte = _circle("matte", matte, (h, w))
+    if card is not None:
+        x0, y0, x1, y1 = (int(round(v)) for v in _numbers("card", card, 4, "(x0, y0, x1, y1)"))
+        if max(x0, x1) < 0 or min(x0, x1) > w - 1 or max(y0, y1) < 0 or min(y0, y1) > h - 1:
+            raise ValueError(f"card: expected a rectangle on the {w} x {h} image, got {tuple(card)}")
+        card = (max(min(x0, x1), 0), max(min(y0, y1), 0), min(max(x0, x1), w - 1), min(max(y0, y1), h - 1))
+    given_radius = sphere_radius
+    if sphere_radius is not None and (isinstance(sphere_radius, (str, bytes)) or np.ndim(sphere_radius) == 0):
+        sphere_radius = [sphere_radius]  # (one radius for every sphere)
     report = {"dir": str(folder), "images": n, "shape": [h, w], "camera": camera.kind, "filenames": ds.filenames,
               "formats": cap.formats, "ambient_subtracted": cap.ambient}
     fits, sources = _mirror_spheres(root, images, camera, chrome, chrome_mask)
     radii = None
-    if sphere_radius:
-        radii = list(sphere_radius) * (len(fits) if len(sphere_radius) == 1 else 1)
-        if len(radii) != len(fits) or min(radii) <= 0:
+    if sphere_radius is not None:
+        try:
+            radii = [float(r) for r in sphere_radius]
+        except (TypeError, ValueError):
+            raise TypeError(f"sphere_radius: expected a radius or one per sphere (scene units), got "
+                            f"{given_radius!r}") from None
+        radii = radii * (len(fits) if len(radii) == 1 else 1)
+        if len(radii) != len(fits) or not all(np.isfinite(radii)) or min(radii) <= 0:
             raise ValueError(f"sphere_radius: expected one radius > 0 or one per sphere ({len(fits)}), got {sphere_radius}")
         for f, r in zip(fits, radii):
             f.radius = float(r)
