@@ -84,7 +84,8 @@ class StreamConfig:
             (V-cycle corrections with the default
             :class:`~gpps.pipeline.integration_device.StreamIntegratorConfig`;
             one keeps a streaming step within 1e-4 of the depth range).
-        first_tol: relative residual of the first frame's integration.
+        first_tol: relative residual of the first frame's integration (or the float32
+            floor where that lies above it: :meth:`StreamIntegrator.step`).
         reference_depth: mean depth per mask component (scene units); required
             for point lights (their 1/r^2 needs metric depth), optional otherwise
             (perspective default: mean log-depth 0; orthographic: mean depth 0).
