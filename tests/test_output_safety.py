@@ -209,3 +209,31 @@ def test_interrupt_leaves_nothing(capture, tmp_path, capsys, monkeypatch):
     assert "interrupted" in capsys.readouterr().err
     assert not out.exists()
     _no_leftovers(tmp_path)
+
+
+def test_out_of_memory_is_one_line_and_leaves_nothing(capture, tmp_path, capsys, monkeypatch):
+    """An input too large for the memory (gpps render --size 100000 asked numpy for 74.5 GiB) ends in one line on
+    stderr, exit 2 and no output, not a MemoryError traceback."""
+    import gpps.cli.integrate as ci
+
+    def huge(*a, **k):
+        raise MemoryError("Unable to allocate 74.5 GiB for an array")
+
+    monkeypatch.setattr(ci, "_write", lambda out, *a: (save_npy(out / "depth.npy", np.zeros(2)), huge()))
+    out = tmp_path / "res"
+    rc = main(["--device", "cpu", "integrate", str(capture / "normals.npy"), "--mask", str(capture / "mask.png"),
+               "--out", str(out)])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "error: not enough memory (Unable to allocate 74.5 GiB" in err and "Traceback" not in err
+    assert not out.exists()
+    _no_leftovers(tmp_path)
+
+
+def test_render_errors_name_the_options(tmp_path, capsys):
+    for extra, want in ((["--size", "0"], "--size: expected"), (["--n-lights", "0"], "--n-lights: expected"),
+                        (["--slant", "95"], "--slant: expected <= 89"), (["--noise", "-1"], "--noise: expected"),
+                        (["--ks", "-1"], "--ks: expected"), (["--brdf", "plastic", "--ior", "0.5"], "--ior: expected")):
+        assert main(["--device", "cpu", "render", "--size", "16", *extra, "--out", str(tmp_path / "o")]) == 2
+        assert f"error: {want}" in capsys.readouterr().err, extra
+        assert not (tmp_path / "o").exists()

@@ -68,8 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Run one subcommand; returns the exit status.
 
-    0 on success; 2 for bad input or a refused ``--out`` (one line on stderr, no
-    traceback); 130 when interrupted (nothing half-written is left behind).
+    0 on success; 2 for bad input, a refused ``--out`` or an input too large for the
+    memory (one line on stderr, no traceback); 130 when interrupted (nothing
+    half-written is left behind).
     :class:`gpps.GppsWarning` warnings are collected into ``args.warnings`` (the
     commands copy them into report.json) and printed on stderr.
     """
@@ -91,6 +92,10 @@ def main(argv: list[str] | None = None) -> int:
             status = 130
         except (ValueError, TypeError, OSError) as e:
             print(f"gpps {args.command}: error: {e}", file=sys.stderr)
+            status = 2
+        except MemoryError as e:  # (an input too large for this machine: say so in one line, leave nothing)
+            print(f"gpps {args.command}: error: not enough memory ({e or 'MemoryError'}): try smaller inputs "
+                  "(--size, --max-size) or another device", file=sys.stderr)
             status = 2
     counts: dict = {}  # each distinct GppsWarning once, with how often it was issued
     for w in caught:

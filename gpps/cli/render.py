@@ -6,7 +6,7 @@ import time
 
 import gpps
 from gpps import BRDF_NAMES, Material
-from gpps.cli._output import add_output_args, prepare_out
+from gpps.cli._output import add_output_args, as_options, prepare_out
 from gpps.io import write_dataset
 
 
@@ -48,9 +48,12 @@ def material_from_args(args) -> Material:
 def run(args) -> int:
     t0 = time.perf_counter()
     out = prepare_out(args)
-    scene = gpps.make_scene(args.scene, args.size, args.camera, albedo=args.albedo, seed=args.seed)
-    lights = gpps.default_lights(args.lights, args.n_lights, slant_deg=args.slant, layout=args.layout)
-    ds = gpps.render_dataset(scene, material_from_args(args), lights, noise=args.noise, bits=args.bits, seed=args.seed, device=args.device)
+    with as_options("size", "seed", "noise", "ks", "shininess", "roughness", "f0", "eta_u", "eta_v", "ior",
+                    n="--n-lights", slant_deg="--slant"):
+        scene = gpps.make_scene(args.scene, args.size, args.camera, albedo=args.albedo, seed=args.seed)
+        lights = gpps.default_lights(args.lights, args.n_lights, slant_deg=args.slant, layout=args.layout)
+        ds = gpps.render_dataset(scene, material_from_args(args), lights, noise=args.noise, bits=args.bits,
+                                 seed=args.seed, device=args.device)
     write_dataset(out, ds, bits=args.bits, overwrite=args.overwrite)
     print(f"wrote {len(ds.images)} images of {args.scene} ({args.size}x{args.size}, {args.camera}, {args.lights} lights, {args.brdf}) to {args.out} in {time.perf_counter() - t0:.2f} s")
     return 0

@@ -6,6 +6,7 @@ from typing import Literal
 
 import numpy as np
 
+from gpps._check import check_number
 from gpps.host.scenes import D0, Scene
 from gpps.io import Dataset
 from gpps.lights import (
@@ -24,7 +25,7 @@ LIGHT_INTENSITY = 0.8
 
 
 def default_lights(kind: Literal["directional", "point"] = "directional", n: int = 3, *, slant_deg: float = 35.0, d0: float = D0, layout: Literal["ring", "spiral"] = "ring"):
-    """``n`` lights spread around the view axis.
+    """``n`` lights spread around the view axis (``slant_deg`` in [0, 89], ``d0`` > 0).
 
     Directional: ``layout="ring"``: evenly in azimuth at slant ``slant_deg``
     from the view axis; ``"spiral"``: a golden-angle spiral with slants from 15
@@ -34,6 +35,8 @@ def default_lights(kind: Literal["directional", "point"] = "directional", n: int
     """
     if layout not in ("ring", "spiral"):
         raise ValueError(f"layout: expected 'ring' or 'spiral', got {layout!r}")
+    slant_deg = check_number("slant_deg", slant_deg, lo=0.0, hi=89.0)  # (90 and beyond: no light on the front)
+    d0 = check_number("d0", d0, lo=0.0, lo_open=True)
     dirs = ring_directions(n, slant_deg) if layout == "ring" else spiral_directions(n)
     if kind == "directional":
         return DirectionalLights(dirs, np.full((n, 3), LIGHT_INTENSITY))
