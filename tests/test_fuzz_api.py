@@ -418,7 +418,8 @@ def test_value_types(lt, cam, mat, n):
 
 
 @_settings("configs")
-@given(which=st.sampled_from(["SolverConfig", "RONConfig", "StreamConfig", "IntegratorConfig"]), kv=st.data())
+@given(which=st.sampled_from(["SolverConfig", "RONConfig", "StreamConfig", "IntegratorConfig", "FolderConfig",
+                              "UncalibratedConfig", "SingleConfig", "CuckooConfig"]), kv=st.data())
 def test_configs(which, kv):
     """Every config field with wrong values: a ValueError/TypeError naming the field."""
     import dataclasses
@@ -427,7 +428,9 @@ def test_configs(which, kv):
     from gpps.pipeline.solver import SolverConfig
 
     cls = {"SolverConfig": SolverConfig, "RONConfig": gpps.RONConfig, "StreamConfig": gpps.StreamConfig,
-           "IntegratorConfig": IntegratorConfig}[which]
+           "IntegratorConfig": IntegratorConfig, "FolderConfig": gpps.FolderConfig,
+           "UncalibratedConfig": gpps.UncalibratedConfig, "SingleConfig": gpps.SingleConfig,
+           "CuckooConfig": gpps.CuckooConfig}[which]
     fields = [f.name for f in dataclasses.fields(cls)]
     name = kv.draw(st.sampled_from(fields + ["no_such_field"]))
     value = kv.draw(st.sampled_from([None, -1, 0, 1, 2.5, -0.5, np.nan, np.inf, "x", "lm", True, (), 10**9]))

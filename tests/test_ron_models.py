@@ -116,5 +116,13 @@ def test_folder_and_cli_pass_the_models(tmp_path, monkeypatch, capsys):
     assert shadows == [False, False, True]  # (FolderConfig.cast_shadows reaches RON; off by default)
     with pytest.raises(ValueError, match="models"):
         gpps.FolderConfig(models=("wood",))
+    # the given material parameters' ranges are the material's, checked when the config is made (not after the
+    # images are read); eta is the config's name for Material's eta_u and eta_v
+    for kw, match in ((dict(ks=-1), "ks: expected >= 0"), (dict(shininess=0), "shininess: expected > 0"),
+                      (dict(f0=2), "f0: expected <= 1"), (dict(brdf="ashikhmin-shirley", eta=-1), "eta: expected > 0")):
+        with pytest.raises(ValueError, match=match):
+            gpps.FolderConfig(**kw)
+    with pytest.raises(TypeError, match="integrate: expected True or False"):
+        gpps.SingleConfig(integrate=0)
     assert main(["reconstruct", str(cap), "--compare-models", "wood", "--out", str(tmp_path / "o")]) == 2
     assert "--compare-models: expected one of" in capsys.readouterr().err

@@ -282,6 +282,20 @@ def test_failure_modes_are_explicit(lambertian_capture):
         UncalibratedConfig(refine_gauge="loose")
     with pytest.raises(ValueError, match="ldr_window"):
         UncalibratedConfig(ldr_window=4)
+    # every field by name, with the shared checks (these were bare TypeErrors, an OverflowError, or accepted)
+    for kw, err, match in ((dict(cues=None), TypeError, "cues: expected"), (dict(cues=3), TypeError, "cues: expected"),
+                           (dict(chroma_min=None), TypeError, "chroma_min: expected a number"),
+                           (dict(dark_fraction=1.0), ValueError, r"dark_fraction: expected a value in \[0, 1\)"),
+                           (dict(als_iterations=float("inf")), ValueError, "als_iterations: expected a finite"),
+                           (dict(refine_pixels=True), TypeError, "refine_pixels: expected an integer"),
+                           (dict(lr=float("inf")), ValueError, "lr: expected a finite"),
+                           (dict(flip_ratio="x"), TypeError, "flip_ratio: expected a number"),
+                           (dict(flip_ratio=0.5), ValueError, "flip_ratio: expected >= 1"),
+                           (dict(seed=-1), ValueError, "seed: expected >= 0"),
+                           (dict(source_color="x"), ValueError, "source_color: expected 3 finite values")):
+        with pytest.raises(err, match=match):
+            UncalibratedConfig(**kw)
+    assert UncalibratedConfig(cues="entropy").cues == ("entropy",)
 
 
 def test_specular_free_is_the_diffuse_chroma():

@@ -83,7 +83,7 @@ def add_reconstruct_options(p) -> None:
 
 
 # the library's errors that name these settings name the options instead
-_OPTIONS = ("rounds", "pixel_size", "reference_depth", "method")
+_OPTIONS = ("rounds", "pixel_size", "reference_depth", "method", "ks", "shininess", "roughness", "eta", "f0", "max_size")
 
 
 def folder_config(args) -> gpps.FolderConfig:

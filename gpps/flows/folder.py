@@ -156,6 +156,13 @@ class FolderConfig:
         for name in ("ks", "shininess", "roughness", "eta", "f0"):
             if getattr(self, name) is not None:
                 object.__setattr__(self, name, check_number(name, getattr(self, name)))
+        if self.given_material():  # their ranges, by the material's own checks (before any image is read)
+            try:
+                Material.from_dict({**Material.default_for(self.brdf or "blinn-phong").to_dict(),
+                                    **self.given_material()})
+            except (ValueError, TypeError) as e:  # (eta is Material's eta_u and eta_v)
+                msg = str(e)
+                raise type(e)("eta" + msg[5:] if msg.startswith(("eta_u", "eta_v")) else msg) from None
 
     def given_material(self) -> dict:
         """The material parameters given (not None), as :meth:`gpps.Material.to_dict` keys (eta: eta_u, eta_v)."""

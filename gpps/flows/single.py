@@ -35,7 +35,7 @@ from typing import Literal
 
 import numpy as np
 
-from gpps._check import check_choices, check_number
+from gpps._check import check_bool, check_choices, check_number
 from gpps.camera import Orthographic
 from gpps.flows.integrate import integrate_normals
 from gpps.host.single import (
@@ -152,6 +152,7 @@ class SingleConfig:
         if self.net_size is not None:
             n = check_number("net_size", self.net_size, lo=16, integer=True)
             object.__setattr__(self, "net_size", n)
+        check_bool("integrate", self.integrate)
 
 
 @dataclass

@@ -70,7 +70,7 @@ from typing import Literal, get_args
 import numpy as np
 from scipy.optimize import minimize
 
-from gpps._check import as_images, as_mask, check_choices
+from gpps._check import as_images, as_mask, check_choices, check_number
 from gpps.camera import Orthographic, Perspective
 from gpps.flows.photometric import solve_normals
 from gpps.host.gbr import (
@@ -224,41 +224,39 @@ class UncalibratedConfig:
 
     def __post_init__(self):
         check_choices(self)
-        self.cues = tuple(self.cues)
-        if not self.cues or any(c not in get_args(Cue) for c in self.cues):
+        cues = (self.cues,) if isinstance(self.cues, str) else self.cues
+        try:
+            cues = tuple(cues)
+        except TypeError:
+            raise TypeError(f"cues: expected a non-empty sequence of {list(get_args(Cue))}, got {self.cues!r}") from None
+        if not cues or any(not isinstance(c, str) or c not in get_args(Cue) for c in cues):
             raise ValueError(f"cues: expected a non-empty subset of {list(get_args(Cue))}, got {self.cues!r}")
-        self.source_color = tuple(float(v) for v in np.ravel(self.source_color))
-        if len(self.source_color) != 3 or not np.all(np.isfinite(self.source_color)) or min(self.source_color) < 0 or max(self.source_color) <= 0:
+        self.cues = cues
+        try:
+            color = tuple(float(v) for v in np.ravel(self.source_color))
+        except (TypeError, ValueError):
+            color = ()
+        if len(color) != 3 or not np.all(np.isfinite(color)) or min(color) < 0 or max(color) <= 0:
             raise ValueError(f"source_color: expected 3 finite values >= 0, not all 0, got {self.source_color!r}")
-        if not 0 <= self.chroma_min <= 1:
-            raise ValueError(f"chroma_min: expected a value in [0, 1], got {self.chroma_min!r}")
-        if not 0 <= self.dark_fraction < 1:
-            raise ValueError(f"dark_fraction: expected a value in [0, 1), got {self.dark_fraction!r}")
-        if not 0 <= self.shadow_fraction < 1:
-            raise ValueError(f"shadow_fraction: expected a value in [0, 1), got {self.shadow_fraction!r}")
-        if not 0 <= self.highlight_trim < 1:
-            raise ValueError(f"highlight_trim: expected a value in [0, 1), got {self.highlight_trim!r}")
-        if not 0 < self.saturation <= 1.0 + 1e-9:
-            raise ValueError(f"saturation: expected a value in (0, 1], got {self.saturation!r}")
-        if not self.integrability_smooth >= 0:
-            raise ValueError(f"integrability_smooth: expected a value >= 0, got {self.integrability_smooth!r}")
-        if int(self.ldr_window) != self.ldr_window or self.ldr_window < 3 or self.ldr_window % 2 == 0:
+        self.source_color = color
+        self.chroma_min = check_number("chroma_min", self.chroma_min, lo=0.0, hi=1.0)
+        for name in ("dark_fraction", "shadow_fraction", "highlight_trim"):  # fractions in [0, 1)
+            v = check_number(name, getattr(self, name), lo=0.0, hi=1.0)
+            if v >= 1.0:
+                raise ValueError(f"{name}: expected a value in [0, 1), got {getattr(self, name)!r}")
+            setattr(self, name, v)
+        self.saturation = check_number("saturation", self.saturation, lo=0.0, hi=1.0 + 1e-9, lo_open=True)
+        for name in ("integrability_smooth", "flip_min_curl", "flip_min_spread", "refine_robust", "final_robust"):
+            setattr(self, name, check_number(name, getattr(self, name), lo=0.0))
+        for name in ("flip_ratio", "flip_specular_ratio"):
+            setattr(self, name, check_number(name, getattr(self, name), lo=1.0))
+        self.lr = check_number("lr", self.lr, lo=0.0, lo_open=True)
+        for name in ("als_iterations", "refine_iterations", "refine_pixels", "final_iterations", "normal_sets",
+                     "integrability_irls", "material_pixels", "seed"):
+            setattr(self, name, check_number(name, getattr(self, name), lo=0, integer=True))
+        self.ldr_window = check_number("ldr_window", self.ldr_window, lo=3, integer=True)
+        if self.ldr_window % 2 == 0:
             raise ValueError(f"ldr_window: expected an odd integer >= 3, got {self.ldr_window!r}")
-        for name in ("als_iterations", "refine_iterations", "refine_pixels", "final_iterations", "normal_sets", "integrability_irls", "material_pixels"):
-            v = getattr(self, name)
-            if int(v) != v or v < 0:
-                raise ValueError(f"{name}: expected an integer >= 0, got {v!r}")
-        if not self.flip_min_curl >= 0:
-            raise ValueError(f"flip_min_curl: expected a value >= 0, got {self.flip_min_curl!r}")
-        if not self.flip_specular_ratio >= 1:
-            raise ValueError(f"flip_specular_ratio: expected a value >= 1, got {self.flip_specular_ratio!r}")
-        if not self.flip_min_spread >= 0:
-            raise ValueError(f"flip_min_spread: expected a value >= 0, got {self.flip_min_spread!r}")
-        for name in ("refine_robust", "final_robust"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name}: expected a value >= 0, got {getattr(self, name)!r}")
-        if not self.lr > 0:
-            raise ValueError(f"lr: expected > 0, got {self.lr!r}")
 
 
 @dataclass
