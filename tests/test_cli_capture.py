@@ -137,7 +137,7 @@ def test_reconstruct_errors_name_the_argument(tmp_path, capsys):
     assert "expected images" in capsys.readouterr().err
     raw, _, _ = _raw_folder(tmp_path, n=4, size=24)
     assert main(["reconstruct", str(raw), "--max-size", "2", "--out", str(tmp_path / "o")]) == 2
-    assert "max_size" in capsys.readouterr().err
+    assert "error: --max-size: expected" in capsys.readouterr().err
     # both light files: the point lights are used, and their missing distance says so
     (tmp_path / "both").mkdir()
     _, _, lights = _raw_folder(tmp_path / "both", n=4, size=24)
