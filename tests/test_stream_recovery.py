@@ -276,3 +276,25 @@ def test_stream_without_a_mask_on_a_dark_background(device):
                      device=device)
     r = st.run(dark)
     assert not r.ok and "3 lit observations" in r.error, r.error
+
+
+def test_a_closed_stream_refuses_frames(device):
+    """close() releases the solver's buffers (back to the pool), the integrator's fields and the graphs, as the
+    stage protocol says; the stream then refuses frames by name instead of computing into released buffers
+    (before, close() released nothing and the stream kept running)."""
+    import gpps
+
+    sc = gpps.make_scene("sphere", 16, "orthographic")
+    L = gpps.default_lights("directional", 3)
+    frame = (np.clip(gpps.render(sc, gpps.Material("lambertian"), L, bits=16), 0, 1) * 65535).astype(np.uint16)
+    with gpps.Stream((16, 16), sc.camera, gpps.DirectionalLights(L.directions), gpps.Material("lambertian"),
+                     mask=sc.mask, config=gpps.StreamConfig(output="numpy"), device=device) as st:
+        assert st.run(frame).ok
+        solver = st.solver
+    with pytest.raises(ValueError, match="Stream: closed"):
+        st.run(frame)
+    with pytest.raises(ValueError, match="Stream: closed"):
+        next(st.iterate([frame]))
+    with pytest.raises(ValueError, match="PixelSolver: closed"):
+        solver.step()
+    st.close()  # (twice: nothing)

@@ -797,8 +797,27 @@ class Stream(Stage):
         self.stats["seconds"] += res.seconds
         return res
 
+    def close(self) -> None:
+        """Release the device state: the solver's buffers (back to the pool), the integrator's fields, the
+        material estimator's, the captured graphs; a closed stream refuses frames (ValueError).  Also on
+        leaving a ``with`` block.  Closing twice does nothing."""
+        if self.__dict__.get("_closed", False):
+            return
+        self._closed = True
+        self._graphs.clear()
+        for name in ("estimator", "integrator", "solver"):
+            stage = getattr(self, name, None)
+            if stage is not None:
+                stage.close()
+        self._release_buffers()
+
+    def _check_open(self) -> None:
+        if self.__dict__.get("_closed", False):
+            raise ValueError("Stream: closed (its device buffers were released); expected a new Stream")
+
     def _start(self, frame):
         """Number the frame and start its upload: ``(index, t0, (key, slot, event) or None, error or None)``."""
+        self._check_open()  # (raised: not a bad frame of an open stream)
         t0 = time.perf_counter()
         idx = self.index
         self.index += 1
@@ -820,6 +839,7 @@ class Stream(Stage):
 
     def step(self) -> None:
         """Solve, check and integrate the uploaded frame on the device (a bad frame is kept as an error)."""
+        self._check_open()
         if self._started is None:
             raise ValueError("frame: expected upload(frame) before step(), got nothing uploaded")
         idx, t0, up, err = self._started
