@@ -420,6 +420,10 @@ def test_refiner_checks_its_inputs(device):
             r.upload(bad, np.ones((32, 32, 3)))
         with pytest.raises(ValueError, match="albedo: expected shape"):
             r.upload(case["depth"], np.ones((32, 32)))
+        r.close()  # a closed refiner refuses work (its buffers went back to the pool)
+        for call in (lambda: r.upload(case["depth"], np.ones((32, 32, 3))), r.step, r.fetch):
+            with pytest.raises(ValueError, match="DepthRefiner: closed"):
+                call()
     finally:
         r.close()
         s.close()

@@ -184,6 +184,7 @@ class DepthRefiner(Stage):
             normals: (H, W, 3) per-pixel normals whose ``N_z`` factors weigh the one-sided differences
                 (``edges="bilateral"``; None: central differences).
         """
+        self._check_open()
         h, w = self.shape
         self._set_depth(depth)
         alb = np.asarray(albedo, dtype=np.float32)
@@ -200,6 +201,7 @@ class DepthRefiner(Stage):
 
     def upload_from_solver(self, depth) -> None:
         """As :meth:`upload` with the solver's albedo and normals buffers (device to device)."""
+        self._check_open()
         self._set_depth(depth)
         warp().copy(self.albedo, self.solver.albedo)
         warp().copy(self.nref, self.solver.normals)
@@ -220,6 +222,7 @@ class DepthRefiner(Stage):
 
     def step(self, progress=None) -> None:
         """Levenberg-Marquardt on the depth (module docstring); ``progress(done, total, message)``."""
+        self._check_open()
         cfg = self.config
         s = self.solver
         # the material and lights as the solver has them now (RON's final material)
@@ -281,6 +284,7 @@ class DepthRefiner(Stage):
     def fetch(self) -> dict:
         """``depth`` (H, W) (0 outside the mask), ``normals`` (H, W, 3), ``albedo`` (H, W, 3), ``residual`` (H, W)
         (RMS residual of the used observations at the final depth) and ``info`` (energies, steps, ``sigma``)."""
+        self._check_open()
         m = self.integrator.mask
         return {
             "depth": np.where(m, self.depth.numpy(), 0.0).astype(np.float32),
@@ -291,12 +295,17 @@ class DepthRefiner(Stage):
         }
 
     def close(self) -> None:
-        """Give the buffers back and the device system's fields to their pool."""
+        """Give the buffers back and the device system's fields to their pool; the refiner refuses work afterwards."""
         self._views = None
         if self.system is not None:
             self.system.close()
             self.system = None
         super().close()
+        self._closed = True
+
+    def _check_open(self) -> None:
+        if self.__dict__.get("_closed", False):
+            raise ValueError("DepthRefiner: closed (its buffers went back to the pool)")
 
     # ------------------------------------------------------------------ pieces
 
