@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
-from gpps._check import check_choice, check_choices, check_number
+from gpps._check import check_choice, check_choices, check_number, warn
 from gpps.names import BRDF, BRDF_NAMES, DEFAULT_F0
 from gpps.names import BRDF_TAG as _DEVICE_TAG
 
@@ -88,7 +88,11 @@ class Material:
     def from_dict(cls, d: dict) -> "Material":
         if not isinstance(d, dict):
             raise TypeError(f"material: expected a dict, got {type(d).__name__}")
-        known = {k: d[k] for k in ("brdf", "ks", "shininess", "roughness", "f0", "eta_u", "eta_v") if k in d}
+        names = ("brdf", "ks", "shininess", "roughness", "f0", "eta_u", "eta_v")
+        known = {k: d[k] for k in names if k in d}
+        unknown = sorted(str(k) for k in d if k not in names and k != "ior")
+        if unknown:  # (a misspelt parameter would otherwise be its model's default without a word)
+            warn(f"material: ignored {unknown}: not material parameters (expected some of {list(names)} or 'ior')")
         if d.get("ior") is not None:  # an index of refraction instead of f0 (e.g. a hand-written material.json)
             f0 = cls.f0_from_ior(d["ior"])
             if known.get("f0") is not None and not math.isclose(float(known["f0"]), f0, rel_tol=1e-6, abs_tol=1e-9):

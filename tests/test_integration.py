@@ -565,3 +565,13 @@ def test_component_means_on_pixel_lists_equal_the_frame_form():
     at = component_means_at(a[valid], labels[valid], n)
     assert n > 3
     np.testing.assert_array_equal(at, full[valid])
+
+
+def test_integrate_normals_names_an_unknown_option():
+    """A misspelt option of integrate_normals is a TypeError naming it and the options there are (it said
+    "IntegratorConfig.__init__() got an unexpected keyword argument")."""
+    import gpps
+
+    sc = gpps.make_scene("sphere", 16, "orthographic")
+    with pytest.raises(TypeError, match=r"bilateral_kk: not an option of integrate_normals; expected .*'bilateral_k'"):
+        gpps.integrate_normals(sc.normals, sc.mask, camera=sc.camera, device="cpu", bilateral=True, bilateral_kk=3.0)

@@ -386,6 +386,9 @@ def test_material_settings_and_errors():
     with pytest.raises(ValueError, match="disagree"):
         Material.from_dict({"brdf": "plastic", "ior": 1.5, "f0": 0.2})
     assert "plastic" in gpps.BRDF_NAMES
+    # a misspelt parameter (a hand-written material.json) is named, not silently the model's default
+    with pytest.warns(gpps.GppsWarning, match=r"material: ignored \['roughnes'\]"):
+        assert Material.from_dict({"brdf": "plastic", "roughnes": 0.1}) == Material("plastic")
 
 
 def test_cli_render_ior(tmp_path):

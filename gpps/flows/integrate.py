@@ -14,6 +14,8 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from gpps._check import check_choice
@@ -93,6 +95,11 @@ def integrate_normals(
     """
     if weighting is None:
         weighting = "normal" if bilateral else "uniform"
+    fields = {f.name for f in dataclasses.fields(IntegratorConfig)}
+    unknown = sorted(set(options) - fields)
+    if unknown:
+        raise TypeError(f"{unknown[0]}: not an option of integrate_normals; expected IntegratorConfig's fields "
+                        f"{sorted(fields)}")
     cfg = IntegratorConfig(solver=solver, tol=tol, max_iter=max_iter, bilateral=bilateral, weighting=weighting,
                            **options)
     integ = Integrator(mask, camera=camera, config=cfg, device=device)
