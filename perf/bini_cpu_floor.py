@@ -17,8 +17,8 @@ this script measures what one such iteration costs at best on this machine, writ
 
 ``floor_s`` = gpps's CG iteration count on the map x the fastest of these per iteration: the CG alone, without
 BiNI's per-IRLS assembly, reweighting and energy (which any implementation adds).  ``max_speedup`` = BiNI's
-reference time / ``floor_s``: no implementation of the same trajectory in float64 of this kind can be faster
-than that against the reference on this machine.
+reference time / ``floor_s``: what an implementation of the same trajectory written this way (float64, the CG
+alone, on every core) gains over the reference on this machine; the other per-iteration work only lowers it.
 
 Perf-only: needs ``gcc`` with OpenMP (a C compiler is not a runtime dependency of gpps), BiNI's reference
 (``--bini-path``, as perf/integration_bini.py) and the DiLiGenT maps in ../shared/data/integration/diligent.
