@@ -25,7 +25,7 @@ from typing import Callable
 import numpy as np
 from scipy import ndimage
 
-from gpps._check import as_path, check_choice, check_number
+from gpps._check import as_array, as_path, check_choice, check_number
 from gpps.camera import Orthographic, Perspective, camera_from_K
 from gpps.host.calibrate import (SphereFit, card_intensities, circle_points, disc_mask, find_outline, fit_sphere,
                                  highlight_direction, mask_outline, matte_intensities, triangulate_lights)
@@ -110,11 +110,9 @@ def _read_mask(path, shape) -> np.ndarray:
 
 
 def _numbers(name: str, value, k: int, form: str) -> np.ndarray:
-    """``value`` as ``k`` finite floats; anything else is an error naming ``name`` and the ``form`` expected."""
-    try:
-        a = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name}: expected {form} ({k} numbers), got {value!r}") from None
+    """``value`` as ``k`` finite floats; anything else is an error naming ``name`` and the ``form`` expected
+    (what is not an array of real numbers: :func:`gpps._check.as_array`'s TypeError)."""
+    a = as_array(name, value, dtype=np.float64, finite=False)
     if a.shape != (k,):
         raise ValueError(f"{name}: expected {form} ({k} numbers), got {value!r}")
     if not np.isfinite(a).all():

@@ -303,10 +303,6 @@ class DepthRefiner(Stage):
         super().close()
         self._closed = True
 
-    def _check_open(self) -> None:
-        if self.__dict__.get("_closed", False):
-            raise ValueError("DepthRefiner: closed (its buffers went back to the pool)")
-
     # ------------------------------------------------------------------ pieces
 
     def _select(self, sigma: float, scale: float) -> int:
@@ -388,4 +384,3 @@ class DepthRefiner(Stage):
         if cuda:
             _taichi.ti.sync()
         return ok
-

@@ -683,10 +683,6 @@ class MaterialScorer(Stage):
             self.__dict__.pop(name, None)
         self._closed = True
 
-    def _check_open(self) -> None:
-        if self._closed:
-            raise ValueError("MaterialScorer: closed (its buffers were released)")
-
 
 class _Both:
     """Two recorded launches run as one (the starts-parallel step)."""

@@ -266,7 +266,3 @@ class NelderMeadSearch(Stage):
                      "cond", "scorer"):
             self.__dict__.pop(name, None)
         self._closed = True
-
-    def _check_open(self) -> None:
-        if self._closed:
-            raise ValueError("NelderMeadSearch: closed (its buffers were released)")

@@ -931,10 +931,6 @@ class PixelSolver(Stage):
             self.__dict__.pop(name, None)
         self._closed = True
 
-    def _check_open(self) -> None:
-        if self.__dict__.get("_closed", False):
-            raise ValueError("PixelSolver: closed (its buffers went back to the pool)")
-
     def fetch(self, names=("normals", "albedo", "residual", "iterations", "flags", "cond", "weights")) -> dict:
         """The current results as numpy arrays owned by the caller: ``normals`` (H, W, 3), ``albedo``
         (H, W, 3), ``residual`` (H, W), ``iterations`` (H, W), ``flags`` (H, W) (bits of

@@ -50,6 +50,12 @@ class Stage(ABC):
         self.__dict__.setdefault("_pooled", []).append(a)
         return a
 
+    def _check_open(self) -> None:
+        """ValueError naming the stage once :meth:`close` set ``_closed``: its buffers may belong to another
+        stage by then (the pool hands them out again)."""
+        if self.__dict__.get("_closed", False):
+            raise ValueError(f"{type(self).__name__}: closed (its device buffers were released)")
+
     def _release_buffers(self) -> None:
         """Give the buffers of :meth:`_buffer` back to the pool (once)."""
         buffers.give(self.__dict__.pop("_pooled", []))

@@ -811,10 +811,6 @@ class Stream(Stage):
                 stage.close()
         self._release_buffers()
 
-    def _check_open(self) -> None:
-        if self.__dict__.get("_closed", False):
-            raise ValueError("Stream: closed (its device buffers were released); expected a new Stream")
-
     def _start(self, frame):
         """Number the frame and start its upload: ``(index, t0, (key, slot, event) or None, error or None)``."""
         self._check_open()  # (raised: not a bad frame of an open stream)
