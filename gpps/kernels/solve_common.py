@@ -204,6 +204,10 @@ def start_normal(s: int, ninit: wp.vec3, v: wp.vec3, hbright: wp.vec3, prm: Solv
     3 halfway between that and the initial normal, then the initial normal tilted toward evenly spread azimuths, alternately by
     ``start_angle`` and twice that."""
     if s == 0:
+        if wp.dot(ninit, v) <= 0.0:
+            # a start facing away from the camera (the solvers keep the normal on the visible side: it
+            # could not cross back): pulled toward the camera as the tilted starts below
+            return wp.normalize(ninit + (0.1 - wp.dot(ninit, v)) * v)
         return ninit
     if s == 1:
         return v
