@@ -116,15 +116,51 @@ def as_mask(name, m, shape=None, allow_empty=False) -> np.ndarray:
         raise ValueError(f"{name}: expected shape (H, W), got {arr.shape}")
     if shape is not None and arr.shape != tuple(shape):
         raise ValueError(f"{name}: expected shape {tuple(shape)}, got {arr.shape}")
-    if arr.dtype != bool:
-        if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
-            raise TypeError(f"{name}: expected a boolean or numeric (H, W) array, got {arr.dtype}")
-        if np.issubdtype(arr.dtype, np.floating) and not np.isfinite(arr).all():
-            raise ValueError(f"{name}: expected finite values (a pixel is inside when > 0), got NaN or inf")
-        arr = arr > 0
+    arr = _bools(name, arr, "(H, W)", "a pixel is inside")
     if not allow_empty and not arr.any():
         raise ValueError(f"{name}: expected at least one pixel inside the mask, got an empty mask")
     return arr
+
+
+def as_flags(name, v, shape) -> np.ndarray:
+    """``v`` as a bool array of exactly ``shape`` (e.g. the (N, H, W) ``valid`` observations): booleans, or
+    finite numbers (> 0 is True), as :func:`as_mask` takes them; ValueError/TypeError naming ``name``."""
+    arr = np.asarray(v)
+    if arr.shape != tuple(shape):
+        raise ValueError(f"{name}: expected shape {tuple(shape)}, got {arr.shape}")
+    return _bools(name, arr, _fmt(shape), "True")
+
+
+def _bools(name, arr, form, meaning) -> np.ndarray:
+    """``arr`` as bools: bool as it is, integers and finite floats ``> 0``; anything else a TypeError."""
+    if arr.dtype == bool:
+        return arr
+    if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+        raise TypeError(f"{name}: expected a boolean or numeric {form} array, got {arr.dtype}")
+    if np.issubdtype(arr.dtype, np.floating) and not np.isfinite(arr).all():
+        raise ValueError(f"{name}: expected finite values ({meaning} when > 0), got NaN or inf")
+    return arr > 0
+
+
+def check_shape(name, shape, form: str, lo: int = 1) -> tuple[int, ...]:
+    """``shape`` as a tuple of ``len(form)`` integers >= ``lo`` (``form`` the axes' names, e.g. ``"HW"``);
+    ValueError/TypeError naming ``name`` ("shape: expected (H, W) ..., got ...")."""
+    want = "(" + ", ".join(form) + ")"
+    try:
+        sizes = tuple(shape)
+    except TypeError:
+        raise TypeError(f"{name}: expected {want} integers, got {shape!r}") from None
+    if isinstance(shape, (str, bytes)) or len(sizes) != len(form):
+        raise ValueError(f"{name}: expected {want}, got {shape!r}")
+    out = []
+    for s in sizes:
+        try:
+            out.append(check_number(name, s, integer=True))
+        except (TypeError, ValueError):
+            raise TypeError(f"{name}: expected {want} integers, got {shape!r}") from None
+    if min(out) < lo:
+        raise ValueError(f"{name}: expected {want} with sizes >= {lo}, got {shape!r}")
+    return tuple(out)
 
 
 def check_unit(name, vectors, tol=1e-3, where="inside the mask") -> np.ndarray:

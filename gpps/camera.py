@@ -46,15 +46,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from gpps._check import as_array, check_number
+
 __all__ = ["Orthographic", "Perspective", "Camera", "camera_from_K"]
 
 
 def _finite_positive(name: str, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name}: expected a real number, got {value!r}") from None
-    if not np.isfinite(v) or v <= 0:
+    # (check_number: a string such as "1" or a bool is a TypeError, not a number float() converts)
+    v = check_number(name, value)
+    if v <= 0:
         raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
     return v
 
@@ -76,7 +76,7 @@ class Orthographic:
     def __post_init__(self):
         object.__setattr__(self, "pixel_size", _finite_positive("pixel_size", self.pixel_size))
         if self.center is not None:
-            c = np.asarray(self.center, dtype=np.float64)
+            c = as_array("center", self.center, dtype=np.float64, finite=False)  # (strings, bools: TypeError)
             if c.shape != (2,) or not np.all(np.isfinite(c)):
                 raise ValueError(f"center: expected (cx, cy) finite, got {self.center!r}")
             object.__setattr__(self, "center", (float(c[0]), float(c[1])))
@@ -121,10 +121,8 @@ class Perspective:
     kind: str = field(default="perspective", init=False)
 
     def __post_init__(self):
-        try:
-            K = np.array(self.K, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise TypeError(f"K: expected a 3x3 array of numbers, got {self.K!r}") from None
+        # (as_array: strings, bools, complex and object arrays are a TypeError, never cast; a copy, made read-only)
+        K = np.array(as_array("K", self.K, dtype=np.float64, finite=False), dtype=np.float64, copy=True)
         if K.shape != (3, 3):
             raise ValueError(f"K: expected shape (3, 3), got {K.shape}")
         if not np.all(np.isfinite(K)):
@@ -177,4 +175,4 @@ Camera = Orthographic | Perspective
 
 def camera_from_K(K) -> Perspective:
     """A :class:`Perspective` camera from a 3x3 K (as in DiLiGenT's ``K.txt``)."""
-    return Perspective(np.asarray(K, dtype=np.float64))
+    return Perspective(K)  # (Perspective checks and converts it: strings, bools, complex are a TypeError there)

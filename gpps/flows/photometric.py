@@ -25,13 +25,13 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from gpps._check import IMAGE_FULL_SCALE, as_array, as_images, as_mask, clipping, warn
+from gpps._check import IMAGE_FULL_SCALE, as_array, as_flags, as_images, as_mask, clipping, warn
 from gpps._runtime import warp
 from gpps.camera import Orthographic, Perspective
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
 from gpps.pipeline.render import Renderer
-from gpps.pipeline.solver import PixelSolver, SolverConfig
+from gpps.pipeline.solver import SCALE_RANGE, PixelSolver, SolverConfig
 
 __all__ = ["PSResult", "solve_normals", "reproject", "SolverConfig"]
 
@@ -92,11 +92,16 @@ def check_inputs(images, mask, lights, camera=None):
     if img.ndim not in (3, 4) or (img.ndim == 4 and img.shape[-1] not in (1, 3)):
         raise ValueError(f"images: expected shape (N, H, W, 3) or (N, H, W), got {img.shape}")
     n, h, w = img.shape[:3]
+    if n < 3:  # (before the lights' count: an empty stack is the images' fault, not the lights')
+        raise ValueError(f"images: expected at least 3 images, got {n}")
     m = as_mask("mask", mask, (h, w))
     if not isinstance(lights, (DirectionalLights, PointLights)):
         raise TypeError(f"lights: expected gpps.lights.DirectionalLights or PointLights, got {type(lights).__name__}")
     if len(lights) != n:
         raise ValueError(f"lights: expected {n} lights (one per image), got {len(lights)}")
+    lit = int(np.count_nonzero(np.asarray(lights.intensities).max(axis=1) > 0))
+    if lit < 3:  # (the model of a dark light is 0 whatever the normal: fewer than 3 lit ones determine nothing)
+        raise ValueError(f"lights: expected at least 3 lights with an intensity > 0, got {lit} of {n}")
     camera = Orthographic() if camera is None else camera
     if not isinstance(camera, (Orthographic, Perspective)):
         raise TypeError(f"camera: expected gpps.camera.Orthographic or Perspective, got {type(camera).__name__}")
@@ -105,6 +110,10 @@ def check_inputs(images, mask, lights, camera=None):
 
 #: Observations at or below this fraction of the mask's brightest (99.9th percentile) grey value are unlit.
 UNLIT_FRACTION = 1e-3
+#: ALBEDO_RANGE: the mask's brightest observations over the brightest directional light's intensity (an albedo)
+#: that the float32 solver takes (above ~1e10 the albedo comes out 0); SCALE_RANGE (:mod:`gpps.pipeline.solver`):
+#: the observations' own.
+ALBEDO_RANGE = (1e-12, 1e9)
 #: Below this share of determined mask pixels the input is degenerate (an error); below WARN_DETERMINED a warning.
 MIN_DETERMINED = 0.2
 WARN_DETERMINED = 0.5
@@ -198,6 +207,17 @@ def check_observations(images, mask, lights, *, valid=None, saturation=None, ref
         where = (" while pixels outside it are lit: the mask lies outside the lit area"
                  if outside.size and float(outside.max()) > 0 else "")
         raise ValueError(f"images: every observation inside the mask is black (0){where}; nothing is lit")
+    if not SCALE_RANGE[0] <= scale <= SCALE_RANGE[1]:
+        raise ValueError(f"images: expected linear values between {SCALE_RANGE[0]:g} and {SCALE_RANGE[1]:g} (1 = full "
+                         f"scale; beyond them the float32 solver's squares overflow or its tolerances swallow the "
+                         f"signal), got the brightest observations inside the mask at {scale:.3g}; rescale the images "
+                         "(and the lights' intensities with them)")
+    if isinstance(lights, DirectionalLights):  # (a point light's radiance also falls with the squared distance)
+        ratio = scale / float(np.max(np.asarray(lights.intensities).mean(axis=1)))
+        if not ALBEDO_RANGE[0] <= ratio <= ALBEDO_RANGE[1]:
+            raise ValueError(f"lights: expected intensities of the images' order (the brightest observations over "
+                             f"the brightest light's intensity, an albedo, between {ALBEDO_RANGE[0]:g} and "
+                             f"{ALBEDO_RANGE[1]:g}), got {ratio:.3g}; rescale the lights' intensities")
     lit = grey > UNLIT_FRACTION * scale
     usable = lit if bad is None else lit & ~bad
     inside = np.count_nonzero(usable, axis=0) >= 3  # (P,)
@@ -297,10 +317,8 @@ def solve_normals(
         raise ValueError("config: pass either config or solver/robust/options, not both")
     img, m, lights, camera = check_inputs(images, mask, lights, camera)
     n, h, w = img.shape[:3]
-    if n < 3:  # (a normal and an albedo need 3 observations: as gpps.reconstruct says)
-        raise ValueError(f"images: expected at least 3 images, got {n}")
-    if valid is not None and np.shape(valid) != (n, h, w):
-        raise ValueError(f"valid: expected shape ({n}, {h}, {w}), got {np.shape(valid)}")
+    if valid is not None:  # (as_flags: NaN or strings are an error, not True)
+        valid = as_flags("valid", valid, (n, h, w))
     notes: list[str] = []
     ref = None
     if depth is not None:

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from gpps._check import as_array
+from gpps._check import as_array, as_flags, check_number
 from gpps.flows.photometric import check_inputs, check_observations, input_saturation
 from gpps.flows.ron import LOBE_PARAMETERS, RON, RONConfig
 from gpps.material import BRDF_NAMES, Material
@@ -111,6 +111,8 @@ def _material(material, estimate) -> tuple[Material, tuple[str, ...], dict, tupl
         raise TypeError(f"material: expected a gpps.material.Material or a model name, got {type(material).__name__}")
     if isinstance(names, str):
         names = (names,)
+    if not isinstance(names, (tuple, list)) or not all(isinstance(k, str) for k in names):
+        raise TypeError(f"estimate: expected 'auto', a parameter name or a sequence of them, got {estimate!r}")
     names = tuple(names)
     allowed = LOBE_PARAMETERS[mat.brdf]
     bad = [k for k in names if k not in allowed]
@@ -172,10 +174,10 @@ def reconstruct(
             names, fewer than 3 lights or degenerate light directions, point
             lights without a depth or a reference depth.
     """
-    img, m, lights, camera = check_inputs(images, mask, lights, camera)
+    img, m, lights, camera = check_inputs(images, mask, lights, camera)  # (N >= 3 checked there)
     n, h, w = img.shape[:3]
-    if n < 3:
-        raise ValueError(f"images: expected at least 3 images, got {n}")
+    if saturation is not None:
+        saturation = check_number("saturation", saturation, lo=0.0, lo_open=True)
     mat, names, fixed, models = _material(material, estimate)
     cfg = RONConfig() if config is None else config
     if not isinstance(cfg, RONConfig):
@@ -191,11 +193,7 @@ def reconstruct(
     cfg = replace(cfg, estimate=names, solver=solver, **({"models": models} if models else {}))
     if saturation is not None and cfg.dgmc_config.saturation is None:
         cfg = replace(cfg, dgmc_config=replace(cfg.dgmc_config, saturation=float(saturation)))
-    val = None
-    if valid is not None:
-        val = np.asarray(valid)
-        if val.shape != (n, h, w):
-            raise ValueError(f"valid: expected shape ({n}, {h}, {w}), got {val.shape}")
+    val = None if valid is None else as_flags("valid", valid, (n, h, w))
     ref = reference_depth
     if ref is None and depth is not None:
         ref = float(np.mean(as_array("depth", depth, shape=(h, w))[m]))

@@ -223,6 +223,8 @@ def reconstruct_single(images, mask=None, *, camera=None, config: SingleConfig |
     timings = {}
     I, m = prepare_images(images, mask)
     n_img, h, w = I.shape[:3]
+    if net is not None and not isinstance(net, SingleNet):
+        raise TypeError(f"net: expected a gpps.nn.model.SingleNet or None (the shipped weights), got {type(net).__name__}")
     net = net or SingleNet.load()
     total = 1 + cfg.rounds + (1 if cfg.integrate else 0)
     preds = [net.predict(I[k], m, size=cfg.net_size, tta=cfg.tta) for k in range(n_img)]

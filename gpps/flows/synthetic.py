@@ -6,7 +6,7 @@ from typing import Literal
 
 import numpy as np
 
-from gpps._check import check_number
+from gpps._check import check_number, warn
 from gpps.host.scenes import D0, Scene
 from gpps.io import Dataset
 from gpps.lights import (
@@ -64,8 +64,15 @@ def render(scene: Scene, material: Material, lights, *, noise: float = 0.0, bits
         seed: noise seed.
         device: Warp device (None: CUDA when present).
     """
+    if not all(hasattr(scene, k) for k in ("shape", "camera", "depth", "mask", "albedo", "normals")):
+        raise TypeError(f"scene: expected a gpps.host.scenes.Scene (gpps.make_scene), got {type(scene).__name__}")
     r = Renderer(scene.shape, scene.camera, lights, material, device=device)
     img = r.run(scene.depth, scene.mask, scene.albedo, normals=scene.normals)
+    # (before the noise: the lights' own doing, e.g. behind the object or of zero intensity)
+    dark = np.nonzero(~np.any(img[:, scene.mask] > 0, axis=(1, 2)))[0]
+    if dark.size:
+        warn(f"images: {dark.size} of {len(img)} rendered images are black inside the mask (lights "
+             f"{(dark + 1).tolist()[:8]}): lights behind the object, of zero intensity or facing away")
     img = add_noise(img, noise, seed)
     img[:, ~scene.mask] = 0.0
     return quantise(img, bits)

@@ -369,7 +369,9 @@ def solve_uncalibrated(images, mask, *, camera=None, config: UncalibratedConfig 
             (``config.dark_fraction``), an image with fewer than 3 usable
             pixels, rank < 3 data (e.g. coplanar lights), bad shapes or values.
     """
-    cfg = config or UncalibratedConfig()
+    cfg = UncalibratedConfig() if config is None else config
+    if not isinstance(cfg, UncalibratedConfig):
+        raise TypeError(f"config: expected UncalibratedConfig, got {type(cfg).__name__}")
     if camera is not None and not isinstance(camera, (Orthographic, Perspective)):
         raise TypeError(f"camera: expected None, Orthographic or Perspective, got {type(camera).__name__}")
     step = progress or (lambda *a, **k: None)

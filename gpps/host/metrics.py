@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gpps._check import as_array, as_images, as_mask
+from gpps._check import as_array, as_images, as_mask, check_number
 
 __all__ = ["angular_error", "slant_tilt", "normal_errors", "reprojection_error", "depth_error"]
 
@@ -58,6 +58,7 @@ def normal_errors(est, gt, mask, *, tilt_min_slant_deg: float = 1.0) -> dict:
         and ``pixels``.
     """
     a, b, m = _normals_pair(est, gt, mask)
+    tilt_min_slant_deg = check_number("tilt_min_slant_deg", tilt_min_slant_deg, lo=0.0, hi=180.0)
     e = angular_error(a, b, m)[m]
     sa, ta = slant_tilt(a[m])
     sb, tb = slant_tilt(b[m])
@@ -118,8 +119,30 @@ def depth_error(depth, depth_mask, scene) -> float:
         depth: (H, W) estimated depth.
         depth_mask: (H, W) bool pixels with an estimate.
         scene: a :class:`gpps.host.scenes.Scene` (or anything) with the true ``depth``, ``mask`` and ``camera``.
+
+    Raises:
+        TypeError / ValueError: naming the argument: a ``scene`` without those, shapes that differ from the
+            scene's, non-finite depth, no pixel in both masks, a perspective depth <= 0 there (no scale to
+            match), or a true depth without range there (the error is relative to it).
     """
-    m = depth_mask & scene.mask
-    d, g = depth[m].astype(np.float64), scene.depth[m].astype(np.float64)
-    d = d * np.median(g / d) if scene.camera.is_perspective else d - np.mean(d - g)
-    return float(np.mean(np.abs(d - g)) / (g.max() - g.min()))
+    if not all(hasattr(scene, k) for k in ("depth", "mask", "camera")):
+        raise TypeError(f"scene: expected a gpps.host.scenes.Scene (with depth, mask and camera), "
+                        f"got {type(scene).__name__}")
+    sm = as_mask("scene.mask", scene.mask)
+    g_all = as_array("scene.depth", scene.depth, shape=sm.shape, dtype=np.float64)
+    dep = as_array("depth", depth, shape=sm.shape, dtype=np.float64)
+    m = as_mask("depth_mask", depth_mask, sm.shape, allow_empty=True) & sm
+    if not m.any():
+        raise ValueError("depth_mask: expected pixels inside the scene's mask, got none in both masks")
+    d, g = dep[m], g_all[m]
+    span = float(g.max() - g.min())
+    if not span > 0:
+        raise ValueError(f"scene.depth: expected a depth range inside the masks (the error is relative to it), "
+                         f"got constant depth {float(g[0]):g} over {g.size} pixel(s)")
+    if scene.camera.is_perspective:
+        if np.any(d <= 0):
+            raise ValueError("depth: expected values > 0 inside depth_mask (perspective depth is matched by a scale)")
+        d = d * np.median(g / d)
+    else:
+        d = d - np.mean(d - g)
+    return float(np.mean(np.abs(d - g)) / span)

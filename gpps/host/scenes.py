@@ -23,7 +23,7 @@ from typing import Callable, Literal, get_args
 import cv2
 import numpy as np
 
-from gpps._check import check_choice
+from gpps._check import check_choice, check_number, check_shape
 from gpps.camera import Orthographic, Perspective
 
 SceneName = Literal["sphere", "bumps", "microprint"]
@@ -228,10 +228,18 @@ def make_scene(
         text: the micro-print text.
     """
     check_choice("scene", name, SCENE_NAMES)
-    h, w = (size, size) if np.isscalar(size) else tuple(size)
-    if int(h) != h or int(w) != w or h < 8 or w < 8:
+    try:  # (check_number: NaN, inf, strings and bools are errors naming size, not int()'s)
+        h, w = (size, size) if np.isscalar(size) else check_shape("size", size, "HW")
+        h, w = check_number("size", h, integer=True), check_number("size", w, integer=True)
+    except (TypeError, ValueError):
+        raise ValueError(f"size: expected an integer >= 8 or (H, W) of such, got {size!r}") from None
+    if h < 8 or w < 8:
         raise ValueError(f"size: expected an integer >= 8 or (H, W) of such, got {size!r}")
-    h, w = int(h), int(w)
+    seed = check_number("seed", seed, lo=0, integer=True)
+    if not isinstance(text, str):
+        raise TypeError(f"text: expected a non-empty string, got {text!r}")
+    if name == "microprint" and not text.strip():
+        raise ValueError(f"text: expected a non-empty string (the micro-print's text), got {text!r}")
     if isinstance(camera, str):
         camera = default_camera(camera, (h, w))
     if not isinstance(camera, (Orthographic, Perspective)):

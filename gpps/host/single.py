@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize
 
-from gpps._check import as_images, check_number, clipping, warn
+from gpps._check import as_images, as_mask, check_number, clipping, warn
 from gpps.host.gbr import integrability_gbr
 
 
@@ -40,15 +40,16 @@ def prepare_images(images, mask=None) -> tuple[np.ndarray, np.ndarray]:
     a = np.nan_to_num(a, nan=0.0, posinf=0.0, neginf=0.0)
     a = np.maximum(a, 0.0)
     h, w = a.shape[1:3]
-    m = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
-    if m.shape != (h, w):
-        raise ValueError(f"mask: expected shape {(h, w)}, got {m.shape}")
+    # (as_mask: NaN or strings are an error, not True; emptiness is the lit-pixel check's below)
+    m = np.ones((h, w), bool) if mask is None else as_mask("mask", mask, (h, w), allow_empty=True)
     m = m & (a.max(axis=(0, 3)) > 0)
     if m.sum() < 16:
         raise ValueError(f"mask: expected at least 16 lit object pixels, got {int(m.sum())}")
     _check_clipping(a, m)
-    p = float(np.percentile(a[:, m].max(-1), 99.0))
-    return (a / max(p, 1e-12)).astype(np.float32), m
+    peak = a[:, m].max(-1)
+    p = float(np.percentile(peak, 99.0))
+    p = p if p > 0 else float(peak.max())  # (> 0: every mask pixel is lit in some image; any positive scale)
+    return (a / np.float32(p)).astype(np.float32), m
 
 
 def _check_clipping(a, m) -> None:

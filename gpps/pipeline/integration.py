@@ -50,7 +50,7 @@ import numpy as np
 from scipy import ndimage
 
 from gpps import _taichi
-from gpps._check import GppsWarning, check_bool, check_choices, check_number
+from gpps._check import GppsWarning, _source, as_array, check_bool, check_choices, check_number
 from gpps.camera import Orthographic, Perspective
 from gpps.host.creases import stitch_cut_pieces
 from gpps.host.poisson import (
@@ -360,12 +360,10 @@ class Integrator(Stage):
         the mask (0 outside it, and at the non-finite or zero-length ones), ``valid`` the mask's finite, non-zero,
         camera-facing normals.  The arithmetic runs on the mask's pixels only (a masked map is often a small part
         of its frame)."""
-        n = np.asarray(normals)
+        n = _source("normals", normals)  # (complex, bool, object, strings: a TypeError, never cast)
         h, w = self.shape
         if n.ndim != 3 or n.shape != (h, w, 3):
             raise ValueError(f"normals: expected shape (H, W, 3) = ({h}, {w}, 3) matching the mask, got {n.shape}")
-        if not np.issubdtype(n.dtype, np.number):
-            raise ValueError(f"normals: expected a numeric array, got dtype {n.dtype}")
         ii, jj = self._mask_pixels()
         v = n[ii, jj].astype(np.float64)
         with np.errstate(all="ignore"):
@@ -400,7 +398,7 @@ class Integrator(Stage):
     def _check_warm(self, warm_start):
         if warm_start is None:
             return None
-        d = np.asarray(warm_start, dtype=np.float64)
+        d = as_array("warm_start", warm_start, dtype=np.float64, finite=False)  # (NaN: left out, as documented)
         if d.shape != self.shape:
             raise ValueError(f"warm_start: expected depth of shape (H, W) = {self.shape}, got {d.shape}")
         return d
@@ -466,8 +464,8 @@ class Integrator(Stage):
         t0 = time.perf_counter()
         cfg = self.config
         if reference_depth is not None:
-            reference_depth = float(reference_depth)
-            if not (np.isfinite(reference_depth) and reference_depth > 0):
+            reference_depth = check_number("reference_depth", reference_depth)  # (a string or an array: TypeError)
+            if not reference_depth > 0:
                 raise ValueError(f"reference_depth: expected a finite number > 0, got {reference_depth!r}")
         n, valid, n_invalid = self._check_normals(normals)
         warm = self._check_warm(warm_start)

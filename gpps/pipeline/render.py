@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from gpps._check import albedo_map, as_array, as_mask, unit_normals
+from gpps._check import albedo_map, as_array, as_mask, check_number, check_shape, unit_normals
+from gpps.lights import DirectionalLights, PointLights
 from gpps._runtime import resolve_device, warp
 from gpps.kernels import render as rk
 from gpps.pipeline.params import camera_params, light_params, material_params
@@ -30,9 +31,9 @@ class Renderer(Stage):
 
         self._rk = rk
         self.device = resolve_device(device)
-        h, w = (int(s) for s in shape)
-        if h < 1 or w < 1:
-            raise ValueError(f"shape: expected (H, W) with H, W >= 1, got {shape!r}")
+        h, w = check_shape("shape", shape, "HW")  # (16.5 is a TypeError, not 16)
+        if not isinstance(lights, (DirectionalLights, PointLights)):  # (before len(lights) below)
+            raise TypeError(f"lights: expected DirectionalLights or PointLights, got {type(lights).__name__}")
         self.shape = (h, w)
         self.cam = camera_params(camera, self.shape)
         self.camera = camera
@@ -117,9 +118,10 @@ def quantise(images: np.ndarray, bits: int | None) -> np.ndarray:
 
 def add_noise(images: np.ndarray, sigma: float, seed: int = 0) -> np.ndarray:
     """Add zero-mean Gaussian noise of standard deviation ``sigma`` (image units), seeded."""
-    sigma = float(sigma)
-    if not np.isfinite(sigma) or sigma < 0:
+    sigma = check_number("noise", sigma)  # (a string such as "0.1" is a TypeError, not a number)
+    if sigma < 0:
         raise ValueError(f"noise: expected a standard deviation >= 0, got {sigma!r}")
+    seed = check_number("seed", seed, lo=0, integer=True)
     if sigma == 0:
         return images
     rng = np.random.default_rng(seed)

@@ -19,11 +19,13 @@ import numpy as np
 
 from gpps._check import (
     as_array,
+    as_flags,
     as_images,
     as_mask,
     check_bool,
     check_choices,
     check_number,
+    check_shape,
 )
 from gpps._runtime import block_lanes, resolve_device, warp
 from gpps.kernels import front as fk
@@ -236,12 +238,7 @@ def check_problem(shape, lights) -> tuple[int, int, int]:
         ValueError: a shape that is not three positive sizes, or a light count other than N.
         TypeError: lights that are not :class:`DirectionalLights` or :class:`PointLights`.
     """
-    try:
-        n, h, w = (int(s) for s in shape)
-    except (TypeError, ValueError):
-        raise ValueError(f"shape: expected (N, H, W), got {shape!r}") from None
-    if n < 1 or h < 1 or w < 1:
-        raise ValueError(f"shape: expected (N, H, W) with positive sizes, got {shape!r}")
+    n, h, w = check_shape("shape", shape, "NHW")  # (16.5 is a TypeError, not 16)
     if not isinstance(lights, (DirectionalLights, PointLights)):
         raise TypeError(f"lights: expected DirectionalLights or PointLights, got {type(lights).__name__}")
     if len(lights) != n:
@@ -375,7 +372,12 @@ def check_light_configuration(lights, point=None, *, tol: float = 1e-3) -> float
     if n < 3:
         raise ValueError(f"lights: expected at least 3 lights to determine normals, got {n}")
     p = np.zeros(3) if point is None else np.asarray(point, np.float64)
-    d = _directions_at(lights, p)
+    with np.errstate(all="ignore"):
+        d = _directions_at(lights, p)
+    if not np.all(np.isfinite(d)):  # (a point light at the point itself: no direction, and the SVD fails on NaN)
+        k = np.nonzero(~np.all(np.isfinite(d), axis=1))[0]
+        raise ValueError(f"lights: point light(s) {(k + 1).tolist()[:8]} lie at the object's centre "
+                         f"{np.round(p, 6).tolist()}: expected lights away from the object")
     s = np.linalg.svd(d, compute_uv=False)
     if s[0] <= 0 or s[-1] / s[0] < tol:
         what = "collinear" if (s[0] > 0 and s[1] / s[0] < tol) else "coplanar"
@@ -412,6 +414,16 @@ def solver_params(c: SolverConfig):
     p.keep_unmasked = 0
     p.row0 = 0
     return p
+
+
+#: The range of the brightest observations (a high percentile of the grey values inside the mask) the float32
+#: solver takes: far outside it its squares overflow (residual NaN above ~1e19) or its absolute tolerances swallow
+#: the signal (normals left at the start below ~1e-25; 1.7 deg errors from 1e-8 down).  The flows refuse frames
+#: outside it (:func:`gpps.flows.photometric.check_observations`); :meth:`PixelSolver.upload` refuses the overflow.
+SCALE_RANGE = (1e-12, 1e12)
+
+#: The outputs :meth:`PixelSolver.fetch` copies.
+OUTPUTS = ("normals", "albedo", "residual", "iterations", "flags", "cond", "weights")
 
 
 class PixelSolver(Stage):
@@ -599,10 +611,7 @@ class PixelSolver(Stage):
         if valid is None:
             val = None  # (every observation: ones, filled on the device)
         else:
-            val = np.asarray(valid)
-            if val.shape != (n, h, w):
-                raise ValueError(f"valid: expected shape ({n}, {h}, {w}), got {val.shape}")
-            val = (val > 0).astype(np.uint8)
+            val = as_flags("valid", valid, (n, h, w)).astype(np.uint8)  # (NaN or strings: an error, not True)
         if self.config.warm_start:
             if init_normals is None:
                 raise ValueError("init_normals: expected (H, W, 3) normals for a warm start, got None")
@@ -616,6 +625,8 @@ class PixelSolver(Stage):
         c = self.config
         if noise is not None:
             self.noise_level = as_array("noise", noise, shape=(n,)).astype(np.float32)
+            if np.any(self.noise_level < 0):
+                raise ValueError(f"noise: expected {n} noise levels >= 0, got a minimum of {float(self.noise_level.min()):g}")
         elif c.noise_level is None:
             self.noise_level = estimate_noise(img, m)
         else:
@@ -625,6 +636,10 @@ class PixelSolver(Stage):
         sub = img[:, m]  # (N, P, 3)
         g = ((sub[..., 0] + sub[..., 1]) + sub[..., 2]) / np.float32(3.0)  # = sub.mean(-1) exactly, 10x faster
         self.intensity_scale = float(max(np.percentile(g, 99.0), 1e-12))
+        if self.intensity_scale > SCALE_RANGE[1]:  # (a dark tile is fine: the flows check the whole frame's scale)
+            raise ValueError(f"images: expected linear values up to {SCALE_RANGE[1]:g} (1 = full scale; beyond it the "
+                             f"float32 solver's squares overflow), got the brightest observations inside the mask at "
+                             f"{self.intensity_scale:.3g}; rescale the images (and the lights' intensities with them)")
         self.images.assign(img)
         self.mask.assign(m.astype(np.uint8))
         self._split_rows(m)
@@ -647,6 +662,8 @@ class PixelSolver(Stage):
         if (config.solver, config.robust if config.irls_rounds > 0 else "none") != (
                 self.config.solver, self.config.robust if self.config.irls_rounds > 0 else "none"):
             raise ValueError("config: expected the current solver and robust loss (the same kernel)")
+        if not hasattr(mask, "shape") or not hasattr(mask, "dtype"):
+            raise TypeError(f"mask: expected an (H, W) uint8 device array, got {type(mask).__name__}")
         if tuple(mask.shape) != tuple(self.shape[1:]):
             raise ValueError(f"mask: expected shape {self.shape[1:]}, got {tuple(mask.shape)}")
         self._recorded(("subset", id(mask), config), self._solve_kernel,
@@ -943,4 +960,9 @@ class PixelSolver(Stage):
             names: the outputs to copy (default: all).
         """
         self._check_open()
+        if isinstance(names, str):
+            names = (names,)
+        bad = [k for k in names if k not in OUTPUTS]
+        if bad:
+            raise ValueError(f"names: expected some of {list(OUTPUTS)}, got {bad}")
         return {k: np.array(getattr(self, k).numpy(), copy=True) for k in names}

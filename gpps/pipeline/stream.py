@@ -47,7 +47,7 @@ from typing import Any, Iterable, Iterator, Literal
 import numpy as np
 
 from gpps import _taichi
-from gpps._check import as_mask, check_bool, check_choices, check_number
+from gpps._check import as_mask, check_bool, check_choices, check_number, check_shape
 from gpps._runtime import resolve_device, warp
 from gpps.camera import Orthographic, Perspective
 from gpps.host.dgmc import DGMCConfig
@@ -324,12 +324,7 @@ class Stream(Stage):
         self.config = config if config is not None else StreamConfig()
         if not isinstance(self.config, StreamConfig):
             raise TypeError(f"config: expected StreamConfig, got {type(self.config).__name__}")
-        try:
-            h, w = (int(s) for s in shape)
-        except (TypeError, ValueError):
-            raise ValueError(f"shape: expected (H, W), got {shape!r}") from None
-        if h < 2 or w < 2:
-            raise ValueError(f"shape: expected (H, W) with sizes >= 2, got {shape!r}")
+        h, w = check_shape("shape", shape, "HW", lo=2)  # (16.5 is a TypeError, not 16)
         if not isinstance(lights, (DirectionalLights, PointLights)):
             raise TypeError(f"lights: expected DirectionalLights or PointLights, got {type(lights).__name__}")
         if not isinstance(camera, (Orthographic, Perspective)):

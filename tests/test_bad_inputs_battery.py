@@ -1,0 +1,309 @@
+"""A battery of bad inputs through the public API: each a clear ValueError / TypeError naming the argument
+(never a numpy, OpenCV or LinAlg error from deep inside), each degenerate input an error or a GppsWarning.
+
+One row per defect found by probing the value types, the array entry points and the stages; every call fails
+before any solve (tiny sizes), so the file runs in seconds.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import gpps
+from gpps import GppsWarning
+
+K_OK = [[100.0, 0.0, 8.0], [0.0, 100.0, 8.0], [0.0, 0.0, 1.0]]
+DIRS = [[0.0, 0.0, 1.0], [0.5, 0.0, 0.866], [0.0, 0.5, 0.866]]
+
+
+@pytest.fixture(scope="module")
+def capture():
+    """A 16 x 16 Lambertian sphere under 4 unit directional lights: (scene, images, lights)."""
+    sc = gpps.make_scene("sphere", 16, "orthographic")
+    lights = gpps.default_lights("directional", 4)
+    img = gpps.render(sc, gpps.Material("lambertian", ks=0.0), lights, device="cpu") / 0.8
+    return sc, img.astype(np.float32), gpps.DirectionalLights(lights.directions)
+
+
+def _raises(exc, match, fn):
+    with pytest.raises(exc, match=match):
+        fn()
+
+
+# ------------------------------------------------------------------ value types
+
+VALUE_TYPES = {
+    # strings, bools and complex numbers were cast to floats (np.asarray(K, float64) in camera_from_K)
+    "K strings": (lambda: gpps.camera_from_K([["100", "0", "8"], ["0", "100", "8"], ["0", "0", "1"]]), TypeError, "^K: "),
+    "K complex": (lambda: gpps.camera_from_K(np.array(K_OK) * (1 + 1j)), TypeError, "^K: "),
+    "K bool": (lambda: gpps.camera_from_K(np.eye(3, dtype=bool)), TypeError, "^K: "),
+    "K a string": (lambda: gpps.camera_from_K("abc"), TypeError, "^K: "),
+    "Perspective K strings": (lambda: gpps.Perspective([["1", "0", "0"], ["0", "1", "0"], ["0", "0", "1"]]),
+                              TypeError, "^K: "),
+    # float("1") and float(True) were taken as pixel sizes
+    "pixel_size string": (lambda: gpps.Orthographic("1"), TypeError, "^pixel_size: "),
+    "pixel_size bool": (lambda: gpps.Orthographic(True), TypeError, "^pixel_size: "),
+    "center strings": (lambda: gpps.Orthographic(1.0, ("1", "2")), TypeError, "^center: "),
+    "center bools": (lambda: gpps.Orthographic(1.0, (True, False)), TypeError, "^center: "),
+    # lights: strings and bools were cast, an empty set of lights was accepted
+    "directions strings": (lambda: gpps.DirectionalLights([["0", "0", "1"]]), TypeError, "^directions: "),
+    "directions bool": (lambda: gpps.DirectionalLights(np.array([[False, False, True]])), TypeError, "^directions: "),
+    "intensities bool": (lambda: gpps.DirectionalLights(DIRS, [True, True, True]), TypeError, "^intensities: "),
+    "positions bool": (lambda: gpps.PointLights(np.array([[True, False, True]])), TypeError, "^positions: "),
+    "mu bool": (lambda: gpps.PointLights([[10.0, 0.0, 0.0]], mu=True), TypeError, "^mu: "),
+    "no directions": (lambda: gpps.DirectionalLights(np.zeros((0, 3))), ValueError, r"^directions: .*N >= 1"),
+    "no positions": (lambda: gpps.PointLights(np.zeros((0, 3))), ValueError, r"^positions: .*N >= 1"),
+    # subset: IndexError from numpy
+    "subset out of range": (lambda: gpps.DirectionalLights(DIRS).subset([5]), ValueError, "^idx: "),
+    "subset empty": (lambda: gpps.DirectionalLights(DIRS).subset([]), ValueError, "^idx: "),
+    "subset floats": (lambda: gpps.PointLights(DIRS).subset([0.5]), TypeError, "^idx: "),
+    # default_lights: numpy's TypeError for a bool, int()'s message for NaN
+    "default_lights n bool": (lambda: gpps.default_lights("directional", True), ValueError, "^n: "),
+    "default_lights n nan": (lambda: gpps.default_lights("directional", float("nan")), ValueError, "^n: "),
+}
+
+
+@pytest.mark.parametrize("case", list(VALUE_TYPES))
+def test_value_types_refuse_bad_input(case):
+    fn, exc, match = VALUE_TYPES[case]
+    _raises(exc, match, fn)
+
+
+def test_subset_keeps_working():
+    lights = gpps.DirectionalLights(DIRS)
+    assert len(lights.subset([True, False, True])) == 2
+    assert len(lights.subset(1)) == 1
+    assert len(lights.subset([-1, 0])) == 2
+
+
+# ------------------------------------------------------------------ solve_normals / reconstruct
+
+
+def test_lights_of_zero_intensity_are_an_error(capture):
+    sc, img, lights = capture
+    dark = gpps.DirectionalLights(lights.directions, np.zeros((4, 3)))
+    two = gpps.DirectionalLights(lights.directions, [[1, 1, 1], [1, 1, 1], [0, 0, 0], [0, 0, 0]])
+    for entry in (gpps.solve_normals, gpps.reconstruct):
+        for lt in (dark, two):  # (a garbage result with 45 deg errors before, flags only)
+            with pytest.raises(ValueError, match="^lights: expected at least 3 lights with an intensity > 0"):
+                entry(img, sc.mask, lt, device="cpu")
+
+
+@pytest.mark.parametrize("scale", [1e30, 1e-30, 1e-40])
+def test_images_outside_the_float32_range_are_an_error(capture, scale):
+    # 1e30: residual NaN and zero normals without a word; 1e-30 and 1e-40: normals left at the start (45 deg)
+    sc, img, lights = capture
+    for entry in (gpps.solve_normals, gpps.reconstruct):
+        with pytest.raises(ValueError, match="^images: expected linear values between"):
+            entry(img * np.float32(scale), sc.mask, lights, device="cpu")
+
+
+def test_light_intensity_far_from_the_images_is_an_error(capture):
+    sc, img, lights = capture
+    faint = gpps.DirectionalLights(lights.directions, np.full((4, 3), 1e-11))  # (albedo 0 came out)
+    with pytest.raises(ValueError, match="^lights: expected intensities of the images' order"):
+        gpps.solve_normals(img, sc.mask, faint, device="cpu")
+
+
+def test_pixel_solver_refuses_overflowing_images(capture):
+    sc, img, lights = capture
+    ps = gpps.PixelSolver((4, 16, 16), gpps.Orthographic(), lights, gpps.Material("lambertian", ks=0.0), device="cpu")
+    try:
+        with pytest.raises(ValueError, match="^images: expected linear values up to"):
+            ps.upload(img * np.float32(1e30), sc.mask)
+    finally:
+        ps.close()
+
+
+def test_no_images_names_the_images(capture):
+    sc, img, lights = capture  # (said "lights: expected 0 lights (one per image), got 4")
+    with pytest.raises(ValueError, match="^images: expected at least 3 images, got 0"):
+        gpps.solve_normals(img[:0], sc.mask, lights, device="cpu")
+
+
+@pytest.mark.parametrize("bad,exc", [(np.nan, ValueError), ("x", TypeError)])
+def test_valid_is_checked(capture, bad, exc):
+    # NaN was True (np.asarray(valid, bool)); strings were numpy's UFuncTypeError without the argument's name
+    sc, img, lights = capture
+    valid = np.full(img.shape[:3], bad)
+    for entry in (gpps.solve_normals, gpps.reconstruct):
+        with pytest.raises(exc, match="^valid: "):
+            entry(img, sc.mask, lights, valid=valid, device="cpu")
+    ps = gpps.PixelSolver((4, 16, 16), gpps.Orthographic(), lights, gpps.Material("lambertian", ks=0.0), device="cpu")
+    try:
+        with pytest.raises(exc, match="^valid: "):
+            ps.upload(img, sc.mask, valid=valid)
+    finally:
+        ps.close()
+
+
+def test_point_light_at_the_object_is_an_error(capture):
+    sc, img, _ = capture  # (numpy's LinAlgError "SVD did not converge" before)
+    at = gpps.PointLights([[0.0, 0.0, -5.0]] * 4)
+    with pytest.raises(ValueError, match=r"^lights: point light\(s\) \[1, 2, 3, 4\] lie at the object's centre"):
+        gpps.solve_normals(img, sc.mask, at, depth=np.full(sc.shape, 5.0), device="cpu")
+
+
+def test_reconstruct_checks_saturation_and_estimate(capture):
+    sc, img, lights = capture
+    with pytest.raises(TypeError, match="^saturation: "):  # (float("1") before)
+        gpps.reconstruct(img, sc.mask, lights, saturation="1", device="cpu")
+    with pytest.raises(TypeError, match="^estimate: "):  # ("'int' object is not iterable" before)
+        gpps.reconstruct(img, sc.mask, lights, material="blinn-phong", estimate=3, device="cpu")
+
+
+# ------------------------------------------------------------------ stages
+
+
+SHAPES = {
+    "Renderer": lambda L: gpps.Renderer((16.5, 16), gpps.Orthographic(), L, gpps.Material(), device="cpu"),
+    "PixelSolver": lambda L: gpps.PixelSolver((4, 16.5, 16), gpps.Orthographic(), L, gpps.Material(), device="cpu"),
+    "Stream": lambda L: gpps.Stream((16.5, 16), gpps.Orthographic(), L, gpps.Material(), device="cpu"),
+}
+
+
+@pytest.mark.parametrize("stage", list(SHAPES))
+def test_stage_shapes_are_integers(capture, stage):
+    _, _, lights = capture  # (int(16.5) made a 16-pixel stage without a word)
+    with pytest.raises(TypeError, match=r"^shape: expected \(.*\) integers"):
+        SHAPES[stage](lights)
+
+
+def test_renderer_names_missing_lights():
+    with pytest.raises(TypeError, match="^lights: "):  # ("object of type 'NoneType' has no len()")
+        gpps.Renderer((16, 16), gpps.Orthographic(), None, gpps.Material(), device="cpu")
+
+
+def test_pixel_solver_checks_its_arguments(capture):
+    sc, img, lights = capture
+    ps = gpps.PixelSolver((4, 16, 16), gpps.Orthographic(), lights, gpps.Material("lambertian", ks=0.0), device="cpu")
+    try:
+        with pytest.raises(ValueError, match="^noise: "):  # (negative noise levels were taken)
+            ps.upload(img, sc.mask, noise=[-1.0] * 4)
+        with pytest.raises(ValueError, match="^names: "):  # (AttributeError before)
+            ps.fetch(names=("foo",))
+        with pytest.raises(TypeError, match="^mask: "):  # (AttributeError before)
+            ps.step_subset("x", ps.config)
+    finally:
+        ps.close()
+
+
+# ------------------------------------------------------------------ integration
+
+
+def test_integrator_checks_its_arguments(capture):
+    sc = capture[0]
+    n, m = sc.normals, sc.mask
+    with pytest.raises(TypeError, match="^normals: "):  # (complex: cast with numpy's ComplexWarning)
+        gpps.integrate_normals(n.astype(np.complex64), m, device="cpu")
+    with pytest.raises(TypeError, match="^reference_depth: "):  # (float("3") before)
+        gpps.integrate_normals(n, m, reference_depth="3", device="cpu")
+    with pytest.raises(TypeError, match="^reference_depth: "):  # (numpy's "only 0-dimensional arrays ...")
+        gpps.integrate_normals(n, m, reference_depth=np.ones(3), device="cpu")
+    with pytest.raises(TypeError, match="^warm_start: "):  # ("could not convert string to float")
+        gpps.integrate_normals(n, m, warm_start="x", device="cpu")
+
+
+# ------------------------------------------------------------------ metrics
+
+
+def test_normal_errors_checks_the_slant_threshold(capture):
+    sc = capture[0]
+    with pytest.raises(ValueError, match="^tilt_min_slant_deg: "):  # (NaN: every tilt left out silently)
+        gpps.normal_errors(sc.normals, sc.normals, sc.mask, tilt_min_slant_deg=np.nan)
+    with pytest.raises(TypeError, match="^tilt_min_slant_deg: "):  # (numpy's UFuncTypeError)
+        gpps.normal_errors(sc.normals, sc.normals, sc.mask, tilt_min_slant_deg="1")
+
+
+def test_depth_error_checks_its_arguments(capture):
+    sc = capture[0]
+    m = sc.mask
+    psc = gpps.make_scene("sphere", 16, "perspective")
+    one = m & (np.arange(m.size).reshape(m.shape) == np.flatnonzero(m)[0])
+    cases = [
+        (lambda: gpps.depth_error(sc.depth, m, None), TypeError, "^scene: "),  # AttributeError
+        (lambda: gpps.depth_error(sc.depth, np.zeros_like(m), sc), ValueError, "^depth_mask: "),  # numpy's max
+        (lambda: gpps.depth_error(np.full(m.shape, np.nan), m, sc), ValueError, "^depth: "),  # NaN result
+        (lambda: gpps.depth_error(sc.depth, one, sc), ValueError, "^scene.depth: "),  # NaN (0 / 0)
+        (lambda: gpps.depth_error(sc.depth[:-1], m, sc), ValueError, "^depth: "),  # broadcasting error
+        (lambda: gpps.depth_error(np.zeros_like(psc.depth), psc.mask, psc), ValueError, "^depth: "),  # NaN
+        (lambda: gpps.depth_error(-psc.depth, psc.mask, psc), ValueError, "^depth: "),  # plausible number
+    ]
+    for fn, exc, match in cases:
+        _raises(exc, match, fn)
+    # a float or list mask works as everywhere else (the float mask was numpy's bitwise_and TypeError)
+    assert gpps.depth_error(sc.depth, m.astype(float), sc) == pytest.approx(0.0, abs=1e-6)
+    assert gpps.depth_error(sc.depth.tolist(), m.tolist(), sc) == pytest.approx(0.0, abs=1e-6)
+
+
+# ------------------------------------------------------------------ synthetic scenes and rendering
+
+SCENES = {
+    "size inf": (dict(size=float("inf")), ValueError, "^size: "),  # OverflowError
+    "size nan": (dict(size=float("nan")), ValueError, "^size: "),  # int()'s message
+    "size None": (dict(size=None), ValueError, "^size: "),  # "'NoneType' object is not iterable"
+    "size (16, 16, 3)": (dict(size=(16, 16, 3)), ValueError, "^size: "),  # "too many values to unpack"
+    "seed string": (dict(albedo="texture", seed="x"), TypeError, "^seed: "),  # numpy's SeedSequence
+    "seed negative": (dict(albedo="texture", seed=-1), ValueError, "^seed: "),
+    "text empty": (dict(name="microprint", text=""), ValueError, "^text: "),  # IndexError
+    "text int": (dict(name="microprint", text=5), TypeError, "^text: "),  # cv2.error
+}
+
+
+@pytest.mark.parametrize("case", list(SCENES))
+def test_make_scene_checks_its_arguments(case):
+    kw, exc, match = SCENES[case]
+    kw = {"name": "sphere", "size": 16, "camera": "orthographic", **kw}
+    with pytest.raises(exc, match=match):
+        gpps.make_scene(kw.pop("name"), kw.pop("size"), kw.pop("camera"), **kw)
+
+
+def test_render_checks_its_arguments(capture):
+    sc, _, lights = capture
+    mat = gpps.Material("lambertian", ks=0.0)
+    cases = [
+        (lambda: gpps.render(None, mat, lights, device="cpu"), TypeError, "^scene: "),  # AttributeError
+        (lambda: gpps.render(sc, mat, None, device="cpu"), TypeError, "^lights: "),  # len(None)
+        (lambda: gpps.render(sc, mat, lights, noise="0.1", device="cpu"), TypeError, "^noise: "),  # float("0.1")
+        (lambda: gpps.render(sc, mat, lights, noise=0.1, seed="x", device="cpu"), TypeError, "^seed: "),
+        (lambda: gpps.render(sc, mat, lights, noise=0.1, seed=-1, device="cpu"), ValueError, "^seed: "),
+        (lambda: gpps.render(sc, mat, lights, noise=0.1, seed=1.5, device="cpu"), TypeError, "^seed: "),
+    ]
+    for fn, exc, match in cases:
+        _raises(exc, match, fn)
+
+
+def test_render_warns_about_black_images(capture):
+    sc = capture[0]
+    behind = gpps.DirectionalLights([[0.0, 0.0, -1.0]] * 3)  # (three black images without a word before)
+    with pytest.warns(GppsWarning, match=r"^images: 3 of 3 rendered images are black inside the mask"):
+        img = gpps.render(sc, gpps.Material("lambertian", ks=0.0), behind, device="cpu")
+    assert not img.any()
+    dark = gpps.DirectionalLights(gpps.default_lights("directional", 3).directions, [[1, 1, 1], [0, 0, 0], [1, 1, 1]])
+    with pytest.warns(GppsWarning, match=r"1 of 3 rendered images .*lights \[2\]"):
+        gpps.render(sc, gpps.Material("lambertian", ks=0.0), dark, device="cpu")
+
+
+# ------------------------------------------------------------------ uncalibrated, single image
+
+
+def test_uncalibrated_and_single_check_their_arguments(capture):
+    sc, img, _ = capture
+    with pytest.raises(TypeError, match="^config: "):  # AttributeError: 'str' object has no attribute 'dark_fraction'
+        gpps.solve_uncalibrated(img, sc.mask, config="x", device="cpu")
+    with pytest.raises(TypeError, match="^net: "):  # AttributeError: 'str' object has no attribute 'predict'
+        gpps.reconstruct_single(img[0], sc.mask, net="x", device="cpu")
+    with pytest.raises(ValueError, match="^mask: "):  # (NaN was True)
+        gpps.reconstruct_single(img[0], np.where(sc.mask, np.nan, 0.0), device="cpu")
+
+
+def test_single_image_scale_is_free(capture):
+    """reconstruct_single takes "any positive scale": 1e-30 images were divided by max(p99, 1e-12) and came out
+    near 1e-18 (a black input to the network and the search)."""
+    from gpps.host.single import prepare_images
+
+    sc, img, _ = capture
+    a, _ = prepare_images(img[0], sc.mask)
+    b, _ = prepare_images(img[0] * np.float32(1e-30), sc.mask)
+    np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6)
