@@ -11,7 +11,12 @@ import numpy as np
 import pytest
 
 import gpps
+from conftest import DEVICES
 from gpps import GppsWarning
+
+#: every call fails (or warns) on the host before any solve; the first test device runs it (the GPU machine has no
+#: Warp CPU device)
+DEV = DEVICES[0]
 
 K_OK = [[100.0, 0.0, 8.0], [0.0, 100.0, 8.0], [0.0, 0.0, 1.0]]
 DIRS = [[0.0, 0.0, 1.0], [0.5, 0.0, 0.866], [0.0, 0.5, 0.866]]
@@ -22,7 +27,7 @@ def capture():
     """A 16 x 16 Lambertian sphere under 4 unit directional lights: (scene, images, lights)."""
     sc = gpps.make_scene("sphere", 16, "orthographic")
     lights = gpps.default_lights("directional", 4)
-    img = gpps.render(sc, gpps.Material("lambertian", ks=0.0), lights, device="cpu") / 0.8
+    img = gpps.render(sc, gpps.Material("lambertian", ks=0.0), lights, device=DEV) / 0.8
     return sc, img.astype(np.float32), gpps.DirectionalLights(lights.directions)
 
 
@@ -87,7 +92,7 @@ def test_lights_of_zero_intensity_are_an_error(capture):
     for entry in (gpps.solve_normals, gpps.reconstruct):
         for lt in (dark, two):  # (a garbage result with 45 deg errors before, flags only)
             with pytest.raises(ValueError, match="^lights: expected at least 3 lights with an intensity > 0"):
-                entry(img, sc.mask, lt, device="cpu")
+                entry(img, sc.mask, lt, device=DEV)
 
 
 @pytest.mark.parametrize("scale", [1e30, 1e-30, 1e-40])
@@ -96,19 +101,19 @@ def test_images_outside_the_float32_range_are_an_error(capture, scale):
     sc, img, lights = capture
     for entry in (gpps.solve_normals, gpps.reconstruct):
         with pytest.raises(ValueError, match="^images: expected linear values between"):
-            entry(img * np.float32(scale), sc.mask, lights, device="cpu")
+            entry(img * np.float32(scale), sc.mask, lights, device=DEV)
 
 
 def test_light_intensity_far_from_the_images_is_an_error(capture):
     sc, img, lights = capture
     faint = gpps.DirectionalLights(lights.directions, np.full((4, 3), 1e-11))  # (albedo 0 came out)
     with pytest.raises(ValueError, match="^lights: expected intensities of the images' order"):
-        gpps.solve_normals(img, sc.mask, faint, device="cpu")
+        gpps.solve_normals(img, sc.mask, faint, device=DEV)
 
 
 def test_pixel_solver_refuses_overflowing_images(capture):
     sc, img, lights = capture
-    ps = gpps.PixelSolver((4, 16, 16), gpps.Orthographic(), lights, gpps.Material("lambertian", ks=0.0), device="cpu")
+    ps = gpps.PixelSolver((4, 16, 16), gpps.Orthographic(), lights, gpps.Material("lambertian", ks=0.0), device=DEV)
     try:
         with pytest.raises(ValueError, match="^images: expected linear values up to"):
             ps.upload(img * np.float32(1e30), sc.mask)
@@ -119,7 +124,7 @@ def test_pixel_solver_refuses_overflowing_images(capture):
 def test_no_images_names_the_images(capture):
     sc, img, lights = capture  # (said "lights: expected 0 lights (one per image), got 4")
     with pytest.raises(ValueError, match="^images: expected at least 3 images, got 0"):
-        gpps.solve_normals(img[:0], sc.mask, lights, device="cpu")
+        gpps.solve_normals(img[:0], sc.mask, lights, device=DEV)
 
 
 @pytest.mark.parametrize("bad,exc", [(np.nan, ValueError), ("x", TypeError)])
@@ -129,8 +134,8 @@ def test_valid_is_checked(capture, bad, exc):
     valid = np.full(img.shape[:3], bad)
     for entry in (gpps.solve_normals, gpps.reconstruct):
         with pytest.raises(exc, match="^valid: "):
-            entry(img, sc.mask, lights, valid=valid, device="cpu")
-    ps = gpps.PixelSolver((4, 16, 16), gpps.Orthographic(), lights, gpps.Material("lambertian", ks=0.0), device="cpu")
+            entry(img, sc.mask, lights, valid=valid, device=DEV)
+    ps = gpps.PixelSolver((4, 16, 16), gpps.Orthographic(), lights, gpps.Material("lambertian", ks=0.0), device=DEV)
     try:
         with pytest.raises(exc, match="^valid: "):
             ps.upload(img, sc.mask, valid=valid)
@@ -142,24 +147,24 @@ def test_point_light_at_the_object_is_an_error(capture):
     sc, img, _ = capture  # (numpy's LinAlgError "SVD did not converge" before)
     at = gpps.PointLights([[0.0, 0.0, -5.0]] * 4)
     with pytest.raises(ValueError, match=r"^lights: point light\(s\) \[1, 2, 3, 4\] lie at the object's centre"):
-        gpps.solve_normals(img, sc.mask, at, depth=np.full(sc.shape, 5.0), device="cpu")
+        gpps.solve_normals(img, sc.mask, at, depth=np.full(sc.shape, 5.0), device=DEV)
 
 
 def test_reconstruct_checks_saturation_and_estimate(capture):
     sc, img, lights = capture
     with pytest.raises(TypeError, match="^saturation: "):  # (float("1") before)
-        gpps.reconstruct(img, sc.mask, lights, saturation="1", device="cpu")
+        gpps.reconstruct(img, sc.mask, lights, saturation="1", device=DEV)
     with pytest.raises(TypeError, match="^estimate: "):  # ("'int' object is not iterable" before)
-        gpps.reconstruct(img, sc.mask, lights, material="blinn-phong", estimate=3, device="cpu")
+        gpps.reconstruct(img, sc.mask, lights, material="blinn-phong", estimate=3, device=DEV)
 
 
 # ------------------------------------------------------------------ stages
 
 
 SHAPES = {
-    "Renderer": lambda L: gpps.Renderer((16.5, 16), gpps.Orthographic(), L, gpps.Material(), device="cpu"),
-    "PixelSolver": lambda L: gpps.PixelSolver((4, 16.5, 16), gpps.Orthographic(), L, gpps.Material(), device="cpu"),
-    "Stream": lambda L: gpps.Stream((16.5, 16), gpps.Orthographic(), L, gpps.Material(), device="cpu"),
+    "Renderer": lambda L: gpps.Renderer((16.5, 16), gpps.Orthographic(), L, gpps.Material(), device=DEV),
+    "PixelSolver": lambda L: gpps.PixelSolver((4, 16.5, 16), gpps.Orthographic(), L, gpps.Material(), device=DEV),
+    "Stream": lambda L: gpps.Stream((16.5, 16), gpps.Orthographic(), L, gpps.Material(), device=DEV),
 }
 
 
@@ -172,12 +177,12 @@ def test_stage_shapes_are_integers(capture, stage):
 
 def test_renderer_names_missing_lights():
     with pytest.raises(TypeError, match="^lights: "):  # ("object of type 'NoneType' has no len()")
-        gpps.Renderer((16, 16), gpps.Orthographic(), None, gpps.Material(), device="cpu")
+        gpps.Renderer((16, 16), gpps.Orthographic(), None, gpps.Material(), device=DEV)
 
 
 def test_pixel_solver_checks_its_arguments(capture):
     sc, img, lights = capture
-    ps = gpps.PixelSolver((4, 16, 16), gpps.Orthographic(), lights, gpps.Material("lambertian", ks=0.0), device="cpu")
+    ps = gpps.PixelSolver((4, 16, 16), gpps.Orthographic(), lights, gpps.Material("lambertian", ks=0.0), device=DEV)
     try:
         with pytest.raises(ValueError, match="^noise: "):  # (negative noise levels were taken)
             ps.upload(img, sc.mask, noise=[-1.0] * 4)
@@ -196,13 +201,13 @@ def test_integrator_checks_its_arguments(capture):
     sc = capture[0]
     n, m = sc.normals, sc.mask
     with pytest.raises(TypeError, match="^normals: "):  # (complex: cast with numpy's ComplexWarning)
-        gpps.integrate_normals(n.astype(np.complex64), m, device="cpu")
+        gpps.integrate_normals(n.astype(np.complex64), m, device=DEV)
     with pytest.raises(TypeError, match="^reference_depth: "):  # (float("3") before)
-        gpps.integrate_normals(n, m, reference_depth="3", device="cpu")
+        gpps.integrate_normals(n, m, reference_depth="3", device=DEV)
     with pytest.raises(TypeError, match="^reference_depth: "):  # (numpy's "only 0-dimensional arrays ...")
-        gpps.integrate_normals(n, m, reference_depth=np.ones(3), device="cpu")
+        gpps.integrate_normals(n, m, reference_depth=np.ones(3), device=DEV)
     with pytest.raises(TypeError, match="^warm_start: "):  # ("could not convert string to float")
-        gpps.integrate_normals(n, m, warm_start="x", device="cpu")
+        gpps.integrate_normals(n, m, warm_start="x", device=DEV)
 
 
 # ------------------------------------------------------------------ metrics
@@ -263,12 +268,12 @@ def test_render_checks_its_arguments(capture):
     sc, _, lights = capture
     mat = gpps.Material("lambertian", ks=0.0)
     cases = [
-        (lambda: gpps.render(None, mat, lights, device="cpu"), TypeError, "^scene: "),  # AttributeError
-        (lambda: gpps.render(sc, mat, None, device="cpu"), TypeError, "^lights: "),  # len(None)
-        (lambda: gpps.render(sc, mat, lights, noise="0.1", device="cpu"), TypeError, "^noise: "),  # float("0.1")
-        (lambda: gpps.render(sc, mat, lights, noise=0.1, seed="x", device="cpu"), TypeError, "^seed: "),
-        (lambda: gpps.render(sc, mat, lights, noise=0.1, seed=-1, device="cpu"), ValueError, "^seed: "),
-        (lambda: gpps.render(sc, mat, lights, noise=0.1, seed=1.5, device="cpu"), TypeError, "^seed: "),
+        (lambda: gpps.render(None, mat, lights, device=DEV), TypeError, "^scene: "),  # AttributeError
+        (lambda: gpps.render(sc, mat, None, device=DEV), TypeError, "^lights: "),  # len(None)
+        (lambda: gpps.render(sc, mat, lights, noise="0.1", device=DEV), TypeError, "^noise: "),  # float("0.1")
+        (lambda: gpps.render(sc, mat, lights, noise=0.1, seed="x", device=DEV), TypeError, "^seed: "),
+        (lambda: gpps.render(sc, mat, lights, noise=0.1, seed=-1, device=DEV), ValueError, "^seed: "),
+        (lambda: gpps.render(sc, mat, lights, noise=0.1, seed=1.5, device=DEV), TypeError, "^seed: "),
     ]
     for fn, exc, match in cases:
         _raises(exc, match, fn)
@@ -278,11 +283,11 @@ def test_render_warns_about_black_images(capture):
     sc = capture[0]
     behind = gpps.DirectionalLights([[0.0, 0.0, -1.0]] * 3)  # (three black images without a word before)
     with pytest.warns(GppsWarning, match=r"^images: 3 of 3 rendered images are black inside the mask"):
-        img = gpps.render(sc, gpps.Material("lambertian", ks=0.0), behind, device="cpu")
+        img = gpps.render(sc, gpps.Material("lambertian", ks=0.0), behind, device=DEV)
     assert not img.any()
     dark = gpps.DirectionalLights(gpps.default_lights("directional", 3).directions, [[1, 1, 1], [0, 0, 0], [1, 1, 1]])
     with pytest.warns(GppsWarning, match=r"1 of 3 rendered images .*lights \[2\]"):
-        gpps.render(sc, gpps.Material("lambertian", ks=0.0), dark, device="cpu")
+        gpps.render(sc, gpps.Material("lambertian", ks=0.0), dark, device=DEV)
 
 
 # ------------------------------------------------------------------ uncalibrated, single image
@@ -291,11 +296,11 @@ def test_render_warns_about_black_images(capture):
 def test_uncalibrated_and_single_check_their_arguments(capture):
     sc, img, _ = capture
     with pytest.raises(TypeError, match="^config: "):  # AttributeError: 'str' object has no attribute 'dark_fraction'
-        gpps.solve_uncalibrated(img, sc.mask, config="x", device="cpu")
+        gpps.solve_uncalibrated(img, sc.mask, config="x", device=DEV)
     with pytest.raises(TypeError, match="^net: "):  # AttributeError: 'str' object has no attribute 'predict'
-        gpps.reconstruct_single(img[0], sc.mask, net="x", device="cpu")
+        gpps.reconstruct_single(img[0], sc.mask, net="x", device=DEV)
     with pytest.raises(ValueError, match="^mask: "):  # (NaN was True)
-        gpps.reconstruct_single(img[0], np.where(sc.mask, np.nan, 0.0), device="cpu")
+        gpps.reconstruct_single(img[0], np.where(sc.mask, np.nan, 0.0), device=DEV)
 
 
 def test_single_image_scale_is_free(capture):
