@@ -573,8 +573,9 @@ def test_normals_stay_on_the_visible_side(device, solver):
     """A plane facing the camera, lit by 5 of 12 lights, the other 7 in cast shadow (faint interreflected light,
     above the dark threshold: lit terms).  The Cauchy IRLS rounds used to follow the 7 shadowed observations to
     a normal facing away from the camera (n_z = -0.35 with every solver: the pattern of the Mitsuba torus'
-    backdrop seen through its hole); the solvers now reject steps that cross the horizon (visible surfaces
-    face the camera), and a start facing away is pulled toward it."""
+    backdrop seen through its hole).  Now an IRLS round whose fit faces away is not kept (the rule the pick of
+    starts applies), a start facing away is pulled toward the camera, and the run after every start ended facing
+    away holds its steps on the visible side (Pixel.visible_only)."""
     dirs = np.array([[-0.0031, 0.2468, 0.9691], [-0.2693, -0.2559, 0.9284], [0.3838, 0.0207, 0.9232],
                      [-0.3611, 0.2735, 0.8915], [0.0486, -0.5282, 0.8478], [0.3273, 0.4903, 0.8077],
                      [-0.6523, -0.1157, 0.7491], [0.633, -0.2047, 0.7466], [-0.1944, 0.7321, 0.6528],

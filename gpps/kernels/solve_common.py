@@ -75,6 +75,9 @@ class Pixel:
         lane, lanes: the thread's lane and the lanes sharing this pixel's solve (the
             lights-parallel builds: lane ``l`` takes lights ``l, l + lanes, ...`` and the
             sums are reduced over the block); 0 and 1 in the one-thread-a-pixel builds.
+        visible_only: 1 to make the solvers reject a step that turns the normal away from the camera
+            (``n.v <= 0``); 0 (the starts, IRLS rounds) leaves their steps free, as the pick of starts already
+            refuses a normal facing away.  The run after every start ended facing away sets it.
     """
 
     i: wp.int32
@@ -88,6 +91,7 @@ class Pixel:
     prior_n: wp.vec3
     lane: wp.int32
     lanes: wp.int32
+    visible_only: wp.int32
 
 # the pass-1 sums of the lights-parallel evaluation (6 vec3 and the weight sum) and the pass-2 sums
 # (cost, J^T r, the 3 distinct entries of J^T J), reduced over a block as one vector each
@@ -205,8 +209,8 @@ def start_normal(s: int, ninit: wp.vec3, v: wp.vec3, hbright: wp.vec3, prm: Solv
     ``start_angle`` and twice that."""
     if s == 0:
         if wp.dot(ninit, v) <= 0.0:
-            # a start facing away from the camera (the solvers keep the normal on the visible side: it
-            # could not cross back): pulled toward the camera as the tilted starts below
+            # a start facing away from the camera (a warm start, or least squares on a shadowed pixel):
+            # pulled toward the camera as the tilted starts below are
             return wp.normalize(ninit + (0.1 - wp.dot(ninit, v)) * v)
         return ninit
     if s == 1:
@@ -379,6 +383,7 @@ def pixel_at(i: int, j: int, point: wp.vec3, view: wp.vec3, prm: SolverParams):
     px.prior_n = wp.vec3(0.0)
     px.lane = 0
     px.lanes = 1
+    px.visible_only = 0
     return px
 
 

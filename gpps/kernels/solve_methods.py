@@ -89,8 +89,7 @@ def lm_for(evaluate, module, sfx: str):
             pred = 0.5 * (lam * dot2(d, d) - dot2(d, g))
             rho = float(-1.0)
             nt = chart_normal(n0, t1, t2, d)
-            if pred > 0.0 and wp.dot(nt, px.v) > 0.0:
-                # (a step that turns the normal away from the camera is rejected: visible surfaces face it)
+            if pred > 0.0 and (px.visible_only == 0 or wp.dot(nt, px.v) > 0.0):
                 rho = (ev.cost - trial.cost) / pred
             if rho > 0.0:
                 # re-centre the chart on the accepted normal, reusing the trial's Jacobian
@@ -200,8 +199,7 @@ def dogleg_for(evaluate, module, sfx: str):
             pred = -dot2(h, g) - 0.5 * dot2(h, a * h)
             rho = float(-1.0)
             nt = chart_normal(n0, t1, t2, h)
-            if pred > 0.0 and wp.dot(nt, px.v) > 0.0:
-                # (a step that turns the normal away from the camera is rejected: visible surfaces face it)
+            if pred > 0.0 and (px.visible_only == 0 or wp.dot(nt, px.v) > 0.0):
                 rho = (ev.cost - trial.cost) / pred
             if rho > 0.0:
                 dn_old = chart_normal_jacobian(n0, t1, t2, h)
@@ -279,8 +277,8 @@ def bfgs_for(evaluate, module, sfx: str):
             while k < prm.max_iters:
                 k += 1
                 trial = evaluate(n0, t1, t2, x + step * d, images, weights, px, lights, mat)
-                # (Armijo, and the normal still facing the camera: visible surfaces face it)
-                if trial.cost <= ev.cost + 1.0e-4 * step * gd and wp.dot(chart_normal(n0, t1, t2, x + step * d), px.v) > 0.0:
+                if trial.cost <= ev.cost + 1.0e-4 * step * gd and (
+                        px.visible_only == 0 or wp.dot(chart_normal(n0, t1, t2, x + step * d), px.v) > 0.0):
                     accepted = 1
                     break
                 step = 0.5 * step
@@ -389,8 +387,12 @@ def solve_pixel_for(robust, run_method, spec_vg, diff_vg, module, sfx: str, lane
         best = best_in
         total = total_in
         if best.cost >= 1.0e30:
-            # every start ended facing away from the camera: keep the least-squares start
-            best = run_method(ninit, images, weights, px, lights, mat, prm)
+            # every start ended facing away from the camera: the least-squares start's run, from that start
+            # pulled toward the camera when it faces away (as start 0 is) and with the solver's steps held on
+            # the visible side (Pixel.visible_only), so that this run cannot end facing away either
+            pxv = px
+            pxv.visible_only = 1
+            best = run_method(start_normal(0, ninit, v, v, prm), images, weights, pxv, lights, mat, prm)
             total += best.iters
         if wp.static(robust != "none"):
             # (robust "none" runs no reweighting round: irls_rounds is 0)
@@ -437,6 +439,10 @@ def solve_pixel_for(robust, run_method, spec_vg, diff_vg, module, sfx: str, lane
                         weights[k, i, j] = w
                 res = run_method(best.n, images, weights, px, lights, mat, prm)
                 total += res.iters
+                if wp.dot(res.n, v) <= 0.0 and wp.dot(best.n, v) > 0.0:
+                    # the reweighted fit turned the normal away from the camera, which no visible surface
+                    # does (the rule the pick of starts applies): the round before stands, and the last
+                    break
                 best = res
         out = PixelSolution()
         out.best = best
