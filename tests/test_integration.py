@@ -156,6 +156,8 @@ def test_warm_start_and_reuse(device):
     with pytest.raises(ValueError, match=r"warm_start: expected .*got"):
         integ.run(n, warm_start=np.zeros((3, 3)))
     integ.close()
+    with pytest.raises(ValueError, match="Integrator: closed"):  # (it took fields from the pool again)
+        integ.run(n)
 
 
 def test_jacobi_converges_to_direct(device):

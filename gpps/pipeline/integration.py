@@ -461,6 +461,7 @@ class Integrator(Stage):
         ``run(normals, warm_start, reference_depth=..., progress=...)`` integrates and returns the
         :class:`IntegrationResult` in one call.
         """
+        self._check_open()
         t0 = time.perf_counter()
         cfg = self.config
         if reference_depth is not None:
@@ -499,6 +500,7 @@ class Integrator(Stage):
         Args:
             progress: optional ``progress(done, total, message)``.
         """
+        self._check_open()
         job = self._job
         if job is None:
             raise ValueError("normals: expected upload(normals) before step(), got nothing uploaded")
@@ -529,6 +531,7 @@ class Integrator(Stage):
 
     def fetch(self) -> IntegrationResult:
         """The depth of the last :meth:`step` with its diagnostics (:class:`IntegrationResult`)."""
+        self._check_open()
         job = self._job
         if job is None or "u" not in job:
             raise ValueError("normals: expected upload(normals) and step() before fetch(), got no solve")
@@ -687,8 +690,9 @@ class Integrator(Stage):
     def close(self) -> None:
         """Give the Taichi fields back to the pool of this process (the next integrator of the same size
         takes them, with the kernels Taichi compiled for them: a new set of fields costs 0.8-1.6 s of
-        compilation on this CPU, about 2.4 s a reconstruction on the H100); the object can no longer
-        use a Taichi solver."""
+        compilation on this CPU, about 2.4 s a reconstruction on the H100); the integrator then refuses work
+        (:meth:`Stage._check_open`: its fields may belong to another integrator by then)."""
+        self._closed = True
         if getattr(self, "_bini_stage", None) is not None:
             self._bini_stage.close()
             self._bini_stage = self._bini_key = None
