@@ -31,7 +31,7 @@ from gpps.camera import Orthographic, Perspective
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
 from gpps.pipeline.render import Renderer
-from gpps.pipeline.solver import SCALE_RANGE, PixelSolver, SolverConfig
+from gpps.pipeline.solver import PixelSolver, SolverConfig, check_scale
 
 __all__ = ["PSResult", "solve_normals", "reproject", "SolverConfig"]
 
@@ -207,11 +207,7 @@ def check_observations(images, mask, lights, *, valid=None, saturation=None, ref
         where = (" while pixels outside it are lit: the mask lies outside the lit area"
                  if outside.size and float(outside.max()) > 0 else "")
         raise ValueError(f"images: every observation inside the mask is black (0){where}; nothing is lit")
-    if not SCALE_RANGE[0] <= scale <= SCALE_RANGE[1]:
-        raise ValueError(f"images: expected linear values between {SCALE_RANGE[0]:g} and {SCALE_RANGE[1]:g} (1 = full "
-                         f"scale; beyond them the float32 solver's squares overflow or its tolerances swallow the "
-                         f"signal), got the brightest observations inside the mask at {scale:.3g}; rescale the images "
-                         "(and the lights' intensities with them)")
+    check_scale(scale)
     if isinstance(lights, DirectionalLights):  # (a point light's radiance also falls with the squared distance)
         ratio = scale / float(np.max(np.asarray(lights.intensities).mean(axis=1)))
         if not ALBEDO_RANGE[0] <= ratio <= ALBEDO_RANGE[1]:

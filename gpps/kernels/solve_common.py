@@ -209,9 +209,8 @@ def start_normal(s: int, ninit: wp.vec3, v: wp.vec3, hbright: wp.vec3, prm: Solv
     ``start_angle`` and twice that."""
     if s == 0:
         if wp.dot(ninit, v) <= 0.0:
-            # a start facing away from the camera (a warm start, or least squares on a shadowed pixel):
-            # pulled toward the camera as the tilted starts below are
-            return wp.normalize(ninit + (0.1 - wp.dot(ninit, v)) * v)
+            # a start facing away from the camera (a warm start, or least squares on a shadowed pixel)
+            return toward_camera(ninit, v)
         return ninit
     if s == 1:
         return v
@@ -230,9 +229,16 @@ def start_normal(s: int, ninit: wp.vec3, v: wp.vec3, hbright: wp.vec3, prm: Solv
     t2 = wp.cross(ninit, t1)
     n = wp.cos(ang) * ninit + wp.sin(ang) * (wp.cos(phi) * t1 + wp.sin(phi) * t2)
     if wp.dot(n, v) <= 0.05:
-        # keep the start visible: pull it toward the camera
-        n = wp.normalize(n + (0.1 - wp.dot(n, v)) * v)
+        # keep the start visible
+        n = toward_camera(n, v)
     return wp.normalize(n)
+
+
+@wp.func
+def toward_camera(n: wp.vec3, v: wp.vec3):
+    """``n`` pulled toward the view direction ``v`` until ``n.v`` is 0.1 before normalising: a start on the
+    visible side."""
+    return wp.normalize(n + (0.1 - wp.dot(n, v)) * v)
 
 
 @wp.func

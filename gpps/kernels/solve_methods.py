@@ -88,13 +88,15 @@ def lm_for(evaluate, module, sfx: str):
             trial = evaluate(n0, t1, t2, d, images, weights, px, lights, mat)
             pred = 0.5 * (lam * dot2(d, d) - dot2(d, g))
             rho = float(-1.0)
-            nt = chart_normal(n0, t1, t2, d)
-            if pred > 0.0 and (px.visible_only == 0 or wp.dot(nt, px.v) > 0.0):
+            ok = pred > 0.0
+            if ok and px.visible_only != 0:
+                ok = wp.dot(chart_normal(n0, t1, t2, d), px.v) > 0.0
+            if ok:
                 rho = (ev.cost - trial.cost) / pred
             if rho > 0.0:
                 # re-centre the chart on the accepted normal, reusing the trial's Jacobian
                 dn_old = chart_normal_jacobian(n0, t1, t2, d)
-                n0 = nt
+                n0 = chart_normal(n0, t1, t2, d)
                 t1 = tangent_basis_t1(n0)
                 t2 = wp.cross(n0, t1)
                 ev = transport(trial, dn_old, t1, t2)
@@ -198,12 +200,14 @@ def dogleg_for(evaluate, module, sfx: str):
             trial = evaluate(n0, t1, t2, h, images, weights, px, lights, mat)
             pred = -dot2(h, g) - 0.5 * dot2(h, a * h)
             rho = float(-1.0)
-            nt = chart_normal(n0, t1, t2, h)
-            if pred > 0.0 and (px.visible_only == 0 or wp.dot(nt, px.v) > 0.0):
+            ok = pred > 0.0
+            if ok and px.visible_only != 0:
+                ok = wp.dot(chart_normal(n0, t1, t2, h), px.v) > 0.0
+            if ok:
                 rho = (ev.cost - trial.cost) / pred
             if rho > 0.0:
                 dn_old = chart_normal_jacobian(n0, t1, t2, h)
-                n0 = nt
+                n0 = chart_normal(n0, t1, t2, h)
                 t1 = tangent_basis_t1(n0)
                 t2 = wp.cross(n0, t1)
                 ev = transport(trial, dn_old, t1, t2)
@@ -277,8 +281,10 @@ def bfgs_for(evaluate, module, sfx: str):
             while k < prm.max_iters:
                 k += 1
                 trial = evaluate(n0, t1, t2, x + step * d, images, weights, px, lights, mat)
-                if trial.cost <= ev.cost + 1.0e-4 * step * gd and (
-                        px.visible_only == 0 or wp.dot(chart_normal(n0, t1, t2, x + step * d), px.v) > 0.0):
+                ok = trial.cost <= ev.cost + 1.0e-4 * step * gd
+                if ok and px.visible_only != 0:
+                    ok = wp.dot(chart_normal(n0, t1, t2, x + step * d), px.v) > 0.0
+                if ok:
                     accepted = 1
                     break
                 step = 0.5 * step

@@ -422,6 +422,18 @@ def solver_params(c: SolverConfig):
 #: outside it (:func:`gpps.flows.photometric.check_observations`); :meth:`PixelSolver.upload` refuses the overflow.
 SCALE_RANGE = (1e-12, 1e12)
 
+
+
+def check_scale(scale: float, *, low: bool = True) -> None:
+    """ValueError when the brightest observations ``scale`` lie outside :data:`SCALE_RANGE` (``low=False``: only
+    above it; a dark tile of a larger frame is fine, the flows check the whole frame's scale)."""
+    if scale > SCALE_RANGE[1] or (low and scale < SCALE_RANGE[0]):
+        span = f"between {SCALE_RANGE[0]:g} and {SCALE_RANGE[1]:g}" if low else f"up to {SCALE_RANGE[1]:g}"
+        raise ValueError(f"images: expected linear values {span} (1 = full scale; beyond them the float32 solver's "
+                         f"squares overflow or its tolerances swallow the signal), got the brightest observations "
+                         f"inside the mask at {scale:.3g}; rescale the images (and the lights' intensities with them)")
+
+
 #: The outputs :meth:`PixelSolver.fetch` copies.
 OUTPUTS = ("normals", "albedo", "residual", "iterations", "flags", "cond", "weights")
 
@@ -636,10 +648,7 @@ class PixelSolver(Stage):
         sub = img[:, m]  # (N, P, 3)
         g = ((sub[..., 0] + sub[..., 1]) + sub[..., 2]) / np.float32(3.0)  # = sub.mean(-1) exactly, 10x faster
         self.intensity_scale = float(max(np.percentile(g, 99.0), 1e-12))
-        if self.intensity_scale > SCALE_RANGE[1]:  # (a dark tile is fine: the flows check the whole frame's scale)
-            raise ValueError(f"images: expected linear values up to {SCALE_RANGE[1]:g} (1 = full scale; beyond it the "
-                             f"float32 solver's squares overflow), got the brightest observations inside the mask at "
-                             f"{self.intensity_scale:.3g}; rescale the images (and the lights' intensities with them)")
+        check_scale(self.intensity_scale, low=False)
         self.images.assign(img)
         self.mask.assign(m.astype(np.uint8))
         self._split_rows(m)
