@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from gpps import names
 from gpps.camera import Orthographic
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
@@ -202,7 +203,6 @@ def test_specialised_kernels_match_generic(device, brdf, solver, robust):
 
 def test_term_cache_size_tiers():
     """The evaluation's kept lights: the GPU's fixed size; on the CPU the smallest tier holding every light."""
-    from gpps import names
     from gpps.kernels import solve as sk
 
     tiers = names.SOLVE_TERM_CACHE_CPU
@@ -566,6 +566,42 @@ def test_robust_loss_rejects_cast_shadows():
     assert np.all(rob.weights[img.mean(-1) == 0] < 0)  # the zeros are dark terms, reweighted but kept one-sided
     er, ep = normal_errors(rob.normals, nrm, mask), normal_errors(plain.normals, nrm, mask)
     assert er["median"] < 0.5 < ep["median"], (er, ep)  # (57 deg median when IRLS skipped the dark terms)
+
+
+@pytest.mark.parametrize("solver", ["lm", "dogleg", "bfgs"])
+def test_cast_shadow_refit(device, solver):
+    """A Lambertian plane facing the camera, lit by 5 of 12 lights; the other 7 in cast shadow with 3-6 % of
+    inter-reflected light (above the noise: ordinary terms).  A tilted normal fits the 12 observations better
+    than the true one under the Cauchy loss, so the robust fit ends tilted (the Mitsuba torus' backdrop seen
+    through its hole).  With ``shadow_relative`` the fit's contradiction (dark observations it predicts lit)
+    makes the solver set the dark ones aside and solve on the 5 lit ones: the exact normal, the shadowed
+    observations left out (weight ASIDE) and the lit ones kept."""
+    dirs = np.array([[-0.0031, 0.2468, 0.9691], [-0.2693, -0.2559, 0.9284], [0.3838, 0.0207, 0.9232],
+                     [-0.3611, 0.2735, 0.8915], [0.0486, -0.5282, 0.8478], [0.3273, 0.4903, 0.8077],
+                     [-0.6523, -0.1157, 0.7491], [0.633, -0.2047, 0.7466], [-0.1944, 0.7321, 0.6528],
+                     [-0.3768, -0.6932, 0.6144], [0.7426, 0.2992, 0.5992], [-0.8755, 0.161, 0.4556]])
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    lit = np.zeros(12, bool)
+    lit[[1, 4, 8, 10, 11]] = True
+    rng = np.random.default_rng(3)
+    h, w = 2, 4
+    kd = 0.5
+    grey = np.where(lit[:, None, None], kd * dirs[:, 2, None, None], 0.03 * kd * (1 + rng.random((12, h, w))))
+    img = np.repeat(grey[..., None], 3, -1).astype(np.float32)
+    mat = Material("blinn-phong", ks=0.0, shininess=8.0)
+    errs, outs = {}, {}
+    for rel in (0.0, 0.1):
+        cfg = SolverConfig(solver=solver, starts=4, robust="cauchy", irls_rounds=3, noise_level=1e-3,
+                           shadow_relative=rel)
+        outs[rel] = PixelSolver(img.shape[:3], Orthographic(), DirectionalLights(dirs), mat, cfg,
+                                device=device).run(img, np.ones((h, w), bool))
+        errs[rel] = np.degrees(np.arccos(np.clip(outs[rel]["normals"][..., 2], -1, 1)))
+    assert errs[0.1].max() < 0.05, errs[0.1]
+    assert errs[0.0].min() > 1.0, errs[0.0]  # the trap is real without the refit
+    wts = outs[0.1]["weights"]
+    assert np.all(wts[~lit] == np.float32(names.ASIDE_WEIGHT)), wts[~lit]
+    assert np.all(wts[lit] > 0.5), wts[lit]
+    np.testing.assert_allclose(outs[0.1]["albedo"], kd, rtol=1e-4)
 
 
 @pytest.mark.parametrize("solver", ["lm", "dogleg", "bfgs"])

@@ -50,7 +50,7 @@ from gpps.io.formats import Transfer
 from gpps.io.outputs import apply_depth_convention, depth_convention, write_outputs
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
-from gpps.names import BRDF, BRDF_NAMES, RobustName, SolverName
+from gpps.names import BRDF, BRDF_NAMES, SHADOW_RELATIVE_MANY, RobustName, SolverName
 from gpps.pipeline.integration import IntegratorConfig
 
 __all__ = ["FolderConfig", "FolderResult", "reconstruct_folder", "automatic_solver_options", "flip_decision",
@@ -259,21 +259,23 @@ def automatic_solver_options(n_images: int, robust: RobustName | None = None) ->
 
     With more than :data:`MANY_IMAGES` images some observations are expected to be outliers
     (cast shadows, interreflections, highlights the model misses): the loss is Cauchy, observations
-    below 0.02 (of full scale) count as shadowed and each pixel is started from 4 normals.  With
-    fewer, every observation is needed: no robust loss, the solver's defaults.
+    below 0.02 of the pixel's brightest count as shadowed, those below
+    :data:`gpps.names.SHADOW_RELATIVE_MANY` of its lit level are set aside until the fit predicts them dark
+    (``SolverConfig.shadow_relative``), and each pixel is started from 4 normals.  With fewer, every
+    observation is needed: no robust loss, the solver's defaults.
 
     Args:
         n_images: the number of images N.
         robust: a loss to use instead of the automatic one (None: automatic).
 
     Returns:
-        ``{"robust": ...}``, plus ``shadow_threshold`` and ``starts`` with many images: keyword
+        ``{"robust": ...}``, plus ``shadow_threshold``, ``shadow_relative`` and ``starts`` with many images: keyword
         arguments of :func:`gpps.flows.photometric.solve_normals` and fields of :class:`gpps.SolverConfig`.
     """
     many = n_images > MANY_IMAGES
     opts = {"robust": robust or ("cauchy" if many else "none")}
     if many:
-        opts.update(shadow_threshold=0.02, starts=4)
+        opts.update(shadow_threshold=0.02, shadow_relative=SHADOW_RELATIVE_MANY, starts=4)
     return opts
 
 

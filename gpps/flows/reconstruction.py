@@ -33,6 +33,7 @@ from gpps._check import as_array, as_flags, check_number
 from gpps.flows.photometric import check_inputs, check_observations, input_saturation
 from gpps.flows.ron import LOBE_PARAMETERS, RON, RONConfig
 from gpps.material import BRDF_NAMES, Material
+from gpps.names import SHADOW_RELATIVE_MANY
 
 __all__ = ["reconstruct", "Reconstruction", "RONConfig"]
 
@@ -189,7 +190,8 @@ def reconstruct(
         solver = replace(solver, saturation=float(saturation))
     if n > 6 and solver.robust == "none" and config is None:
         # many real images: shadows and inter-reflections; robust loss and shadow dropping
-        solver = replace(solver, robust="cauchy", shadow_threshold=0.02, starts=min(solver.starts, 4))
+        solver = replace(solver, robust="cauchy", shadow_threshold=0.02, shadow_relative=SHADOW_RELATIVE_MANY,
+                         starts=min(solver.starts, 4))
     cfg = replace(cfg, estimate=names, solver=solver, **({"models": models} if models else {}))
     if saturation is not None and cfg.dgmc_config.saturation is None:
         cfg = replace(cfg, dgmc_config=replace(cfg.dgmc_config, saturation=float(saturation)))

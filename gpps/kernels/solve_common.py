@@ -29,6 +29,8 @@ FLAG_FEW_OBSERVATIONS = wp.constant(names.FLAG_FEW_OBSERVATIONS)
 FLAG_NOT_CONVERGED = wp.constant(names.FLAG_NOT_CONVERGED)
 FLAG_WOODHAM_FALLBACK = wp.constant(names.FLAG_WOODHAM_FALLBACK)
 FLAG_ALBEDO_FROM_NEIGHBOURS = wp.constant(names.FLAG_ALBEDO_FROM_NEIGHBOURS)
+ASIDE = wp.constant(names.ASIDE_WEIGHT)
+CAST_CONFLICT = wp.constant(names.CAST_CONFLICT)
 
 
 @wp.struct
@@ -45,6 +47,7 @@ class SolverParams:
     robust_scale: wp.float32
     irls_rounds: wp.int32
     shadow_threshold: wp.float32
+    shadow_relative: wp.float32
     saturation: wp.float32
     warm_start: wp.int32
     grey_albedo: wp.int32
@@ -242,12 +245,55 @@ def toward_camera(n: wp.vec3, v: wp.vec3):
 
 
 @wp.func
+def counts_for_level(o: wp.vec3, prm: SolverParams, gmax: float):
+    """Whether observation ``o`` enters the lit level: not saturated and not below ``shadow_threshold``."""
+    ok = grey(o) >= prm.shadow_threshold * gmax
+    if prm.saturation > 0.0 and wp.max(o[0], wp.max(o[1], o[2])) >= prm.saturation:
+        ok = False
+    return ok
+
+
+@wp.func
+def grey_lit_level(images: wp.array3d(dtype=wp.vec3), prm: SolverParams, i: int, j: int, nl_: int, gmax: float):
+    """The pixel's lit level: the largest grey value that at least a quarter (rounded up) of its observations
+    reach, among those neither saturated nor below ``prm.shadow_threshold * gmax`` (the caller's ``valid`` is not
+    consulted: a scale, not a data term; the IRLS rounds recompute it without that buffer).  With up to 4 such
+    observations it is the brightest.  Unlike the brightest it does not follow one highlight, and unlike the
+    median it stays on the lit observations of a pixel shadowed for half of its lights.  ``O(N^2)`` comparisons,
+    no scratch memory (each value's rank is counted); 0 when no observation counts."""
+    n = int(0)
+    for k in range(nl_):
+        if counts_for_level(images[k, i, j], prm, gmax):
+            n += 1
+    need = (n + 3) // 4
+    level = float(0.0)
+    for k in range(nl_):
+        o = images[k, i, j]
+        g = grey(o)
+        if g > level and counts_for_level(o, prm, gmax):
+            above = int(0)
+            for m in range(nl_):
+                om = images[m, i, j]
+                if grey(om) >= g and counts_for_level(om, prm, gmax):
+                    above += 1
+            if above >= need:
+                level = g
+    return level
+
+
+@wp.func
+def in_fit(w: float):
+    """Whether an observation of weight ``w`` enters the fit (kept or dark; not dropped, not set aside)."""
+    return w != 0.0 and w != ASIDE
+
+
+@wp.func
 def light_gram_range(weights: wp.array3d(dtype=wp.float32), i: int, j: int, p: wp.vec3, lights: LightParams,
                      k0: int, dk: int):
     """``sum_k [w_k != 0] l_k l_k^T`` over the valid lights ``k0, k0 + dk, ...`` (dark ones included)."""
     a = wp.mat33(0.0)
     for k in range(k0, lights.count, dk):
-        if weights[k, i, j] != 0.0:
+        if in_fit(weights[k, i, j]):
             l = light_dir(lights, k, p)
             a += wp.outer(l, l)
     return a
@@ -295,7 +341,7 @@ def brightest_light(images: wp.array3d(dtype=wp.vec3), weights: wp.array3d(dtype
     kb = int(lights.count)
     gb = float(-1.0)
     for k in range(px.lane, lights.count, px.lanes):
-        if weights[k, px.i, px.j] != 0.0:
+        if in_fit(weights[k, px.i, px.j]):
             gk = grey(images[k, px.i, px.j])
             if gk > gb:
                 gb = gk
@@ -427,7 +473,7 @@ def store_least_squares(
     rs = float(0.0)
     ws = float(0.0)
     for k in range(nl_):
-        if use_all != 0 or weights[k, i, j] != 0.0:
+        if use_all != 0 or in_fit(weights[k, i, j]):
             l = light_dir(lights, k, p)
             e = light_radiance(lights, k, p)
             o = images[k, i, j]

@@ -25,7 +25,7 @@ from gpps.kernels.jacobians import (
     plastic_value_grad,
     specular_value_grad,
 )
-from gpps.kernels.solve_common import Eval, Pixel, lanes_sum6, lanes_sum19, vec6, vec19
+from gpps.kernels.solve_common import ASIDE, Eval, Pixel, in_fit, lanes_sum6, lanes_sum19, vec6, vec19
 
 # a light's terms between the evaluation's two passes: radiance (3), observation (3), diffuse and specular values
 # and their two chart derivatives (6); one row a light, a thread's first ``cache`` lights (evaluate_for)
@@ -195,7 +195,7 @@ def evaluate_for(light_terms, module, sfx: str, lanes: bool = False, cache: int 
         for k in range(k0, lights.count, dk):
             w = weights[k, i, j]
             slot = (k - k0) // dk
-            if w > 0.0 or (w < 0.0 and slot < size):
+            if w > 0.0 or (w < 0.0 and w != ASIDE and slot < size):
                 e, obs, dval, sval, da0, da1, ds0, ds1 = light_terms(images, lights, mat, k, i, j, p, n, v, dn0, dn1)
                 if slot < size:
                     for c in range(3):
@@ -265,7 +265,7 @@ def evaluate_for(light_terms, module, sfx: str, lanes: bool = False, cache: int 
         jtr = wp.vec2(0.0)
         for k in range(k0, lights.count, dk):
             w = weights[k, i, j]
-            if w != 0.0:
+            if in_fit(w):
                 slot = (k - k0) // dk
                 e = wp.vec3(0.0)
                 obs = wp.vec3(0.0)

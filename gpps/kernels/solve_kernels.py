@@ -23,6 +23,7 @@ from gpps.kernels.solve_common import (
     cond_frobenius,
     grey,
     grey_max,
+    in_fit,
     lanes_sum,
     lanes_sum19,
     light_gram,
@@ -57,7 +58,8 @@ def observation_weights_range(
     Weight 0: dropped (shadow below ``prm.shadow_threshold * gmax``, saturated,
     or not ``valid``); -1: dark (grey value within ``prm.lit_sigmas`` noise
     levels of 0, a one-sided term); 1 otherwise.  Lit: above
-    ``prm.lit_threshold * gmax`` and clear of the noise.
+    ``prm.lit_threshold * gmax`` and clear of the noise.  (The solve itself may later set an observation
+    aside: :data:`gpps.names.ASIDE_WEIGHT`, ``SolverConfig.shadow_relative``.)
 
     Returns:
         The number of lit observations among those lights.
@@ -115,7 +117,7 @@ def least_squares_sums(
     :func:`least_squares_start`."""
     t = vec19()
     for k in range(px.lane, lights.count, px.lanes):
-        if warm_ok == 0 and (use_all != 0 or weights[k, px.i, px.j] != 0.0):
+        if warm_ok == 0 and (use_all != 0 or in_fit(weights[k, px.i, px.j])):
             l = light_dir(lights, k, px.p)
             e = light_radiance(lights, k, px.p)
             o = images[k, px.i, px.j]

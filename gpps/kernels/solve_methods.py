@@ -17,7 +17,9 @@ from gpps import names
 from gpps.kernels.brdf import LightParams, MaterialParams, light_dir, light_radiance
 from gpps.kernels.jacobians import chart_normal, chart_normal_jacobian, tangent_basis_t1
 from gpps.kernels.solve_common import (
+    ASIDE,
     BFGS,
+    CAST_CONFLICT,
     DOGLEG,
     ROBUST_HUBER,
     Pixel,
@@ -27,10 +29,17 @@ from gpps.kernels.solve_common import (
     brightest_half_vector,
     brightest_half_vector_lanes,
     dot2,
+    grey,
+    grey_lit_level,
+    in_fit,
+    lanes_sum,
+    lanes_sum19,
     solve22,
     start_normal,
     start_result,
+    toward_camera,
     transport,
+    vec19,
 )
 from gpps.kernels.solve_cost import diffuse_value_grad_for, evaluate_for, light_terms_for, specular_value_grad_for
 
@@ -372,6 +381,212 @@ def solve_pixel_for(robust, run_method, spec_vg, diff_vg, module, sfx: str, lane
             brightest light is found over the lanes and each lane reweights its own lights.
     """
 
+    @wp.func(name="irls_rounds" + sfx, module=module)
+    def irls_rounds(
+        best_in: StartResult,
+        total_in: int,
+        gmax: float,
+        aside: float,
+        images: wp.array3d(dtype=wp.vec3),
+        weights: wp.array3d(dtype=wp.float32),
+        px: Pixel,
+        lights: LightParams,
+        mat: MaterialParams,
+        prm: SolverParams,
+    ):
+        """``prm.irls_rounds`` robust reweighting rounds (Huber / Cauchy IRLS) from ``best_in``.  An observation set
+        aside (weight ``ASIDE``; ``aside`` is ``prm.shadow_relative`` times the lit level) is taken back in the
+        first round whose fit does not contradict it: as a one-sided term where the fit predicts it below
+        ``aside`` too, as an ordinary one where it predicts less than ``CAST_CONFLICT`` times the lit level;
+        until then it stays out."""
+        i = px.i
+        j = px.j
+        v = px.v
+        best = best_in
+        total = total_in
+        for rnd in range(prm.irls_rounds):
+            scale = prm.robust_scale * wp.max(gmax, 1.0e-12)
+            k0 = int(0)
+            dk = int(1)
+            if wp.static(lanes):
+                k0 = px.lane
+                dk = px.lanes
+            for k in range(k0, lights.count, dk):
+                wk = weights[k, i, j]
+                if wk != 0.0:
+                    l = light_dir(lights, k, px.p)
+                    e = light_radiance(lights, k, px.p)
+                    o = images[k, i, j]
+                    dg = diff_vg(mat, best.n, l, v)
+                    sg = spec_vg(mat, best.n, l, v)
+                    pred = wp.vec3(0.0)
+                    for c in range(3):
+                        pred[c] = e[c] * (best.kd[c] * dg[0] + mat.ks * sg[0])
+                    keep_aside = int(0)
+                    if wk == ASIDE:
+                        if grey(pred) < aside:
+                            wk = -1.0  # the fit predicts it dark too: evidence it agrees with, one-sided
+                        elif grey(pred) < CAST_CONFLICT * aside / prm.shadow_relative:
+                            wk = 1.0  # no contradiction: an ordinary observation again
+                        else:
+                            keep_aside = 1
+                    r2 = float(0.0)
+                    for c in range(3):
+                        r = o[c] - pred[c]
+                        if wk < 0.0:
+                            # a dark term's residual is one-sided; a cast shadow is its outlier
+                            r = wp.min(r, 0.0)
+                        r2 += r * r
+                    rr = wp.sqrt(r2 / 3.0) / scale
+                    w = float(1.0)
+                    if wp.static(robust == "huber"):
+                        if rr > 1.0:
+                            w = 1.0 / rr
+                    elif wp.static(robust == "cauchy"):
+                        w = 1.0 / (1.0 + rr * rr)
+                    else:
+                        # generic build: run-time switch
+                        if prm.robust == ROBUST_HUBER:
+                            if rr > 1.0:
+                                w = 1.0 / rr
+                        else:
+                            w = 1.0 / (1.0 + rr * rr)
+                    w = wp.max(w, 1.0e-6)
+                    if wk < 0.0:
+                        w = -w
+                    if keep_aside != 0:
+                        w = ASIDE
+                    weights[k, i, j] = w
+            res = run_method(best.n, images, weights, px, lights, mat, prm)
+            total += res.iters
+            if wp.dot(res.n, v) <= 0.0 and wp.dot(best.n, v) > 0.0:
+                # the reweighted fit turned the normal away from the camera, which no visible surface
+                # does (the rule the pick of starts applies): the round before stands, and the last
+                break
+            best = res
+        out = PixelSolution()
+        out.best = best
+        out.total = total
+        return out
+
+    @wp.func(name="cast_shadow_start" + sfx, module=module)
+    def cast_shadow_start(
+        sol: PixelSolution,
+        gmax: float,
+        images: wp.array3d(dtype=wp.vec3),
+        weights: wp.array3d(dtype=wp.float32),
+        px: Pixel,
+        lights: LightParams,
+        mat: MaterialParams,
+        prm: SolverParams,
+    ):
+        """The start of the refit of ``SolverConfig.shadow_relative``, after the IRLS rounds' solution ``sol``.
+
+        The fit contradicts the pixel's split into lit and dark observations when it predicts an observation
+        darker than ``prm.shadow_relative`` times the lit level (:func:`grey_lit_level`) at ``CAST_CONFLICT``
+        times that level or more, or one at the lit level or above at less than ``CAST_CONFLICT`` times its
+        value: a cast shadow (dark at any normal) that the fit could not tell from its other explanation, a
+        tilted normal (or a low albedo) under which the lit observations became the outliers.  When the pixel
+        has a contradiction, every
+        observation dark against the lit level is set aside (weight ``ASIDE``), the others return to their
+        weights before reweighting, and the normal is solved again on the lit observations from their
+        Lambertian least squares, from the fit's normal and from the view direction (the lowest cost facing the
+        camera); the IRLS rounds that follow (:func:`irls_rounds`, from the returned start) take a set-aside
+        observation back where the new fit does not contradict it (an attached shadow, a specular lobe's dark
+        flank), so that only the observations it predicts bright (the cast shadows) stay out.
+
+        Returns:
+            ``(solution, aside)``: the refit's start and the grey value below which observations were set aside;
+            ``(sol, 0)`` (``sol`` and its weights unchanged) when the fit has no contradiction, and the first fit
+            with every observation kept, ``aside`` 0, when no refit faces the camera."""
+        i = px.i
+        j = px.j
+        v = px.v
+        best = sol.best
+        k0 = int(0)
+        dk = int(1)
+        if wp.static(lanes):
+            k0 = px.lane
+            dk = px.lanes
+        level = grey_lit_level(images, prm, i, j, lights.count, gmax)
+        aside = prm.shadow_relative * level
+        conflicts = float(0.0)
+        for k in range(k0, lights.count, dk):
+            go = grey(images[k, i, j])
+            if in_fit(weights[k, i, j]) and (go < aside or go >= level):
+                l = light_dir(lights, k, px.p)
+                e = light_radiance(lights, k, px.p)
+                dg = diff_vg(mat, best.n, l, v)
+                sg = spec_vg(mat, best.n, l, v)
+                pred = wp.vec3(0.0)
+                for c in range(3):
+                    pred[c] = e[c] * (best.kd[c] * dg[0] + mat.ks * sg[0])
+                if go < aside and grey(pred) >= CAST_CONFLICT * level:
+                    conflicts += 1.0  # dark, predicted lit
+                if go >= level and grey(pred) < CAST_CONFLICT * go:
+                    conflicts += 1.0  # lit, predicted dark: the fit gave the lit observations up as outliers
+        if wp.static(lanes):
+            conflicts = lanes_sum(conflicts)
+        if conflicts == 0.0:
+            return sol, 0.0
+        # set aside every observation dark against the lit level; the others back to 1 (kept) or -1 (dark);
+        # the lit ones' Lambertian least squares (I / E = kd l.n, grey) as a start
+        t = vec19()
+        for k in range(k0, lights.count, dk):
+            wk = weights[k, i, j]
+            if wk != 0.0:
+                o = images[k, i, j]
+                if grey(o) < aside:
+                    weights[k, i, j] = ASIDE
+                elif wk > 0.0:
+                    weights[k, i, j] = 1.0
+                    l = light_dir(lights, k, px.p)
+                    y = grey(o) / wp.max(grey(light_radiance(lights, k, px.p)), 1.0e-30)
+                    for r in range(3):
+                        for c in range(3):
+                            t[3 * r + c] += l[r] * l[c]
+                        t[9 + r] += y * l[r]
+                else:
+                    weights[k, i, j] = -1.0
+        if wp.static(lanes):
+            t = lanes_sum19(t)
+        a = wp.mat33(t[0], t[1], t[2], t[3], t[4], t[5], t[6], t[7], t[8])
+        g = wp.vec3(t[9], t[10], t[11])
+        fa = wp.sqrt(wp.ddot(a, a))
+        total = sol.total
+        # the starts: the lit observations' least squares (when their lights determine it), the fit's normal,
+        # the view direction (a while loop: one call site of the solver, which a constant range would unroll)
+        lsq = wp.vec3(0.0)
+        if fa > 0.0 and wp.abs(wp.determinant(a)) > 1.0e-6 * fa * fa * fa:
+            lsq = wp.inverse(a) * g
+        s = int(0)
+        if wp.length(lsq) <= 0.0:
+            s = 1
+        pick = StartResult()
+        pick.cost = 1.0e30
+        while s < 3:
+            n0 = best.n
+            if s == 0:
+                n0 = toward_camera(wp.normalize(lsq), v)
+            if s == 2:
+                n0 = v
+            res = run_method(n0, images, weights, px, lights, mat, prm)
+            total += res.iters
+            if res.cost < pick.cost and wp.dot(res.n, v) > 0.0:
+                pick = res
+            s += 1
+        out = PixelSolution()
+        out.total = total
+        if pick.cost >= 1.0e30:
+            # no refit faces the camera: the first fit stands, with every observation kept
+            for k in range(k0, lights.count, dk):
+                if weights[k, i, j] == ASIDE:
+                    weights[k, i, j] = 1.0
+            out.best = best
+            return out, 0.0
+        out.best = pick
+        return out, aside
+
     @wp.func(name="finish_pixel" + sfx, module=module)
     def finish_pixel(
         best_in: StartResult,
@@ -386,9 +601,8 @@ def solve_pixel_for(robust, run_method, spec_vg, diff_vg, module, sfx: str, lane
         prm: SolverParams,
     ):
         """After the starts (``best_in``: the best visible one, cost 1e30 if none; ``total_in`` evaluations):
-        the least-squares start's run when no start ended facing the camera, then the IRLS rounds."""
-        i = px.i
-        j = px.j
+        the least-squares start's run when no start ended facing the camera, then the IRLS rounds; then, with
+        ``prm.shadow_relative``, the cast-shadow refit when the fit contradicts a dark observation."""
         v = px.v
         best = best_in
         total = total_in
@@ -400,59 +614,24 @@ def solve_pixel_for(robust, run_method, spec_vg, diff_vg, module, sfx: str, lane
             pxv.visible_only = 1
             best = run_method(start_normal(0, ninit, v, v, prm), images, weights, pxv, lights, mat, prm)
             total += best.iters
-        if wp.static(robust != "none"):
-            # (robust "none" runs no reweighting round: irls_rounds is 0)
-            for rnd in range(prm.irls_rounds):
-                # robust reweighting from the residuals at the current best (Huber / Cauchy IRLS)
-                scale = prm.robust_scale * wp.max(gmax, 1.0e-12)
-                k0 = int(0)
-                dk = int(1)
-                if wp.static(lanes):
-                    k0 = px.lane
-                    dk = px.lanes
-                for k in range(k0, lights.count, dk):
-                    wk = weights[k, i, j]
-                    if wk != 0.0:
-                        l = light_dir(lights, k, px.p)
-                        e = light_radiance(lights, k, px.p)
-                        o = images[k, i, j]
-                        dg = diff_vg(mat, best.n, l, v)
-                        sg = spec_vg(mat, best.n, l, v)
-                        r2 = float(0.0)
-                        for c in range(3):
-                            r = o[c] - e[c] * (best.kd[c] * dg[0] + mat.ks * sg[0])
-                            if wk < 0.0:
-                                # a dark term's residual is one-sided; a cast shadow is its outlier
-                                r = wp.min(r, 0.0)
-                            r2 += r * r
-                        rr = wp.sqrt(r2 / 3.0) / scale
-                        w = float(1.0)
-                        if wp.static(robust == "huber"):
-                            if rr > 1.0:
-                                w = 1.0 / rr
-                        elif wp.static(robust == "cauchy"):
-                            w = 1.0 / (1.0 + rr * rr)
-                        else:
-                            # generic build: run-time switch
-                            if prm.robust == ROBUST_HUBER:
-                                if rr > 1.0:
-                                    w = 1.0 / rr
-                            else:
-                                w = 1.0 / (1.0 + rr * rr)
-                        w = wp.max(w, 1.0e-6)
-                        if wk < 0.0:
-                            w = -w
-                        weights[k, i, j] = w
-                res = run_method(best.n, images, weights, px, lights, mat, prm)
-                total += res.iters
-                if wp.dot(res.n, v) <= 0.0 and wp.dot(best.n, v) > 0.0:
-                    # the reweighted fit turned the normal away from the camera, which no visible surface
-                    # does (the rule the pick of starts applies): the round before stands, and the last
-                    break
-                best = res
         out = PixelSolution()
         out.best = best
         out.total = total
+        if wp.static(robust != "none"):
+            # (robust "none" runs no reweighting round: irls_rounds is 0).  The rounds, then with
+            # prm.shadow_relative the cast-shadow refit's rounds from its start: one call site of the rounds in
+            # a loop (each call site of a solver is inlined again by NVRTC)
+            aside = float(0.0)
+            phases = int(1)
+            if prm.shadow_relative > 0.0 and prm.irls_rounds > 0:
+                phases = 2  # (a run-time trip count: Warp unrolls a constant one, which would inline twice)
+            for phase in range(phases):
+                out = irls_rounds(out.best, out.total, gmax, aside, images, weights, px, lights, mat, prm)
+                if phase == phases - 1 or wp.dot(out.best.n, v) <= 0.0:
+                    break
+                out, aside = cast_shadow_start(out, gmax, images, weights, px, lights, mat, prm)
+                if aside <= 0.0:
+                    break
         return out
 
     @wp.func(name="solve_pixel" + sfx, module=module)

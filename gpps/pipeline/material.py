@@ -171,10 +171,13 @@ class MaterialScorer(Stage):
         self.lp = light_params(lights, self.device)
         self.brdf = brdf
         self.config = config
-        # the parameter struct and specialisation PixelSolver uses for this config
-        self.prm = solver_params(config)
+        # the parameter struct and specialisation PixelSolver uses for this config, without the cast-shadow refit
+        # (SolverConfig.shadow_relative): the scores compare candidate materials on the same observations, and a
+        # refit that sets aside the observations a fit contradicts would let a wrong material discard its misfit
+        # (on a Mitsuba bowl it drove ks to the search's bound, 0.83 -> 3.0)
+        self.prm = solver_params(replace(config, shadow_relative=0.0))
         # warm steps: one start per pixel, from ``nwarm`` (set_start)
-        self.prm_warm = solver_params(replace(config, warm_start=True, starts=1))
+        self.prm_warm = solver_params(replace(config, warm_start=True, starts=1, shadow_relative=0.0))
         self._cmds: dict = {}  # recorded launches of _launch_chunk
         robust = config.robust if config.irls_rounds > 0 else "none"
         self._robust = robust

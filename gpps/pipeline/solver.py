@@ -92,6 +92,23 @@ class SolverConfig:
         irls_rounds: reweighting rounds (used when ``robust != "none"``).
         shadow_threshold: drop observations whose grey value is below this
             fraction of the pixel's brightest (0 keeps all).
+        shadow_relative: the cast-shadow refit (used when ``robust != "none"``;
+            0 disables it).  An observation darker than this fraction of the
+            pixel's lit level (the grey value that a quarter of its
+            observations reach) which the robust fit predicts at least
+            ``gpps.names.CAST_CONFLICT`` times that level contradicts the fit: a
+            cast shadow darkens an observation at any normal, and a normal
+            tilted until the shadowed lights' observations cost less than the
+            lit ones' misfit can win the fit (a backdrop seen through a hole,
+            shadowed for half of the lights).  Such a pixel is solved again
+            with every observation that dark set aside, from the lit
+            observations' least squares, the fit's normal and the view
+            direction; the reweighting rounds then take an observation back, as
+            a one-sided term, where the new fit predicts it dark too (an
+            attached shadow, the dark flank of a specular lobe), so only the
+            ones it predicts bright stay out.  Pixels without a contradiction
+            keep the first fit.  Set-aside observations carry the weight
+            ``gpps.names.ASIDE_WEIGHT`` in ``weights``.
         saturation: drop observations with a channel >= this value (None: keep).
         albedo: ``"rgb"`` (3 channels) or ``"grey"`` (one value for all channels).
         cond_threshold: flag pixels whose valid light directions' Gram matrix
@@ -186,6 +203,7 @@ class SolverConfig:
     lit_sigmas: float = 3.0
     parallel: ParallelName = "auto"
     split_starts: bool | None = None
+    shadow_relative: float = 0.0
 
     def __post_init__(self):
         check_choices(self)
@@ -200,6 +218,7 @@ class SolverConfig:
         check_number("tol_grad", self.tol_grad, lo=0.0)
         check_number("robust_scale", self.robust_scale, lo=0.0, lo_open=True)
         check_number("shadow_threshold", self.shadow_threshold, lo=0.0, hi=1.0)
+        check_number("shadow_relative", self.shadow_relative, lo=0.0, hi=1.0)
         if self.saturation is not None:
             check_number("saturation", self.saturation, lo=0.0, lo_open=True)
         check_number("lit_threshold", self.lit_threshold, lo=0.0, hi=1.0)
@@ -402,6 +421,7 @@ def solver_params(c: SolverConfig):
     p.robust_scale = float(c.robust_scale)
     p.irls_rounds = int(c.irls_rounds) if c.robust != "none" else 0
     p.shadow_threshold = float(c.shadow_threshold)
+    p.shadow_relative = float(c.shadow_relative)
     p.saturation = float(c.saturation) if c.saturation is not None else 0.0
     p.warm_start = int(bool(c.warm_start))
     p.grey_albedo = int(c.albedo == "grey")
