@@ -7,7 +7,8 @@ robust loss) and, with ``--generic``, the generic build that switches on all of
 them at run time.  Prints the load time and the size of the generated source
 (.cpp for CPU, .cu for CUDA) in the kernel cache; for a cold-cache measurement
 point ``GPPS_CACHE_DIR`` at an empty folder.  ``--only`` restricts the run to
-the modules whose name contains one of the given strings.
+the modules whose name contains one of the given strings; ``--spec`` loads the
+given ``solver:brdf:robust`` specialisations instead of ``SPECIALISED``.
 """
 
 import argparse
@@ -44,13 +45,17 @@ def main():
     ap.add_argument("--device", default="auto")
     ap.add_argument("--generic", action="store_true", help="also load the generic (run-time switch) solver build")
     ap.add_argument("--only", nargs="*", default=None, help="load only modules whose name contains one of these")
+    ap.add_argument("--spec", nargs="*", default=None, metavar="SOLVER:BRDF:ROBUST",
+                    help="solver specialisations to load instead of SPECIALISED (e.g. lm:blinn-phong:cauchy, the "
+                         "many-image build)")
     a = ap.parse_args()
     wp = warp()
     dev = resolve_device(a.device)
     from gpps.kernels import solve as sk
 
     todo = [(name, importlib.import_module(name)) for name in MODULES]
-    specs = list(SPECIALISED) + ([(None, None, None)] if a.generic else [])
+    specs = [tuple(x.split(":")) for x in a.spec] if a.spec else list(SPECIALISED)
+    specs += [(None, None, None)] if a.generic else []
     for spec in specs:
         todo.append((sk.module_name(*spec), sk.get_solve_kernels(*spec)[0].module))
     if a.only:

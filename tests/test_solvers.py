@@ -602,6 +602,16 @@ def test_cast_shadow_refit(device, solver):
     assert np.all(wts[~lit] == np.float32(names.ASIDE_WEIGHT)), wts[~lit]
     assert np.all(wts[lit] > 0.5), wts[lit]
     np.testing.assert_allclose(outs[0.1]["albedo"], kd, rtol=1e-4)
+    if solver == "lm":
+        # the lights-parallel build (one block of lanes a pixel: the contradiction count and the lit observations'
+        # least squares are summed over the lanes) makes the same decisions
+        cfg = SolverConfig(solver=solver, starts=4, robust="cauchy", irls_rounds=3, noise_level=1e-3,
+                           shadow_relative=0.1, parallel="lights")
+        lanes = PixelSolver(img.shape[:3], Orthographic(), DirectionalLights(dirs), mat, cfg, device=device)
+        out = lanes.run(img, np.ones((h, w), bool))
+        assert lanes._uses_lanes()
+        np.testing.assert_array_equal(out["weights"] == np.float32(names.ASIDE_WEIGHT), wts == np.float32(names.ASIDE_WEIGHT))
+        np.testing.assert_allclose(out["normals"], outs[0.1]["normals"], atol=1e-5)
 
 
 @pytest.mark.parametrize("solver", ["lm", "dogleg", "bfgs"])
