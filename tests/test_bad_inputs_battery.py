@@ -7,6 +7,8 @@ before any solve (tiny sizes), so the file runs in seconds.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -117,6 +119,24 @@ def test_pixel_solver_refuses_overflowing_images(capture):
     try:
         with pytest.raises(ValueError, match="^images: expected linear values up to"):
             ps.upload(img * np.float32(1e30), sc.mask)
+    finally:
+        ps.close()
+
+
+def test_pixel_solver_warns_when_nothing_is_lit(capture):
+    """All-black images (or no valid observation) gave every pixel the view direction and albedo 0 without a
+    word; the flows refuse such frames, the stage warns (a dark tile of a tiled frame stays quiet: the flow checks
+    the frame)."""
+    sc, img, lights = capture
+    ps = gpps.PixelSolver((4, 16, 16), gpps.Orthographic(), lights, gpps.Material("lambertian", ks=0.0), device=DEV)
+    try:
+        with pytest.warns(GppsWarning, match="^images: no observation inside the mask is lit: no normal"):
+            ps.upload(np.zeros_like(img), sc.mask)
+        with pytest.warns(GppsWarning, match="^images: no observation inside the mask is lit and valid"):
+            ps.upload(img, sc.mask, valid=np.zeros(img.shape[:3], bool))
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", GppsWarning)
+            ps.upload(img, sc.mask)  # (a lit frame: no warning)
     finally:
         ps.close()
 

@@ -22,8 +22,11 @@ the flows (:mod:`gpps.batch`, dask.array ``map_overlap``).
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
+from gpps._check import GppsWarning
 from gpps.camera import Orthographic, Perspective
 from gpps.flows.photometric import (
     PSResult,
@@ -130,7 +133,10 @@ def solve_block(block: np.ndarray, *, n: int, shape: tuple[int, int], lights, ca
         c += n
     depth = np.where(m, block[..., c], 1.0) if has_depth else None
     ps = PixelSolver((n, h, w), crop_camera(camera, shape, y0, x0), lights, material, config, device=device)
-    ps.upload(images, m, depth=depth, valid=valid, noise=noise)
+    with warnings.catch_warnings():
+        # a tile with nothing lit is part of a frame the flow has checked as a whole (check_observations)
+        warnings.filterwarnings("ignore", message="images: no observation inside the mask is lit", category=GppsWarning)
+        ps.upload(images, m, depth=depth, valid=valid, noise=noise)
     ps.step()
     r = ps.fetch()
     out[..., 0:3], out[..., 3:6] = r["normals"], r["albedo"]

@@ -12,12 +12,14 @@ stages share, and one stage whose frame buffers serve its solve, re-solves of th
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 
 from gpps._check import (
+    GppsWarning,
     as_array,
     as_flags,
     as_images,
@@ -669,6 +671,12 @@ class PixelSolver(Stage):
         g = ((sub[..., 0] + sub[..., 1]) + sub[..., 2]) / np.float32(3.0)  # = sub.mean(-1) exactly, 10x faster
         self.intensity_scale = float(max(np.percentile(g, 99.0), 1e-12))
         check_scale(self.intensity_scale, low=False)
+        lit = g > 0 if val is None else (g > 0) & (val[:, m] != 0)
+        if not np.any(lit):
+            # degenerate: no pixel can be solved (a dark tile of a larger frame is the tiled flow's to judge)
+            warnings.warn("images: no observation inside the mask is lit" + ("" if val is None else " and valid")
+                          + ": no normal is determined (every pixel is flagged FLAG_FEW_OBSERVATIONS)",
+                          GppsWarning, stacklevel=2)
         self.images.assign(img)
         self.mask.assign(m.astype(np.uint8))
         self._split_rows(m)
