@@ -269,6 +269,7 @@ SCENES = {
     "size nan": (dict(size=float("nan")), ValueError, "^size: "),  # int()'s message
     "size None": (dict(size=None), ValueError, "^size: "),  # "'NoneType' object is not iterable"
     "size (16, 16, 3)": (dict(size=(16, 16, 3)), ValueError, "^size: "),  # "too many values to unpack"
+    "size 10**9": (dict(size=10**9), ValueError, "^size: expected at most"),  # MemoryError
     "seed string": (dict(albedo="texture", seed="x"), TypeError, "^seed: "),  # numpy's SeedSequence
     "seed negative": (dict(albedo="texture", seed=-1), ValueError, "^seed: "),
     "text empty": (dict(name="microprint", text=""), ValueError, "^text: "),  # IndexError
@@ -321,6 +322,14 @@ def test_uncalibrated_and_single_check_their_arguments(capture):
         gpps.reconstruct_single(img[0], sc.mask, net="x", device=DEV)
     with pytest.raises(ValueError, match="^mask: "):  # (NaN was True)
         gpps.reconstruct_single(img[0], np.where(sc.mask, np.nan, 0.0), device=DEV)
+
+
+def test_single_image_with_an_alpha_channel_is_an_error():
+    """An (H, W, 4) RGBA image was read as H grey images 4 pixels wide (normals of shape (16, 4, 3))."""
+    rgba = np.random.default_rng(0).random((16, 16, 4)).astype(np.float32)
+    for img in (rgba, rgba[..., :2]):
+        with pytest.raises(ValueError, match=r"^images: expected \(H, W\), .* an image with an alpha channel"):
+            gpps.reconstruct_single(img)
 
 
 def test_single_image_scale_is_free(capture):

@@ -67,6 +67,9 @@ class Scene:
         return self.mask.shape
 
 
+#: the largest side :func:`make_scene` takes (16384^2 pixels hold about 30 GB of scene arrays)
+MAX_SCENE_SIDE = 16384
+
 def default_camera(kind: Literal["orthographic", "perspective"], size: int | tuple[int, int]):
     """The camera that sees ``[-2.4, 2.4]^2`` units at depth 10 on an image of ``size``."""
     h, w = (size, size) if np.isscalar(size) else size
@@ -220,7 +223,7 @@ def make_scene(
 
     Args:
         name: ``"sphere"``, ``"bumps"`` or ``"microprint"``.
-        size: image size, an int (square) or (H, W); >= 8.
+        size: image size, an int (square) or (H, W); 8 to :data:`MAX_SCENE_SIDE` (16384) a side.
         camera: ``"orthographic"``, ``"perspective"`` (default cameras, see
             :func:`default_camera`) or a camera object.
         albedo: ``"uniform"`` (0.6, 0.5, 0.4) or ``"texture"`` (smooth random colours).
@@ -235,6 +238,9 @@ def make_scene(
         raise ValueError(f"size: expected an integer >= 8 or (H, W) of such, got {size!r}") from None
     if h < 8 or w < 8:
         raise ValueError(f"size: expected an integer >= 8 or (H, W) of such, got {size!r}")
+    if h > MAX_SCENE_SIDE or w > MAX_SCENE_SIDE:
+        # (a scene holds about 15 float64 values a pixel: 10**9 wide asked numpy for exabytes, a MemoryError)
+        raise ValueError(f"size: expected at most {MAX_SCENE_SIDE} pixels a side, got {size!r}")
     seed = check_number("seed", seed, lo=0, integer=True)
     if not isinstance(text, str):
         raise TypeError(f"text: expected a non-empty string, got {text!r}")
