@@ -30,6 +30,11 @@ def prepare_images(images, mask=None) -> tuple[np.ndarray, np.ndarray]:
         if a.ndim == 2:
             a = a[None, ..., None]
         elif a.ndim == 3:  # one RGB image (H, W, 3), else N grey images (N, H, W)
+            if a.shape[-1] in (2, 4):
+                # (read as N = H grey images 2 or 4 pixels wide before: an RGBA or grey-alpha image)
+                raise ValueError(f"images: expected (H, W), (H, W, 3) or N of them, got shape {a.shape}: an image "
+                                 f"with an alpha channel? Pass its colour channels (images[..., :3] or [..., 0]) and "
+                                 f"the alpha as the mask; N grey images {a.shape[2]} pixels wide are too small")
             a = a[None] if a.shape[-1] == 3 else a[..., None]
     if a.ndim != 4 or a.shape[-1] not in (1, 3):
         raise ValueError(f"images: expected (H, W), (H, W, 3) or N of them, got shape {np.shape(images)}")
