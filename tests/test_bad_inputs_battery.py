@@ -141,6 +141,26 @@ def test_pixel_solver_warns_when_nothing_is_lit(capture):
         ps.close()
 
 
+def test_led_axes_pointing_away_warn():
+    """Point lights with mu > 0 whose axes point away from the object light nothing; they passed without a word."""
+    sc = gpps.make_scene("sphere", 16, "perspective")
+    pos = np.array([[0.5, 0.0, 0.0], [-0.5, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, -0.5, 0.0]])
+    img = np.full((4, 16, 16, 3), 0.5, np.float32)
+    for sign, warns in ((-1.0, False), (1.0, True)):  # the default axes (0, 0, -1) face the scene
+        lights = gpps.PointLights(pos, axes=np.tile([0.0, 0.0, sign], (4, 1)), mu=1.0)
+        ps = gpps.PixelSolver((4, 16, 16), sc.camera, lights, gpps.Material("lambertian", ks=0.0), device=DEV)
+        try:
+            with warnings.catch_warnings(record=True) as rec:
+                warnings.simplefilter("always")
+                ps.upload(img, sc.mask, depth=sc.depth)
+            hits = [w for w in rec if "axes pointing away from the object" in str(w.message)]
+            assert len(hits) == int(warns), [str(w.message) for w in rec]
+            if warns:
+                assert issubclass(hits[0].category, GppsWarning) and "lights [1, 2, 3, 4]" in str(hits[0].message)
+        finally:
+            ps.close()
+
+
 def test_no_images_names_the_images(capture):
     sc, img, lights = capture  # (said "lights: expected 0 lights (one per image), got 4")
     with pytest.raises(ValueError, match="^images: expected at least 3 images, got 0"):

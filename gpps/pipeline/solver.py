@@ -399,6 +399,14 @@ def check_light_configuration(lights, point=None, *, tol: float = 1e-3) -> float
         k = np.nonzero(~np.all(np.isfinite(d), axis=1))[0]
         raise ValueError(f"lights: point light(s) {(k + 1).tolist()[:8]} lie at the object's centre "
                          f"{np.round(p, 6).tolist()}: expected lights away from the object")
+    if point is not None and isinstance(lights, PointLights) and np.any(lights.mu > 0):
+        # an LED (mu > 0) whose axis points away from the object sends it no light: max(cos, 0)^mu = 0
+        facing = np.einsum("nc,nc->n", lights.axes, p[None] - lights.positions)
+        away = np.nonzero((lights.mu > 0) & (facing <= 0))[0]
+        if away.size:
+            warnings.warn(f"lights: {away.size} of {n} point lights have axes pointing away from the object's centre "
+                          f"{np.round(p, 6).tolist()} (lights {(away + 1).tolist()[:8]}): with mu > 0 they send it "
+                          f"no light (check the axes' sign: from the LED into the scene)", GppsWarning, stacklevel=3)
     s = np.linalg.svd(d, compute_uv=False)
     if s[0] <= 0 or s[-1] / s[0] < tol:
         what = "collinear" if (s[0] > 0 and s[1] / s[0] < tol) else "coplanar"
