@@ -87,11 +87,13 @@ SOLVE_TERM_CACHE = 4
 SOLVE_TERM_CACHE_CPU = (4, 16, 128)
 # the cast-shadow refit of a per-pixel fit with many images (gpps.pipeline.solver.SolverConfig.shadow_relative):
 # observations darker than this fraction of the pixel's lit level (the grey value a quarter of its observations
-# reach) are set aside when the fit contradicts one of them.  Such an observation is explained as well by a cast
-# shadow at any normal as by a tilted normal that misfits the lit ones, so it cannot choose between them.
+# reach) are set aside when the fit contradicts the pixel's split into lit and dark ones.  Such an observation is
+# explained as well by a cast shadow at any normal as by a tilted normal that misfits the lit ones, so it cannot
+# choose between them.
 SHADOW_RELATIVE_MANY = 0.1
-# ... and the refit is made when the fit predicts such a dark observation at least this fraction of the lit level
-# (a contradiction: dark where the fit says lit; gpps.kernels.solve_methods, cast_shadow_start)
+# ... and the refit is made when the fit predicts such a dark observation at least this fraction of the lit level,
+# or one at the lit level or above below this fraction of its value (a contradiction: dark where the fit says lit,
+# or lit where it says dark; gpps.kernels.solve_methods, cast_shadow_start)
 CAST_CONFLICT = 0.5
 # the weight that marks a set-aside observation in the solver's weights buffer: negative (a one-sided term, as a
 # dark observation) and so small that it adds nothing to a cost, a gradient or an albedo

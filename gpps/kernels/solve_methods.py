@@ -487,8 +487,8 @@ def solve_pixel_for(robust, run_method, spec_vg, diff_vg, module, sfx: str, lane
         times that level or more, or one at the lit level or above at less than ``CAST_CONFLICT`` times its
         value: a cast shadow (dark at any normal) that the fit could not tell from its other explanation, a
         tilted normal (or a low albedo) under which the lit observations became the outliers.  When the pixel
-        has a contradiction, every
-        observation dark against the lit level is set aside (weight ``ASIDE``), the others return to their
+        has a contradiction, every observation dark against the lit level is set aside (weight ``ASIDE``), the
+        others return to their
         weights before reweighting, and the normal is solved again on the lit observations from their
         Lambertian least squares, from the fit's normal and from the view direction (the lowest cost facing the
         camera); the IRLS rounds that follow (:func:`irls_rounds`, from the returned start) take a set-aside
@@ -602,7 +602,8 @@ def solve_pixel_for(robust, run_method, spec_vg, diff_vg, module, sfx: str, lane
     ):
         """After the starts (``best_in``: the best visible one, cost 1e30 if none; ``total_in`` evaluations):
         the least-squares start's run when no start ended facing the camera, then the IRLS rounds; then, with
-        ``prm.shadow_relative``, the cast-shadow refit when the fit contradicts a dark observation."""
+        ``prm.shadow_relative``, the cast-shadow refit when the fit contradicts the pixel's split into lit and dark
+        observations (:func:`cast_shadow_start`)."""
         v = px.v
         best = best_in
         total = total_in

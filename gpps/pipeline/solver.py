@@ -98,11 +98,12 @@ class SolverConfig:
             0 disables it).  An observation darker than this fraction of the
             pixel's lit level (the grey value that a quarter of its
             observations reach) which the robust fit predicts at least
-            ``gpps.names.CAST_CONFLICT`` times that level contradicts the fit: a
-            cast shadow darkens an observation at any normal, and a normal
-            tilted until the shadowed lights' observations cost less than the
-            lit ones' misfit can win the fit (a backdrop seen through a hole,
-            shadowed for half of the lights).  Such a pixel is solved again
+            ``gpps.names.CAST_CONFLICT`` times that level, or one at the lit
+            level or above which it predicts below that fraction of its value,
+            contradicts the fit: a cast shadow darkens an observation at any
+            normal, and a tilted normal (or a low albedo under which the lit
+            observations become the outliers) can win the fit (a backdrop seen
+            through a hole, shadowed for half of the lights).  Such a pixel is solved again
             with every observation that dark set aside, from the lit
             observations' least squares, the fit's normal and the view
             direction; the reweighting rounds then take an observation back, as
