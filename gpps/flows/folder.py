@@ -259,10 +259,10 @@ def automatic_solver_options(n_images: int, robust: RobustName | None = None) ->
 
     With more than :data:`MANY_IMAGES` images some observations are expected to be outliers
     (cast shadows, interreflections, highlights the model misses): the loss is Cauchy, observations
-    below 0.02 of the pixel's brightest count as shadowed, those below
-    :data:`gpps.names.SHADOW_RELATIVE_MANY` of its lit level are set aside until the fit predicts them dark
-    (``SolverConfig.shadow_relative``), and each pixel is started from 4 normals.  With fewer, every
-    observation is needed: no robust loss, the solver's defaults.
+    below 0.02 of the pixel's brightest count as shadowed, a pixel whose fit contradicts its split into lit
+    and dark observations (dark: below :data:`gpps.names.SHADOW_RELATIVE_MANY` of its lit level) is solved
+    again with the dark ones set aside (``SolverConfig.shadow_relative``), and each pixel is started from 4
+    normals.  With fewer, every observation is needed: no robust loss, the solver's defaults.
 
     Args:
         n_images: the number of images N.

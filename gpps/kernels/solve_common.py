@@ -257,7 +257,7 @@ def counts_for_level(o: wp.vec3, prm: SolverParams, gmax: float):
 def grey_lit_level(images: wp.array3d(dtype=wp.vec3), prm: SolverParams, i: int, j: int, nl_: int, gmax: float):
     """The pixel's lit level: the largest grey value that at least a quarter (rounded up) of its observations
     reach, among those neither saturated nor below ``prm.shadow_threshold * gmax`` (the caller's ``valid`` is not
-    consulted: a scale, not a data term; the IRLS rounds recompute it without that buffer).  With up to 4 such
+    consulted: a scale, not a data term, computed in the solve, where that buffer is not passed).  With up to 4 such
     observations it is the brightest.  Unlike the brightest it does not follow one highlight, and unlike the
     median it stays on the lit observations of a pixel shadowed for half of its lights.  ``O(N^2)`` comparisons,
     no scratch memory (each value's rank is counted); 0 when no observation counts."""
