@@ -568,14 +568,9 @@ def test_robust_loss_rejects_cast_shadows():
     assert er["median"] < 0.5 < ep["median"], (er, ep)  # (57 deg median when IRLS skipped the dark terms)
 
 
-@pytest.mark.parametrize("solver", ["lm", "dogleg", "bfgs"])
-def test_cast_shadow_refit(device, solver):
-    """A Lambertian plane facing the camera, lit by 5 of 12 lights; the other 7 in cast shadow with 3-6 % of
-    inter-reflected light (above the noise: ordinary terms).  A tilted normal fits the 12 observations better
-    than the true one under the Cauchy loss, so the robust fit ends tilted (the Mitsuba torus' backdrop seen
-    through its hole).  With ``shadow_relative`` the fit's contradiction (dark observations it predicts lit)
-    makes the solver set the dark ones aside and solve on the 5 lit ones: the exact normal, the shadowed
-    observations left out (weight ASIDE) and the lit ones kept."""
+def _backdrop_in_cast_shadow(h=2, w=4, kd=0.5):
+    """A plane facing the camera, albedo ``kd``, lit by 5 of 12 lights; the other 7 in cast shadow with 3-6 % of
+    inter-reflected light (the Mitsuba torus' backdrop seen through its hole).  ``(dirs, lit, images)``."""
     dirs = np.array([[-0.0031, 0.2468, 0.9691], [-0.2693, -0.2559, 0.9284], [0.3838, 0.0207, 0.9232],
                      [-0.3611, 0.2735, 0.8915], [0.0486, -0.5282, 0.8478], [0.3273, 0.4903, 0.8077],
                      [-0.6523, -0.1157, 0.7491], [0.633, -0.2047, 0.7466], [-0.1944, 0.7321, 0.6528],
@@ -584,10 +579,21 @@ def test_cast_shadow_refit(device, solver):
     lit = np.zeros(12, bool)
     lit[[1, 4, 8, 10, 11]] = True
     rng = np.random.default_rng(3)
+    grey = np.where(lit[:, None, None], kd * dirs[:, 2, None, None], 0.03 * kd * (1 + rng.random((12, h, w))))
+    return dirs, lit, np.repeat(grey[..., None], 3, -1).astype(np.float32)
+
+
+@pytest.mark.parametrize("solver", ["lm", "dogleg", "bfgs"])
+def test_cast_shadow_refit(device, solver):
+    """A Lambertian plane facing the camera, lit by 5 of 12 lights; the other 7 in cast shadow with 3-6 % of
+    inter-reflected light (above the noise: ordinary terms).  A tilted normal fits the 12 observations better
+    than the true one under the Cauchy loss, so the robust fit ends tilted (the Mitsuba torus' backdrop seen
+    through its hole).  With ``shadow_relative`` the fit's contradiction (dark observations it predicts lit)
+    makes the solver set the dark ones aside and solve on the 5 lit ones: the exact normal, the shadowed
+    observations left out (weight ASIDE) and the lit ones kept."""
     h, w = 2, 4
     kd = 0.5
-    grey = np.where(lit[:, None, None], kd * dirs[:, 2, None, None], 0.03 * kd * (1 + rng.random((12, h, w))))
-    img = np.repeat(grey[..., None], 3, -1).astype(np.float32)
+    dirs, lit, img = _backdrop_in_cast_shadow(h, w, kd)
     mat = Material("blinn-phong", ks=0.0, shininess=8.0)
     errs, outs = {}, {}
     for rel in (0.0, 0.1):
@@ -622,18 +628,9 @@ def test_normals_stay_on_the_visible_side(device, solver):
     backdrop seen through its hole).  Now an IRLS round whose fit faces away is not kept (the rule the pick of
     starts applies), a start facing away is pulled toward the camera, and the run after every start ended facing
     away holds its steps on the visible side (Pixel.visible_only)."""
-    dirs = np.array([[-0.0031, 0.2468, 0.9691], [-0.2693, -0.2559, 0.9284], [0.3838, 0.0207, 0.9232],
-                     [-0.3611, 0.2735, 0.8915], [0.0486, -0.5282, 0.8478], [0.3273, 0.4903, 0.8077],
-                     [-0.6523, -0.1157, 0.7491], [0.633, -0.2047, 0.7466], [-0.1944, 0.7321, 0.6528],
-                     [-0.3768, -0.6932, 0.6144], [0.7426, 0.2992, 0.5992], [-0.8755, 0.161, 0.4556]])
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    lit = np.zeros(12, bool)
-    lit[[1, 4, 8, 10, 11]] = True
-    rng = np.random.default_rng(3)
     h, w = 2, 4
     kd = 0.5
-    grey = np.where(lit[:, None, None], kd * dirs[:, 2, None, None], 0.03 * kd * (1 + rng.random((12, h, w))))
-    img = np.repeat(grey[..., None], 3, -1).astype(np.float32)
+    dirs, lit, img = _backdrop_in_cast_shadow(h, w, kd)
     mat = Material("blinn-phong", ks=0.086, shininess=8.2)
     cfg = SolverConfig(solver=solver, starts=4, robust="cauchy", irls_rounds=3, noise_level=1e-3)
     out = PixelSolver(img.shape[:3], Orthographic(), DirectionalLights(dirs), mat, cfg, device=device).run(

@@ -381,6 +381,19 @@ def solve_pixel_for(robust, run_method, spec_vg, diff_vg, module, sfx: str, lane
             brightest light is found over the lanes and each lane reweights its own lights.
     """
 
+    @wp.func(name="model_value" + sfx, module=module)
+    def model_value(best: StartResult, k: int, px: Pixel, lights: LightParams, mat: MaterialParams):
+        """The model's RGB value of light ``k`` at ``best``'s normal and albedo (the image model of
+        :mod:`gpps.kernels.solve`)."""
+        l = light_dir(lights, k, px.p)
+        e = light_radiance(lights, k, px.p)
+        dg = diff_vg(mat, best.n, l, px.v)
+        sg = spec_vg(mat, best.n, l, px.v)
+        pred = wp.vec3(0.0)
+        for c in range(3):
+            pred[c] = e[c] * (best.kd[c] * dg[0] + mat.ks * sg[0])
+        return pred
+
     @wp.func(name="irls_rounds" + sfx, module=module)
     def irls_rounds(
         best_in: StartResult,
@@ -414,14 +427,8 @@ def solve_pixel_for(robust, run_method, spec_vg, diff_vg, module, sfx: str, lane
             for k in range(k0, lights.count, dk):
                 wk = weights[k, i, j]
                 if wk != 0.0:
-                    l = light_dir(lights, k, px.p)
-                    e = light_radiance(lights, k, px.p)
                     o = images[k, i, j]
-                    dg = diff_vg(mat, best.n, l, v)
-                    sg = spec_vg(mat, best.n, l, v)
-                    pred = wp.vec3(0.0)
-                    for c in range(3):
-                        pred[c] = e[c] * (best.kd[c] * dg[0] + mat.ks * sg[0])
+                    pred = model_value(best, k, px, lights, mat)
                     keep_aside = int(0)
                     if wk == ASIDE:
                         if grey(pred) < aside:
@@ -514,13 +521,7 @@ def solve_pixel_for(robust, run_method, spec_vg, diff_vg, module, sfx: str, lane
         for k in range(k0, lights.count, dk):
             go = grey(images[k, i, j])
             if in_fit(weights[k, i, j]) and (go < aside or go >= level):
-                l = light_dir(lights, k, px.p)
-                e = light_radiance(lights, k, px.p)
-                dg = diff_vg(mat, best.n, l, v)
-                sg = spec_vg(mat, best.n, l, v)
-                pred = wp.vec3(0.0)
-                for c in range(3):
-                    pred[c] = e[c] * (best.kd[c] * dg[0] + mat.ks * sg[0])
+                pred = model_value(best, k, px, lights, mat)
                 if go < aside and grey(pred) >= CAST_CONFLICT * level:
                     conflicts += 1.0  # dark, predicted lit
                 if go >= level and grey(pred) < CAST_CONFLICT * go:
