@@ -511,7 +511,8 @@ def test_refinement_keeps_a_scene_without_shadows(device):
 
 
 def test_cli_refine_flag():
-    """``gpps reconstruct --refine`` sets FolderConfig.refine (off without the flag)."""
+    """``gpps reconstruct --refine`` / ``--no-refine`` set FolderConfig.refine; without either it is None (the
+    automatic policy)."""
     import argparse
 
     from gpps.cli.reconstruct import add_reconstruct_options, folder_config
@@ -519,7 +520,61 @@ def test_cli_refine_flag():
     p = argparse.ArgumentParser()
     add_reconstruct_options(p)
     assert folder_config(p.parse_args(["--refine"])).refine is True
-    assert folder_config(p.parse_args([])).refine is False
+    assert folder_config(p.parse_args(["--no-refine"])).refine is False
+    assert folder_config(p.parse_args([])).refine is None
+
+
+def test_automatic_refine_policy(monkeypatch):
+    """The folder flow refines with exactly 3 images (RON with a nonlinear solver and a depth), never with more,
+    always when asked, never when turned off; on CUDA without PyTorch it skips and says why."""
+    import importlib.util
+
+    import gpps
+    from gpps.flows.folder import REFINE_IMAGES, automatic_refine
+
+    auto = gpps.FolderConfig()
+    assert auto.refine is None and REFINE_IMAGES == 3
+    assert automatic_refine(3, auto, "cpu") == (True, "automatic: on with 3 images")
+    for n in (4, 6, 12, 96):
+        on, why = automatic_refine(n, auto, "cpu")
+        assert not on and f"off with {n} images" in why
+    for cfg in (gpps.FolderConfig(method="ppn"), gpps.FolderConfig(solver="none"), gpps.FolderConfig(integrate=False)):
+        assert automatic_refine(3, cfg, "cpu")[0] is False
+    assert automatic_refine(12, gpps.FolderConfig(refine=True), "cpu") == (True, "asked")
+    assert automatic_refine(3, gpps.FolderConfig(refine=False), "cpu") == (False, "turned off")
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "torch" else real(name, *a))
+    on, why = automatic_refine(3, auto, "cuda:0")
+    assert not on and "PyTorch" in why
+    assert automatic_refine(3, auto, "cpu")[0] is True  # (the CPU path needs no torch)
+    with pytest.raises(TypeError, match="refine"):
+        gpps.FolderConfig(refine="auto")
+
+
+def test_folder_flow_refines_three_images(tmp_path, device):
+    """A capture folder of the bumps with exact cast shadows under 3 directional lights (48^2, perspective,
+    Blinn-Phong): ``gpps.reconstruct_folder``'s default refines (the report says so and carries the refinement's
+    record) and the refined normals are closer to the truth than the unrefined ones (``refine=False``).  Measured
+    on the CPU: MAEN 1.04 -> 0.42 deg."""
+    import gpps
+    from gpps.io import Dataset, write_dataset
+
+    case = bump_case("directional", 3, 48, slant=60.0)
+    cam = case["camera"]
+    ds = Dataset(images=case["images"], mask=case["mask"], light_directions=case["lights"].directions,
+                 light_intensities=np.ones((3, 3), np.float32), K=np.asarray(cam.K), normal_gt=case["normals"],
+                 depth_gt=case["depth"], filenames=[f"{i:03d}.png" for i in range(1, 4)])
+    folder = write_dataset(tmp_path / "cap", ds, bits=16)
+    auto = gpps.reconstruct_folder(folder, device=device)
+    off = gpps.reconstruct_folder(folder, gpps.FolderConfig(refine=False), device=device)
+    assert auto.report["refine"] == {"on": True, "why": "automatic: on with 3 images"}
+    assert auto.report["refinement"]["accepted"] >= 1
+    assert off.report["refine"] == {"on": False, "why": "turned off"} and "refinement" not in off.report
+    m = case["mask"]
+    a = normal_errors(auto.normals, case["normals"], m)["mean"]
+    b = normal_errors(off.normals, case["normals"], m)["mean"]
+    print(f"\n3 lights, cast shadows: MAEN refine off {b:.3f} -> auto {a:.3f}")
+    assert a < 0.8 * b
 
 
 def test_refinement_survives_ragged_masks_and_missing_observations(device):

@@ -12,6 +12,7 @@ or mask.png needed); the outputs are :data:`gpps.io.OUTPUT_FILES`.  The work is
 
 from __future__ import annotations
 
+import argparse
 import json
 import time
 
@@ -70,9 +71,9 @@ def add_reconstruct_options(p) -> None:
     p.add_argument("--cast-shadows", action="store_true",
                    help="RON: leave observations in cast shadows, marched over each round's depth, out of the next "
                         "round's fit")
-    p.add_argument("--refine", action="store_true",
+    p.add_argument("--refine", action=argparse.BooleanOptionalAction, default=None,
                    help="RON: refine the depth itself after the rounds (robust misfit over every observation, normals "
-                        "tied to one surface)")
+                        "tied to one surface); default: on with exactly 3 images, off with more")
     p.add_argument("--compare-models", default=None, metavar="MODEL[,MODEL...]",
                    help="RON: other reflectance models to fit beside --brdf's in the first material fit; the one with "
                         "the lower residual is kept (e.g. plastic)")

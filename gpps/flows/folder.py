@@ -25,6 +25,7 @@ lights and ``report.json`` into a folder.
 
 from __future__ import annotations
 
+import importlib.util
 import time
 import warnings
 from dataclasses import dataclass, field, replace
@@ -34,6 +35,7 @@ from typing import Callable, Literal
 import numpy as np
 
 from gpps._check import GppsWarning, as_path, check_bool, check_choice, check_choices, check_number
+from gpps._runtime import resolve_device
 from gpps.camera import Orthographic, Perspective, camera_from_K
 from gpps.flows.integrate import integrate_normals
 from gpps.flows.photometric import solve_normals
@@ -54,7 +56,7 @@ from gpps.names import BRDF, BRDF_NAMES, SHADOW_RELATIVE_MANY, RobustName, Solve
 from gpps.pipeline.integration import IntegratorConfig
 
 __all__ = ["FolderConfig", "FolderResult", "reconstruct_folder", "automatic_solver_options", "flip_decision",
-           "MANY_IMAGES", "ESTIMATED_FILES"]
+           "MANY_IMAGES", "REFINE_IMAGES", "automatic_refine", "ESTIMATED_FILES"]
 
 FolderMethod = Literal["ron", "ppn", "pps"]
 FolderIntegration = Literal["bini", "poisson"]
@@ -63,6 +65,9 @@ Progress = Callable[[float, float, str], None]
 MANY_IMAGES = 6
 """With more images than this, the per-pixel solves expect outliers (shadows, highlights): a Cauchy loss,
 observations below 0.02 taken as shadowed and 4 starts (:func:`automatic_solver_options`)."""
+
+REFINE_IMAGES = 3
+"""With this many images RON's depth refinement runs unless the caller says otherwise (:func:`automatic_refine`)."""
 
 ESTIMATED_FILES = ("lights_estimated.txt", "light_intensities_estimated.txt", "filenames_used.txt")
 """The files an uncalibrated result writes beside the output set (:meth:`FolderResult.write`)."""
@@ -103,7 +108,8 @@ class FolderConfig:
         cast_shadows: RON: leave observations in cast shadows (marched over each round's depth) out of the
             next round's fit (``RONConfig.cast_shadows``; off by default, see there).
         refine: RON: refine the depth itself after the rounds (robust misfit over every observation, normals
-            tied to the surface: ``RONConfig.refine``).
+            tied to the surface: ``RONConfig.refine``); None (default): the automatic policy of
+            :func:`automatic_refine` (on with :data:`REFINE_IMAGES` images, off with more).
         pixel_size: orthographic camera (no K.txt): scene units per pixel; None: depth in pixels.
         reference_depth: mean object distance (scene units): sets the depth's scale; needed for point
             lights unless the folder has ``depth_gt.npy``.
@@ -132,12 +138,13 @@ class FolderConfig:
     reference_depth: float | None = None
     models: tuple[str, ...] = ()
     cast_shadows: bool = False
-    refine: bool = False
+    refine: bool | None = None
 
     def __post_init__(self):
         check_choices(self)
         check_bool("cast_shadows", self.cast_shadows)
-        check_bool("refine", self.refine)
+        if self.refine is not None:
+            check_bool("refine", self.refine)
         if self.refine and not self.integrate:
             raise ValueError("refine: refines the integrated depth, expected integrate=True, got integrate=False")
         if not isinstance(self.models, (tuple, list)) or not all(isinstance(b, str) for b in self.models):
@@ -277,6 +284,44 @@ def automatic_solver_options(n_images: int, robust: RobustName | None = None) ->
     if many:
         opts.update(shadow_threshold=0.02, shadow_relative=SHADOW_RELATIVE_MANY, starts=4)
     return opts
+
+
+def automatic_refine(n_images: int, config: FolderConfig, device: str) -> tuple[bool, str]:
+    """Whether the folder flow runs RON's depth refinement (``RONConfig.refine``), and why.
+
+    The caller's ``config.refine`` decides when given.  Otherwise the refinement runs with exactly
+    :data:`REFINE_IMAGES` images.  Principle: with three images each pixel's fit has no redundancy (three
+    observations per channel for a normal's two angles and an albedo), so a cast shadow, light bounced between
+    parts or a misfitting model moves the normal freely, and a material the three images cannot identify
+    (``identifiable=False``) bends every normal; tying the normals to one surface is then the only redundancy
+    there is.  With more images the per-pixel fits are over-determined and the surface's limits (a relief of
+    one-pixel facets cannot be held by a surface on the pixel grid) cost more than it adds
+    (``RONConfig.refine``).  Measured on our own Mitsuba development captures only (perf/results/s18/README.md;
+    3 lights, 128^2, 16-bit): seeds 3000-3009, 10 directional and 10 point captures, non-diffuse means 16.34 ->
+    14.04 deg (directional) and 24.40 -> 17.02 (point) against least squares' 15.38 / 17.96, better on 15 of 20;
+    the rough conductors, where the unrefined pipeline was far worse than least squares (point: 58.8 and 52.9
+    against 32.5 and 17.8), come back to least squares' level; it loses 0.4-2.3 deg on the stepped pyramid and
+    the sphere standing on a plane.  It needs RON with a nonlinear solver and the integrated depth, and on CUDA
+    PyTorch (the ``gpps[cuda]`` extra): without it the refinement is skipped and the reason reported.
+
+    Args:
+        n_images: the number of images N.
+        config: the folder flow's settings.
+        device: the resolved device (``"cpu"``, ``"cuda:0"``, ...).
+
+    Returns:
+        ``(on, reason)``: ``reason`` says which rule decided (for the report).
+    """
+    if config.refine is not None:
+        return config.refine, "asked" if config.refine else "turned off"
+    if n_images != REFINE_IMAGES:
+        return False, f"automatic: off with {n_images} images (on with {REFINE_IMAGES})"
+    if config.method != "ron" or config.solver == "none" or not config.integrate:
+        return False, "automatic: needs RON's rounds with a nonlinear solver and the integrated depth"
+    if str(device).startswith("cuda") and importlib.util.find_spec("torch") is None:
+        return False, ("automatic: skipped on CUDA without PyTorch (pip install 'gpps[cuda]'): results differ from "
+                       "the CPU's, which refines with 3 images")
+    return True, f"automatic: on with {REFINE_IMAGES} images"
 
 
 def flip_decision(normals, mask, flip: str) -> tuple[bool, dict]:
@@ -451,6 +496,8 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
     report["method"] = config.method
     if config.refine and (config.method != "ron" or config.solver == "none"):
         report["refine_ignored"] = "refine: runs after RON's rounds (method='ron' with a nonlinear solver)"
+    refine, why = automatic_refine(n, config, resolve_device(device))
+    report["refine"] = {"on": refine, "why": why}
     lights = PointLights(ds.light_positions) if ds.light_positions is not None else DirectionalLights(ds.light_directions)
     report["lights"] = lights.kind
     material, estimate, given_names = _material(ds, config)
@@ -489,7 +536,7 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
                                         "photometric rule (no known parameters)")
         cfg = RONConfig(rounds=config.rounds, dgmc=config.dgmc, integrate=config.integrate,
                         material_rule=config.material_rule, models=compare, cast_shadows=config.cast_shadows,
-                        refine=config.refine,
+                        refine=refine,
                         final_integrator=IntegratorConfig(bilateral=True) if config.integration == "bini" else None)
         cfg = replace(cfg, solver=replace(cfg.solver, solver=config.solver, **opts))
         rec = reconstruct(ds.images, ds.mask, lights, camera=camera, material=material, estimate=estimate,
