@@ -7,8 +7,12 @@ perf/dev_eval.py; ``backfacing`` counts mask pixels whose returned normal has n_
 camera a few rim pixels may have n_z < 0 and still face the camera).  To compare two trees, run the first mode
 from each tree (``PYTHONPATH=<tree>``) into its own file::
 
-    python perf/dev_visible_eval.py run OUT.jsonl "*directional12*seed300*,*point12*seed300*" [pipeline,ls]
+    python perf/dev_visible_eval.py run OUT.jsonl "*directional12*seed300*,*point12*seed300*" [pipeline,ls] [cpu]
     python perf/dev_visible_eval.py table A.jsonl B.jsonl [...]
+
+Methods: ``pipeline`` (the default ``FolderConfig()``), ``ls`` (least squares), ``norefine`` / ``refine`` (the
+default with ``refine=False`` / ``True``: session 18's automatic refinement with 3 images, issue 25).  The table reads
+the ``pipeline`` rows of each file (and ``ls``); the last argument of ``run`` is the device (default ``cpu``).
 """
 
 from __future__ import annotations
@@ -23,7 +27,11 @@ import warnings
 import numpy as np
 
 
-def run(out: str, patterns: str, methods: str = "pipeline") -> None:
+CONFIGS = {"pipeline": {}, "ls": {"solver": "none", "integrate": False}, "norefine": {"refine": False},
+           "refine": {"refine": True}}
+
+
+def run(out: str, patterns: str, methods: str = "pipeline", device: str = "cpu") -> None:
     import gpps
     from gpps.host.metrics import normal_errors
     from gpps.io import read_capture
@@ -37,13 +45,14 @@ def run(out: str, patterns: str, methods: str = "pipeline") -> None:
         for c in caps:
             ds = read_capture(c).dataset
             for m in methods.split(","):
-                cfg = gpps.FolderConfig() if m == "pipeline" else gpps.FolderConfig(solver="none", integrate=False)
+                cfg = gpps.FolderConfig(**CONFIGS[m])
                 t = time.perf_counter()
-                r = gpps.reconstruct_folder(c, cfg, device="cpu")
+                r = gpps.reconstruct_folder(c, cfg, device=device)
                 dt = time.perf_counter() - t
                 e = normal_errors(r.normals, ds.normal_gt, ds.mask)
                 row = dict(capture=os.path.basename(c), method=m, maen=e["mean"], median=e["median"], seconds=dt,
-                           backfacing=int(((r.normals[..., 2] < 0) & ds.mask).sum()))
+                           backfacing=int(((r.normals[..., 2] < 0) & ds.mask).sum()), device=device,
+                           refine=r.report.get("refine"))
                 f.write(json.dumps(row) + "\n")
                 f.flush()
                 print(row, flush=True)
@@ -80,7 +89,7 @@ def table(files: list[str]) -> None:
 
 if __name__ == "__main__":
     if len(sys.argv) >= 4 and sys.argv[1] == "run":
-        run(*sys.argv[2:5])
+        run(*sys.argv[2:6])
     elif len(sys.argv) >= 3 and sys.argv[1] == "table":
         table(sys.argv[2:])
     else:
