@@ -142,7 +142,7 @@ class DeviceSystem(Stage):
                            *self._cam[1:], float(cfg.min_nz), h, w)
         return self._solve_assembled(out, reference_depth, outside, self._weighted)
 
-    def step_increment(self, steps, conf, base, out, wplus=None) -> bool:
+    def step_increment(self, steps, conf, base, out, wplus=None, tol: float | None = None) -> bool:
         """Solve the weighted system of per-pixel step *increments* and confidences and move ``base`` by its
         solution into ``out``, on the device: :class:`gpps.pipeline.depth_refine.DepthRefiner`'s Gauss-Newton
         step (:mod:`gpps.kernels.depth_refine`).  Increments, not targets: with zero increments the solution
@@ -158,6 +158,7 @@ class DeviceSystem(Stage):
                 log-depth under perspective, the depth otherwise); ``base`` where a pixel is not in the system.
             wplus: optional (H, W, 2) float32 forward shares of each pixel's term along j and i (BiNI's ``w+``;
                 None: 1/2, the central split).
+            tol: the CG's relative residual (None: the integrator's ``config.tol``).
 
         Returns:
             False when fewer than 2 pixels have positive confidences (nothing written).
@@ -169,18 +170,18 @@ class DeviceSystem(Stage):
         F["st"].fill(0)
         KW.assemble_targets(steps, conf, F["mask"], F["gj"], F["gi"], F["cj"], F["ci"], F["st"], h, w)
         # (alpha 1: the refinement's Levenberg-Marquardt steps were validated with the Galerkin levels)
-        if not self._solve_system(1, wplus, alpha=1.0):
+        if not self._solve_system(1, wplus, alpha=1.0, tol=tol):
             return False
         d = integ._ensure_device()
         KW.component_sums(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], F["cmax"], F["cmin"], F["st"], h, w)
         KW.depth_add(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], base, out, self._cam[0], h, w)
         return True
 
-    def _solve_system(self, weighted: int, wplus=None, alpha: float | None = None) -> bool:
+    def _solve_system(self, weighted: int, wplus=None, alpha: float | None = None, tol: float | None = None) -> bool:
         """Edges, levels, the coarsest pseudo-inverse and the CG from ``z = 0`` once ``gj, gi, cj, ci`` and the
         statistics are assembled; False (``last`` holds the invalid count) when fewer than 2 pixels are valid.
         ``alpha``: the coarse levels' scale (None: :func:`gpps.pipeline.integration.coarse_alpha` of the system,
-        as the host path's)."""
+        as the host path's); ``tol``: the CG's relative residual (None: the integrator's ``config.tol``)."""
         integ, F = self.integrator, self._F
         d = integ._ensure_device()
         cfg = integ.config
@@ -212,7 +213,7 @@ class DeviceSystem(Stage):
         integ.set_coarsest(lvl[0], lvl[1])
         integ._levels_key = None  # the host path must upload its own levels again
         d["z"].fill(0)
-        its, res = integ._iterate(None, cfg.tol)
+        its, res = integ._iterate(None, cfg.tol if tol is None else float(tol))
         self.last = {"invalid": invalid, "iterations": int(its), "residual": float(res)}
         return True
 
