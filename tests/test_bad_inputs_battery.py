@@ -361,3 +361,72 @@ def test_single_image_scale_is_free(capture):
     a, _ = prepare_images(img[0], sc.mask)
     b, _ = prepare_images(img[0] * np.float32(1e-30), sc.mask)
     np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6)
+
+
+# ------------------------------------------------------------------ image scale (session 18)
+
+
+def test_working_scale_is_one_in_its_band_and_a_power_of_two_outside():
+    from gpps.flows.photometric import WORKING_ALBEDO, WORKING_IMAGES, working_scale
+
+    sc = gpps.make_scene("sphere", 24, "orthographic")
+    lights = gpps.DirectionalLights(DIRS)
+    img = gpps.render(sc, gpps.Material("lambertian", ks=0.0), lights, device=DEV).astype(np.float32)
+    base = working_scale(img, sc.mask, lights)
+    assert base["images"] == base["lights"] == 1.0
+    assert WORKING_ALBEDO[0] <= base["albedo_scale"] <= WORKING_ALBEDO[1]
+    assert WORKING_IMAGES[0] <= base["image_scale"] <= WORKING_IMAGES[1]
+    for s in (1e3, 2.0 ** -9, 1e7):  # images alone: the albedo scale moves (and from 1e7 on the images' too)
+        ws = working_scale(img * np.float32(s), sc.mask, lights)
+        assert ws["images"] == (1.0 if s < WORKING_IMAGES[1] else 2.0 ** round(np.log2(1.0 / ws["image_scale"])))
+        f = ws["images"] / ws["lights"]  # (the working albedo over the caller's)
+        assert f == 2.0 ** round(np.log2(f))  # a power of two: exact
+        assert 2.0 ** -0.5 <= ws["albedo_scale"] * f <= 2.0 ** 0.5  # brought near 1
+    # images and radiance together: the albedo scale stays, the images are brought near 1
+    ws = working_scale(img * np.float32(1e-8), sc.mask,
+                       gpps.DirectionalLights(DIRS, np.full((len(DIRS), 3), 1e-8)))
+    assert ws["images"] == 2.0 ** round(np.log2(1.0 / ws["image_scale"]))
+    assert 0.5 <= ws["image_scale"] * ws["images"] <= 2.0
+    assert ws["albedo_scale"] * ws["images"] / ws["lights"] == pytest.approx(base["albedo_scale"], rel=1e-3)
+
+
+def test_point_lights_albedo_scale_counts_the_falloff():
+    """Point lights 5 units away: the images are 1/25 of the albedo's order; the albedo scale undoes the falloff."""
+    from gpps.flows.photometric import working_scale
+
+    pos = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, -1.0, 0.0]])
+    lights = gpps.PointLights(pos)
+    img = np.full((4, 8, 8, 3), 0.5 / 25.0, np.float32)
+    mask = np.ones((8, 8), bool)
+    ws = working_scale(img, mask, lights, reference_depth=5.0)
+    assert ws["albedo_scale"] == pytest.approx(0.5 * 27.0 / 25.0, rel=1e-3)  # (r^2 from 25 to 27: the brightest 27)
+    assert ws["images"] == ws["lights"] == 1.0
+    assert working_scale(img, mask, lights)["albedo_scale"] == pytest.approx(0.02, rel=1e-5)  # (no depth: I / E)
+
+
+def test_reconstruct_is_scale_free():
+    """Raw counts with unit intensities (images x 1000, 1e-4), and images and radiance both x 1e-8: before, the
+    estimated ks sat on a bound of its range and the normals were 5-25 deg off (the search ranges and tolerances
+    are absolute); now the same normals, and albedo, ks and residuals in the caller's scale, with a warning that
+    says what was done.  Blinn-Phong bumps, 6 directional lights, 32^2, material unknown."""
+    sc = gpps.make_scene("bumps", 32, "perspective")
+    L = gpps.default_lights("directional", 6)
+    img = gpps.render(sc, gpps.Material("blinn-phong", ks=0.4, shininess=30.0), L, bits=16, device=DEV)
+    img = (img / L.intensities[:, None, None, :]).astype(np.float32)
+    unit = gpps.DirectionalLights(L.directions)
+    ref = gpps.reconstruct(img, sc.mask, unit, camera=sc.camera, material="blinn-phong", device=DEV)
+    e0 = gpps.normal_errors(ref.normals, sc.normals, sc.mask)["mean"]
+    assert e0 < 0.5 and not any("albedo scale" in w for w in ref.warnings)
+    m = sc.mask
+    for s, lights in ((1e3, unit), (1e-4, unit), (1e-8, gpps.DirectionalLights(L.directions, np.full((6, 3), 1e-8)))):
+        with pytest.warns(gpps.GppsWarning, match="albedo scale"):
+            r = gpps.reconstruct(img * np.float32(s), m, lights, camera=sc.camera, material="blinn-phong", device=DEV)
+        e = gpps.normal_errors(r.normals, sc.normals, m)["mean"]
+        f = s / float(np.asarray(lights.intensities).mean())  # (the albedo's factor)
+        print(f"\nscale {s:g}: MAEN {e:.4f} (unit scale {e0:.4f}), ks {r.material.ks:.4g} (unit {ref.material.ks:.4g})")
+        assert e < e0 + 0.05
+        assert r.material.ks == pytest.approx(ref.material.ks * f, rel=0.05)
+        assert np.median(r.albedo[m][:, 0]) == pytest.approx(np.median(ref.albedo[m][:, 0]) * f, rel=0.05)
+        assert np.median(r.residual[m]) == pytest.approx(np.median(ref.residual[m]) * s, rel=0.5)
+        assert r.energy[-1] == pytest.approx(ref.energy[-1] * s * s, rel=0.5)  # (the converged round)
+        assert any("albedo scale" in w for w in r.warnings)

@@ -117,6 +117,71 @@ ALBEDO_RANGE = (1e-12, 1e9)
 #: Below this share of determined mask pixels the input is degenerate (an error); below WARN_DETERMINED a warning.
 MIN_DETERMINED = 0.2
 WARN_DETERMINED = 0.5
+#: WORKING_ALBEDO: the albedo scale (:func:`working_scale`) within which the pipeline's absolute constants hold
+#: (the material searches' ranges, :data:`gpps.names.LOBE_RANGES`, and the solvers' tolerances); outside it
+#: :func:`gpps.reconstruct` solves at a power of two times it that brings it to about 1.
+WORKING_ALBEDO = (1.0 / 16.0, 4.0)
+#: WORKING_IMAGES: the same for the images' own scale (their brightest values, the residuals' unit)
+WORKING_IMAGES = (2.0 ** -12, 2.0 ** 12)
+#: the most mask pixels :func:`working_scale` reads (a strided sample)
+SCALE_SAMPLE = 1 << 16
+
+
+def _power_of_two_into(x: float, band: tuple[float, float]) -> float:
+    """1 when ``x`` lies in ``band`` (or is not a positive number), else the power of two nearest ``1 / x``."""
+    if not (x > 0.0 and np.isfinite(x)) or band[0] <= x <= band[1]:
+        return 1.0
+    return float(2.0 ** int(np.round(-np.log2(x))))
+
+
+def working_scale(images, mask, lights, *, reference_depth: float | None = None) -> dict:
+    """The powers of two the pipeline's solves multiply the images and the lights' radiance by.
+
+    The image model ``I = E (kd t_d + ks t_s)`` is linear in the images, the radiance ``E`` and the albedo and
+    ks, but the pipeline's constants are absolute: the material searches' ranges (ks in [0.02, 3],
+    :data:`gpps.names.LOBE_RANGES`) assume albedos of order one, and the solvers' tolerances images of order one
+    (8- and 16-bit images read as [0, 1]).  Raw sensor counts with unit intensities (albedo scale in the
+    thousands) or images in radiometric units (1e-6) left the estimated ks on a bound of its range and the
+    normals 5-25 deg off.  So two scales are measured on (a strided sample of) the mask's observations:
+
+    * the image scale ``b``: the 99.9th percentile of the grey values;
+    * the albedo scale ``a``: the 99.9th percentile of the grey value over the light's radiance at the object,
+      ``I_k / E_k`` for directional lights, ``I_k r_k^2 / E_k`` for point lights (``r_k`` the light's distance to
+      the point on the optical axis at ``reference_depth``; without it, ``I_k / E_k``).
+
+    Within :data:`WORKING_IMAGES` and :data:`WORKING_ALBEDO` nothing changes.  Outside, the images are multiplied
+    by ``s_images``, the power of two nearest ``1 / b`` (else 1), and the radiance by ``s_lights = s_images / t``
+    with ``t`` the power of two nearest ``1 / a`` (else 1): the working albedo ``a t`` is near 1, or ``a`` itself
+    when it was in its band.  Powers of two are exact in floating point: the same normals and depth, the albedo
+    and ks ``t`` times the caller's.  The bands are where the pipeline was
+    measured scale-free on synthetic ground truth (session 18, ``perf/results/s18/README.md``: Blinn-Phong bumps
+    under 8 lights and Cook-Torrance bumps and sphere under 3 and 4: the same MAEN from 1/16 to 4 times a 16-bit
+    rendering's albedo scale, and for images and radiance scaled together from 1e-3 to 1e9).
+
+    Args:
+        images: (N, H, W, C) float images (checked).
+        mask: (H, W) bool.
+        lights: the lights (their intensities are the radiance ``E_k``).
+        reference_depth: the object's mean depth (scene units), for point lights.
+
+    Returns:
+        ``{"images": s_images, "lights": s_lights, "image_scale": b, "albedo_scale": a}``.
+    """
+    img = images if images.ndim == 4 else images[..., None]
+    idx = np.flatnonzero(mask)
+    if idx.size > SCALE_SAMPLE:
+        idx = idx[:: -(-idx.size // SCALE_SAMPLE)]
+    grey = img.reshape(img.shape[0], -1, img.shape[-1])[:, idx].mean(axis=-1, dtype=np.float64)  # (N, P)
+    e = np.asarray(lights.intensities, np.float64).mean(axis=1)  # (N,)
+    per = np.where(e > 0, 1.0 / np.where(e > 0, e, 1.0), 0.0)
+    if isinstance(lights, PointLights) and reference_depth is not None:
+        p = np.asarray(lights.positions, np.float64) - np.array([0.0, 0.0, -float(reference_depth)])
+        per = per * np.einsum("ij,ij->i", p, p)
+    b = float(np.percentile(grey, 99.9)) if grey.size else 0.0
+    a = float(np.percentile(grey * per[:, None], 99.9)) if grey.size else 0.0
+    s_images = _power_of_two_into(b, WORKING_IMAGES)
+    t = _power_of_two_into(a, WORKING_ALBEDO)  # the working albedo over the caller's: s_images / s_lights
+    return {"images": s_images, "lights": s_images / t, "image_scale": b, "albedo_scale": a}
 
 
 def _masked_statistics(img, mask, valid, saturation):

@@ -29,8 +29,15 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from gpps._check import as_array, as_flags, check_number
-from gpps.flows.photometric import check_inputs, check_observations, input_saturation
+from gpps._check import as_array, as_flags, check_number, warn
+from gpps.flows.photometric import (
+    WORKING_ALBEDO,
+    WORKING_IMAGES,
+    check_inputs,
+    check_observations,
+    input_saturation,
+    working_scale,
+)
 from gpps.flows.ron import LOBE_PARAMETERS, RON, RONConfig
 from gpps.material import BRDF_NAMES, Material
 from gpps.names import SHADOW_RELATIVE_MANY
@@ -125,6 +132,45 @@ def _material(material, estimate) -> tuple[Material, tuple[str, ...], dict, tupl
     return mat, names, fixed, models
 
 
+def _scaled_material(mat: Material, scale: float) -> Material:
+    """``mat`` for albedos times ``scale``: the image model is linear in the albedo and ks (both scale with the
+    images over the radiance; the lobe's shape and Fresnel f0 do not)."""
+    return replace(mat, ks=float(mat.ks) * scale)
+
+
+def _unscaled_result(res, factor: float, s_images: float):
+    """RON's result at the working scales (:func:`gpps.flows.photometric.working_scale`) in the caller's: the albedo
+    and ks divided by ``factor`` (the working albedo over the caller's), the residuals by ``s_images`` and energies
+    (squared residuals) by its square; normals, depth, flags and the lobe's shape are the same."""
+    inv, res_inv, inv2 = 1.0 / factor, 1.0 / s_images, 1.0 / (s_images * s_images)
+    fits = []
+    for f in res.material_fit:
+        f = dict(f)
+        if isinstance(f.get("values"), dict) and "ks" in f["values"]:
+            f["values"] = {**f["values"], "ks": f["values"]["ks"] * inv}
+        if isinstance(f.get("energy"), (int, float)):
+            f["energy"] = f["energy"] * inv2
+        if isinstance(f.get("models"), dict):  # (each compared model's sampled energy)
+            f["models"] = {k: (v * inv2 if isinstance(v, (int, float)) else v) for k, v in f["models"].items()}
+        fits.append(f)
+    ref = res.refinement
+    if ref is not None:
+        ref = dict(ref)
+        for k in ("energy",):
+            if isinstance(ref.get(k), list):
+                ref[k] = [v * inv2 for v in ref[k]]
+        for k in ("start_energy",):
+            if isinstance(ref.get(k), (int, float)):
+                ref[k] = ref[k] * inv2
+        if isinstance(ref.get("sigma"), (int, float)):
+            ref["sigma"] = ref["sigma"] * res_inv
+    est = {k: (v * inv if k == "ks" else v) for k, v in res.estimated.items()}
+    return replace(res, albedo=(res.albedo * np.float32(inv)).astype(res.albedo.dtype),
+                   residual=(res.residual * np.float32(res_inv)).astype(res.residual.dtype),
+                   energy=[e * inv2 for e in res.energy], material=_scaled_material(res.material, inv),
+                   estimated=est, material_fit=fits, refinement=ref)
+
+
 def reconstruct(
     images,
     mask,
@@ -145,7 +191,10 @@ def reconstruct(
 
     Args:
         images: (N, H, W, 3) RGB or (N, H, W) grey images >= 0, N >= 3, divided by
-            the light intensities when ``lights`` has unit intensities.
+            the light intensities when ``lights`` has unit intensities.  Any scale: far from an albedo
+            and image scale of order one the solve runs on the images and intensities times powers of two
+            (:func:`gpps.flows.photometric.working_scale`, with a warning), and the albedo, ks, residuals and
+            energies come back in the images' scale.
         mask: (H, W) bool object mask.
         lights: :class:`DirectionalLights` or :class:`PointLights` (N, scene units).
         camera: :class:`Orthographic` (default) or :class:`Perspective`.
@@ -202,11 +251,31 @@ def reconstruct(
     notes: list[str] = []
     determined = check_observations(img, m, lights, valid=val, saturation=input_saturation(images, saturation),
                                     reference_depth=ref, sink=notes)
+    # images or albedos far from order one: solved at powers of two times their scales (working_scale)
+    ws = working_scale(img, m, lights, reference_depth=ref)
+    factor = ws["images"] / ws["lights"]  # (the working albedo and ks over the caller's)
+    if ws["images"] != 1.0 or ws["lights"] != 1.0:
+        warn(f"images: their scale {ws['image_scale']:.3g} (brightest values) and albedo scale "
+             f"{ws['albedo_scale']:.3g} (brightest values over the lights' radiance) lie outside "
+             f"[{WORKING_IMAGES[0]:g}, {WORKING_IMAGES[1]:g}] and [{WORKING_ALBEDO[0]:g}, {WORKING_ALBEDO[1]:g}] "
+             f"where the pipeline's constants hold; solved with the images times {ws['images']:g} and the "
+             f"lights' intensities times {ws['lights']:g} (exact), albedo, ks and residuals returned in the images' "
+             "scale", notes)
+        img = img * np.float32(ws["images"])
+        lights = replace(lights, intensities=np.asarray(lights.intensities, np.float64) * ws["lights"])
+        mat = _scaled_material(mat, factor)
+        sv = cfg.solver.saturation
+        cfg = replace(cfg, solver=replace(cfg.solver, saturation=None if sv is None else float(sv) * ws["images"]))
+        if cfg.dgmc_config.saturation is not None:
+            cfg = replace(cfg, dgmc_config=replace(cfg.dgmc_config,
+                                                   saturation=float(cfg.dgmc_config.saturation) * ws["images"]))
     ron = RON((n, h, w), camera, lights, mat, m, cfg, device=device)
     try:
         res = ron.run(img, depth=depth, reference_depth=reference_depth, valid=val, progress=progress)
     finally:
         ron.close()
+    if ws["images"] != 1.0 or ws["lights"] != 1.0:
+        res = _unscaled_result(res, factor, ws["images"])
     return Reconstruction(
         normals=res.normals, albedo=res.albedo, depth=res.depth, mask=m, depth_mask=res.depth_mask,
         material=res.material, estimated=res.estimated,
