@@ -123,8 +123,9 @@ WARN_DETERMINED = 0.5
 WORKING_ALBEDO = (1.0 / 16.0, 4.0)
 #: WORKING_IMAGES: the same for the images' own scale (their brightest values, the residuals' unit)
 WORKING_IMAGES = (2.0 ** -12, 2.0 ** 12)
-#: the most mask pixels :func:`working_scale` reads (a strided sample)
-SCALE_SAMPLE = 1 << 16
+#: about the most observations :func:`working_scale` reads (a strided grid of pixels, every image; at least
+#: 1024 pixels): its percentiles only have to be right within a factor of about 2 (powers of two, wide bands)
+SCALE_SAMPLE = 1 << 14
 
 
 def _power_of_two_into(x: float, band: tuple[float, float]) -> float:
@@ -142,7 +143,8 @@ def working_scale(images, mask, lights, *, reference_depth: float | None = None)
     :data:`gpps.names.LOBE_RANGES`) assume albedos of order one, and the solvers' tolerances images of order one
     (8- and 16-bit images read as [0, 1]).  Raw sensor counts with unit intensities (albedo scale in the
     thousands) or images in radiometric units (1e-6) left the estimated ks on a bound of its range and the
-    normals 5-25 deg off.  So two scales are measured on (a strided sample of) the mask's observations:
+    normals 5-25 deg off.  So two scales are measured on the observations of a strided grid of the mask's pixels
+    (about :data:`SCALE_SAMPLE` observations):
 
     * the image scale ``b``: the 99.9th percentile of the grey values;
     * the albedo scale ``a``: the 99.9th percentile of the grey value over the light's radiance at the object,
@@ -168,10 +170,11 @@ def working_scale(images, mask, lights, *, reference_depth: float | None = None)
         ``{"images": s_images, "lights": s_lights, "image_scale": b, "albedo_scale": a}``.
     """
     img = images if images.ndim == 4 else images[..., None]
-    idx = np.flatnonzero(mask)
-    if idx.size > SCALE_SAMPLE:
-        idx = idx[:: -(-idx.size // SCALE_SAMPLE)]
-    grey = img.reshape(img.shape[0], -1, img.shape[-1])[:, idx].mean(axis=-1, dtype=np.float64)  # (N, P)
+    n = img.shape[0]
+    pixels = max(SCALE_SAMPLE // max(n, 1), 1024)
+    step = max(1, int(np.sqrt(np.count_nonzero(mask) / pixels)))
+    sub = mask[::step, ::step]
+    grey = img[:, ::step, ::step][:, sub].mean(axis=-1, dtype=np.float64)  # (N, P): a strided grid's observations
     e = np.asarray(lights.intensities, np.float64).mean(axis=1)  # (N,)
     per = np.where(e > 0, 1.0 / np.where(e > 0, e, 1.0), 0.0)
     if isinstance(lights, PointLights) and reference_depth is not None:
