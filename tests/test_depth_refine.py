@@ -572,6 +572,8 @@ def test_automatic_refine_policy(monkeypatch):
         assert not on and f"off with {n} images" in why
     for cfg in (gpps.FolderConfig(method="ppn"), gpps.FolderConfig(solver="none"), gpps.FolderConfig(integrate=False)):
         assert automatic_refine(3, cfg, "cpu")[0] is False
+    on, why = automatic_refine(3, gpps.FolderConfig(method="ppn", refine=True), "cpu")
+    assert not on and why.startswith("asked, but")  # (the report must not say it ran)
     assert automatic_refine(12, gpps.FolderConfig(refine=True), "cpu") == (True, "asked")
     assert automatic_refine(3, gpps.FolderConfig(refine=False), "cpu") == (False, "turned off")
     real = importlib.util.find_spec

@@ -292,16 +292,16 @@ def automatic_refine(n_images: int, config: FolderConfig, device: str) -> tuple[
     The caller's ``config.refine`` decides when given.  Otherwise the refinement runs with exactly
     :data:`REFINE_IMAGES` images.  Principle: with three images each pixel's fit has no redundancy (three
     observations per channel for a normal's two angles and an albedo), so a cast shadow, light bounced between
-    parts or a misfitting model moves the normal freely, and a material the three images cannot identify
-    (``identifiable=False``) bends every normal; tying the normals to one surface is then the only redundancy
-    there is.  With more images the per-pixel fits are over-determined and the surface's limits (a relief of
+    parts or a misfitting model moves the normal freely, and a material the three images cannot identify (of a
+    grey object every candidate fits each pixel) bends every normal; tying the normals to one surface is then the
+    only redundancy there is.  With more images the per-pixel fits are over-determined and the surface's limits (a relief of
     one-pixel facets cannot be held by a surface on the pixel grid) cost more than it adds
     (``RONConfig.refine``).  Measured on our own Mitsuba development captures only (perf/results/s18/README.md;
     3 lights, 128^2, 16-bit): seeds 3000-3009, 10 directional and 10 point captures, non-diffuse means 16.34 ->
-    14.04 deg (directional) and 24.40 -> 17.02 (point) against least squares' 15.38 / 17.96, better on 15 of 20;
+    14.05 deg (directional) and 24.40 -> 17.02 (point) against least squares' 15.38 / 17.96, better on 15 of 20;
     the rough conductors, where the unrefined pipeline was far worse than least squares (point: 58.8 and 52.9
-    against 32.5 and 17.8), come back to least squares' level; it loses 0.4-2.3 deg on the stepped pyramid and
-    the sphere standing on a plane.  It needs RON with a nonlinear solver and the integrated depth, and on CUDA
+    against 32.5 and 17.8), come back to least squares' level; it loses 0.2-2.3 deg on 5 (the stepped pyramid
+    twice, under point lights the sphere standing on a plane, the five spheres and the superquadric).  It needs RON with a nonlinear solver and the integrated depth, and on CUDA
     PyTorch (the ``gpps[cuda]`` extra): without it the refinement is skipped and the reason reported.
 
     Args:
@@ -312,12 +312,15 @@ def automatic_refine(n_images: int, config: FolderConfig, device: str) -> tuple[
     Returns:
         ``(on, reason)``: ``reason`` says which rule decided (for the report).
     """
-    if config.refine is not None:
-        return config.refine, "asked" if config.refine else "turned off"
+    if config.refine is False:
+        return False, "turned off"
+    if config.method != "ron" or config.solver == "none" or not config.integrate:
+        return False, ("asked, but " if config.refine else "automatic: ") + (
+            "it needs RON's rounds with a nonlinear solver and the integrated depth")
+    if config.refine:
+        return True, "asked"
     if n_images != REFINE_IMAGES:
         return False, f"automatic: off with {n_images} images (on with {REFINE_IMAGES})"
-    if config.method != "ron" or config.solver == "none" or not config.integrate:
-        return False, "automatic: needs RON's rounds with a nonlinear solver and the integrated depth"
     if str(device).startswith("cuda") and importlib.util.find_spec("torch") is None:
         return False, ("automatic: skipped on CUDA without PyTorch (pip install 'gpps[cuda]'): results differ from "
                        "the CPU's, which refines with 3 images")

@@ -260,7 +260,7 @@ def reconstruct(
              f"[{WORKING_IMAGES[0]:g}, {WORKING_IMAGES[1]:g}] and [{WORKING_ALBEDO[0]:g}, {WORKING_ALBEDO[1]:g}] "
              f"where the pipeline's constants hold; solved with the images times {ws['images']:g} and the "
              f"lights' intensities times {ws['lights']:g} (exact), albedo, ks and residuals returned in the images' "
-             "scale", notes)
+             "scale (other warnings' ks values and search bounds are at the working scale)", notes)
         img = img * np.float32(ws["images"])
         lights = replace(lights, intensities=np.asarray(lights.intensities, np.float64) * ws["lights"])
         mat = _scaled_material(mat, factor)
