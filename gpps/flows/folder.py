@@ -497,9 +497,7 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
     ds = cap.dataset
     n, h, w = ds.images.shape[:3]
     report["method"] = config.method
-    if config.refine and (config.method != "ron" or config.solver == "none"):
-        report["refine_ignored"] = "refine: runs after RON's rounds (method='ron' with a nonlinear solver)"
-    refine, why = automatic_refine(n, config, resolve_device(device))
+    refine, why = automatic_refine(n, config, resolve_device(device))  # (says "asked, but ..." when it cannot run)
     report["refine"] = {"on": refine, "why": why}
     lights = PointLights(ds.light_positions) if ds.light_positions is not None else DirectionalLights(ds.light_directions)
     report["lights"] = lights.kind
@@ -620,8 +618,8 @@ def reconstruct_folder(folder, config: FolderConfig | None = None, *, lights=Non
     if uncalibrated:
         sol = _uncalibrated(cap, camera, report, device, progress)
         sol.update(depth=None, depth_mask=None)
-        if config.refine:
-            report["refine_ignored"] = "refine: runs after RON's rounds, which an uncalibrated capture does not run"
+        report["refine"] = {"on": False, "why": ("asked, but " if config.refine else "automatic: ")
+                            + "an uncalibrated capture runs no RON rounds to refine after"}
     else:
         sol = _calibrated(cap, camera, config, reference, source, report, device, progress, pixel_solve)
         reference, source = sol["reference"], sol["source"]

@@ -146,24 +146,17 @@ def _unscaled_result(res, factor: float, s_images: float):
     fits = []
     for f in res.material_fit:
         f = dict(f)
-        if isinstance(f.get("values"), dict) and "ks" in f["values"]:
+        if "ks" in f.get("values", {}):
             f["values"] = {**f["values"], "ks": f["values"]["ks"] * inv}
-        if isinstance(f.get("energy"), (int, float)):
+        if f.get("energy") is not None:
             f["energy"] = f["energy"] * inv2
-        if isinstance(f.get("models"), dict):  # (each compared model's sampled energy)
-            f["models"] = {k: (v * inv2 if isinstance(v, (int, float)) else v) for k, v in f["models"].items()}
+        if "models" in f:  # (each compared model's sampled energy)
+            f["models"] = {k: v * inv2 for k, v in f["models"].items()}
         fits.append(f)
-    ref = res.refinement
-    if ref is not None:
-        ref = dict(ref)
-        for k in ("energy",):
-            if isinstance(ref.get(k), list):
-                ref[k] = [v * inv2 for v in ref[k]]
-        for k in ("start_energy",):
-            if isinstance(ref.get(k), (int, float)):
-                ref[k] = ref[k] * inv2
-        if isinstance(ref.get("sigma"), (int, float)):
-            ref["sigma"] = ref["sigma"] * res_inv
+    ref = None
+    if res.refinement is not None:
+        ref = {**res.refinement, "energy": [v * inv2 for v in res.refinement["energy"]],
+               "start_energy": res.refinement["start_energy"] * inv2, "sigma": res.refinement["sigma"] * res_inv}
     est = {k: (v * inv if k == "ks" else v) for k, v in res.estimated.items()}
     return replace(res, albedo=(res.albedo * np.float32(inv)).astype(res.albedo.dtype),
                    residual=(res.residual * np.float32(res_inv)).astype(res.residual.dtype),
