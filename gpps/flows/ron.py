@@ -109,6 +109,32 @@ _FIRST_XATOL, _XATOL = 0.05, 1e-3
 _LATER_STEP = (0.01, 0.15)
 
 
+def initial_simplex(x0, step, lo, hi) -> np.ndarray:
+    """Nelder-Mead's initial simplex in the box ``[lo, hi]``: vertex 0 is ``x0``, vertex ``i + 1`` moves
+    parameter ``i`` by ``step[i]`` toward the inside: upward, or downward where the upward vertex would leave
+    the box (a start on the upper bound, where the grid's best point often lies).  A vertex clipped back onto
+    ``x0`` would make the simplex flat along that parameter, and Nelder-Mead could then never move it.
+
+    Args:
+        x0: (d,) the start (log units), inside the box.
+        step: (d,) the edge lengths (> 0).
+        lo, hi: (d,) the box.
+
+    Returns:
+        (d + 1, d) the simplex.
+    """
+    x0 = np.asarray(x0, np.float64)
+    step = np.asarray(step, np.float64)
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    rows = [x0]
+    for i in range(x0.size):
+        v = x0.copy()
+        up, down = x0[i] + step[i], x0[i] - step[i]
+        v[i] = up if up <= hi[i] or x0[i] - lo[i] < hi[i] - x0[i] else down
+        rows.append(np.clip(v, lo, hi))
+    return np.vstack(rows)
+
+
 def estimable_parameters(brdf: str) -> tuple[str, ...]:
     """Names of the scene parameters :class:`RON` can estimate for a reflectance model."""
     check_choice("brdf", brdf, LOBE_PARAMETERS)
@@ -824,7 +850,7 @@ class RON:
                     scorer.set_start(frame=normals)
                 warm = True
         if c.material_evals > 0 and names and c.material_search != "pattern":
-            simplex = np.vstack([x0] + [x0 + np.eye(len(names))[i] * step[i] for i in range(len(names))])
+            simplex = initial_simplex(x0, step, lo, hi)
             if self._device_loop() and c.material_evals > len(names) + 1:
                 # the initial simplex in one batch from the host, then every step on the device
                 f_init = score(list(simplex))
