@@ -16,7 +16,8 @@ from cases import depth_error
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
 from gpps.host.metrics import angular_error
-from gpps.flows.ron import RON, RONConfig, depth_rms_roughness, estimable_parameters, initial_simplex
+from gpps.flows.ron import (AMBIGUITY_DEG, RON, RONConfig, depth_rms_roughness, estimable_parameters, initial_simplex,
+                            material_ambiguity, on_bound)
 from gpps.host.scenes import make_scene
 from gpps.flows.synthetic import default_lights, render
 
@@ -80,7 +81,49 @@ def test_material_fit_recovers_parameters(brdf, device):
     for k in names:
         assert getattr(mat, k) == pytest.approx(getattr(TRUE[brdf], k), rel=0.03), (k, info)
     assert info["identifiable"] is True
+    assert info["ambiguity"]["near"] <= 2 and info["ambiguity"]["ambiguity_deg"] < 0.5, info["ambiguity"]
     ron.close()
+
+
+def test_material_ambiguity_measures_the_normals():
+    """The candidates within the noise of the best decide; their normals' mean angle to the best's is the answer."""
+    p = 50
+    up = np.tile([0.0, 0.0, 1.0], (p, 1))
+    t = np.radians(10.0)
+    tilted = np.tile([np.sin(t), 0.0, np.cos(t)], (p, 1))
+    normals = np.stack([up, tilted, tilted])
+    a = material_ambiguity([1.0e-6, 1.5e-6, 9.0e-6], normals, noise_var=1.0e-6)  # the third is outside the noise
+    assert a["near"] == 2 and a["candidates"] == 3 and a["ambiguity_deg"] == pytest.approx(10.0, abs=1e-6)
+    a = material_ambiguity([1.0e-6, 1.5e-6, 9.0e-6], normals, noise_var=1.0e-7)  # only the best
+    assert a["near"] == 1 and a["ambiguity_deg"] == 0.0
+    holes = normals.copy()
+    holes[1, :25] = np.nan  # pixels a candidate did not solve are left out for every candidate
+    holes[1, 25:] = up[25:]
+    assert material_ambiguity([1.0, 1.0, 1.0], holes, noise_var=0.0)["ambiguity_deg"] == pytest.approx(10.0, abs=1e-6)
+    with pytest.raises(ValueError, match="normals: expected"):
+        material_ambiguity([1.0, 2.0], normals, noise_var=0.0)
+
+
+def test_grey_three_image_material_is_reported_open(device):
+    """Three images of a grey object fit any lobe (three observations per pixel for a normal and an albedo):
+    the first fit says so (identifiable False, a warning, report-ready numbers); the same scene in colour is
+    identified (test_material_fit_recovers_parameters)."""
+    import dataclasses
+
+    sc = make_scene("sphere", 64, "perspective")
+    sc = dataclasses.replace(sc, albedo=np.where(sc.mask[..., None], np.float32(0.5), np.float32(0.0))
+                             * np.ones((1, 1, 3), np.float32))
+    L = default_lights("directional", 3)
+    raw = render(sc, TRUE["cook-torrance"], L, bits=16)
+    img = raw / np.asarray(L.intensities, np.float32)[:, None, None, :]
+    with pytest.warns(gpps.GppsWarning, match="leave the material open"):
+        rec = gpps.reconstruct(img, sc.mask, DirectionalLights(L.directions), camera=sc.camera,
+                               material="cook-torrance", reference_depth=float(sc.depth[sc.mask].mean()),
+                               saturation=float(0.999 / np.min(L.intensities)), device=device)
+    first = rec.details.material_fit[0]
+    assert first["identifiable"] is False
+    assert first["ambiguity"]["ambiguity_deg"] > AMBIGUITY_DEG and first["ambiguity"]["near"] > 10, first["ambiguity"]
+    assert any("leave the material open" in w for w in rec.warnings)
 
 
 # --------------------------------------------------------------------------- the chain
@@ -262,6 +305,17 @@ def test_nelder_mead_batches_follow_scipy():
         assert runs[False, True][3] + 1 == ref.nfev  # vertex 0 was given
         assert runs[False, False][3] == ref.nfev and runs[False, False][2] == runs[False, True][2]  # (x0 batched)
         assert runs[True, True][2] < 0.6 * runs[False, True][2]
+    # with bounds: scipy's bounded form (every new point clipped), the minimum (1, 1) outside the box
+    lo_b, hi_b = np.array([-2.0, -1.0]), np.array([0.8, 0.5])
+    for x0 in (np.array([-1.2, 0.4]), np.array([0.8, 0.5]), np.array([0.0, -1.0])):
+        simplex = initial_simplex(x0, np.array([0.3, 0.3]), lo_b, hi_b)
+        ref = minimize(rosen, x0, method="Nelder-Mead", bounds=list(zip(lo_b, hi_b)),
+                       options={"initial_simplex": simplex, "maxfev": 200, "xatol": 1e-3, "fatol": np.inf})
+        for spec in (False, True):
+            f, x, _ = RON._nelder_mead(lambda xs: np.array([rosen(x) for x in xs]), simplex, None, 200, 1e-3,
+                                       speculate=spec, bounds=(lo_b, hi_b))
+            assert f == ref.fun and np.array_equal(x, ref.x), (x0, spec, x, ref.x)
+            assert np.all(x >= lo_b) and np.all(x <= hi_b)
     # a budget stops it with the best vertex so far
     f, x, _ = RON._nelder_mead(lambda xs: np.array([rosen(x) for x in xs]), simplex, rosen(x0), 10, 1e-3,
                                speculate=False)
@@ -274,8 +328,8 @@ def test_nelder_mead_batches_follow_scipy():
 
 def test_initial_simplex_stays_full_at_a_bound():
     """A start on the box's upper bound (where the material grid's best point often lies: ks = 3) gets its
-    vertex on the inside; clipping x0 + step back onto x0 made the simplex flat along that parameter, and
-    Nelder-Mead never moved it (session 19: Cook-Torrance bumps with 6 lights ended at ks = 3, 3.5 deg)."""
+    vertex a step inside, not one outside scored at the clipped point (session 19: Cook-Torrance bumps with
+    6 lights ended at ks = 3, 3.5 deg)."""
     lo, hi = np.log([0.02, 0.03]), np.log([3.0, 0.8])
     step = np.array([0.6, 0.4])
     for x0 in (np.array([hi[0], np.log(0.155)]), np.array([lo[0], hi[1]]), np.array([np.log(0.5), np.log(0.2)]), hi,
@@ -285,6 +339,7 @@ def test_initial_simplex_stays_full_at_a_bound():
         assert np.all(s >= lo - 1e-12) and np.all(s <= hi + 1e-12)
         d = s[1:] - s[0]
         assert np.allclose(np.abs(np.diag(d)), step) and d[0, 1] == 0 and d[1, 0] == 0  # full, axis-aligned edges
+    assert on_bound(hi, lo, hi) and on_bound([lo[0], np.log(0.2)], lo, hi) and not on_bound(np.log([0.5, 0.2]), lo, hi)
     # inside the box: the usual upward edges (scipy's convention)
     x0 = np.log([0.5, 0.2])
     assert np.allclose(initial_simplex(x0, step, lo, hi)[1:] - x0, np.diag(step))
@@ -293,7 +348,9 @@ def test_initial_simplex_stays_full_at_a_bound():
 def test_material_search_leaves_the_upper_bound(device):
     """Cook-Torrance bumps under 6 directional lights: the 5 x 5 grid's best point is ks = 3 (its bound) and the
     true material (ks 0.8, m 0.2) lies in a narrow valley between grid points; the search must walk there.  With
-    the flat simplex it stayed at ks = 3, m = 0.15 (MAEN 3.47 deg at 128^2)."""
+    its points outside the box scored at their clipped projections it stayed at ks = 3, m = 0.15 (MAEN 3.47 deg at
+    128^2); with them clipped onto the face and no restart, the plastic sphere of test_ron_models.py stayed at
+    ks = 3 (its simplex collapsed into the face)."""
     sc = make_scene("bumps", 128, "perspective")
     L = default_lights("directional", 6)
     raw = render(sc, TRUE["cook-torrance"], L, bits=16)

@@ -554,6 +554,8 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
         if rec.details.refinement is not None:
             report["refinement"] = rec.details.refinement
         fits = rec.details.material_fit
+        if fits and fits[0].get("ambiguity") is not None:  # (how far the images leave the material open)
+            report["material_ambiguity"] = {**fits[0]["ambiguity"], "identifiable": fits[0]["identifiable"]}
         if fits and "models" in fits[0]:  # (--compare-models: each model's sampled energy, the lowest kept)
             report["model_energies"] = fits[0]["models"]
     return out

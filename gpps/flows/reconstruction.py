@@ -69,7 +69,8 @@ class Reconstruction:
         timings: seconds per stage and ``total``.
         determined: (H, W) bool pixels with 3 or more usable (lit, unsaturated) observations.
         warnings: messages of the :class:`gpps.GppsWarning` warnings issued (doubtful
-            input, an estimate on its search bound, rounds that did not converge).
+            input, a material the images leave open, an estimate on its search bound, rounds that did not
+            converge).
     """
 
     normals: np.ndarray
@@ -150,6 +151,8 @@ def _unscaled_result(res, factor: float, s_images: float):
             f["values"] = {**f["values"], "ks": f["values"]["ks"] * inv}
         if f.get("energy") is not None:
             f["energy"] = f["energy"] * inv2
+        if f.get("ambiguity") is not None:
+            f["ambiguity"] = {**f["ambiguity"], "noise_var": f["ambiguity"]["noise_var"] * inv2}
         if "models" in f:  # (each compared model's sampled energy)
             f["models"] = {k: v * inv2 for k, v in f["models"].items()}
         fits.append(f)

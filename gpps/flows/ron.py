@@ -37,8 +37,11 @@ per-pixel unknowns) on a fixed random sample of pixels (highlight pixels first):
 a log-spaced grid, then Nelder-Mead from its best point.  With coloured
 albedo or more than three images this identifies the material well (the
 specular lobe is white, the diffuse part has the albedo's colour); with three
-images of a grey object every candidate can fit each pixel, and the estimate
-is then reported as ``identifiable=False`` in ``RONResult.material_fit``.
+images of a grey object every candidate can fit each pixel.  The first fit
+measures this on its grid (:func:`material_ambiguity`: how far apart the normals of
+the candidates that fit within the noise are); beyond :data:`AMBIGUITY_DEG` the
+fit is reported as ``identifiable=False`` in ``RONResult.material_fit`` and a
+warning says so.
 
 Point lights with an unknown depth start from a flat depth at
 ``reference_depth`` (the working distance); each round the integrated depth
@@ -109,11 +112,61 @@ _FIRST_XATOL, _XATOL = 0.05, 1e-3
 _LATER_STEP = (0.01, 0.15)
 
 
+#: the material fit's warning threshold (degrees): grid candidates that fit the sample within the noise give normals
+#: this far apart on average (:func:`material_ambiguity`); the scale of the accuracy asked of calibrated PS on real
+#: objects, so a material the images leave this open costs more than the accuracy itself
+AMBIGUITY_DEG = 2.0
+
+
+def material_ambiguity(energies, normals, noise_var: float) -> dict:
+    """How far the images leave the material open, measured by what it does to the normals.
+
+    A grid candidate *fits within the noise* when its sampled energy (mean squared residual per observation)
+    exceeds the best candidate's by at most the images' noise variance: its extra misfit is below what one
+    observation's noise could hide.  Three images of a grey object fit any lobe exactly (three observations
+    per pixel for a normal and an albedo), so every candidate does, each with other normals; with colour or
+    more images only the best and its neighbours do.  The ambiguity is the largest, over the candidates that
+    fit within the noise, of the mean angle (over the sample pixels) between their normals and the best
+    candidate's.  It says what a user wants to know (how much the unknown material can move the normals),
+    not how flat the energy is: a diffuse object leaves the lobe open but its candidates agree on the normals.
+
+    Args:
+        energies: (K,) the candidates' sampled energies (image units squared).
+        normals: (K, P, 3) each candidate's normals at the sample pixels (unit; non-finite or zero rows are
+            pixels without a solve, left out).
+        noise_var: the images' noise variance (image units squared; 0: only exact ties fit within it).
+
+    Returns:
+        ``{"ambiguity_deg", "near" (candidates within the noise, the best included), "candidates",
+        "noise_var"}``.
+    """
+    e = np.asarray(energies, np.float64)
+    n = np.asarray(normals, np.float64)
+    if n.ndim != 3 or n.shape[0] != e.size or n.shape[2] != 3:
+        raise ValueError(f"normals: expected ({e.size}, P, 3), got {n.shape}")
+    best = int(np.argmin(e))
+    near = np.nonzero(e - e[best] <= max(float(noise_var), 0.0))[0]
+    ok = np.all(np.isfinite(n), axis=(0, 2)) & np.all(np.linalg.norm(n, axis=2) > 0.5, axis=0)
+    worst = 0.0
+    if ok.any():
+        cos = np.clip(np.einsum("kpc,pc->kp", n[near][:, ok], n[best, ok]), -1.0, 1.0)
+        worst = float(np.degrees(np.arccos(cos)).mean(axis=1).max())
+    return {"ambiguity_deg": worst, "near": int(near.size), "candidates": int(e.size), "noise_var": float(noise_var)}
+
+
+def on_bound(x, lo, hi) -> bool:
+    """Whether a point (log units) lies on a face of the box ``[lo, hi]`` (within 1e-9)."""
+    x = np.asarray(x, np.float64)
+    return bool(np.any(x <= np.asarray(lo) + 1e-9) or np.any(x >= np.asarray(hi) - 1e-9))
+
+
 def initial_simplex(x0, step, lo, hi) -> np.ndarray:
-    """Nelder-Mead's initial simplex in the box ``[lo, hi]``: vertex 0 is ``x0``, vertex ``i + 1`` moves
-    parameter ``i`` by ``step[i]`` toward the inside: upward, or downward where the upward vertex would leave
-    the box (a start on the upper bound, where the grid's best point often lies).  A vertex clipped back onto
-    ``x0`` would make the simplex flat along that parameter, and Nelder-Mead could then never move it.
+    """Nelder-Mead's initial simplex in the box ``[lo, hi]``, as scipy's bounded Nelder-Mead builds it: vertex 0 is
+    ``x0``, vertex ``i + 1`` moves parameter ``i`` by ``step[i]``, a vertex beyond the upper bound is reflected into
+    the box (``2 hi - v``), and every vertex is clipped to it.  A start on the upper bound (where the grid's best
+    point often lies: ks = 3) so gets a vertex a step inside, not one outside scored at the clipped point, a
+    plateau the search drifted on and stopped (session 19: Cook-Torrance bumps under 6 lights ended at ks 3.0,
+    m 0.15 and 3.5 deg instead of the true ks 0.8, m 0.2).
 
     Args:
         x0: (d,) the start (log units), inside the box.
@@ -124,15 +177,9 @@ def initial_simplex(x0, step, lo, hi) -> np.ndarray:
         (d + 1, d) the simplex.
     """
     x0 = np.asarray(x0, np.float64)
-    step = np.asarray(step, np.float64)
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
-    rows = [x0]
-    for i in range(x0.size):
-        v = x0.copy()
-        up, down = x0[i] + step[i], x0[i] - step[i]
-        v[i] = up if up <= hi[i] or x0[i] - lo[i] < hi[i] - x0[i] else down
-        rows.append(np.clip(v, lo, hi))
-    return np.vstack(rows)
+    sim = np.vstack([x0, x0 + np.diag(np.asarray(step, np.float64))])
+    return np.clip(np.where(sim > hi, 2.0 * hi - sim, sim), lo, hi)
 
 
 def estimable_parameters(brdf: str) -> tuple[str, ...]:
@@ -419,7 +466,8 @@ class RONResult:
             normal of the neighbour each was started from; least squares where no
             ring reached).
         material_fit: per material update: the parameters, energy, evaluations,
-            and ``identifiable`` (the energy's relative spread over the grid > 1e-3).
+            and, for a fit with a grid (the first), ``ambiguity`` (:func:`material_ambiguity`) and
+            ``identifiable`` (its ``ambiguity_deg`` at most :data:`AMBIGUITY_DEG`; None without a grid).
         integration_residual: relative residual of the last integration.
         timings: seconds per stage (summed over rounds) and ``total``; ``shadows``: the cast-shadow pass.
         shadows: per cast-shadow pass (``cast_shadows``; one after each round but the last): ``round`` (the
@@ -735,7 +783,7 @@ class RON:
         return self._scorers[key]
 
     def _score(self, images, depth, valid, materials: list, sample, *, warm: bool = False,
-               progress=None) -> np.ndarray:
+               progress=None, normals: list | None = None) -> np.ndarray:
         """The sampled fit energy of each candidate material, a batch at a time.
 
         ``materials``: a list of :class:`Material`, or ``(material, names, values (K, len(names)))``: ``material``
@@ -748,6 +796,7 @@ class RON:
         :meth:`_fit_energy`'s (tests/test_material_device.py).  ``warm``: from the scorer's
         warm start (:meth:`MaterialScorer.set_start`), one start per pixel.  ``progress(done, total,
         message)`` is passed to the scorer, which reports inside a batch on the CPU (chunked launches).
+        ``normals``: a list that receives each batch's sample normals, (K, P, 3) (:func:`material_ambiguity`).
         """
         if isinstance(materials, tuple):  # (material, names, values (K, len(names))): lobe candidates
             base, names, values = materials
@@ -761,6 +810,8 @@ class RON:
         for b in batches:
             scorer.step(b, warm=warm, progress=progress)
             out.append(scorer.fetch())
+            if normals is not None:
+                normals.append(scorer.fetch_pixels(("normals",))["normals"])
         return np.concatenate(out)
 
     def _select_model(self, images, depth, valid, material, sample, *, progress=None) -> tuple[Material, dict]:
@@ -811,8 +862,9 @@ class RON:
 
         warm = False
         device_scored = 0  # candidates the device search scored (NelderMeadSearch)
+        restarted = False  # Nelder-Mead ran again from a bound (search_from)
 
-        def score(xs):
+        def score(xs, normals=None):
             xs = [np.clip(x, lo, hi) for x in xs]
             n0 = len(evals)
 
@@ -820,7 +872,7 @@ class RON:
                 report(n0 + len(xs) * d / max(t, 1.0), n0 + len(xs) + c.material_evals, msg)
 
             vals = self._score(images, depth, valid, (material, names, np.exp(np.array(xs, np.float64))),
-                               sample, warm=warm, progress=inside if len(xs) > 4 else None)
+                               sample, warm=warm, progress=inside if len(xs) > 4 else None, normals=normals)
             evals.extend(vals.tolist())
             report(len(evals), len(evals) + c.material_evals, f"material: {len(evals)} candidates scored")
             return vals
@@ -829,13 +881,16 @@ class RON:
         report(0, c.material_evals, "material: sample uploaded")
         x0 = np.clip(np.log([lobe_value(material, k) for k in names]), lo, hi)
         step = (hi - lo) / max(c.material_grid - 1, 1)
-        spread = None
+        ambiguity = None
         if grid and c.material_grid > 1 and names:
             axes = [np.linspace(a, b, c.material_grid) for a, b in zip(lo, hi)]
             pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(names))
-            vals = score(list(pts))
+            grid_normals: list = []
+            vals = score(list(pts), normals=grid_normals)
             x0 = pts[int(np.argmin(vals))]
-            spread = float((vals.max() - vals.min()) / max(vals.max(), 1e-300))
+            noise = np.asarray(self.solver.noise_level, np.float64)
+            ambiguity = material_ambiguity(vals, np.concatenate(grid_normals),
+                                           float(np.median(noise)) ** 2 if noise.size else 0.0)
             step = step / 2
             xatol = _FIRST_XATOL
         else:
@@ -850,27 +905,41 @@ class RON:
                     scorer.set_start(frame=normals)
                 warm = True
         if c.material_evals > 0 and names and c.material_search != "pattern":
-            simplex = initial_simplex(x0, step, lo, hi)
-            if self._device_loop() and c.material_evals > len(names) + 1:
-                # the initial simplex in one batch from the host, then every step on the device
-                f_init = score(list(simplex))
-                search = self._search_for(material.brdf, len(names))
-                search.upload(material, names, simplex, f_init, lo=lo, hi=hi, maxfev=c.material_evals,
-                              xatol=xatol)
-                search.step(warm=warm)
-                got = search.fetch()
-                fx, xb, f_start = got["energy"], got["x"], float(f_init[0])
-                device_scored = got["scored"]
-                report(len(evals) + device_scored, len(evals) + device_scored,
-                       f"material: {len(evals) + device_scored} candidates scored ({got['steps']} steps on the "
-                       "device)")
-            else:
+            scored = [0]  # candidates the device search scored (NelderMeadSearch)
+
+            def search_from(x_start):
+                """Nelder-Mead from ``x_start`` (:func:`initial_simplex`, every point clipped to the box):
+                ``(energy, x, energy at x_start)``."""
+                simplex = initial_simplex(x_start, step, lo, hi)
+                if self._device_loop() and c.material_evals > len(names) + 1:
+                    # the initial simplex in one batch from the host, then every step on the device
+                    f_init = score(list(simplex))
+                    search = self._search_for(material.brdf, len(names))
+                    search.upload(material, names, simplex, f_init, lo=lo, hi=hi, maxfev=c.material_evals,
+                                  xatol=xatol)
+                    search.step(warm=warm)
+                    got = search.fetch()
+                    scored[0] += got["scored"]
+                    report(len(evals) + scored[0], len(evals) + scored[0],
+                           f"material: {len(evals) + scored[0]} candidates scored ({got['steps']} steps on the "
+                           "device)")
+                    return got["energy"], got["x"], float(f_init[0])
                 # on CUDA a launch costs its slowest thread, not its candidates: score every point a step may
                 # read in one batch (the same trajectory: Nelder-Mead reads only what it needs); the start is
                 # scored with the initial simplex
-                fx, xb, f_start = self._nelder_mead(score, simplex, None, c.material_evals, xatol,
-                                                    speculate=self._speculate())
+                return self._nelder_mead(score, simplex, None, c.material_evals, xatol, bounds=(lo, hi),
+                                         speculate=self._speculate())
+
+            fx, xb, f_start = search_from(x0)
             best = (fx, np.clip(xb, lo, hi)) if fx < f_start else (f_start, x0)
+            if on_bound(best[1], lo, hi):
+                # a simplex that met a bound can have collapsed into its face and stopped there (clipped points
+                # keep no extent across it): once more from there, with a fresh simplex a step inside
+                fr, xr, _ = search_from(best[1])
+                restarted = True
+                if fr < best[0]:
+                    best = (fr, np.clip(xr, lo, hi))
+            device_scored = scored[0]
         else:
             best = (float(score([x0])[0]), x0)
             if c.material_evals > 0 and names:  # (a model without lobe parameters: its one energy)
@@ -879,8 +948,10 @@ class RON:
         self._last_move = best[1] - start
         values = dict(zip(names, (float(v) for v in np.exp(best[1]))))
         info = {"rule": "photometric", "search": c.material_search, "warm": warm, "values": values, "energy": best[0],
-                "evaluations": len(evals) + device_scored, "grid": bool(grid),
-                "identifiable": None if spread is None else spread > 1e-3}
+                "evaluations": len(evals) + device_scored, "grid": bool(grid), "restarted": restarted,
+                "identifiable": None if ambiguity is None else ambiguity["ambiguity_deg"] <= AMBIGUITY_DEG}
+        if ambiguity is not None:
+            info["ambiguity"] = ambiguity
         return with_lobe(material, values), info
 
     def _device_loop(self) -> bool:
@@ -905,8 +976,10 @@ class RON:
         return 1 if self.device.startswith("cuda") else 0
 
     @staticmethod
-    def _nelder_mead(score, simplex, f0: float | None, maxfev: int, xatol: float, *, speculate: int = 0):
-        """Nelder-Mead (scipy's ``method="Nelder-Mead"``, standard coefficients, ``fatol`` infinite) that
+    def _nelder_mead(score, simplex, f0: float | None, maxfev: int, xatol: float, *, speculate: int = 0,
+                     bounds=None):
+        """Nelder-Mead (scipy's ``method="Nelder-Mead"``, standard coefficients, ``fatol`` infinite; with
+        ``bounds``, scipy's bounded form: every new point clipped to the box) that
         scores in batches: the initial simplex in one (vertex 0 too unless ``f0`` is given), and with
         ``speculate`` the reflection, expansion and both contractions of a step in one (a shrink's vertices
         always together).  The trajectory and the result do not depend on ``speculate``: the method reads
@@ -920,11 +993,22 @@ class RON:
             maxfev: the most evaluations the method needs (the initial simplex included).
             xatol: simplex size at convergence.
             speculate: score every candidate point of a step in one batch (0 or 1; True: 1).
+            bounds: ``(lo, hi)``, (d,) each: the box the points are clipped to (the initial simplex must lie
+                in it: :func:`initial_simplex`); None: unbounded.  A point outside the box would be scored at its
+                clipped projection while the simplex kept it: a plateau the search drifts on and stops.
 
         Returns:
             ``(energy, x, f0)`` of the best vertex, and the energy at vertex 0.
         """
         rho, chi, psi, sigma = 1.0, 2.0, 0.5, 0.5
+        if bounds is None:
+            def box(x):
+                return x
+        else:
+            lo_b, hi_b = (np.asarray(b, np.float64) for b in bounds)
+
+            def box(x):
+                return np.clip(x, lo_b, hi_b)
         spec = bool(speculate)
         sim = np.array(simplex, np.float64)
         d = sim.shape[1]
@@ -937,8 +1021,8 @@ class RON:
         def step_points(s):
             """The reflection, expansion and the two contractions of the sorted simplex ``s``."""
             xbar = s[:-1].sum(0) / d
-            return [(1 + rho) * xbar - rho * s[-1], (1 + rho * chi) * xbar - rho * chi * s[-1],
-                    (1 + psi * rho) * xbar - psi * rho * s[-1], (1 - psi) * xbar + psi * s[-1]]
+            return [box((1 + rho) * xbar - rho * s[-1]), box((1 + rho * chi) * xbar - rho * chi * s[-1]),
+                    box((1 + psi * rho) * xbar - psi * rho * s[-1]), box((1 - psi) * xbar + psi * s[-1])]
 
         def values(points, wanted):
             """Energies of ``wanted`` (indices into ``points``); when one is not known yet, a batch scores it
@@ -991,7 +1075,7 @@ class RON:
                     else:
                         shrink = True
                 if shrink:
-                    sim[1:] = sim[0] + sigma * (sim[1:] - sim[0])
+                    sim[1:] = box(sim[0] + sigma * (sim[1:] - sim[0]))
                     fsim[1:] = values(list(sim[1:]), list(range(d)))
         except _Budget:
             if not np.all(np.isfinite(fsim)):  # (within the initial simplex: the vertices read so far)
@@ -1245,7 +1329,7 @@ class RON:
         step(total, total, "done")
         timings["total"] = time.perf_counter() - t_all
         estimated = {k: lobe_value(material, k) for k in (LOBE_PARAMETERS[material.brdf] if c.models else c.estimate)}
-        notes = self._notes(estimated, converged)
+        notes = self._notes(estimated, converged, fits)
         return RONResult(
             normals=np.where(m[..., None], out["normals"], 0.0).astype(np.float32),
             albedo=out["albedo"], depth=depth_out, depth_mask=depth_mask, material=material, estimated=estimated,
@@ -1440,10 +1524,20 @@ class RON:
         timings["refine"] = time.perf_counter() - t
         return np.where(depth_mask, got["depth"], 0.0).astype(np.float32), got["info"]
 
-    def _notes(self, estimated: dict, converged: bool) -> list[str]:
-        """Warnings of the run: estimates on their search bound, rounds that hit the cap."""
+    def _notes(self, estimated: dict, converged: bool, fits: list) -> list[str]:
+        """Warnings of the run: a material the images leave open, estimates on their search bound, rounds that
+        hit the cap."""
         c = self.config
         notes: list[str] = []
+        for f in fits[:1]:
+            a = f.get("ambiguity")
+            if a is not None and not f["identifiable"]:
+                warn(f"material: the images leave the material open: {a['near']} of {a['candidates']} candidate "
+                     f"materials fit the sample within the images' noise and their normals differ by "
+                     f"{a['ambiguity_deg']:.1f} deg on average (> {AMBIGUITY_DEG:g}), and the estimate is one of "
+                     "them.  Give the material's parameters if they are known (a Material; gpps reconstruct "
+                     "--ks/--shininess/--roughness), or use more images (three images of a grey object fit any lobe)",
+                     notes)
         for k, v in estimated.items():
             msg = estimate_on_bound(k, v)
             if msg:

@@ -64,12 +64,14 @@ def search_points_kernel(
     cand: wp.array2d(dtype=wp.float64),
     mats: wp.array(dtype=MaterialParams),
 ):
-    """Candidate ``c`` of the pass (4 threads): ``cand[c]`` (log space, unclipped) and its material row.
+    """Candidate ``c`` of the pass (4 threads): ``cand[c]`` (log space, inside ``[lo, hi]``) and its material row.
 
     Step pass: ``a xbar - b sim[d]`` with ``(a, b)`` = (2, 1), (3, 2), (1.5, 0.5), and ``0.5 xbar + 0.5 sim[d]``
     (``xbar``: the mean of the ``d`` best vertices, summed in vertex order as numpy does).  Shrink pass
     (``state[STATE_PHASE] == 1``): ``sim[0] + 0.5 (sim[i + 1] - sim[0])`` for ``c = i < d`` (the last one
-    repeated above).  The material row scores ``exp(clip(cand[c], lo, hi))``.
+    repeated above).  Each point is clipped to ``[lo, hi]`` and kept clipped (scipy's bounded Nelder-Mead: a point
+    kept outside would be scored at its projection, a plateau the simplex could drift on); the material row scores
+    ``exp(cand[c])``.
     """
     c = wp.tid()
     m = base_row[0]  # (a copy: the lobe fields set below do not touch the base row)
@@ -98,8 +100,9 @@ def search_points_kernel(
                 x = (one + psi * rho) * xbar - psi * rho * w
             else:
                 x = (one - psi) * xbar + psi * w
+        x = wp.min(wp.max(x, lo[j]), hi[j])  # (scipy's bounded Nelder-Mead: the point itself is clipped)
         cand[c, j] = x
-        v = wp.float32(wp.exp(wp.min(wp.max(x, lo[j]), hi[j])))
+        v = wp.float32(wp.exp(x))
         f = fields[j]
         if f == 0:
             m.ks = v

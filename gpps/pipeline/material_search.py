@@ -121,7 +121,8 @@ class NelderMeadSearch(Stage):
             names: the d searched parameters (:data:`gpps.names.LOBE_PARAMETERS` of the model).
             simplex: (d + 1, d) vertices in log-parameter space (vertex 0 the start).
             energies: (d + 1,) their energies (float64).
-            lo, hi: (d,) log bounds: a point is scored at ``exp(clip(x, lo, hi))`` (the search moves unclipped).
+            lo, hi: (d,) log bounds: every point the search makes is clipped to them and kept clipped (scipy's
+                bounded Nelder-Mead; the simplex should lie inside: :func:`gpps.flows.ron.initial_simplex`).
             maxfev: the most evaluations the method reads, the initial simplex's included (> d + 1).
             xatol: the simplex size at convergence (log units).
             evaluations: evaluations already read (None: d + 1, the simplex).
@@ -238,7 +239,7 @@ class NelderMeadSearch(Stage):
 
     def fetch(self) -> dict:
         """The search's result (one small copy): ``energy`` (float), ``x`` (d,) the best vertex (log space,
-        unclipped, as the host method returns it), ``evaluations`` read, ``steps`` (passes: steps and shrinks),
+        inside the bounds, as the host method returns it), ``evaluations`` read, ``steps`` (passes: steps and shrinks),
         ``status`` (``"converged"`` or ``"budget"``) and ``scored`` (candidates solved: 4 a pass)."""
         self._check_open()
         if self._spec is None:
