@@ -52,7 +52,7 @@ def run(out: str, patterns: str, methods: str = "pipeline", device: str = "cpu")
                 e = normal_errors(r.normals, ds.normal_gt, ds.mask)
                 row = dict(capture=os.path.basename(c), method=m, maen=e["mean"], median=e["median"], seconds=dt,
                            backfacing=int(((r.normals[..., 2] < 0) & ds.mask).sum()), device=device,
-                           refine=r.report.get("refine"))
+                           refine=r.report.get("refine"), material_ambiguity=r.report.get("material_ambiguity"))
                 f.write(json.dumps(row) + "\n")
                 f.flush()
                 print(row, flush=True)

@@ -214,7 +214,9 @@ class RONConfig:
             lights fewer pixels carry the same information: 2000 pixels up to 12 images, 500 from 48
             (the floor keeps the sample spread over the object), at a quarter of the cost.
         material_grid: grid points per estimated parameter in the first fit.
-        material_evals: the most candidate evaluations after the grid (and in each later round).
+        material_evals: the most candidate evaluations after the grid (and in each later round); a search
+            that ends on a bound of the range runs once more from there with as many (its simplex may have
+            collapsed into the bound's face: ``material_fit``'s ``restarted``).
             Nelder-Mead stops earlier when its simplex has shrunk below 0.05 log units in the
             first fit (which only has to find the optimum's basin: every later fit starts there)
             and below 1e-3 in later fits, whose initial simplex is twice the previous fit's move
