@@ -215,8 +215,8 @@ class RONConfig:
             (the floor keeps the sample spread over the object), at a quarter of the cost.
         material_grid: grid points per estimated parameter in the first fit.
         material_evals: the most candidate evaluations after the grid (and in each later round); a search
-            that ends on a bound of the range runs once more from there with as many (its simplex may have
-            collapsed into the bound's face: ``material_fit``'s ``restarted``).
+            that ends on a bound of the range away from its start runs once more from there with as many (its
+            simplex may have collapsed into the bound's face: ``material_fit``'s ``restarted``).
             Nelder-Mead stops earlier when its simplex has shrunk below 0.05 log units in the
             first fit (which only has to find the optimum's basin: every later fit starts there)
             and below 1e-3 in later fits, whose initial simplex is twice the previous fit's move
@@ -934,9 +934,10 @@ class RON:
 
             fx, xb, f_start = search_from(x0)
             best = (fx, np.clip(xb, lo, hi)) if fx < f_start else (f_start, x0)
-            if on_bound(best[1], lo, hi):
+            if on_bound(best[1], lo, hi) and not np.array_equal(best[1], x0):
                 # a simplex that met a bound can have collapsed into its face and stopped there (clipped points
-                # keep no extent across it): once more from there, with a fresh simplex a step inside
+                # keep no extent across it): once more from there, with a fresh simplex a step inside (from where
+                # it started, that simplex is the one just searched: nothing to gain)
                 fr, xr, _ = search_from(best[1])
                 restarted = True
                 if fr < best[0]:
