@@ -1,0 +1,203 @@
+"""Diffuse interreflections from a reconstructed surface, on the device: the stage :class:`Interreflections`.
+
+Given a depth map, its normals and the observed images, the stage gathers at every mask pixel (the receiver) the
+radiance the other patches of the surface send it (:mod:`gpps.kernels.interreflection`: form factors with
+visibility marched over the depth map).  The result ``S`` (N, H, W, 3) is in the images' units per unit albedo: a
+Lambertian receiver of albedo ``kd`` shows the indirect light ``kd * S[k]`` in image ``k``.  The sources' radiance
+is their observed pixel value (the radiance toward the camera; exact for Lambertian sources, an approximation for
+glossy ones).  :func:`gpps.flows.interreflection.compensate` uses it to take the indirect light out of the images.
+
+Cost: ``R * S`` form factors (``R`` mask pixels, ``S <= max_sources`` sources, each a march of up to the pair's
+distance in pixels) and ``R * S * 3N`` multiply-adds for the gather (numpy's BLAS on the CPU, a kernel on CUDA).
+The (R, S) float32 form-factor matrix is allocated for each mask (its size depends on the mask).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gpps._check import as_array, as_mask, check_bool, check_number, unit_normals
+from gpps._runtime import resolve_device, warp
+from gpps.kernels import interreflection as ik
+from gpps.kernels import shadows as sk
+from gpps.pipeline.params import camera_params
+from gpps.pipeline.stage import Stage
+
+__all__ = ["InterreflectionConfig", "Interreflections", "source_pixels"]
+
+
+@dataclass(frozen=True)
+class InterreflectionConfig:
+    """Settings of the gather (:mod:`gpps.kernels.interreflection`).
+
+    Attributes:
+        max_sources: the most source pixels: the mask pixels on every ``stride``-th row and column, ``stride``
+            the smallest that gives at most this many (each then stands for ``stride^2`` pixels).  Indirect
+            light is an integral over the surface, smooth where the geometry is: 1024 samples of a 128^2 object
+            (stride 3) keep it within a few per cent of the full sum on the test scenes.
+        visibility: march the segment between receiver and source over the depth map (a source hidden behind
+            another part of the surface sends nothing); False: every facing pair sees each other.
+        tolerance_px: the march's tolerance in pixel widths (as :class:`gpps.pipeline.shadows.ShadowConfig`).
+        step_px: the march's step, pixels (> 0, <= 4: a coarser step than the shadows', the sum averages many
+            segments).
+        max_rows: receivers per launch (bounds the (rows, S) form-factor block in memory).
+    """
+
+    max_sources: int = 1024
+    visibility: bool = True
+    tolerance_px: float = 1.0
+    step_px: float = 2.0
+    max_rows: int = 65536
+
+    def __post_init__(self):
+        check_number("max_sources", self.max_sources, lo=1, integer=True)
+        check_bool("visibility", self.visibility)
+        check_number("tolerance_px", self.tolerance_px, lo=0.0)
+        check_number("step_px", self.step_px, lo=0.0, hi=4.0, lo_open=True)
+        check_number("max_rows", self.max_rows, lo=1, integer=True)
+
+
+def source_pixels(mask: np.ndarray, max_sources: int) -> tuple[np.ndarray, int]:
+    """The source pixels of :class:`InterreflectionConfig`: ``((S, 2) int32 rows and columns, stride)``, the mask
+    pixels on every ``stride``-th row and column (offset ``stride // 2``), ``stride`` the smallest with ``S <=
+    max_sources``."""
+    stride = max(1, int(np.floor(np.sqrt(mask.sum() / max_sources))))
+    while True:
+        o = stride // 2
+        sub = np.zeros_like(mask)
+        sub[o::stride, o::stride] = mask[o::stride, o::stride]
+        if sub.sum() <= max_sources:
+            return np.argwhere(sub).astype(np.int32), stride
+        stride += 1
+
+
+class Interreflections(Stage):
+    """The radiance each mask pixel gathers from the rest of the surface; see the module docstring.
+
+    Args:
+        shape: (N, H, W): images and their size.
+        camera: :class:`gpps.camera.Orthographic` or :class:`gpps.camera.Perspective`.
+        config: :class:`InterreflectionConfig`.
+        device: Warp device (None: CUDA if present, else CPU).
+
+    ``upload(depth, mask, normals, images)`` (host arrays), ``step()``, ``fetch()`` -> (N, H, W, 3) float32
+    ``S`` (0 off the mask); :attr:`stride` and :attr:`sources` after an upload.
+    """
+
+    Config = InterreflectionConfig
+
+    def __init__(self, shape, camera, config: InterreflectionConfig | None = None, device=None):
+        wp = warp()
+        try:
+            n, h, w = (int(s) for s in shape)
+        except (TypeError, ValueError):
+            raise TypeError(f"shape: expected (N, H, W) integers, got {shape!r}") from None
+        if n < 1 or h < 1 or w < 1:
+            raise ValueError(f"shape: expected (N, H, W) positive integers, got {shape!r}")
+        self.config = InterreflectionConfig() if config is None else config
+        if not isinstance(self.config, InterreflectionConfig):
+            raise TypeError(f"config: expected Interreflections.Config, got {type(self.config).__name__}")
+        self.device = resolve_device(device)
+        self.shape = (n, h, w)
+        self.cam = camera_params(camera, (h, w))
+        d = self.device
+        self.depth = self._buffer((h, w), wp.float32, d, fill=1.0)
+        self.mask = self._buffer((h, w), wp.uint8, d)
+        self.normals = self._buffer((h, w), wp.vec3, d)
+        self.dmin = self._buffer(1, wp.float32, d)
+        self.max_steps = int(np.ceil(2 * (h + w) / self.config.step_px))
+        self._mask_host = None
+        self.recv = self.src = self.radiance = self.out = None
+        self.stride = None
+
+    @property
+    def sources(self) -> int:
+        """The number of source pixels of the last upload."""
+        return 0 if self.src is None else int(self.src.shape[0])
+
+    def upload(self, depth, mask, normals, images) -> None:
+        """Copy the surface and the images into the stage's buffers.
+
+        Args:
+            depth: (H, W) depth (scene units), finite and > 0 inside the mask.
+            mask: (H, W) bool: the object.
+            normals: (H, W, 3) unit normals inside the mask (gpps frame).
+            images: (N, H, W, 3) (or (N, H, W)) linear images, the sources' radiance.
+        """
+        wp = warp()
+        self._check_open()
+        n, h, w = self.shape
+        m = as_mask("mask", mask, (h, w), allow_empty=True)
+        dep = as_array("depth", depth, shape=(h, w), finite=False)
+        if not np.all(np.isfinite(dep[m])) or np.any(dep[m] <= 0):
+            raise ValueError("depth: expected finite values > 0 inside the mask")
+        nrm = unit_normals("normals", np.where(m[..., None], normals, (0.0, 0.0, 1.0)), m)
+        img = as_array("images", images, finite=False)
+        if img.ndim == 3:
+            img = img[..., None]
+        if img.shape[:3] != (n, h, w) or img.shape[3] not in (1, 3):
+            raise ValueError(f"images: expected ({n}, {h}, {w}, 3) or ({n}, {h}, {w}), got {np.shape(images)}")
+        img = np.broadcast_to(img, (n, h, w, 3))
+        d = self.device
+        self.depth.assign(np.where(m, dep, 1.0).astype(np.float32))
+        self.mask.assign(m.astype(np.uint8))
+        self.normals.assign(np.where(m[..., None], nrm, 0.0).astype(np.float32))
+        src, self.stride = source_pixels(m, self.config.max_sources)
+        recv = np.argwhere(m).astype(np.int32)
+        self._mask_host = m
+        self.recv = wp.array(recv, dtype=wp.vec2i, device=d)
+        self.src = wp.array(src, dtype=wp.vec2i, device=d)
+        # (S, 3N): the sources' radiance, one column per image and channel
+        x = np.ascontiguousarray(img[:, src[:, 0], src[:, 1], :].transpose(1, 0, 2).reshape(len(src), 3 * n))
+        self.radiance = wp.array(np.nan_to_num(x).astype(np.float32), dtype=wp.float32, device=d)
+        self.out = wp.zeros((len(recv), 3 * n), dtype=wp.float32, device=d)
+
+    def step(self) -> None:
+        """Form factors and the gather, in blocks of ``max_rows`` receivers (the host does not wait on CUDA)."""
+        wp = warp()
+        self._check_open()
+        if self.recv is None:
+            raise ValueError("Interreflections: upload a surface first")
+        c = self.config
+        d = self.device
+        R, S = int(self.recv.shape[0]), int(self.src.shape[0])
+        if R == 0 or S == 0:
+            return
+        self.dmin.fill_(float(sk.BIG))
+        wp.launch(sk.min_depth_kernel, dim=self.shape[1:], inputs=[self.depth, self.mask, self.dmin], device=d)
+        rows = max(1, min(R, int(c.max_rows)))
+        F = wp.empty((rows, S), dtype=wp.float32, device=d)
+        cpu = str(d) == "cpu"
+        x_host = self.radiance.numpy() if cpu else None
+        out_host = self.out.numpy() if cpu else None  # (a view of the CPU array: written in place)
+        for r0 in range(0, R, rows):
+            r1 = min(R, r0 + rows)
+            blk = F if r1 - r0 == rows else wp.empty((r1 - r0, S), dtype=wp.float32, device=d)
+            wp.launch(ik.form_factor_kernel, dim=(r1 - r0, S),
+                      inputs=[self.depth, self.mask, self.normals, self.cam, self.recv[r0:r1], self.src,
+                              float(self.stride**2), self.dmin, float(c.tolerance_px), float(c.step_px),
+                              self.max_steps, int(c.visibility), blk], device=d)
+            if cpu:
+                out_host[r0:r1] = blk.numpy() @ x_host
+            else:
+                wp.launch(ik.gather_kernel, dim=(r1 - r0, self.out.shape[1]), inputs=[blk, self.radiance,
+                          self.out[r0:r1]], device=d)
+
+    def fetch(self) -> np.ndarray:
+        """(N, H, W, 3) float32 gathered radiance per unit albedo (0 off the mask)."""
+        self._check_open()
+        n, h, w = self.shape
+        res = np.zeros((n, h, w, 3), np.float32)
+        if self.recv is None or self.out is None:
+            return res
+        recv = self.recv.numpy()
+        res[:, recv[:, 0], recv[:, 1], :] = self.out.numpy().reshape(len(recv), n, 3).transpose(1, 0, 2)
+        return res
+
+    def close(self) -> None:
+        for name in ("recv", "src", "radiance", "out"):
+            self.__dict__.pop(name, None)
+        self._release_buffers()
+        self._closed = True
