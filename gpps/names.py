@@ -47,6 +47,11 @@ CUT_STITCH_NAMES: tuple[str, ...] = get_args(CutStitchName)
 SlitsName = Literal["keep", "drop"]
 SLITS_NAMES: tuple[str, ...] = get_args(SlitsName)
 
+# what the folder flow does about light the surface sends itself (gpps.flows.interreflection): "off" nothing;
+# "subtract" the diffuse interreflections gathered over the reconstructed surface, then reconstruct again
+InterreflectionName = Literal["off", "subtract"]
+INTERREFLECTION_NAMES: tuple[str, ...] = get_args(InterreflectionName)
+
 # ---------------------------------------------------------------- lights
 LIGHT_DIRECTIONAL, LIGHT_POINT = 0, 1  # device tags of gpps.kernels.brdf.LightParams.kind
 

@@ -11,7 +11,8 @@ from each tree (``PYTHONPATH=<tree>``) into its own file::
     python perf/dev_visible_eval.py table A.jsonl B.jsonl [...]
 
 Methods: ``pipeline`` (the default ``FolderConfig()``), ``ls`` (least squares), ``norefine`` / ``refine`` (the
-default with ``refine=False`` / ``True``: session 18's automatic refinement with 3 images, issue 25).  The table reads
+default with ``refine=False`` / ``True``: session 18's automatic refinement with 3 images, issue 25), ``subtract``
+(the default with ``interreflections="subtract"``: session 20's interreflection compensation).  The table reads
 the ``pipeline`` rows of each file (and ``ls``); the last argument of ``run`` is the device (default ``cpu``).
 """
 
@@ -28,7 +29,7 @@ import numpy as np
 
 
 CONFIGS = {"pipeline": {}, "ls": {"solver": "none", "integrate": False}, "norefine": {"refine": False},
-           "refine": {"refine": True}}
+           "refine": {"refine": True}, "subtract": {"interreflections": "subtract"}}
 
 
 def run(out: str, patterns: str, methods: str = "pipeline", device: str = "cpu") -> None:
@@ -52,7 +53,8 @@ def run(out: str, patterns: str, methods: str = "pipeline", device: str = "cpu")
                 e = normal_errors(r.normals, ds.normal_gt, ds.mask)
                 row = dict(capture=os.path.basename(c), method=m, maen=e["mean"], median=e["median"], seconds=dt,
                            backfacing=int(((r.normals[..., 2] < 0) & ds.mask).sum()), device=device,
-                           refine=r.report.get("refine"), material_ambiguity=r.report.get("material_ambiguity"))
+                           refine=r.report.get("refine"), material_ambiguity=r.report.get("material_ambiguity"),
+                           interreflections=r.report.get("interreflections"))
                 f.write(json.dumps(row) + "\n")
                 f.flush()
                 print(row, flush=True)

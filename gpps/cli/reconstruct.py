@@ -74,6 +74,14 @@ def add_reconstruct_options(p) -> None:
     p.add_argument("--refine", action=argparse.BooleanOptionalAction, default=None,
                    help="RON: refine the depth itself after the rounds (robust misfit over every observation, normals "
                         "tied to one surface); default: on with exactly 3 images, off with more")
+    p.add_argument("--interreflections", default="off", choices=["off", "subtract"],
+                   help="RON: 'subtract' takes the diffuse interreflections gathered over the reconstructed surface out "
+                        "of the images and reconstructs again (matte concave objects; not glossy or metallic ones)")
+    p.add_argument("--interreflection-rounds", type=int, default=2,
+                   help="with --interreflections subtract: gather-and-reconstruct rounds")
+    p.add_argument("--albedo-scale", type=float, default=1.0,
+                   help="with --interreflections subtract: physical albedo over the estimated one (1: radiometric "
+                        "light intensities)")
     p.add_argument("--compare-models", default=None, metavar="MODEL[,MODEL...]",
                    help="RON: other reflectance models to fit beside --brdf's in the first material fit; the one with "
                         "the lower residual is kept (e.g. plastic)")
@@ -84,7 +92,8 @@ def add_reconstruct_options(p) -> None:
 
 
 # the library's errors that name these settings name the options instead
-_OPTIONS = ("rounds", "pixel_size", "reference_depth", "method", "ks", "shininess", "roughness", "eta", "f0", "max_size")
+_OPTIONS = ("rounds", "pixel_size", "reference_depth", "method", "ks", "shininess", "roughness", "eta", "f0", "max_size",
+            "interreflections", "interreflection_rounds", "albedo_scale")
 
 
 def folder_config(args) -> gpps.FolderConfig:
@@ -107,7 +116,8 @@ def _folder_config(args) -> gpps.FolderConfig:
             estimate=not args.no_estimate, rounds=args.rounds, material_rule=args.material_rule,
             pixel_size=args.pixel_size, reference_depth=args.reference_depth,
             models=tuple(b.strip() for b in (args.compare_models or "").split(",") if b.strip()),
-            cast_shadows=args.cast_shadows, refine=args.refine,
+            cast_shadows=args.cast_shadows, refine=args.refine, interreflections=args.interreflections,
+            interreflection_rounds=args.interreflection_rounds, albedo_scale=args.albedo_scale,
         )
 
 

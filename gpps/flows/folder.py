@@ -52,7 +52,7 @@ from gpps.io.formats import Transfer
 from gpps.io.outputs import apply_depth_convention, depth_convention, write_outputs
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
-from gpps.names import BRDF, BRDF_NAMES, SHADOW_RELATIVE_MANY, RobustName, SolverName
+from gpps.names import BRDF, BRDF_NAMES, SHADOW_RELATIVE_MANY, InterreflectionName, RobustName, SolverName
 from gpps.pipeline.integration import IntegratorConfig
 
 __all__ = ["FolderConfig", "FolderResult", "reconstruct_folder", "automatic_solver_options", "flip_decision",
@@ -110,6 +110,12 @@ class FolderConfig:
         refine: RON: refine the depth itself after the rounds (robust misfit over every observation, normals
             tied to the surface: ``RONConfig.refine``); None (default): the automatic policy of
             :func:`automatic_refine` (on with :data:`REFINE_IMAGES` images, off with more).
+        interreflections: RON: ``"subtract"`` takes the diffuse interreflections gathered over the
+            reconstructed surface out of the images and reconstructs again (:mod:`gpps.flows.interreflection`;
+            ``interreflection_rounds`` times); ``"off"`` (default) not.
+        interreflection_rounds: compensation rounds (>= 1), each one gather and one more reconstruction.
+        albedo_scale: the physical albedo over the estimated one for the compensation (> 0; 1 when the light
+            intensities are radiometric; lowered with a warning where it would make the albedo exceed 1).
         pixel_size: orthographic camera (no K.txt): scene units per pixel; None: depth in pixels.
         reference_depth: mean object distance (scene units): sets the depth's scale; needed for point
             lights unless the folder has ``depth_gt.npy``.
@@ -139,9 +145,18 @@ class FolderConfig:
     models: tuple[str, ...] = ()
     cast_shadows: bool = False
     refine: bool | None = None
+    interreflections: InterreflectionName = "off"
+    interreflection_rounds: int = 2
+    albedo_scale: float = 1.0
 
     def __post_init__(self):
         check_choices(self)
+        object.__setattr__(self, "interreflection_rounds",
+                           check_number("interreflection_rounds", self.interreflection_rounds, lo=1, integer=True))
+        object.__setattr__(self, "albedo_scale", check_number("albedo_scale", self.albedo_scale, lo=0.0, lo_open=True))
+        if self.interreflections != "off" and (self.method != "ron" or not self.integrate or self.solver == "none"):
+            raise ValueError("interreflections: gathers over RON's depth, expected method='ron', integrate=True and "
+                             f"a solver, got method={self.method!r}, integrate={self.integrate}, solver={self.solver!r}")
         check_bool("cast_shadows", self.cast_shadows)
         if self.refine is not None:
             check_bool("refine", self.refine)
@@ -540,8 +555,21 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
                         refine=refine,
                         final_integrator=IntegratorConfig(bilateral=True) if config.integration == "bini" else None)
         cfg = replace(cfg, solver=replace(cfg.solver, solver=config.solver, **opts))
-        rec = reconstruct(ds.images, ds.mask, lights, camera=camera, material=material, estimate=estimate,
-                          reference_depth=internal_reference, valid=valid, config=cfg, device=device, progress=progress)
+        def solve(images):
+            return reconstruct(images, ds.mask, lights, camera=camera, material=material, estimate=estimate,
+                               reference_depth=internal_reference, valid=valid, config=cfg, device=device,
+                               progress=progress)
+
+        if config.interreflections == "subtract":
+            from gpps.flows.interreflection import reconstruct_subtracting
+
+            t = time.perf_counter()
+            rec, info = reconstruct_subtracting(solve, ds.images, ds.mask, lights, camera,
+                                                rounds=config.interreflection_rounds,
+                                                albedo_scale=config.albedo_scale, device=device)
+            report["interreflections"] = {**info, "seconds": time.perf_counter() - t}
+        else:
+            rec = solve(ds.images)
         out.update(normals=rec.normals, albedo=rec.albedo, depth=rec.depth, depth_mask=rec.depth_mask)
         report.update(solver=config.solver, robust=robust, timings=rec.timings, material=rec.material.to_dict(),
                       estimated=rec.estimated, fixed=rec.fixed,

@@ -1,0 +1,181 @@
+"""Reconstruction with the diffuse interreflections taken out of the images (issue 25).
+
+Per-pixel photometric stereo explains each pixel by the lights alone; in a concavity the surface also lights
+itself, and the normals bend toward the light the walls send each other.  Our development renders measure the
+cost (perf/dev_floor.py: the same Mitsuba scenes with and without interreflections, 12 lights: a Lambertian
+ridged surface 2.71 -> 0.23 deg, a sphere on a plane 2.41 -> 0.76).
+
+The compensation (the radiosity equation for Lambertian surfaces, e.g. Nayar, Ikeuchi & Kanade, "Shape from
+interreflections", IJCV 6(3), 1991): once a reconstruction gives a surface (depth, normals, albedo ``rho``), the
+indirect light in image ``k`` at pixel ``i`` is ``kd_i * S_k(i)`` with ``S_k(i) = sum_j F_ij L_k(j)`` the radiance
+gathered from the other patches (:class:`gpps.pipeline.interreflection.Interreflections`) and ``kd = tau * rho``
+the physical albedo.  The sources' radiance ``L_k(j)`` is their observed value less the model's specular part
+(what a glossy source sends toward the camera is not what it sends elsewhere); the observed images hold every
+bounce, so one gather gives all of the indirect light.  The images less ``tau * rho * S`` are reconstructed again.
+
+``tau``, the ratio of the physical albedo to the estimated one, is 1 when the light intensities are radiometric
+(the images are ``kd cos`` under unit lights: gpps's renders and our Mitsuba development captures); real captures
+may give intensities up to one unknown scale (DiLiGenT's are relative): the caller gives it (``albedo_scale``).
+Where it would make the albedo of more than 1 % of the pixels exceed 1 it is lowered to that bound; where the
+first reconstruction's albedo is far beyond 1 (:data:`MAX_APPARENT_ALBEDO`) nothing is taken out, with a warning.
+
+**Estimating tau from the images does not work** (measured on our development renders, session 20): the least-
+squares coefficient of ``rho * S`` in the model's residual came out 0.01 where the truth is 1 (the normals and the
+albedo absorb the indirect light: the residual hardly sees it), and its variable projection (only the part no
+Lambertian pixel explains) came out between -5.5 and 3.8 (the other misfits of real reflectance dominate that part).
+
+**Where it holds.**  The model is Lambertian: matte surfaces.  On our Mitsuba development captures (12 lights,
+perf/dev_visible_eval.py ``subtract``) a matte ridged surface goes from 2.71 to 0.79 deg (2.02 -> 0.81 under point
+lights); on glossy plastic and rough metal it makes the normals worse (their fitted "albedo" is not a diffuse
+albedo, and their interreflections are glossy): it is off by default.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from gpps.camera import Orthographic
+from gpps.pipeline.interreflection import InterreflectionConfig, Interreflections
+from gpps.pipeline.render import Renderer
+from gpps.pipeline.shadows import CastShadows
+
+__all__ = ["interreflection_terms", "tau_bound", "reconstruct_subtracting", "MIN_FACING_LIGHT", "MAX_APPARENT_ALBEDO"]
+
+#: the largest albedo (times ``albedo_scale``, 99th percentile) the compensation accepts from the first
+#: reconstruction.  A matte surface's apparent albedo exceeds its true one by the indirect light it receives: a
+#: white wall in a deep concavity gathering a third of its light indirectly shows 1.5.  Beyond that the fitted
+#: "albedo" is not a diffuse albedo (a glossy or metallic surface, whose lobe the model does not hold) or the light
+#: intensities are not radiometric.  (On the development captures the rough conductors show 2.0-2.1, every other
+#: capture at most 1.2: any value in 1.25-2 decides the same there.)
+MAX_APPARENT_ALBEDO = 1.5
+
+#: observations with ``n . l`` below this are left out of ``tau``'s fit (the terminator's doubtful shading)
+MIN_FACING_LIGHT = 0.1
+
+
+def _filled_depth(rec) -> np.ndarray:
+    """RON's depth on its depth mask, the mask's other pixels filled with the nearest depth (> 0 everywhere)."""
+    from scipy import ndimage
+
+    d = np.asarray(rec.depth, np.float64)
+    ok = np.asarray(rec.depth_mask, bool) & np.isfinite(d) & (d > 0)
+    if not ok.any():
+        raise ValueError("depth: the reconstruction has no depth to gather interreflections over")
+    idx = ndimage.distance_transform_edt(~ok, return_distances=False, return_indices=True)
+    return d[idx[0], idx[1]].astype(np.float32)
+
+
+def interreflection_terms(images, mask, lights, camera, rec, *, config: InterreflectionConfig | None = None,
+                          device=None) -> dict:
+    """The quantities of one compensation round from a reconstruction ``rec`` of ``images``.
+
+    Args:
+        images: (N, H, W, 3) the observed images (divided by the light intensities as ``reconstruct`` takes them).
+        mask: (H, W) bool; lights, camera: as given to ``reconstruct``.
+        rec: its :class:`gpps.flows.reconstruction.Reconstruction` (with a depth).
+        config: :class:`InterreflectionConfig`.
+
+    Returns:
+        ``{"B": (N, H, W, 3) rho * S (the indirect light per unit tau), "specular": (N, H, W, 3) the model's
+        specular part, "lit": (N, H, W) bool observations fit for tau (no cast shadow, ``n . l`` above
+        :data:`MIN_FACING_LIGHT`), "light_vectors": (N, 1, 1, 3) or (N, H, W, 3) unit directions toward the
+        lights, "sources": S, "stride": stride}``.
+    """
+    camera = Orthographic() if camera is None else camera
+    if images.ndim != 4 or images.shape[-1] != 3:
+        raise ValueError(f"images: expected (N, H, W, 3) RGB images, got shape {images.shape}")
+    n, h, w = images.shape[:3]
+    depth = _filled_depth(rec)
+    normals = rec.normals
+    albedo = rec.albedo
+    with Renderer((h, w), camera, lights, rec.material, device=device) as rd:
+        predicted = rd.run(depth, mask, albedo, normals)
+    with Renderer((h, w), camera, lights, replace(rec.material, ks=0.0), device=device) as rd:
+        diffuse = rd.run(depth, mask, albedo, normals)
+    radiance = np.clip(images - (predicted - diffuse), 0.0, None)  # the sources' diffuse radiance
+    with Interreflections((n, h, w), camera, config, device=device) as st:
+        st.upload(depth, mask, normals, radiance)
+        st.step()
+        S = st.fetch()
+        stride, sources = st.stride, st.sources
+    with CastShadows((n, h, w), camera, lights, device=device) as cs:
+        visible = cs.run(depth, mask)
+    lv = _light_vectors(depth, camera, lights)
+    facing = np.einsum("hwc,nhwc->nhw", normals, np.broadcast_to(lv, (n, h, w, 3))) > MIN_FACING_LIGHT
+    lit = visible & facing & mask[None]
+    return {"B": (albedo[None] * S).astype(np.float32), "specular": predicted - diffuse, "lit": lit,
+            "light_vectors": lv, "sources": sources, "stride": stride}
+
+
+def _light_vectors(depth, camera, lights) -> np.ndarray:
+    """Unit directions toward the lights: (N, 1, 1, 3) directional, (N, H, W, 3) point lights at each pixel's
+    surface point."""
+    from gpps.lights import PointLights
+
+    if not isinstance(lights, PointLights):
+        return np.asarray(lights.directions, np.float64)[:, None, None, :]
+    pts = camera.backproject(depth)
+    l = np.asarray(lights.positions, np.float64)[:, None, None, :] - pts[None]
+    return l / np.linalg.norm(l, axis=-1, keepdims=True)
+
+
+def tau_bound(albedo, mask) -> float:
+    """``1 / rho_99``: the largest ``tau`` that keeps the physical albedo of 99 % of the pixels at most 1."""
+    a = np.asarray(albedo)[np.asarray(mask, bool)]
+    a = a.max(-1) if a.ndim == 2 else a
+    q = float(np.percentile(a, 99)) if a.size else 0.0
+    return 1.0 / q if q > 0 else 0.0
+
+
+def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int = 2, albedo_scale: float = 1.0,
+                            config: InterreflectionConfig | None = None, device=None):
+    """``solve(images)`` (a reconstruction with depth) on the images with the interreflections taken out.
+
+    Args:
+        solve: ``solve(images) -> Reconstruction`` (the caller's ``reconstruct`` with its other arguments).
+        images, mask, lights, camera: the capture (as ``solve`` takes them).
+        rounds: compensation rounds (each one gather over the last surface and one more ``solve``).
+        albedo_scale: ``tau``, the physical albedo over the estimated one (1: radiometric light intensities).
+            Where ``tau`` times the albedo exceeds 1 on more than 1 % of the pixels ``tau`` is lowered to
+            :func:`tau_bound` (the brightest pixels taken as white; ``info["lowered"]``); where it exceeds
+            :data:`MAX_APPARENT_ALBEDO` in the first round nothing is taken out (``info["skipped"]``, a
+            :class:`gpps.GppsWarning`).
+        config: :class:`InterreflectionConfig`.
+
+    Returns:
+        ``(reconstruction, info)``: the last reconstruction and ``{"tau": [...] per round, "bound": ...,
+        "sources": ..., "stride": ..., "indirect_share": [...], "lowered": ..., "skipped": ...}`` (the
+        indirect light's share of the lit observations' sum, per round).
+    """
+    from gpps._check import warn
+
+    images = np.asarray(images, np.float32)
+    m = np.asarray(mask, bool)
+    rec = solve(images)
+    taus, shares = [], []
+    info: dict = {"albedo_scale": float(albedo_scale), "skipped": False, "lowered": False}
+    for r in range(int(rounds)):
+        bound = tau_bound(rec.albedo, m)
+        tau = float(albedo_scale)
+        if r == 0 and tau > MAX_APPARENT_ALBEDO * bound:
+            warn(f"interreflections: the estimated albedo times albedo_scale ({tau:g}) reaches "
+                 f"{tau / bound:.3g} on 1 % of the pixels, beyond what a matte surface lit by itself shows "
+                 f"({MAX_APPARENT_ALBEDO:g}): the surface is glossy or metallic (its fitted albedo is no diffuse "
+                 "albedo) or the light intensities are not radiometric (give albedo_scale); the interreflections "
+                 "are left in")
+            info.update(skipped=True, bound=bound, apparent_albedo=tau / bound)
+            break
+        if tau > bound:  # (the brightest pixels taken as white)
+            tau = bound
+            info["lowered"] = True
+        taus.append(tau)
+        terms = interreflection_terms(images, m, lights, camera, rec, config=config, device=device)
+        lit = terms["lit"]
+        shares.append(float((tau * terms["B"])[lit].sum() / max(float(images[lit].sum()), 1e-30)))
+        info.update(bound=bound, sources=terms["sources"], stride=terms["stride"])
+        corrected = np.clip(images - np.float32(tau) * terms["B"], 0.0, None)
+        rec = solve(corrected)
+    info.update(tau=taus, indirect_share=shares)
+    return rec, info
