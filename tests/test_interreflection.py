@@ -154,7 +154,7 @@ def test_open_groove_sees_across(device):
     np.testing.assert_allclose(vis[left], free[left], rtol=0.02, atol=1e-4)
 
 
-def test_checks():
+def test_checks(device):
     with pytest.raises(ValueError, match="max_sources"):
         InterreflectionConfig(max_sources=0)
     with pytest.raises(TypeError, match="visibility"):
@@ -162,9 +162,9 @@ def test_checks():
     with pytest.raises(ValueError, match="step_px"):
         InterreflectionConfig(step_px=5.0)
     with pytest.raises(TypeError, match="config"):
-        Interreflections((1, 8, 8), Orthographic(1.0), config={"max_sources": 3}, device="cpu")
+        Interreflections((1, 8, 8), Orthographic(1.0), config={"max_sources": 3}, device=device)
     m, depth, n = _cap(size=16, R=6.0)
-    st = Interreflections((2, 16, 16), Orthographic(1.0), device="cpu")
+    st = Interreflections((2, 16, 16), Orthographic(1.0), device=device)
     with pytest.raises(ValueError, match="images"):
         st.upload(depth, m, n, np.ones((3, 16, 16, 3), np.float32))
     with pytest.raises(ValueError, match="depth"):

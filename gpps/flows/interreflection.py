@@ -25,9 +25,10 @@ albedo absorb the indirect light: the residual hardly sees it), and its variable
 Lambertian pixel explains) came out between -5.5 and 3.8 (the other misfits of real reflectance dominate that part).
 
 **Where it holds.**  The model is Lambertian: matte surfaces.  On our Mitsuba development captures (12 lights,
-perf/dev_visible_eval.py ``subtract``) a matte ridged surface goes from 2.71 to 0.79 deg (2.02 -> 0.81 under point
-lights); on glossy plastic and rough metal it makes the normals worse (their fitted "albedo" is not a diffuse
-albedo, and their interreflections are glossy): it is off by default.
+``perf/dev_visible_eval.py ... subtract``, perf/results/s20/README.md) a matte ridged surface goes from 2.71 to 0.79
+deg (2.02 -> 0.81 under point lights), a sphere on a plane 2.41 -> 2.01, one-pixel steps of rough plastic 8.74 ->
+7.33; glossy surfaces gain little or lose (a rough-plastic bowl under point lights 2.42 -> 3.35: its fitted
+"albedo" is not a diffuse albedo and its interreflections are glossy).  It is off by default.
 """
 
 from __future__ import annotations
