@@ -240,12 +240,15 @@ def test_compensation_recovers_a_self_lit_cap(device):
         return np.degrees(np.arccos(np.clip((nn[m] * n[m]).sum(-1), -1, 1))).mean()
 
     before = maen(solve(images).normals)
-    rec, info = reconstruct_subtracting(solve, images, m, lights, cam, rounds=2, albedo_scale=1.0, device=device)
+    calls = []
+    rec, info = reconstruct_subtracting(solve, images, m, lights, cam, rounds=2, albedo_scale=1.0, device=device,
+                                        progress=lambda d, t, msg: calls.append((d, t, msg)))
     after = maen(rec.normals)
     assert before > 2.0
     assert after < 0.2 * before, (before, after)
     assert info["tau"] == [1.0, 1.0] and info["sources"] == int(m.sum())
     assert not info["lowered"] and not info["skipped"]
+    assert [c[:2] for c in calls] == [(0, 2), (1, 2)] and "round 2 of 2" in calls[1][2]
     np.testing.assert_allclose(rec.albedo[m].mean(), kd, rtol=0.03)
 
     # a scale that makes the albedo exceed 1 is lowered to the brightest pixels' white ...

@@ -566,7 +566,7 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
             t = time.perf_counter()
             rec, info = reconstruct_subtracting(solve, ds.images, ds.mask, lights, camera,
                                                 rounds=config.interreflection_rounds,
-                                                albedo_scale=config.albedo_scale, device=device)
+                                                albedo_scale=config.albedo_scale, device=device, progress=progress)
             report["interreflections"] = {**info, "seconds": time.perf_counter() - t}
         else:
             rec = solve(ds.images)

@@ -131,7 +131,7 @@ def tau_bound(albedo, mask) -> float:
 
 
 def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int = 2, albedo_scale: float = 1.0,
-                            config: InterreflectionConfig | None = None, device=None):
+                            config: InterreflectionConfig | None = None, device=None, progress=None):
     """``solve(images)`` (a reconstruction with depth) on the images with the interreflections taken out.
 
     Args:
@@ -144,6 +144,8 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
             :data:`MAX_APPARENT_ALBEDO` in the first round nothing is taken out (``info["skipped"]``, a
             :class:`gpps.GppsWarning`).
         config: :class:`InterreflectionConfig`.
+        progress: optional ``progress(done, total, message)``, called before each round's gather (``solve``
+            reports its own progress in between).
 
     Returns:
         ``(reconstruction, info)``: the last reconstruction and ``{"tau": [...] per round, "bound": ...,
@@ -172,6 +174,8 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
             tau = bound
             info["lowered"] = True
         taus.append(tau)
+        if progress is not None:
+            progress(r, int(rounds), f"interreflections: gathering over the surface (round {r + 1} of {int(rounds)})")
         terms = interreflection_terms(images, m, lights, camera, rec, config=config, device=device)
         lit = terms["lit"]
         shares.append(float((tau * terms["B"])[lit].sum() / max(float(images[lit].sum()), 1e-30)))
