@@ -283,3 +283,22 @@ def test_folder_flow_subtracts(tmp_path, device):
     a = normal_errors(off.normals, n, m)["mean"]
     b = normal_errors(on.normals, n, m)["mean"]
     assert b < 0.5 * a, (a, b)
+
+
+def test_cli_options():
+    """``gpps reconstruct --interreflections subtract --albedo-scale .. --interreflection-rounds ..`` set the
+    FolderConfig; errors name the options."""
+    import argparse
+
+    from gpps.cli.reconstruct import add_reconstruct_options, folder_config
+
+    p = argparse.ArgumentParser()
+    add_reconstruct_options(p)
+    cfg = folder_config(p.parse_args(["--interreflections", "subtract", "--albedo-scale", "0.5",
+                                      "--interreflection-rounds", "3"]))
+    assert (cfg.interreflections, cfg.albedo_scale, cfg.interreflection_rounds) == ("subtract", 0.5, 3)
+    assert folder_config(p.parse_args([])).interreflections == "off"
+    with pytest.raises(ValueError, match="^--albedo-scale"):
+        folder_config(p.parse_args(["--albedo-scale", "-1"]))
+    with pytest.raises(ValueError, match="^--interreflections"):
+        folder_config(p.parse_args(["--interreflections", "subtract", "--method", "ppn"]))

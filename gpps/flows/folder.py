@@ -115,7 +115,8 @@ class FolderConfig:
             ``interreflection_rounds`` times); ``"off"`` (default) not.
         interreflection_rounds: compensation rounds (>= 1), each one gather and one more reconstruction.
         albedo_scale: the physical albedo over the estimated one for the compensation (> 0; 1 when the light
-            intensities are radiometric; lowered with a warning where it would make the albedo exceed 1).
+            intensities are radiometric; lowered where it would make the albedo exceed 1, and the compensation
+            skipped with a warning where the albedo would exceed 1.5: a glossy or metallic surface).
         pixel_size: orthographic camera (no K.txt): scene units per pixel; None: depth in pixels.
         reference_depth: mean object distance (scene units): sets the depth's scale; needed for point
             lights unless the folder has ``depth_gt.npy``.
@@ -650,6 +651,9 @@ def reconstruct_folder(folder, config: FolderConfig | None = None, *, lights=Non
         sol.update(depth=None, depth_mask=None)
         report["refine"] = {"on": False, "why": ("asked, but " if config.refine else "automatic: ")
                             + "an uncalibrated capture runs no RON rounds to refine after"}
+        if config.interreflections != "off":
+            report["interreflections"] = {"skipped": True, "why": "asked, but an uncalibrated capture has no RON "
+                                          "surface to gather over"}
     else:
         sol = _calibrated(cap, camera, config, reference, source, report, device, progress, pixel_solve)
         reference, source = sol["reference"], sol["source"]
