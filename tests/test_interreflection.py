@@ -251,6 +251,16 @@ def test_compensation_recovers_a_self_lit_cap(device):
     assert [c[:2] for c in calls] == [(0, 2), (1, 2)] and "round 2 of 2" in calls[1][2]
     np.testing.assert_allclose(rec.albedo[m].mean(), kd, rtol=0.03)
 
+    # a pixel the solver could not fit (negative or NaN albedo) reflects nothing and stops nothing
+    def broken(imgs):
+        r = solve(imgs)
+        r.albedo[m.nonzero()[0][:5], m.nonzero()[1][:5]] = -0.5
+        r.albedo[m.nonzero()[0][5:9], m.nonzero()[1][5:9]] = np.nan
+        return r
+
+    rec3, _ = reconstruct_subtracting(broken, images, m, lights, cam, rounds=1, albedo_scale=1.0, device=device)
+    assert maen(rec3.normals) < 0.3 * before
+
     # a scale that makes the albedo exceed 1 is lowered to the brightest pixels' white ...
     _, info = reconstruct_subtracting(solve, images, m, lights, cam, rounds=1, albedo_scale=1.3, device=device)
     assert info["lowered"] and 1.0 < info["tau"][0] < 1.3

@@ -90,7 +90,8 @@ def interreflection_terms(images, mask, lights, camera, rec, *, config: Interref
     n, h, w = images.shape[:3]
     depth = _filled_depth(rec)
     normals = rec.normals
-    albedo = rec.albedo
+    # (a pixel the solver could not fit may carry a negative or NaN albedo: it reflects nothing here)
+    albedo = np.clip(np.nan_to_num(np.asarray(rec.albedo, np.float32)), 0.0, None)
     with Renderer((h, w), camera, lights, rec.material, device=device) as rd:
         predicted = rd.run(depth, mask, albedo, normals)
     with Renderer((h, w), camera, lights, replace(rec.material, ks=0.0), device=device) as rd:
@@ -123,11 +124,13 @@ def _light_vectors(depth, camera, lights) -> np.ndarray:
 
 
 def tau_bound(albedo, mask) -> float:
-    """``1 / rho_99``: the largest ``tau`` that keeps the physical albedo of 99 % of the pixels at most 1."""
-    a = np.asarray(albedo)[np.asarray(mask, bool)]
+    """``1 / rho_99``: the largest ``tau`` that keeps the physical albedo of 99 % of the pixels at most 1 (``rho_99``
+    the 99th percentile of the albedo's largest channel over the mask, negative and NaN values counted as 0;
+    infinite for a black albedo, which reflects nothing whatever ``tau``)."""
+    a = np.clip(np.nan_to_num(np.asarray(albedo, np.float64)[np.asarray(mask, bool)]), 0.0, None)
     a = a.max(-1) if a.ndim == 2 else a
     q = float(np.percentile(a, 99)) if a.size else 0.0
-    return 1.0 / q if q > 0 else 0.0
+    return 1.0 / q if q > 0 else float("inf")
 
 
 def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int = 2, albedo_scale: float = 1.0,
@@ -179,7 +182,7 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
         terms = interreflection_terms(images, m, lights, camera, rec, config=config, device=device)
         lit = terms["lit"]
         shares.append(float((tau * terms["B"])[lit].sum() / max(float(images[lit].sum()), 1e-30)))
-        info.update(bound=bound, sources=terms["sources"], stride=terms["stride"])
+        info.update(bound=bound if np.isfinite(bound) else None, sources=terms["sources"], stride=terms["stride"])
         corrected = np.clip(images - np.float32(tau) * terms["B"], 0.0, None)
         rec = solve(corrected)
     info.update(tau=taus, indirect_share=shares)
