@@ -28,7 +28,10 @@ Lambertian pixel explains) came out between -5.5 and 3.8 (the other misfits of r
 ``perf/dev_visible_eval.py ... subtract``, perf/results/s20/README.md) a matte ridged surface goes from 2.71 to 0.79
 deg (2.02 -> 0.81 under point lights), a sphere on a plane 2.41 -> 2.01, one-pixel steps of rough plastic 8.74 ->
 7.33; glossy surfaces gain little or lose (a rough-plastic bowl under point lights 2.42 -> 3.35: its fitted
-"albedo" is not a diffuse albedo and its interreflections are glossy).  It is off by default.
+"albedo" is not a diffuse albedo and its interreflections are glossy).  With the reflectance model chosen by
+residual between Blinn-Phong and plastic (``models=("plastic",)``), whose albedo is the diffuse albedo under the
+coating, the plastics gain too (bowl 3.17 -> 1.80, bumps 1.67 -> 0.65).  It is off by default: it triples the time
+of a reconstruction and needs radiometric light intensities.
 """
 
 from __future__ import annotations
@@ -52,7 +55,8 @@ __all__ = ["interreflection_terms", "tau_bound", "reconstruct_subtracting", "MIN
 #: capture at most 1.2: any value in 1.25-2 decides the same there.)
 MAX_APPARENT_ALBEDO = 1.5
 
-#: observations with ``n . l`` below this are left out of ``tau``'s fit (the terminator's doubtful shading)
+#: observations with ``n . l`` below this (the terminator's doubtful shading) and those in a cast shadow are left out
+#: of the reported ``indirect_share`` (the indirect light's share of the lit observations)
 MIN_FACING_LIGHT = 0.1
 
 
@@ -80,9 +84,9 @@ def interreflection_terms(images, mask, lights, camera, rec, *, config: Interref
 
     Returns:
         ``{"B": (N, H, W, 3) rho * S (the indirect light per unit tau), "specular": (N, H, W, 3) the model's
-        specular part, "lit": (N, H, W) bool observations fit for tau (no cast shadow, ``n . l`` above
-        :data:`MIN_FACING_LIGHT`), "light_vectors": (N, 1, 1, 3) or (N, H, W, 3) unit directions toward the
-        lights, "sources": S, "stride": stride}``.
+        specular part, "lit": (N, H, W) bool lit observations (no cast shadow, ``n . l`` above
+        :data:`MIN_FACING_LIGHT`: those of the reported share), "light_vectors": (N, 1, 1, 3) or (N, H, W, 3)
+        unit directions toward the lights, "sources": S, "stride": stride}``.
     """
     camera = Orthographic() if camera is None else camera
     if images.ndim != 4 or images.shape[-1] != 3:
