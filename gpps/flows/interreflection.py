@@ -43,9 +43,8 @@ import numpy as np
 from gpps.camera import Orthographic
 from gpps.pipeline.interreflection import InterreflectionConfig, Interreflections
 from gpps.pipeline.render import Renderer
-from gpps.pipeline.shadows import CastShadows
 
-__all__ = ["interreflection_terms", "tau_bound", "reconstruct_subtracting", "MIN_FACING_LIGHT", "MAX_APPARENT_ALBEDO"]
+__all__ = ["interreflection_terms", "tau_bound", "reconstruct_subtracting", "MAX_APPARENT_ALBEDO"]
 
 #: the largest albedo (times ``albedo_scale``, 99th percentile) the compensation accepts from the first
 #: reconstruction.  A matte surface's apparent albedo exceeds its true one by the indirect light it receives: a
@@ -54,11 +53,6 @@ __all__ = ["interreflection_terms", "tau_bound", "reconstruct_subtracting", "MIN
 #: intensities are not radiometric.  (On the development captures the rough conductors show 2.0-2.1, every other
 #: capture at most 1.2: any value in 1.25-2 decides the same there.)
 MAX_APPARENT_ALBEDO = 1.5
-
-#: observations with ``n . l`` below this (the terminator's doubtful shading) and those in a cast shadow are left out
-#: of the reported ``indirect_share`` (the indirect light's share of the lit observations)
-MIN_FACING_LIGHT = 0.1
-
 
 def _filled_depth(rec) -> np.ndarray:
     """RON's depth on its depth mask, the mask's other pixels filled with the nearest depth (> 0 everywhere)."""
@@ -83,10 +77,7 @@ def interreflection_terms(images, mask, lights, camera, rec, *, config: Interref
         config: :class:`InterreflectionConfig`.
 
     Returns:
-        ``{"B": (N, H, W, 3) rho * S (the indirect light per unit tau), "specular": (N, H, W, 3) the model's
-        specular part, "lit": (N, H, W) bool lit observations (no cast shadow, ``n . l`` above
-        :data:`MIN_FACING_LIGHT`: those of the reported share), "light_vectors": (N, 1, 1, 3) or (N, H, W, 3)
-        unit directions toward the lights, "sources": S, "stride": stride}``.
+        ``{"B": (N, H, W, 3) rho * S (the indirect light per unit tau), "sources": S, "stride": stride}``.
     """
     camera = Orthographic() if camera is None else camera
     if images.ndim != 4 or images.shape[-1] != 3:
@@ -106,25 +97,7 @@ def interreflection_terms(images, mask, lights, camera, rec, *, config: Interref
         st.step()
         S = st.fetch()
         stride, sources = st.stride, st.sources
-    with CastShadows((n, h, w), camera, lights, device=device) as cs:
-        visible = cs.run(depth, mask)
-    lv = _light_vectors(depth, camera, lights)
-    facing = np.einsum("hwc,nhwc->nhw", normals, np.broadcast_to(lv, (n, h, w, 3))) > MIN_FACING_LIGHT
-    lit = visible & facing & mask[None]
-    return {"B": (albedo[None] * S).astype(np.float32), "specular": predicted - diffuse, "lit": lit,
-            "light_vectors": lv, "sources": sources, "stride": stride}
-
-
-def _light_vectors(depth, camera, lights) -> np.ndarray:
-    """Unit directions toward the lights: (N, 1, 1, 3) directional, (N, H, W, 3) point lights at each pixel's
-    surface point."""
-    from gpps.lights import PointLights
-
-    if not isinstance(lights, PointLights):
-        return np.asarray(lights.directions, np.float64)[:, None, None, :]
-    pts = camera.backproject(depth)
-    l = np.asarray(lights.positions, np.float64)[:, None, None, :] - pts[None]
-    return l / np.linalg.norm(l, axis=-1, keepdims=True)
+    return {"B": (albedo[None] * S).astype(np.float32), "sources": sources, "stride": stride}
 
 
 def tau_bound(albedo, mask) -> float:
@@ -157,7 +130,7 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
     Returns:
         ``(reconstruction, info)``: the last reconstruction and ``{"tau": [...] per round, "bound": ...,
         "sources": ..., "stride": ..., "indirect_share": [...], "lowered": ..., "skipped": ...}`` (the
-        indirect light's share of the lit observations' sum, per round).
+        indirect light's share of the images' sum over the mask, per round).
     """
     from gpps._check import warn
 
@@ -184,8 +157,7 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
         if progress is not None:
             progress(r, int(rounds), f"interreflections: gathering over the surface (round {r + 1} of {int(rounds)})")
         terms = interreflection_terms(images, m, lights, camera, rec, config=config, device=device)
-        lit = terms["lit"]
-        shares.append(float((tau * terms["B"])[lit].sum() / max(float(images[lit].sum()), 1e-30)))
+        shares.append(float((tau * terms["B"])[:, m].sum() / max(float(images[:, m].sum()), 1e-30)))
         info.update(bound=bound if np.isfinite(bound) else None, sources=terms["sources"], stride=terms["stride"])
         corrected = np.clip(images - np.float32(tau) * terms["B"], 0.0, None)
         rec = solve(corrected)

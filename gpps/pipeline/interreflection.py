@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gpps._check import as_array, as_mask, check_bool, check_number, unit_normals
+from gpps._check import as_array, as_mask, check_bool, check_number, check_shape, unit_normals
 from gpps._runtime import resolve_device, warp
 from gpps.kernels import interreflection as ik
 from gpps.kernels import shadows as sk
@@ -95,12 +95,7 @@ class Interreflections(Stage):
 
     def __init__(self, shape, camera, config: InterreflectionConfig | None = None, device=None):
         wp = warp()
-        try:
-            n, h, w = (int(s) for s in shape)
-        except (TypeError, ValueError):
-            raise TypeError(f"shape: expected (N, H, W) integers, got {shape!r}") from None
-        if n < 1 or h < 1 or w < 1:
-            raise ValueError(f"shape: expected (N, H, W) positive integers, got {shape!r}")
+        n, h, w = check_shape("shape", shape, "NHW")
         self.config = InterreflectionConfig() if config is None else config
         if not isinstance(self.config, InterreflectionConfig):
             raise TypeError(f"config: expected Interreflections.Config, got {type(self.config).__name__}")
