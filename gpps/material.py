@@ -21,14 +21,19 @@ class Material:
             Cook-Torrance (2.22-2.29), Ashikhmin-Shirley (5.1-5.2) or plastic (a
             dielectric coating over a diffuse base, :mod:`gpps.kernels.brdf`: Cook-Torrance's
             microfacet lobe with the exact dielectric Fresnel, and a diffuse term that loses
-            what the coating reflects).
-        ks: specular weight (>= 0), scalar: highlights take the light's colour.
+            what the coating reflects) or conductor (a rough metal: a GGX microfacet lobe, no
+            diffuse term; the per-pixel albedo is the metal's colour at normal incidence and weighs
+            the lobe, :mod:`gpps.kernels.brdf`).
+        ks: specular weight (>= 0), scalar: highlights take the light's colour.  The conductor
+            does not use it (its albedo map weighs its lobe).
         shininess: Phong / Blinn-Phong exponent n (> 0).
-        roughness: Cook-Torrance RMS microfacet slope m (> 0).
+        roughness: Cook-Torrance and plastic RMS microfacet slope m (> 0); the conductor's GGX alpha.
         f0: Fresnel reflectance at normal incidence, in [0, 1]: Schlick's (2.29) for
             Cook-Torrance and Ashikhmin-Shirley; for plastic it fixes the coating's index of
-            refraction ``ior = (1 + sqrt(f0)) / (1 - sqrt(f0))`` and must be < 1.  None (default):
-            :data:`gpps.names.DEFAULT_F0` of the model (0.5; plastic 0.04, i.e. ior 1.5).
+            refraction ``ior = (1 + sqrt(f0)) / (1 - sqrt(f0))`` and must be < 1; for the conductor
+            it shapes Schlick's rise toward grazing incidence relative to normal incidence and must
+            be > 0.  None (default): :data:`gpps.names.DEFAULT_F0` of the model (0.5; plastic 0.04,
+            i.e. ior 1.5; conductor 1, no rise).
             :meth:`from_ior` sets it from an index of refraction.
         eta_u: Ashikhmin-Shirley exponent along the tangent u (> 0; the seed uses 10).
         eta_v: Ashikhmin-Shirley exponent along the tangent v (> 0).
@@ -51,6 +56,8 @@ class Material:
         object.__setattr__(self, "f0", check_number("f0", f0, lo=0.0, hi=1.0))
         if self.brdf == "plastic" and self.f0 >= 1.0:
             raise ValueError(f"f0: plastic needs f0 < 1 (a finite index of refraction), got {f0!r}")
+        if self.brdf == "conductor" and self.f0 <= 0.0:
+            raise ValueError(f"f0: the conductor needs f0 in (0, 1] (its Fresnel is relative to f0), got {f0!r}")
         object.__setattr__(self, "eta_u", check_number("eta_u", self.eta_u, lo=0.0, lo_open=True))
         object.__setattr__(self, "eta_v", check_number("eta_v", self.eta_v, lo=0.0, lo_open=True))
 
@@ -112,4 +119,5 @@ class Material:
             "ashikhmin-shirley": cls("ashikhmin-shirley", ks=0.8, eta_u=30.0, eta_v=30.0, f0=0.5),
             # ks 1 is the physical coating (gpps.kernels.brdf.plastic_spec), ior 1.5 (f0 0.04)
             "plastic": cls("plastic", ks=1.0, roughness=0.2),
+            "conductor": cls("conductor", ks=0.0, roughness=0.2),
         }[brdf]

@@ -11,16 +11,18 @@ from __future__ import annotations
 from typing import Literal, get_args
 
 # ---------------------------------------------------------------- reflectance models (seed ch. 2, 5)
-# "plastic" is not the seed's: a dielectric coating (exact Fresnel) over a diffuse base (gpps.kernels.brdf)
-BRDF = Literal["lambertian", "phong", "blinn-phong", "cook-torrance", "ashikhmin-shirley", "plastic"]
+# "plastic" is not the seed's: a dielectric coating (exact Fresnel) over a diffuse base (gpps.kernels.brdf);
+# nor is "conductor": a rough metal, GGX microfacets and no diffuse term (its albedo map is the metal's colour)
+BRDF = Literal["lambertian", "phong", "blinn-phong", "cook-torrance", "ashikhmin-shirley", "plastic", "conductor"]
 BRDF_NAMES: tuple[str, ...] = get_args(BRDF)
 BRDF_TAG = {name: i for i, name in enumerate(BRDF_NAMES)}  # device tags of gpps.kernels.brdf
-LAMBERTIAN, PHONG, BLINN_PHONG, COOK_TORRANCE, ASHIKHMIN_SHIRLEY, PLASTIC = range(6)
+LAMBERTIAN, PHONG, BLINN_PHONG, COOK_TORRANCE, ASHIKHMIN_SHIRLEY, PLASTIC, CONDUCTOR = range(7)
 # the seed's five models (chapters 2 and 5), e.g. for training sets drawn from them
 SEED_BRDF_NAMES: tuple[str, ...] = BRDF_NAMES[:5]
 # Fresnel f0 when a Material leaves it unset: the seed's 0.5 (Schlick, 2.29), and for plastic the
-# normal-incidence reflectance of a dielectric of index 1.5 (((1.5 - 1) / (1.5 + 1))^2 = 0.04)
-DEFAULT_F0: dict[str, float] = {name: 0.5 for name in BRDF_NAMES} | {"plastic": 0.04}
+# normal-incidence reflectance of a dielectric of index 1.5 (((1.5 - 1) / (1.5 + 1))^2 = 0.04); for the conductor
+# 1: Schlick's rise toward grazing incidence is off (the metal's colour at normal incidence is its albedo map)
+DEFAULT_F0: dict[str, float] = {name: 0.5 for name in BRDF_NAMES} | {"plastic": 0.04, "conductor": 1.0}
 
 # the scene parameters the material searches estimate per model ("eta" ties Ashikhmin-Shirley's eta_u = eta_v),
 # and each one's log-space search range (lo, hi): RON's material fit (gpps.flows.ron) and the stream's full mode
@@ -31,6 +33,7 @@ LOBE_PARAMETERS: dict[str, tuple[str, ...]] = {
     "cook-torrance": ("ks", "roughness"),
     "ashikhmin-shirley": ("ks", "eta"),
     "plastic": ("ks", "roughness"),
+    "conductor": ("roughness",),  # its per-pixel albedo is the lobe's (RGB) weight: no ks
 }
 LOBE_RANGES: dict[str, tuple[float, float]] = {
     "ks": (0.02, 3.0), "shininess": (2.0, 500.0), "roughness": (0.03, 0.8), "eta": (2.0, 500.0),

@@ -13,7 +13,8 @@ from each tree (``PYTHONPATH=<tree>``) into its own file::
 Methods: ``pipeline`` (the default ``FolderConfig()``), ``ls`` (least squares), ``norefine`` / ``refine`` (the
 default with ``refine=False`` / ``True``: session 18's automatic refinement with 3 images, issue 25), ``subtract``
 (the default with ``interreflections="subtract"``: session 20's interreflection compensation), ``compare`` (the
-model chosen by residual between Blinn-Phong and plastic: ``models=("plastic",)``) and ``compare_subtract`` (both).  The table reads
+model chosen by residual between Blinn-Phong and plastic: ``models=("plastic",)``), ``compare_subtract`` (both), ``conductor``
+(Blinn-Phong or the rough conductor by residual: ``models=("conductor",)``, session 21) and ``compare3`` (all three).  The table reads
 the ``pipeline`` rows of each file (and ``ls``); the last argument of ``run`` is the device (default ``cpu``).
 """
 
@@ -31,7 +32,9 @@ import numpy as np
 
 CONFIGS = {"pipeline": {}, "ls": {"solver": "none", "integrate": False}, "norefine": {"refine": False},
            "refine": {"refine": True}, "subtract": {"interreflections": "subtract"}, "compare": {"models": ("plastic",)},
-           "compare_subtract": {"models": ("plastic",), "interreflections": "subtract"}}
+           "compare_subtract": {"models": ("plastic",), "interreflections": "subtract"},
+           "conductor": {"models": ("conductor",)}, "compare3": {"models": ("plastic", "conductor")},
+           "conductor_refine": {"models": ("conductor",), "refine": True}}
 
 
 def run(out: str, patterns: str, methods: str = "pipeline", device: str = "cpu") -> None:

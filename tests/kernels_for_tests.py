@@ -118,7 +118,7 @@ def np_specular(brdf, n, l, v, p):
     h = np_normalize(l + v)
     nh, vh = dot(n, h), dot(v, h)
     ok = (nl > 0) & (nv > 0)
-    if brdf == "lambertian":
+    if brdf in ("lambertian", "conductor"):  # (the conductor's lobe is its albedo-weighted term, np_diffuse)
         s = np.zeros_like(nl)
     elif brdf == "phong":
         r = 2 * nl[..., None] * n - l
@@ -152,9 +152,27 @@ def np_specular(brdf, n, l, v, p):
     return np.where(ok, s, 0.0)
 
 
+def np_conductor(n, l, v, p):
+    """The conductor's GGX lobe pi D G1(n.l) G1(n.v) F / (4 n.v) (Walter et al. 2007, eqs. 33-34; F Schlick's / f0)."""
+    dot = lambda a, b: np.sum(a * b, -1)  # noqa: E731
+    a2, f0 = p["roughness"] ** 2, p["f0"]
+    h = np_normalize(l + v)
+    nl, nv, nh, vh = dot(n, l), dot(n, v), dot(n, h), dot(v, h)
+    c2 = np.clip(nh, 1e-12, 1.0) ** 2
+    D = a2 / (np.pi * c2**2 * (a2 + (1 - c2) / c2) ** 2)
+    g1 = lambda c: 2.0 / (1.0 + np.sqrt(1.0 + a2 * (1 - c**2) / c**2))  # noqa: E731
+    cl, cv = np.clip(nl, 1e-12, 1.0), np.clip(nv, 1e-12, 1.0)
+    F = (f0 + (1 - f0) * (1 - vh) ** 5) / f0
+    ok = (nl > 0) & (nv > 0) & (nh > 0) & (vh > 0)
+    return np.where(ok, np.pi * D * g1(cl) * g1(cv) * F / (4 * cv), 0.0)
+
+
 def np_diffuse(brdf, n, l, v, p):
-    """The diffuse factor: max(n.l, 0); plastic: (n.l)(1 - F(n.l))(1 - F(n.v)) where n.l, n.v > 0."""
+    """The diffuse factor: max(n.l, 0); plastic: (n.l)(1 - F(n.l))(1 - F(n.v)) where n.l, n.v > 0; the conductor:
+    its lobe (:func:`np_conductor`)."""
     nl, nv = np.sum(n * l, -1), np.sum(n * v, -1)
+    if brdf == "conductor":
+        return np_conductor(n, l, v, p)
     if brdf != "plastic":
         return np.maximum(nl, 0.0)
     eta = np_ior(p["f0"])

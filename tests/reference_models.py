@@ -78,10 +78,31 @@ def plastic(n, l, v, m, f0):
     return d, s
 
 
+def conductor(n, l, v, a, f0):
+    """Rough metal (not the seed's): pi x GGX D x Smith's separable G1(n.l) G1(n.v) x Schlick's F(h.v) / f0 over 4 n.v,
+    from Walter et al. 2007 (eqs. 33-34) as written there; the albedo weighs it (no diffuse term)."""
+    h = normalize(l + v)
+    nh, nv, nl, vh = dot(n, h), dot(n, v), dot(n, l), dot(v, h)
+    theta = np.arccos(np.clip(nh, -1, 1))
+    D = a**2 / (np.pi * np.cos(theta) ** 4 * (a**2 + np.tan(theta) ** 2) ** 2)  # Walter's (33)
+
+    def g1(c):  # Walter's (34): 2 / (1 + sqrt(1 + a^2 tan^2))
+        c = np.clip(c, 1e-12, 1.0)
+        return 2.0 / (1.0 + np.sqrt(1.0 + a**2 * (1 - c**2) / c**2))
+
+    F = (f0 + (1 - f0) * (1 - vh) ** 5) / f0
+    ok = (nh > 0) & (vh > 0) & (nl > 0) & (nv > 0)
+    return np.where(ok, np.pi * D * g1(nl) * g1(nv) * F / (4 * np.clip(nv, 1e-12, None)), 0.0)
+
+
 def terms(material, n, l, v):
-    """(cos, s) for a gpps.Material, with attached shadows (plastic: its diffuse factor for cos)."""
+    """(cos, s) for a gpps.Material, with attached shadows (plastic: its diffuse factor for cos; conductor: its lobe
+    for cos and 0 for s)."""
     nl = dot(n, l)
     b = material.brdf
+    if b == "conductor":  # the lobe is the albedo-weighted term
+        lit = (nl > 0) & (dot(n, v) > 0)
+        return np.where(lit, conductor(n, l, v, material.roughness, material.f0), 0.0), np.zeros_like(nl)
     if b == "plastic":
         d, s = plastic(n, l, v, material.roughness, material.f0)
         lit = (nl > 0) & (dot(n, v) > 0)

@@ -272,6 +272,15 @@ def test_compensation_recovers_a_self_lit_cap(device):
     assert info["skipped"] and info["tau"] == [] and info["apparent_albedo"] > 1.5
     np.testing.assert_allclose(maen(rec2.normals), before, rtol=1e-6)
 
+    # a metal (the conductor model chosen) has no diffuse albedo to send light on: nothing taken out, with a warning
+    def metal(imgs):
+        return SimpleNamespace(**dict(vars(solve(imgs)), material=Material("conductor")))
+
+    with pytest.warns(gpps.GppsWarning, match="conductor"):
+        rec4, info = reconstruct_subtracting(metal, images, m, lights, cam, device=device)
+    assert info["skipped"] and info["tau"] == []
+    np.testing.assert_allclose(maen(rec4.normals), before, rtol=1e-6)
+
 
 def test_folder_flow_subtracts(tmp_path, device):
     """``gpps.reconstruct_folder`` with ``interreflections="subtract"`` on the self-lit cap written as a capture

@@ -142,6 +142,12 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
     for r in range(int(rounds)):
         bound = tau_bound(rec.albedo, m)
         tau = float(albedo_scale)
+        if r == 0 and rec.material.brdf == "conductor":
+            warn("interreflections: the model chosen is the conductor (a metal: its albedo map weighs a specular "
+                 "lobe, there is no diffuse albedo to send light on); the diffuse compensation does not apply and "
+                 "the interreflections are left in")
+            info.update(skipped=True, bound=None, apparent_albedo=None)
+            break
         if r == 0 and tau > MAX_APPARENT_ALBEDO * bound:
             warn(f"interreflections: the estimated albedo times albedo_scale ({tau:g}) reaches "
                  f"{tau / bound:.3g} on 1 % of the pixels, beyond what a matte surface lit by itself shows "

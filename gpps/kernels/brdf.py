@@ -35,6 +35,7 @@ BLINN_PHONG = wp.constant(names.BLINN_PHONG)
 COOK_TORRANCE = wp.constant(names.COOK_TORRANCE)
 ASHIKHMIN_SHIRLEY = wp.constant(names.ASHIKHMIN_SHIRLEY)
 PLASTIC = wp.constant(names.PLASTIC)
+CONDUCTOR = wp.constant(names.CONDUCTOR)
 
 DIRECTIONAL = wp.constant(names.LIGHT_DIRECTIONAL)
 POINT = wp.constant(names.LIGHT_POINT)
@@ -47,12 +48,13 @@ class MaterialParams:
     """Per-scene material (all scalars; the albedo is a per-pixel map).
 
     Attributes:
-        model: device tag (LAMBERTIAN ... PLASTIC).
+        model: device tag (LAMBERTIAN ... CONDUCTOR).
         ks: specular weight (>= 0).
         shininess: exponent n of Phong / Blinn-Phong (2.20, 2.21).
-        roughness: RMS microfacet slope m of Cook-Torrance (2.27).
+        roughness: RMS microfacet slope m of Cook-Torrance (2.27) and plastic; GGX alpha of the conductor.
         f0: reflectance at normal incidence for Schlick's Fresnel (2.29), in [0, 1]; plastic:
-            the coating's, in [0, 1), which fixes its index of refraction (:func:`ior_from_f0`).
+            the coating's, in [0, 1), which fixes its index of refraction (:func:`ior_from_f0`); conductor:
+            in (0, 1], the shape of its Fresnel rise (:func:`conductor_spec`).
         eta_u: Ashikhmin-Shirley exponent along the tangent u (5.2).
         eta_v: Ashikhmin-Shirley exponent along the tangent v (5.2).
     """
@@ -357,9 +359,64 @@ def plastic_diffuse(nl: float, nv: float, eta: float):
     return nl * (1.0 - fresnel_dielectric(nl, eta)) * (1.0 - fresnel_dielectric(nv, eta))
 
 
+# --------------------------------------------------------------------------- rough metal (conductor)
+#
+# Not in the seed.  A rough conductor: no light enters the metal, so there is no diffuse term, and the microfacet
+# lobe carries the metal's colour.  The distribution is GGX / Trowbridge-Reitz with Smith's separable shadowing
+# (Walter et al., "Microfacet models for refraction through rough surfaces", EGSR 2007, eqs. 33-34; Heitz,
+# "Understanding the masking-shadowing function in microfacet-based BRDFs", JCGT 2014): the distribution of
+# Mitsuba 3's ``roughconductor`` (distribution "ggx"), of pbrt's and of most measured-material fits, whose long
+# tails the Beckmann lobe of Cook-Torrance (2.27) does not have.
+#
+#   s = pi D(n.h) G1(n.l) G1(n.v) F(h.v) / (4 n.v),   D = a^2 / (pi ((n.h)^2 (a^2 - 1) + 1)^2),
+#   G1(x) = 2 x / (x + sqrt(a^2 + (1 - a^2) x^2)),     F(c) = schlick(f0, c) / f0 = 1 + (1/f0 - 1)(1 - c)^5
+#
+# with a = ``roughness`` (GGX alpha).  The image model is I = E * kd * s: the per-pixel albedo kd (RGB) is the
+# metal's reflectance at normal incidence (a coloured F0, e.g. copper's), so the model stays linear in the albedo
+# (brdf_terms' contract: s sits in the diffuse slot and the specular slot is 0; ks is not used).  F is Schlick's
+# rise toward grazing incidence relative to normal incidence, with the scalar ``f0`` (default 1: no rise; a
+# coloured rise would need a per-channel f0 and is not modelled).  pi: the factor of gpps's radiometry (see the
+# plastic section).  tests/test_conductor.py checks s against Mitsuba's roughconductor.
+
+
+@wp.func
+def ggx_q(n: wp.vec3, h: wp.vec3, a2: float):
+    """``(n.h)^2 (a^2 - 1) + 1 = (1 - (n.h)^2) + (n.h)^2 a^2`` without cancellation near ``n.h = 1``."""
+    nh = wp.dot(n, h)
+    e = one_minus_dot(n, h)
+    return e * (2.0 - e) + nh * nh * a2
+
+
+@wp.func
+def smith_g1_ggx(x: float, a2: float):
+    """Smith's GGX shadowing of one direction at cosine ``x`` > 0: ``2 x / (x + sqrt(a^2 + (1 - a^2) x^2))``."""
+    return 2.0 * x / (x + wp.sqrt(a2 + (1.0 - a2) * x * x))
+
+
+@wp.func
+def conductor_spec(n: wp.vec3, l: wp.vec3, v: wp.vec3, a: float, f0: float):
+    """The rough conductor's lobe ``pi D G1(n.l) G1(n.v) F(h.v) / (4 n.v)`` (section comment above).
+
+    Written as ``a^2 G1(n.l) F / (2 q^2 (n.v + sqrt(a^2 + (1 - a^2)(n.v)^2)))`` with ``q`` = :func:`ggx_q`
+    (``G1(n.v) / n.v`` has no pole at grazing view).  0 unless ``n.l, n.v, n.h, h.v > 0``.
+    """
+    h = wp.normalize(l + v)
+    nh = wp.dot(n, h)
+    nl = wp.dot(n, l)
+    nv = wp.dot(n, v)
+    vh = wp.dot(v, h)
+    if nh <= 0.0 or nl <= 0.0 or nv <= 0.0 or vh <= 0.0:
+        return 0.0
+    a2 = a * a
+    q = ggx_q(n, h, a2)
+    rv = wp.sqrt(a2 + (1.0 - a2) * nv * nv)
+    return a2 * smith_g1_ggx(nl, a2) * (schlick(f0, vh) / f0) / (2.0 * q * q * (nv + rv))
+
+
 @wp.func
 def specular_term(mat: MaterialParams, n: wp.vec3, l: wp.vec3, v: wp.vec3):
-    """The model's specular factor ``s(n, l, v)`` (without ``ks`` and light colour)."""
+    """The model's specular factor ``s(n, l, v)`` (without ``ks`` and light colour; the conductor's lobe is its
+    albedo-weighted term, :func:`brdf_terms`, so its specular factor is 0)."""
     if mat.model == PHONG:
         return phong_spec(n, l, v, mat.shininess)
     if mat.model == BLINN_PHONG:
@@ -377,11 +434,14 @@ def specular_term(mat: MaterialParams, n: wp.vec3, l: wp.vec3, v: wp.vec3):
 def brdf_terms(mat: MaterialParams, n: wp.vec3, l: wp.vec3, v: wp.vec3):
     """``(max(n.l, 0), s)``: diffuse cosine (2.13) and specular factor; both 0 in attached shadow.
 
-    Plastic: the diffuse factor is :func:`plastic_diffuse` (0 too when ``n.v <= 0``).
+    Plastic: the diffuse factor is :func:`plastic_diffuse` (0 too when ``n.v <= 0``).  Conductor: the first
+    (albedo-weighted) term is :func:`conductor_spec` and the second 0.
     """
     nl = wp.dot(n, l)
     if nl <= 0.0:
         return wp.vec2(0.0, 0.0)
+    if mat.model == CONDUCTOR:
+        return wp.vec2(conductor_spec(n, l, v, mat.roughness, mat.f0), 0.0)
     s = float(0.0)
     if mat.model != LAMBERTIAN and wp.dot(n, v) > 0.0:
         s = specular_term(mat, n, l, v)

@@ -11,7 +11,8 @@ specular term for ``n.v <= 0``, the lobes' own cut-offs) is the same as in
 Models (seed numbering): Lambertian (2.13), Phong (2.19-2.20), Blinn-Phong
 (2.21 / 3.14), Cook-Torrance (2.22-2.29, 4.1), Ashikhmin-Shirley (5.1-5.2); and plastic
 (not the seed's, :func:`gpps.kernels.brdf.plastic_spec`), whose *diffuse* factor depends on
-the model too (:func:`diffuse_value_grad_of`).
+the model too (:func:`diffuse_value_grad_of`); and the rough conductor (not the seed's either,
+:func:`gpps.kernels.brdf.conductor_spec`), whose GGX lobe is its albedo-weighted (diffuse-slot) term.
 
 Normal parameterisation used by the solvers (no singularity near the camera
 axis): a chart around a base unit normal ``n0`` with an orthonormal tangent
@@ -25,6 +26,7 @@ import warp as wp
 from gpps.kernels.brdf import (
     ASHIKHMIN_SHIRLEY,
     BLINN_PHONG,
+    CONDUCTOR,
     COOK_TORRANCE,
     LAMBERTIAN,
     PHONG,
@@ -32,7 +34,9 @@ from gpps.kernels.brdf import (
     PLASTIC,
     MaterialParams,
     fresnel_dielectric,
+    ggx_q,
     ior_from_f0,
+    one_minus_dot,
     schlick,
     tangent_frame_u,
 )
@@ -198,8 +202,9 @@ def ashikhmin_shirley_value_grad(n: wp.vec3, l: wp.vec3, v: wp.vec3, eta_u: floa
 
 @wp.func
 def specular_value_grad(mat: MaterialParams, n: wp.vec3, l: wp.vec3, v: wp.vec3):
-    """``(s, ds/dn)`` of the material's lobe with the gating of ``brdf_terms``."""
-    if mat.model == LAMBERTIAN:
+    """``(s, ds/dn)`` of the material's lobe with the gating of ``brdf_terms`` (0 for the conductor, whose lobe is
+    its albedo-weighted term, :func:`diffuse_value_grad_of`)."""
+    if mat.model == LAMBERTIAN or mat.model == CONDUCTOR:
         return wp.vec4(0.0)
     if wp.dot(n, l) <= 0.0 or wp.dot(n, v) <= 0.0:
         return wp.vec4(0.0)
@@ -265,10 +270,44 @@ def plastic_diffuse_value_grad(n: wp.vec3, l: wp.vec3, v: wp.vec3, eta: float):
     return _vg(nl * tl * tv, (tl * tv - nl * fl[1] * tv) * l - (nl * tl * fv[1]) * v)
 
 
+# --------------------------------------------------------------------------- rough metal (conductor)
+
+
+@wp.func
+def conductor_value_grad(n: wp.vec3, l: wp.vec3, v: wp.vec3, a: float, f0: float):
+    """The conductor's GGX lobe (:func:`gpps.kernels.brdf.conductor_spec`) and its gradient.
+
+    ``s = a^2 G1(n.l) F / (2 q^2 (n.v + r_v))`` with ``q = e (2 - e) + (n.h)^2 a^2``, ``e = |n - h|^2 / 2``
+    (:func:`gpps.kernels.brdf.ggx_q`), ``r_x = sqrt(a^2 + (1 - a^2) x^2)``, ``G1(x) = 2 x / (x + r_x)``; F depends
+    on ``h.v`` only.  ``d ln s = -2 dq / q + (1 / (n.l) - (1 + (1 - a^2)(n.l) / r_l) / (n.l + r_l)) l
+    - ((1 + (1 - a^2)(n.v) / r_v) / (n.v + r_v)) v`` with ``dq/dn = 2 (1 - e)(n - h) + 2 (n.h) a^2 h``.
+    """
+    h = wp.normalize(l + v)
+    nh = wp.dot(n, h)
+    nl = wp.dot(n, l)
+    nv = wp.dot(n, v)
+    vh = wp.dot(v, h)
+    if nh <= 0.0 or nl <= 0.0 or nv <= 0.0 or vh <= 0.0:
+        return wp.vec4(0.0)
+    a2 = a * a
+    b = 1.0 - a2
+    e = one_minus_dot(n, h)
+    q = ggx_q(n, h, a2)
+    rl = wp.sqrt(a2 + b * nl * nl)
+    rv = wp.sqrt(a2 + b * nv * nv)
+    s = a2 * (2.0 * nl / (nl + rl)) * (schlick(f0, vh) / f0) / (2.0 * q * q * (nv + rv))
+    dq = (2.0 * (1.0 - e)) * (n - h) + (2.0 * nh * a2) * h
+    dln = (-2.0 / q) * dq + (1.0 / nl - (1.0 + b * nl / rl) / (nl + rl)) * l - ((1.0 + b * nv / rv) / (nv + rv)) * v
+    return _vg(s, s * dln)
+
+
 @wp.func
 def diffuse_value_grad_of(mat: MaterialParams, n: wp.vec3, l: wp.vec3, v: wp.vec3):
-    """The material's diffuse factor and its gradient (run-time switch on ``mat.model``): plastic's
-    :func:`plastic_diffuse_value_grad`, the others' :func:`diffuse_value_grad` (2.13)."""
+    """The material's diffuse (albedo-weighted) factor and its gradient (run-time switch on ``mat.model``): plastic's
+    :func:`plastic_diffuse_value_grad`, the conductor's lobe (:func:`conductor_value_grad`, 0 unless n.l, n.v > 0),
+    the others' :func:`diffuse_value_grad` (2.13)."""
     if mat.model == PLASTIC:
         return plastic_diffuse_value_grad(n, l, v, ior_from_f0(mat.f0))
+    if mat.model == CONDUCTOR:
+        return conductor_value_grad(n, l, v, mat.roughness, mat.f0)
     return diffuse_value_grad(n, l)

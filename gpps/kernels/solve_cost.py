@@ -17,6 +17,7 @@ from gpps.kernels.jacobians import (
     blinn_phong_value_grad,
     chart_normal,
     chart_normal_jacobian,
+    conductor_value_grad,
     cook_torrance_value_grad,
     diffuse_value_grad,
     diffuse_value_grad_of,
@@ -44,7 +45,7 @@ def specular_value_grad_for(brdf, module, sfx: str):
     @wp.func(name="specular_value_grad" + sfx, module=module)
     def spec_vg(mat: MaterialParams, n: wp.vec3, l: wp.vec3, v: wp.vec3):
         """Specular value and its gradient in ``n``: ``(s, ds/dn)`` as a vec4 (0 outside the lit, visible side)."""
-        if wp.static(brdf == "lambertian"):
+        if wp.static(brdf == "lambertian" or brdf == "conductor"):
             return wp.vec4(0.0)
         else:
             if wp.dot(n, l) <= 0.0 or wp.dot(n, v) <= 0.0:
@@ -65,7 +66,8 @@ def specular_value_grad_for(brdf, module, sfx: str):
 
 def diffuse_value_grad_for(brdf, module, sfx: str):
     """The diffuse factor and its gradient with the model fixed at code generation: plastic's
-    :func:`gpps.kernels.jacobians.plastic_diffuse_value_grad`, every other model's ``max(n.l, 0)``
+    :func:`gpps.kernels.jacobians.plastic_diffuse_value_grad`, the conductor's GGX lobe
+    (:func:`gpps.kernels.jacobians.conductor_value_grad`), every other model's ``max(n.l, 0)``
     (:func:`gpps.kernels.jacobians.diffuse_value_grad`); ``brdf=None``: the run-time switch
     :func:`gpps.kernels.jacobians.diffuse_value_grad_of`."""
     if brdf is None:
@@ -76,6 +78,8 @@ def diffuse_value_grad_for(brdf, module, sfx: str):
         """Diffuse factor and its gradient in ``n``: ``(d, dd/dn)`` as a vec4 (0 in attached shadow)."""
         if wp.static(brdf == "plastic"):
             return plastic_diffuse_value_grad(n, l, v, ior_from_f0(mat.f0))
+        elif wp.static(brdf == "conductor"):
+            return conductor_value_grad(n, l, v, mat.roughness, mat.f0)
         else:
             return diffuse_value_grad(n, l)
 
