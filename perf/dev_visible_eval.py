@@ -10,7 +10,7 @@ from each tree (``PYTHONPATH=<tree>``) into its own file::
     python perf/dev_visible_eval.py run OUT.jsonl "*directional12*seed300*,*point12*seed300*" [pipeline,ls] [cpu]
     python perf/dev_visible_eval.py table A.jsonl B.jsonl [...]
 
-Methods: ``pipeline`` (the default ``FolderConfig()``), ``ls`` (least squares), ``norefine`` / ``refine`` (the
+Methods: ``pipeline`` (the default ``FolderConfig()``; from session 21 it compares the rough conductor from 6 images on), ``ls`` (least squares), ``norefine`` / ``refine`` (the
 default with ``refine=False`` / ``True``: session 18's automatic refinement with 3 images, issue 25), ``subtract``
 (the default with ``interreflections="subtract"``: session 20's interreflection compensation), ``compare`` (the
 model chosen by residual between Blinn-Phong and plastic: ``models=("plastic",)``), ``compare_subtract`` (both), ``conductor``
@@ -59,6 +59,7 @@ def run(out: str, patterns: str, methods: str = "pipeline", device: str = "cpu")
                 row = dict(capture=os.path.basename(c), method=m, maen=e["mean"], median=e["median"], seconds=dt,
                            backfacing=int(((r.normals[..., 2] < 0) & ds.mask).sum()), device=device,
                            refine=r.report.get("refine"), material_ambiguity=r.report.get("material_ambiguity"),
+                           brdf=(r.report.get("material") or {}).get("brdf"),
                            interreflections=r.report.get("interreflections"))
                 f.write(json.dumps(row) + "\n")
                 f.flush()

@@ -143,3 +143,34 @@ def test_lights_parallel_and_split_starts_builds_equal_the_one_thread_solve(devi
         na, nb = outs[0]["normals"][m].astype(np.float64), other["normals"][m].astype(np.float64)
         ang = np.degrees(2.0 * np.arcsin(np.linalg.norm(na - nb, axis=-1) / 2.0))
         assert np.mean(ang < 1e-2) >= 0.97, np.sort(ang)[-10:]
+
+
+def test_folder_flow_compares_the_conductor_from_six_images(tmp_path, device):
+    """``gpps reconstruct``'s default (``FolderConfig(models=None)``): the conductor is fitted beside Blinn-Phong from
+    :data:`CONDUCTOR_IMAGES` images on, and chosen on a metal; with 3 images, or ``models=()`` / ``--compare-models
+    none``, it is not compared; the report says which rule decided."""
+    import argparse
+
+    from gpps.cli import main
+    from gpps.cli.reconstruct import add_reconstruct_options, folder_config
+    from gpps.flows.folder import CONDUCTOR_IMAGES, FolderConfig, automatic_models
+
+    assert CONDUCTOR_IMAGES == 6
+    assert automatic_models(3, FolderConfig()) == ((), "automatic: none with 3 images (the conductor from 6)")
+    assert automatic_models(6, FolderConfig())[0] == ("conductor",)
+    assert automatic_models(96, FolderConfig(models=())) == ((), "turned off")
+    assert automatic_models(96, FolderConfig(models=("plastic",))) == (("plastic",), "asked")
+    with pytest.raises(TypeError, match="models: expected None or a tuple"):
+        FolderConfig(models="conductor")
+    out = tmp_path / "metal"
+    assert main(["render", "--scene", "sphere", "--brdf", "conductor", "--n-lights", "8", "--size", "32",
+                 "--camera", "perspective", "--out", str(out)]) == 0
+    (out / "material.json").unlink()  # the material unknown to the reconstruction
+    rec = gpps.reconstruct_folder(out, device=device)
+    assert rec.report["models"]["compared"] == ["conductor"] and rec.report["models"]["why"].startswith("automatic")
+    assert rec.report["material"]["brdf"] == "conductor"
+    p = argparse.ArgumentParser()
+    add_reconstruct_options(p)
+    assert folder_config(p.parse_args(["--compare-models", "none"])).models == ()
+    assert folder_config(p.parse_args([])).models is None
+    assert folder_config(p.parse_args(["--compare-models", "plastic,conductor"])).models == ("plastic", "conductor")

@@ -84,7 +84,8 @@ def add_reconstruct_options(p) -> None:
                         "light intensities)")
     p.add_argument("--compare-models", default=None, metavar="MODEL[,MODEL...]",
                    help="RON: other reflectance models to fit beside --brdf's in the first material fit; the one with "
-                        "the lower residual is kept (e.g. plastic, or conductor for a metal)")
+                        "the lower residual is kept (e.g. plastic; none: no comparison; default: the rough conductor "
+                        "with 6 or more images)")
     p.add_argument("--material-rule", default="photometric", choices=["photometric", "depth-rms"], help="RON material update (depth-rms: the seed's 4.19)")
     p.add_argument("--pixel-size", type=float, default=None, help="orthographic camera (no K.txt): scene units per pixel; default: depth in pixels")
     p.add_argument("--reference-depth", "--depth", dest="reference_depth", type=float, default=None,
@@ -115,7 +116,9 @@ def _folder_config(args) -> gpps.FolderConfig:
             dgmc=not args.no_dgmc, integrate=not args.no_integrate, integration=args.integration,
             estimate=not args.no_estimate, rounds=args.rounds, material_rule=args.material_rule,
             pixel_size=args.pixel_size, reference_depth=args.reference_depth,
-            models=tuple(b.strip() for b in (args.compare_models or "").split(",") if b.strip()),
+            models=(None if args.compare_models is None else ()
+                    if args.compare_models.strip().lower() == "none"
+                    else tuple(b.strip() for b in args.compare_models.split(",") if b.strip())),
             cast_shadows=args.cast_shadows, refine=args.refine, interreflections=args.interreflections,
             interreflection_rounds=args.interreflection_rounds, albedo_scale=args.albedo_scale,
         )

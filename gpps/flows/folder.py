@@ -56,7 +56,7 @@ from gpps.names import BRDF, BRDF_NAMES, SHADOW_RELATIVE_MANY, InterreflectionNa
 from gpps.pipeline.integration import IntegratorConfig
 
 __all__ = ["FolderConfig", "FolderResult", "reconstruct_folder", "automatic_solver_options", "flip_decision",
-           "MANY_IMAGES", "REFINE_IMAGES", "automatic_refine", "ESTIMATED_FILES"]
+           "MANY_IMAGES", "REFINE_IMAGES", "CONDUCTOR_IMAGES", "automatic_refine", "automatic_models", "ESTIMATED_FILES"]
 
 FolderMethod = Literal["ron", "ppn", "pps"]
 FolderIntegration = Literal["bini", "poisson"]
@@ -68,6 +68,10 @@ observations below 0.02 taken as shadowed and 4 starts (:func:`automatic_solver_
 
 REFINE_IMAGES = 3
 """With this many images RON's depth refinement runs unless the caller says otherwise (:func:`automatic_refine`)."""
+
+CONDUCTOR_IMAGES = 6
+"""From this many images the folder flow also fits the rough conductor (a metal) in RON's first material fit and
+keeps it where its residual is lower (:func:`automatic_models`)."""
 
 ESTIMATED_FILES = ("lights_estimated.txt", "light_intensities_estimated.txt", "filenames_used.txt")
 """The files an uncalibrated result writes beside the output set (:meth:`FolderResult.write`)."""
@@ -103,8 +107,10 @@ class FolderConfig:
         rounds: RON's round cap (>= 1).
         material_rule: RON's material update (``"depth-rms"``: the seed's 4.19).
         models: RON: other reflectance models to compare with ``brdf`` by their fit residual in the first
-            material fit (``RONConfig.models``; e.g. ``("plastic",)``); only when every lobe parameter is
-            estimated (no known parameters given, the photometric rule), else ignored with the report saying so.
+            material fit (``RONConfig.models``; e.g. ``("plastic",)``; ``()``: none); only when every lobe
+            parameter is estimated (no known parameters given, the photometric rule), else ignored with the
+            report saying so.  None (default): the automatic policy of :func:`automatic_models` (the rough
+            conductor from :data:`CONDUCTOR_IMAGES` images on).
         cast_shadows: RON: leave observations in cast shadows (marched over each round's depth) out of the
             next round's fit (``RONConfig.cast_shadows``; off by default, see there).
         refine: RON: refine the depth itself after the rounds (robust misfit over every observation, normals
@@ -143,7 +149,7 @@ class FolderConfig:
     material_rule: MaterialRule = "photometric"
     pixel_size: float | None = None
     reference_depth: float | None = None
-    models: tuple[str, ...] = ()
+    models: tuple[str, ...] | None = None
     cast_shadows: bool = False
     refine: bool | None = None
     interreflections: InterreflectionName = "off"
@@ -163,11 +169,12 @@ class FolderConfig:
             check_bool("refine", self.refine)
         if self.refine and not self.integrate:
             raise ValueError("refine: refines the integrated depth, expected integrate=True, got integrate=False")
-        if not isinstance(self.models, (tuple, list)) or not all(isinstance(b, str) for b in self.models):
-            raise TypeError(f"models: expected a tuple of reflectance model names, got {self.models!r}")
-        object.__setattr__(self, "models", tuple(self.models))
-        for b in self.models:
-            check_choice("models", b, BRDF_NAMES)
+        if self.models is not None:
+            if not isinstance(self.models, (tuple, list)) or not all(isinstance(b, str) for b in self.models):
+                raise TypeError(f"models: expected None or a tuple of reflectance model names, got {self.models!r}")
+            object.__setattr__(self, "models", tuple(self.models))
+            for b in self.models:
+                check_choice("models", b, BRDF_NAMES)
         for name in ("uncalibrated", "known_material", "dgmc", "integrate", "estimate"):
             check_bool(name, getattr(self, name))
         object.__setattr__(self, "rounds", check_number("rounds", self.rounds, lo=1, integer=True))
@@ -341,6 +348,36 @@ def automatic_refine(n_images: int, config: FolderConfig, device: str) -> tuple[
         return False, ("automatic: skipped on CUDA without PyTorch (pip install 'gpps[cuda]'): results differ from "
                        "the CPU's, which refines with 3 images")
     return True, f"automatic: on with {REFINE_IMAGES} images"
+
+
+def automatic_models(n_images: int, config: FolderConfig) -> tuple[tuple[str, ...], str]:
+    """The reflectance models RON's first material fit compares with ``config.brdf`` (``RONConfig.models``), and why.
+
+    The caller's ``config.models`` decides when given (``()``: none).  Otherwise, from :data:`CONDUCTOR_IMAGES`
+    images on, the rough conductor: a metal has no diffuse term, which neither the seed's models nor plastic can
+    drop, and the residual tells the two classes apart once the conductor's own per-pixel fit (a normal and a
+    colour, nothing but the lobe to see them by) is determined.  With fewer images it is not: on our synthetic
+    metals (tests/test_conductor.py) the known-material solve gets the normals exactly with 6 and 12 lights and
+    misses them by 6-10 deg with 3, where any surface fits the lobe of some normal and the comparison would pick
+    the conductor on non-metals.  Checked on our Mitsuba development captures only (perf/results/s21/README.md;
+    128^2, 16-bit, seeds 3000-3009): with 12 lights it is chosen on the four rough-copper captures and on none of
+    the sixteen others (whose results stay the same bits); on the metals the mean goes 6.13 -> 5.05 deg (the convex
+    superquadric 3.9 -> 0.6, a concave copper relief under directional light 7.2 -> 9.8: the light its ridges send
+    each other looks like a diffuse term the conductor cannot hold, though its median goes 2.8 -> 2.0).  The
+    extra fit costs DiLiGenT's ball and bear 0.1 s warm on an H200 (neither is taken for a metal).
+
+    Args:
+        n_images: the number of images N.
+        config: the folder flow's settings.
+
+    Returns:
+        ``(models, reason)``: ``reason`` says which rule decided (for the report).
+    """
+    if config.models is not None:
+        return config.models, ("asked" if config.models else "turned off")
+    if n_images < CONDUCTOR_IMAGES:
+        return (), f"automatic: none with {n_images} images (the conductor from {CONDUCTOR_IMAGES})"
+    return ("conductor",), f"automatic: the conductor with {n_images} images (from {CONDUCTOR_IMAGES})"
 
 
 def flip_decision(normals, mask, flip: str) -> tuple[bool, dict]:
@@ -546,8 +583,10 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
                       flagged_pixels=int(np.count_nonzero(res.flags[ds.mask])))
     else:
         # (comparing models needs every lobe parameter estimated by the photometric rule: RONConfig.models)
-        compare = (config.models if config.material_rule == "photometric"
+        models, models_why = automatic_models(n, config)
+        compare = (models if config.material_rule == "photometric"
                    and set(estimate) == set(LOBE_PARAMETERS[material.brdf]) else ())
+        report["models"] = {"compared": list(compare), "why": models_why}
         if config.models and not compare:
             report["models_ignored"] = ("models: needs every lobe parameter of the model estimated by the "
                                         "photometric rule (no known parameters)")
