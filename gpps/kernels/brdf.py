@@ -363,10 +363,11 @@ def plastic_diffuse(nl: float, nv: float, eta: float):
 #
 # Not in the seed.  A rough conductor: no light enters the metal, so there is no diffuse term, and the microfacet
 # lobe carries the metal's colour.  The distribution is GGX / Trowbridge-Reitz with Smith's separable shadowing
-# (Walter et al., "Microfacet models for refraction through rough surfaces", EGSR 2007, eqs. 33-34; Heitz,
-# "Understanding the masking-shadowing function in microfacet-based BRDFs", JCGT 2014): the distribution of
-# Mitsuba 3's ``roughconductor`` (distribution "ggx"), of pbrt's and of most measured-material fits, whose long
-# tails the Beckmann lobe of Cook-Torrance (2.27) does not have.
+# (Walter et al., "Microfacet models for refraction through rough surfaces", EGSR 2007: D and G1 from their
+# eqs. 33-34, the product of the two G1 as their eq. 23; Heitz, "Understanding the masking-shadowing function in
+# microfacet-based BRDFs", JCGT 2014): the distribution of Mitsuba 3's ``roughconductor`` (distribution "ggx") and
+# of pbrt's default, whose long tails (Walter et al. found them closer to measured rough surfaces) the Beckmann
+# lobe of Cook-Torrance (2.27) does not have.
 #
 #   s = pi D(n.h) G1(n.l) G1(n.v) F(h.v) / (4 n.v),   D = a^2 / (pi ((n.h)^2 (a^2 - 1) + 1)^2),
 #   G1(x) = 2 x / (x + sqrt(a^2 + (1 - a^2) x^2)),     F(c) = schlick(f0, c) / f0 = 1 + (1/f0 - 1)(1 - c)^5
