@@ -119,5 +119,6 @@ class Material:
             "ashikhmin-shirley": cls("ashikhmin-shirley", ks=0.8, eta_u=30.0, eta_v=30.0, f0=0.5),
             # ks 1 is the physical coating (gpps.kernels.brdf.plastic_spec), ior 1.5 (f0 0.04)
             "plastic": cls("plastic", ks=1.0, roughness=0.2),
-            "conductor": cls("conductor", ks=0.0, roughness=0.2),
+            # the lobe peaks at 1 / (4 alpha^2) at normal incidence: 1 at alpha 0.5, in range for an albedo below 1
+            "conductor": cls("conductor", ks=0.0, roughness=0.5),
         }[brdf]

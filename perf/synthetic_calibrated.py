@@ -28,7 +28,7 @@ sys.path.insert(0, str(ROOT / "tests"))  # tests/cases.py: the evaluation cases 
 os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 
 
-from cases import BRDFS, make_case, run_case  # noqa: E402,F401
+from cases import BRDFS, MIN_LIGHTS, make_case, run_case  # noqa: E402,F401
 
 
 def main(argv=None):
@@ -48,7 +48,8 @@ def main(argv=None):
                 for lk in ["directional", "point"]:
                     for brdf in BRDFS:
                         opts = {"smoothness": a.smoothness} if (noise > 0 and a.smoothness > 0) else {}
-                        r = run_case(scene, a.size, cam, lk, brdf, noise=noise, solver=a.solver, device=a.device, **opts)
+                        r = run_case(scene, a.size, cam, lk, brdf, noise=noise, solver=a.solver, device=a.device,
+                                     n_lights=MIN_LIGHTS[brdf], **opts)
                         rows.append(r)
                         print(
                             f"{scene:7s} {cam:12s} {lk:11s} {brdf:18s} noise={noise:.2f}  LS {r['maen_least_squares']:6.2f}  "

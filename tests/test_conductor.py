@@ -102,7 +102,7 @@ def test_material_settings_and_errors(tmp_path):
     m = Material("conductor")
     assert m.f0 == 1.0 and "conductor" in gpps.BRDF_NAMES
     assert LOBE_PARAMETERS["conductor"] == ("roughness",)  # its albedo map weighs the lobe: no ks
-    assert Material.default_for("conductor") == Material("conductor", ks=0.0, roughness=0.2)
+    assert Material.default_for("conductor") == Material("conductor", ks=0.0, roughness=0.5)  # peak 1: in range
     assert Material.from_dict(m.to_dict()) == m
     with pytest.raises(ValueError, match="f0: the conductor needs f0 in"):
         Material("conductor", f0=0.0)
