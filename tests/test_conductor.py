@@ -174,3 +174,30 @@ def test_folder_flow_compares_the_conductor_from_six_images(tmp_path, device):
     assert folder_config(p.parse_args(["--compare-models", "none"])).models == ()
     assert folder_config(p.parse_args([])).models is None
     assert folder_config(p.parse_args(["--compare-models", "plastic,conductor"])).models == ("plastic", "conductor")
+
+
+def test_fewer_than_six_images_of_a_metal_warn(device):
+    """A metal's normals are not determined by fewer than :data:`gpps.names.CONDUCTOR_MIN_IMAGES` images (3 lights:
+    6-10 deg off with the material known, tests above): the array API, the per-pixel solve and the stream say so;
+    with 6 they do not."""
+    import warnings
+
+    from gpps.flows.photometric import check_model_images, solve_normals
+    from gpps.names import CONDUCTOR_MIN_IMAGES
+    from gpps.pipeline.stream import Stream, StreamConfig
+
+    assert CONDUCTOR_MIN_IMAGES == 6
+    sink: list = []
+    with pytest.warns(gpps.GppsWarning, match="does not determine the normals from 3 images"):
+        check_model_images(("blinn-phong", "conductor"), 3, sink)
+    assert len(sink) == 1 and "6 or more images" in sink[0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", gpps.GppsWarning)
+        check_model_images(("blinn-phong", "conductor"), 6)
+        check_model_images(("blinn-phong", "plastic"), 3)
+    img, L, sc, sat = _case("sphere", 3, size=24)
+    with pytest.warns(gpps.GppsWarning, match="conductor"):
+        r = solve_normals(img, sc.mask, L, camera=sc.camera, material=TRUE, saturation=sat, device=device)
+    assert any("does not determine the normals" in w for w in r.warnings)
+    with pytest.warns(gpps.GppsWarning, match="conductor"):
+        Stream(sc.mask.shape, sc.camera, L, TRUE, mask=sc.mask, config=StreamConfig(output="numpy"), device=device).close()

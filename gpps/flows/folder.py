@@ -52,7 +52,7 @@ from gpps.io.formats import Transfer
 from gpps.io.outputs import apply_depth_convention, depth_convention, write_outputs
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
-from gpps.names import BRDF, BRDF_NAMES, SHADOW_RELATIVE_MANY, InterreflectionName, RobustName, SolverName
+from gpps.names import BRDF, BRDF_NAMES, CONDUCTOR_MIN_IMAGES, SHADOW_RELATIVE_MANY, InterreflectionName, RobustName, SolverName
 from gpps.pipeline.integration import IntegratorConfig
 
 __all__ = ["FolderConfig", "FolderResult", "reconstruct_folder", "automatic_solver_options", "flip_decision",
@@ -69,7 +69,7 @@ observations below 0.02 taken as shadowed and 4 starts (:func:`automatic_solver_
 REFINE_IMAGES = 3
 """With this many images RON's depth refinement runs unless the caller says otherwise (:func:`automatic_refine`)."""
 
-CONDUCTOR_IMAGES = 6
+CONDUCTOR_IMAGES = CONDUCTOR_MIN_IMAGES
 """From this many images the folder flow also fits the rough conductor (a metal) in RON's first material fit and
 keeps it where its residual is lower (:func:`automatic_models`)."""
 

@@ -34,6 +34,7 @@ from gpps.flows.photometric import (
     WORKING_ALBEDO,
     WORKING_IMAGES,
     check_inputs,
+    check_model_images,
     check_observations,
     input_saturation,
     working_scale,
@@ -247,6 +248,7 @@ def reconstruct(
     notes: list[str] = []
     determined = check_observations(img, m, lights, valid=val, saturation=input_saturation(images, saturation),
                                     reference_depth=ref, sink=notes)
+    check_model_images((mat.brdf, *models), n, sink=notes)
     # images or albedos far from order one: solved at powers of two times their scales (working_scale)
     ws = working_scale(img, m, lights, reference_depth=ref)
     factor = ws["images"] / ws["lights"]  # (the working albedo and ks over the caller's)
