@@ -6,10 +6,10 @@ import math
 from dataclasses import asdict, dataclass
 
 from gpps._check import check_choice, check_choices, check_number, warn
-from gpps.names import BRDF, BRDF_NAMES, DEFAULT_F0
+from gpps.names import BRDF, BRDF_NAMES, CONDUCTOR_MIN_IMAGES, DEFAULT_F0
 from gpps.names import BRDF_TAG as _DEVICE_TAG
 
-__all__ = ["Material", "BRDF", "BRDF_NAMES"]
+__all__ = ["Material", "BRDF", "BRDF_NAMES", "check_model_images"]
 
 
 @dataclass(frozen=True)
@@ -122,3 +122,19 @@ class Material:
             # the lobe peaks at 1 / (4 alpha^2) at normal incidence: 1 at alpha 0.5, in range for an albedo below 1
             "conductor": cls("conductor", ks=0.0, roughness=0.5),
         }[brdf]
+
+
+def check_model_images(brdfs, n_images: int, sink: list | None = None) -> None:
+    """Warn (:class:`gpps.GppsWarning`, the message appended to ``sink``) when a model asked for cannot determine
+    the normals from ``n_images`` images: the conductor below :data:`gpps.names.CONDUCTOR_MIN_IMAGES`.
+
+    Args:
+        brdfs: the model names in play (the material's, and any compared with it).
+        n_images: the number of images N.
+        sink: list that collects the warning message.
+    """
+    if "conductor" in brdfs and n_images < CONDUCTOR_MIN_IMAGES:
+        msg = (f"material: the conductor (a metal, no diffuse term) does not determine the normals from {n_images} "
+               f"images: a pixel's normal and colour are seen only through its lobe, which most lights miss; use "
+               f"{CONDUCTOR_MIN_IMAGES} or more images")
+        warn(msg, sink)

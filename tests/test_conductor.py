@@ -182,7 +182,8 @@ def test_fewer_than_six_images_of_a_metal_warn(device):
     with 6 they do not."""
     import warnings
 
-    from gpps.flows.photometric import check_model_images, solve_normals
+    from gpps.flows.photometric import solve_normals
+    from gpps.material import check_model_images
     from gpps.names import CONDUCTOR_MIN_IMAGES
     from gpps.pipeline.stream import Stream, StreamConfig
 

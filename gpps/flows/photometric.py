@@ -29,8 +29,7 @@ from gpps._check import IMAGE_FULL_SCALE, as_array, as_flags, as_images, as_mask
 from gpps._runtime import warp
 from gpps.camera import Orthographic, Perspective
 from gpps.lights import DirectionalLights, PointLights
-from gpps.material import Material
-from gpps.names import CONDUCTOR_MIN_IMAGES
+from gpps.material import Material, check_model_images
 from gpps.pipeline.render import Renderer
 from gpps.pipeline.solver import PixelSolver, SolverConfig, check_scale
 
@@ -233,22 +232,6 @@ def _masked_statistics(img, mask, valid, saturation):
         if val is not None:
             bad[k] |= ~np.take(val[k].reshape(-1), idx)
     return grey, bad, peak
-
-
-def check_model_images(brdfs, n_images: int, sink: list | None = None) -> None:
-    """Warn (:class:`gpps.GppsWarning`, the message appended to ``sink``) when a model asked for cannot determine
-    the normals from ``n_images`` images: the conductor below :data:`gpps.names.CONDUCTOR_MIN_IMAGES`.
-
-    Args:
-        brdfs: the model names in play (the material's, and any compared with it).
-        n_images: the number of images N.
-        sink: list that collects the warning message.
-    """
-    if "conductor" in brdfs and n_images < CONDUCTOR_MIN_IMAGES:
-        msg = (f"material: the conductor (a metal, no diffuse term) does not determine the normals from {n_images} "
-               f"images: a pixel's normal and colour are seen only through its lobe, which most lights miss; use "
-               f"{CONDUCTOR_MIN_IMAGES} or more images")
-        warn(msg, sink)
 
 
 def check_observations(images, mask, lights, *, valid=None, saturation=None, reference_depth=None,

@@ -34,13 +34,12 @@ from gpps.flows.photometric import (
     WORKING_ALBEDO,
     WORKING_IMAGES,
     check_inputs,
-    check_model_images,
     check_observations,
     input_saturation,
     working_scale,
 )
 from gpps.flows.ron import LOBE_PARAMETERS, RON, RONConfig
-from gpps.material import BRDF_NAMES, Material
+from gpps.material import BRDF_NAMES, Material, check_model_images
 from gpps.names import SHADOW_RELATIVE_MANY
 
 __all__ = ["reconstruct", "Reconstruction", "RONConfig"]

@@ -47,15 +47,15 @@ from typing import Any, Iterable, Iterator, Literal
 import numpy as np
 
 from gpps import _taichi
-from gpps._check import as_mask, check_bool, check_choices, check_number, check_shape, warn
+from gpps._check import as_mask, check_bool, check_choices, check_number, check_shape
 from gpps._runtime import resolve_device, warp
 from gpps.camera import Orthographic, Perspective
 from gpps.host.dgmc import DGMCConfig
 from gpps.host.merge import ranks_better
 from gpps.kernels import stream as ks
 from gpps.lights import DirectionalLights, PointLights
-from gpps.material import Material
-from gpps.names import CONDUCTOR_MIN_IMAGES, FLAG_FEW_OBSERVATIONS, LOBE_RANGES, GraphName
+from gpps.material import Material, check_model_images
+from gpps.names import FLAG_FEW_OBSERVATIONS, LOBE_RANGES, GraphName
 from gpps.pipeline.dgmc import DeviceDGMC
 from gpps.pipeline.integration_device import StreamIntegrator
 from gpps.pipeline.solver import PixelSolver, SolverConfig
@@ -338,10 +338,7 @@ class Stream(Stage):
         self.device = resolve_device(device)
         self.is_cuda = self.device.startswith("cuda")
         n = len(lights)
-        if material.brdf == "conductor" and n < CONDUCTOR_MIN_IMAGES:  # (as gpps.flows.photometric.check_model_images)
-            warn(f"material: the conductor (a metal, no diffuse term) does not determine the normals from {n} images: "
-                 f"a pixel's normal and colour are seen only through its lobe, which most lights miss; use "
-                 f"{CONDUCTOR_MIN_IMAGES} or more images")
+        check_model_images((material.brdf,), n)
         self.n, self.shape = n, (h, w)
         self.mask = np.ones((h, w), bool) if mask is None else as_mask("mask", mask, (h, w))
         self.camera, self.lights, self.material = camera, lights, material
