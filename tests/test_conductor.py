@@ -114,35 +114,11 @@ def test_material_settings_and_errors(tmp_path):
 def test_lights_parallel_and_split_starts_builds_equal_the_one_thread_solve(device):
     """The conductor's lights-parallel build (one block of lanes a pixel) and starts-parallel build give the
     one-thread solve's results (bitwise on the CPU, where a block runs as one lane; close on CUDA), as plastic's
-    (tests/test_plastic.py)."""
-    from dataclasses import replace
+    (tests/test_plastic.py's solve_three_builds)."""
+    from test_plastic import solve_three_builds
 
-    from gpps.flows.synthetic import default_lights, render
-    from gpps.host.scenes import make_scene
-    from gpps.pipeline.solver import PixelSolver, SolverConfig
-
-    sc = make_scene("sphere", 24, "perspective", albedo="texture")
-    L = default_lights("directional", 16, layout="spiral")
-    img = render(sc, TRUE, L, bits=16, noise=0.01, device=device) / np.asarray(L.intensities, np.float32)[:, None, None, :]
-    lights = DirectionalLights(L.directions)
-    base = SolverConfig(solver="lm", robust="cauchy", irls_rounds=2, shadow_threshold=0.02, starts=3, neighbour_radius=0)
-    outs = []
-    for cfg in (replace(base, parallel="pixels", split_starts=False), replace(base, parallel="lights"),
-                replace(base, parallel="pixels", split_starts=True)):
-        with PixelSolver(img.shape[:3], sc.camera, lights, TRUE, cfg, device=device) as s:
-            s.upload(img, sc.mask)
-            s.step()
-            outs.append(s.fetch(("normals", "albedo", "residual", "flags")))
-    m = sc.mask
-    assert normal_errors(outs[0]["normals"], sc.normals, m)["median"] < 2.5  # measured 1.22 (1 % noise on a metal)
-    for other in outs[1:]:
-        if device == "cpu":
-            for k in outs[0]:
-                np.testing.assert_array_equal(outs[0][k], other[k], err_msg=k)
-            continue
-        na, nb = outs[0]["normals"][m].astype(np.float64), other["normals"][m].astype(np.float64)
-        ang = np.degrees(2.0 * np.arcsin(np.linalg.norm(na - nb, axis=-1) / 2.0))
-        assert np.mean(ang < 1e-2) >= 0.97, np.sort(ang)[-10:]
+    out, sc = solve_three_builds(TRUE, device)
+    assert normal_errors(out["normals"], sc.normals, sc.mask)["median"] < 2.5  # measured 1.22 (1 % noise on a metal)
 
 
 def test_folder_flow_compares_the_conductor_from_six_images(tmp_path, device):
