@@ -62,7 +62,7 @@ from gpps.pipeline.integration_rounds import DeviceSystem
 from gpps.pipeline.params import camera_params, material_params
 from gpps.pipeline.stage import Stage
 
-__all__ = ["DepthRefineConfig", "DepthRefiner"]
+__all__ = ["DepthRefineConfig", "DepthRefiner", "cauchy_likelihood"]
 
 RobustLoss = Literal["cauchy", "none"]
 RefinedNormals = Literal["surface", "pixel", "test"]
@@ -127,6 +127,34 @@ class DepthRefineConfig:
             object.__setattr__(self, "sigma", check_number("sigma", self.sigma, lo=0.0, lo_open=True))
 
 
+def cauchy_likelihood(residuals) -> dict:
+    """The Cauchy likelihood of residuals at their maximum-likelihood scale (:meth:`DepthRefiner.likelihood`).
+
+    Args:
+        residuals: (M,) residuals (signed or absolute: the density is symmetric).
+
+    Returns:
+        ``{"nll": mean of log(pi s) + log(1 + (r / s)^2), "scale": s, "observations": M}`` with ``s`` the root of
+        ``mean(r^2 / (r^2 + s^2)) = 1/2`` (found by bisection in log s); ``nll`` is -inf when half or more of the
+        residuals are exactly 0 (``s`` -> 0).
+    """
+    r = np.asarray(residuals, dtype=np.float64).ravel()
+    if r.size == 0 or not np.all(np.isfinite(r)):
+        raise ValueError("residuals: expected finite values, at least one")
+    r2 = r * r
+    top = float(np.sqrt(r2.max()))
+    frac = lambda ls: float(np.mean(r2 / (r2 + math.exp(2.0 * ls)))) - 0.5  # noqa: E731 (decreasing in ls)
+    if not top > 0 or frac(math.log(top) - 60.0) <= 0:  # (half or more of the residuals exactly 0)
+        return {"nll": -math.inf, "scale": 0.0, "observations": int(r.size)}
+    lo, hi = math.log(top) - 60.0, math.log(top)
+    for _ in range(100):  # bisection in log s, to the float64 resolution of s
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if frac(mid) > 0 else (lo, mid)
+    s = math.exp(0.5 * (lo + hi))
+    nll = float(np.mean(np.log1p(r2 / (s * s)))) + math.log(math.pi * s)
+    return {"nll": nll, "scale": s, "observations": int(r.size)}
+
+
 class DepthRefiner(Stage):
     """The refinement of one pixel solver's frame (its images, observations, camera, lights and material).
 
@@ -176,6 +204,7 @@ class DepthRefiner(Stage):
         self.sample = self._buffer((n, (h + self._stride - 1) // self._stride, (w + self._stride - 1) // self._stride),
                                    wp.float32, d)
         self._views = None
+        self._mp = self._lp = None  # (the material and lights of the last step)
         self.last = {}
 
     # ------------------------------------------------------------------ protocol
@@ -332,9 +361,29 @@ class DepthRefiner(Stage):
         k = float(ic.bilateral_k) if self.config.edges == "bilateral" else 0.0
         return self.nref, k, float(ic.min_nz)
 
-    def _scale(self) -> float:
-        """The residuals' robust scale at the start: 1.4826 times the median absolute residual (MAD about 0) of the
-        valid observations of a grid of at most :data:`SCALE_PIXELS` pixels (one read of their residuals)."""
+    def likelihood(self) -> dict:
+        """How well the current surface explains the images, comparable between surfaces of one frame.
+
+        The refinement's Cauchy misfit is a likelihood: Cauchy-distributed residuals of scale ``s`` have the
+        negative log-likelihood ``log(pi s) + log(1 + (r / s)^2)`` each.  Here ``s`` is the maximum-likelihood
+        scale of the current residuals (the root of ``mean(r^2 / (r^2 + s^2)) = 1/2``), so two surfaces refined
+        with different ``sigma`` (each from its own start's residuals) are compared on the same observations by
+        the likelihood of each at its own best scale, not by energies of different scales.  The residuals are
+        those of the robust scale's sample (:data:`SCALE_PIXELS` pixels at most, every valid observation of each,
+        at the current depth and albedo: after :meth:`step`, the refined surface's).
+
+        Returns:
+            ``{"nll": mean negative log-likelihood per observation, "scale": s, "observations": count}``.
+        """
+        self._check_open()
+        if self._mp is None:
+            self._mp = material_params(self.solver.material)
+            self._lp = self.solver.lp
+        return cauchy_likelihood(self._residual_sample())
+
+    def _residual_sample(self) -> np.ndarray:
+        """The absolute residuals of the valid observations of a grid of at most :data:`SCALE_PIXELS` pixels at
+        the current depth and albedo (one read)."""
         wp = warp()
         s = self.solver
         out = self.sample
@@ -346,6 +395,12 @@ class DepthRefiner(Stage):
         r = r[r >= 0]
         if r.size == 0:
             raise ValueError("valid: expected observations on the mask to refine, got none")
+        return r
+
+    def _scale(self) -> float:
+        """The residuals' robust scale at the start: 1.4826 times the median absolute residual (MAD about 0) of the
+        valid observations of a grid of at most :data:`SCALE_PIXELS` pixels (one read of their residuals)."""
+        r = self._residual_sample()
         mad = 1.4826 * float(np.median(r))
         if not mad > 0:
             mad = max(float(np.mean(r)), 1e-12)

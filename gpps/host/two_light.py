@@ -1,0 +1,254 @@
+"""A surface for pixels that see only two lights: the Lambertian ratio plus integrability (issue 25, cast shadows).
+
+With three images a pixel in the cast shadow of one light keeps two lit observations.  The per-pixel fit cannot
+tell a cast shadow from an attached one, so it tilts the normal until the dark observation is explained
+(``n . l_k <= 0``): on a plane in the shadow of an object the normals come out tens of degrees off, and the depth
+integrated from them, which RON's refinement starts from, carries the tilt.
+
+Two lit observations still fix a direction in the normal's tangent plane.  With a Lambertian diffuse term
+``I_kc = rho_c (n . l_k) E_kc`` the albedo cancels from the ratio of the two, leaving one linear equation per
+channel in the unnormalised normal ``N`` (Onn and Bruckstein's two-image photometric stereo)::
+
+    N . w_c = 0,    w_c = Y_2c l_1 - Y_1c l_2,    Y_kc = I_kc / E_kc
+
+and ``N`` is affine in the gradient of the integrator's unknown ``u`` (log-depth under the perspective camera,
+the seed's PPN (3.2)-(3.3); depth under the orthographic one): ``N = u_x a + u_y b + c``
+(:func:`gpps.host.perspective.gradient_to_normals`).  So each channel is one linear equation in ``u``'s
+differences at the pixel: ``(a . w) u_x + (b . w) u_y = -(c . w)``, a first-order equation whose characteristics
+carry ``u`` in from the pixels around the shadow.  :func:`two_light_log_depth` solves, in least squares over the
+mask, these equations at the two-light pixels (four one-sided difference pairs each, which couple neighbours as
+central differences would not, each row divided by ``|(a . w, b . w, c . w)|`` so that a nearly degenerate
+equation weighs little), the integrator's Poisson rows ``u_q - u_p = (g_p + g_q) / 2`` on every edge with a
+pixel of three or more lit observations (their per-pixel normals' gradients ``g`` with the integrator's slope
+bound, :func:`gpps.host.poisson.pixel_gradients`; one-sided where the other pixel has fewer), and a small
+second-difference term at the pixels with fewer than three lit observations (``smoothness``: the equations fix
+``u`` along their characteristics only, and a characteristic that ends on the mask's border on both sides would
+otherwise be free; a pixel with one lit observation or none has only this).
+
+Which observations are dark: below ``relative`` (:data:`gpps.names.SHADOW_RELATIVE_MANY`, the same "dark: below 0.1
+of the lit level" as the robust solver's) of the pixel's brightest ``Y``, dilated by one pixel (a shadow's edge
+is a pixel wide: the footprint straddles it).  The ratio holds for a diffuse term: the
+caller takes the model's specular part out of the images first (RON renders it at the per-pixel normals).  The
+surface is a *start*, not a result: RON's refinement takes it from here and keeps it only where its likelihood
+is the higher (:meth:`gpps.flows.ron.RON._refine`).  The equations hold in an attached shadow as well as in a cast
+one; they are what the per-pixel fit lacks only in the cast one.
+
+Directional lights (``directions`` (N, 3)), or per-pixel directions (N, H, W, 3) with ``images`` already divided
+by the per-pixel radiance (near lights, linearised at a depth).  numpy / scipy (one sparse solve).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy import ndimage
+from scipy.sparse.csgraph import connected_components
+
+from gpps._check import as_array, as_flags, as_mask, check_number
+from gpps.camera import Orthographic, Perspective
+from gpps.host.poisson import pixel_gradients
+from gpps.names import SHADOW_RELATIVE_MANY
+
+__all__ = ["dark_observations", "two_light_log_depth", "affine_normal", "SMOOTHNESS", "MIN_NZ"]
+
+#: weight of the second differences at the pixels with fewer than three lit observations, relative to the data rows'
+#: 1 (small: it only removes the freedom along the characteristics that no lit pixel anchors)
+SMOOTHNESS = 0.05
+#: the integrator's default slope bound (``IntegratorConfig.min_nz``)
+MIN_NZ = 1e-3
+#: the tiny Tikhonov term that fixes the constant of each connected part in the sparse solve
+_TIKHONOV = 1e-8
+
+
+def affine_normal(camera, shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(a, b, c)``, each (H, W, 3): the unnormalised normal ``N = u_x a + u_y b + c`` of a gradient
+    ``(u_x, u_y)`` (per pixel; x = column to the right, y = row downward) of the integrator's unknown: log-depth
+    under :class:`Perspective`, depth under :class:`Orthographic` (inverse of
+    :func:`gpps.host.perspective.normals_to_gradient`)."""
+    h, w = shape
+    if isinstance(camera, Orthographic):
+        s = float(camera.pixel_size)
+        a = np.broadcast_to(np.array([1.0 / s, 0.0, 0.0]), (h, w, 3))
+        b = np.broadcast_to(np.array([0.0, -1.0 / s, 0.0]), (h, w, 3))
+        c = np.broadcast_to(np.array([0.0, 0.0, 1.0]), (h, w, 3))
+        return a, b, c
+    if not isinstance(camera, Perspective):
+        raise TypeError(f"camera: expected gpps.camera.Orthographic or Perspective, got {type(camera).__name__}")
+    jj, ii = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    cx, cy = camera.principal_point()
+    r = np.stack([(jj - cx) / camera.fx, -(ii - cy) / camera.fy, -np.ones_like(jj)], -1)
+    ru = np.array([1.0 / camera.fx, 0.0, 0.0])
+    rv = np.array([0.0, -1.0 / camera.fy, 0.0])
+    a = -np.cross(r, rv)
+    b = -np.cross(np.broadcast_to(ru, r.shape), r)
+    c = np.broadcast_to(-np.cross(ru, rv), r.shape)
+    return a, b, c
+
+
+def dark_observations(images, mask, valid=None, *, relative: float = SHADOW_RELATIVE_MANY, dilate: int = 1) -> np.ndarray:
+    """The observations taken as shadowed: grey value below ``relative`` of the pixel's brightest.
+
+    Args:
+        images: (N, H, W, C) or (N, H, W) images over the lights' radiance (``Y``), >= 0.
+        mask: (H, W) bool.
+        valid: optional (N, H, W) bool observations to use (an invalid one counts as dark).
+        relative: the fraction of the pixel's brightest grey value below which an observation is dark.
+        dilate: grow each image's dark region by this many pixels (its edge pixels are part shadowed).
+
+    Returns:
+        (N, H, W) bool, False outside the mask.
+    """
+    y = np.asarray(images, dtype=np.float64)
+    if y.ndim == 4:
+        y = y.mean(-1)
+    if y.ndim != 3:
+        raise ValueError(f"images: expected (N, H, W[, C]), got shape {np.shape(images)}")
+    m = as_mask("mask", mask, y.shape[1:])
+    check_number("relative", relative, lo=0.0, hi=1.0)
+    check_number("dilate", dilate, lo=0, integer=True)
+    dark = y < relative * y.max(0)[None]
+    if valid is not None:
+        dark |= ~as_flags("valid", valid, y.shape)
+    if dilate:
+        dark = np.stack([ndimage.binary_dilation(d, iterations=int(dilate)) for d in dark])
+    return dark & m[None]
+
+
+def two_light_log_depth(images, dark, normals, mask, camera, directions, *, smoothness: float = SMOOTHNESS,
+                        min_nz: float = MIN_NZ):
+    """Least-squares ``u`` (log-depth, perspective; depth, orthographic) from the two-light equations and the
+    per-pixel normals of the pixels with three or more lit observations (module docstring).
+
+    Args:
+        images: (N, H, W, C) or (N, H, W) images over the lights' radiance (``Y``).
+        dark: (N, H, W) bool dark observations (:func:`dark_observations`).
+        normals: (H, W, 3) per-pixel unit normals (used where three or more observations are lit).
+        mask: (H, W) bool.
+        camera: :class:`Orthographic` or :class:`Perspective`.
+        directions: (N, 3) directional lights' unit directions, or (N, H, W, 3) per-pixel directions.
+        smoothness: the second-difference weight at the pixels with fewer than three lit observations
+            (:data:`SMOOTHNESS`).
+        min_nz: the integrator's slope bound on the per-pixel normals' gradients
+            (:func:`gpps.host.poisson.pixel_gradients`; ``IntegratorConfig.min_nz``).
+
+    Returns:
+        ``(u, two)``: (H, W) float64 ``u`` with mean 0 over each connected part of the mask (0 outside), and the
+        (H, W) bool two-light pixels; ``(None, two)`` when there are none.
+    """
+    y = np.asarray(images, dtype=np.float64)
+    if y.ndim == 3:
+        y = y[..., None]
+    if y.ndim != 4:
+        raise ValueError(f"images: expected (N, H, W[, C]), got shape {np.shape(images)}")
+    n, h, w, nc = y.shape
+    m = as_mask("mask", mask, (h, w))
+    dk = as_flags("dark", dark, (n, h, w))
+    nrm = as_array("normals", normals, shape=(h, w, 3), dtype=np.float64)
+    d = np.asarray(directions, dtype=np.float64)
+    if d.shape not in ((n, 3), (n, h, w, 3)):
+        raise ValueError(f"directions: expected ({n}, 3) or ({n}, {h}, {w}, 3), got {d.shape}")
+    check_number("smoothness", smoothness, lo=0.0)
+    lit = ~dk
+    nlit = lit.sum(0)
+    two = m & (nlit == 2)
+    many = m & (nlit >= 3)  # (a pixel with one lit observation or none has no row of its own)
+    if not two.any():
+        return None, two
+    idx = np.full((h, w), -1, np.int64)
+    idx[m] = np.arange(int(m.sum()))
+    p = int(m.sum())
+    rows, cols, vals, rhs = [], [], [], []
+    neq = 0
+
+    def add(r, c, v):
+        rows.append(r)
+        cols.append(c)
+        vals.append(v)
+
+    # Poisson rows on the edges with a pixel of >= 3 lit observations (the integrator's targets)
+    gj, gi, _, _ = pixel_gradients(np.where(many[..., None], nrm, 0.0), many, camera, min_nz)
+    g = np.stack([gj, gi], -1)
+    for di, dj, comp in ((0, 1, 0), (1, 0, 1)):
+        both = m[:h - di, :w - dj] & m[di:, dj:]
+        t1, t2 = many[:h - di, :w - dj], many[di:, dj:]
+        ii, jj = np.nonzero(both & (t1 | t2))
+        g1, g2 = g[ii, jj, comp], g[ii + di, jj + dj, comp]
+        a1, a2 = t1[ii, jj], t2[ii, jj]
+        tgt = np.where(a1 & a2, 0.5 * (g1 + g2), np.where(a1, g1, g2))
+        k = np.arange(ii.size) + neq
+        add(k, idx[ii + di, jj + dj], np.ones(ii.size))
+        add(k, idx[ii, jj], -np.ones(ii.size))
+        rhs.append(tgt)
+        neq += ii.size
+
+    # the two-light rows: (a . w) u_x + (b . w) u_y = -(c . w), per channel, four one-sided difference pairs
+    ii, jj = np.nonzero(two)
+    order = np.argsort(dk[:, ii, jj], axis=0, kind="stable")  # lit (False) first
+    k1, k2 = order[0], order[1]
+    lo, hi = np.minimum(k1, k2), np.maximum(k1, k2)
+    if d.ndim == 2:
+        l1, l2 = d[lo], d[hi]
+    else:
+        l1, l2 = d[lo, ii, jj], d[hi, ii, jj]
+    av, bv, cv = (x[ii, jj] for x in affine_normal(camera, (h, w)))
+    for ch in range(nc):
+        y1, y2 = y[lo, ii, jj, ch], y[hi, ii, jj, ch]
+        wv = y2[:, None] * l1 - y1[:, None] * l2
+        A, B, C = (np.sum(x * wv, -1) for x in (av, bv, cv))
+        s = np.sqrt(A * A + B * B + C * C)
+        ok = s > 0
+        A, B, C = (np.where(ok, x / np.where(ok, s, 1.0), 0.0) for x in (A, B, C))
+        for su in (1, -1):
+            for sv in (1, -1):
+                ju, iv = jj + su, ii + sv
+                inside = ok & (ju >= 0) & (ju < w) & (iv >= 0) & (iv < h)
+                inside[inside] &= m[ii[inside], ju[inside]] & m[iv[inside], jj[inside]]
+                q = np.nonzero(inside)[0]
+                if q.size == 0:
+                    continue
+                k = np.arange(q.size) + neq
+                add(k, idx[ii[q], ju[q]], 0.5 * su * A[q])
+                add(k, idx[iv[q], jj[q]], 0.5 * sv * B[q])
+                add(k, idx[ii[q], jj[q]], -0.5 * (su * A[q] + sv * B[q]))
+                rhs.append(-0.5 * C[q])
+                neq += q.size
+
+    # second differences at the pixels without a normal of their own (two lit observations or fewer)
+    if smoothness > 0:
+        few = m & ~many
+        for di, dj in ((0, 1), (1, 0)):
+            inner = np.zeros_like(m)
+            inner[di:h - di, dj:w - dj] = few[di:h - di, dj:w - dj] & m[:h - 2 * di, :w - 2 * dj] & m[2 * di:, 2 * dj:]
+            ii2, jj2 = np.nonzero(inner)
+            k = np.arange(ii2.size) + neq
+            s_ = float(smoothness)
+            add(k, idx[ii2 - di, jj2 - dj], np.full(ii2.size, s_))
+            add(k, idx[ii2, jj2], np.full(ii2.size, -2.0 * s_))
+            add(k, idx[ii2 + di, jj2 + dj], np.full(ii2.size, s_))
+            rhs.append(np.zeros(ii2.size))
+            neq += ii2.size
+
+    mat = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(neq, p))
+    b = np.concatenate(rhs)
+    ata = (mat.T @ mat + _TIKHONOV * sp.eye(p)).tocsc()
+    u = spla.spsolve(ata, mat.T @ b)
+    # mean 0 over each connected part (the caller sets each part's level)
+    ncomp, lab = connected_components(_adjacency(m, idx, p), directed=False)
+    means = np.bincount(lab, weights=u, minlength=ncomp) / np.maximum(np.bincount(lab, minlength=ncomp), 1)
+    out = np.zeros((h, w))
+    out[m] = u - means[lab]
+    return out, two
+
+
+def _adjacency(m, idx, p):
+    h, w = m.shape
+    r, c = [], []
+    for di, dj in ((0, 1), (1, 0)):
+        both = m[:h - di, :w - dj] & m[di:, dj:]
+        ii, jj = np.nonzero(both)
+        r.append(idx[ii, jj])
+        c.append(idx[ii + di, jj + dj])
+    r = np.concatenate(r) if r else np.zeros(0, np.int64)
+    c = np.concatenate(c) if c else np.zeros(0, np.int64)
+    return sp.csr_matrix((np.ones(r.size), (r, c)), shape=(p, p))
