@@ -74,6 +74,9 @@ def add_reconstruct_options(p) -> None:
     p.add_argument("--refine", action=argparse.BooleanOptionalAction, default=None,
                    help="RON: refine the depth itself after the rounds (robust misfit over every observation, normals "
                         "tied to one surface); default: on with exactly 3 images, off with more")
+    p.add_argument("--two-light", action=argparse.BooleanOptionalAction, default=True,
+                   help="RON's refinement (3 images): also start from the surface the pixels with two lit "
+                        "observations fix, and keep the likelier (cast shadows under directional lights; default on)")
     p.add_argument("--interreflections", default="off", choices=["off", "subtract"],
                    help="RON: 'subtract' takes the diffuse interreflections gathered over the reconstructed surface out "
                         "of the images and reconstructs again (matte concave objects; not glossy or metallic ones)")
@@ -119,7 +122,8 @@ def _folder_config(args) -> gpps.FolderConfig:
             models=(None if args.compare_models is None else ()
                     if args.compare_models.strip().lower() == "none"
                     else tuple(b.strip() for b in args.compare_models.split(",") if b.strip())),
-            cast_shadows=args.cast_shadows, refine=args.refine, interreflections=args.interreflections,
+            cast_shadows=args.cast_shadows, refine=args.refine, two_light=args.two_light,
+            interreflections=args.interreflections,
             interreflection_rounds=args.interreflection_rounds, albedo_scale=args.albedo_scale,
         )
 

@@ -116,6 +116,9 @@ class FolderConfig:
         refine: RON: refine the depth itself after the rounds (robust misfit over every observation, normals
             tied to the surface: ``RONConfig.refine``); None (default): the automatic policy of
             :func:`automatic_refine` (on with :data:`REFINE_IMAGES` images, off with more).
+        two_light: where the refinement runs, also from the surface the two-light pixels fix (shadows with 3
+            directional lights), keeping the likelier refined surface (``RONConfig.refine_two_light``; default
+            on; ``report["refinement"]`` then has each start's likelihood and the one ``chosen``).
         interreflections: RON: ``"subtract"`` takes the diffuse interreflections gathered over the
             reconstructed surface out of the images and reconstructs again (:mod:`gpps.flows.interreflection`;
             ``interreflection_rounds`` times); ``"off"`` (default) not.
@@ -152,6 +155,7 @@ class FolderConfig:
     models: tuple[str, ...] | None = None
     cast_shadows: bool = False
     refine: bool | None = None
+    two_light: bool = True
     interreflections: InterreflectionName = "off"
     interreflection_rounds: int = 2
     albedo_scale: float = 1.0
@@ -167,6 +171,7 @@ class FolderConfig:
         check_bool("cast_shadows", self.cast_shadows)
         if self.refine is not None:
             check_bool("refine", self.refine)
+        check_bool("two_light", self.two_light)
         if self.refine and not self.integrate:
             raise ValueError("refine: refines the integrated depth, expected integrate=True, got integrate=False")
         if self.models is not None:
@@ -594,7 +599,7 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
                                         "photometric rule (no known parameters)")
         cfg = RONConfig(rounds=config.rounds, dgmc=config.dgmc, integrate=config.integrate,
                         material_rule=config.material_rule, models=compare, cast_shadows=config.cast_shadows,
-                        refine=refine,
+                        refine=refine, refine_two_light=config.two_light,
                         final_integrator=IntegratorConfig(bilateral=True) if config.integration == "bini" else None)
         cfg = replace(cfg, solver=replace(cfg.solver, solver=config.solver, **opts))
         def solve(images):
