@@ -63,12 +63,16 @@ def _plane(cam, size=64):
     return d, np.log(d), np.broadcast_to(n0, (size, size, 3)).copy()
 
 
+@pytest.mark.parametrize("coarse", [False, True])
 @pytest.mark.parametrize("cam", sorted(CAMERAS))
-def test_two_light_equations_recover_a_shadowed_plane(cam):
+def test_two_light_equations_recover_a_shadowed_plane(cam, coarse):
     """A Lambertian plane (colour albedo with a texture) under 3 directional lights, the third's observations dark
     in a disc (a cast shadow); the per-pixel normals there tilted 35 deg (what a fit explaining the shadow does):
     the two-light surface's normals in the disc are the plane's within 0.5 deg, and the start's ``u`` equals the
-    plane's up to a constant (0.2 % of its span); outside the disc nothing needs it (no two-light pixel there)."""
+    plane's up to a constant (0.2 % of its span); outside the disc nothing needs it (no two-light pixel there).
+    ``coarse``: the solve on 2 x 2 blocks (``max_pixels`` 1024 of the 4096 pixels), ``u`` interpolated back: the
+    normals' bounds (measured 0.004 deg in the disc's interior), ``u`` within 2 % of its span (measured 0.8 %: the
+    outermost half block is held at its block's value, not extrapolated)."""
     size = 64
     d, u_true, n_true = _plane(cam, size)
     lights = DirectionalLights(ring_directions(3, 40.0))
@@ -84,8 +88,12 @@ def test_two_light_equations_recover_a_shadowed_plane(cam):
     assert dark[2][disc].all() and not dark[:2].any()
     tilt = np.where(disc[..., None], np.array([0.0, 0.57, 0.82]), n_true)  # 35 deg off inside the disc
     tilt /= np.linalg.norm(tilt, axis=-1, keepdims=True)
-    u, two = two_light_log_depth(images, dark, tilt, m, CAMERAS[cam], lights.directions)
-    assert two.sum() == dark[2].sum() and np.array_equal(two, dark[2])
+    u, two = two_light_log_depth(images, dark, tilt, m, CAMERAS[cam], lights.directions,
+                                 max_pixels=1024 if coarse else None)
+    if coarse:  # (the blocks straddling the disc's edge are two-light blocks too)
+        assert abs(int(two.sum()) - int(dark[2].sum())) < 0.25 * dark[2].sum()
+    else:
+        assert two.sum() == dark[2].sum() and np.array_equal(two, dark[2])
     g = np.zeros((size, size, 2))
     g[:, 1:-1, 0] = (u[:, 2:] - u[:, :-2]) / 2
     g[1:-1, :, 1] = (u[2:] - u[:-2]) / 2
@@ -97,7 +105,7 @@ def test_two_light_equations_recover_a_shadowed_plane(cam):
     dev = np.abs(u - ref).max() / np.ptp(ref)
     print(f"\n{cam}: shadowed-disc normals {err.mean():.4f} deg mean, {err.max():.4f} max; u off by {dev:.2e} of its span")
     assert err.mean() < 0.5 and err.max() < 2.0
-    assert dev < 2e-3
+    assert dev < (2e-2 if coarse else 2e-3)
     # (the per-pixel normals were 35 deg off there)
     assert _angles(tilt, n_true)[disc].mean() > 30
 

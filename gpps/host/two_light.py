@@ -50,13 +50,15 @@ from gpps.camera import Orthographic, Perspective
 from gpps.host.poisson import pixel_gradients
 from gpps.names import SHADOW_RELATIVE_MANY
 
-__all__ = ["dark_observations", "two_light_log_depth", "affine_normal", "SMOOTHNESS", "MIN_NZ"]
+__all__ = ["dark_observations", "two_light_log_depth", "affine_normal", "SMOOTHNESS", "MIN_NZ", "MAX_PIXELS"]
 
 #: weight of the second differences at the pixels with fewer than three lit observations, relative to the data rows'
 #: 1 (small: it only removes the freedom along the characteristics that no lit pixel anchors)
 SMOOTHNESS = 0.05
 #: the integrator's default slope bound (``IntegratorConfig.min_nz``)
 MIN_NZ = 1e-3
+#: the most unknowns of the two-light sparse solve; a larger mask is solved on blocks (two_light_log_depth)
+MAX_PIXELS = 1 << 17
 #: the tiny Tikhonov term that fixes the constant of each connected part in the sparse solve
 _TIKHONOV = 1e-8
 
@@ -116,7 +118,7 @@ def dark_observations(images, mask, valid=None, *, relative: float = SHADOW_RELA
 
 
 def two_light_log_depth(images, dark, normals, mask, camera, directions, *, smoothness: float = SMOOTHNESS,
-                        min_nz: float = MIN_NZ):
+                        min_nz: float = MIN_NZ, max_pixels: int | None = MAX_PIXELS):
     """Least-squares ``u`` (log-depth, perspective; depth, orthographic) from the two-light equations and the
     per-pixel normals of the pixels with three or more lit observations (module docstring).
 
@@ -131,6 +133,12 @@ def two_light_log_depth(images, dark, normals, mask, camera, directions, *, smoo
             (:data:`SMOOTHNESS`).
         min_nz: the integrator's slope bound on the per-pixel normals' gradients
             (:func:`gpps.host.poisson.pixel_gradients`; ``IntegratorConfig.min_nz``).
+        max_pixels: the most unknowns of the sparse solve (:data:`MAX_PIXELS`); a larger mask is solved on
+            ``f x f`` blocks (the smallest integer ``f`` that fits: block means of the images and normals, a block
+            dark where any of its pixels is, in the mask where all are; the camera's K divided accordingly) and
+            ``u`` interpolated back (bilinear, the mask's other pixels from their nearest block): a start needs no
+            finer surface, and the direct solve's time and memory grow faster than the pixels (512^2: 5.6 s and
+            0.9 GB on the 2-core development machine).  None: no limit.
 
     Returns:
         ``(u, two)``: (H, W) float64 ``u`` with mean 0 over each connected part of the mask (0 outside), and the
@@ -149,6 +157,12 @@ def two_light_log_depth(images, dark, normals, mask, camera, directions, *, smoo
     if d.shape not in ((n, 3), (n, h, w, 3)):
         raise ValueError(f"directions: expected ({n}, 3) or ({n}, {h}, {w}, 3), got {d.shape}")
     check_number("smoothness", smoothness, lo=0.0)
+    p_all = int(m.sum())
+    if max_pixels is not None and p_all > int(max_pixels):
+        f = int(np.ceil(np.sqrt(p_all / float(max_pixels))))
+        while int(_blocks(m, f, "all").sum()) > int(max_pixels):
+            f += 1
+        return _two_light_coarse(y, dk, nrm, m, camera, d, f, smoothness, min_nz)
     lit = ~dk
     nlit = lit.sum(0)
     two = m & (nlit == 2)
@@ -238,6 +252,65 @@ def two_light_log_depth(images, dark, normals, mask, camera, directions, *, smoo
     means = np.bincount(lab, weights=u, minlength=ncomp) / np.maximum(np.bincount(lab, minlength=ncomp), 1)
     out = np.zeros((h, w))
     out[m] = u - means[lab]
+    return out, two
+
+
+def _blocks(a, f: int, how: str):
+    """``a`` (H, W[, ...]) reduced over ``f x f`` blocks (padded at the far edges): "all", "any" (bool) or
+    "sum"."""
+    h, w = a.shape[:2]
+    hc, wc = -(-h // f), -(-w // f)
+    pad = [(0, hc * f - h), (0, wc * f - w)] + [(0, 0)] * (a.ndim - 2)
+    fill = True if how == "all" else 0
+    b = np.pad(a, pad, constant_values=fill).reshape((hc, f, wc, f) + a.shape[2:])
+    return {"all": b.all, "any": b.any, "sum": b.sum}[how](axis=(1, 3))
+
+
+def _two_light_coarse(y, dk, nrm, m, camera, d, f, smoothness, min_nz):
+    """:func:`two_light_log_depth` on ``f x f`` blocks, ``u`` interpolated back to the pixels (its docstring)."""
+    h, w = m.shape
+    mc = _blocks(m, f, "all")
+    cnt = np.maximum(_blocks(m.astype(np.float64), f, "sum"), 1.0)
+    wm = m.astype(np.float64)
+    yc = np.stack([_blocks(yk * wm[..., None], f, "sum") / cnt[..., None] for yk in y])
+    dc = np.stack([_blocks(dk_ & m, f, "any") for dk_ in dk]) & mc[None]
+    nc = _blocks(nrm * wm[..., None], f, "sum")
+    nc = nc / np.maximum(np.linalg.norm(nc, axis=-1, keepdims=True), 1e-12)
+    if d.ndim == 4:
+        dd = np.stack([_blocks(dk_ * wm[..., None], f, "sum") for dk_ in d])
+        dd = dd / np.maximum(np.linalg.norm(dd, axis=-1, keepdims=True), 1e-12)
+    else:
+        dd = d
+    if isinstance(camera, Orthographic):
+        cam_c = Orthographic(float(camera.pixel_size) * f)
+    else:
+        cx, cy = camera.principal_point()
+        cam_c = Perspective([[camera.fx / f, 0.0, (cx - (f - 1) / 2) / f],
+                             [0.0, camera.fy / f, (cy - (f - 1) / 2) / f], [0.0, 0.0, 1.0]])
+    uc, twoc = two_light_log_depth(yc, dc, nc, mc, cam_c, dd, smoothness=smoothness, min_nz=min_nz, max_pixels=None)
+    two = np.repeat(np.repeat(twoc, f, 0), f, 1)[:h, :w] & m
+    if uc is None:
+        return None, two
+    # every coarse cell from its nearest block in the mask, then bilinear at the pixels' centres
+    near = ndimage.distance_transform_edt(~mc, return_distances=False, return_indices=True)
+    full = uc[near[0], near[1]]
+    ic = (np.arange(h) - (f - 1) / 2.0) / f
+    jc = (np.arange(w) - (f - 1) / 2.0) / f
+    i0 = np.clip(np.floor(ic).astype(int), 0, mc.shape[0] - 1)
+    j0 = np.clip(np.floor(jc).astype(int), 0, mc.shape[1] - 1)
+    i1 = np.minimum(i0 + 1, mc.shape[0] - 1)
+    j1 = np.minimum(j0 + 1, mc.shape[1] - 1)
+    ti = np.clip(ic - i0, 0.0, 1.0)[:, None]
+    tj = np.clip(jc - j0, 0.0, 1.0)[None, :]
+    u = ((1 - ti) * (1 - tj) * full[np.ix_(i0, j0)] + (1 - ti) * tj * full[np.ix_(i0, j1)]
+         + ti * (1 - tj) * full[np.ix_(i1, j0)] + ti * tj * full[np.ix_(i1, j1)])
+    idx = np.full((h, w), -1, np.int64)
+    idx[m] = np.arange(int(m.sum()))
+    ncomp, lab = connected_components(_adjacency(m, idx, int(m.sum())), directed=False)
+    v = u[m]
+    means = np.bincount(lab, weights=v, minlength=ncomp) / np.maximum(np.bincount(lab, minlength=ncomp), 1)
+    out = np.zeros((h, w))
+    out[m] = v - means[lab]
     return out, two
 
 
