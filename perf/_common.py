@@ -1,10 +1,11 @@
-"""Shared helpers of the perf scripts: device-synchronised median timing and JSON output."""
+"""Shared helpers of the perf scripts: device-synchronised median timing, JSON output, and DiLiGenT subsets."""
 
 from __future__ import annotations
 
 import json
 import os
 import platform
+import shutil
 import statistics
 import time
 from pathlib import Path
@@ -135,3 +136,40 @@ def moving_bumps(size: int, device: str, positions: int = 8, material=None):
         truth.append(moved.normals.astype(np.float32))
         mask &= moved.mask
     return sc, mat, L, frames, truth, mask
+
+
+def best_triple(directions) -> tuple[int, int, int]:
+    """Indices of the 3 light directions with the largest |det| (the best-conditioned triple for photometric
+    stereo)."""
+    import numpy as np
+
+    d = np.asarray(directions, dtype=np.float64)
+    best, arg = -1.0, (0, 1, 2)
+    n = len(d)
+    for i in range(n):
+        for j in range(i + 1, n):
+            c = np.cross(d[i], d[j])
+            v = np.abs(d[j + 1:] @ c)
+            if v.size and v.max() > best:
+                best = float(v.max())
+                arg = (i, j, j + 1 + int(v.argmax()))
+    return arg
+
+
+def diligent_subset(src: Path, dst: Path, idx) -> Path:
+    """``dst`` holding the images ``idx`` (0-based) of the DiLiGenT folder ``src`` with the matching light rows,
+    its K, mask and ground-truth normals."""
+    import numpy as np
+
+    src, dst = Path(src), Path(dst)
+    dst.mkdir(parents=True, exist_ok=True)
+    names = [s.strip() for s in (src / "filenames.txt").read_text().split() if s.strip()]
+    idx = [int(k) for k in idx]
+    for k in idx:
+        shutil.copy(src / names[k], dst / names[k])
+    (dst / "filenames.txt").write_text("\n".join(names[k] for k in idx) + "\n")
+    for f in ("light_directions.txt", "light_intensities.txt"):
+        np.savetxt(dst / f, np.loadtxt(src / f)[idx])
+    for f in ("K.txt", "normal_gt.npy", "mask.png"):
+        shutil.copy(src / f, dst / f)
+    return dst

@@ -54,7 +54,6 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import shutil
 import sys
 import tempfile
 import time
@@ -65,7 +64,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "training"))  # training/mitsuba_scenes.py
-from _common import RESULTS, device_label  # noqa: E402
+from _common import RESULTS, device_label, diligent_subset  # noqa: E402
 from heldout_eval import _maen  # noqa: E402  (the one MAEN summary of the Mitsuba evaluations)
 from heldout_eval import _specs as heldout_specs  # noqa: E402
 
@@ -195,18 +194,7 @@ def _summary_table(rows, methods) -> str:
 
 def _diligent_subset(obj: str, dst: Path) -> Path:
     """``dst`` holding DILIGENT_SUBSET's images of DiLiGenT ``obj`` with the matching light rows."""
-    src = DILIGENT / obj
-    dst.mkdir(parents=True, exist_ok=True)
-    names = [s.strip() for s in (src / "filenames.txt").read_text().split() if s.strip()]
-    idx = list(DILIGENT_SUBSET)
-    for k in idx:
-        shutil.copy(src / names[k], dst / names[k])
-    (dst / "filenames.txt").write_text("\n".join(names[k] for k in idx) + "\n")
-    for f in ("light_directions.txt", "light_intensities.txt"):
-        np.savetxt(dst / f, np.loadtxt(src / f)[idx])
-    for f in ("K.txt", "normal_gt.npy", "mask.png"):
-        shutil.copy(src / f, dst / f)
-    return dst
+    return diligent_subset(DILIGENT / obj, dst, DILIGENT_SUBSET)
 
 
 def _diligent(device: str, methods=()) -> list[dict]:

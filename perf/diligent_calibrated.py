@@ -35,25 +35,13 @@ os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 
 import numpy as np  # noqa: E402
 
+sys.path.insert(0, str(ROOT / "perf"))
+from _common import best_triple  # noqa: E402,F401  (also perf/diligent.py's)
+
 PUBLISHED_LS = {"ball": 4.10, "bear": 8.39}
 GRID_KS = [0.1, 0.3, 0.6, 1.0]
 GRID_SHININESS = [10.0, 30.0, 80.0, 200.0]
 REAL_OPTIONS = dict(shadow_threshold=0.02, robust="cauchy", robust_scale=0.1, irls_rounds=3, starts=4, max_iters=30)
-
-
-def best_triple(directions: np.ndarray) -> tuple[int, int, int]:
-    """Indices of the 3 directions with the largest |det| (most well-spread triple)."""
-    d = np.asarray(directions)
-    best, arg = -1.0, (0, 1, 2)
-    n = len(d)
-    for i in range(n):
-        for j in range(i + 1, n):
-            c = np.cross(d[i], d[j])
-            v = np.abs(d[j + 1 :] @ c)
-            if v.size and v.max() > best:
-                best = float(v.max())
-                arg = (i, j, j + 1 + int(v.argmax()))
-    return arg
 
 
 def saturated(ds) -> np.ndarray:

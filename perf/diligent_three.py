@@ -2,7 +2,7 @@
 3-image path, which refines the depth: RONConfig.refine, refine_two_light).
 
 The three images are fixed by a rule, not by score: the light triple with the largest ``|det|`` of its directions
-(the best-conditioned for photometric stereo; perf/single_real.py's rule).  Each object's triple is copied into a
+(the best-conditioned for photometric stereo; perf/_common.best_triple, perf/single_real.py's rule).  Each object's triple is copied into a
 temporary folder with its light rows, K, mask and ground truth, and ``gpps.reconstruct_folder`` runs with the
 default :class:`gpps.FolderConfig`; one JSON line per object (MAEN, the refinement's choice, seconds).  To
 compare two trees, run it with each on ``PYTHONPATH`` (the script does not put its own tree first).
@@ -13,38 +13,13 @@ compare two trees, run it with each on ``PYTHONPATH`` (the script does not put i
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
-import shutil
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-
-
-def best_triple(directions) -> list[int]:
-    """The three rows of ``directions`` whose determinant is the largest in magnitude."""
-    d = np.asarray(directions, dtype=np.float64)
-    best, idx = -1.0, None
-    for t in itertools.combinations(range(len(d)), 3):
-        v = abs(np.linalg.det(d[list(t)]))
-        if v > best:
-            best, idx = v, t
-    return list(idx)
-
-
-def subset(src: Path, dst: Path, idx) -> Path:
-    dst.mkdir(parents=True, exist_ok=True)
-    names = [s.strip() for s in (src / "filenames.txt").read_text().split() if s.strip()]
-    for k in idx:
-        shutil.copy(src / names[k], dst / names[k])
-    (dst / "filenames.txt").write_text("\n".join(names[k] for k in idx) + "\n")
-    for f in ("light_directions.txt", "light_intensities.txt"):
-        np.savetxt(dst / f, np.loadtxt(src / f)[idx])
-    for f in ("K.txt", "normal_gt.npy", "mask.png"):
-        shutil.copy(src / f, dst / f)
-    return dst
+from _common import best_triple, diligent_subset  # (perf/ is the script's directory: first on sys.path)
 
 
 def main(argv=None) -> None:
@@ -60,7 +35,7 @@ def main(argv=None) -> None:
         for obj in ("ball", "bear"):
             src = Path(a.data) / obj
             idx = best_triple(np.loadtxt(src / "light_directions.txt"))
-            folder = subset(src, Path(tmp) / obj, idx)
+            folder = diligent_subset(src, Path(tmp) / obj, idx)
             t = time.perf_counter()
             r = gpps.reconstruct_folder(folder, device=a.device)
             dt = time.perf_counter() - t

@@ -14,8 +14,6 @@ coloured as ``(n + 1) / 2``, RGB = xyz).
 from __future__ import annotations
 
 import argparse
-import itertools
-import json
 import sys
 import time
 from pathlib import Path
@@ -25,20 +23,11 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import write_results  # noqa: E402
+from _common import best_triple, write_results  # noqa: E402
 
 
 def _read16(path):
     return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)[..., ::-1].astype(np.float32) / 65535.0
-
-
-def _best_triple(L):
-    best, idx = -1.0, None
-    for t in itertools.combinations(range(len(L)), 3):
-        d = abs(np.linalg.det(L[list(t)]))
-        if d > best:
-            best, idx = d, t
-    return list(idx)
 
 
 def _view(images, m, panels):
@@ -66,7 +55,7 @@ def main(argv=None) -> int:
         E = np.loadtxt(d / "light_intensities.txt")
         m = cv2.imread(str(d / "mask.png"), cv2.IMREAD_GRAYSCALE) > 0
         gt = np.load(d / "normal_gt.npy")
-        tri = _best_triple(L)
+        tri = list(best_triple(L))
         imgs = np.stack([_read16(d / f"{k + 1:03d}.png") / E[k] for k in tri])
         runs = [(f"1:{tri[i] + 1:03d}", imgs[i:i + 1]) for i in range(3)] + [(f"3:{'/'.join(f'{k + 1:03d}' for k in tri)}", imgs)]
         for label, im in runs:

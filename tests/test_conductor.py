@@ -9,7 +9,6 @@ import pytest
 
 import gpps
 from gpps.host.metrics import normal_errors
-from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
 from gpps.names import LOBE_PARAMETERS
 
@@ -50,15 +49,10 @@ def test_fresnel_rise_is_schlick_relative_to_normal_incidence(device):
 
 
 def _case(scene="bumps", n_lights=12, kind="directional", size=48, noise=0.0, material=TRUE):
-    from gpps.flows.synthetic import default_lights, render
-    from gpps.host.scenes import make_scene
+    """tests/test_plastic.py's rendered case (16-bit, divided by the intensities) with the metal's defaults."""
+    from test_plastic import _case as rendered_case
 
-    sc = make_scene(scene, size, "perspective")
-    L = default_lights(kind, n_lights)
-    raw = render(sc, material, L, bits=16, noise=noise, seed=1)
-    img = raw / np.asarray(L.intensities, np.float32)[:, None, None, :]
-    Lu = DirectionalLights(L.directions) if kind == "directional" else PointLights(L.positions)
-    return img, Lu, sc, float(0.999 / np.min(L.intensities))
+    return rendered_case(scene, n_lights, kind, size, noise, material)
 
 
 @pytest.mark.parametrize("scene,kind", [("bumps", "directional"), ("sphere", "point")])

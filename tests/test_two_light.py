@@ -21,7 +21,8 @@ from gpps.camera import Orthographic, Perspective  # noqa: E402
 from gpps.flows.ron import RON, RONConfig  # noqa: E402
 from gpps.host.metrics import normal_errors  # noqa: E402
 from gpps.host.perspective import gradient_to_normals, normals_to_gradient  # noqa: E402
-from gpps.host.two_light import affine_normal, dark_observations, two_light_log_depth  # noqa: E402
+from gpps.host.perspective import affine_normal  # noqa: E402
+from gpps.host.two_light import dark_observations, two_light_log_depth  # noqa: E402
 from gpps.lights import DirectionalLights, ring_directions  # noqa: E402
 from gpps.pipeline.depth_refine import cauchy_likelihood  # noqa: E402
 
@@ -35,8 +36,8 @@ def _angles(a, b):
 
 @pytest.mark.parametrize("cam", sorted(CAMERAS))
 def test_affine_normal_is_the_gradients_normal(cam):
-    """``u_x a + u_y b + c`` normalised is gpps.host.perspective.gradient_to_normals's normal (float32 there: each
-    component to 1e-6)."""
+    """``u_x a + u_y b + c`` normalised is the normal whose gradient is ``(u_x, u_y)``: gpps.host.perspective's
+    normals_to_gradient (its own ray formula, PPN 3.2-3.3) gives the gradient back (float32 there: 1e-6 of it)."""
     camera = CAMERAS[cam]
     rng = np.random.default_rng(0)
     g = rng.normal(scale=0.02 if cam == "perspective" else 0.5, size=(64, 64, 2))
@@ -44,8 +45,9 @@ def test_affine_normal_is_the_gradients_normal(cam):
     a, b, c = affine_normal(camera, (64, 64))
     n = g[..., :1] * a + g[..., 1:] * b + c
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    ref = gradient_to_normals(g, m, camera)
-    np.testing.assert_allclose(n, ref, atol=1e-6)
+    np.testing.assert_allclose(normals_to_gradient(n, m, camera), g, rtol=1e-5, atol=1e-6 * np.abs(g).max())
+    with pytest.raises(TypeError, match="camera"):
+        affine_normal(object(), (4, 4))
 
 
 def _plane(cam, size=64):

@@ -38,6 +38,7 @@ from gpps.lights import DirectionalLights
 __all__ = [
     "normals_to_gradient",
     "gradient_to_normals",
+    "affine_normal",
     "lambertian_closed_form",
     "pps_blinn_phong",
     "sensitivity_indicator",
@@ -94,8 +95,20 @@ def normals_to_gradient(normals, mask, camera) -> np.ndarray:
     return out.astype(np.float32)
 
 
-def _affine_normal(camera, shape):
-    """``N = nu_u a + nu_v b + c`` (each (H, W, 3)) for the perspective camera."""
+def affine_normal(camera, shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(a, b, c)``, each (H, W, 3): the unnormalised normal ``N = u_x a + u_y b + c`` of a gradient
+    ``(u_x, u_y)`` per pixel (x = column to the right, y = row downward) of the integrator's unknown: the log-depth
+    under :class:`Perspective` (PPN, 3.2-3.3), the depth under :class:`Orthographic` (pixel size ``s``:
+    ``(u_x / s, -u_y / s, 1)``).  :func:`gradient_to_normals` normalises it; the two-light equations
+    (:mod:`gpps.host.two_light`) are linear in it."""
+    h, w = shape
+    if isinstance(camera, Orthographic):
+        s = float(camera.pixel_size)
+        return (np.broadcast_to(np.array([1.0 / s, 0.0, 0.0]), (h, w, 3)),
+                np.broadcast_to(np.array([0.0, -1.0 / s, 0.0]), (h, w, 3)),
+                np.broadcast_to(np.array([0.0, 0.0, 1.0]), (h, w, 3)))
+    if not isinstance(camera, Perspective):
+        raise TypeError(f"camera: expected gpps.camera.Orthographic or Perspective, got {type(camera).__name__}")
     r, ru, rv = _rays(camera, shape)
     a = -np.cross(r, rv)
     b = -np.cross(np.broadcast_to(ru, r.shape), r)
@@ -108,12 +121,8 @@ def gradient_to_normals(gradient, mask, camera) -> np.ndarray:
     m = as_mask("mask", mask)
     h, w = m.shape
     g = as_array("gradient", gradient, shape=(h, w, 2), dtype=np.float64)
-    if isinstance(camera, Orthographic):
-        s = camera.pixel_size
-        N = np.stack([g[..., 0] / s, -g[..., 1] / s, np.ones((h, w))], -1)
-    else:
-        a, b, c = _affine_normal(camera, (h, w))
-        N = g[..., :1] * a + g[..., 1:2] * b + c
+    a, b, c = affine_normal(camera, (h, w))
+    N = g[..., :1] * a + g[..., 1:2] * b + c
     N /= np.linalg.norm(N, axis=-1, keepdims=True)
     return np.where(m[..., None], N, 0.0).astype(np.float32)
 
@@ -164,7 +173,7 @@ def lambertian_closed_form(images, mask, lights, camera) -> dict:
     n_img, h, w = I.shape
     m = as_mask("mask", mask, (h, w))
     I = I / np.asarray(lights.intensities).mean(1)[:, None, None]
-    a, b, c = _affine_normal(camera, (h, w))
+    a, b, c = affine_normal(camera, (h, w))
     L = np.asarray(lights.directions)
     # rows k: (I_1 l_k - I_k l_1) . (nu_u a + nu_v b + c) = 0
     D = I[0][None, ..., None] * L[1:, None, None, :] - I[1:, ..., None] * L[0][None, None, None, :]  # (N-1, H, W, 3)
@@ -247,7 +256,7 @@ def pps_blinn_phong(
     I = I / np.asarray(lights.intensities).mean(1)[:, None, None]
     h, w = I.shape[1:]
     m = as_mask("mask", mask, (h, w))
-    a, b, c = (t[m] for t in _affine_normal(camera, (h, w)))
+    a, b, c = (t[m] for t in affine_normal(camera, (h, w)))
     r, _, _ = _rays(camera, (h, w))
     v = -r[m]
     v /= np.linalg.norm(v, axis=-1, keepdims=True)

@@ -13,7 +13,7 @@ channel in the unnormalised normal ``N`` (Onn and Bruckstein's two-image photome
 
 and ``N`` is affine in the gradient of the integrator's unknown ``u`` (log-depth under the perspective camera,
 the seed's PPN (3.2)-(3.3); depth under the orthographic one): ``N = u_x a + u_y b + c``
-(:func:`gpps.host.perspective.gradient_to_normals`).  So each channel is one linear equation in ``u``'s
+(:func:`gpps.host.perspective.affine_normal`).  So each channel is one linear equation in ``u``'s
 differences at the pixel: ``(a . w) u_x + (b . w) u_y = -(c . w)``, a first-order equation whose characteristics
 carry ``u`` in from the pixels around the shadow.  :func:`two_light_log_depth` solves, in least squares over the
 mask, these equations at the two-light pixels (four one-sided difference pairs each, which couple neighbours as
@@ -43,14 +43,14 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy import ndimage
-from scipy.sparse.csgraph import connected_components
 
 from gpps._check import as_array, as_flags, as_mask, check_number
 from gpps.camera import Orthographic, Perspective
+from gpps.host.perspective import affine_normal
 from gpps.host.poisson import pixel_gradients
 from gpps.names import SHADOW_RELATIVE_MANY
 
-__all__ = ["dark_observations", "two_light_log_depth", "affine_normal", "SMOOTHNESS", "MIN_NZ", "MAX_PIXELS"]
+__all__ = ["dark_observations", "two_light_log_depth", "SMOOTHNESS", "MIN_NZ", "MAX_PIXELS"]
 
 #: weight of the second differences at the pixels with fewer than three lit observations, relative to the data rows'
 #: 1 (small: it only removes the freedom along the characteristics that no lit pixel anchors)
@@ -61,31 +61,6 @@ MIN_NZ = 1e-3
 MAX_PIXELS = 1 << 17
 #: the tiny Tikhonov term that fixes the constant of each connected part in the sparse solve
 _TIKHONOV = 1e-8
-
-
-def affine_normal(camera, shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(a, b, c)``, each (H, W, 3): the unnormalised normal ``N = u_x a + u_y b + c`` of a gradient
-    ``(u_x, u_y)`` (per pixel; x = column to the right, y = row downward) of the integrator's unknown: log-depth
-    under :class:`Perspective`, depth under :class:`Orthographic` (inverse of
-    :func:`gpps.host.perspective.normals_to_gradient`)."""
-    h, w = shape
-    if isinstance(camera, Orthographic):
-        s = float(camera.pixel_size)
-        a = np.broadcast_to(np.array([1.0 / s, 0.0, 0.0]), (h, w, 3))
-        b = np.broadcast_to(np.array([0.0, -1.0 / s, 0.0]), (h, w, 3))
-        c = np.broadcast_to(np.array([0.0, 0.0, 1.0]), (h, w, 3))
-        return a, b, c
-    if not isinstance(camera, Perspective):
-        raise TypeError(f"camera: expected gpps.camera.Orthographic or Perspective, got {type(camera).__name__}")
-    jj, ii = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    cx, cy = camera.principal_point()
-    r = np.stack([(jj - cx) / camera.fx, -(ii - cy) / camera.fy, -np.ones_like(jj)], -1)
-    ru = np.array([1.0 / camera.fx, 0.0, 0.0])
-    rv = np.array([0.0, -1.0 / camera.fy, 0.0])
-    a = -np.cross(r, rv)
-    b = -np.cross(np.broadcast_to(ru, r.shape), r)
-    c = np.broadcast_to(-np.cross(ru, rv), r.shape)
-    return a, b, c
 
 
 def dark_observations(images, mask, valid=None, *, relative: float = SHADOW_RELATIVE_MANY, dilate: int = 1) -> np.ndarray:
@@ -247,12 +222,9 @@ def two_light_log_depth(images, dark, normals, mask, camera, directions, *, smoo
     b = np.concatenate(rhs)
     ata = (mat.T @ mat + _TIKHONOV * sp.eye(p)).tocsc()
     u = spla.spsolve(ata, mat.T @ b)
-    # mean 0 over each connected part (the caller sets each part's level)
-    ncomp, lab = connected_components(_adjacency(m, idx, p), directed=False)
-    means = np.bincount(lab, weights=u, minlength=ncomp) / np.maximum(np.bincount(lab, minlength=ncomp), 1)
     out = np.zeros((h, w))
-    out[m] = u - means[lab]
-    return out, two
+    out[m] = u
+    return _zero_mean_parts(out, m), two
 
 
 def _blocks(a, f: int, how: str):
@@ -304,24 +276,11 @@ def _two_light_coarse(y, dk, nrm, m, camera, d, f, smoothness, min_nz):
     tj = np.clip(jc - j0, 0.0, 1.0)[None, :]
     u = ((1 - ti) * (1 - tj) * full[np.ix_(i0, j0)] + (1 - ti) * tj * full[np.ix_(i0, j1)]
          + ti * (1 - tj) * full[np.ix_(i1, j0)] + ti * tj * full[np.ix_(i1, j1)])
-    idx = np.full((h, w), -1, np.int64)
-    idx[m] = np.arange(int(m.sum()))
-    ncomp, lab = connected_components(_adjacency(m, idx, int(m.sum())), directed=False)
-    v = u[m]
-    means = np.bincount(lab, weights=v, minlength=ncomp) / np.maximum(np.bincount(lab, minlength=ncomp), 1)
-    out = np.zeros((h, w))
-    out[m] = v - means[lab]
-    return out, two
+    return _zero_mean_parts(u, m), two
 
 
-def _adjacency(m, idx, p):
-    h, w = m.shape
-    r, c = [], []
-    for di, dj in ((0, 1), (1, 0)):
-        both = m[:h - di, :w - dj] & m[di:, dj:]
-        ii, jj = np.nonzero(both)
-        r.append(idx[ii, jj])
-        c.append(idx[ii + di, jj + dj])
-    r = np.concatenate(r) if r else np.zeros(0, np.int64)
-    c = np.concatenate(c) if c else np.zeros(0, np.int64)
-    return sp.csr_matrix((np.ones(r.size), (r, c)), shape=(p, p))
+def _zero_mean_parts(u, m) -> np.ndarray:
+    """``u`` with mean 0 over each 4-connected part of the mask ``m`` (the integrator's parts), 0 outside."""
+    lab, n = ndimage.label(m)
+    means = np.bincount(lab[m], weights=u[m], minlength=n + 1) / np.maximum(np.bincount(lab[m], minlength=n + 1), 1)
+    return np.where(m, u - means[lab], 0.0)
