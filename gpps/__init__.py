@@ -24,6 +24,7 @@ _LAZY = {
     # whole reconstructions (gpps.flows)
     "reconstruct": "gpps.flows.reconstruction",
     "Reconstruction": "gpps.flows.reconstruction",
+    "Reconstructor": "gpps.flows.reconstruction",
     "RONConfig": "gpps.flows.ron",
     "solve_normals": "gpps.flows.photometric",
     "integrate_normals": "gpps.flows.integrate",

@@ -94,22 +94,31 @@ def bumps_frame(size: int, device: str, shift: int = 0, material=None):
     return sc, mat, L, uint16_frame(render(sc, mat, L, bits=16, device=device))
 
 
-def reconstruct_case(size: int, n: int, device):
-    """Issue 20's synthetic reconstruction (as ``perf/reconstruct_synthetic.py``): Cook-Torrance bumps (ks 0.8,
-    roughness 0.2), perspective, ``n`` directional lights, 16-bit, divided by the light intensities, the material
-    unknown.  Returns ``call() -> (Reconstruction, maen)`` where ``maen()`` measures the error after the caller's
-    clock stops (the benchmark's work, not the pipeline's)."""
+def reconstruct_inputs(size: int, n: int, device) -> dict:
+    """Issue 20's synthetic capture (as ``perf/reconstruct_synthetic.py``): Cook-Torrance bumps (ks 0.8,
+    roughness 0.2), perspective, ``n`` directional lights, 16-bit, divided by the light intensities.  Returns
+    ``images``, ``mask``, ``lights`` (unit intensities), ``camera`` and the true ``normals``."""
     import gpps
 
     sc = gpps.make_scene("bumps", size, "perspective")
     L = gpps.default_lights("directional", n, layout="ring" if n <= 4 else "spiral")
     true = gpps.Material("cook-torrance", ks=0.8, roughness=0.2, f0=0.5)
     img = gpps.render(sc, true, L, bits=16, device=device) / L.intensities[:, None, None, :]
-    lu = gpps.DirectionalLights(L.directions)
+    return {"images": img, "mask": sc.mask, "lights": gpps.DirectionalLights(L.directions), "camera": sc.camera,
+            "normals": sc.normals}
+
+
+def reconstruct_case(size: int, n: int, device):
+    """:func:`reconstruct_inputs`'s capture with the material unknown.  Returns ``call() -> (Reconstruction, maen)``
+    where ``maen()`` measures the error after the caller's clock stops (the benchmark's work, not the pipeline's)."""
+    import gpps
+
+    c = reconstruct_inputs(size, n, device)
 
     def call():
-        rec = gpps.reconstruct(img, sc.mask, lu, camera=sc.camera, material="cook-torrance", device=device)
-        return rec, lambda: float(gpps.normal_errors(rec.normals, sc.normals, sc.mask)["mean"])
+        rec = gpps.reconstruct(c["images"], c["mask"], c["lights"], camera=c["camera"], material="cook-torrance",
+                               device=device)
+        return rec, lambda: float(gpps.normal_errors(rec.normals, c["normals"], c["mask"])["mean"])
     return call
 
 

@@ -1,17 +1,19 @@
 """How much of a warm ``gpps.reconstruct`` call is the set-up of its stages (issue 20's 256^2 x 3 line).
 
 ``gpps.reconstruct`` builds a :class:`gpps.flows.ron.RON` (two pixel solvers, the integrator's Taichi fields, the
-material scorer and its searches) for every call and frees it after.  This probe times, on one device:
+material scorer and its searches) for every call and frees it after; ``gpps.Reconstructor`` builds it at its first
+call and keeps it.  This probe times, on one device, issue 20's synthetic capture (``_common.reconstruct_inputs``,
+the material unknown):
 
 * ``fresh``: ``gpps.reconstruct`` as users call it (a new RON per call);
-* ``reuse``: the same calls with one RON kept for the whole run (``gpps.flows.reconstruction.RON`` replaced by a
-  factory that hands back the instance built for the same shape, mask, camera, lights, material and config, and
-  whose ``close`` waits until the probe ends), so each call's time is the pipeline's alone;
+* ``reconstructor``: the same calls through one ``gpps.Reconstructor``;
 
-each the median of ``--repeat`` warm calls, with the MAEN of each (the two must agree).  The difference is what a
-persistent reconstructor object would save; what is left is the pipeline's own host and device time.
+in ``--blocks`` interleaved blocks of ``--repeat`` warm calls each (the lent machine's host speed drifts between
+blocks: interleaving keeps the comparison fair), device-synchronised, with the MAEN of every call (the two must
+agree: the Reconstructor's results are reconstruct's bit for bit).
 
-Usage:  python perf/reconstruct_reuse.py [--size 256] [--images 3] [--device cuda:0] [--repeat 7] [--out FILE]
+Usage:  python perf/reconstruct_reuse.py [--size 256] [--images 3] [--device cuda:0] [--repeat 5] [--blocks 3]
+        [--out FILE]
 """
 
 from __future__ import annotations
@@ -31,25 +33,23 @@ os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 import numpy as np  # noqa: E402
 
 import gpps  # noqa: E402
-from _common import device_label, reconstruct_case  # noqa: E402
-from gpps.flows import reconstruction as rec_mod  # noqa: E402
+from _common import device_label, reconstruct_inputs  # noqa: E402
 
 
-def _sync(device):
+def _sync():
     import warp as wp
     wp.synchronize()
 
 
-def _timed(call, repeat, device):
-    call()  # cold (compiles) or first of the mode
+def _timed(call, repeat, truth, mask):
     ts, maens = [], []
     for _ in range(repeat):
-        _sync(device)
+        _sync()
         t = time.perf_counter()
-        rec, maen = call()
-        _sync(device)
+        rec = call()
+        _sync()
         ts.append(time.perf_counter() - t)
-        maens.append(maen())
+        maens.append(float(gpps.normal_errors(rec.normals, truth, mask)["mean"]))
     return ts, maens
 
 
@@ -58,43 +58,32 @@ def main(argv=None):
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--images", type=int, default=3)
     ap.add_argument("--device", default=None)
-    ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--blocks", type=int, default=3)
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
-    call = reconstruct_case(a.size, a.images, a.device)
-    out = {"device": a.device, "device_name": device_label(a.device or "cuda:0"), "size": a.size, "images": a.images}
-    ts, maens = _timed(call, a.repeat, a.device)
-    out["fresh"] = {"ms": [1e3 * t for t in ts], "median_ms": 1e3 * float(np.median(ts)), "maen": maens}
-
-    real = rec_mod.RON
-    kept: dict = {}
-
-    class _Kept:
-        def __init__(self, ron):
-            self._ron = ron
-
-        def __getattr__(self, name):
-            return getattr(self._ron, name)
-
-        def close(self):  # (closed at the end of the probe)
-            pass
-
-    def factory(shape, camera, lights, material, mask, config=None, device=None):
-        key = (tuple(shape), id(camera), id(lights), repr(material), np.asarray(mask).tobytes(), repr(config), device)
-        if key not in kept:
-            kept[key] = real(shape, camera, lights, material, mask, config, device=device)
-        return _Kept(kept[key])
-
-    rec_mod.RON = factory
-    try:
-        ts, maens = _timed(call, a.repeat, a.device)
-    finally:
-        rec_mod.RON = real
-        for r in kept.values():
-            r.close()
-    out["reuse"] = {"ms": [1e3 * t for t in ts], "median_ms": 1e3 * float(np.median(ts)), "maen": maens,
-                    "instances": len(kept)}
-    print(json.dumps(out), flush=True)
+    c = reconstruct_inputs(a.size, a.images, a.device)
+    kw = dict(camera=c["camera"], material="cook-torrance", device=a.device)
+    img, mask, lights = c["images"], c["mask"], c["lights"]
+    rc = gpps.Reconstructor(mask, lights, **kw)
+    modes = {"fresh": lambda: gpps.reconstruct(img, mask, lights, **kw), "reconstructor": lambda: rc(img)}
+    for f in modes.values():  # cold (compiles), then the first of each mode
+        f()
+    res = {k: {"ms": [], "maen": []} for k in modes}
+    for _ in range(a.blocks):
+        for k, f in modes.items():
+            ts, maens = _timed(f, a.repeat, c["normals"], mask)
+            res[k]["ms"].append([1e3 * t for t in ts])
+            res[k]["maen"].extend(maens)
+    rc.close()
+    out = {"device": a.device, "device_name": device_label(a.device or "cuda:0"), "size": a.size, "images": a.images,
+           "repeat": a.repeat, "blocks": a.blocks, "builds": rc.builds}
+    for k, v in res.items():
+        flat = [t for b in v["ms"] for t in b]
+        out[k] = {"median_ms": float(np.median(flat)), "block_medians_ms": [float(np.median(b)) for b in v["ms"]],
+                  "ms": v["ms"], "maen": sorted(set(v["maen"]))}
+    print(json.dumps({k: (v if not isinstance(v, dict) else {kk: vv for kk, vv in v.items() if kk != "ms"})
+                      for k, v in out.items()}), flush=True)
     if a.out:
         Path(a.out).write_text(json.dumps(out, indent=1))
 

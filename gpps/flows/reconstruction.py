@@ -42,7 +42,7 @@ from gpps.flows.ron import LOBE_PARAMETERS, RON, RONConfig
 from gpps.material import BRDF_NAMES, Material, check_model_images
 from gpps.names import SHADOW_RELATIVE_MANY
 
-__all__ = ["reconstruct", "Reconstruction", "RONConfig"]
+__all__ = ["reconstruct", "Reconstruction", "Reconstructor", "RONConfig"]
 
 
 @dataclass
@@ -220,6 +220,41 @@ def reconstruct(
             names, fewer than 3 lights or degenerate light directions, point
             lights without a depth or a reference depth.
     """
+    prep = _prepare(images, mask, lights, camera, material, estimate, depth, reference_depth, valid, saturation,
+                    config)
+    ron = RON(prep.shape, prep.camera, prep.lights, prep.material, prep.mask, prep.config, device=device)
+    try:
+        res = ron.run(prep.images, depth=depth, reference_depth=reference_depth, valid=prep.valid, progress=progress)
+    finally:
+        ron.close()
+    return _result(res, prep)
+
+
+@dataclass
+class _Prepared:
+    """A call's checked inputs at the working scale, and what its result needs (:func:`_prepare`)."""
+
+    images: np.ndarray
+    mask: np.ndarray
+    lights: object
+    camera: object
+    material: Material
+    config: RONConfig
+    valid: np.ndarray | None
+    notes: list
+    determined: np.ndarray
+    scale: dict
+    fixed: dict
+    models: tuple
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(int(s) for s in self.images.shape[:3])
+
+
+def _prepare(images, mask, lights, camera, material, estimate, depth, reference_depth, valid, saturation,
+             config) -> _Prepared:
+    """:func:`reconstruct`'s checks, its configuration of RON and the working scale."""
     img, m, lights, camera = check_inputs(images, mask, lights, camera)  # (N >= 3 checked there)
     n, h, w = img.shape[:3]
     if saturation is not None:
@@ -266,18 +301,113 @@ def reconstruct(
         if cfg.dgmc_config.saturation is not None:
             cfg = replace(cfg, dgmc_config=replace(cfg.dgmc_config,
                                                    saturation=float(cfg.dgmc_config.saturation) * ws["images"]))
-    ron = RON((n, h, w), camera, lights, mat, m, cfg, device=device)
-    try:
-        res = ron.run(img, depth=depth, reference_depth=reference_depth, valid=val, progress=progress)
-    finally:
-        ron.close()
+    return _Prepared(images=img, mask=m, lights=lights, camera=camera, material=mat, config=cfg, valid=val,
+                     notes=notes, determined=determined, scale=ws, fixed=fixed, models=models)
+
+
+def _result(res, prep: _Prepared) -> Reconstruction:
+    """RON's result in the caller's scale, as a :class:`Reconstruction`."""
+    ws = prep.scale
     if ws["images"] != 1.0 or ws["lights"] != 1.0:
-        res = _unscaled_result(res, factor, ws["images"])
+        res = _unscaled_result(res, ws["images"] / ws["lights"], ws["images"])
     return Reconstruction(
-        normals=res.normals, albedo=res.albedo, depth=res.depth, mask=m, depth_mask=res.depth_mask,
+        normals=res.normals, albedo=res.albedo, depth=res.depth, mask=prep.mask, depth_mask=res.depth_mask,
         material=res.material, estimated=res.estimated,
-        fixed=_material(res.material.brdf, "auto")[2] if models else fixed, energy=res.energy, rounds=res.rounds,
-        converged=res.converged, residual=res.residual, iterations=res.iterations, flags=res.flags,
-        highlight=res.highlight, details=res, timings=res.timings, determined=determined,
-        warnings=notes + list(res.warnings),
+        fixed=_material(res.material.brdf, "auto")[2] if prep.models else prep.fixed, energy=res.energy,
+        rounds=res.rounds, converged=res.converged, residual=res.residual, iterations=res.iterations, flags=res.flags,
+        highlight=res.highlight, details=res, timings=res.timings, determined=prep.determined,
+        warnings=prep.notes + list(res.warnings),
     )
+
+
+class Reconstructor:
+    """:func:`reconstruct` for one fixed capture set-up, called again and again: the stages are kept between calls.
+
+    A production line, a turntable or a lab rig takes capture after capture with the same lights, camera and
+    object mask.  :func:`reconstruct` builds the pipeline's stages (:class:`gpps.flows.ron.RON`: the pixel solvers'
+    buffers, the integrator's Taichi fields, the material scorer, the device search and its CUDA graphs) for every
+    call and frees them after; a ``Reconstructor`` builds them at its first call and keeps them, so each later call
+    pays only for its own work.  The results are those of :func:`reconstruct` with the same arguments, bit for bit
+    (tests/test_reconstructor.py).
+
+    The stages are rebuilt, once, when a call's working scale (:func:`gpps.flows.photometric.working_scale`) or its
+    ``saturation`` differs from the previous call's: both enter the stages' lights, material and settings.
+
+    Args:
+        mask: (H, W) bool object mask, the same for every call.
+        lights: :class:`gpps.DirectionalLights` or :class:`gpps.PointLights` (N).
+        camera, material, estimate, config, device: as :func:`reconstruct`.
+
+    Call it with what varies per capture: ``rec = reconstructor(images, depth=..., reference_depth=..., valid=...,
+    saturation=..., progress=...)`` -> :class:`Reconstruction` (the arguments as :func:`reconstruct`'s; ``images``
+    (N, H, W, 3) or (N, H, W)).  One call at a time (not thread-safe).  :meth:`close` (or a ``with`` block) gives
+    the device buffers back; a closed reconstructor refuses calls.
+
+    Example::
+
+        with gpps.Reconstructor(mask, lights, camera=cam, material="cook-torrance", device="cuda:0") as rc:
+            for images in captures:
+                rec = rc(images)
+    """
+
+    def __init__(self, mask, lights, *, camera=None, material: Material | str = "blinn-phong", estimate="auto",
+                 config: RONConfig | None = None, device=None):
+        from gpps._check import as_mask
+        from gpps._runtime import resolve_device
+        from gpps.lights import DirectionalLights, PointLights
+
+        if not isinstance(lights, (DirectionalLights, PointLights)):
+            raise TypeError(f"lights: expected gpps.DirectionalLights or gpps.PointLights, got {type(lights).__name__}")
+        self.mask = as_mask("mask", mask)
+        self.lights = lights
+        self.camera = camera
+        self.material = material
+        self.estimate = estimate
+        if config is not None and not isinstance(config, RONConfig):
+            raise TypeError(f"config: expected RONConfig, got {type(config).__name__}")
+        self.config = config
+        _material(material, estimate)  # (bad names fail here, not at the first call)
+        self.device = resolve_device(device)
+        self._ron = None
+        self._key = None
+        self.builds = 0  #: how many times the stages were built
+        self._closed = False
+
+    def __call__(self, images, *, depth=None, reference_depth: float | None = None, valid=None,
+                 saturation: float | None = None, progress=None) -> Reconstruction:
+        if self._closed:
+            raise RuntimeError("Reconstructor: closed")
+        prep = _prepare(images, self.mask, self.lights, self.camera, self.material, self.estimate, depth,
+                        reference_depth, valid, saturation, self.config)
+        ron = self._stages(prep)
+        res = ron.run(prep.images, depth=depth, reference_depth=reference_depth, valid=prep.valid, progress=progress)
+        return _result(res, prep)
+
+    def _stages(self, prep: _Prepared) -> RON:
+        """The kept RON when this call's stages would be the same (shape, settings, material and lights' radiance
+        at the working scale), else a new one (the old one closed)."""
+        key = (prep.shape, prep.config, prep.material)
+        inten = np.asarray(prep.lights.intensities)
+        if self._ron is not None and self._key[0] == key and np.array_equal(self._key[1], inten):
+            return self._ron
+        if self._ron is not None:
+            self._ron.close()
+            self._ron = None
+        self._ron = RON(prep.shape, prep.camera, prep.lights, prep.material, prep.mask, prep.config,
+                        device=self.device)
+        self._key = (key, inten.copy())
+        self.builds += 1
+        return self._ron
+
+    def close(self) -> None:
+        """Give the stages' buffers back (:meth:`gpps.flows.ron.RON.close`); later calls raise RuntimeError."""
+        if self._ron is not None:
+            self._ron.close()
+            self._ron = None
+        self._closed = True
+
+    def __enter__(self) -> "Reconstructor":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

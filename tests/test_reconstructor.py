@@ -1,0 +1,76 @@
+"""gpps.Reconstructor: the stages kept between calls give gpps.reconstruct's results, bit for bit."""
+
+import numpy as np
+import pytest
+
+import gpps
+
+
+def _captures(device, size=40):
+    """Two captures of one set-up (perspective bumps, 3 directional lights) with different materials, and the
+    lights without their intensities (the images divided by them)."""
+    sc = gpps.make_scene("bumps", size, "perspective")
+    L = gpps.default_lights("directional", 3, layout="ring")
+    out = []
+    for ks, rough in ((0.8, 0.2), (0.3, 0.45)):
+        true = gpps.Material("cook-torrance", ks=ks, roughness=rough, f0=0.5)
+        img = gpps.render(sc, true, L, bits=16, device=device) / L.intensities[:, None, None, :]
+        out.append(np.ascontiguousarray(img, np.float32))
+    return sc, gpps.DirectionalLights(L.directions), out
+
+
+def _same(a, b):
+    for k in ("normals", "albedo", "depth", "residual", "flags", "highlight", "depth_mask"):
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k), err_msg=k)
+    assert a.estimated == b.estimated
+    assert a.energy == b.energy and a.rounds == b.rounds
+    assert a.warnings == b.warnings
+
+
+def test_reconstructor_equals_reconstruct(device):
+    sc, lights, caps = _captures(device)
+    kw = dict(camera=sc.camera, material="cook-torrance", device=device)
+    fresh = [gpps.reconstruct(img, sc.mask, lights, **kw) for img in caps]
+    with gpps.Reconstructor(sc.mask, lights, **kw) as rc:
+        kept = [rc(img) for img in caps + caps[:1]]
+        assert rc.builds == 1  # (the same working scale: one set of stages for all three)
+    _same(kept[0], fresh[0])
+    _same(kept[1], fresh[1])
+    _same(kept[2], fresh[0])  # (nothing of the second capture left behind)
+    # the two materials were told apart: the kept stages did not carry the first capture's estimate over
+    assert abs(kept[0].estimated["roughness"] - 0.2) < 0.05
+    assert abs(kept[1].estimated["roughness"] - 0.45) < 0.1
+
+
+def test_reconstructor_rebuilds_on_a_new_scale_and_keeps_inputs(device):
+    sc, lights, caps = _captures(device, size=32)
+    kw = dict(camera=sc.camera, material="cook-torrance", device=device)
+    big = caps[0] * np.float32(1000.0)  # (outside the working range: solved at another scale)
+    before = big.copy()
+    with gpps.Reconstructor(sc.mask, lights, **kw) as rc:
+        a = rc(caps[0])
+        b = rc(big)
+        assert rc.builds == 2
+        c = rc(caps[0])
+        assert rc.builds == 3
+    np.testing.assert_array_equal(big, before)  # the caller's images are not touched
+    _same(b, gpps.reconstruct(big, sc.mask, lights, **kw))
+    _same(a, c)
+
+
+def test_reconstructor_checks(device):
+    sc, lights, caps = _captures("cpu", size=24)
+    with pytest.raises(TypeError, match="lights"):
+        gpps.Reconstructor(sc.mask, "not lights")
+    with pytest.raises(ValueError, match="material"):
+        gpps.Reconstructor(sc.mask, lights, material="no-such-model")
+    with pytest.raises(TypeError, match="config"):
+        gpps.Reconstructor(sc.mask, lights, config={"rounds": 2})
+    rc = gpps.Reconstructor(sc.mask, lights, camera=sc.camera, material="cook-torrance", device=device)
+    with pytest.raises(ValueError, match="images"):
+        rc(caps[0][:2])  # (two images for three lights)
+    with pytest.raises(ValueError, match="mask"):
+        rc(caps[0][:, :20])  # (another frame size)
+    rc.close()
+    with pytest.raises(RuntimeError, match="closed"):
+        rc(caps[0])
