@@ -11,7 +11,8 @@ whose result the next launch needs).
 Writes ``--out`` (JSON): the call's wall time, GPU busy time, idle time per method (sorted), and per method its
 inclusive host time and the GPU busy time inside its ranges.  Needs CUDA and torch.
 
-Usage:  python perf/idle_gaps.py [--synthetic 256] [--images 3] [--device cuda:0] [--warm 3] --out FILE
+Usage:  python perf/idle_gaps.py [--synthetic 256] [--images 3] [--device cuda:0] [--warm 3] [--reconstructor]
+        --out FILE
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "perf"))
 
 import stage_timeline as st  # noqa: E402  (its WRAPS, and the same environment)
-from _common import reconstruct_case  # noqa: E402
+from _common import reconstruct_case, reconstruct_inputs  # noqa: E402
 
 PREFIX = "gpps::"
 
@@ -51,6 +52,7 @@ def _extra():
         (sv.PixelSolver, "load", "solver.load"), (sv.PixelSolver, "set_start", "solver.set_start"),
         (st.integ_mod.Integrator, "run", "integrator.run"),
         (st.ron_mod.RON, "_select_model", "material.select_model"),
+        (st.rec_mod.Reconstructor, "__call__", "Reconstructor.call"),
         (st.ron_mod.RON, "_scorer_for", "material.scorer_for"),
         (st.rec_mod, "_reconstruct_impl", "reconstruct.impl") if hasattr(st.rec_mod, "_reconstruct_impl") else None,
     ]
@@ -137,6 +139,8 @@ def main(argv=None):
     ap.add_argument("--images", type=int, default=3)
     ap.add_argument("--device", default="cuda:0")
     ap.add_argument("--warm", type=int, default=3, help="unprofiled warm calls first (their times are reported)")
+    ap.add_argument("--reconstructor", action="store_true",
+                    help="the calls through one gpps.Reconstructor (the stages kept between calls)")
     ap.add_argument("--out", required=True)
     a = ap.parse_args(argv)
     import torch
@@ -144,7 +148,15 @@ def main(argv=None):
 
     import gpps
 
-    call = reconstruct_case(a.synthetic, a.images, a.device)
+    if a.reconstructor:
+        c = reconstruct_inputs(a.synthetic, a.images, a.device)
+        rc = gpps.Reconstructor(c["mask"], c["lights"], camera=c["camera"], material="cook-torrance", device=a.device)
+
+        def call():
+            rec = rc(c["images"])
+            return rec, lambda: float(gpps.normal_errors(rec.normals, c["normals"], c["mask"])["mean"])
+    else:
+        call = reconstruct_case(a.synthetic, a.images, a.device)
     call()  # cold: compiles
     warm = []
     for _ in range(a.warm):
@@ -163,6 +175,7 @@ def main(argv=None):
         wall = time.perf_counter() - t
     out = analyse(prof.events(), float("inf"), float("-inf"))
     out.update({"device": a.device, "size": a.synthetic, "images": a.images, "warm_s": warm,
+                "reconstructor": bool(a.reconstructor),
                 "profiled_call_s": wall, "maen_deg": maen()})
     Path(a.out).write_text(json.dumps(out, indent=1))
     print(f"warm {[round(w * 1e3, 1) for w in warm]} ms; profiled {wall * 1e3:.1f} ms; "

@@ -23,7 +23,10 @@ def _same(a, b):
     for k in ("normals", "albedo", "depth", "residual", "flags", "highlight", "depth_mask"):
         np.testing.assert_array_equal(getattr(a, k), getattr(b, k), err_msg=k)
     assert a.estimated == b.estimated
-    assert a.energy == b.energy and a.rounds == b.rounds
+    assert a.rounds == b.rounds
+    # the rounds' energies are device reductions (float64 atomic sums on CUDA: their order, so the last bit, varies
+    # from run to run, a fresh reconstruct against another included)
+    np.testing.assert_allclose(a.energy, b.energy, rtol=1e-12)
     assert a.warnings == b.warnings
 
 
@@ -59,7 +62,7 @@ def test_reconstructor_rebuilds_on_a_new_scale_and_keeps_inputs(device):
 
 
 def test_reconstructor_checks(device):
-    sc, lights, caps = _captures("cpu", size=24)
+    sc, lights, caps = _captures(device, size=24)
     with pytest.raises(TypeError, match="lights"):
         gpps.Reconstructor(sc.mask, "not lights")
     with pytest.raises(ValueError, match="material"):
