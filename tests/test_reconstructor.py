@@ -77,3 +77,19 @@ def test_reconstructor_checks(device):
     rc.close()
     with pytest.raises(RuntimeError, match="closed"):
         rc(caps[0])
+
+
+def test_reconstructor_drops_stages_after_a_failed_call(device):
+    sc, lights, caps = _captures(device, size=24)
+    kw = dict(camera=sc.camera, material="cook-torrance", device=device)
+
+    def stop(done, total, msg):
+        if "round 1" in msg:
+            raise KeyboardInterrupt  # (the user stopping a run)
+
+    with gpps.Reconstructor(sc.mask, lights, **kw) as rc:
+        with pytest.raises(KeyboardInterrupt):
+            rc(caps[0], progress=stop)
+        got = rc(caps[0])
+        assert rc.builds == 2  # (the interrupted run's stages were not kept)
+    _same(got, gpps.reconstruct(caps[0], sc.mask, lights, **kw))

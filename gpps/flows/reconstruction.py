@@ -29,7 +29,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from gpps._check import as_array, as_flags, check_number, warn
+from gpps._check import as_array, as_flags, as_mask, check_number, warn
+from gpps._runtime import resolve_device
 from gpps.flows.photometric import (
     WORKING_ALBEDO,
     WORKING_IMAGES,
@@ -39,6 +40,7 @@ from gpps.flows.photometric import (
     working_scale,
 )
 from gpps.flows.ron import LOBE_PARAMETERS, RON, RONConfig
+from gpps.lights import DirectionalLights, PointLights
 from gpps.material import BRDF_NAMES, Material, check_model_images
 from gpps.names import SHADOW_RELATIVE_MANY
 
@@ -352,10 +354,6 @@ class Reconstructor:
 
     def __init__(self, mask, lights, *, camera=None, material: Material | str = "blinn-phong", estimate="auto",
                  config: RONConfig | None = None, device=None):
-        from gpps._check import as_mask
-        from gpps._runtime import resolve_device
-        from gpps.lights import DirectionalLights, PointLights
-
         if not isinstance(lights, (DirectionalLights, PointLights)):
             raise TypeError(f"lights: expected gpps.DirectionalLights or gpps.PointLights, got {type(lights).__name__}")
         self.mask = as_mask("mask", mask)
@@ -375,12 +373,32 @@ class Reconstructor:
 
     def __call__(self, images, *, depth=None, reference_depth: float | None = None, valid=None,
                  saturation: float | None = None, progress=None) -> Reconstruction:
+        """One capture: :func:`reconstruct` with this set-up's mask, lights, camera, material and config.
+
+        Args:
+            images: (N, H, W, 3) or (N, H, W) images, as :func:`reconstruct`'s.
+            depth, reference_depth, valid, saturation, progress: as :func:`reconstruct`'s.
+
+        Returns:
+            :class:`Reconstruction`.
+
+        Raises:
+            RuntimeError: the reconstructor is closed.
+            ValueError / TypeError: as :func:`reconstruct`.  A call that fails inside the pipeline drops the kept
+                stages (the next call builds them again).
+        """
         if self._closed:
             raise RuntimeError("Reconstructor: closed")
         prep = _prepare(images, self.mask, self.lights, self.camera, self.material, self.estimate, depth,
                         reference_depth, valid, saturation, self.config)
         ron = self._stages(prep)
-        res = ron.run(prep.images, depth=depth, reference_depth=reference_depth, valid=prep.valid, progress=progress)
+        try:
+            res = ron.run(prep.images, depth=depth, reference_depth=reference_depth, valid=prep.valid,
+                          progress=progress)
+        except BaseException:
+            ron.close()  # (a run cut short may leave its stages half-stepped: not kept)
+            self._ron = self._key = None
+            raise
         return _result(res, prep)
 
     def _stages(self, prep: _Prepared) -> RON:
