@@ -114,6 +114,36 @@ def test_front_from_and_into_the_solver(device, keep_better):
     np.testing.assert_array_equal(nrm[order], want[np.sort(pix)])
 
 
+def test_kept_front_stage_equals_a_fresh_one(device):
+    """RON keeps one DeviceFront on its solver between runs (``front=``): each use of the kept stage gives what a
+    stage built for the call gives, bit for bit; a stage on another solver is refused."""
+    img, sc, solver, dg, sol, depth = _case(device, "bumps", 48, "perspective", "cook-torrance", "directional", 3)
+    kw = dict(gaussian=dg.gaussian, mean=dg.mean, keep_better=True)
+    names = ("normals", "albedo", "residual", "iterations", "flags")
+
+    def from_solve(front):
+        solver.set_mask(sc.mask)
+        solver.step()  # (the solve the rings start from, again)
+        pix, nrm = propagate_front_device(solver, sc.mask, dg.highlight, front=front, **kw)
+        return pix, nrm, solver.fetch(names)
+
+    want = from_solve(None)
+    with DeviceFront(solver) as kept:
+        for _ in range(2):
+            got = from_solve(kept)
+            np.testing.assert_array_equal(got[0], want[0])
+            np.testing.assert_array_equal(got[1], want[1])
+            for k in names:
+                np.testing.assert_array_equal(got[2][k], want[2][k], err_msg=k)
+        other = PixelSolver(img.shape[:3], sc.camera, solver.lights, solver.material, SolverConfig(solver="none"),
+                            device=device)
+        try:
+            with pytest.raises(ValueError, match="front"):
+                propagate_front_device(other, sc.mask, dg.highlight, front=kept, **kw)
+        finally:
+            other.close()
+
+
 @pytest.mark.parametrize("parallel", ["pixels", "lights"])
 def test_device_front_equals_the_host_loop_either_kernel(device, parallel):
     """The ring solves through either solve kernel (one thread a pixel, or the lights split over lanes, which also

@@ -76,7 +76,7 @@ from gpps.material import Material
 from gpps.names import BRDF_NAMES, BRDF_TAG, CONDUCTOR, LOBE_PARAMETERS, LOBE_RANGES
 from gpps.pipeline.depth_refine import DepthRefineConfig, DepthRefiner
 from gpps.pipeline.dgmc import DeviceDGMC
-from gpps.pipeline.front import propagate_front, propagate_front_device
+from gpps.pipeline.front import DeviceFront, propagate_front, propagate_front_device
 from gpps.pipeline.integration import Integrator, IntegratorConfig, warn_log_depth_span
 from gpps.pipeline.integration_rounds import DeviceSystem
 from gpps.pipeline.material import MaterialScorer
@@ -648,6 +648,8 @@ class RON:
         self._rounds = None  # the device side of the rounds (DeviceRounds), built at the first run that uses it
         self._rounds_integ = False  # whether self._rounds integrates (step 3 on the device)
         self._shadows = None  # the cast-shadow pass (RoundShadows), built at the first run that uses it
+        self._dgmc = None  # DGMC's stage (DeviceDGMC), built at the first run that uses it
+        self._front = None  # the solved front's stage on the solver (DeviceFront), likewise
         self.integrator = None
         if self.config.integrate:
             # default, perspective: BiNI's n_z^2 confidence weighting: grazing rim normals (a few degrees off
@@ -666,6 +668,11 @@ class RON:
         if self._shadows is not None:
             self._shadows.close()
             self._shadows = None
+        for name in ("_dgmc", "_front"):
+            stage = getattr(self, name, None)
+            if stage is not None:
+                stage.close()
+                setattr(self, name, None)
         for search in self._searches.values():
             search.close()
         self._searches.clear()
@@ -1244,8 +1251,11 @@ class RON:
                 self.solver.set_material(material)
                 start = start.copy()
                 if on_device:  # (read from and merged into the solver's outputs: nothing but the sources back)
+                    if self._front is None:
+                        self._front = DeviceFront(self.solver)
                     pix, src_normals = propagate_front_device(self.solver, m, highlight, gaussian=dg.gaussian,
-                                                              mean=dg.mean, config=c.dgmc_config, keep_better=True)
+                                                              mean=dg.mean, config=c.dgmc_config, keep_better=True,
+                                                              front=self._front)
                     start.reshape(-1, 3)[pix] = src_normals
                 else:  # (the frame is on the solver's device: _solve put it there)
                     fr = propagate_front(self.solver, None, m, highlight, out, gaussian=dg.gaussian, mean=dg.mean,
@@ -1478,10 +1488,12 @@ class RON:
             # sources among the solved pixels itself (4.17-4.18), so the boundary mode's starts are not computed;
             # its highlight pixels start from least squares until their ring's source is known (run())
             front = c.dgmc_config.start == "front"
-            with DeviceDGMC(self.shape, config=c.dgmc_config, device=self.device) as stage:
-                stage.upload(self.solver.images if rgb else images, m, nrm, lights=self.lights, points=pts)
-                stage.step(starts=not front)
-                dg = stage.fetch_start()
+            if self._dgmc is None:  # (kept for the RON's later runs: its buffers allocated once)
+                self._dgmc = DeviceDGMC(self.shape, config=c.dgmc_config, device=self.device)
+            stage = self._dgmc
+            stage.upload(self.solver.images if rgb else images, m, nrm, lights=self.lights, points=pts)
+            stage.step(starts=not front)
+            dg = stage.fetch_start()
             start = (nrm if front else dg.normals).astype(np.float32)
             highlight = dg.highlight
             timings["dgmc"] += time.perf_counter() - t

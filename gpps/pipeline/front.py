@@ -259,20 +259,29 @@ class DeviceFront(Stage):
 
 
 def propagate_front_device(solver, mask, highlight, *, gaussian=None, mean=None, config: DGMCConfig | None = None,
-                           keep_better: bool = True, progress=None) -> tuple[np.ndarray, np.ndarray]:
+                           keep_better: bool = True, progress=None, front: DeviceFront | None = None
+                           ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`propagate_front` from the solver's outputs and back into them, on the device: the solver's last step
     (a solve of the mask) is the solution the rings start from and must beat, and the merged solution replaces it
     there (:meth:`DeviceFront.write_back`), for RON's device rounds; no frame crosses to the host.
+
+    ``front``: a :class:`DeviceFront` on ``solver`` to use (kept by the caller between frames: its buffers are
+    allocated once); None: one is built for this call and released after.
 
     Returns:
         ``(pixels, normals)``: the flat indices (M,) of the ring pixels that had a source, and (M, 3) their sources'
         merged normals (what the host path reads off ``FrontResult.source`` for RON's start normals).
     """
-    with DeviceFront(solver) as front:
-        front.upload(mask, highlight, None, gaussian=gaussian, mean=mean, config=config)
-        front.step(keep_better=keep_better, progress=progress)
-        front.write_back()
-        return front.fetch_sources()
+    if front is None:
+        with DeviceFront(solver) as own:
+            return propagate_front_device(solver, mask, highlight, gaussian=gaussian, mean=mean, config=config,
+                                          keep_better=keep_better, progress=progress, front=own)
+    if front.solver is not solver:
+        raise ValueError("front: expected a DeviceFront on the given solver")
+    front.upload(mask, highlight, None, gaussian=gaussian, mean=mean, config=config)
+    front.step(keep_better=keep_better, progress=progress)
+    front.write_back()
+    return front.fetch_sources()
 
 
 def propagate_front(solver, images, mask, highlight, solution: dict, *, gaussian=None, mean=None, depth=None,
