@@ -660,8 +660,8 @@ class RON:
             self.integrator = Integrator(self.mask, camera=camera, config=icfg, device=taichi_device(self.device))
 
     def close(self) -> None:
-        """Free the integrator's Taichi fields, the device rounds', the material scorer's and the solvers'
-        buffers (the RON refuses work afterwards)."""
+        """Free the integrator's Taichi fields, the device rounds', the cast-shadow pass's, DGMC's, the front's, the
+        material scorer's and searches' and the solvers' buffers (the RON refuses work afterwards)."""
         if self._rounds is not None:
             self._rounds.close()
             self._rounds = None
