@@ -122,6 +122,21 @@ def reconstruct_case(size: int, n: int, device):
     return call
 
 
+def reconstructor_case(size: int, n: int, device):
+    """:func:`reconstruct_case` through one kept ``gpps.Reconstructor`` (its stages built at the first call and kept):
+    ``call() -> (Reconstruction, maen)``; ``call.close()`` releases the stages."""
+    import gpps
+
+    c = reconstruct_inputs(size, n, device)
+    rc = gpps.Reconstructor(c["mask"], c["lights"], camera=c["camera"], material="cook-torrance", device=device)
+
+    def call():
+        rec = rc(c["images"])
+        return rec, lambda: float(gpps.normal_errors(rec.normals, c["normals"], c["mask"])["mean"])
+    call.close = rc.close
+    return call
+
+
 def moving_bumps(size: int, device: str, positions: int = 8, material=None):
     """The stream benchmarks' scene: Blinn-Phong bumps, perspective, 3 directional lights, moved sideways.
 

@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "perf"))
 
 import stage_timeline as st  # noqa: E402  (its WRAPS, and the same environment)
-from _common import reconstruct_case, reconstruct_inputs  # noqa: E402
+from _common import reconstruct_case, reconstructor_case  # noqa: E402
 
 PREFIX = "gpps::"
 
@@ -148,15 +148,7 @@ def main(argv=None):
 
     import gpps
 
-    if a.reconstructor:
-        c = reconstruct_inputs(a.synthetic, a.images, a.device)
-        rc = gpps.Reconstructor(c["mask"], c["lights"], camera=c["camera"], material="cook-torrance", device=a.device)
-
-        def call():
-            rec = rc(c["images"])
-            return rec, lambda: float(gpps.normal_errors(rec.normals, c["normals"], c["mask"])["mean"])
-    else:
-        call = reconstruct_case(a.synthetic, a.images, a.device)
+    call = (reconstructor_case if a.reconstructor else reconstruct_case)(a.synthetic, a.images, a.device)
     call()  # cold: compiles
     warm = []
     for _ in range(a.warm):

@@ -2,8 +2,11 @@
 
 Each case: one cold call (compilation), ``--repeat`` warm calls (the median reported, each one's stages kept),
 then a warm call under cProfile; writes the top
-functions by cumulative and by own time (``<case>_cumulative.txt``, ``<case>_tottime.txt``) and the stage
-timings (``profile.json``) to ``--out``.  On CUDA the host waits at synchronisation points (fetches), so a
+functions by cumulative time, own time and call count (``<case>_cumulative.txt``, ``<case>_tottime.txt``,
+``<case>_ncalls.txt``), the Python function calls of that call and the stage timings (``profile.json``) to
+``--out``.  With ``--reconstructor`` the synthetic cases run through one kept ``gpps.Reconstructor`` (case name
+``..._reconstructor``; the profiler adds about a microsecond a call, so the profiled time overstates the host's
+share).  On CUDA the host waits at synchronisation points (fetches), so a
 kernel's device time shows up in the function that fetches its result.
 
 With ``--trace`` (CUDA, needs torch) one more warm call runs under ``torch.profiler`` with CUDA activity
@@ -11,7 +14,8 @@ tracing (CUPTI sees every kernel of the process: Warp's and Taichi's): ``<case>_
 time per kernel name and the GPU busy time (the union of kernel and copy intervals) against the call's wall time,
 which separates device work from host overhead.
 
-Usage:  python perf/profile_reconstruct.py [FOLDER...] [--synthetic 256] [--images 3] [--device cuda:0] [--trace] --out DIR
+Usage:  python perf/profile_reconstruct.py [FOLDER...] [--synthetic 256] [--images 3] [--device cuda:0] [--trace]
+        [--reconstructor] --out DIR
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ sys.path.insert(0, str(ROOT / "perf"))
 os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 
 import gpps  # noqa: E402
-from _common import reconstruct_case  # noqa: E402
+from _common import reconstruct_case, reconstructor_case  # noqa: E402
 from gpps.io import json_default  # noqa: E402
 
 
@@ -83,8 +87,8 @@ def _trace(call) -> dict:
             "span_s": (spans[-1][1] - spans[0][0]) * 1e-6 if spans else 0.0, "kernels": rows}
 
 
-def _synthetic(size: int, n: int, device):
-    case = reconstruct_case(size, n, device)
+def _synthetic(size: int, n: int, device, kept: bool = False):
+    case = (reconstructor_case if kept else reconstruct_case)(size, n, device)
 
     def call():
         rec, maen = case()
@@ -108,12 +112,15 @@ def main(argv=None):
     ap.add_argument("--top", type=int, default=45)
     ap.add_argument("--repeat", type=int, default=3, help="warm calls (the median is reported)")
     ap.add_argument("--trace", action="store_true", help="one more warm call under torch.profiler (CUDA)")
+    ap.add_argument("--reconstructor", action="store_true",
+                    help="the synthetic cases through one kept gpps.Reconstructor")
     ap.add_argument("--out", required=True)
     a = ap.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     cases = [(Path(f).name, _folder(f, a.device)) for f in a.folders]
-    cases += [(f"bumps{s}x{a.images}", _synthetic(s, a.images, a.device)) for s in a.synthetic]
+    tag = "_reconstructor" if a.reconstructor else ""
+    cases += [(f"bumps{s}x{a.images}{tag}", _synthetic(s, a.images, a.device, a.reconstructor)) for s in a.synthetic]
     rows = []
     for name, call in cases:
         t = time.perf_counter()
@@ -136,9 +143,11 @@ def main(argv=None):
         profiled = time.perf_counter() - t
         (out / f"{name}_cumulative.txt").write_text(_stats(prof, "cumulative", a.top))
         (out / f"{name}_tottime.txt").write_text(_stats(prof, "tottime", a.top))
+        (out / f"{name}_ncalls.txt").write_text(_stats(prof, "ncalls", a.top))
+        calls = sum(v[1] for v in pstats.Stats(prof).stats.values())
         prof.dump_stats(str(out / f"{name}.pstats"))  # (for callers / callees offline: pstats.Stats(path))
         rows.append({"case": name, "cold_s": cold, "warm_s": warm, "warm_all_s": warm_all, "profiled_s": profiled,
-                     "maen_deg": maen, "timings": timings, "timings_all": stages_all})
+                     "python_calls": calls, "maen_deg": maen, "timings": timings, "timings_all": stages_all})
         if a.trace:
             tr = _trace(call)
             (out / f"{name}_kernels.json").write_text(json.dumps(tr, indent=1))

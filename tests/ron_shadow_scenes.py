@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gpps.camera import Perspective
+from gpps.flows.ron import RON, RONConfig
 from gpps.lights import DirectionalLights, PointLights, ring_directions, spiral_directions
 from gpps.material import Material
 from gpps.pipeline.render import Renderer, add_noise
@@ -171,3 +172,14 @@ def solid_case(name: str, kind: str, n: int, size: int = 64, camera: str = "pers
     return {"images": img, "mask": sc.mask, "camera": cam, "lights": lights, "material": MATERIAL,
             "normals": sc.normals, "depth": sc.depth, "shadow": ~vis & sc.facing(lights), "visible": vis,
             "reference_depth": float(sc.depth[sc.mask].mean()), "scene": sc}
+
+
+def run_ron(device, case, **cfg):
+    """RON on a case of this module (its lights, material and mask, its reference depth), ``RONConfig(**cfg)``."""
+    n = len(case["lights"])
+    ron = RON((n,) + case["mask"].shape, case["camera"], case["lights"], case["material"], case["mask"],
+              RONConfig(**cfg), device=device)
+    try:
+        return ron.run(case["images"], reference_depth=case["reference_depth"])
+    finally:
+        ron.close()

@@ -10,7 +10,7 @@ with their exact cast shadows (images times the analytic visibility) and on shad
 import numpy as np
 import pytest
 import reference_models as ref
-from ron_shadow_scenes import bump_case
+from ron_shadow_scenes import bump_case, run_ron
 
 from gpps._runtime import warp
 from gpps._taichi import taichi_device
@@ -433,16 +433,6 @@ def test_refiner_checks_its_inputs(device):
         integ.close()
 
 
-def _ron(device, case, **cfg):
-    n = len(case["lights"])
-    ron = RON((n,) + case["mask"].shape, case["camera"], case["lights"], case["material"], case["mask"],
-              RONConfig(**cfg), device=device)
-    try:
-        return ron.run(case["images"], reference_depth=case["reference_depth"])
-    finally:
-        ron.close()
-
-
 @pytest.mark.parametrize("kind", ["directional", "point"])
 def test_refinement_recovers_shadowed_pixels(device, kind):
     """4 lights on the Gaussian bumps with exact cast shadows (64^2, perspective, Blinn-Phong, noise 0.002):
@@ -456,8 +446,8 @@ def test_refinement_recovers_shadowed_pixels(device, kind):
     case = bump_case(kind, 4, 64, slant=60.0)
     m = case["mask"]
     sh = case["shadow"].any(0)
-    off = _ron(device, case)
-    on = _ron(device, case, refine=True)
+    off = run_ron(device, case)
+    on = run_ron(device, case, refine=True)
     e = {k: (normal_errors(r.normals, case["normals"], m)["mean"], normal_errors(r.normals, case["normals"], sh)["mean"],
              float(np.abs(r.depth[m] - case["depth"][m]).mean())) for k, r in (("off", off), ("on", on))}
     print(f"\n{kind}: MAEN {e['off'][0]:.3f} -> {e['on'][0]:.3f}, shadowed {e['off'][1]:.2f} -> {e['on'][1]:.2f}, "
@@ -470,12 +460,12 @@ def test_refinement_recovers_shadowed_pixels(device, kind):
     assert on.refinement["accepted"] >= 1 and all(b < a for a, b in zip(hist, hist[1:]))
     assert on.timings["refine"] > 0.0
     assert np.all(np.isfinite(on.normals[m])) and np.allclose(np.linalg.norm(on.normals[m], axis=-1), 1.0, atol=1e-4)
-    px = _ron(device, case, refine=True, refine_config=DepthRefineConfig(normals="pixel"))
+    px = run_ron(device, case, refine=True, refine_config=DepthRefineConfig(normals="pixel"))
     e_px = normal_errors(px.normals, case["normals"], m)["mean"]
     print(f"  pixel normals: MAEN {e_px:.3f}")
     assert e_px < 0.5 * e["off"][0]
     assert np.allclose(px.depth[m], on.depth[m])  # (the same surface: only the returned normals differ)
-    tst = _ron(device, case, refine=True, refine_config=DepthRefineConfig(normals="test"))
+    tst = run_ron(device, case, refine=True, refine_config=DepthRefineConfig(normals="test"))
     e_t = normal_errors(tst.normals, case["normals"], m)["mean"]
     kept = tst.refinement["kept_pixel_normals"]
     print(f"  test normals: MAEN {e_t:.3f}, {kept} pixels kept their own")
@@ -502,7 +492,7 @@ def test_inexact_steps_reach_the_exact_steps_result(device):
 
         DeviceSystem.step_increment = counting
         try:
-            res[tol] = _ron(device, case, refine=True, refine_config=DepthRefineConfig(step_tol=tol))
+            res[tol] = run_ron(device, case, refine=True, refine_config=DepthRefineConfig(step_tol=tol))
         finally:
             DeviceSystem.step_increment = orig
         its[tol] = sum(count)
@@ -540,8 +530,8 @@ def test_refinement_keeps_a_scene_without_shadows(device):
     refinement must not make it worse (measured 0.064 -> 0.048 deg)."""
     case = bump_case("directional", 12, 64, slant=25.0)
     m = case["mask"]
-    off = _ron(device, case)
-    on = _ron(device, case, refine=True)
+    off = run_ron(device, case)
+    on = run_ron(device, case, refine=True)
     a = normal_errors(off.normals, case["normals"], m)["mean"]
     b = normal_errors(on.normals, case["normals"], m)["mean"]
     print(f"\nno shadows: MAEN {a:.4f} -> {b:.4f}")

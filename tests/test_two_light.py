@@ -15,10 +15,10 @@ import pytest
 from scipy import stats
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ron_shadow_scenes import bump_case, solid_case  # noqa: E402
+from ron_shadow_scenes import bump_case, run_ron, solid_case  # noqa: E402
 
 from gpps.camera import Orthographic, Perspective  # noqa: E402
-from gpps.flows.ron import RON, RONConfig  # noqa: E402
+from gpps.flows.ron import RONConfig  # noqa: E402
 from gpps.host.metrics import normal_errors  # noqa: E402
 from gpps.host.perspective import gradient_to_normals, normals_to_gradient  # noqa: E402
 from gpps.host.perspective import affine_normal  # noqa: E402
@@ -174,13 +174,7 @@ def test_cauchy_likelihood_is_scipys_fit(seed):
 
 
 def _ron(device, case, **cfg):
-    n = len(case["lights"])
-    ron = RON((n,) + case["mask"].shape, case["camera"], case["lights"], case["material"], case["mask"],
-              RONConfig(refine=True, **cfg), device=device)
-    try:
-        return ron.run(case["images"], reference_depth=case["reference_depth"])
-    finally:
-        ron.close()
+    return run_ron(device, case, refine=True, **cfg)
 
 
 @pytest.mark.parametrize("scene", ["box-perspective", "box-orthographic"])
