@@ -1,0 +1,125 @@
+"""What each stage of a warm 256^2 x 3 reconstruction costs in wall time (issue 20's 30 ms line).
+
+Profilers tell where the host spends its time and where the GPU idles, but not what the call would cost without a
+stage: a stage's host work may overlap the GPU's, and its syncs may only move a wait elsewhere.  This probe answers
+that directly: it times issue 20's synthetic capture (``_common.reconstruct_inputs``: Cook-Torrance bumps,
+perspective, 3 directional lights, 16-bit) through one kept ``gpps.Reconstructor`` per variant, each variant the
+default pipeline less one stage (or with fewer of its steps), in interleaved blocks of warm, device-synchronised
+calls, and prints the median wall time, the stage timings the call reports, and the MAEN.
+
+Variants (``--variants``, comma-separated):
+
+* ``default``: the pipeline as users call it (material unknown);
+* ``known``: the material given (Cook-Torrance ks 0.8, roughness 0.2, the rendered one): no material estimation;
+* ``no-dgmc``: ``RONConfig(dgmc=False)``: no highlight test, no front;
+* ``no-depth``: ``RONConfig(integrate=False)``: no final integration;
+* ``rounds3``, ``rounds2``: ``RONConfig(rounds=3 / 2)``;
+* ``evals20``: ``RONConfig(material_evals=20)``: half the Nelder-Mead budget.
+
+Only the time and the MAEN are compared; a variant with a worse MAEN is not a proposal, it says what the stage is
+worth.
+
+Usage:  python perf/reconstruct_ablation.py [--size 256] [--images 3] [--device cuda:0] [--repeat 5] [--blocks 2]
+        [--variants default,known,...] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "perf"))
+os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
+
+import gpps  # noqa: E402
+from _common import device_label, reconstruct_inputs  # noqa: E402
+
+VARIANTS = ("default", "known", "no-dgmc", "no-depth", "rounds3", "rounds2", "evals20")
+
+
+def _sync():
+    import warp as wp
+    wp.synchronize()
+
+
+def variant_kwargs(name: str) -> dict:
+    """The Reconstructor's ``material`` and ``config`` of a variant."""
+    from gpps.flows.ron import RONConfig
+
+    base = RONConfig()
+    if name == "default":
+        return {"material": "cook-torrance"}
+    if name == "known":
+        return {"material": gpps.Material("cook-torrance", ks=0.8, roughness=0.2, f0=0.5)}
+    changes = {"no-dgmc": {"dgmc": False}, "no-depth": {"integrate": False}, "rounds3": {"rounds": 3},
+               "rounds2": {"rounds": 2}, "evals20": {"material_evals": 20}}
+    if name not in changes:
+        raise ValueError(f"variant: expected one of {VARIANTS}, got {name!r}")
+    return {"material": "cook-torrance", "config": replace(base, **changes[name])}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--images", type=int, default=3)
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--blocks", type=int, default=2)
+    ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args(argv)
+    names = [v.strip() for v in a.variants.split(",") if v.strip()]
+    for v in names:
+        variant_kwargs(v)  # (a bad name fails before any work)
+    c = reconstruct_inputs(a.size, a.images, a.device)
+    img, mask, truth = c["images"], c["mask"], c["normals"]
+    rows = {v: {"ms": [], "maen": [], "timings_ms": [], "estimated": None} for v in names}
+    for _ in range(a.blocks):
+        for v in names:
+            with gpps.Reconstructor(mask, c["lights"], camera=c["camera"], device=a.device,
+                                    **variant_kwargs(v)) as rc:
+                rc(img)  # (builds the stages, loads the kernels: not timed)
+                rc(img)
+                for _ in range(a.repeat):
+                    _sync()
+                    t = time.perf_counter()
+                    rec = rc(img)
+                    _sync()
+                    rows[v]["ms"].append(1e3 * (time.perf_counter() - t))
+                    rows[v]["maen"].append(float(gpps.normal_errors(rec.normals, truth, mask)["mean"]))
+                    rows[v]["timings_ms"].append({k: 1e3 * s for k, s in rec.timings.items()})
+                    rows[v]["estimated"] = {k: float(x) for k, x in rec.estimated.items()}
+    out = {"device": a.device or "auto", "device_name": device_label(a.device or "cpu"), "size": a.size,
+           "images": a.images, "repeat": a.repeat, "blocks": a.blocks, "variants": {}}
+    base = None
+    for v in names:
+        r = rows[v]
+        med = statistics.median(r["ms"])
+        stages = {k: statistics.median(t[k] for t in r["timings_ms"]) for k in r["timings_ms"][0]}
+        out["variants"][v] = {"median_ms": med, "min_ms": min(r["ms"]), "max_ms": max(r["ms"]),
+                              "maen_deg": statistics.median(r["maen"]), "estimated": r["estimated"], "stages_ms": stages,
+                              "ms": r["ms"]}
+        if v == "default":
+            base = med
+    print(f"{'variant':10s} {'median ms':>10s} {'saved':>7s} {'MAEN':>8s}  stages (ms)")
+    for v, r in out["variants"].items():
+        saved = "" if base is None or v == "default" else f"{base - r['median_ms']:7.1f}"
+        st = " ".join(f"{k}={x:.1f}" for k, x in r["stages_ms"].items())
+        est = " ".join(f"{k}={x:.4g}" for k, x in (r["estimated"] or {}).items())
+        print(f"{v:10s} {r['median_ms']:10.1f} {saved:>7s} {r['maen_deg']:8.4f}  {st}  {est}")
+    if a.out:
+        Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.out).write_text(json.dumps(out, indent=2) + "\n")
+    return out
+
+
+if __name__ == "__main__":
+    main()
