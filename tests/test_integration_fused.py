@@ -1,4 +1,5 @@
-"""The multigrid PCG in one Taichi launch an iteration against its launch per step and level.
+"""The multigrid PCG's launch forms: one Taichi launch an iteration, one launch per step and level, and the whole
+solve in one persistent task.
 
 ``IntegratorConfig.launch="fused"`` runs a PCG iteration (cg_step, the V-cycle over every level,
 cg_direction) as one kernel, :func:`gpps.kernels.poisson.pcg_iteration`, and the start as another; it
@@ -11,6 +12,12 @@ tests/test_integration_cg_sums.py).  The problems cover both cameras, uniform an
 precisions, a mask with holes and three components on a size whose levels halve unevenly (75 x 101 ->
 38 x 51 -> 19 x 26 -> 10 x 13 -> 5 x 7), the iteration cap between two residual checks, a warm start
 that is already converged, and a mask so small that it is its own coarsest level (no V-cycle levels).
+
+``launch="persistent"`` (:mod:`gpps.kernels.poisson_persistent`, the default on CUDA) runs the start, every
+iteration and the stopping test in one task whose phases meet at grid barriers; off CUDA it runs as one thread.
+Its arithmetic is the fused launch's through the same per-point funcs; only the order of the float64 sums differs
+(strided over the threads and tree-reduced per block, or in pixel order on one thread), so it is held to the same
+iterations and to the CUDA tolerance of the fused form against the per-level one, on the same problems.
 """
 
 import numpy as np
@@ -155,6 +162,89 @@ def test_fused_reuses_the_stage_across_calls(device):
 
 
 def test_launch_is_checked():
-    assert IntegratorConfig().launch == "fused"
+    assert IntegratorConfig().launch == "auto"
     with pytest.raises(ValueError, match="launch"):
         IntegratorConfig(launch="graph")
+    with pytest.raises(ValueError, match="persistent_blocks"):
+        IntegratorConfig(persistent_blocks=0)
+
+
+def _close_persistent(dtype):
+    """Largest depth difference of the persistent form against the fused one, in units of the depth range: the
+    float64 dot products are added in another order on every device (the fused form's CUDA tolerance)."""
+    return 1e-9 if dtype == "float64" else 2e-5
+
+
+def _same_persistent(a, b, dtype):
+    m = a.mask
+    assert np.array_equal(a.mask, b.mask)
+    assert a.iterations == b.iterations, (a.iterations, b.iterations)
+    assert a.converged == b.converged
+    rng = float(np.ptp(a.depth[m]))
+    assert np.max(np.abs(a.depth[m] - b.depth[m])) <= _close_persistent(dtype) * rng
+    if dtype == "float64":
+        assert a.solver_residual == pytest.approx(b.solver_residual, rel=1e-6)
+
+
+@pytest.mark.parametrize("camera", ["perspective", "orthographic"])
+@pytest.mark.parametrize("weighting", ["uniform", "normal"])
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_persistent_equals_fused(device, camera, weighting, dtype):
+    tol = 1e-10 if dtype == "float64" else 1e-5
+    kw = dict(solver="multigrid", weighting=weighting, dtype=dtype, tol=tol)
+    pers = _run(device, camera, "persistent", **kw)
+    fused = _run(device, camera, "fused", **kw)
+    _same_persistent(pers, fused, dtype)
+    assert pers.iterations >= 4
+    assert pers.converged and pers.solver_residual <= tol
+
+
+@pytest.mark.parametrize("check_every", [1, 3])
+def test_persistent_stops_at_the_cap_between_checks(device, check_every):
+    """max_iter 7 with a check every 3 iterations: the persistent task stops at the cap as the host loop does."""
+    kw = dict(weighting="normal", dtype="float64", tol=1e-14, max_iter=7, check_every=check_every)
+    pers = _run(device, "perspective", "persistent", **kw)
+    fused = _run(device, "perspective", "fused", **kw)
+    assert pers.iterations == fused.iterations == 7 and not pers.converged
+    _same_persistent(pers, fused, "float64")
+
+
+def test_persistent_converged_warm_start(device):
+    """A warm start at the solution: no iteration, the start's depth back."""
+    kw = dict(weighting="uniform", dtype="float64")
+    first = _run(device, "perspective", "fused", tol=1e-8, **kw)
+    again = _run(device, "perspective", "persistent", warm=first.depth, tol=1e-2, **kw)
+    assert again.iterations == 0 and again.converged
+    m = first.mask
+    assert np.max(np.abs(again.depth[m] - first.depth[m])) <= 1e-6 * float(np.ptp(first.depth[m]))
+
+
+def test_persistent_single_level(device):
+    """A 6 x 7 map is its own coarsest level: the persistent V-cycle is the exact coarse solve alone."""
+    kw = dict(weighting="normal", dtype="float64", tol=1e-10)
+    mask, n, cam = _problem("orthographic", 6, 7)
+    mask = np.ones((6, 7), bool)
+    n = np.where(np.isfinite(n), n, np.array([0.0, 0.0, 1.0]))
+    res = {}
+    for launch in ("persistent", "fused"):
+        integ = Integrator(mask, cam, IntegratorConfig(launch=launch, **kw), device=device)
+        try:
+            res[launch] = integ.run(n)
+        finally:
+            integ.close()
+    _same_persistent(res["persistent"], res["fused"], "float64")
+    assert res["persistent"].converged and res["persistent"].iterations <= 2
+
+
+def test_persistent_kernel_kept_across_calls(device):
+    """Calls on one stage reuse the persistent kernel built at the first (one build per geometry and grid) and
+    give the first call's depth."""
+    mask, n, cam = _problem("perspective")
+    cfg = IntegratorConfig(weighting="normal", dtype="float64", tol=1e-10, launch="persistent")
+    integ = Integrator(mask, cam, cfg, device=device)
+    try:
+        a, b = integ.run(n), integ.run(n)
+        assert len(integ._dev["persistent"]) == 1
+    finally:
+        integ.close()
+    _same_persistent(a, b, "float64")

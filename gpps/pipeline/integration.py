@@ -70,6 +70,7 @@ from gpps.host.poisson import (
     solve_direct,
 )
 from gpps.kernels import poisson as K
+from gpps.kernels import poisson_persistent as KP
 from gpps.names import CutStitchName, LaunchName
 from gpps.pipeline.integration_bini import BilateralIntegrator, BiniConfig, check_cuts
 from gpps.pipeline.stage import Stage
@@ -100,7 +101,7 @@ Weighting = Literal["uniform", "normal"]
 Robust = Literal["none", "cauchy", "curl"]
 DType = Literal["float32", "float64"]
 CgSums = Literal["auto", "block", "atomic"]
-Launch = Literal["fused", "per-level"]
+Launch = Literal["auto", "persistent", "fused", "per-level"]
 Progress = Callable[[float, float, str], None]
 
 
@@ -192,11 +193,20 @@ class IntegratorConfig:
             scalar (Taichi's CPU threads keep these sums thread-local, but on CUDA it is one float64
             atomic a pixel on one address, serialised); ``"auto"``: ``"block"`` on CUDA, ``"atomic"``
             on the CPU.  Both give the same CG up to the order of the float64 additions.
-        launch: how the multigrid PCG is launched: ``"fused"``: one Taichi launch an iteration (cg_step,
-            the V-cycle over every level, cg_direction; :func:`gpps.kernels.poisson.pcg_iteration`) and
-            one for the start; ``"per-level"``: one launch per step and level (~13 an iteration).  The
-            same arithmetic in the same order; fused saves Taichi's host time per launch (60-100 us a
-            call on an H100's host, more than the GPU's 0.6 ms iteration at 256^2 spends in 13 calls).
+        launch: how the multigrid PCG is launched: ``"persistent"``: the start, every iteration and the
+            stopping test in one launch of one persistent task whose phases meet at grid barriers
+            (:mod:`gpps.kernels.poisson_persistent`; the host reads the result once; on the CPU it runs as one
+            thread, for tests); ``"fused"``: one Taichi launch an iteration (cg_step, the V-cycle over every
+            level, cg_direction; :func:`gpps.kernels.poisson.pcg_iteration`) and one for the start, the host
+            reading ``|r|^2`` every ``check_every`` iterations; ``"per-level"``: one launch per step and level
+            (~13 an iteration); ``"auto"``: persistent on CUDA (``persistent_blocks`` resident blocks of
+            128 threads per multiprocessor; a GPU that cannot hold them falls back to fused with a
+            warning), fused on the CPU.  The same arithmetic in the same order (the persistent task sums
+            its dot products in another order); fused saves Taichi's host time per launch (60-100 us a call
+            on an H100's host, more than the GPU's 0.6 ms iteration at 256^2 spends in 13 calls), the
+            persistent task its host time per task (about 40 a fused iteration).
+        persistent_blocks: resident blocks per multiprocessor of the persistent launch (halved down to 1
+            when the GPU cannot hold them, then fused).
     """
 
     solver: Solver = "multigrid"
@@ -221,7 +231,8 @@ class IntegratorConfig:
     check_every: int = 2
     coarsest: int = 8
     cg_sums: CgSums = "auto"
-    launch: Launch = "fused"
+    launch: Launch = "auto"
+    persistent_blocks: int = 4
 
     def __post_init__(self):
         check_choices(self)
@@ -240,7 +251,8 @@ class IntegratorConfig:
         if not isinstance(self.robust_iterations, int) or isinstance(self.robust_iterations, bool) \
                 or self.robust_iterations < 0:
             raise ValueError(f"robust_iterations: expected an integer >= 0, got {self.robust_iterations!r}")
-        for name in ("smooth_pairs", "check_every", "bilateral_max_iter", "bilateral_cg_max_iter", "coarsest"):
+        for name in ("smooth_pairs", "check_every", "bilateral_max_iter", "bilateral_cg_max_iter", "coarsest",
+                     "persistent_blocks"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name}: expected an integer >= 1, got {v!r}")
@@ -681,9 +693,17 @@ class Integrator(Stage):
         fb.dense(ti.ij, (ncmax, ncmax)).place(d["pinv"])
         d["cidx"] = ti.field(ti.i32)
         fb.dense(ti.ij, (ncmax, 2)).place(d["cidx"])
+        # the persistent solve's accumulators, barrier counters and the start it restores after a failed launch
+        d["acc"] = ti.field(ti.f64)
+        fb.dense(ti.i, 16).place(d["acc"])
+        d["bar"] = ti.field(ti.i32)
+        fb.dense(ti.i, 2).place(d["bar"])
+        d["z0"] = ti.field(ft)
+        fb.dense(ti.ij, (h, w)).place(d["z0"])
         d["tree"] = fb.finalize()
         d["shapes"], d["offs"], d["wp"], d["np_dtype"] = shapes, offs, wp_, np.dtype(cfg.dtype)
         d["key"] = key
+        d["persistent"] = {}  # the persistent solve's kernels, by geometry, grid and smoother (kept with the fields)
         self._dev = d
         return d
 
@@ -803,7 +823,7 @@ class Integrator(Stage):
         """
         d, cfg = self._dev, self.config
         h, w = self.shape
-        if cfg.launch == "fused":
+        if self._launch() != "per-level":  # (fused; also a persistent launch's fallback)
             geom = self._geometry()
             lv = (d["wx"], d["wy"], d["dg"], d["sc"], d["cidx"], d["pinv"], d["nc"], geom, cfg.omega,
                   cfg.smooth_pairs, blk)
@@ -829,12 +849,76 @@ class Integrator(Stage):
 
         return start, iteration
 
+    def _launch(self) -> str:
+        """The PCG's launch form here (``IntegratorConfig.launch``; ``"auto"``: persistent on CUDA, fused on the
+        CPU; ``"fused"`` after a persistent launch the GPU could not hold)."""
+        mode = self.config.launch
+        if mode == "auto":
+            mode = "persistent" if _taichi.current_device().startswith("cuda") else "fused"
+        if mode == "persistent" and getattr(self, "_persistent_off", False):
+            mode = "fused"
+        return mode
+
+    def _persistent_grid(self) -> tuple[int, int]:
+        """(blocks, threads per block) of the persistent solve: ``persistent_blocks`` (or what the GPU held)
+        blocks of :data:`gpps.kernels.block_sum.BLOCK` threads per multiprocessor, no more than the image's
+        pixels need; off CUDA one thread."""
+        if not _taichi.current_device().startswith("cuda"):
+            return 1, 1
+        from gpps._runtime import warp
+        from gpps.kernels.block_sum import BLOCK
+
+        bps = getattr(self, "_bps", self.config.persistent_blocks)
+        sms = int(warp().get_device("cuda:0").sm_count)
+        h, w = self.shape
+        return max(1, min(sms * bps, -(-(h * w) // BLOCK))), BLOCK
+
+    def _iterate_persistent(self, tol) -> tuple[int, float] | None:
+        """:meth:`_iterate`'s multigrid PCG as one persistent launch (:mod:`gpps.kernels.poisson_persistent`) and
+        one read of its accumulators; None when the GPU cannot hold the task's blocks even at one a
+        multiprocessor (the start restored: the caller runs the fused launches)."""
+        d, cfg = self._dev, self.config
+        while True:
+            grid = self._persistent_grid()
+            cuda = grid[1] > 1
+            key = (self._geometry(), grid, float(cfg.omega), int(cfg.smooth_pairs))
+            kern = d["persistent"].get(key)
+            first = kern is None
+            if first:
+                kern = d["persistent"][key] = KP.make_pcg_persistent(d, key[0], cfg.omega, cfg.smooth_pairs, *grid,
+                                                                     cuda=cuda)
+                if cuda:
+                    d["z0"].copy_from(d["z"])
+            kern(int(d["nc"]), float(tol), int(cfg.iterations_cap), int(cfg.check_every),
+                 int(cfg.dtype == "float32"))
+            if not (first and cuda) or int(d["bar"][1]) == 0:
+                break
+            # a block never became resident (the barrier timed out): the start again, half the blocks
+            d["z"].copy_from(d["z0"])
+            del d["persistent"][key]
+            bps = getattr(self, "_bps", cfg.persistent_blocks)
+            if bps <= 1:
+                warnings.warn("integrator: the GPU cannot hold the persistent solve's blocks; using one launch an "
+                              "iteration (launch='fused')", RuntimeWarning, stacklevel=4)
+                self._persistent_off = True
+                return None
+            self._bps = bps // 2
+        acc = d["acc"].to_numpy()  # (the one read)
+        bb, rr = float(acc[KP.A_BB]), float(acc[KP.A_RES])
+        return int(acc[KP.A_ITS]), (0.0 if bb == 0.0 else math.sqrt(max(rr, 0.0) / bb))
+
     def _iterate(self, progress, tol) -> tuple[int, float]:
         """Solve the system in the fields (``b``, the levels, the start in ``z``) to ``tol``: Jacobi or
         multigrid-preconditioned CG, reading one float64 scalar every ``check_every`` iterations.
         Returns ``(iterations, relative residual)``; the solution is left in ``z``."""
         d, cfg = self._dev, self.config
         h, w = self.shape
+        if cfg.solver != "jacobi" and self._launch() == "persistent":
+            got = self._iterate_persistent(tol)
+            if got is not None:
+                if progress is not None:
+                    progress(got[0], cfg.iterations_cap, f"residual {got[1]:.2e}")
+                return got
         blk = self._block_sums()
         # |b|^2
         d["r"].fill(0)
