@@ -149,3 +149,36 @@ CLIP_LEVELS = (1.0, 255.0, 1023.0, 4095.0, 16383.0, 65535.0)
 SATURATED_SHARE = 0.9
 CLIPPED_SHARE = 0.05
 CLIPPED_MIN = 16
+# clipping at any level (gpps.host.clipping.clipped_observations, run by gpps.reconstruct, gpps.Reconstructor and
+# solve_normals on float images given without saturation= or valid=): raw images clipped at the sensor's full scale
+# and then divided by the lights' intensities sit at 1 / intensity (e.g. 1.25), not at a CLIP_LEVELS value.  A
+# clipping sensor gives one identical value at every clipped pixel, and a division by one intensity per image and
+# channel keeps them identical, so per image and channel the clipped pixels are the *plateau* at the maximum:
+# * PLATEAU_ULPS: the plateau is the values within this many float32 ulps (relative) of the maximum: the same value
+#   rounded once more (a float64 quotient cast to float32) still counts, the next 16-bit level (1.5e-5) does not;
+# * PLATEAU_MIN: a plateau of fewer pixels is not taken as a clip: a few equal values at the top are chance (or a
+#   symmetric scene's mirrored pixels), and leaving out a handful of observations would change nothing anyway;
+# * PLATEAU_PILEUP, PLATEAU_LEVELS: a clip piles the whole bright tail into the top value, so the plateau holds at
+#   least PLATEAU_PILEUP times the mean pixel count of the next PLATEAU_LEVELS lower distinct values (the tail is
+#   at least that many levels' worth); quantised but unclipped data (8-bit with a maximum of 200) has similar
+#   counts at its top levels (near a smooth peak each level holds a band of about the same area).  Against the
+#   next value alone the counts are too few to compare: unclipped 8-bit renders of the bumps and the sphere had top
+#   levels of 9-12 pixels over a next one of 1-6 (counts such as 9, 1, 4, 9, 5 going down).  Measured on 8- and
+#   16-bit renders of the bumps, sphere and micro-print scenes (3 and 8 lights, Lambertian, Blinn-Phong,
+#   Cook-Torrance, exposures 0.2-2 times the brightest value): against the mean of the next 4 values the unclipped
+#   bumps and sphere plateaus reach ratios of up to 3.0 in 8-bit (a Lambertian bumps image whose top level gathers
+#   the bumps' inflection ring: 160 pixels over 47-59 a level; 7 of them above 2, 1 at 3.0), so 3 times; the clips
+#   this misses are small (8-50 pixels) or channels that only just reach the clip level.  (Noise-free renders of
+#   faceted relief, the micro-print, still pile 10-40 unclipped pixels of one normal at the top of some 8- and
+#   16-bit images: exact ties no histogram rule tells from a clip; real images' noise breaks such ties);
+# * PLATEAU_SPREAD: clipped highlight pixels have different normals, so in at least one other image their values
+#   differ by more than this (relative to their largest value there); a flat, uniform-albedo region under a
+#   directional light has one value at all its pixels in every image, and a plateau that stays flat everywhere is
+#   that region, not a clip;
+# and a plateau of SATURATED_SHARE or more of an image's observations is not taken (check_observations' "everything
+# saturated" case: nothing is left to fit).
+PLATEAU_ULPS = 4
+PLATEAU_MIN = 8
+PLATEAU_PILEUP = 3.0
+PLATEAU_LEVELS = 4
+PLATEAU_SPREAD = 1e-3

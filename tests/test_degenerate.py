@@ -178,16 +178,21 @@ def test_float_images_saturated_everywhere_are_an_error(sphere, device):
 
 
 def test_clipped_float_images_warn(sphere, device):
+    """Float images clipped at 1.0 (~8 % of the observations): the clipping plateaus are found and left out of the
+    fit with a warning (gpps.host.clipping), as a given saturation=1 leaves them out without one."""
     sc, L, img = sphere
     peak = img.max(axis=-1)[:, sc.mask]
     clipped = np.minimum(img / np.percentile(peak, 92), 1.0).astype(np.float32)  # ~8% of the observations at 1.0
-    with pytest.warns(GppsWarning, match=r"sit at 1, the full scale: clipped \(saturated\)\? Pass saturation=1"):
+    with pytest.warns(GppsWarning, match=r"plateau of one value at the image's maximum \(1, 1, 1\) and were left "
+                                         r"out as clipped"):
         res = solve_normals(clipped, sc.mask, L, device=device)
-    assert any("clipped" in w for w in res.warnings)
+    assert any("left out as clipped" in w for w in res.warnings)
+    assert not any("Pass saturation=" in w for w in res.warnings)  # (not told twice)
     with warnings.catch_warnings(record=True) as caught:  # a saturation level given: the fit drops them
         warnings.simplefilter("always")
-        res = solve_normals(clipped, sc.mask, L, saturation=1.0, device=device)
-    assert not any("clipped" in str(w.message) for w in caught) and not any("clipped" in w for w in res.warnings)
+        given = solve_normals(clipped, sc.mask, L, saturation=1.0, device=device)
+    assert not any("clipped" in str(w.message) for w in caught) and not any("clipped" in w for w in given.warnings)
+    assert np.array_equal(res.normals, given.normals)  # the same observations left out
 
 
 def test_float_mask_with_nan_is_refused(sphere, device):

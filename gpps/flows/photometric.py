@@ -21,13 +21,15 @@ log-depth gradient the integrator needs is :func:`gpps.host.perspective.normals_
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
+from gpps import names
 from gpps._check import IMAGE_FULL_SCALE, as_array, as_flags, as_images, as_mask, clipping, warn
 from gpps._runtime import warp
 from gpps.camera import Orthographic, Perspective
+from gpps.host.clipping import clipped_observations
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material, check_model_images
 from gpps.pipeline.render import Renderer
@@ -78,6 +80,44 @@ def input_saturation(images, saturation=None):
     if saturation is not None:
         return float(saturation)
     return 1.0 if getattr(images, "dtype", None) in IMAGE_FULL_SCALE else None
+
+
+def detect_clipping(images, img, mask, *, saturation=None, valid=None, sink: list | None = None):
+    """The observations to use when the caller gave neither ``saturation`` nor ``valid``: clipped ones left out.
+
+    Float images clipped by the sensor and divided by the light intensities sit at a value no full-scale rule
+    knows (1 / 0.8 = 1.25); :func:`gpps.host.clipping.clipped_observations` finds them from the images alone (a
+    plateau of identical values at an image's maximum that piles up, is not a flat region and is not nearly
+    everything).  When it finds some, they are left out (the result is the ``valid`` to use) and a
+    :class:`gpps.GppsWarning` says so.  With ``saturation`` or ``valid`` given, or integer (uint8 / uint16) input
+    (whose full scale is the saturation level, :func:`input_saturation`), nothing is detected.
+
+    Args:
+        images: the images as the caller gave them (their dtype decides integer input).
+        img: (N, H, W, C) or (N, H, W) float images (checked, :func:`check_inputs`).
+        mask: (H, W) bool.
+        saturation: the caller's saturation level or None.
+        valid: the caller's (N, H, W) bool observations or None.
+        sink: list that collects the warning messages.
+
+    Returns:
+        ``(valid, clipped)``: the (N, H, W) bool observations to use (the caller's ``valid`` when nothing was
+        detected or detection did not run), and the (N, H, W) bool observations left out as clipped (None when
+        none).
+    """
+    if valid is not None or input_saturation(images, saturation) is not None:
+        return valid, None
+    keep, info = clipped_observations(img, mask)
+    if keep is None:
+        return valid, None
+    hit = info["clipped_images"]
+    values = ", ".join(f"{info['images'][k]['value']:.6g}" for k in hit[:8]) + (", ..." if len(hit) > 8 else "")
+    total = int(np.count_nonzero(mask)) * img.shape[0]
+    warn(f"images: {info['observations']} observations ({100 * info['observations'] / total:.1f}%) in images "
+         f"{[k + 1 for k in hit[:8]]}{' ...' if len(hit) > 8 else ''} sat on a plateau of one value at the image's "
+         f"maximum ({values}) and were left out as clipped (saturated); pass saturation= or valid= to decide "
+         "instead", sink)
+    return keep, ~keep & mask[None]
 
 
 def check_inputs(images, mask, lights, camera=None):
@@ -235,7 +275,7 @@ def _masked_statistics(img, mask, valid, saturation):
 
 
 def check_observations(images, mask, lights, *, valid=None, saturation=None, reference_depth=None,
-                       sink: list | None = None) -> np.ndarray:
+                       sink: list | None = None, clipped=None) -> np.ndarray:
     """Refuse degenerate input and warn about doubtful input, before any solve.
 
     A pixel is *determined* when it has at least 3 usable observations: lit
@@ -247,7 +287,8 @@ def check_observations(images, mask, lights, *, valid=None, saturation=None, ref
     With no ``saturation``, float images whose brightest channels top out at a
     full-scale value (:data:`gpps.names.CLIP_LEVELS`, e.g. 1.0) are taken as clipped there
     (:func:`gpps._check.clipping`): ``names.SATURATED_SHARE`` or more of the observations at it is an error,
-    ``names.CLIPPED_SHARE`` or more (and ``names.CLIPPED_MIN``) a warning.  Warnings
+    ``names.CLIPPED_SHARE`` or more (and ``names.CLIPPED_MIN``) a warning, unless ``clipped`` (the observations
+    :func:`detect_clipping` left out) holds enough of them that fewer than those remain.  Warnings
     (:class:`gpps.GppsWarning`, messages appended to ``sink``): that clipping;
     fewer than :data:`WARN_DETERMINED` determined; a directional light behind
     the object (``z <= 0``: it lights only surfaces that face away from the
@@ -261,6 +302,9 @@ def check_observations(images, mask, lights, *, valid=None, saturation=None, ref
         saturation: raw level at or above which a channel is saturated (None: unknown).
         reference_depth: the object's mean depth (scene units), for point lights.
         sink: list that collects the warning messages.
+        clipped: optional (N, H, W) bool observations :func:`detect_clipping` left out as clipped (already
+            out of ``valid``): the full-scale warning counts only the others, and the error of too few
+            determined pixels says that they were left out.
 
     Returns:
         (H, W) bool: the determined pixels.
@@ -297,14 +341,24 @@ def check_observations(images, mask, lights, *, valid=None, saturation=None, ref
                      "that missed the object, or a mask outside the lit area")
         else:
             cause = "too few lights reach each pixel"
+        if clipped is not None:
+            cause += ("; the observations on a plateau at an image's maximum were taken as clipped and left out "
+                      "(pass saturation= or valid= to decide)")
         raise ValueError(f"images: only {100 * frac:.1f}% of the mask pixels have 3 or more usable (lit, "
                          f"unsaturated) observations; {cause}")
     verdict, top, share = clipping(peak) if saturation is None else (None, 0.0, 0.0)
     if verdict == "saturated":
         raise ValueError(f"images: {100 * share:.0f}% of the observations inside the mask are at {top:g}, the "
                          "full scale: everything is saturated (over-exposed), there is no shading to fit")
+    if verdict == "clipped" and clipped is not None:
+        # (the detection left out its plateaus and said so: only the full-scale observations it kept count)
+        kept = np.count_nonzero((peak >= top) & ~np.asarray(clipped, bool)[:, mask])
+        share = kept / peak.size
+        if share < names.CLIPPED_SHARE or kept < names.CLIPPED_MIN:
+            verdict = None
     if verdict == "clipped":
-        warn(f"images: {100 * share:.1f}% of the observations inside the mask sit at {top:g}, the full scale: "
+        left = "" if clipped is None else " (besides those left out as clipped)"
+        warn(f"images: {100 * share:.1f}% of the observations inside the mask sit at {top:g}, the full scale{left}: "
              f"clipped (saturated)? Pass saturation={top:g} to leave them out of the fit", sink)
     if frac < WARN_DETERMINED:
         warn(f"images: {100 * (1 - frac):.0f}% of the mask pixels have fewer than 3 usable (lit, unsaturated) "
@@ -353,14 +407,20 @@ def solve_normals(
         solver: ``"lm"``, ``"dogleg"``, ``"bfgs"`` or ``"none"`` (Woodham least squares).
         depth: (H, W) depth estimate (scene units, > 0): required for point lights.
         robust: None / ``"none"``, ``"huber"`` or ``"cauchy"`` (IRLS).
-        valid: optional (N, H, W) bool of observations to use (e.g. not saturated).
+        valid: optional (N, H, W) bool of observations to use (e.g. not saturated).  Without it and without
+            ``saturation`` (in ``options`` or ``config``), float images are searched for clipped observations
+            (:func:`detect_clipping`: a plateau of one value at an image's maximum, e.g. a sensor's full scale
+            divided by the light's intensity): those found are left out, with a warning.  uint8 / uint16 images
+            need no search: an observation with a channel at their full scale is dropped from the fit (the
+            camera clipped there), unless ``saturation`` says otherwise.
         init_normals: (H, W, 3) warm start (with ``warm_start=True``).
         config: a full :class:`SolverConfig` (then ``solver``, ``robust`` and
             ``options`` must be left at their defaults).
         device: Warp device (None: CUDA if present).
         progress: optional ``progress(done, total, message)`` callback.
         **options: further :class:`SolverConfig` fields (``starts``, ``max_iters``,
-            ``shadow_threshold``, ``saturation``, ...).
+            ``shadow_threshold``, ``saturation``, ...).  ``saturation``: observations with a channel at or
+            above it are dropped; given, no clipping is detected (see ``valid``).
 
     Returns:
         :class:`PSResult`.
@@ -388,8 +448,12 @@ def solve_normals(
     if depth is not None:
         dep = as_array("depth", depth, shape=(h, w))
         ref = float(np.mean(dep[m]))
+    if config.saturation is None and input_saturation(images) is not None:
+        # uint8 / uint16 input: the camera clipped at its full scale (as_images scaled it to 1): dropped from the fit
+        config = replace(config, saturation=input_saturation(images))
+    valid, clipped = detect_clipping(images, img, m, saturation=config.saturation, valid=valid, sink=notes)
     determined = check_observations(img, m, lights, valid=valid, saturation=input_saturation(images, config.saturation),
-                                    reference_depth=ref, sink=notes)
+                                    reference_depth=ref, sink=notes, clipped=clipped)
     material = Material("lambertian", ks=0.0) if material is None else material
     if not isinstance(material, Material):
         raise TypeError(f"material: expected gpps.material.Material, got {type(material).__name__}")

@@ -36,6 +36,7 @@ from gpps.flows.photometric import (
     WORKING_IMAGES,
     check_inputs,
     check_observations,
+    detect_clipping,
     input_saturation,
     working_scale,
 )
@@ -207,9 +208,16 @@ def reconstruct(
             loop's start (default flat at ``reference_depth``).
         reference_depth: the object's mean distance (scene units, > 0): fixes
             the depth's offset/scale; required for point lights without ``depth``.
-        valid: optional (N, H, W) bool observations to use.
+        valid: optional (N, H, W) bool observations to use.  Without it and without ``saturation``, float
+            images are searched for clipped observations (:func:`gpps.flows.photometric.detect_clipping`,
+            :mod:`gpps.host.clipping`: per image and channel, a plateau of one value at the image's maximum
+            that holds many more pixels than the next lower values and is not a flat, uniformly lit region,
+            e.g. a sensor's full scale divided by the light's intensity, 1 / 0.8 = 1.25); those found are
+            left out of every stage, with a warning that says how many and where.  uint8 / uint16 images
+            need no search: an observation with a channel at their full scale is dropped from the fit (the
+            camera clipped there), unless ``saturation`` says otherwise.
         saturation: observations with a channel >= this are dropped (e.g. the
-            clipping level divided by the light intensity).
+            clipping level divided by the light intensity); given, no clipping is detected (see ``valid``).
         config: :class:`RONConfig` (its ``estimate`` is set from the arguments).
         device: Warp device (None: CUDA if present); the integrator runs on the same.
         progress: ``progress(done, total, message)``.
@@ -261,6 +269,9 @@ def _prepare(images, mask, lights, camera, material, estimate, depth, reference_
     n, h, w = img.shape[:3]
     if saturation is not None:
         saturation = check_number("saturation", saturation, lo=0.0, lo_open=True)
+    else:
+        # uint8 / uint16 input: the camera clipped at its full scale (as_images scaled it to 1): dropped from the fit
+        saturation = input_saturation(images)
     mat, names, fixed, models = _material(material, estimate)
     cfg = RONConfig() if config is None else config
     if not isinstance(cfg, RONConfig):
@@ -282,8 +293,10 @@ def _prepare(images, mask, lights, camera, material, estimate, depth, reference_
     if ref is None and depth is not None:
         ref = float(np.mean(as_array("depth", depth, shape=(h, w))[m]))
     notes: list[str] = []
+    # (float images without saturation= or valid=: observations clipped at any level left out, with a warning)
+    val, clipped = detect_clipping(images, img, m, saturation=saturation, valid=val, sink=notes)
     determined = check_observations(img, m, lights, valid=val, saturation=input_saturation(images, saturation),
-                                    reference_depth=ref, sink=notes)
+                                    reference_depth=ref, sink=notes, clipped=clipped)
     check_model_images((mat.brdf, *models), n, sink=notes)
     # images or albedos far from order one: solved at powers of two times their scales (working_scale)
     ws = working_scale(img, m, lights, reference_depth=ref)
