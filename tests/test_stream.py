@@ -64,6 +64,45 @@ def test_stream_matches_batch_and_reports_bad_frames(device):
     assert st.stats["errors"] == 3
 
 
+@pytest.mark.parametrize("dtype", ["uint8", "uint16", "float32"])
+@pytest.mark.parametrize("channels", [3, 1])
+def test_convert_drops_observations_at_full_scale(device, dtype, channels):
+    """The frame conversion against numpy: images = raw / (full scale * intensity), and the observations with a
+    channel at or above ``saturation`` of full scale marked invalid (default 1.0: the camera's clip); None keeps all."""
+    from gpps.camera import Orthographic
+    from gpps.lights import DirectionalLights
+    from gpps.material import Material
+    from gpps.pipeline.stream import Stream, StreamConfig
+
+    full = {"uint8": 255.0, "uint16": 65535.0, "float32": 1.0}[dtype]
+    rng = np.random.default_rng(3)
+    n, h, w = 3, 12, 10
+    raw = rng.uniform(0.2, 1.0, (n, h, w, channels)) * full
+    raw[rng.random((n, h, w, channels)) < 0.15] = full  # clipped channels
+    raw = raw.astype(dtype) if dtype != "float32" else raw.astype(np.float32)
+    inten = np.array([[0.8, 0.9, 1.0], [1.0, 1.0, 1.0], [0.5, 0.6, 0.7]])
+    d = np.array([[0.3, 0.2, 0.93], [-0.3, 0.25, 0.92], [0.0, -0.35, 0.94]])
+    L = DirectionalLights(d / np.linalg.norm(d, axis=1, keepdims=True), intensities=inten)
+    for sat, want in ((1.0, ~(raw.astype(np.float64) >= full).any(-1)), (0.9, ~(raw.astype(np.float64) >= 0.9 * full).any(-1)),
+                      (None, np.ones((n, h, w), bool))):
+        st = Stream((h, w), Orthographic(1.0 / w), L, Material.default_for("lambertian"), mask=np.ones((h, w), bool),
+                    config=StreamConfig(output="numpy", saturation=sat, integrate=False, check=False), device=device)
+        try:
+            key, slot, ev = st._upload(raw if channels == 3 else raw[..., 0])
+            if ev is not None:
+                import warp as wp
+                wp.get_stream(st.device).wait_event(ev)
+            st._launch_convert(key, slot)
+            got = st.solver.valid.numpy().astype(bool)
+            img = st.solver.images.numpy()
+        finally:
+            st.close()
+        assert np.array_equal(got, want), (sat, int((got != want).sum()))
+        ref = raw.astype(np.float64) / full
+        ref = np.repeat(ref, 3, axis=-1) if channels == 1 else ref
+        assert np.allclose(img, ref / inten[:, None, None, :], rtol=1e-6, atol=0)
+
+
 def test_stream_device_output_ring_and_config_errors(device):
     from gpps.pipeline.stream import Stream, StreamConfig
 

@@ -12,21 +12,35 @@ FLAG_FEW_OBSERVATIONS = wp.constant(names.FLAG_FEW_OBSERVATIONS)
 
 def _make_convert(dtype, tag: str):
     @wp.kernel(name="convert_" + tag, enable_backward=False)
-    def convert(raw: wp.array4d(dtype=dtype), gain: wp.array2d(dtype=wp.float32), images: wp.array3d(dtype=wp.vec3)):
-        """images[k, i, j, c] = raw[k, i, j, c or 0] * gain[k, c].
+    def convert(raw: wp.array4d(dtype=dtype), gain: wp.array2d(dtype=wp.float32), saturation: float,
+                images: wp.array3d(dtype=wp.vec3), valid: wp.array3d(dtype=wp.uint8)):
+        """images[k, i, j, c] = raw[k, i, j, c or 0] * gain[k, c]; valid[k, i, j] = 0 where a raw channel is at or
+        above ``saturation`` (a clipped observation, dropped from the fit), else 1.
 
         Args:
             raw: (N, H, W, C) frames, C = 1 (grey, copied to the 3 channels) or 3 (RGB).
             gain: (N, 3) per light and channel: 1 / (full scale * light intensity).
+            saturation: the raw level of a clipped channel (raw units); <= 0: every observation is valid.
             images: (N, H, W) RGB observations (output).
+            valid: (N, H, W) the observations to use (output).
         """
         k, i, j = wp.tid()
         g = gain[k]
+        top = float(0.0)
         if raw.shape[3] == 1:
             v = float(raw[k, i, j, 0])
             images[k, i, j] = wp.vec3(v * g[0], v * g[1], v * g[2])
+            top = v
         else:
-            images[k, i, j] = wp.vec3(float(raw[k, i, j, 0]) * g[0], float(raw[k, i, j, 1]) * g[1], float(raw[k, i, j, 2]) * g[2])
+            r = float(raw[k, i, j, 0])
+            gr = float(raw[k, i, j, 1])
+            b = float(raw[k, i, j, 2])
+            images[k, i, j] = wp.vec3(r * g[0], gr * g[1], b * g[2])
+            top = wp.max(r, wp.max(gr, b))
+        ok = wp.uint8(1)
+        if saturation > 0.0 and top >= saturation:
+            ok = wp.uint8(0)
+        valid[k, i, j] = ok
 
     return convert
 
@@ -231,15 +245,19 @@ def advance_phase(phase: wp.array(dtype=wp.int32), period: int):
 @wp.kernel(enable_backward=False)
 def keep_better(rows: wp.array2d(dtype=wp.uint8), normals0: wp.array2d(dtype=wp.vec3),
                 albedo0: wp.array2d(dtype=wp.vec3), residual0: wp.array2d(dtype=wp.float32),
-                flags0: wp.array2d(dtype=wp.int32), few: int, normals: wp.array2d(dtype=wp.vec3),
+                flags0: wp.array2d(dtype=wp.int32), few: int, take_few: int, normals: wp.array2d(dtype=wp.vec3),
                 albedo: wp.array2d(dtype=wp.vec3), residual: wp.array2d(dtype=wp.float32),
                 flags: wp.array2d(dtype=wp.int32)):
     """Where ``rows`` is set, keep the cold re-solve only when it ranks better than the warm solution saved in
     ``*0`` (a lower residual on a pixel without the ``few`` flag bit: :func:`gpps.host.merge.ranks_better`);
-    otherwise restore the warm one."""
+    otherwise restore the warm one.  With ``take_few`` (the sweep after a change of the material) an
+    under-determined pixel (the ``few`` bit) takes the cold re-solve: its residual cannot rank the two, and its
+    warm start came from a solve under the old material, the cold multi-start solve from none."""
     i, j = wp.tid()
     if rows[i, j] != 0:
         better = residual[i, j] < residual0[i, j] and (flags[i, j] & few) == 0
+        if take_few != 0 and (flags[i, j] & few) != 0:
+            better = True
         if not better:
             normals[i, j] = normals0[i, j]
             albedo[i, j] = albedo0[i, j]

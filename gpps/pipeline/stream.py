@@ -94,8 +94,9 @@ class StreamConfig:
         output: ``"device"`` results are Warp arrays (views of a ring of
             ``ring`` output slots, valid for that many frames); ``"numpy"`` copies.
         ring: output slots (device output).
-        saturation: raw observations at or above this fraction of full scale
-            are dropped from the fit (None: keep all).
+        saturation: raw observations with a channel at or above this fraction
+            of full scale are dropped from the fit (default 1.0: the full scale,
+            where the camera clipped; None: keep all).
         check: run the per-frame sanity check and the cold re-solve of
             jumped pixels (see the module docstring).
         min_lit_fraction: a frame with fewer lit observations (grey above
@@ -165,7 +166,10 @@ class StreamConfig:
             change, so every pixel gets one multi-start solve with the new
             material: a warm start keeps the basin the old material put a normal
             in (64^2 Cook-Torrance bumps solved first with the first frame's grid
-            estimate stayed near 3 deg MAEN without it, offline 1.3 deg).  0: off.
+            estimate stayed near 3 deg MAEN without it, offline 1.3 deg).  An
+            under-determined pixel (fewer than 3 usable observations, e.g. one
+            clipped) takes the sweep's solve: its residual cannot rank the two.
+            0: off.
     """
 
     solver: StreamSolver = "lm"
@@ -180,7 +184,7 @@ class StreamConfig:
     capture_after: int = 2
     output: Output = "device"
     ring: int = 2
-    saturation: float | None = None
+    saturation: float | None = 1.0
     check: bool = True
     min_lit_fraction: float = 0.05
     max_saturated_fraction: float = 0.5
@@ -414,6 +418,7 @@ class Stream(Stage):
             self.stats.update({"material_batches": 0, "material_changes": 0, "dgmc_pixels": 0})
         self._refresh = int(cfg.refresh_rows)  # the period of the rolling cold re-solve on this frame (0: none)
         self._sweep_left = 0  # full mode: frames the re-solve still runs with period sweep_rows
+        self._sweeping = False  # this frame's re-solve is the sweep's (under-determined pixels take it)
         if cfg.refresh_rows or (self.estimator is not None and cfg.sweep_rows):
             # the rolling cold re-solve: this frame's rows, its phase, the warm solution it competes with
             self._refresh_mask = wp.zeros((h, w), dtype=wp.uint8, device=d)
@@ -516,8 +521,9 @@ class Stream(Stage):
         raw = self._raw[key][slot]
         kern = {np.dtype(np.uint8): ks.convert_uint8, np.dtype(np.uint16): ks.convert_uint16,
                 np.dtype(np.float32): ks.convert_float32}[key[0]]
-        wp.launch(kern, dim=(self.n, *self.shape), inputs=[raw, self._gain[key]], outputs=[self.solver.images],
-                  device=self.device)
+        sat = 0.0 if self.config.saturation is None else float(self.config.saturation) * _DTYPES[key[0]]
+        wp.launch(kern, dim=(self.n, *self.shape), inputs=[raw, self._gain[key], sat],
+                  outputs=[self.solver.images, self.solver.valid], device=self.device)
         if self.config.check:
             self._fstats.zero_()
             self._cmd("stats", key).launch()
@@ -548,7 +554,7 @@ class Stream(Stage):
                   outputs=[self._refresh_mask], device=d)
         s.step_subset(self._refresh_mask, self._redo_cfg)
         wp.launch(self._ks.keep_better, dim=self.shape,
-                  inputs=[self._refresh_mask, *saved, int(FLAG_FEW_OBSERVATIONS)],
+                  inputs=[self._refresh_mask, *saved, int(FLAG_FEW_OBSERVATIONS), int(self._sweeping)],
                   outputs=[s.normals, s.albedo, s.residual, s.flags], device=d)
         wp.launch(self._ks.advance_phase, dim=1, inputs=[self._phase, self._refresh], device=d)
 
@@ -641,11 +647,12 @@ class Stream(Stage):
                 self.solver.set_config(self._warm_cfg)
             if est is not None:
                 score = est.scoring()
-                self._refresh = cfg.sweep_rows if self._sweep_left > 0 else cfg.refresh_rows
+                self._sweeping = self._sweep_left > 0  # (its re-solve gives the under-determined pixels a cold start)
+                self._refresh = cfg.sweep_rows if self._sweeping else cfg.refresh_rows
                 self._sweep_left = max(self._sweep_left - 1, 0)
             use_graph = self.is_cuda and cfg.graph == "auto" and self._warm_frames >= cfg.capture_after
             if use_graph:
-                gkey = (key, slot) if est is None else (key, slot, score, self._refresh)
+                gkey = (key, slot) if est is None else (key, slot, score, self._refresh, self._sweeping)
                 g = self._graphs.get(gkey)
                 if g is None:
                     wp.capture_begin(device=self.device)
