@@ -14,7 +14,9 @@ Variants (``--variants``, comma-separated):
 * ``no-dgmc``: ``RONConfig(dgmc=False)``: no highlight test, no front;
 * ``no-depth``: ``RONConfig(integrate=False)``: no final integration;
 * ``rounds3``, ``rounds2``: ``RONConfig(rounds=3 / 2)``;
-* ``evals20``: ``RONConfig(material_evals=20)``: half the Nelder-Mead budget.
+* ``evals20``: ``RONConfig(material_evals=20)``: half the Nelder-Mead budget;
+* ``fused-pcg``: the integrator's PCG launched one Taichi launch an iteration (``IntegratorConfig(launch="fused")``,
+  the CUDA default before session 24's persistent solve).
 
 Only the time and the MAEN are compared; a variant with a worse MAEN is not a proposal, it says what the stage is
 worth.
@@ -42,7 +44,7 @@ os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 import gpps  # noqa: E402
 from _common import device_label, reconstruct_inputs  # noqa: E402
 
-VARIANTS = ("default", "known", "no-dgmc", "no-depth", "rounds3", "rounds2", "evals20")
+VARIANTS = ("default", "known", "no-dgmc", "no-depth", "rounds3", "rounds2", "evals20", "fused-pcg")
 
 
 def _sync():
@@ -53,6 +55,7 @@ def _sync():
 def variant_kwargs(name: str) -> dict:
     """The Reconstructor's ``material`` and ``config`` of a variant."""
     from gpps.flows.ron import RONConfig
+    from gpps.pipeline.integration import IntegratorConfig
 
     base = RONConfig()
     if name == "default":
@@ -60,7 +63,8 @@ def variant_kwargs(name: str) -> dict:
     if name == "known":
         return {"material": gpps.Material("cook-torrance", ks=0.8, roughness=0.2, f0=0.5)}
     changes = {"no-dgmc": {"dgmc": False}, "no-depth": {"integrate": False}, "rounds3": {"rounds": 3},
-               "rounds2": {"rounds": 2}, "evals20": {"material_evals": 20}}
+               "rounds2": {"rounds": 2}, "evals20": {"material_evals": 20},
+               "fused-pcg": {"integrator": IntegratorConfig(launch="fused")}}
     if name not in changes:
         raise ValueError(f"variant: expected one of {VARIANTS}, got {name!r}")
     return {"material": "cook-torrance", "config": replace(base, **changes[name])}

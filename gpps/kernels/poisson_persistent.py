@@ -45,8 +45,9 @@ def make_pcg_persistent(d: dict, geom: tuple, omega: float, npairs: int, nblocks
         d: the integrator's device fields (:meth:`gpps.pipeline.integration.Integrator._ensure_device`): ``z``
             (the start, then the solution), ``b``, ``r``, ``p``, ``q``, the packed levels ``wx``, ``wy``, ``dg``,
             ``e``, ``f``, ``t``, the coarsest level's ``pinv`` and ``cidx``, and ``acc`` (f64, >= :data:`NACC`),
-            ``bar`` (i32 (2,): barrier arrivals, timeout flag).
-        geom: ``((off, h, w), ...)`` per level, finest first (compile-time: one build per mask size).
+            ``bar`` (i32 (2,): barrier arrivals, timeout flag), ``geo`` (i32 (levels, 3): ``geom`` as a field).
+        geom: ``((off, h, w), ...)`` per level, finest first (the level count and level 0's size are compiled in;
+            the V-cycle reads the levels from ``geo`` at run time).
         omega: Jacobi damping; npairs: sweep pairs before and after each coarse correction.
         nblocks, bd: the task's blocks and threads per block (``bd`` = :data:`gpps.kernels.block_sum.BLOCK` on
             CUDA; ``(1, 1)`` off CUDA).
@@ -66,7 +67,7 @@ def make_pcg_persistent(d: dict, geom: tuple, omega: float, npairs: int, nblocks
     NT = nblocks * bd
     z, b, r, p, q = d["z"], d["b"], d["r"], d["p"], d["q"]
     wx, wy, dg, e, f, t = d["wx"], d["wy"], d["dg"], d["e"], d["f"], d["t"]
-    pinv, cidx, acc, bar = d["pinv"], d["cidx"], d["acc"], d["bar"]
+    pinv, cidx, acc, bar, geo = d["pinv"], d["cidx"], d["acc"], d["bar"], d["geo"]
     L = len(geom)
     H0, W0 = geom[0][1], geom[0][2]
     N0 = H0 * W0
@@ -108,8 +109,7 @@ def make_pcg_persistent(d: dict, geom: tuple, omega: float, npairs: int, nblocks
             acc[ib] += vb
 
     @ti.func
-    def sweep(tid, gen, src: ti.template(), dst: ti.template(), off: ti.template(), h: ti.template(),
-              w: ti.template()):
+    def sweep(tid, gen, src: ti.template(), dst: ti.template(), off, h, w):
         """One damped Jacobi sweep src -> dst on a level (``poisson._sweeps``' loop), then a barrier."""
         for kk in range((h * w + NT - 1) // NT):
             c = tid + kk * NT
@@ -119,12 +119,14 @@ def make_pcg_persistent(d: dict, geom: tuple, omega: float, npairs: int, nblocks
 
     @ti.func
     def vcycle(tid, gen, nc):
-        """e = M f at level 0 (``poisson._vcycle``), a phase per barrier; returns the next barrier number."""
+        """e = M f at level 0 (``poisson._vcycle``), a phase per barrier; returns the next barrier number.  The
+        levels and sweeps are runtime loops over ``geo`` (unrolled, the ~40 inlined barriers of a 6-level cycle
+        took Taichi's CUDA build a minute to compile)."""
         g = gen
-        for k in ti.static(range(L - 1)):
-            off, h, w = ti.static(geom[k][0]), ti.static(geom[k][1]), ti.static(geom[k][2])
-            offc, hc, wc = ti.static(geom[k + 1][0]), ti.static(geom[k + 1][1]), ti.static(geom[k + 1][2])
-            for _ in ti.static(range(npairs)):
+        for k in range(L - 1):
+            off, h, w = geo[k, 0], geo[k, 1], geo[k, 2]
+            offc, hc, wc = geo[k + 1, 0], geo[k + 1, 1], geo[k + 1, 2]
+            for _ in range(npairs):
                 g = sweep(tid, g, e, t, off, h, w)
                 g = sweep(tid, g, t, e, off, h, w)
             for kk in range((h * w + NT - 1) // NT):  # the residual (poisson._down)
@@ -159,10 +161,10 @@ def make_pcg_persistent(d: dict, geom: tuple, omega: float, npairs: int, nblocks
                     s += pinv[c, m] * f[cidx[m, 0], cidx[m, 1]]
                 e[cidx[c, 0], cidx[c, 1]] = s
         g = gsync(tid, g)
-        for kq in ti.static(range(L - 1)):
-            k = ti.static(L - 2 - kq)
-            off, h, w = ti.static(geom[k][0]), ti.static(geom[k][1]), ti.static(geom[k][2])
-            offc = ti.static(geom[k + 1][0])
+        for kq in range(L - 1):
+            k = L - 2 - kq
+            off, h, w = geo[k, 0], geo[k, 1], geo[k, 2]
+            offc = geo[k + 1, 0]
             for kk in range((h * w + NT - 1) // NT):  # the injected correction (poisson._up)
                 c = tid + kk * NT
                 if c < h * w:
@@ -170,7 +172,7 @@ def make_pcg_persistent(d: dict, geom: tuple, omega: float, npairs: int, nblocks
                     if dg[i, off + j] > 0:
                         e[i, off + j] += e[i // 2, offc + j // 2]
             g = gsync(tid, g)
-            for _ in ti.static(range(npairs)):
+            for _ in range(npairs):
                 g = sweep(tid, g, e, t, off, h, w)
                 g = sweep(tid, g, t, e, off, h, w)
         return g

@@ -700,7 +700,10 @@ class Integrator(Stage):
         fb.dense(ti.i, 2).place(d["bar"])
         d["z0"] = ti.field(ft)
         fb.dense(ti.ij, (h, w)).place(d["z0"])
+        d["geo"] = ti.field(ti.i32)  # the level layout (off, h, w) per level, for the persistent solve
+        fb.dense(ti.ij, (len(shapes), 3)).place(d["geo"])
         d["tree"] = fb.finalize()
+        d["geo"].from_numpy(np.array([(o, hh, ww) for o, (hh, ww) in zip(offs, shapes)], np.int32))
         d["shapes"], d["offs"], d["wp"], d["np_dtype"] = shapes, offs, wp_, np.dtype(cfg.dtype)
         d["key"] = key
         d["persistent"] = {}  # the persistent solve's kernels, by geometry, grid and smoother (kept with the fields)
