@@ -15,8 +15,8 @@ Variants (``--variants``, comma-separated):
 * ``no-depth``: ``RONConfig(integrate=False)``: no final integration;
 * ``rounds3``, ``rounds2``: ``RONConfig(rounds=3 / 2)``;
 * ``evals20``: ``RONConfig(material_evals=20)``: half the Nelder-Mead budget;
-* ``fused-pcg``: the integrator's PCG launched one Taichi launch an iteration (``IntegratorConfig(launch="fused")``,
-  the CUDA default before session 24's persistent solve).
+* ``persistent-pcg``: the integrator's PCG as one persistent launch (``IntegratorConfig(launch="persistent")``)
+  instead of the default one Taichi launch an iteration.
 
 Only the time and the MAEN are compared; a variant with a worse MAEN is not a proposal, it says what the stage is
 worth.
@@ -44,7 +44,7 @@ os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 import gpps  # noqa: E402
 from _common import device_label, reconstruct_inputs  # noqa: E402
 
-VARIANTS = ("default", "known", "no-dgmc", "no-depth", "rounds3", "rounds2", "evals20", "fused-pcg")
+VARIANTS = ("default", "known", "no-dgmc", "no-depth", "rounds3", "rounds2", "evals20", "persistent-pcg")
 
 
 def _sync():
@@ -64,7 +64,7 @@ def variant_kwargs(name: str) -> dict:
         return {"material": gpps.Material("cook-torrance", ks=0.8, roughness=0.2, f0=0.5)}
     changes = {"no-dgmc": {"dgmc": False}, "no-depth": {"integrate": False}, "rounds3": {"rounds": 3},
                "rounds2": {"rounds": 2}, "evals20": {"material_evals": 20},
-               "fused-pcg": {"integrator": IntegratorConfig(launch="fused")}}
+               "persistent-pcg": {"integrator": IntegratorConfig(launch="persistent")}}
     if name not in changes:
         raise ValueError(f"variant: expected one of {VARIANTS}, got {name!r}")
     return {"material": "cook-torrance", "config": replace(base, **changes[name])}

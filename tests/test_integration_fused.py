@@ -13,7 +13,7 @@ precisions, a mask with holes and three components on a size whose levels halve 
 38 x 51 -> 19 x 26 -> 10 x 13 -> 5 x 7), the iteration cap between two residual checks, a warm start
 that is already converged, and a mask so small that it is its own coarsest level (no V-cycle levels).
 
-``launch="persistent"`` (:mod:`gpps.kernels.poisson_persistent`, the default on CUDA) runs the start, every
+``launch="persistent"`` (:mod:`gpps.kernels.poisson_persistent`; ``"auto"`` on CUDA) runs the start, every
 iteration and the stopping test in one task whose phases meet at grid barriers; off CUDA it runs as one thread.
 Its arithmetic is the fused launch's through the same per-point funcs; only the order of the float64 sums differs
 (strided over the threads and tree-reduced per block, or in pixel order on one thread), so it is held to the same
@@ -162,7 +162,7 @@ def test_fused_reuses_the_stage_across_calls(device):
 
 
 def test_launch_is_checked():
-    assert IntegratorConfig().launch == "auto"
+    assert IntegratorConfig().launch == "fused"
     with pytest.raises(ValueError, match="launch"):
         IntegratorConfig(launch="graph")
     with pytest.raises(ValueError, match="persistent_blocks"):

@@ -204,7 +204,12 @@ class IntegratorConfig:
             warning), fused on the CPU.  The same arithmetic in the same order (the persistent task sums
             its dot products in another order); fused saves Taichi's host time per launch (60-100 us a call
             on an H100's host, more than the GPU's 0.6 ms iteration at 256^2 spends in 13 calls), the
-            persistent task its host time per task (about 40 a fused iteration).
+            persistent task its host time per task (about 40 a fused iteration).  Measured on an H200
+            (perf/results/s24): a 256^2 solve of 14 iterations took 1.9 ms persistent against 6.1 ms for the
+            fused launches, but inside ``gpps.reconstruct`` the integration stage gained 0.7 ms and the whole
+            call nothing measurable, while the persistent kernel costs a new frame size's first call 7.7 s
+            more compilation: so ``"fused"`` stays the default, ``"persistent"`` is for many solves of one
+            size where the host's launches are the cost.
         persistent_blocks: resident blocks per multiprocessor of the persistent launch (halved down to 1
             when the GPU cannot hold them, then fused).
     """
@@ -231,7 +236,7 @@ class IntegratorConfig:
     check_every: int = 2
     coarsest: int = 8
     cg_sums: CgSums = "auto"
-    launch: Launch = "auto"
+    launch: Launch = "fused"
     persistent_blocks: int = 4
 
     def __post_init__(self):
