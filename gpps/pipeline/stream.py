@@ -601,10 +601,12 @@ class Stream(Stage):
         why = None
         if lit < c.min_lit_fraction or (lv is not None and lit < 0.5 * lv["lit_fraction"]):
             why = f"only {100 * lit:.1f}% of the observations are lit (a dark frame, or lights that did not fire)"
+        elif sat > c.max_saturated_fraction or (lv is not None and sat > lv["saturated_fraction"] + 0.25):
+            # (before the determined pixels: saturated observations are dropped from the fit, so an over-exposed
+            # frame also leaves no pixel determined, and the exposure is the cause to report)
+            why = f"{100 * sat:.1f}% of the observations are saturated (over-exposed)"
         elif got["determined_fraction"] == 0.0:
             why = "no pixel has 3 lit observations (lights that did not fire, or a frame of shadows)"
-        elif sat > c.max_saturated_fraction or (lv is not None and sat > lv["saturated_fraction"] + 0.25):
-            why = f"{100 * sat:.1f}% of the observations are saturated (over-exposed)"
         elif hf > c.max_noise_ratio or (lv is not None and hf > max(c.noise_factor * lv["noise_ratio"], 0.05)):
             why = f"the frame is mostly noise (high-frequency ratio {hf:.3f})"
         elif res > (0.5 if lv is None else 0.02) * grey and (lv is None or res > c.residual_factor * lv["residual"]):
