@@ -564,8 +564,9 @@ def tiled_solver(client, *, tile: int = 1024, scratch=None) -> Callable:
             depth_map = {0: r, 1: r, 2: 0}
             g = da.overlap.overlap(x, depth=depth_map, boundary="none")
             y = g.map_blocks(_solve_block, dtype=np.float32, chunks=(g.chunks[0], g.chunks[1], (tiled.output_channels(n),)),
-                             n=n, shape=(h, w), lights=lights, camera=prep["camera"], material=material, config=cfg,
-                             noise=prep["noise"], has_valid=valid is not None, has_depth=depth is not None, device=device)
+                             n=n, shape=(h, w), lights=lights, camera=prep["camera"], material=material,
+                             config=prep["config"], noise=prep["noise"], has_valid=prep["has_valid"],
+                             has_depth=depth is not None, device=device)
             z = da.overlap.trim_internal(y, depth_map, boundary="none")
             if progress:
                 progress(0, 1, f"normals: {x.numblocks[0] * x.numblocks[1]} tiles")
@@ -573,7 +574,7 @@ def tiled_solver(client, *, tile: int = 1024, scratch=None) -> Callable:
         t2 = time.perf_counter()
         if progress:
             progress(1, 1, "normals: tiles assembled")
-        return tiled.unpack(solved, prep, np.asarray(mask, bool), config=cfg, material=material,
+        return tiled.unpack(solved, prep, np.asarray(mask, bool), config=prep["config"], material=material,
                             timings={"setup": t1 - t0, "solve": t2 - t1, "total": time.perf_counter() - t0,
                                      "tiles": int(x.numblocks[0] * x.numblocks[1]), "halo": r})
 

@@ -247,6 +247,29 @@ def test_solve_normals_leaves_clipped_observations_out(issue20, device, monkeypa
     assert not any(DETECTED in w for w in sat.warnings)
 
 
+def test_tiled_prepare_leaves_them_out_as_solve_normals(issue20):
+    """The tiled flow's frame-wide part (gpps.flows.tiled.prepare) leaves out what solve_normals leaves out: float
+    input's clipping plateaus as the tiles' valid flags, uint16 input's full scale as the tiles' saturation."""
+    from gpps.flows import tiled
+    from gpps.pipeline.solver import SolverConfig
+
+    sc, lights, img, truth_valid = issue20
+    cfg = SolverConfig()
+    with pytest.warns(GppsWarning, match=DETECTED):
+        prep = tiled.prepare(img, sc.mask, lights, camera=sc.camera, config=cfg)
+    assert prep["has_valid"] and prep["config"].saturation is None
+    n = img.shape[0]
+    flags = np.moveaxis(prep["packed"][..., 3 * n + 3:4 * n + 3], 2, 0) > 0.5  # (pack: RGB, mask, row, column, valid)
+    np.testing.assert_array_equal(flags & sc.mask[None], truth_valid & sc.mask[None])
+    raw16 = np.round(np.clip(img * 0.8, 0, 1) * 65535).astype(np.uint16)  # the camera's frame (intensity 0.8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", GppsWarning)  # (nothing detected on integer input: its full scale is known)
+        prep16 = tiled.prepare(raw16, sc.mask, lights, camera=sc.camera, config=cfg)
+    assert not prep16["has_valid"] and prep16["config"].saturation == 1.0
+    given = tiled.prepare(raw16, sc.mask, lights, camera=sc.camera, config=dataclasses.replace(cfg, saturation=0.9))
+    assert given["config"].saturation == 0.9
+
+
 def test_full_scale_plateau_warns_once(device, monkeypatch):
     """Float images clipped at 1.0 (not divided): the detection leaves the plateau out and says so; the full-scale
     warning does not ask for saturation=1 as well.  uint16 images keep their rule (saturated at full scale)."""

@@ -23,15 +23,17 @@ the flows (:mod:`gpps.batch`, dask.array ``map_overlap``).
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 
 import numpy as np
 
-from gpps._check import GppsWarning
+from gpps._check import GppsWarning, as_flags
 from gpps.camera import Orthographic, Perspective
 from gpps.flows.photometric import (
     PSResult,
     check_inputs,
     check_observations,
+    detect_clipping,
     input_saturation,
 )
 from gpps.lights import PointLights
@@ -71,20 +73,32 @@ def prepare(images, mask, lights, *, camera=None, config: SolverConfig, valid=No
 
     Returns:
         ``{"packed": (H, W, C) float32 (:func:`pack`), "noise": (N,) float32, "determined": (H, W) bool,
-        "warnings": [...], "camera", "shape": (N, H, W), "halo"}``.
+        "warnings": [...], "camera", "shape": (N, H, W), "halo", "config", "has_valid"}``: ``config`` the solver config the
+        tiles take (``config`` with ``saturation`` at the full scale of uint8 / uint16 input, as
+        :func:`gpps.flows.photometric.solve_normals` sets it); float input given with neither ``saturation`` nor
+        ``valid`` has its clipping plateaus left out of ``packed``'s valid flags (with a warning), as there;
+        ``has_valid``: whether ``packed`` carries valid flags (:func:`solve_block`'s argument).
     """
     img, m, lights, camera = check_inputs(images, mask, lights, camera)
     n, h, w = img.shape[:3]
     notes: list[str] = []
     ref = None if depth is None else float(np.mean(np.asarray(depth, np.float64)[m]))
+    if valid is not None:
+        valid = as_flags("valid", valid, (n, h, w))
+    if config.saturation is None and input_saturation(images) is not None:
+        # uint8 / uint16 input: the full scale dropped from the fit, as solve_normals drops it
+        config = replace(config, saturation=input_saturation(images))
+    # float input without saturation or valid: the clipping plateaus left out, as solve_normals leaves them out
+    valid, clipped = detect_clipping(images, img, m, saturation=config.saturation, valid=valid, sink=notes)
     determined = check_observations(img, m, lights, valid=valid, saturation=input_saturation(images, config.saturation),
-                                    reference_depth=ref, sink=notes)
+                                    reference_depth=ref, sink=notes, clipped=clipped)
     rgb = rgb_images(img, (n, h, w))
     noise = estimate_noise(rgb, m) if config.noise_level is None else np.full(n, config.noise_level, np.float32)
     if isinstance(lights, PointLights) and depth is None:
         raise ValueError("depth: expected an (H, W) depth estimate for point lights (2.30-2.31), got None")
     return {"packed": pack(rgb, m, valid=valid, depth=depth), "noise": np.asarray(noise, np.float32),
-            "determined": determined, "warnings": notes, "camera": camera, "shape": (n, h, w), "halo": halo(config)}
+            "determined": determined, "warnings": notes, "camera": camera, "shape": (n, h, w), "halo": halo(config),
+            "config": config, "has_valid": valid is not None}
 
 
 def pack(images, mask, *, valid=None, depth=None) -> np.ndarray:
