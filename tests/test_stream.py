@@ -116,6 +116,8 @@ def test_stream_device_output_ring_and_config_errors(device):
         StreamConfig(iterations=0)
     with pytest.raises(ValueError, match="output"):
         StreamConfig(output="gpu")
+    with pytest.raises(ValueError, match="neighbour_radius"):
+        StreamConfig(neighbour_radius=-1)
     from gpps.flows.synthetic import default_lights
 
     with pytest.raises(ValueError, match="reference_depth"):
