@@ -37,7 +37,7 @@ Only device code lives here; allocation and orchestration are in
 """
 
 from gpps._taichi import ti
-from gpps.kernels.block_sum import BLOCK, block_total, block_total2
+from gpps.kernels.block_sum import BLOCK, block_total, block_total2, make_acc_sums
 from gpps.kernels.grid_barrier import make_gsync
 
 # indices into the scalar field ``sc``
@@ -544,39 +544,8 @@ def make_irls_persistent(F: dict, nblocks: int, bd: int, cuda: bool):
     px = _pixel_funcs(F)
     edges, rhs, _apply, reweight_at = px["edges"], px["rhs"], px["apply"], px["reweight"]
 
-    if cuda:
-        gsync = make_gsync(bar, nblocks, bd)
-    else:
-        @ti.func
-        def gsync(tid, gen):  # one thread: the phases are in order
-            return gen + 1
-
-    @ti.func
-    def red(pad: ti.template(), tid, v, idx):
-        """``acc[idx] +=`` the block's sum of ``v`` (every thread of the block calls it)."""
-        if ti.static(cuda):
-            t = tid % bd
-            pad[t] = v
-            block_total(pad, t)
-            if t == 0:
-                ti.atomic_add(acc[idx], pad[0])
-        else:
-            acc[idx] += v
-
-    @ti.func
-    def red2(pa: ti.template(), pb: ti.template(), tid, va, ia, vb, ib):
-        """:func:`red` of two sums in one block tree (``acc[ia] += sum va``, ``acc[ib] += sum vb``)."""
-        if ti.static(cuda):
-            t = tid % bd
-            pa[t] = va
-            pb[t] = vb
-            block_total2(pa, pb, t)
-            if t == 0:
-                ti.atomic_add(acc[ia], pa[0])
-                ti.atomic_add(acc[ib], pb[0])
-        else:
-            acc[ia] += va
-            acc[ib] += vb
+    gsync = make_gsync(bar, nblocks, bd, cuda)
+    red, red2 = make_acc_sums(acc, bd, cuda)
 
     @ti.func
     def cg_iter(tid, gen, n, t, beta, rz_prev, pa: ti.template(), pb: ti.template(), pad: ti.template(),

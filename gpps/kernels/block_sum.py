@@ -72,3 +72,38 @@ def block_add(pad: ti.template(), k, v, dst: ti.template(), idx: ti.template()):
     block_total(pad, tid)
     if tid == 0:
         ti.atomic_add(dst[idx], pad[0])
+
+
+def make_acc_sums(acc, bd: int, cuda: bool):
+    """The ti.funcs ``red(pad, tid, v, idx)`` (``acc[idx] +=`` the block's sum of ``v``) and
+    ``red2(pa, pb, tid, va, ia, vb, ib)`` (two sums in one block tree) of a persistent task of blocks of ``bd``
+    threads (every thread of a block calls them; ``pad``, ``pa``, ``pb``: its shared arrays of :data:`BLOCK`
+    float64).  Off CUDA (one thread, no shared arrays) they add ``v`` directly.  Used by BiNI's persistent IRLS
+    and the integrator's persistent PCG."""
+
+    @ti.func
+    def red(pad: ti.template(), tid, v, idx):
+        if ti.static(cuda):
+            t = tid % bd
+            pad[t] = v
+            block_total(pad, t)
+            if t == 0:
+                ti.atomic_add(acc[idx], pad[0])
+        else:
+            acc[idx] += v
+
+    @ti.func
+    def red2(pa: ti.template(), pb: ti.template(), tid, va, ia, vb, ib):
+        if ti.static(cuda):
+            t = tid % bd
+            pa[t] = va
+            pb[t] = vb
+            block_total2(pa, pb, t)
+            if t == 0:
+                ti.atomic_add(acc[ia], pa[0])
+                ti.atomic_add(acc[ib], pb[0])
+        else:
+            acc[ia] += va
+            acc[ib] += vb
+
+    return red, red2

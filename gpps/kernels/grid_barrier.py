@@ -25,19 +25,31 @@ LIMIT = 1 << 20  # polls before a grid barrier gives up (a block that never beca
 WARP = 32
 
 
-def make_gsync(bar, nblocks: int, bd: int):
-    """The ti.func ``gsync(tid, gen)`` of a task of ``nblocks x bd`` threads (CUDA only).
+def make_gsync(bar, nblocks: int, bd: int, cuda: bool = True):
+    """The ti.func ``gsync(tid, gen)`` of a task of ``nblocks x bd`` threads.
 
     Args:
         bar: i32 field of length 2: ``bar[0]`` the arrival counter (zeroed at the launch, before the
             persistent loop), ``bar[1]`` the timeout flag.
         nblocks: blocks of the task.
         bd: threads per block (a multiple of 32).
+        cuda: the CUDA barrier; False: the one-thread build's stand-in (``nblocks = bd = 1``: the phases run
+            in order, nothing to wait for), with which the persistent kernels test their arithmetic off CUDA.
 
     Returns:
         ``gsync(tid, gen)``: grid barrier number ``gen`` (1, 2, ... within a launch) for the thread of
         loop index ``tid``; returns ``gen + 1``.  Every thread of the task must call it.
     """
+    if not cuda:
+        if nblocks * bd != 1:
+            raise ValueError(f"nblocks, bd: off CUDA a persistent task runs as one thread (1, 1), "
+                             f"got ({nblocks}, {bd})")
+
+        @ti.func
+        def serial(tid, gen):  # one thread: the phases are in order
+            return gen + 1
+
+        return serial
     if bd % WARP:
         raise ValueError(f"bd: expected a multiple of {WARP} threads per block, got {bd}")
 

@@ -74,27 +74,47 @@ def _sweeps(e: ti.template(), f: ti.template(), t: ti.template(), wx: ti.templat
 
 
 @ti.func
+def _residual_at(e: ti.template(), f: ti.template(), t: ti.template(), wx: ti.template(), wy: ti.template(),
+                 dg: ti.template(), i, j, off, h, w):
+    """t = f - A e at pixel (i, j) of a level (0 outside the mask)."""
+    d = dg[i, off + j]
+    r = f[i, off + j] * 0
+    if d > 0:
+        r = f[i, off + j] - d * e[i, off + j] + _neigh(e, wx, wy, i, j, off, h, w)
+    t[i, off + j] = r
+
+
+@ti.func
+def _restrict_at(e: ti.template(), f: ti.template(), t: ti.template(), ci, cj, off, h, w, offc):
+    """Coarse cell (ci, cj): f = the sum of its 2 x 2 fine residuals t, e = 0."""
+    s = t[2 * ci, off + 2 * cj]
+    if 2 * cj + 1 < w:
+        s += t[2 * ci, off + 2 * cj + 1]
+    if 2 * ci + 1 < h:
+        s += t[2 * ci + 1, off + 2 * cj]
+        if 2 * cj + 1 < w:
+            s += t[2 * ci + 1, off + 2 * cj + 1]
+    f[ci, offc + cj] = s
+    e[ci, offc + cj] = 0
+
+
+@ti.func
+def _inject_at(e: ti.template(), dg: ti.template(), i, j, off, offc):
+    """Pixel (i, j) of a level plus the coarse correction of its cell (mask pixels only)."""
+    if dg[i, off + j] > 0:
+        e[i, off + j] += e[i // 2, offc + j // 2]
+
+
+@ti.func
 def _down(e: ti.template(), f: ti.template(), t: ti.template(), wx: ti.template(), wy: ti.template(),
           dg: ti.template(), off: ti.template(), h: ti.template(), w: ti.template(), offc: ti.template(),
           hc: ti.template(), wc: ti.template(), omega: ti.template(), npairs: ti.template()):
     """V-cycle descent at one level: pre-smooth from e = 0, residual, restrict."""
     _sweeps(e, f, t, wx, wy, dg, off, h, w, omega, npairs)
     for i, j in ti.ndrange(h, w):
-        d = dg[i, off + j]
-        r = f[i, off + j] * 0
-        if d > 0:
-            r = f[i, off + j] - d * e[i, off + j] + _neigh(e, wx, wy, i, j, off, h, w)
-        t[i, off + j] = r
+        _residual_at(e, f, t, wx, wy, dg, i, j, off, h, w)
     for ci, cj in ti.ndrange(hc, wc):
-        s = t[2 * ci, off + 2 * cj]
-        if 2 * cj + 1 < w:
-            s += t[2 * ci, off + 2 * cj + 1]
-        if 2 * ci + 1 < h:
-            s += t[2 * ci + 1, off + 2 * cj]
-            if 2 * cj + 1 < w:
-                s += t[2 * ci + 1, off + 2 * cj + 1]
-        f[ci, offc + cj] = s
-        e[ci, offc + cj] = 0
+        _restrict_at(e, f, t, ci, cj, off, h, w, offc)
 
 
 @ti.func
@@ -103,8 +123,7 @@ def _up(e: ti.template(), f: ti.template(), t: ti.template(), wx: ti.template(),
         omega: ti.template(), npairs: ti.template()):
     """V-cycle ascent at one level: add the injected coarse correction, post-smooth."""
     for i, j in ti.ndrange(h, w):
-        if dg[i, off + j] > 0:
-            e[i, off + j] += e[i // 2, offc + j // 2]
+        _inject_at(e, dg, i, j, off, offc)
     _sweeps(e, f, t, wx, wy, dg, off, h, w, omega, npairs)
 
 

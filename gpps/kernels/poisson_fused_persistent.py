@@ -34,15 +34,10 @@ def grid_funcs(ns, nblocks: int, bd: int):
         raise ValueError(f"nblocks, bd: off CUDA the persistent kernel runs as one thread (1, 1), got ({nblocks}, {bd})")
     NT = nblocks * bd
 
-    if cuda:
-        # the warp-uniform grid barrier shared with BiNI's persistent IRLS (its first warp polls in step: a
-        # lone spinning lane beside its warp waiting at the block barrier deadlocked some kernels on an H100)
-        gsync = make_gsync(bar, nblocks, bd)
-    else:
-        @ti.func
-        def gsync(tid, gen):
-            """One thread: the phases run in order (grid barrier number ``gen``); returns ``gen + 1``."""
-            return gen + 1
+    # the warp-uniform grid barrier shared with BiNI's persistent IRLS (its first warp polls in step: a lone
+    # spinning lane beside its warp waiting at the block barrier deadlocked some kernels on an H100); off CUDA
+    # its one-thread stand-in
+    gsync = make_gsync(bar, nblocks, bd, cuda)
 
     @ti.func
     def sweep(tid, gen, src: ti.template(), dst: ti.template(), off, h, w):

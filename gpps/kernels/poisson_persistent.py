@@ -28,9 +28,19 @@ the fused launches (:meth:`gpps.pipeline.integration.Integrator._iterate`).  Off
 """
 
 from gpps._taichi import ti
-from gpps.kernels.block_sum import BLOCK, block_total, block_total2
+from gpps.kernels.block_sum import BLOCK, make_acc_sums
 from gpps.kernels.grid_barrier import make_gsync
-from gpps.kernels.poisson import _apply_point, _jacobi_point, _mul, _neigh, _sq, _start_point, _update_point
+from gpps.kernels.poisson import (
+    _apply_point,
+    _inject_at,
+    _jacobi_point,
+    _mul,
+    _residual_at,
+    _restrict_at,
+    _sq,
+    _start_point,
+    _update_point,
+)
 
 # slots of the persistent solve's float64 accumulator ``acc`` (its length is at least NACC)
 A_BB, A_RR0, A_RZ0, A_ITS, A_RES = 0, 1, 2, 3, 4  # |b|^2, the start's |r|^2 and r.Mr, iterations, last |r|^2 checked
@@ -74,39 +84,8 @@ def make_pcg_persistent(d: dict, geom: tuple, omega: float, npairs: int, nblocks
     dtype = z.dtype
     om = float(omega)
 
-    if cuda:
-        gsync = make_gsync(bar, nblocks, bd)
-    else:
-        @ti.func
-        def gsync(tid, gen):  # one thread: the phases are in order
-            return gen + 1
-
-    @ti.func
-    def red(pad: ti.template(), tid, v, idx):
-        """``acc[idx] +=`` the block's sum of ``v`` (every thread of the block calls it)."""
-        if ti.static(cuda):
-            k = tid % bd
-            pad[k] = v
-            block_total(pad, k)
-            if k == 0:
-                ti.atomic_add(acc[idx], pad[0])
-        else:
-            acc[idx] += v
-
-    @ti.func
-    def red2(pa: ti.template(), pb: ti.template(), tid, va, ia, vb, ib):
-        """:func:`red` of two sums in one block tree."""
-        if ti.static(cuda):
-            k = tid % bd
-            pa[k] = va
-            pb[k] = vb
-            block_total2(pa, pb, k)
-            if k == 0:
-                ti.atomic_add(acc[ia], pa[0])
-                ti.atomic_add(acc[ib], pb[0])
-        else:
-            acc[ia] += va
-            acc[ib] += vb
+    gsync = make_gsync(bar, nblocks, bd, cuda)
+    red, red2 = make_acc_sums(acc, bd, cuda)
 
     @ti.func
     def sweep(tid, gen, src: ti.template(), dst: ti.template(), off, h, w):
@@ -132,26 +111,12 @@ def make_pcg_persistent(d: dict, geom: tuple, omega: float, npairs: int, nblocks
             for kk in range((h * w + NT - 1) // NT):  # the residual (poisson._down)
                 c = tid + kk * NT
                 if c < h * w:
-                    i, j = c // w, c % w
-                    dd = dg[i, off + j]
-                    rv = f[i, off + j] * 0
-                    if dd > 0:
-                        rv = f[i, off + j] - dd * e[i, off + j] + _neigh(e, wx, wy, i, j, off, h, w)
-                    t[i, off + j] = rv
+                    _residual_at(e, f, t, wx, wy, dg, c // w, c % w, off, h, w)
             g = gsync(tid, g)
             for kk in range((hc * wc + NT - 1) // NT):  # the restriction (sums of 2 x 2 blocks)
                 c = tid + kk * NT
                 if c < hc * wc:
-                    ci, cj = c // wc, c % wc
-                    s = t[2 * ci, off + 2 * cj]
-                    if 2 * cj + 1 < w:
-                        s += t[2 * ci, off + 2 * cj + 1]
-                    if 2 * ci + 1 < h:
-                        s += t[2 * ci + 1, off + 2 * cj]
-                        if 2 * cj + 1 < w:
-                            s += t[2 * ci + 1, off + 2 * cj + 1]
-                    f[ci, offc + cj] = s
-                    e[ci, offc + cj] = 0
+                    _restrict_at(e, f, t, c // wc, c % wc, off, h, w, offc)
             g = gsync(tid, g)
         for kk in range((nc + NT - 1) // NT):  # the coarsest level's exact solve (poisson._coarse_exact)
             c = tid + kk * NT
@@ -168,9 +133,7 @@ def make_pcg_persistent(d: dict, geom: tuple, omega: float, npairs: int, nblocks
             for kk in range((h * w + NT - 1) // NT):  # the injected correction (poisson._up)
                 c = tid + kk * NT
                 if c < h * w:
-                    i, j = c // w, c % w
-                    if dg[i, off + j] > 0:
-                        e[i, off + j] += e[i // 2, offc + j // 2]
+                    _inject_at(e, dg, c // w, c % w, off, offc)
             g = gsync(tid, g)
             for _ in range(npairs):
                 g = sweep(tid, g, e, t, off, h, w)
