@@ -395,6 +395,7 @@ def underdetermined_kernel_for(solve_pixel, module, sfx: str):
     def underdetermined_kernel(
         images: wp.array3d(dtype=wp.vec3),
         mask: wp.array2d(dtype=wp.uint8),
+        solve_mask: wp.array2d(dtype=wp.uint8),
         depth: wp.array2d(dtype=wp.float32),
         cam: CameraParams,
         lights: LightParams,
@@ -422,9 +423,13 @@ def underdetermined_kernel_for(solve_pixel, module, sfx: str):
         or faces away) breaks the remaining ties (the two mirror solutions of 2
         observations, the cone of solutions of 1).  Only flagged pixels are
         written and only unflagged ones are read, so threads do not race.
+
+        ``mask`` is the object (the neighbours are read inside it); ``solve_mask`` the pixels solved
+        (``mask`` itself for a whole frame; a subset re-solved inside a frame, e.g. a stream's cold re-solve
+        of jumped pixels, reads its neighbours from the whole object, not from the subset).
         """
         i, j = wp.tid()
-        if mask[i, j] == wp.uint8(0) or prm.method == NONE:
+        if solve_mask[i, j] == wp.uint8(0) or mask[i, j] == wp.uint8(0) or prm.method == NONE:
             return
         f = flags[i, j]
         if (f & FLAG_FEW_OBSERVATIONS) == 0:

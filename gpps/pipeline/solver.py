@@ -699,9 +699,11 @@ class PixelSolver(Stage):
             self.valid.assign(val)
 
     def step_subset(self, mask, config: SolverConfig) -> None:
-        """Only the pixelwise solve kernel, on another (H, W) uint8 mask buffer and with ``config``'s settings
-        (same solver, model and robust loss as the current config: the same compiled kernel); pixels outside
-        ``mask`` keep their current outputs.  Graph-capturable.
+        """The pixelwise solve kernel on another (H, W) uint8 mask buffer and with ``config``'s settings
+        (same solver, model and robust loss as the current config: the same compiled kernel), then, when
+        ``config.neighbour_radius > 0``, the neighbour pass on that subset's under-determined pixels (their
+        neighbours read from the solver's whole mask); pixels outside ``mask`` keep their current outputs.
+        Graph-capturable.
 
         The stream re-solves the pixels whose warm start failed this way, cold, inside the frame.
         """
@@ -717,6 +719,16 @@ class PixelSolver(Stage):
                         self._params_for(config)],
                        [self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags,
                         self.cond]).launch()
+        if config.neighbour_radius > 0 and self._underdetermined_kernel is not None:
+            # the subset's under-determined pixels take their albedo from the object's determined pixels
+            # around them (the solver's mask), not from the subset: without it a cold re-solve of a pixel
+            # with 2 usable observations has a free albedo and lands anywhere on its curve of exact fits
+            self._recorded(("subset-underdetermined", id(mask), config), self._underdetermined_kernel,
+                           [self.images, self.mask, mask, self.depth, self.cam, self.lp, self.mp,
+                            self._params_for(config), int(config.neighbour_radius),
+                            int(self._sk.NEIGHBOUR_MIN_COUNT)],
+                           [self.weights, self.normals, self.albedo, self.residual, self.iterations,
+                            self.flags]).launch()
 
     def _recorded(self, key, kernel, inputs, outputs, dim=None, block_dim=None):
         """A recorded launch (``wp.launch(..., record_cmd=True)``) of ``kernel`` over the pixels (or ``dim``),
@@ -833,7 +845,7 @@ class PixelSolver(Stage):
         self._launch_solve(progress, subset)
         if self.config.neighbour_radius > 0 and self._underdetermined_kernel is not None:
             self._recorded(("underdetermined",), self._underdetermined_kernel,
-                           [self.images, self.mask, self.depth, self.cam, self.lp, self.mp, self.prm,
+                           [self.images, self.mask, self.mask, self.depth, self.cam, self.lp, self.mp, self.prm,
                             int(self.config.neighbour_radius), int(self._sk.NEIGHBOUR_MIN_COUNT)],
                            [self.weights, self.normals, self.albedo, self.residual, self.iterations,
                             self.flags]).launch()
