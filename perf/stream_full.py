@@ -86,7 +86,13 @@ def main(argv=None):
     ap.add_argument("--offline", type=int, nargs="*", default=[0, 4],
                     help="positions reconstructed offline (material unknown)")
     ap.add_argument("--device", default=None)
+    ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE",
+                    help="StreamConfig fields for both modes (an ablation), e.g. material_tol=0.01")
     a = ap.parse_args(argv)
+    over = {}
+    for kv in a.set:
+        k, _, v = kv.partition("=")
+        over[k] = type(getattr(StreamConfig(), k))(v) if getattr(StreamConfig(), k) is not None else int(v)
     wp = warp()
     device = resolve_device(a.device)
     log = lambda s: print(s, flush=True)  # noqa: E731
@@ -98,7 +104,7 @@ def main(argv=None):
     log(f"[{a.size}] scene: {a.positions} positions, {a.frames} frames, rendered in {time.perf_counter() - t0:.1f}s")
 
     rows = {}
-    full = StreamConfig(output="device", material="estimate")
+    full = StreamConfig(output="device", material="estimate", **over)
     st, secs, maen, mats, scored, settled = run_stream(frames_dev, seq, truth, mask, sc, L, GUESS, full, device)
     settled_at = next((i for i, v in enumerate(settled) if v), None)  # the first frame after which it had settled
     rows["full"] = {**summary(secs, a.timed), "seconds_per_frame": secs, "maen_per_frame": maen,
@@ -108,7 +114,7 @@ def main(argv=None):
     log(f"[{a.size}] full:  first frame {secs[0]:.3f}s, search start {settled_at} frames, steady "
         f"{rows['full']['steady_triples_per_s']:.1f} triples/s (median {1e3 * rows['full']['steady_median_s']:.2f} ms), "
         f"estimate {mats[-1]}, stats {st.stats}")
-    known = StreamConfig(output="device")
+    known = StreamConfig(output="device", **over)
     st, secs, maen_k, _, _, _ = run_stream(frames_dev, seq, truth, mask, sc, L, TRUE, known, device)
     rows["known"] = {**summary(secs, a.timed), "seconds_per_frame": secs, "maen_per_frame": maen_k}
     log(f"[{a.size}] known: first frame {secs[0]:.3f}s, steady {rows['known']['steady_triples_per_s']:.1f} triples/s "
@@ -139,7 +145,7 @@ def main(argv=None):
         "size": a.size, "positions": a.positions, "frames": a.frames, "timed": a.timed, "position_per_frame": seq,
         "scene": "bumps, perspective, 3 directional lights, RGB uint16, Cook-Torrance ks 0.8 m 0.2 f0 0.5; "
                  "full mode from ks 0.3 m 0.5", "full": rows["full"], "known": rows["known"],
-        "offline": {str(k): v for k, v in off.items()}, "maen_full_over_offline": ratio,
+        "offline": {str(k): v for k, v in off.items()}, "config_set": over, "maen_full_over_offline": ratio,
         "maen_steady_full": float(np.nanmean(maen[tail])), "maen_steady_known": float(np.nanmean(maen_k[tail])),
         "command": "python perf/stream_full.py " + " ".join(argv if argv is not None else sys.argv[1:]),
     })

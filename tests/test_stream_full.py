@@ -161,25 +161,23 @@ def test_sample_follows_the_brightest_pixel_of_each_tile(device):
 
 
 def test_full_mode_estimates_the_material_and_approaches_offline(device):
-    """A wrong guess; the estimate converges near the truth and near the offline estimate, and the stream's MAEN
-    over the last frames is far below what it was with the clipped highlights fitted.
+    """A wrong guess; the estimate converges to the truth, and the stream's MAEN over the last frames is within
+    1.5x of the offline ``gpps.reconstruct`` (material unknown) of the same frames (issue 20's line).
 
     The frames clip their highlights at full scale (about 2.8 % of the observations).  Both the stream
     (``StreamConfig.saturation``, 1.0: the camera's full scale) and the offline reconstruct (float frames: the
-    clipping plateaus of :mod:`gpps.host.clipping`) leave those observations out.  Measured on the CPU (64^2, 24
-    frames): offline ks 0.7998 / 0.8003, roughness 0.2000 at both frames, MAEN 0.015 / 0.023 deg; stream ks 0.802,
-    roughness 0.1997, MAEN 0.039 / 0.056 deg.  Before either left them out (the clipped values fitted): offline
-    ks 0.908, roughness 0.188, MAEN 1.26 / 1.28; stream 1.71 / 1.64.  The pixels a clip leaves with 2 usable
-    observations need the warm frames' neighbour pass (``StreamConfig.neighbour_radius``, on in full mode): without
-    it they kept the basin the first frames' material put them in, 2.0 deg there and 0.22 / 0.25 overall.  Issue
-    20's line (the stream within 1.5x of offline) is short since (2.5x), so the stream is asserted at its measured
-    level here, not at 1.5x."""
+    clipping plateaus of :mod:`gpps.host.clipping`) leave those observations out.  Measured on the CPU (64^2,
+    32 frames, a pixel every 4): offline ks 0.8003, roughness 0.2000, MAEN 0.015 / 0.023 deg (a few pixels in a
+    wrong basin); stream ks 0.79999, roughness 0.20000, MAEN 0.0017 at both frames.  What it took (each
+    measured on this scene): leaving the clipped values out (offline 1.26 -> 0.015 deg, stream 1.71 -> 0.22);
+    the warm frames' neighbour pass for the pixels a clip leaves with 2 usable observations (2.0 deg there ->
+    0.012); ``material_tol`` 1e-3 (a 0.3 % error in the settled estimate gave 0.056 deg)."""
     import gpps
     from gpps.lights import DirectionalLights
     from gpps.material import Material
     from gpps.pipeline.stream import Stream, StreamConfig
 
-    shifts = tuple(f // 4 for f in range(24))  # a pixel every 4 frames
+    shifts = tuple(f // 4 for f in range(32))  # a pixel every 4 frames
     sc, L, frames, truth, mask = _moving(shifts=shifts)
     guess = Material("cook-torrance", ks=0.3, roughness=0.5, f0=0.5)
     st = Stream(mask.shape, sc.camera, L, guess, mask=mask, config=StreamConfig(output="numpy", material="estimate"),
@@ -199,14 +197,13 @@ def test_full_mode_estimates_the_material_and_approaches_offline(device):
         off_maen.append(normal_errors(rec.normals, truth[f], mask)["mean"])
         off_est.append(rec.estimated)
     stream_maen = float(np.mean([maen[len(frames) - 5], maen[-1]]))
-    assert abs(np.log(est.roughness / TRUE["roughness"])) < 0.02, est
-    assert abs(np.log(est.ks / TRUE["ks"])) < 0.03, est
+    assert abs(np.log(est.roughness / TRUE["roughness"])) < 2e-3, est
+    assert abs(np.log(est.ks / TRUE["ks"])) < 2e-3, est
     for o in off_est:
         assert abs(np.log(o["roughness"] / TRUE["roughness"])) < 0.01 and abs(np.log(o["ks"] / TRUE["ks"])) < 0.01, o
-        assert abs(np.log(est.roughness / o["roughness"])) < 0.02 and abs(np.log(est.ks / o["ks"])) < 0.03, (est, o)
     assert float(np.mean(off_maen)) < 0.05, off_maen
-    assert stream_maen < 0.1, (maen, off_maen)  # (1.68 while the clipped observations were fitted)
-    assert maen[-1] < 0.25 * maen[0]  # the grid's material of the first frame (3.0 deg) is improved on
+    assert stream_maen <= 1.5 * float(np.mean(off_maen)), (maen, off_maen)  # issue 20's line
+    assert maen[-1] < 0.05 * maen[0]  # the grid's material of the first frame (3.0 deg) is improved on
 
 
 def test_full_mode_bad_frames_and_config(device):

@@ -226,20 +226,42 @@ def mark_jumps(residual: wp.array2d(dtype=wp.float32), previous: wp.array2d(dtyp
 
 @wp.kernel(enable_backward=False)
 def refresh_rows(mask: wp.array2d(dtype=wp.uint8), phase: wp.array(dtype=wp.int32), period: int,
+                 residual: wp.array2d(dtype=wp.float32), threshold: wp.array(dtype=wp.float32), misfits: int,
                  rows: wp.array2d(dtype=wp.uint8)):
     """rows[i, j] = 1 inside the mask on the rows ``i = phase[0] (mod period)``: this frame's share of the
-    rolling cold re-solve (whole rows, so that a GPU warp's threads are all busy or all idle)."""
+    rolling cold re-solve (whole rows, so that a GPU warp's threads are all busy or all idle).
+
+    ``misfits`` 1: only the pixels of those rows whose residual exceeds ``threshold[0]`` (the jump test's
+    running level; none before it is set), so that a pixel a warm start keeps in a wrong basin gets a cold
+    retry every ``period`` frames at the cost of the misfits alone."""
     i, j = wp.tid()
     r = wp.uint8(0)
     if mask[i, j] != 0 and i % period == phase[0] % period:
-        r = wp.uint8(1)
+        if misfits == 0 or (threshold[0] > 0.0 and residual[i, j] > threshold[0]):
+            r = wp.uint8(1)
     rows[i, j] = r
 
 
 @wp.kernel(enable_backward=False)
-def advance_phase(phase: wp.array(dtype=wp.int32), period: int):
-    """The next frame's rows of the rolling re-solve (dim 1; on the device, so a captured graph advances it)."""
-    phase[0] = (phase[0] + 1) % period
+def save_rows(rows: wp.array2d(dtype=wp.uint8), normals: wp.array2d(dtype=wp.vec3), albedo: wp.array2d(dtype=wp.vec3),
+              residual: wp.array2d(dtype=wp.float32), flags: wp.array2d(dtype=wp.int32),
+              normals0: wp.array2d(dtype=wp.vec3), albedo0: wp.array2d(dtype=wp.vec3),
+              residual0: wp.array2d(dtype=wp.float32), flags0: wp.array2d(dtype=wp.int32)):
+    """The warm solution of the pixels ``rows`` marks, saved into ``*0`` before their cold re-solve (what
+    :func:`keep_better` reads; other pixels are not touched)."""
+    i, j = wp.tid()
+    if rows[i, j] != 0:
+        normals0[i, j] = normals[i, j]
+        albedo0[i, j] = albedo[i, j]
+        residual0[i, j] = residual[i, j]
+        flags0[i, j] = flags[i, j]
+
+
+@wp.kernel(enable_backward=False)
+def advance_phase(phase: wp.array(dtype=wp.int32), period: int, step: int):
+    """The next frame's rows of the rolling re-solve (dim 1; on the device, so a captured graph advances it):
+    ``step`` 1 forward, ``period - 1`` back (a rejected frame's advance undone)."""
+    phase[0] = (phase[0] + step) % period
 
 
 @wp.kernel(enable_backward=False)

@@ -144,7 +144,11 @@ class StreamConfig:
         material_trim: fraction of the largest squared sample residuals left out
             of a candidate's energy (RON's).
         material_tol: the search settles when its steps in every log parameter
-            are below this (0.01: 1 %).
+            are below this (1e-3: 0.1 %, the tolerance of RON's later material
+            fits, ``gpps.flows.ron._XATOL``).  The normals follow the material
+            closely: 64^2 Cook-Torrance bumps, 24 frames, a settled estimate 0.3 %
+            off the truth gave 0.056 deg MAEN where the offline reconstruct, 0.03 %
+            off, gave 0.023; with 1e-3 the stream's estimate is within 0.01 %.
         dgmc: full mode, first frame: DGMC start normals (4.16-4.18) on the
             highlight pixels (:class:`gpps.pipeline.dgmc.DeviceDGMC`), one warm
             solve from them, the lower residual kept per pixel.
@@ -159,7 +163,20 @@ class StreamConfig:
             known: 0.16 deg at the cold first frame, 0.4-0.6 deg later without it.
             Cost: at most ``redo_starts * redo_iterations / (3 * refresh_rows)``
             warm solves a frame (the cold solves stop early on convergence).
-            0 (default): off, known mode's cost stays as it is.
+            0 (default): off (``retry_rows`` re-solves the misfits alone).
+        retry_rows: the rolling cold re-solve of misfits: on every warm frame the
+            pixels of the mask rows ``i = frame (mod retry_rows)`` whose residual
+            exceeds the jump test's level (``jump_factor`` times the running mean
+            residual, and 0.1 % of the mean grey value) are solved again cold and
+            keep that solution where its residual is lower (frames where
+            ``refresh_rows`` or the full mode's sweep re-solve whole rows do not
+            run it).  The jump test re-solves a pixel only when its residual
+            *rises*; a pixel that a warm start carried into a wrong basin and that
+            stays there (a moving object's highlights, a frame solved under a
+            search's early material) keeps a high residual and is never re-solved
+            by it.  Moving 64^2 Cook-Torrance bumps (a pixel a frame, CPU), known
+            material: 0.048 deg MAEN without it, 0.027 with it.  Cost: the
+            misfits' cold solves, a ``retry_rows``-th of them a frame.  0: off.
         sweep_rows: full mode: after each change of the estimated material the
             rolling cold re-solve runs with period ``sweep_rows`` (whatever
             ``refresh_rows`` is) until ``sweep_rows`` frames have passed without a
@@ -173,13 +190,13 @@ class StreamConfig:
         neighbour_radius: the warm frames' second pass for pixels with fewer
             than 3 usable observations (their albedo from the nearest
             well-determined pixels, :attr:`gpps.SolverConfig.neighbour_radius`):
-            None: the solver's default (32 pixels) in full mode, off (0) in known
-            mode.  In full mode the first frames solve such pixels (a clipped
-            highlight leaves many with 2 usable observations) under the grid's
-            material and warm starts keep that basin: 64^2 Cook-Torrance bumps,
-            24 frames, 2.0 deg on those pixels without the pass, 0.012 with it
-            (CPU).  Known mode solves them right from its first, cold frame (which
-            has the pass); its speed was measured without it.
+            None: the solver's default (32 pixels).  A clipped highlight leaves
+            many pixels with 2 usable observations; a warm solve of one without
+            the pass moves its normal along its curve of exact fits: moving 64^2
+            Cook-Torrance bumps (a pixel a frame, CPU), material known, 2.2 deg
+            MAEN on those pixels without it and 0.010 with it (the jump test's and
+            the retries' cold re-solves run the pass too, on the re-solved pixels,
+            their neighbours read from the whole mask).  0: off.
     """
 
     solver: StreamSolver = "lm"
@@ -211,9 +228,10 @@ class StreamConfig:
     material_candidates: int = 25
     material_starts: int = 4
     material_trim: float = 0.02
-    material_tol: float = 0.01
+    material_tol: float = 1e-3
     dgmc: bool = True
     refresh_rows: int = 0
+    retry_rows: int = 8
     sweep_rows: int = 8
     neighbour_radius: int | None = None
 
@@ -255,6 +273,7 @@ class StreamConfig:
         check_number("material_tol", self.material_tol, lo=0.0, lo_open=True)
         check_bool("dgmc", self.dgmc)
         check_number("refresh_rows", self.refresh_rows, lo=0, integer=True)
+        check_number("retry_rows", self.retry_rows, lo=0, integer=True)
         check_number("sweep_rows", self.sweep_rows, lo=0, integer=True)
         if self.neighbour_radius is not None:
             check_number("neighbour_radius", self.neighbour_radius, lo=0, hi=256, integer=True)
@@ -368,7 +387,7 @@ class Stream(Stage):
             lights.positions, axes=getattr(lights, "axes", None), mu=getattr(lights, "mu", None))
         radius = cfg.neighbour_radius
         if radius is None:
-            radius = SolverConfig().neighbour_radius if cfg.material == "estimate" else 0
+            radius = SolverConfig().neighbour_radius
         self._warm_cfg = SolverConfig(solver=cfg.solver, max_iters=cfg.iterations, starts=1, warm_start=True,
                                       early_exit=False, neighbour_radius=int(radius))
         self._cold_cfg = SolverConfig(solver=cfg.solver, max_iters=cfg.first_iterations, starts=cfg.first_starts)
@@ -420,6 +439,7 @@ class Stream(Stage):
         self._kept_res = wp.zeros((h, w), dtype=wp.float32, device=d)
         self._mask_n = float(self.mask.sum())
         self._levels: dict | None = None  # running lit share, saturated share, noise ratio, residual
+        self._reset_residual = False  # the material changed: the next accepted frame sets the residual level
         self._cmds: dict = {}
         # full mode: the material search (None with a known material: nothing of it runs)
         self.estimator = None
@@ -435,7 +455,7 @@ class Stream(Stage):
         self._refresh = int(cfg.refresh_rows)  # the period of the rolling cold re-solve on this frame (0: none)
         self._sweep_left = 0  # full mode: frames the re-solve still runs with period sweep_rows
         self._sweeping = False  # this frame's re-solve is the sweep's (under-determined pixels take it)
-        if cfg.refresh_rows or (self.estimator is not None and cfg.sweep_rows):
+        if cfg.refresh_rows or cfg.retry_rows or (self.estimator is not None and cfg.sweep_rows):
             # the rolling cold re-solve: this frame's rows, its phase, the warm solution it competes with
             self._refresh_mask = wp.zeros((h, w), dtype=wp.uint8, device=d)
             self._phase = wp.zeros(1, dtype=wp.int32, device=d)
@@ -553,26 +573,31 @@ class Stream(Stage):
             if warm:  # pixels whose warm start failed (scene change, bad start): cold, multi-start, in this frame
                 self._cmd("jumps").launch()
                 self.solver.step_subset(self._redo, self._redo_cfg)
-        if warm and self._refresh:
+        if warm and (self._refresh or self.config.retry_rows):
             self._launch_refresh()
         if check:
             self._cmd("residual").launch()
 
     def _launch_refresh(self):
-        """This frame's rows of the rolling cold re-solve (``config.refresh_rows``), the lower residual kept
-        per pixel; the phase advances on the device (graph-capturable)."""
+        """This frame's rows of the rolling cold re-solve, the lower residual kept per pixel; the phase advances
+        on the device (graph-capturable).  Every pixel of the rows with period ``refresh_rows`` (or the full
+        mode's sweep); otherwise only the rows' misfits (residual above the jump test's level), period
+        ``retry_rows``."""
         wp = warp()
         s, d = self.solver, self.device
         saved = self._saved
-        for dst, src in zip(saved, (s.normals, s.albedo, s.residual, s.flags)):
-            wp.copy(dst, src)
-        wp.launch(self._ks.refresh_rows, dim=self.shape, inputs=[s.mask, self._phase, self._refresh],
+        period = self._refresh or self.config.retry_rows
+        misfits = int(not self._refresh)
+        wp.launch(self._ks.refresh_rows, dim=self.shape,
+                  inputs=[s.mask, self._phase, period, s.residual, self._level, misfits],
                   outputs=[self._refresh_mask], device=d)
+        wp.launch(self._ks.save_rows, dim=self.shape,
+                  inputs=[self._refresh_mask, s.normals, s.albedo, s.residual, s.flags], outputs=list(saved), device=d)
         s.step_subset(self._refresh_mask, self._redo_cfg)
         wp.launch(self._ks.keep_better, dim=self.shape,
                   inputs=[self._refresh_mask, *saved, int(FLAG_FEW_OBSERVATIONS), int(self._sweeping)],
                   outputs=[s.normals, s.albedo, s.residual, s.flags], device=d)
-        wp.launch(self._ks.advance_phase, dim=1, inputs=[self._phase, self._refresh], device=d)
+        wp.launch(self._ks.advance_phase, dim=1, inputs=[self._phase, period, 1], device=d)
 
     def _cmd(self, name, key=None):
         """The recorded launch of a check kernel (arguments packed once; the buffers never change)."""
@@ -638,6 +663,9 @@ class Stream(Stage):
         else:
             for k in self._levels:
                 self._levels[k] = 0.9 * self._levels[k] + 0.1 * got[k]
+            if self._reset_residual:
+                self._levels["residual"] = got["residual"]
+        self._reset_residual = False
         # re-solve a warm pixel cold when its residual jumps above jump_factor x its own last residual and
         # x the running mean residual (and 0.1 % of the mean signal: noiseless renders fit to ~1e-6, where
         # quantisation alone would trip it)
@@ -690,6 +718,10 @@ class Stream(Stage):
             except _BadFrame:
                 if not cold:  # the next frame warm-starts from the last accepted one
                     wp.copy(self.solver.normals, self._kept)
+                    period = self._refresh or cfg.retry_rows
+                    if period:  # and re-solves the rows this one would have had
+                        wp.launch(self._ks.advance_phase, dim=1, inputs=[self._phase, period, period - 1],
+                                  device=self.device)
                 elif est is not None:  # the first frame's grid scores are not trusted: start the search over
                     est.reset()
                     self._set_material(est.material)
@@ -733,6 +765,10 @@ class Stream(Stage):
         self._warm_frames = 0
         self.stats["material_changes"] += 1
         self._sweep_left = self.config.sweep_rows
+        # residuals under the old material are no level for the new one's: the next accepted frame sets it
+        # again (kept, it held the jump test's and the misfit retry's threshold above the misfits a search's
+        # early, wrong materials left: 64^2 moving bumps stayed at 0.3 deg against 0.03 with a known material)
+        self._reset_residual = True
 
     def _first_full(self, key, slot) -> None:
         """The first frame in full mode (it is a cold one already: its extra waits do not touch later frames).
