@@ -50,6 +50,7 @@ class SolverParams:
     shadow_relative: wp.float32
     saturation: wp.float32
     warm_start: wp.int32
+    warm_albedo: wp.int32  # 1: a warm-started pixel with fewer than 3 lit observations holds its albedo buffer's value
     grey_albedo: wp.int32
     cond_threshold: wp.float32
     early_exit: wp.int32

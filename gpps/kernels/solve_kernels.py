@@ -233,6 +233,7 @@ def prelude_for(module, sfx: str, lanes: bool = False):
         nb: int,
         weights: wp.array3d(dtype=wp.float32),
         normals: wp.array2d(dtype=wp.vec3),
+        albedo: wp.array2d(dtype=wp.vec3),
         cond: wp.array2d(dtype=wp.float32),
     ):
         nl_ = lights.count
@@ -281,6 +282,15 @@ def prelude_for(module, sfx: str, lanes: bool = False):
             ninit, kdw = least_squares_start(images, weights, px, lights, use_all, warm_ok)
         if warm_ok != 0:
             ninit = wp.normalize(nw)
+            if prm.warm_albedo != 0 and (flag & FLAG_FEW_OBSERVATIONS) != 0:
+                # fewer than 3 lit observations leave the albedo free along a curve of exact fits: a warm
+                # start (a stream's frame) holds the albedo it had, which the neighbour pass of a cold solve
+                # gave it (or its own fit while it had 3 observations); read before this pixel's store
+                kd0 = albedo[i, j]
+                if kd0[0] > 0.0 and kd0[1] > 0.0 and kd0[2] > 0.0:
+                    px.fix_kd = 1
+                    px.kd = kd0
+                    flag = flag | FLAG_ALBEDO_FROM_NEIGHBOURS
         return px, ninit, kdw, flag, use_all, gmax
 
     return pixel_prelude
@@ -364,7 +374,7 @@ def solve_kernel_for(method, solve_pixel, module, sfx: str, lanes: bool = False)
                 weights[k, i, j] = 0.0
             return
         px, ninit, kdw, flag, use_all, gmax = prelude(images, valid, depth, noise, cam, lights, prm, i, j, lane, nb,
-                                                      weights, normals, cond)
+                                                      weights, normals, albedo, cond)
         if wp.static(method == "none"):
             store_least_squares(ninit, kdw, flag, use_all, images, weights, px, lights, normals, albedo, residual, iterations, flags)
         else:

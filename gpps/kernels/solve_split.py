@@ -67,7 +67,7 @@ def split_kernels_for(prelude, one_start, finish_pixel, module, sfx: str):
                 weights[k, i, j] = 0.0
             return
         px, ninit, kdw, flag, use_all, gmax = prelude(images, valid, depth, noise, cam, lights, prm, i, j, 0, 1,
-                                                      weights, normals, cond)
+                                                      weights, normals, albedo, cond)
         ninit_buf[i, j] = ninit
         gmax_buf[i, j] = gmax
         flag_buf[i, j] = flag

@@ -207,11 +207,13 @@ class SolverConfig:
     parallel: ParallelName = "auto"
     split_starts: bool | None = None
     shadow_relative: float = 0.0
+    warm_albedo: bool = False
 
     def __post_init__(self):
         check_choices(self)
         check_bool("early_exit", self.early_exit)
         check_bool("warm_start", self.warm_start)
+        check_bool("warm_albedo", self.warm_albedo)
         check_number("max_iters", self.max_iters, lo=1, integer=True)
         check_number("starts", self.starts, lo=1, integer=True)
         check_number("irls_rounds", self.irls_rounds, lo=0, integer=True)
@@ -435,6 +437,7 @@ def solver_params(c: SolverConfig):
     p.shadow_relative = float(c.shadow_relative)
     p.saturation = float(c.saturation) if c.saturation is not None else 0.0
     p.warm_start = int(bool(c.warm_start))
+    p.warm_albedo = int(bool(c.warm_albedo))
     p.grey_albedo = int(c.albedo == "grey")
     p.cond_threshold = float(c.cond_threshold)
     p.early_exit = int(bool(c.early_exit))

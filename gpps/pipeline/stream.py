@@ -187,16 +187,18 @@ class StreamConfig:
             under-determined pixel (fewer than 3 usable observations, e.g. one
             clipped) takes the sweep's solve: its residual cannot rank the two.
             0: off.
-        neighbour_radius: the warm frames' second pass for pixels with fewer
-            than 3 usable observations (their albedo from the nearest
-            well-determined pixels, :attr:`gpps.SolverConfig.neighbour_radius`):
-            None: the solver's default (32 pixels).  A clipped highlight leaves
-            many pixels with 2 usable observations; a warm solve of one without
-            the pass moves its normal along its curve of exact fits: moving 64^2
-            Cook-Torrance bumps (a pixel a frame, CPU), material known, 2.2 deg
-            MAEN on those pixels without it and 0.010 with it (the jump test's and
-            the retries' cold re-solves run the pass too, on the re-solved pixels,
-            their neighbours read from the whole mask).  0: off.
+        neighbour_radius: pixels with fewer than 3 usable observations (a clipped
+            highlight leaves many with 2) cannot fix normal and albedo together.
+            The cold solves (the first frame, the re-solves of jumps, the retries
+            and the sweeps) give them the albedo of the nearest well-determined
+            pixels (:attr:`gpps.SolverConfig.neighbour_radius`, read from the
+            whole mask); the warm frames hold the albedo such a pixel has
+            (:attr:`gpps.SolverConfig.warm_albedo`), one read where the neighbour
+            pass searches rings of pixels (at 1024^2 the pass cost 96 ms a frame).
+            Without either a warm solve moves the normal along its curve of exact
+            fits: moving 64^2 Cook-Torrance bumps (a pixel a frame, CPU), material
+            known, 2.2 deg MAEN on those pixels.  None: the solver's default (32
+            pixels); 0: off (free albedo, as above).
     """
 
     solver: StreamSolver = "lm"
@@ -388,10 +390,15 @@ class Stream(Stage):
         radius = cfg.neighbour_radius
         if radius is None:
             radius = SolverConfig().neighbour_radius
+        # warm frames hold an under-determined pixel's albedo (warm_albedo: one read, where the neighbour pass
+        # searches rings of pixels, 96 ms a frame at 1024^2); the cold solves (first frame, re-solves of jumps,
+        # retries and sweeps) run the neighbour pass, which gives it
         self._warm_cfg = SolverConfig(solver=cfg.solver, max_iters=cfg.iterations, starts=1, warm_start=True,
-                                      early_exit=False, neighbour_radius=int(radius))
-        self._cold_cfg = SolverConfig(solver=cfg.solver, max_iters=cfg.first_iterations, starts=cfg.first_starts)
-        self._redo_cfg = SolverConfig(solver=cfg.solver, max_iters=cfg.redo_iterations, starts=cfg.redo_starts)
+                                      early_exit=False, neighbour_radius=0, warm_albedo=bool(radius))
+        self._cold_cfg = SolverConfig(solver=cfg.solver, max_iters=cfg.first_iterations, starts=cfg.first_starts,
+                                      neighbour_radius=int(radius))
+        self._redo_cfg = SolverConfig(solver=cfg.solver, max_iters=cfg.redo_iterations, starts=cfg.redo_starts,
+                                      neighbour_radius=int(radius))
         self.solver = PixelSolver((n, h, w), camera, unit, material, self._cold_cfg, device=self.device)
         d = self.device
         self._gain = {}
@@ -436,6 +443,7 @@ class Stream(Stage):
         self._level = wp.zeros(1, dtype=wp.float32, device=d)
         self._redo = wp.zeros((h, w), dtype=wp.uint8, device=d)
         self._kept = wp.zeros((h, w), dtype=wp.vec3, device=d)
+        self._kept_albedo = wp.zeros((h, w), dtype=wp.vec3, device=d)
         self._kept_res = wp.zeros((h, w), dtype=wp.float32, device=d)
         self._mask_n = float(self.mask.sum())
         self._levels: dict | None = None  # running lit share, saturated share, noise ratio, residual
@@ -718,6 +726,7 @@ class Stream(Stage):
             except _BadFrame:
                 if not cold:  # the next frame warm-starts from the last accepted one
                     wp.copy(self.solver.normals, self._kept)
+                    wp.copy(self.solver.albedo, self._kept_albedo)
                     period = self._refresh or cfg.retry_rows
                     if period:  # and re-solves the rows this one would have had
                         wp.launch(self._ks.advance_phase, dim=1, inputs=[self._phase, period, period - 1],
@@ -743,6 +752,7 @@ class Stream(Stage):
                 wp.copy(self.solver.depth, self.depth)
         if cfg.check:
             wp.copy(self._kept, self.solver.normals)
+            wp.copy(self._kept_albedo, self.solver.albedo)
             wp.copy(self._kept_res, self.solver.residual)
             self._accept(checks)
         if score:  # after the frame's synchronisation: one step of the material search (step 4)
