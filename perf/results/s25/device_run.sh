@@ -10,7 +10,7 @@ if [ "$what" = tests ]; then
   timeout 400 python -m pytest -q -p no:cacheprovider tests/test_stream_retry.py tests/test_stream_full.py \
     tests/test_stream_recovery.py 2>&1 | tail -25 > "$out/cuda_tests_stream_s25.txt"
   tail -4 "$out/cuda_tests_stream_s25.txt"
-  timeout 150 python -m pytest -q -p no:cacheprovider tests/test_stream.py -k "convert or matches_batch or persistent" \
+  timeout 200 python -m pytest -q -p no:cacheprovider tests/test_stream.py -k "convert or matches_batch or persistent" \
     2>&1 | tail -15 > "$out/cuda_tests_stream_py_s25.txt"
   tail -4 "$out/cuda_tests_stream_py_s25.txt"
 fi
@@ -19,6 +19,10 @@ if [ "$what" = stream ]; then
   cp perf/results/stream_full_NVIDIA_H200.json "$out/" 2>/dev/null
   timeout 200 python perf/bench.py --device cuda:0 --sizes 1024 --repeat 20 2>&1 | filter | tail -30 > "$out/bench_1024_log.txt"
   tail -12 "$out/bench_1024_log.txt"; cp perf/results/bench_NVIDIA_H200.json "$out/" 2>/dev/null
+fi
+if [ "$what" = solver ]; then
+  timeout 400 python -m pytest -q -p no:cacheprovider tests/test_solver_lanes.py tests/test_solvers.py -x 2>&1 | tail -15 > "$out/cuda_tests_solver_s25.txt"
+  tail -4 "$out/cuda_tests_solver_s25.txt"
 fi
 if [ "$what" = more ]; then
   timeout 560 python -m pytest -q -p no:cacheprovider tests/test_clipping.py tests/test_integration_fused.py \
