@@ -20,6 +20,12 @@ if [ "$what" = stream ]; then
   timeout 200 python perf/bench.py --device cuda:0 --sizes 1024 --repeat 20 2>&1 | filter | tail -30 > "$out/bench_1024_log.txt"
   tail -12 "$out/bench_1024_log.txt"; cp perf/results/bench_NVIDIA_H200.json "$out/" 2>/dev/null
 fi
+if [ "$what" = known ]; then
+  timeout 200 python perf/stream_known_ablation.py --size 1024 --frames 60 --blocks 3 --device cuda:0 --out "$out/stream_known_ablation_1024_H200.json" 2>&1 | filter | tail -5
+  timeout 330 python -m pytest -q -p no:cacheprovider tests/test_stream_retry.py tests/test_stream_full.py \
+    tests/test_stream_recovery.py 2>&1 | tail -25 > "$out/cuda_tests_stream_s25.txt"
+  tail -4 "$out/cuda_tests_stream_s25.txt"
+fi
 if [ "$what" = solver ]; then
   timeout 400 python -m pytest -q -p no:cacheprovider tests/test_solver_lanes.py tests/test_solvers.py -x 2>&1 | tail -15 > "$out/cuda_tests_solver_s25.txt"
   tail -4 "$out/cuda_tests_solver_s25.txt"
