@@ -89,10 +89,16 @@ def main(argv=None):
     ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE",
                     help="StreamConfig fields for both modes (an ablation), e.g. material_tol=0.01")
     a = ap.parse_args(argv)
-    over = {}
+    over, base = {}, StreamConfig()
     for kv in a.set:
         k, _, v = kv.partition("=")
-        over[k] = type(getattr(StreamConfig(), k))(v) if getattr(StreamConfig(), k) is not None else int(v)
+        if not hasattr(base, k):
+            ap.error(f"--set: StreamConfig has no field {k!r}")
+        old = getattr(base, k)
+        if isinstance(old, bool):
+            over[k] = v.lower() in ("1", "true", "yes")
+        else:
+            over[k] = int(v) if old is None else type(old)(v)
     wp = warp()
     device = resolve_device(a.device)
     log = lambda s: print(s, flush=True)  # noqa: E731

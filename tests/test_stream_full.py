@@ -168,10 +168,11 @@ def test_full_mode_estimates_the_material_and_approaches_offline(device):
     (``StreamConfig.saturation``, 1.0: the camera's full scale) and the offline reconstruct (float frames: the
     clipping plateaus of :mod:`gpps.host.clipping`) leave those observations out.  Measured on the CPU (64^2,
     32 frames, a pixel every 4): offline ks 0.8003, roughness 0.2000, MAEN 0.015 / 0.023 deg (a few pixels in a
-    wrong basin); stream ks 0.79999, roughness 0.20000, MAEN 0.0017 at both frames.  What it took (each
-    measured on this scene): leaving the clipped values out (offline 1.26 -> 0.015 deg, stream 1.71 -> 0.22);
-    the warm frames' neighbour pass for the pixels a clip leaves with 2 usable observations (2.0 deg there ->
-    0.012); ``material_tol`` 1e-3 (a 0.3 % error in the settled estimate gave 0.056 deg)."""
+    wrong basin); stream ks 0.79999, roughness 0.20000, MAEN 0.0011 at both frames (0.0076 on a frame just after
+    a move).  What it took (each measured on this scene): leaving the clipped values out (offline 1.26 -> 0.015
+    deg, stream 1.71 -> 0.22); the pixels a clip leaves with 2 usable observations held to an albedo (the
+    neighbour pass in the cold solves, the held albedo in the warm ones: 2.0 deg there -> 0.012);
+    ``material_tol`` 1e-3 (a 0.3 % error in the settled estimate gave 0.056 deg)."""
     import gpps
     from gpps.lights import DirectionalLights
     from gpps.material import Material

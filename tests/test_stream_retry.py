@@ -1,6 +1,6 @@
 """A moving object in the stream: the cold re-solves inside a frame hold under-determined pixels to their
-neighbours' albedo, warm solves to the albedo they had, misfits a warm start kept in a wrong basin get a rolling cold retry, and the stream's
-accuracy on a moving scene with a known material stays near the cold solve's.
+neighbours' albedo, warm solves to the albedo they had, misfits a warm start kept in a wrong basin get a rolling
+cold retry, and the stream's accuracy on a moving scene with a known material stays near the cold solve's.
 
 References: the row/misfit selection and the save against numpy; the subset re-solve against the whole-frame
 solve of the same pixels (bit for bit); the stream's MAEN against the scene's true normals.
