@@ -251,6 +251,14 @@ def test_full_mode_bad_frames_and_config(device):
                config=StreamConfig(material="estimate", material_candidates=9))
     with pytest.raises(ValueError, match="refresh_rows"):
         StreamConfig(refresh_rows=-1)
+    with pytest.raises(ValueError, match="retry_rows"):
+        StreamConfig(retry_rows=-1)
+    with pytest.raises(TypeError, match="retry_rows"):
+        StreamConfig(retry_rows=1.5)
+    from gpps.pipeline.solver import SolverConfig
+
+    with pytest.raises(TypeError, match="warm_albedo"):
+        SolverConfig(warm_albedo="yes")
     del default_lights
 
 
@@ -262,7 +270,8 @@ def test_known_mode_does_no_material_work(device):
     sc, L, frames, truth, mask = _moving(size=32, shifts=(0, 1))
     mat = Material(**TRUE)
     st = Stream(mask.shape, sc.camera, L, mat, mask=mask, config=StreamConfig(output="numpy"), device=device)
-    assert st.estimator is None and st._refresh == 0
+    assert st.estimator is None and st._refresh == 0  # (no whole-row re-solve: only the misfit retries)
+    assert st._retry == StreamConfig().retry_rows
     out = list(st.iterate(frames))
     assert all(r.ok and r.material is mat for r in out)
     assert "material_batches" not in st.stats
