@@ -287,7 +287,7 @@ def prelude_for(module, sfx: str, lanes: bool = False):
                 # start (a stream's frame) holds the albedo it had, which the neighbour pass of a cold solve
                 # gave it (or its own fit while it had 3 observations); read before this pixel's store
                 kd0 = albedo[i, j]
-                if kd0[0] > 0.0 and kd0[1] > 0.0 and kd0[2] > 0.0:
+                if wp.length(kd0) > 0.0:  # (zeros: no albedo yet; one channel may be 0, e.g. a pure red)
                     px.fix_kd = 1
                     px.kd = kd0
                     flag = flag | FLAG_ALBEDO_FROM_NEIGHBOURS

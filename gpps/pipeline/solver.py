@@ -135,6 +135,13 @@ class SolverConfig:
             ones as the one-sided terms of ``lit_sigmas``.
         warm_start: start from the normals passed to :meth:`PixelSolver.upload`
             (one start per pixel) instead of the least-squares solution.
+        warm_albedo: with ``warm_start``, a pixel with fewer than 3 lit
+            observations holds the albedo its ``albedo`` buffer has (the last
+            solve's: a stream's previous frame) instead of fitting it, and is
+            flagged ``FLAG_ALBEDO_FROM_NEIGHBOURS``; two observations cannot fix
+            normal and albedo together, and the neighbour pass that gives such a
+            pixel an albedo searches rings of pixels (one read here).  A pixel
+            whose buffer holds no albedo yet (zeros) fits it as before.
         lm_tau: initial LM damping ``tau * max(diag J^T J)`` (Algorithm 4).
         dogleg_radius: initial trust radius of the dog leg (radians).
         smoothness: weight of a first-order smoothness term
