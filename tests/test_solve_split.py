@@ -54,3 +54,44 @@ def test_split_starts_choice(device):
             assert s._uses_split() is want, cfg  # noqa: SLF001
     with pytest.raises(TypeError, match="split_starts"):
         SolverConfig(split_starts="yes")
+
+
+@pytest.mark.parametrize("irls", [0, 2])
+def test_split_starts_subset_resolve_equals_one_kernel(irls, device):
+    """``step_subset`` with a cold multi-start config runs the starts-parallel kernels (the stream's jump
+    re-solves and misfit retries: a few scattered pixels whose one-thread solve of 10 starts set the launch's
+    time); it equals the one-kernel subset solve (bitwise on the CPU) and leaves the other pixels alone."""
+    import warp as wp
+
+    img, lights, sc, mat = make_case("bumps", 40, "perspective", "directional", "cook-torrance", noise=0.01,
+                                     device=device)
+    m = sc.mask
+    rng = np.random.default_rng(3)
+    sub = m & (rng.random(m.shape) < 0.05)
+    base = replace(SolverConfig(), robust="cauchy", irls_rounds=irls)
+    out = {}
+    for split in (False, True):
+        with PixelSolver(img.shape[:3], sc.camera, lights, mat, replace(base, split_starts=False),
+                         device=device) as s:
+            first = s.run(img, m)
+            s.normals.assign(np.where(sub[..., None], 0.0, first["normals"]).astype(np.float32))  # spoilt
+            sub_dev = wp.array(sub.astype(np.uint8), device=device)
+            cfg = replace(base, starts=10, max_iters=50, split_starts=split)
+            assert s._uses_split(cfg) is split  # noqa: SLF001
+            s.step_subset(sub_dev, cfg)
+            out[split] = s.fetch()
+        for k in ("normals", "albedo", "residual", "flags"):  # outside the subset: untouched
+            np.testing.assert_array_equal(out[split][k][~sub], first[k][~sub], err_msg=k)
+        # re-solved: the cold solve's answer, not the spoilt start's
+        assert np.all(np.abs(np.linalg.norm(out[split]["normals"][sub], axis=-1) - 1.0) < 1e-4)
+    a, b = out[False], out[True]
+    if device.startswith("cuda"):  # another module's rounding (test_split_starts_equal_one_kernel)
+        keep = ~np.int32(FLAG_NOT_CONVERGED)
+        assert np.array_equal(a["flags"][sub] & keep, b["flags"][sub] & keep)
+        ra, rb = a["residual"][sub].astype(np.float64), b["residual"][sub].astype(np.float64)
+        assert abs(np.mean(ra ** 2) - np.mean(rb ** 2)) <= 1e-3 * np.mean(ra ** 2) + 1e-12
+        cos = np.clip(np.sum(a["normals"][sub] * b["normals"][sub], -1), -1.0, 1.0)
+        assert np.median(np.degrees(np.arccos(cos))) < 1e-3
+    else:
+        for k in a:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)

@@ -44,6 +44,7 @@ from gpps.names import (
     LIGHT_LANES,
     ROBUST_NAMES,
     SOLVER_NAMES,
+    SUBSET_BLOCKS_PER_SM,
     ParallelName,
     RobustName,
     SolverName,
@@ -724,11 +725,16 @@ class PixelSolver(Stage):
             raise TypeError(f"mask: expected an (H, W) uint8 device array, got {type(mask).__name__}")
         if tuple(mask.shape) != tuple(self.shape[1:]):
             raise ValueError(f"mask: expected shape {self.shape[1:]}, got {tuple(mask.shape)}")
-        self._recorded(("subset", id(mask), config), self._solve_kernel,
-                       [self.images, mask, self.valid, self.depth, self.noise, self.cam, self.lp, self.mp,
-                        self._params_for(config)],
-                       [self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags,
-                        self.cond]).launch()
+        ins = [self.images, mask, self.valid, self.depth, self.noise, self.cam, self.lp, self.mp]
+        outs = [self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags, self.cond]
+        if self._uses_split(config):
+            # a cold multi-start re-solve of a few scattered pixels: a launch costs its slowest thread, and one
+            # thread running 10 starts of up to 50 iterations each was 0.74 ms of a 2.19 ms stream frame on an
+            # H200 at 1024^2 (the misfit retries, ~70 pixels a frame: perf/stream_frame_split.py)
+            self._launch_split(ins, outs, config, ("subset", id(mask)))
+        else:
+            self._recorded(("subset", id(mask), config), self._solve_kernel, ins + [self._params_for(config)],
+                           outs, **self._subset_blocks()).launch()
         if config.neighbour_radius > 0 and self._underdetermined_kernel is not None:
             # the subset's under-determined pixels take their albedo from the object's determined pixels
             # around them (the solver's mask), not from the subset: without it a cold re-solve of a pixel
@@ -738,9 +744,17 @@ class PixelSolver(Stage):
                             self._params_for(config), int(config.neighbour_radius),
                             int(self._sk.NEIGHBOUR_MIN_COUNT)],
                            [self.weights, self.normals, self.albedo, self.residual, self.iterations,
-                            self.flags]).launch()
+                            self.flags], **self._subset_blocks()).launch()
 
-    def _recorded(self, key, kernel, inputs, outputs, dim=None, block_dim=None):
+    def _subset_blocks(self) -> dict:
+        """``wp.launch`` keywords of a subset re-solve's launches: on CUDA a grid of
+        :data:`gpps.names.SUBSET_BLOCKS_PER_SM` blocks an SM striding over the pixels (few of them in the
+        subset), elsewhere none."""
+        if not self.device.startswith("cuda"):
+            return {}
+        return {"max_blocks": int(SUBSET_BLOCKS_PER_SM * warp().get_device(self.device).sm_count)}
+
+    def _recorded(self, key, kernel, inputs, outputs, dim=None, block_dim=None, max_blocks=0):
         """A recorded launch (``wp.launch(..., record_cmd=True)``) of ``kernel`` over the pixels (or ``dim``),
         kept per ``key`` until the config or material changes: the arguments are packed once (a plain CPU
         launch re-packs its struct arguments every time, and Warp keeps a cache entry per packing: memory
@@ -749,6 +763,8 @@ class PixelSolver(Stage):
         cmd = cmds.get(key)
         if cmd is None:
             extra = {} if block_dim is None else {"block_dim": int(block_dim)}
+            if max_blocks:
+                extra["max_blocks"] = int(max_blocks)
             cmd = warp().launch(kernel, dim=self.shape[1:] if dim is None else dim, inputs=inputs, outputs=outputs,
                                 device=self.device, record_cmd=True, **extra)
             cmds[key] = cmd
@@ -799,43 +815,49 @@ class PixelSolver(Stage):
                 done = float(self._mask_rows[:bounds[min(w0 + threads, len(bounds)) - 1][1]].sum())
                 progress(done, total, f"normals: {int(done)}/{int(total)} pixels")
 
-    def _uses_split(self) -> bool:
-        """Whether the next whole-image solve runs the starts-parallel kernels (``config.split_starts``)."""
-        c = self.config
+    def _uses_split(self, config: SolverConfig | None = None) -> bool:
+        """Whether the next whole-image solve (or a :meth:`step_subset` with ``config``) runs the
+        starts-parallel kernels (``config.split_starts``)."""
+        c = self.config if config is None else config
         on = c.split_starts if c.split_starts is not None else self.device.startswith("cuda")
         return bool(on) and c.starts > 1 and not c.warm_start and c.solver != "none"
 
-    def _launch_split(self, ins, outs) -> None:
-        """The cold whole-image solve as :mod:`gpps.kernels.solve_split`'s three launches (recorded once per
-        config; the scratch of the starts, (H, W, S), from the buffer pool)."""
+    def _launch_split(self, ins, outs, config: SolverConfig | None = None, subset: tuple = ()) -> None:
+        """A cold solve as :mod:`gpps.kernels.solve_split`'s three launches (recorded once per config; the
+        scratch of the starts, (H, W, S), from the buffer pool, one set per start count).  The whole image
+        with the current config, or with ``config`` and ``subset`` (a key naming the subset mask that ``ins``
+        carries) a :meth:`step_subset` re-solve: pixels outside the subset keep their outputs."""
         wp = warp()
-        c = self.config
+        c = self.config if config is None else config
         n, h, w = self.shape
         ns = int(c.starts)
-        key = ("split", ns, c.solver, self.material.brdf, c.robust, c.irls_rounds)
+        key = ("split", ns, c.solver, self.material.brdf, c.robust, c.irls_rounds) + (
+            (subset, c) if config is not None else ())
         cmds = self.__dict__.setdefault("_cmds", {})
         if key not in cmds:
             robust = c.robust if c.irls_rounds > 0 else "none"
             pre, starts, finish = self._sk.get_split_kernels(c.solver, self.material.brdf, robust)
-            sc = self.__dict__.get("_split_scratch")
-            if sc is None or sc[3].shape[2] != ns:
+            scratch = self.__dict__.setdefault("_split_scratch", {})
+            sc = scratch.get(ns)
+            if sc is None:
                 d = self.device
                 sc = (self._buffer((h, w), wp.vec3, d), self._buffer((h, w), wp.float32, d),
                       self._buffer((h, w), wp.int32, d)) + tuple(
                     self._buffer((h, w, ns), dt, d) for dt in (wp.vec3, wp.vec3, wp.float32, wp.int32, wp.int32))
-                self._split_scratch = sc
+                scratch[ns] = sc
             images, mask, valid, depth, noise, cam, lp, mp = ins
             weights, normals, albedo, residual, iterations, flags, cond = outs
-            prm = self.prm
+            prm = self.prm if config is None else self._params_for(config)
+            cap = {} if config is None else self._subset_blocks()
             one = wp.launch(pre, dim=(h, w), inputs=[images, mask, valid, depth, noise, cam, lp, prm],
                             outputs=[weights, normals, albedo, residual, iterations, flags, cond, *sc[:3]],
-                            device=self.device, record_cmd=True)
+                            device=self.device, record_cmd=True, **cap)
             two = wp.launch(starts, dim=(h, w, ns), inputs=[images, mask, depth, cam, lp, mp, prm, weights, sc[0]],
-                            outputs=list(sc[3:]), device=self.device, record_cmd=True)
+                            outputs=list(sc[3:]), device=self.device, record_cmd=True, **cap)
             three = wp.launch(finish, dim=(h, w), inputs=[images, mask, depth, cam, lp, mp, prm, sc[0], sc[1], sc[2],
                                                          *sc[3:]],
                               outputs=[weights, normals, albedo, residual, iterations, flags], device=self.device,
-                              record_cmd=True)
+                              record_cmd=True, **cap)
             cmds[key] = (one, two, three)
         for cmd in cmds[key]:
             cmd.launch()
