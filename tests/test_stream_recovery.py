@@ -232,7 +232,7 @@ def test_frame_stats_kernel_matches_numpy(device, shape):
     redo = wp.zeros((h, w), dtype=wp.uint8, device=device)
     r_d, m_d = wp.array(res, device=device), wp.array(mask, dtype=wp.uint8, device=device)
     flags = rng.integers(0, 32, (h, w)).astype(np.int32)  # (FLAG_FEW_OBSERVATIONS = 2: left out of the sum)
-    wp.launch(ks.residual_sum, dim=(h, w), inputs=[r_d, m_d, wp.array(flags, dtype=wp.int32, device=device)],
+    wp.launch(ks.residual_sum, dim=(h, -(-w // ks.STAT_CHUNK)), inputs=[r_d, m_d, wp.array(flags, dtype=wp.int32, device=device)],
               outputs=[stats], device=device)
     wp.launch(ks.mark_jumps, dim=(h, w), inputs=[r_d, wp.array(prev, device=device), m_d,
                                                 wp.array([thr], dtype=wp.float32, device=device), factor],

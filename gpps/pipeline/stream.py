@@ -630,7 +630,7 @@ class Stream(Stage):
                             inputs=[self.solver.residual, self._kept_res, self.solver.mask, self._level,
                                     float(self.config.jump_factor)], outputs=[self._redo])
             else:
-                args = dict(kernel=ks.residual_sum, dim=self.shape,
+                args = dict(kernel=ks.residual_sum, dim=(self.shape[0], -(-self.shape[1] // ks.STAT_CHUNK)),
                             inputs=[self.solver.residual, self.solver.mask, self.solver.flags])
             args["outputs"] = [*args.get("outputs", []), self._fstats]
             cmd = wp.launch(**args, device=self.device, record_cmd=True)
