@@ -50,19 +50,24 @@ def test_refresh_rows_and_save_rows_match_numpy(device, misfits):
     thr = 0.6
     d = device
     rows = wp.zeros((h, w), dtype=wp.uint8, device=d)
+    # the residual each pixel kept after its last cold re-solve (0: none)
+    floor = np.where(rng.random((h, w)) < 0.5, 0.0, rng.random((h, w)) * 0.5).astype(np.float32)
+    floor_d = wp.array(floor, device=d)
     wp.launch(ks.refresh_rows, dim=(h, w),
               inputs=[wp.array(mask.astype(np.uint8), device=d), wp.array([phase], dtype=wp.int32, device=d), period,
-                      wp.array(residual, device=d), wp.array([thr], dtype=wp.float32, device=d), misfits],
+                      wp.array(residual, device=d), wp.array([thr], dtype=wp.float32, device=d), misfits, floor_d],
               outputs=[rows], device=d)
     want = mask & ((np.arange(h) % period) == phase % period)[:, None]
     if misfits:
-        want &= residual > thr
+        above = want & (residual > thr)
+        want = above & (residual > ks.RETRY_FLOOR_FACTOR * floor)
+        assert (above & ~want).any()  # a misfit held back by its floor
     np.testing.assert_array_equal(rows.numpy().astype(bool), want)
     assert want.any() and (misfits == 0 or (want != (mask & ((np.arange(h) % period) == 2)[:, None])).any())
     # a threshold not set yet (0) marks no misfit
     wp.launch(ks.refresh_rows, dim=(h, w),
               inputs=[wp.array(mask.astype(np.uint8), device=d), wp.array([phase], dtype=wp.int32, device=d), period,
-                      wp.array(residual, device=d), wp.zeros(1, dtype=wp.float32, device=d), misfits],
+                      wp.array(residual, device=d), wp.zeros(1, dtype=wp.float32, device=d), misfits, floor_d],
               outputs=[rows], device=d)
     assert rows.numpy().any() == (misfits == 0)
     # save_rows copies the marked pixels only
@@ -83,6 +88,76 @@ def test_refresh_rows_and_save_rows_match_numpy(device, misfits):
     assert ph.numpy()[0] == 0
     wp.launch(ks.advance_phase, dim=1, inputs=[ph, period, period - 1], device=d)
     assert ph.numpy()[0] == 3
+
+
+@pytest.mark.parametrize("take_few", [0, 1])
+def test_keep_better_matches_numpy(device, take_few):
+    """The lower residual wins on the marked pixels (an under-determined one only with ``take_few``); the floor
+    takes the kept residual there; nothing else changes."""
+    import warp as wp
+
+    from gpps.kernels import stream as ks
+
+    rng = np.random.default_rng(5)
+    h, w, few = 11, 14, int(FLAG_FEW_OBSERVATIONS)
+    rows = rng.random((h, w)) < 0.6
+    warm = [rng.normal(size=(h, w, 3)).astype(np.float32), rng.normal(size=(h, w, 3)).astype(np.float32),
+            rng.random((h, w)).astype(np.float32), rng.integers(0, 64, (h, w)).astype(np.int32)]
+    cold = [rng.normal(size=(h, w, 3)).astype(np.float32), rng.normal(size=(h, w, 3)).astype(np.float32),
+            rng.random((h, w)).astype(np.float32), rng.integers(0, 64, (h, w)).astype(np.int32)]
+    floor0 = np.full((h, w), 9.0, np.float32)
+    types = [wp.vec3, wp.vec3, wp.float32, wp.int32]
+    cur = [wp.array(a, dtype=t, device=device) for a, t in zip(cold, types)]
+    floor = wp.array(floor0, device=device)
+    wp.launch(ks.keep_better, dim=(h, w),
+              inputs=[wp.array(rows.astype(np.uint8), device=device),
+                      *[wp.array(a, dtype=t, device=device) for a, t in zip(warm, types)], few, take_few],
+              outputs=[*cur, floor], device=device)
+    cold_few = (cold[3] & few) != 0
+    better = (cold[2] < warm[2]) & ~cold_few
+    if take_few:
+        better |= cold_few
+    take_cold = ~rows | better
+    assert (rows & better).any() and (rows & ~better).any() and (rows & cold_few).any()
+    for a, b, c in zip(cold, warm, cur):
+        sel = take_cold if a.ndim == 2 else take_cold[..., None]
+        np.testing.assert_array_equal(c.numpy(), np.where(sel, a, b))
+    np.testing.assert_array_equal(floor.numpy(), np.where(rows, np.where(better, cold[2], warm[2]), floor0))
+
+
+def test_static_scene_misfits_are_not_retried_for_nothing(device):
+    """A misfit whose cold retry found nothing better is not solved again while its residual stays below
+    RETRY_FLOOR_FACTOR x the one it kept: on a static scene the retries stop after one period, where a stream
+    with no floor re-solves the same pixels every period, and the normals agree; a rejected frame clears the
+    floors (its residuals were of data that failed the check)."""
+    from gpps.pipeline.stream import Stream, StreamConfig
+
+    sc, L, mat, frames, truth, mask = _moving(size=96, positions=1, frames=1)
+    period = StreamConfig().retry_rows
+    runs = {}
+    for name in ("floor", "no floor"):
+        st = Stream(mask.shape, sc.camera, L, mat, mask=mask, config=StreamConfig(output="numpy"), device=device)
+        try:
+            counts = []
+            for _ in range(3 * period + 1):
+                r = st.run(frames[0])
+                assert r.ok, r.error
+                counts.append(int(st._refresh_mask.numpy().sum()))  # noqa: SLF001
+                if name == "no floor":
+                    st._floor.zero_()  # noqa: SLF001
+            runs[name] = (counts, r.normals)
+            if name == "floor":
+                assert st._floor.numpy()[mask].max() > 0  # noqa: SLF001
+                dark = np.zeros_like(frames[0])
+                assert not st.run(dark).ok
+                assert not st._floor.numpy().any()  # noqa: SLF001
+        finally:
+            st.close()
+    (c_floor, n_floor), (c_none, n_none) = runs["floor"], runs["no floor"]
+    assert sum(c_floor[1:period + 1]) > 0 and c_floor[1:period + 1] == c_none[1:period + 1]  # the first period
+    assert sum(c_floor[period + 1:]) == 0 and sum(c_none[period + 1:]) >= 2 * sum(c_none[1:period + 1]) > 0
+    dev = np.degrees(np.arccos(np.clip((n_floor * n_none).sum(-1), -1, 1)))[mask]
+    assert dev.max() < 0.1, dev.max()
 
 
 def test_subset_resolve_holds_underdetermined_pixels_to_their_neighbours(device):

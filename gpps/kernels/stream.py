@@ -84,8 +84,15 @@ def _grey(v: wp.vec3) -> float:
 
 STAT_CHUNK = 8  # pixels of a row per thread of frame_stats and residual_sum (local sums: one atomic per statistic
 # and thread); a thread's pixels lie ceil(W / STAT_CHUNK) columns apart, so a GPU warp's threads read neighbours
+# a misfit (refresh_rows) is retried again only when its residual exceeds this factor times the residual it kept
+# after its last cold re-solve.  The residual is an RMS: under noise alone its square is a chi-square of 4 degrees
+# of freedom (3 x 3 observations, 5 unknowns) times a constant, which exceeds 4 x its mean with probability 0.3 %,
+# so a pixel whose multi-start solve found nothing better is not solved again for the noise of the next frames,
+# while one that a warm start leaves in a wrong basin rises further.  (On a static scene the retries re-solved the
+# same ~70 misfits of 1M pixels every frame: 0.3 ms of a 1.9-2.5 ms frame on an H200, perf/stream_frame_split.py.)
+RETRY_FLOOR_FACTOR = 2.0
 HF_STEP_I = 2  # the noise statistic's sub-grid: every 2nd row ...
-HF_STEP_J = 4  # ... and every 4th column (1/8 of the pixels)
+HF_STEP_J = 4  # ... and every 4th column of a band (1/8 of the pixels; frame_stats)
 
 
 @wp.kernel(enable_backward=False)
@@ -109,7 +116,11 @@ def frame_stats(images: wp.array3d(dtype=wp.vec3), mask: wp.array2d(dtype=wp.uin
     0.43 (grey).  Pixels whose 3x3
     neighbourhood leaves the mask or is dark (mean grey below ``lit_level`` of
     full scale, in solver units) are left out, and it is taken on the sub-grid
-    of every ``HF_STEP_I``-th row and ``HF_STEP_J``-th column.  Each thread sums its pixels
+    of every ``HF_STEP_I``-th row and, in each band of ``ceil(W / STAT_CHUNK)`` columns, every
+    ``HF_STEP_J``-th column (offset by the band's index ``jj``: column ``j`` is sampled when
+    ``(jj + jc) % HF_STEP_J == 0``, ``jc`` its column in the band), so that each thread's pixels hold
+    ``STAT_CHUNK / HF_STEP_J`` samples: the stencil is the costly part, and a warp whose threads held 0 or 8
+    of them took 0.52 ms at 1024^2 on an H200 against 0.11 with 2 each.  Each thread sums its pixels
     locally and adds each statistic once (atomics spread over ``STAT_SLOTS`` rows).
 
     Args:
@@ -143,9 +154,10 @@ def frame_stats(images: wp.array3d(dtype=wp.vec3), mask: wp.array2d(dtype=wp.uin
                         n_sat += 1.0
                     mc += _grey(v)
                 grey += mc
-                # the noise statistic on a sub-grid (every HF_STEP_I-th row, HF_STEP_J-th column): a
-                # frame-level share needs no more samples, and the 3x3 ratio stencil is the costly part
-                interior = i >= 1 and j >= 1 and i < h - 1 and j < w - 1 and i % HF_STEP_I == 0 and j % HF_STEP_J == 0
+                # the noise statistic on a sub-grid (every HF_STEP_I-th row, HF_STEP_J-th column of a band):
+                # a frame-level share needs no more samples, and the 3x3 ratio stencil is the costly part
+                interior = (i >= 1 and j >= 1 and i < h - 1 and j < w - 1 and i % HF_STEP_I == 0
+                            and (jj + jc) % HF_STEP_J == 0)
                 if interior:
                     for di in range(-1, 2):
                         for dj in range(-1, 2):
@@ -242,17 +254,22 @@ def mark_jumps(residual: wp.array2d(dtype=wp.float32), previous: wp.array2d(dtyp
 @wp.kernel(enable_backward=False)
 def refresh_rows(mask: wp.array2d(dtype=wp.uint8), phase: wp.array(dtype=wp.int32), period: int,
                  residual: wp.array2d(dtype=wp.float32), threshold: wp.array(dtype=wp.float32), misfits: int,
-                 rows: wp.array2d(dtype=wp.uint8)):
+                 floor: wp.array2d(dtype=wp.float32), rows: wp.array2d(dtype=wp.uint8)):
     """rows[i, j] = 1 inside the mask on the rows ``i = phase[0] (mod period)``: this frame's share of the
     rolling cold re-solve (whole rows, so that a GPU warp's threads are all busy or all idle).
 
     ``misfits`` 1: only the pixels of those rows whose residual exceeds ``threshold[0]`` (the jump test's
-    running level; none before it is set), so that a pixel a warm start keeps in a wrong basin gets a cold
-    retry every ``period`` frames at the cost of the misfits alone."""
+    running level; none before it is set) and ``RETRY_FLOOR_FACTOR`` times ``floor`` (the residual the
+    pixel kept after its last cold re-solve, 0 for none: :func:`keep_better`), so that a pixel a warm start
+    keeps in a wrong basin gets a cold retry every ``period`` frames at the cost of the misfits alone, and a
+    pixel whose cold multi-start solve found nothing better (its misfit is the model's or the data's, not a
+    basin's) is not solved again until its residual rises."""
     i, j = wp.tid()
     r = wp.uint8(0)
     if mask[i, j] != 0 and i % period == phase[0] % period:
-        if misfits == 0 or (threshold[0] > 0.0 and residual[i, j] > threshold[0]):
+        if misfits == 0:
+            r = wp.uint8(1)
+        elif threshold[0] > 0.0 and residual[i, j] > wp.max(threshold[0], RETRY_FLOOR_FACTOR * floor[i, j]):
             r = wp.uint8(1)
     rows[i, j] = r
 
@@ -284,12 +301,13 @@ def keep_better(rows: wp.array2d(dtype=wp.uint8), normals0: wp.array2d(dtype=wp.
                 albedo0: wp.array2d(dtype=wp.vec3), residual0: wp.array2d(dtype=wp.float32),
                 flags0: wp.array2d(dtype=wp.int32), few: int, take_few: int, normals: wp.array2d(dtype=wp.vec3),
                 albedo: wp.array2d(dtype=wp.vec3), residual: wp.array2d(dtype=wp.float32),
-                flags: wp.array2d(dtype=wp.int32)):
+                flags: wp.array2d(dtype=wp.int32), floor: wp.array2d(dtype=wp.float32)):
     """Where ``rows`` is set, keep the cold re-solve only when it ranks better than the warm solution saved in
     ``*0`` (a lower residual on a pixel without the ``few`` flag bit: :func:`gpps.host.merge.ranks_better`);
     otherwise restore the warm one.  With ``take_few`` (the sweep after a change of the material) an
     under-determined pixel (the ``few`` bit) takes the cold re-solve: its residual cannot rank the two, and its
-    warm start came from a solve under the old material, the cold multi-start solve from none."""
+    warm start came from a solve under the old material, the cold multi-start solve from none.  ``floor``
+    takes the kept residual (what :func:`refresh_rows` compares a misfit with)."""
     i, j = wp.tid()
     if rows[i, j] != 0:
         better = residual[i, j] < residual0[i, j] and (flags[i, j] & few) == 0
@@ -300,3 +318,4 @@ def keep_better(rows: wp.array2d(dtype=wp.uint8), normals0: wp.array2d(dtype=wp.
             albedo[i, j] = albedo0[i, j]
             residual[i, j] = residual0[i, j]
             flags[i, j] = flags0[i, j]
+        floor[i, j] = residual[i, j]

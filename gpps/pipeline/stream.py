@@ -178,7 +178,11 @@ class StreamConfig:
             material: 0.028 deg MAEN over the last 12 of 36 frames without it,
             0.022 with it; full mode, where the search's early materials leave
             misfits, 0.15 without it and 0.044 with it (the last 12 of 72 frames).
-            Cost: the misfits' cold solves, a ``retry_rows``-th of them a frame.
+            Cost: the misfits' cold solves, a ``retry_rows``-th of them a frame;
+            a misfit whose cold solve found nothing better is retried again only
+            once its residual exceeds :data:`gpps.kernels.stream.RETRY_FLOOR_FACTOR`
+            times the one it kept then (a static scene's misfits are not solved
+            again every ``retry_rows`` frames for nothing).
             0, or ``check=False`` (no level to compare with): off.
         sweep_rows: full mode: after each change of the estimated material the
             rolling cold re-solve runs with period ``sweep_rows`` (whatever
@@ -477,6 +481,9 @@ class Stream(Stage):
             self._phase = wp.zeros(1, dtype=wp.int32, device=d)
             self._saved = (wp.zeros((h, w), dtype=wp.vec3, device=d), wp.zeros((h, w), dtype=wp.vec3, device=d),
                            wp.zeros((h, w), dtype=wp.float32, device=d), wp.zeros((h, w), dtype=wp.int32, device=d))
+            # the residual each pixel kept after its last cold re-solve (0: none since the material or a rejected
+            # frame last changed what residuals mean): a misfit is retried when it rises above it
+            self._floor = wp.zeros((h, w), dtype=wp.float32, device=d)
 
     # ------------------------------------------------------------------ frames
 
@@ -597,22 +604,23 @@ class Stream(Stage):
     def _launch_refresh(self):
         """This frame's rows of the rolling cold re-solve, the lower residual kept per pixel; the phase advances
         on the device (graph-capturable).  Every pixel of the rows with period ``refresh_rows`` (or the full
-        mode's sweep); otherwise only the rows' misfits (residual above the jump test's level), period
-        ``retry_rows``."""
+        mode's sweep); otherwise only the rows' misfits (residual above the jump test's level and above
+        :data:`gpps.kernels.stream.RETRY_FLOOR_FACTOR` times the residual the pixel kept after its last cold
+        re-solve), period ``retry_rows``."""
         wp = warp()
         s, d = self.solver, self.device
         saved = self._saved
         period = self._refresh or self._retry
         misfits = int(not self._refresh)
         wp.launch(self._ks.refresh_rows, dim=self.shape,
-                  inputs=[s.mask, self._phase, period, s.residual, self._level, misfits],
+                  inputs=[s.mask, self._phase, period, s.residual, self._level, misfits, self._floor],
                   outputs=[self._refresh_mask], device=d)
         wp.launch(self._ks.save_rows, dim=self.shape,
                   inputs=[self._refresh_mask, s.normals, s.albedo, s.residual, s.flags], outputs=list(saved), device=d)
         s.step_subset(self._refresh_mask, self._redo_cfg)
         wp.launch(self._ks.keep_better, dim=self.shape,
                   inputs=[self._refresh_mask, *saved, int(FLAG_FEW_OBSERVATIONS), int(self._sweeping)],
-                  outputs=[s.normals, s.albedo, s.residual, s.flags], device=d)
+                  outputs=[s.normals, s.albedo, s.residual, s.flags, self._floor], device=d)
         wp.launch(self._ks.advance_phase, dim=1, inputs=[self._phase, period, 1], device=d)
 
     def _cmd(self, name, key=None):
@@ -736,9 +744,11 @@ class Stream(Stage):
                     wp.copy(self.solver.normals, self._kept)
                     wp.copy(self.solver.albedo, self._kept_albedo)
                     period = self._refresh or self._retry
-                    if period:  # and re-solves the rows this one would have had
+                    if period:  # and re-solves the rows this one would have had (with no floor: the rejected
+                        # frame's re-solves kept residuals of data that failed the check)
                         wp.launch(self._ks.advance_phase, dim=1, inputs=[self._phase, period, period - 1],
                                   device=self.device)
+                        self._floor.zero_()
                 elif est is not None:  # the first frame's grid scores are not trusted: start the search over
                     est.reset()
                     self._set_material(est.material)
@@ -787,6 +797,8 @@ class Stream(Stage):
         # again (kept, it held the jump test's and the misfit retry's threshold above the misfits a search's
         # early, wrong materials left: 64^2 moving bumps stayed at 0.3 deg against 0.03 with a known material)
         self._reset_residual = True
+        if self.__dict__.get("_floor") is not None:  # (the retries' floors were residuals under the old material)
+            self._floor.zero_()
 
     def _first_full(self, key, slot) -> None:
         """The first frame in full mode (it is a cold one already: its extra waits do not touch later frames).
