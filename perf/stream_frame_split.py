@@ -50,7 +50,8 @@ VARIANTS = {
 }
 # the jump re-solves and misfit retries (``PixelSolver.step_subset``) launched over the whole grid (before
 # SUBSET_BLOCKS_PER_SM) and, in the second, as one thread a pixel running its starts one after another (before the
-# starts-parallel subset solve: session 25's form): set on the stream after construction
+# starts-parallel subset solve, as in session 25; the retries' floor and the check kernels of this tree are in
+# every variant): set on the stream after construction
 FULL_GRID = ("split-full-grid", "one-kernel-full-grid")
 ONE_KERNEL = ("one-kernel-full-grid",)
 
@@ -130,14 +131,17 @@ def main(argv=None):
     ap.add_argument("--blocks", type=int, default=3)
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS),
+                    help="the streams to time (default: all; 'default' always)")
     a = ap.parse_args(argv)
+    names = ["default"] + [k for k in a.variants if k != "default"]
     wp = warp()
     device = resolve_device(a.device)
     sync = lambda: wp.synchronize_device(device)  # noqa: E731
     sc, mat, L, frame16 = bumps_frame(a.size, device)
     fdev = wp.array(frame16, dtype=wp.uint16, device=device)
     streams = {k: Stream((a.size, a.size), sc.camera, L, mat, mask=sc.mask, config=StreamConfig(**v), device=device)
-               for k, v in VARIANTS.items()}
+               for k, v in VARIANTS.items() if k in names}
     for k, st in streams.items():
         _variant(st, k)
     for st in streams.values():  # the cold frame and the graph captures
@@ -146,7 +150,7 @@ def main(argv=None):
             assert r.ok, r.error
     sync()
     clock = _Clock(streams["default"])
-    res = {k: [] for k in VARIANTS}
+    res = {k: [] for k in names}
     split = {"solve": [], "integrate": [], "rest": []}
     for _ in range(a.blocks):
         for k, st in streams.items():
@@ -200,7 +204,7 @@ def main(argv=None):
     for s in streams.values():
         s.close()
     if device.startswith("cuda"):
-        out["kernels"] = {k: kernel_times(k, sc, mat, L, fdev, a.size, device) for k in ("default", *FULL_GRID)}
+        out["kernels"] = {k: kernel_times(k, sc, mat, L, fdev, a.size, device) for k in names if k == "default" or k in FULL_GRID}
     path_out = Path(a.out) if a.out else ROOT / "perf" / "results" / f"stream_frame_split_{a.size}.json"
     path_out.write_text(json.dumps(out, indent=1))
     print("wrote", path_out)
