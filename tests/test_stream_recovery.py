@@ -190,13 +190,11 @@ def _numpy_stats(images, mask, inten, lit_level, saturation):
     tot = grey.sum(0)
     K = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float64)
     h, w = m.shape
-    ncol = -(-w // ks.STAT_CHUNK)  # (the sub-grid: every HF_STEP_J-th column of each band of ncol columns)
     hf = hfg = 0.0
     for i in range(1, h - 1):
         for j in range(1, w - 1):
             win = (slice(i - 1, i + 2), slice(j - 1, j + 2))
-            sub = i % ks.HF_STEP_I == 0 and (j // ncol + j % ncol) % ks.HF_STEP_J == 0
-            if sub and m[win].all() and (tot[win] > lit_level * n).all():
+            if i % ks.HF_STEP_I == 0 and j % ks.HF_STEP_J == 0 and m[win].all() and (tot[win] > lit_level * n).all():
                 r = n * grey[:, win[0], win[1]] / tot[win]  # shading ratios: the albedo cancels
                 wgt = tot[i, j] / n
                 hf += wgt * np.abs((r * K).sum(axis=(1, 2))).sum()
