@@ -89,11 +89,11 @@ LIGHT_LANES = 32
 # no cap 4.54 ms a solve, 168: 4.29, 128: 3.26, 96: 3.41.  The latency-bound launches (the material scorer's, the
 # front's rings) keep the compiler's choice: a cap there only adds spill latency to their few threads.
 SPLIT_SOLVE_MAX_REGISTERS = 128
-# thread blocks a streaming multiprocessor for the launches of a subset re-solve (PixelSolver.step_subset on CUDA):
-# one wave of blocks strides over the (rows, W[, starts]) launch (Warp's grid-stride loop), so the pixels outside
-# the subset cost a mask read each instead of a block of their own.  The stream's misfit retries and jump
-# re-solves mark ~70 of 1M pixels: over the full grid each of their starts-parallel launches cost 0.18 ms on an
-# H200 (perf/stream_frame_split.py), mostly blocks that found no pixel.  8 x 256 threads fill an SM.
+# thread blocks a streaming multiprocessor for the launches of a starts-parallel subset re-solve
+# (PixelSolver.step_subset with SolverConfig(split_starts=True) on CUDA): one wave of blocks strides over the
+# (rows, W, starts) launch (Warp's grid-stride loop), so the pixels outside the subset cost a mask read each
+# instead of a block of their own.  With ~70 of 1M pixels marked its starts launch took 0.156 ms on an H200
+# against 0.179 over the whole grid (perf/stream_frame_split.py); 8 x 256 threads fill an SM.
 SUBSET_BLOCKS_PER_SM = 8
 # lights whose reflectance terms the solver's cost evaluation keeps between its two passes (the albedo's normal
 # equations, then the residuals: gpps.kernels.solve_cost.evaluate_for); the lights after them are evaluated

@@ -45,20 +45,20 @@ VARIANTS = {
     "no-check": {"check": False},
     "1-pcg": {"integration_iterations": 1},
     "no-integrate": {"integrate": False},
+    "split-subsets": {},
     "split-full-grid": {},
-    "one-kernel-full-grid": {},
 }
-# the jump re-solves and misfit retries (``PixelSolver.step_subset``) launched over the whole grid (before
-# SUBSET_BLOCKS_PER_SM) and, in the second, as one thread a pixel running its starts one after another (before the
-# starts-parallel subset solve, as in session 25; the retries' floor and the check kernels of this tree are in
-# every variant): set on the stream after construction
-FULL_GRID = ("split-full-grid", "one-kernel-full-grid")
-ONE_KERNEL = ("one-kernel-full-grid",)
+# the jump re-solves and misfit retries (``PixelSolver.step_subset``) with each start in a thread of its own
+# (``SolverConfig(split_starts=True)``: gpps.kernels.solve_split), over one wave of blocks (SUBSET_BLOCKS_PER_SM)
+# or, in the second, over the whole grid; the default stream runs them as one thread a pixel over the whole grid.
+# Set on the stream after construction.
+SPLIT = ("split-subsets", "split-full-grid")
+FULL_GRID = ("split-full-grid",)
 
 
 def _variant(st, name):
-    if name in ONE_KERNEL:
-        st._redo_cfg = replace(st._redo_cfg, split_starts=False)
+    if name in SPLIT:
+        st._redo_cfg = replace(st._redo_cfg, split_starts=True)
     if name in FULL_GRID:
         st.solver._subset_blocks = lambda: {}
     return st
@@ -204,7 +204,7 @@ def main(argv=None):
     for s in streams.values():
         s.close()
     if device.startswith("cuda"):
-        out["kernels"] = {k: kernel_times(k, sc, mat, L, fdev, a.size, device) for k in names if k == "default" or k in FULL_GRID}
+        out["kernels"] = {k: kernel_times(k, sc, mat, L, fdev, a.size, device) for k in names if k == "default" or k in SPLIT}
     path_out = Path(a.out) if a.out else ROOT / "perf" / "results" / f"stream_frame_split_{a.size}.json"
     path_out.write_text(json.dumps(out, indent=1))
     print("wrote", path_out)

@@ -187,6 +187,12 @@ class SolverConfig:
             one-kernel form.  None (default): on CUDA when ``starts > 1``; the CPU keeps the one
             kernel (its launches run the threads one after another anyway; True there is for tests).
             Also the default of :class:`gpps.pipeline.material.MaterialScorer`'s ``split_starts``.
+            A :meth:`PixelSolver.step_subset` re-solve runs them only when True: its subset is
+            usually a few pixels or none, and over a whole 1024^2 grid the three launches cost more
+            than the one-thread kernel when it holds none (the stream's known-material frame on an
+            H200: 2.03 against 1.87 ms), less when it holds hard pixels (~70 misfits a frame,
+            each start up to 50 iterations: 0.16 against 0.34 ms a launch;
+            perf/results/s26/README.md).
     """
 
     solver: SolverName = "lm"
@@ -727,14 +733,12 @@ class PixelSolver(Stage):
             raise ValueError(f"mask: expected shape {self.shape[1:]}, got {tuple(mask.shape)}")
         ins = [self.images, mask, self.valid, self.depth, self.noise, self.cam, self.lp, self.mp]
         outs = [self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags, self.cond]
-        if self._uses_split(config):
-            # a cold multi-start re-solve of a few scattered pixels: a launch costs its slowest thread, and one
-            # thread running 10 starts of up to 50 iterations each was 0.74 ms of a 2.19 ms stream frame on an
-            # H200 at 1024^2 (the misfit retries, ~70 pixels a frame: perf/stream_frame_split.py)
+        if config.split_starts is True and self._uses_split(config):
+            # (only when asked for: SolverConfig.split_starts)
             self._launch_split(ins, outs, config, ("subset", id(mask)))
         else:
             self._recorded(("subset", id(mask), config), self._solve_kernel, ins + [self._params_for(config)],
-                           outs, **self._subset_blocks()).launch()
+                           outs).launch()
         if config.neighbour_radius > 0 and self._underdetermined_kernel is not None:
             # the subset's under-determined pixels take their albedo from the object's determined pixels
             # around them (the solver's mask), not from the subset: without it a cold re-solve of a pixel
@@ -744,10 +748,10 @@ class PixelSolver(Stage):
                             self._params_for(config), int(config.neighbour_radius),
                             int(self._sk.NEIGHBOUR_MIN_COUNT)],
                            [self.weights, self.normals, self.albedo, self.residual, self.iterations,
-                            self.flags], **self._subset_blocks()).launch()
+                            self.flags]).launch()
 
     def _subset_blocks(self) -> dict:
-        """``wp.launch`` keywords of a subset re-solve's launches: on CUDA a grid of
+        """``wp.launch`` keywords of a starts-parallel subset re-solve's launches: on CUDA a grid of
         :data:`gpps.names.SUBSET_BLOCKS_PER_SM` blocks an SM striding over the pixels (few of them in the
         subset), elsewhere none."""
         if not self.device.startswith("cuda"):

@@ -5,7 +5,7 @@ out=${1:-$OUT}; what=${2:-split}
 mkdir -p "$out"
 filter() { grep -v "SyntaxWarning\|Save a field\|GppsWarning\|notes = self\|warnings.warn\|detect_clipping" ; }
 if [ "$what" = split ]; then
-  timeout 200 python perf/stream_frame_split.py --size 1024 --frames 60 --blocks 3 --device cuda:0 --variants default no-retry no-check one-kernel-full-grid \
+  timeout 200 python perf/stream_frame_split.py --size 1024 --frames 60 --blocks 3 --device cuda:0 --variants default no-retry no-check split-subsets \
     --out "$out/stream_frame_split_1024_H200.json" 2>&1 | filter | tail -12 | tee "$out/stream_frame_split_1024_log.txt"
 fi
 if [ "$what" = split ] || [ "$what" = bench ]; then
