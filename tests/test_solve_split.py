@@ -58,9 +58,9 @@ def test_split_starts_choice(device):
 
 @pytest.mark.parametrize("irls", [0, 2])
 def test_split_starts_subset_resolve_equals_one_kernel(irls, device):
-    """``step_subset`` with a cold multi-start config runs the starts-parallel kernels (the stream's jump
-    re-solves and misfit retries: a few scattered pixels whose one-thread solve of 10 starts set the launch's
-    time); it equals the one-kernel subset solve (bitwise on the CPU) and leaves the other pixels alone."""
+    """``step_subset`` with a cold multi-start config and ``split_starts=True`` runs the starts-parallel kernels
+    (for subsets of hard pixels, whose one-thread solve of 10 starts sets the launch's time); it equals the
+    one-kernel subset solve (bitwise on the CPU) and leaves the other pixels alone."""
     import warp as wp
 
     img, lights, sc, mat = make_case("bumps", 40, "perspective", "directional", "cook-torrance", noise=0.01,

@@ -90,7 +90,8 @@ STAT_CHUNK = 8  # pixels of a row per thread of frame_stats and residual_sum (lo
 # of freedom (3 x 3 observations, 5 unknowns) times a constant, which exceeds 4 x its mean with probability 0.3 %,
 # so a pixel whose multi-start solve found nothing better is not solved again for the noise of the next frames,
 # while one that a warm start leaves in a wrong basin rises further.  (On a static scene the retries re-solved the
-# same ~70 misfits of 1M pixels every frame: 0.3 ms of a 1.9-2.5 ms frame on an H200, perf/stream_frame_split.py.)
+# same ~70 misfits of 1M pixels every period for nothing: 0.74 ms of a 2.19 ms known-material frame on an H200,
+# perf/stream_frame_split.py, perf/results/s26/README.md.)
 RETRY_FLOOR_FACTOR = 2.0
 HF_STEP_I = 2  # the noise statistic's sub-grid: every 2nd row ...
 HF_STEP_J = 4  # ... and every 4th column (1/8 of the pixels)

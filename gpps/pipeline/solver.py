@@ -758,7 +758,7 @@ class PixelSolver(Stage):
             return {}
         return {"max_blocks": int(SUBSET_BLOCKS_PER_SM * warp().get_device(self.device).sm_count)}
 
-    def _recorded(self, key, kernel, inputs, outputs, dim=None, block_dim=None, max_blocks=0):
+    def _recorded(self, key, kernel, inputs, outputs, dim=None, block_dim=None):
         """A recorded launch (``wp.launch(..., record_cmd=True)``) of ``kernel`` over the pixels (or ``dim``),
         kept per ``key`` until the config or material changes: the arguments are packed once (a plain CPU
         launch re-packs its struct arguments every time, and Warp keeps a cache entry per packing: memory
@@ -767,8 +767,6 @@ class PixelSolver(Stage):
         cmd = cmds.get(key)
         if cmd is None:
             extra = {} if block_dim is None else {"block_dim": int(block_dim)}
-            if max_blocks:
-                extra["max_blocks"] = int(max_blocks)
             cmd = warp().launch(kernel, dim=self.shape[1:] if dim is None else dim, inputs=inputs, outputs=outputs,
                                 device=self.device, record_cmd=True, **extra)
             cmds[key] = cmd
