@@ -36,6 +36,17 @@ def _devices():
 DEVICES = _devices()
 
 
+def _render_device():
+    """The device for a test's set-up renders: ``"cpu"`` where Warp has one (the development machine, CI), else the
+    first test device (the GPU machine's Warp is built without its CPU compiler)."""
+    from gpps._runtime import available_devices
+
+    return "cpu" if "cpu" in available_devices() else DEVICES[0]
+
+
+RENDER_DEVICE = _render_device()
+
+
 def pytest_generate_tests(metafunc):
     if "device" in metafunc.fixturenames:
         metafunc.parametrize("device", DEVICES)

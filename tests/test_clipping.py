@@ -22,6 +22,8 @@ from gpps import GppsWarning
 from gpps.flows.photometric import solve_normals
 from gpps.host.clipping import clipped_observations
 
+from conftest import RENDER_DEVICE
+
 CT = gpps.Material("cook-torrance", ks=0.8, roughness=0.2, f0=0.5)
 MATERIALS = {
     "cook-torrance": CT,
@@ -36,10 +38,10 @@ def _render(scene, material, lights, *, exposure=None, gain=1.0, bits=16):
     intensities (float32) and the lights.  ``exposure``: the lights scaled so that the unclipped brightest value is
     ``exposure``; else the intensities times ``gain``."""
     if exposure is not None:
-        top = float(gpps.render(scene, material, lights, device="cpu")[:, scene.mask].max())
+        top = float(gpps.render(scene, material, lights, device=RENDER_DEVICE)[:, scene.mask].max())
         gain = exposure / top
     lit = gpps.DirectionalLights(lights.directions, np.asarray(lights.intensities) * gain)
-    raw = gpps.render(scene, material, lit, bits=bits, device="cpu")
+    raw = gpps.render(scene, material, lit, bits=bits, device=RENDER_DEVICE)
     img = (raw / np.asarray(lit.intensities)[:, None, None, :]).astype(np.float32)
     return raw, img, lit
 
@@ -169,7 +171,7 @@ def issue20():
     intensities, 2-4 % of the observations clipped at 1.25."""
     sc = gpps.make_scene("bumps", 64, "perspective")
     L = gpps.default_lights("directional", 3, layout="ring")
-    raw = gpps.render(sc, CT, L, bits=16, device="cpu")
+    raw = gpps.render(sc, CT, L, bits=16, device=RENDER_DEVICE)
     img = raw / L.intensities[:, None, None, :]
     return sc, gpps.DirectionalLights(L.directions), img, ~(raw >= 1.0).any(-1)
 
