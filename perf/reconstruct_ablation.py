@@ -16,7 +16,10 @@ Variants (``--variants``, comma-separated):
 * ``rounds3``, ``rounds2``: ``RONConfig(rounds=3 / 2)``;
 * ``evals20``: ``RONConfig(material_evals=20)``: half the Nelder-Mead budget;
 * ``persistent-pcg``: the integrator's PCG as one persistent launch (``IntegratorConfig(launch="persistent")``)
-  instead of the default one Taichi launch an iteration.
+  instead of the default one Taichi launch an iteration;
+* ``one-thread-neighbours``: the default, but the solver's neighbour pass (pixels with fewer than 3 lit
+  observations) as ``underdetermined_kernel``, every start of a pixel in its thread, instead of its
+  starts-parallel form (``gpps.kernels.solve_split.split_under_kernels_for``; session 27).
 
 Only the time and the MAEN are compared; a variant with a worse MAEN is not a proposal, it says what the stage is
 worth.
@@ -28,6 +31,7 @@ Usage:  python perf/reconstruct_ablation.py [--size 256] [--images 3] [--device 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import statistics
@@ -44,7 +48,8 @@ os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 import gpps  # noqa: E402
 from _common import device_label, reconstruct_inputs  # noqa: E402
 
-VARIANTS = ("default", "known", "no-dgmc", "no-depth", "rounds3", "rounds2", "evals20", "persistent-pcg")
+VARIANTS = ("default", "known", "no-dgmc", "no-depth", "rounds3", "rounds2", "evals20", "persistent-pcg",
+            "one-thread-neighbours")
 
 
 def _sync():
@@ -58,7 +63,7 @@ def variant_kwargs(name: str) -> dict:
     from gpps.pipeline.integration import IntegratorConfig
 
     base = RONConfig()
-    if name == "default":
+    if name in ("default", "one-thread-neighbours"):
         return {"material": "cook-torrance"}
     if name == "known":
         return {"material": gpps.Material("cook-torrance", ks=0.8, roughness=0.2, f0=0.5)}
@@ -68,6 +73,25 @@ def variant_kwargs(name: str) -> dict:
     if name not in changes:
         raise ValueError(f"variant: expected one of {VARIANTS}, got {name!r}")
     return {"material": "cook-torrance", "config": replace(base, **changes[name])}
+
+
+@contextlib.contextmanager
+def variant_patch(name: str):
+    """What a variant changes besides the Reconstructor's arguments, for the duration of its block."""
+    if name != "one-thread-neighbours":
+        yield
+        return
+    from gpps.pipeline.solver import PixelSolver
+
+    orig = PixelSolver._launch_underdetermined
+
+    def one_thread(self, solve_mask, config=None, *, split):
+        return orig(self, solve_mask, config, split=False)
+    PixelSolver._launch_underdetermined = one_thread
+    try:
+        yield
+    finally:
+        PixelSolver._launch_underdetermined = orig
 
 
 def main(argv=None):
@@ -88,8 +112,8 @@ def main(argv=None):
     rows = {v: {"ms": [], "maen": [], "timings_ms": [], "estimated": None} for v in names}
     for _ in range(a.blocks):
         for v in names:
-            with gpps.Reconstructor(mask, c["lights"], camera=c["camera"], device=a.device,
-                                    **variant_kwargs(v)) as rc:
+            with variant_patch(v), gpps.Reconstructor(mask, c["lights"], camera=c["camera"], device=a.device,
+                                                      **variant_kwargs(v)) as rc:
                 rc(img)  # (builds the stages, loads the kernels: not timed)
                 rc(img)
                 for _ in range(a.repeat):
@@ -113,12 +137,12 @@ def main(argv=None):
                               "ms": r["ms"]}
         if v == "default":
             base = med
-    print(f"{'variant':10s} {'median ms':>10s} {'saved':>7s} {'MAEN':>8s}  stages (ms)")
+    print(f"{'variant':22s} {'median ms':>10s} {'saved':>7s} {'MAEN':>8s}  stages (ms)")
     for v, r in out["variants"].items():
         saved = "" if base is None or v == "default" else f"{base - r['median_ms']:7.1f}"
         st = " ".join(f"{k}={x:.1f}" for k, x in r["stages_ms"].items())
         est = " ".join(f"{k}={x:.4g}" for k, x in (r["estimated"] or {}).items())
-        print(f"{v:10s} {r['median_ms']:10.1f} {saved:>7s} {r['maen_deg']:8.4f}  {st}  {est}")
+        print(f"{v:22s} {r['median_ms']:10.1f} {saved:>7s} {r['maen_deg']:8.4f}  {st}  {est}")
     if a.out:
         Path(a.out).parent.mkdir(parents=True, exist_ok=True)
         Path(a.out).write_text(json.dumps(out, indent=2) + "\n")

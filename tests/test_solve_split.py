@@ -88,3 +88,40 @@ def test_split_starts_subset_resolve_equals_one_kernel(irls, device):
         # re-solved: the cold solve's answer, not the spoilt start's
         assert np.all(np.abs(np.linalg.norm(out[split]["normals"][sub], axis=-1) - 1.0) < 1e-4)
     _assert_same_solve(out[False], out[True], sub, device)
+
+
+@pytest.mark.parametrize("irls", [0, 2])
+def test_split_neighbour_pass_equals_one_kernel(irls, device):
+    """The neighbour pass for pixels with fewer than 3 lit observations in its starts-parallel form
+    (``split_under_kernels_for``, run with the split solve) equals ``underdetermined_kernel`` (bitwise on the
+    CPU): on a sphere under 3 lights its attached-shadow band has 1-2 lit observations a pixel."""
+    from gpps.names import FLAG_ALBEDO_FROM_NEIGHBOURS, FLAG_FEW_OBSERVATIONS
+
+    img, lights, sc, mat = make_case("sphere", 40, "orthographic", "directional", "cook-torrance", noise=0.01,
+                                     device=device)
+    out = {}
+    for split in (False, True):
+        cfg = replace(SolverConfig(), robust="cauchy", irls_rounds=irls, split_starts=split)
+        with PixelSolver(img.shape[:3], sc.camera, lights, mat, cfg, device=device) as s:
+            out[split] = s.run(img, sc.mask)
+            assert (("underdetermined", split) in s._cmds) and (("underdetermined", not split) not in s._cmds)  # noqa: SLF001
+    few = (out[False]["flags"] & FLAG_FEW_OBSERVATIONS) != 0
+    held = (out[True]["flags"] & FLAG_ALBEDO_FROM_NEIGHBOURS) != 0
+    assert few[sc.mask].sum() >= 20 and held.sum() >= 20, (few.sum(), held.sum())
+    _assert_same_solve(out[False], out[True], sc.mask, device)
+    # the subset form (step_subset with split_starts=True): re-solves only the subset's under-determined pixels
+    import warp as wp
+
+    sub = few & sc.mask & (np.arange(40)[:, None] % 2 == 0)
+    res = {}
+    for split in (False, True):
+        base = replace(SolverConfig(), robust="cauchy", irls_rounds=irls, split_starts=False)
+        with PixelSolver(img.shape[:3], sc.camera, lights, mat, base, device=device) as s:
+            first = s.run(img, sc.mask)
+            s.normals.assign(np.where(sub[..., None], 0.0, first["normals"]).astype(np.float32))
+            s.step_subset(wp.array(sub.astype(np.uint8), device=device), replace(base, split_starts=split))
+            res[split] = s.fetch()
+        for k in ("normals", "albedo", "flags"):
+            np.testing.assert_array_equal(res[split][k][~sub], first[k][~sub], err_msg=k)
+    assert np.all(res[True]["flags"][sub] & FLAG_ALBEDO_FROM_NEIGHBOURS)
+    _assert_same_solve(res[False], res[True], sub, device)

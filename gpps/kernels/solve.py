@@ -93,7 +93,7 @@ from gpps.kernels.solve_common import (
     transport,
 )
 from gpps.kernels.solve_kernels import make_kernels, make_lanes_kernel, prelude_for
-from gpps.kernels.solve_split import split_kernels_for
+from gpps.kernels.solve_split import split_kernels_for, split_under_kernels_for
 from gpps.kernels.solve_methods import solver_funcs
 from gpps.kernels.solve_neighbours import (
     LINEAR_ITERS,
@@ -114,6 +114,7 @@ __all__ = [
     "neighbour_stats", "ring_offset", "solve22", "start_normal", "store_least_squares", "store_solution",
     "transport", "evaluate", "run_lm", "run_dogleg", "run_bfgs", "run_method", "solve_pixel",
     "METHODS", "BRDFS", "ROBUST", "specialisation_key", "module_name", "get_solve_kernels",
+    "get_split_kernels", "get_split_under_kernels",
 ]
 
 METHODS = names.SOLVER_NAMES
@@ -220,6 +221,28 @@ def get_split_kernels(method, brdf, robust="none"):
         funcs = solver_funcs(*key, module, sfx)
         k = split_kernels_for(prelude_for(module, sfx), funcs.one_start, funcs.finish_pixel, module, sfx)
         _SPLIT[key] = k
+    return k
+
+
+_SPLIT_UNDER: dict = {}
+
+
+def get_split_under_kernels(method, brdf, robust="none"):
+    """The starts-parallel neighbour pass (:func:`gpps.kernels.solve_split.split_under_kernels_for`) of one
+    nonlinear solver, reflectance model and robust loss, in a Warp module of its own (:func:`module_name` +
+    ``"_split_under"``: built, and compiled, only where the pass runs), with the split solve's register cap."""
+    key = specialisation_key(method, brdf, robust)
+    if None in key or key[0] == "none":
+        raise ValueError(f"method, brdf, robust: expected a nonlinear solver and fixed choices, got {key}")
+    k = _SPLIT_UNDER.get(key)
+    if k is None:
+        name = module_name(*key) + "_split_under"
+        sfx = "__" + name.rsplit(".", 1)[1]
+        module = wp.get_module(name)
+        module.options["cuda_max_registers"] = names.SPLIT_SOLVE_MAX_REGISTERS
+        funcs = solver_funcs(*key, module, sfx)
+        k = split_under_kernels_for(funcs.one_start, funcs.finish_pixel, module, sfx)
+        _SPLIT_UNDER[key] = k
     return k
 
 

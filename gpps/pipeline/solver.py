@@ -615,6 +615,8 @@ class PixelSolver(Stage):
         if self._uses_split():
             robust = self.config.robust if self.config.irls_rounds > 0 else "none"
             kernels += list(self._sk.get_split_kernels(self.config.solver, self.material.brdf, robust))
+            if self.config.neighbour_radius > 0:
+                kernels += list(self._sk.get_split_under_kernels(self.config.solver, self.material.brdf, robust))
         for module in {id(k.module): k.module for k in kernels if k is not None}.values():
             wp.load_module(module, device=self.device)
 
@@ -739,16 +741,10 @@ class PixelSolver(Stage):
         else:
             self._recorded(("subset", id(mask), config), self._solve_kernel, ins + [self._params_for(config)],
                            outs).launch()
-        if config.neighbour_radius > 0 and self._underdetermined_kernel is not None:
-            # the subset's under-determined pixels take their albedo from the object's determined pixels
-            # around them (the solver's mask), not from the subset: without it a cold re-solve of a pixel
-            # with 2 usable observations has a free albedo and lands anywhere on its curve of exact fits
-            self._recorded(("subset-underdetermined", id(mask), config), self._underdetermined_kernel,
-                           [self.images, self.mask, mask, self.depth, self.cam, self.lp, self.mp,
-                            self._params_for(config), int(config.neighbour_radius),
-                            int(self._sk.NEIGHBOUR_MIN_COUNT)],
-                           [self.weights, self.normals, self.albedo, self.residual, self.iterations,
-                            self.flags]).launch()
+        # the subset's under-determined pixels take their albedo from the object's determined pixels around
+        # them (the solver's mask), not from the subset: without it a cold re-solve of a pixel with 2 usable
+        # observations has a free albedo and lands anywhere on its curve of exact fits
+        self._launch_underdetermined(mask, config, split=config.split_starts is True and self._uses_split(config))
 
     def _subset_blocks(self) -> dict:
         """``wp.launch`` keywords of a starts-parallel subset re-solve's launches: on CUDA a grid of
@@ -839,14 +835,7 @@ class PixelSolver(Stage):
         if key not in cmds:
             robust = c.robust if c.irls_rounds > 0 else "none"
             pre, starts, finish = self._sk.get_split_kernels(c.solver, self.material.brdf, robust)
-            scratch = self.__dict__.setdefault("_split_scratch", {})
-            sc = scratch.get(ns)
-            if sc is None:
-                d = self.device
-                sc = (self._buffer((h, w), wp.vec3, d), self._buffer((h, w), wp.float32, d),
-                      self._buffer((h, w), wp.int32, d)) + tuple(
-                    self._buffer((h, w, ns), dt, d) for dt in (wp.vec3, wp.vec3, wp.float32, wp.int32, wp.int32))
-                scratch[ns] = sc
+            sc = self._split_buffers(ns)
             images, mask, valid, depth, noise, cam, lp, mp = ins
             weights, normals, albedo, residual, iterations, flags, cond = outs
             prm = self.prm if config is None else self._params_for(config)
@@ -864,6 +853,64 @@ class PixelSolver(Stage):
         for cmd in cmds[key]:
             cmd.launch()
 
+    def _split_buffers(self, ns: int) -> tuple:
+        """The starts-parallel launches' scratch (from the buffer pool, kept per start count ``ns``): the start
+        normal (H, W) vec3, ``gmax`` (H, W) float32, flags (H, W) int32, then the starts' normals and albedos
+        (H, W, ns) vec3, costs float32, evaluations and convergence int32."""
+        wp = warp()
+        scratch = self.__dict__.setdefault("_split_scratch", {})
+        sc = scratch.get(ns)
+        if sc is None:
+            n, h, w = self.shape
+            d = self.device
+            sc = (self._buffer((h, w), wp.vec3, d), self._buffer((h, w), wp.float32, d),
+                  self._buffer((h, w), wp.int32, d)) + tuple(
+                self._buffer((h, w, ns), dt, d) for dt in (wp.vec3, wp.vec3, wp.float32, wp.int32, wp.int32))
+            scratch[ns] = sc
+        return sc
+
+    def _launch_underdetermined(self, solve_mask, config: SolverConfig | None = None, *, split: bool) -> None:
+        """The neighbour pass (``config.neighbour_radius > 0``) over ``solve_mask``'s under-determined pixels,
+        their neighbours read from the solver's whole mask: ``underdetermined_kernel`` (one thread a pixel), or
+        with ``split`` its starts-parallel form (:func:`gpps.kernels.solve_split.split_under_kernels_for`:
+        a prelude, one thread a start, the pick and store).  Recorded once per mask and config."""
+        c = self.config if config is None else config
+        if c.neighbour_radius <= 0 or self._underdetermined_kernel is None:
+            return
+        prm = self.prm if config is None else self._params_for(config)
+        radius, count = int(c.neighbour_radius), int(self._sk.NEIGHBOUR_MIN_COUNT)
+        key = ("underdetermined", split) + (() if config is None else (id(solve_mask), config))
+        outs = [self.weights, self.normals, self.albedo, self.residual, self.iterations, self.flags]
+        if not split:
+            self._recorded(key, self._underdetermined_kernel,
+                           [self.images, self.mask, solve_mask, self.depth, self.cam, self.lp, self.mp, prm,
+                            radius, count], outs).launch()
+            return
+        cmds = self.__dict__.setdefault("_cmds", {})
+        if key not in cmds:
+            wp = warp()
+            n, h, w = self.shape
+            ns = int(c.starts)
+            robust = c.robust if c.irls_rounds > 0 else "none"
+            pre, starts, finish = self._sk.get_split_under_kernels(c.solver, self.material.brdf, robust)
+            sc = self._split_buffers(ns)
+            scratch = self.__dict__["_split_scratch"]
+            held = scratch.get("held")
+            if held is None:
+                held = scratch["held"] = (self._buffer((h, w), wp.vec3, self.device),
+                                          self._buffer((h, w), wp.vec4, self.device))
+            common = [self.images, self.depth, self.cam, self.lp, self.mp, prm]
+            one = wp.launch(pre, dim=(h, w), inputs=[self.images, self.mask, solve_mask, self.lp, prm, radius, count,
+                                                     self.normals, self.albedo, self.flags, self.depth, self.cam],
+                            outputs=[*sc[:3], *held], device=self.device, record_cmd=True)
+            two = wp.launch(starts, dim=(h, w, ns), inputs=common + [self.weights, sc[0], sc[2], *held],
+                            outputs=list(sc[3:]), device=self.device, record_cmd=True)
+            three = wp.launch(finish, dim=(h, w), inputs=common + [sc[0], sc[1], sc[2], *held, *sc[3:]],
+                              outputs=outs, device=self.device, record_cmd=True)
+            cmds[key] = (one, two, three)
+        for cmd in cmds[key]:
+            cmd.launch()
+
     def step(self, progress=None, *, subset: bool = False) -> None:
         """Solve all pixels from the current buffers, no host sync (graph-capturable).
 
@@ -877,12 +924,7 @@ class PixelSolver(Stage):
         """
         self._check_open()
         self._launch_solve(progress, subset)
-        if self.config.neighbour_radius > 0 and self._underdetermined_kernel is not None:
-            self._recorded(("underdetermined",), self._underdetermined_kernel,
-                           [self.images, self.mask, self.mask, self.depth, self.cam, self.lp, self.mp, self.prm,
-                            int(self.config.neighbour_radius), int(self._sk.NEIGHBOUR_MIN_COUNT)],
-                           [self.weights, self.normals, self.albedo, self.residual, self.iterations,
-                            self.flags]).launch()
+        self._launch_underdetermined(self.mask, split=not subset and self._uses_split())
         c = self.config
         if c.smoothness > 0.0 and c.smoothing_sweeps > 0 and self._smooth_kernel is not None:
             strength = float(c.smoothness * self.intensity_scale**2)
