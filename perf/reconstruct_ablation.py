@@ -94,6 +94,23 @@ def variant_patch(name: str):
         PixelSolver._launch_underdetermined = orig
 
 
+def _kernel_times(rc, img) -> dict:
+    """One call of ``rc`` under ``wp.timing_begin`` (CUDA events a launch): ``{kernel: {"ms", "launches"}}``,
+    the longest first."""
+    import warp as wp
+
+    _sync()
+    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+    rc(img)
+    _sync()
+    agg: dict = {}
+    for r in wp.timing_end():
+        t = agg.setdefault(r.name, [0.0, 0])
+        t[0] += r.elapsed
+        t[1] += 1
+    return {k: {"ms": round(v[0], 4), "launches": v[1]} for k, v in sorted(agg.items(), key=lambda kv: -kv[1][0])}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=256)
@@ -102,6 +119,9 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--blocks", type=int, default=2)
     ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--kernel-times", action="store_true",
+                    help="after the blocks, one more call a variant under wp.timing (CUDA events): the Warp kernels' "
+                         "device time by name (launches replayed from a CUDA graph and Taichi's are not in it)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     names = [v.strip() for v in a.variants.split(",") if v.strip()]
@@ -125,6 +145,8 @@ def main(argv=None):
                     rows[v]["maen"].append(float(gpps.normal_errors(rec.normals, truth, mask)["mean"]))
                     rows[v]["timings_ms"].append({k: 1e3 * s for k, s in rec.timings.items()})
                     rows[v]["estimated"] = {k: float(x) for k, x in rec.estimated.items()}
+                if a.kernel_times and _ == a.blocks - 1:
+                    rows[v]["kernels_ms"] = _kernel_times(rc, img)
     out = {"device": a.device or "auto", "device_name": device_label(a.device or "cpu"), "size": a.size,
            "images": a.images, "repeat": a.repeat, "blocks": a.blocks, "variants": {}}
     base = None
@@ -132,7 +154,7 @@ def main(argv=None):
         r = rows[v]
         med = statistics.median(r["ms"])
         stages = {k: statistics.median(t[k] for t in r["timings_ms"]) for k in r["timings_ms"][0]}
-        out["variants"][v] = {"median_ms": med, "min_ms": min(r["ms"]), "max_ms": max(r["ms"]),
+        out["variants"][v] = {"kernels_ms": r.get("kernels_ms"), "median_ms": med, "min_ms": min(r["ms"]), "max_ms": max(r["ms"]),
                               "maen_deg": statistics.median(r["maen"]), "estimated": r["estimated"], "stages_ms": stages,
                               "ms": r["ms"]}
         if v == "default":
@@ -143,6 +165,11 @@ def main(argv=None):
         st = " ".join(f"{k}={x:.1f}" for k, x in r["stages_ms"].items())
         est = " ".join(f"{k}={x:.4g}" for k, x in (r["estimated"] or {}).items())
         print(f"{v:22s} {r['median_ms']:10.1f} {saved:>7s} {r['maen_deg']:8.4f}  {st}  {est}")
+    for v, r in out["variants"].items():
+        if r["kernels_ms"]:
+            top = list(r["kernels_ms"].items())[:6]
+            print(f"{v:22s} Warp kernels {sum(x['ms'] for x in r['kernels_ms'].values()):.1f} ms: "
+                  + ", ".join(f"{k.split('__')[0]} {x['ms']:.2f} ({x['launches']})" for k, x in top))
     if a.out:
         Path(a.out).parent.mkdir(parents=True, exist_ok=True)
         Path(a.out).write_text(json.dumps(out, indent=2) + "\n")

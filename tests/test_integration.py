@@ -160,6 +160,31 @@ def test_warm_start_and_reuse(device):
         integ.run(n)
 
 
+def test_coarsest_solve_is_kept_while_its_level_is_unchanged(device, monkeypatch):
+    """``Integrator.set_coarsest`` skips the coarsest level's pseudo-inverse and upload when the fields already
+    hold that level's (the device rounds' systems set it before every solve); another level computes it again."""
+    import gpps.pipeline.integration as integ_mod
+
+    depth, n, cam = scene("bumps", "orthographic")
+    cfg = IntegratorConfig(tol=1e-8, dtype="float64")
+    integ = Integrator(masks()["ring"], cam, cfg, device=device)
+    first = integ.run(n)
+    calls = []
+    orig = integ_mod.coarsest_pinv
+    monkeypatch.setattr(integ_mod, "coarsest_pinv", lambda *a, **k: calls.append(1) or orig(*a, **k))
+    integ._levels_key = None  # (its levels uploaded again: the same coarsest level)  # noqa: SLF001
+    again = integ.run(n)
+    assert calls == [] and np.array_equal(again.depth, first.depth)
+    integ.close()
+    disc = masks()["disc"]
+    with Integrator(disc, cam, cfg, device=device) as other:  # (the pool's fields, holding the ring's level)
+        got = other.run(n)
+    assert calls == [1]
+    ref = integrate_normals(n, disc, camera=cam, solver="direct")
+    assert np.max(np.abs((got.depth - got.depth[disc].mean()) - (ref.depth - ref.depth[disc].mean()))[disc]) \
+        < 1e-5 * np.ptp(ref.depth[disc])
+
+
 def test_jacobi_converges_to_direct(device):
     ii, jj = np.meshgrid(np.arange(24), np.arange(24), indexing="ij")
     mask = np.hypot(ii - 11.5, jj - 11.5) < 11
