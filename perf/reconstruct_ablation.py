@@ -130,7 +130,7 @@ def main(argv=None):
     c = reconstruct_inputs(a.size, a.images, a.device)
     img, mask, truth = c["images"], c["mask"], c["normals"]
     rows = {v: {"ms": [], "maen": [], "timings_ms": [], "estimated": None} for v in names}
-    for _ in range(a.blocks):
+    for blk in range(a.blocks):
         for v in names:
             with variant_patch(v), gpps.Reconstructor(mask, c["lights"], camera=c["camera"], device=a.device,
                                                       **variant_kwargs(v)) as rc:
@@ -145,7 +145,7 @@ def main(argv=None):
                     rows[v]["maen"].append(float(gpps.normal_errors(rec.normals, truth, mask)["mean"]))
                     rows[v]["timings_ms"].append({k: 1e3 * s for k, s in rec.timings.items()})
                     rows[v]["estimated"] = {k: float(x) for k, x in rec.estimated.items()}
-                if a.kernel_times and _ == a.blocks - 1:
+                if a.kernel_times and blk == a.blocks - 1:
                     rows[v]["kernels_ms"] = _kernel_times(rc, img)
     out = {"device": a.device or "auto", "device_name": device_label(a.device or "cpu"), "size": a.size,
            "images": a.images, "repeat": a.repeat, "blocks": a.blocks, "variants": {}}

@@ -32,4 +32,24 @@ if [ "$what" = ablation ]; then
   timeout 400 python perf/reconstruct_ablation.py --size 256 --images 3 --device cuda:0 --repeat 5 --blocks 2 \
     --variants "${VARIANTS:-default}" --out "$out/ablation_256x3_H200.json" 2>&1 | filter | tail -20
 fi
+if [ "$what" = diligent ]; then
+  timeout 300 python perf/reconstruct_folder_timing.py .data/diligent/ball .data/diligent/bear --device cuda:0 --repeat 3 \
+    --out "$out/diligent_ball_bear_cuda0_H200.json" 2>&1 | filter | python -c "
+import json, sys
+for line in sys.stdin:
+    try:
+        r = json.loads(line); print(r['folder'], r['call'], round(r['wall_s'], 3), round(r['maen_deg'], 4), {k: round(v, 3) for k, v in r['timings'].items()})
+    except Exception:
+        pass"
+  timeout 200 python perf/reconstruct_ablation.py --size 256 --images 3 --device cuda:0 --repeat 5 --blocks 1 --variants default \
+    --kernel-times --out "$out/ablation_256x3_kernels_H200.json" 2>&1 | filter | tail -4
+fi
+if [ "$what" = verify ]; then
+  timeout 130 python -m pytest -q -p no:cacheprovider tests/test_integration.py tests/test_ron_device.py 2>&1 | tail -12 > "$out/cuda_tests_integration_ron_device.txt"
+  tail -2 "$out/cuda_tests_integration_ron_device.txt"
+  timeout 130 python -m pytest -q -p no:cacheprovider tests/test_reconstructor.py tests/test_front.py 2>&1 | tail -12 > "$out/cuda_tests_reconstructor_front.txt"
+  tail -2 "$out/cuda_tests_reconstructor_front.txt"
+  timeout ${T:-200} python -m pytest -q -p no:cacheprovider tests/test_solvers.py 2>&1 | tail -12 > "$out/cuda_tests_solvers.txt"
+  tail -2 "$out/cuda_tests_solvers.txt"
+fi
 ls "$out"
