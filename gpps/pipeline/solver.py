@@ -182,9 +182,10 @@ class SolverConfig:
             ``warp.config.enable_cpu_blocks``): a testing aid.
         split_starts: cold solves of one thread a pixel run each of the ``starts`` in a thread of its
             own (:mod:`gpps.kernels.solve_split`: a prelude, the starts, the pick of the best in start
-            order and the IRLS rounds; three launches); the same results (bitwise on the CPU).  A GPU
-            launch costs its slowest thread, which runs ``starts`` solves one after another in the
-            one-kernel form.  None (default): on CUDA when ``starts > 1``; the CPU keeps the one
+            order and the IRLS rounds; three launches), and so does the neighbour pass after them
+            (``neighbour_radius``; :func:`gpps.kernels.solve_split.split_under_kernels_for`); the same
+            results (bitwise on the CPU).  A GPU launch costs its slowest thread, which runs ``starts``
+            solves one after another in the one-kernel form.  None (default): on CUDA when ``starts > 1``; the CPU keeps the one
             kernel (its launches run the threads one after another anyway; True there is for tests).
             Also the default of :class:`gpps.pipeline.material.MaterialScorer`'s ``split_starts``.
             A :meth:`PixelSolver.step_subset` re-solve runs them only when True: its subset is
@@ -861,7 +862,7 @@ class PixelSolver(Stage):
         scratch = self.__dict__.setdefault("_split_scratch", {})
         sc = scratch.get(ns)
         if sc is None:
-            n, h, w = self.shape
+            h, w = self.shape[1:]
             d = self.device
             sc = (self._buffer((h, w), wp.vec3, d), self._buffer((h, w), wp.float32, d),
                   self._buffer((h, w), wp.int32, d)) + tuple(
@@ -889,7 +890,7 @@ class PixelSolver(Stage):
         cmds = self.__dict__.setdefault("_cmds", {})
         if key not in cmds:
             wp = warp()
-            n, h, w = self.shape
+            h, w = self.shape[1:]
             ns = int(c.starts)
             robust = c.robust if c.irls_rounds > 0 else "none"
             pre, starts, finish = self._sk.get_split_under_kernels(c.solver, self.material.brdf, robust)
