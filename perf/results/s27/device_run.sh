@@ -1,6 +1,6 @@
 #!/bin/bash
 # Session 27's GPU runs on the lent H200 after the kit's install (source /tmp/gpps-env.sh):
-#   bash perf/results/s27/device_run.sh OUTDIR gaps|bench|full|tests|ablation
+#   bash perf/results/s27/device_run.sh OUTDIR gaps|bench|full|tests|tests2|ablation|diligent|verify|neighbour
 out=${1:-$OUT}; what=${2:-gaps}
 mkdir -p "$out"
 filter() { grep -v "SyntaxWarning\|Save a field\|GppsWarning\|notes = self\|warnings.warn\|detect_clipping" ; }
@@ -51,5 +51,9 @@ if [ "$what" = verify ]; then
   tail -2 "$out/cuda_tests_reconstructor_front.txt"
   timeout ${T:-200} python -m pytest -q -p no:cacheprovider tests/test_solvers.py 2>&1 | tail -12 > "$out/cuda_tests_solvers.txt"
   tail -2 "$out/cuda_tests_solvers.txt"
+fi
+if [ "$what" = neighbour ]; then  # (written after this session's device time was spent: for the next session)
+  timeout 300 python perf/neighbour_pass.py --size 256 --device cuda:0 --repeat 20 --blocks 3 --kernel-times \
+    --out "$out/neighbour_pass_256_H200.json" 2>&1 | filter | tail -5
 fi
 ls "$out"
