@@ -89,6 +89,12 @@ LIGHT_LANES = 32
 # no cap 4.54 ms a solve, 168: 4.29, 128: 3.26, 96: 3.41.  The latency-bound launches (the material scorer's, the
 # front's rings) keep the compiler's choice: a cap there only adds spill latency to their few threads.
 SPLIT_SOLVE_MAX_REGISTERS = 128
+# the same cap for the starts-parallel neighbour pass (gpps.kernels.solve_split.split_under_kernels_for): given the
+# split solve's value, not measured apart.  Its launches have H x W x starts threads of which only the
+# under-determined pixels' work (256^2 x 3: 3352 of 43234 pixels), which may make them latency-bound; with the cap
+# its starts kernel spills ~0.5 kB a thread (sm_90, perf/results/s27/README.md), without it 207 registers and no
+# spills.  perf/neighbour_pass.py times both ways.
+SPLIT_UNDER_MAX_REGISTERS = 128
 # thread blocks a streaming multiprocessor for the launches of a starts-parallel subset re-solve
 # (PixelSolver.step_subset with SolverConfig(split_starts=True) on CUDA): one wave of blocks strides over the
 # (rows, W, starts) launch (Warp's grid-stride loop), so the pixels outside the subset cost a mask read each

@@ -10,8 +10,8 @@ solve of the capture (``_common.reconstruct_inputs``: perspective Cook-Torrance 
 form's launches device-synchronised (the solve's outputs restored before each, untimed), in interleaved blocks:
 
 * ``one-thread``: ``underdetermined_kernel``;
-* ``split``: the starts-parallel form as the library builds it (the split solve's register cap,
-  ``gpps.names.SPLIT_SOLVE_MAX_REGISTERS``);
+* ``split``: the starts-parallel form as the library builds it (its register cap,
+  ``gpps.names.SPLIT_UNDER_MAX_REGISTERS``, the split solve's value);
 * ``split-nocap``: the same kernels in a module without the cap (``gpps.names`` keeps the compiler's choice for
   latency-bound launches; the pass's launches have few working threads: is it one?).
 
@@ -98,8 +98,9 @@ def main(argv=None):
         wp.synchronize_device(dev)
         t = time.perf_counter()
         if form == "split-nocap":
-            s._sk = types.SimpleNamespace(**{k: getattr(real_sk, k) for k in dir(real_sk) if not k.startswith("__")})  # noqa: SLF001
-            s._sk.get_split_under_kernels = lambda *k: nocap  # noqa: SLF001
+            shim = types.SimpleNamespace(**{k: getattr(real_sk, k) for k in dir(real_sk) if not k.startswith("__")})
+            shim.get_split_under_kernels = lambda *k: nocap
+            s._sk = shim  # noqa: SLF001
         s._cmds.pop(("underdetermined", True), None)  # noqa: SLF001  (re-recorded with this form's kernels)
         try:
             s._launch_underdetermined(s.mask, split=form != "one-thread")  # noqa: SLF001

@@ -230,7 +230,8 @@ _SPLIT_UNDER: dict = {}
 def get_split_under_kernels(method, brdf, robust="none"):
     """The starts-parallel neighbour pass (:func:`gpps.kernels.solve_split.split_under_kernels_for`) of one
     nonlinear solver, reflectance model and robust loss, in a Warp module of its own (:func:`module_name` +
-    ``"_split_under"``: built, and compiled, only where the pass runs), with the split solve's register cap."""
+    ``"_split_under"``: built, and compiled, only where the pass runs), with the register cap
+    :data:`gpps.names.SPLIT_UNDER_MAX_REGISTERS`."""
     key = specialisation_key(method, brdf, robust)
     if None in key or key[0] == "none":
         raise ValueError(f"method, brdf, robust: expected a nonlinear solver and fixed choices, got {key}")
@@ -239,7 +240,7 @@ def get_split_under_kernels(method, brdf, robust="none"):
         name = module_name(*key) + "_split_under"
         sfx = "__" + name.rsplit(".", 1)[1]
         module = wp.get_module(name)
-        module.options["cuda_max_registers"] = names.SPLIT_SOLVE_MAX_REGISTERS
+        module.options["cuda_max_registers"] = names.SPLIT_UNDER_MAX_REGISTERS
         funcs = solver_funcs(*key, module, sfx)
         k = split_under_kernels_for(funcs.one_start, funcs.finish_pixel, module, sfx)
         _SPLIT_UNDER[key] = k

@@ -185,8 +185,9 @@ class SolverConfig:
             order and the IRLS rounds; three launches), and so does the neighbour pass after them
             (``neighbour_radius``; :func:`gpps.kernels.solve_split.split_under_kernels_for`); the same
             results (bitwise on the CPU).  A GPU launch costs its slowest thread, which runs ``starts``
-            solves one after another in the one-kernel form.  None (default): on CUDA when ``starts > 1``; the CPU keeps the one
-            kernel (its launches run the threads one after another anyway; True there is for tests).
+            solves one after another in the one-kernel form.  None (default): on CUDA when
+            ``starts > 1``; the CPU keeps the one kernel (its launches run the threads one after another
+            anyway; True there is for tests).
             Also the default of :class:`gpps.pipeline.material.MaterialScorer`'s ``split_starts``.
             A :meth:`PixelSolver.step_subset` re-solve runs them only when True: its subset is
             usually a few pixels or none, and over a whole 1024^2 grid the three launches cost more
