@@ -205,26 +205,30 @@ def get_solve_kernel_lanes(method, brdf, robust="none"):
 _SPLIT: dict = {}
 
 
-def get_split_kernels(method, brdf, robust="none"):
-    """The starts-parallel kernels (:mod:`gpps.kernels.solve_split`) of one nonlinear solver, reflectance model
-    and robust loss, in a Warp module of their own (:func:`module_name` + ``"_split"``), built once and cached."""
+def _split_module(method, brdf, robust, suffix: str, max_registers: int, build):
+    """The kernels ``build(funcs, module, sfx)`` makes in the Warp module :func:`module_name` + ``suffix`` of one
+    nonlinear solver, reflectance model and robust loss, compiled on CUDA with ``max_registers`` (the CPU build
+    ignores it); built once and cached."""
     key = specialisation_key(method, brdf, robust)
     if None in key or key[0] == "none":
         raise ValueError(f"method, brdf, robust: expected a nonlinear solver and fixed choices, got {key}")
-    k = _SPLIT.get(key)
+    k = _SPLIT.get((key, suffix))
     if k is None:
-        name = module_name(*key) + "_split"
+        name = module_name(*key) + suffix
         sfx = "__" + name.rsplit(".", 1)[1]
         module = wp.get_module(name)
-        # (CUDA only: the CPU build ignores it)
-        module.options["cuda_max_registers"] = names.SPLIT_SOLVE_MAX_REGISTERS
-        funcs = solver_funcs(*key, module, sfx)
-        k = split_kernels_for(prelude_for(module, sfx), funcs.one_start, funcs.finish_pixel, module, sfx)
-        _SPLIT[key] = k
+        module.options["cuda_max_registers"] = int(max_registers)
+        k = build(solver_funcs(*key, module, sfx), module, sfx)
+        _SPLIT[(key, suffix)] = k
     return k
 
 
-_SPLIT_UNDER: dict = {}
+def get_split_kernels(method, brdf, robust="none"):
+    """The starts-parallel kernels (:mod:`gpps.kernels.solve_split`) of one nonlinear solver, reflectance model
+    and robust loss, in a Warp module of their own (:func:`module_name` + ``"_split"``), built once and cached."""
+    return _split_module(method, brdf, robust, "_split", names.SPLIT_SOLVE_MAX_REGISTERS,
+                         lambda f, module, sfx: split_kernels_for(prelude_for(module, sfx), f.one_start,
+                                                                  f.finish_pixel, module, sfx))
 
 
 def get_split_under_kernels(method, brdf, robust="none"):
@@ -232,19 +236,8 @@ def get_split_under_kernels(method, brdf, robust="none"):
     nonlinear solver, reflectance model and robust loss, in a Warp module of its own (:func:`module_name` +
     ``"_split_under"``: built, and compiled, only where the pass runs), with the register cap
     :data:`gpps.names.SPLIT_UNDER_MAX_REGISTERS`."""
-    key = specialisation_key(method, brdf, robust)
-    if None in key or key[0] == "none":
-        raise ValueError(f"method, brdf, robust: expected a nonlinear solver and fixed choices, got {key}")
-    k = _SPLIT_UNDER.get(key)
-    if k is None:
-        name = module_name(*key) + "_split_under"
-        sfx = "__" + name.rsplit(".", 1)[1]
-        module = wp.get_module(name)
-        module.options["cuda_max_registers"] = names.SPLIT_UNDER_MAX_REGISTERS
-        funcs = solver_funcs(*key, module, sfx)
-        k = split_under_kernels_for(funcs.one_start, funcs.finish_pixel, module, sfx)
-        _SPLIT_UNDER[key] = k
-    return k
+    return _split_module(method, brdf, robust, "_split_under", names.SPLIT_UNDER_MAX_REGISTERS,
+                         lambda f, module, sfx: split_under_kernels_for(f.one_start, f.finish_pixel, module, sfx))
 
 
 def get_solve_kernels(method, brdf, robust="none", cache: int = names.SOLVE_TERM_CACHE):

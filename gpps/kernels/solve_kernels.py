@@ -35,7 +35,7 @@ from gpps.kernels.solve_common import (
     vec19,
 )
 from gpps.kernels.solve_methods import solver_funcs
-from gpps.kernels.solve_neighbours import neighbour_stats
+from gpps.kernels.solve_neighbours import held_pixel, neighbour_prior, neighbour_stats
 
 
 @wp.func
@@ -448,18 +448,13 @@ def underdetermined_kernel_for(solve_pixel, module, sfx: str):
         if nb.count == 0.0:
             return
         px = make_pixel(cam, depth, i, j, prm)
-        px.fix_kd = 1
-        px.kd = nb.kd
         gmax = grey_max(images, i, j, lights.count)
+        prior = neighbour_prior(nb, px.v, gmax)
+        px = held_pixel(px, nb.kd, prior)
         ninit = normals[i, j]
-        if wp.length(nb.n) > 0.0:
-            px.prior_n = wp.normalize(nb.n)
-            if nb.lin_ok != 0 and wp.length(nb.n_lin) > 0.0:
-                nl = wp.normalize(nb.n_lin)
-                if wp.dot(nl, px.v) > 0.05:
-                    px.prior_n = nl
-            px.prior_w = 1.0e-3 * gmax * gmax
-            ninit = px.prior_n
+        pn = wp.vec3(prior[0], prior[1], prior[2])
+        if wp.length(pn) > 0.0:
+            ninit = pn
         sol = solve_pixel(ninit, gmax, images, weights, px, lights, mat, prm)
         sol.total = sol.total + iterations[i, j]
         store_solution(sol, f | FLAG_ALBEDO_FROM_NEIGHBOURS, weights, px, lights.count, normals, albedo, residual, iterations, flags)

@@ -8,7 +8,7 @@ break the ties of its normal (see :class:`gpps.pipeline.solver.SolverConfig`'s
 
 import warp as wp
 
-from gpps.kernels.solve_common import FLAG_FEW_OBSERVATIONS
+from gpps.kernels.solve_common import FLAG_FEW_OBSERVATIONS, Pixel
 
 NEIGHBOUR_MIN_COUNT = 16  # well-determined pixels the neighbour pass gathers (before its 2 extra rings)
 WEISZFELD_ITERS = wp.constant(8)  # iterations of the neighbours' geometric median
@@ -166,3 +166,33 @@ def neighbour_stats(
     out.lin_ok = ok
     return out
 
+
+
+@wp.func
+def neighbour_prior(nb: NeighbourStats, v: wp.vec3, gmax: float):
+    """The prior normal and its weight that the neighbour pass puts on an under-determined pixel, as a vec4
+    ``(n, w)`` (zeros when the neighbours gave no normal): their first-order extrapolation ``n_lin`` where that
+    fit held and faces the camera (``n . v > 0.05``), else their geometric median ``n``; the weight ``1e-3
+    gmax^2`` (of the data's scale: it only breaks the ties of 1-2 observations)."""
+    if wp.length(nb.n) <= 0.0:
+        return wp.vec4(0.0)
+    pn = wp.normalize(nb.n)
+    if nb.lin_ok != 0 and wp.length(nb.n_lin) > 0.0:
+        nl = wp.normalize(nb.n_lin)
+        if wp.dot(nl, v) > 0.05:
+            pn = nl
+    return wp.vec4(pn[0], pn[1], pn[2], 1.0e-3 * gmax * gmax)
+
+
+@wp.func
+def held_pixel(px: Pixel, kd: wp.vec3, prior: wp.vec4):
+    """``px`` with its albedo held at ``kd`` (the neighbours') and, where ``prior`` holds a normal
+    (:func:`neighbour_prior`), that normal as its prior with the prior's weight."""
+    out = px
+    out.fix_kd = 1
+    out.kd = kd
+    pn = wp.vec3(prior[0], prior[1], prior[2])
+    if wp.length(pn) > 0.0:  # (a unit normal where neighbour_prior set one)
+        out.prior_n = pn
+        out.prior_w = prior[3]
+    return out

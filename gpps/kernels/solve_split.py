@@ -33,7 +33,7 @@ from gpps.kernels.solve_common import (
     pick_start,
     store_solution,
 )
-from gpps.kernels.solve_neighbours import neighbour_stats
+from gpps.kernels.solve_neighbours import held_pixel, neighbour_prior, neighbour_stats
 
 __all__ = ["split_kernels_for", "split_under_kernels_for"]
 
@@ -204,34 +204,16 @@ def split_under_kernels_for(one_start, finish_pixel, module, sfx: str):
             return
         px = make_pixel(cam, depth, i, j, prm)
         gmax = grey_max(images, i, j, lights.count)
+        prior = neighbour_prior(nb, px.v, gmax)
         ninit = normals[i, j]
-        prior = wp.vec4(0.0)
-        if wp.length(nb.n) > 0.0:
-            pn = wp.normalize(nb.n)
-            if nb.lin_ok != 0 and wp.length(nb.n_lin) > 0.0:
-                nl = wp.normalize(nb.n_lin)
-                if wp.dot(nl, px.v) > 0.05:
-                    pn = nl
-            prior = wp.vec4(pn[0], pn[1], pn[2], 1.0e-3 * gmax * gmax)
+        pn = wp.vec3(prior[0], prior[1], prior[2])
+        if wp.length(pn) > 0.0:
             ninit = pn
         ninit_buf[i, j] = ninit
         gmax_buf[i, j] = gmax
         kd_buf[i, j] = nb.kd
         prior_buf[i, j] = prior
         flag_buf[i, j] = f
-
-    @wp.func(name="held_pixel" + sfx, module=module)
-    def held_pixel(cam: CameraParams, depth: wp.array2d(dtype=wp.float32), i: int, j: int, prm: SolverParams,
-                   kd: wp.vec3, prior: wp.vec4):
-        """The pixel of the pass: its albedo held at the neighbours' and, with a weight, their prior normal."""
-        px = make_pixel(cam, depth, i, j, prm)
-        px.fix_kd = 1
-        px.kd = kd
-        pn = wp.vec3(prior[0], prior[1], prior[2])
-        if wp.length(pn) > 0.0:  # (a unit normal where the prelude set a prior)
-            px.prior_n = pn
-            px.prior_w = prior[3]
-        return px
 
     @wp.kernel(name="under_starts_kernel" + sfx, module=module, enable_backward=False)
     def under_starts_kernel(
@@ -255,7 +237,7 @@ def split_under_kernels_for(one_start, finish_pixel, module, sfx: str):
         i, j, st = wp.tid()
         if flag_buf[i, j] < 0 or (prm.warm_start != 0 and st > 0):
             return
-        px = held_pixel(cam, depth, i, j, prm, kd_buf[i, j], prior_buf[i, j])
+        px = held_pixel(make_pixel(cam, depth, i, j, prm), kd_buf[i, j], prior_buf[i, j])
         res = one_start(st, ninit_buf[i, j], images, weights, px, lights, mat, prm)
         start_n[i, j, st] = res.n
         start_kd[i, j, st] = res.kd
@@ -292,7 +274,7 @@ def split_under_kernels_for(one_start, finish_pixel, module, sfx: str):
         f = flag_buf[i, j]
         if f < 0:
             return
-        px = held_pixel(cam, depth, i, j, prm, kd_buf[i, j], prior_buf[i, j])
+        px = held_pixel(make_pixel(cam, depth, i, j, prm), kd_buf[i, j], prior_buf[i, j])
         ninit = ninit_buf[i, j]
         nstarts = wp.max(prm.starts, 1)
         if prm.warm_start != 0:
