@@ -19,7 +19,9 @@ Variants (``--variants``, comma-separated):
   instead of the default one Taichi launch an iteration;
 * ``one-thread-neighbours``: the default, but the solver's neighbour pass (pixels with fewer than 3 lit
   observations) as ``underdetermined_kernel``, every start of a pixel in its thread, instead of its
-  starts-parallel form (``gpps.kernels.solve_split.split_under_kernels_for``; session 27).
+  starts-parallel form (``gpps.kernels.solve_split.split_under_kernels_for``; session 27);
+* ``warm-uncapped``: ``RONConfig(material_warm_iters=None)``: the material search's warm candidate solves run to
+  the solver's ``max_iters`` (50) instead of the default 12 (session 28).
 
 Only the time and the MAEN are compared; a variant with a worse MAEN is not a proposal, it says what the stage is
 worth.
@@ -49,7 +51,7 @@ import gpps  # noqa: E402
 from _common import device_label, reconstruct_inputs  # noqa: E402
 
 VARIANTS = ("default", "known", "no-dgmc", "no-depth", "rounds3", "rounds2", "evals20", "persistent-pcg",
-            "one-thread-neighbours")
+            "one-thread-neighbours", "warm-uncapped")
 
 
 def _sync():
@@ -69,7 +71,8 @@ def variant_kwargs(name: str) -> dict:
         return {"material": gpps.Material("cook-torrance", ks=0.8, roughness=0.2, f0=0.5)}
     changes = {"no-dgmc": {"dgmc": False}, "no-depth": {"integrate": False}, "rounds3": {"rounds": 3},
                "rounds2": {"rounds": 2}, "evals20": {"material_evals": 20},
-               "persistent-pcg": {"integrator": IntegratorConfig(launch="persistent")}}
+               "persistent-pcg": {"integrator": IntegratorConfig(launch="persistent")},
+               "warm-uncapped": {"material_warm_iters": None}}
     if name not in changes:
         raise ValueError(f"variant: expected one of {VARIANTS}, got {name!r}")
     return {"material": "cook-torrance", "config": replace(base, **changes[name])}

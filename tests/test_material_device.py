@@ -331,6 +331,42 @@ def test_warm_step_equals_pixel_solver_warm_start(light_kind, device):
     assert r_host["iterations"][2].mean() < 0.5 * it_cold[2].mean()
 
 
+def test_warm_max_iters_caps_warm_steps_only(device):
+    """``warm_max_iters``: a warm step's solves stop after that many cost evaluations, as PixelSolver's warm solve
+    with ``max_iters`` set so; cold steps keep ``config.max_iters``; a bad cap is refused by name."""
+    img, lights, sc, mat = _many_lights_case("cook-torrance", "directional", 8, device=device)
+    sample = sample_mask(sc.mask, 150, seed=7, block=True)
+    cands = candidates_around(mat)
+    cfg = fit_config()
+    init = np.zeros(sc.mask.shape + (3,), np.float32)
+    init[..., 2] = 1.0  # a start far from most pixels' normals: the solves need many evaluations
+    cap = 4
+    solver = PixelSolver(img.shape[:3], sc.camera, lights, cands[0],
+                         replace(cfg, warm_start=True, starts=1, max_iters=cap), device=device)
+    ref = []
+    for m in cands:
+        solver.set_material(m)
+        ref.append(solver.run(img, sample, init_normals=init)["residual"][sample])
+    kw = dict(max_samples=int(sample.sum()), max_candidates=len(cands), trim=TRIM, device=device)
+    with MaterialScorer(img.shape[:3], sc.camera, lights, mat, cfg, warm_max_iters=cap, **kw) as capped, \
+            MaterialScorer(img.shape[:3], sc.camera, lights, mat, cfg, **kw) as free:
+        for s_ in (capped, free):
+            s_.upload(img, sample)
+            s_.set_start(init[sample])
+            s_.step(cands, warm=True)
+        got = capped.fetch_pixels(("residual", "iterations"))
+        full = free.fetch_pixels(("residual", "iterations"))
+        capped.step(cands)
+        free.step(cands)
+        cold_capped, cold_free = capped.fetch(), free.fetch()
+    s = scale_of(img, sc.mask)
+    assert got["iterations"].max() <= cap < full["iterations"].max()
+    assert np.abs(got["residual"] - np.array(ref)).max() <= 1e-5 * s
+    np.testing.assert_array_equal(cold_capped, cold_free)
+    with pytest.raises(ValueError, match="warm_max_iters"):
+        MaterialScorer(img.shape[:3], sc.camera, lights, mat, cfg, warm_max_iters=0, **kw)
+
+
 def _score_parallel(images, sample, camera, lights, cands, config, parallel, *, device, depth=None, warm=None):
     with MaterialScorer(images.shape[:3], camera, lights, cands[0].brdf, config, max_samples=int(sample.sum()),
                         max_candidates=len(cands), trim=TRIM, parallel=parallel, device=device) as sc:

@@ -251,6 +251,8 @@ def test_reconstruct_bad_input():
         RONConfig(cold_rounds=0)
     with pytest.raises(TypeError, match="material_warm"):
         RONConfig(material_warm=1)
+    with pytest.raises(ValueError, match="material_warm_iters"):
+        RONConfig(material_warm_iters=0)
 
 
 # --------------------------------------------------------------------------- CLI

@@ -375,6 +375,18 @@ class RONConfig:
             directions depend on the depth being solved; a start linearised at the integrated depth never won on
             the development captures under 3 point lights).  Costs a second refinement where it runs (DiLiGenT
             ball from 3 images, CPU: 8.0 -> 12.6 s, the first start kept).
+        material_warm_iters: the most cost evaluations of a warm candidate solve (``material_warm``: one start a
+            pixel, from the round's normals); None: the solver's ``max_iters`` (50).  A warm solve starts near its
+            minimum and LM converges there in a few evaluations (median 3-4 on the 256^2 x 3 Cook-Torrance case);
+            the tail that runs on (3-5 % of the sample above 12, up to 37) is pixels in flat valleys or leaving
+            their basin, whose residuals barely move or are not the continuation the warm start is for.  On the
+            GPU a launch of the search costs its slowest solve, so the tail set each of its ~40 sequential passes'
+            length.  12 = three times the median; chosen on our own data: the 256^2 x 3 case gives the same
+            estimate and normals bit for bit at 12 and 16 as uncapped, and the 40 Mitsuba development captures
+            (3 and 12 lights, seeds 3000-3009) the same MAEN in 21, a mean change of -0.02 deg, non-diffuse means
+            15.35 -> 15.31 (3 lights) and 4.29 -> 4.28 (12); the largest moves are 3-light point-light captures
+            whose material is not identifiable (five spheres +0.69, copper superquadric -1.44).  The cold fits
+            (the first round's grid and simplex) keep ``max_iters``.
     """
 
     rounds: int = 5
@@ -408,6 +420,7 @@ class RONConfig:
     refine: bool = False
     refine_config: DepthRefineConfig = field(default_factory=DepthRefineConfig)
     refine_two_light: bool = True
+    material_warm_iters: int | None = 12
 
     def __post_init__(self):
         check_choices(self)
@@ -448,6 +461,8 @@ class RONConfig:
         check_number("material_trim", self.material_trim, lo=0.0, hi=0.5)
         check_number("material_starts", self.material_starts, lo=1, integer=True)
         check_bool("material_warm", self.material_warm)
+        if self.material_warm_iters is not None:
+            check_number("material_warm_iters", self.material_warm_iters, lo=1, integer=True)
         check_number("cold_rounds", self.cold_rounds, lo=1, integer=True)
         check_number("roughness_window", self.roughness_window, lo=0.5)
         if not isinstance(self.dgmc_config, DGMCConfig):
@@ -807,7 +822,8 @@ class RON:
             fit = replace(c.solver, starts=c.material_starts, neighbour_radius=0, smoothness=0.0, warm_start=False)
             self._scorers[key] = MaterialScorer(self.shape, self.camera, self.lights, material, fit,
                                                 max_samples=int(sample.sum()), max_candidates=self._batch,
-                                                trim=c.material_trim, device=self.device)
+                                                trim=c.material_trim, warm_max_iters=c.material_warm_iters,
+                                                device=self.device)
         held = self._scored.get(key)
         if held is None or any(a is not b for a, b in zip(held, inputs)):
             self._scorers[key].upload(images, sample, depth=depth, valid=valid)

@@ -133,6 +133,9 @@ class MaterialScorer(Stage):
             S sequential starts per thread are S times its critical path.  None (default): on
             CUDA when ``config.starts > 1`` (``config.split_starts`` when that is set); False on
             the CPU, whose launch runs its threads one after another anyway (True there is for tests).
+        warm_max_iters: cap on the cost evaluations of a warm step's solve (``step(..., warm=True)``: one start a
+            pixel, from :meth:`set_start`'s normals); None: ``config.max_iters``, as the cold steps.  A warm
+            step's launch costs its slowest solve (see :attr:`gpps.flows.ron.RONConfig.material_warm_iters`).
         device: Warp device (None: CUDA if present).
 
     Buffers (allocated once, N x K_max x P_max): the strip ``strip`` (N, 1, P_max)
@@ -144,7 +147,7 @@ class MaterialScorer(Stage):
 
     def __init__(self, shape, camera, lights, brdf, config: SolverConfig, *, max_samples: int = 2000,
                  max_candidates: int = 25, trim: float = 0.02, parallel: ParallelName | None = None,
-                 split_starts: bool | None = None, device=None):
+                 split_starts: bool | None = None, warm_max_iters: int | None = None, device=None):
         wp = warp()
         n, h, w = check_problem(shape, lights)
         if isinstance(brdf, Material):
@@ -177,7 +180,11 @@ class MaterialScorer(Stage):
         # (on a Mitsuba bowl it drove ks to the search's bound, 0.83 -> 3.0)
         self.prm = solver_params(replace(config, shadow_relative=0.0))
         # warm steps: one start per pixel, from ``nwarm`` (set_start)
-        self.prm_warm = solver_params(replace(config, warm_start=True, starts=1, shadow_relative=0.0))
+        if warm_max_iters is not None:
+            check_number("warm_max_iters", warm_max_iters, lo=1, integer=True)
+        self.warm_max_iters = int(config.max_iters if warm_max_iters is None else warm_max_iters)
+        self.prm_warm = solver_params(replace(config, warm_start=True, starts=1, shadow_relative=0.0,
+                                              max_iters=self.warm_max_iters))
         self._cmds: dict = {}  # recorded launches of _launch_chunk
         robust = config.robust if config.irls_rounds > 0 else "none"
         self._robust = robust

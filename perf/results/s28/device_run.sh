@@ -1,0 +1,40 @@
+#!/bin/bash
+# Session 28's GPU runs on the lent H200 after the kit's install (source /tmp/gpps-env.sh):
+#   bash perf/results/s28/device_run.sh OUTDIR tests|solvers|ablation|neighbour|diligent|cache
+out=${1:-$OUT}; what=${2:-tests}
+mkdir -p "$out"
+filter() { grep -v "SyntaxWarning\|Save a field\|GppsWarning\|notes = self\|warnings.warn\|detect_clipping" ; }
+if [ "$what" = tests ]; then  # code that last ran on a GPU before session 27's review mend, and this session's cap
+  timeout ${T:-420} python -m pytest -q -p no:cacheprovider tests/test_solve_split.py \
+    tests/test_material_device.py::test_warm_max_iters_caps_warm_steps_only tests/test_stream_full.py \
+    tests/test_stream_retry.py tests/test_stream_recovery.py tests/test_reconstructor.py ${MORE:-} 2>&1 \
+    | tail -40 > "$out/cuda_tests_s28.txt"
+  tail -6 "$out/cuda_tests_s28.txt"
+fi
+if [ "$what" = solvers ]; then
+  timeout ${T:-400} python -m pytest -q -p no:cacheprovider tests/test_solvers.py ${MORE:-} 2>&1 | tail -30 > "$out/cuda_tests_solvers_s28.txt"
+  tail -6 "$out/cuda_tests_solvers_s28.txt"
+fi
+if [ "$what" = ablation ]; then
+  timeout ${T:-400} python perf/reconstruct_ablation.py --size 256 --images 3 --device cuda:0 --repeat 5 --blocks ${BLOCKS:-2} \
+    --variants "${VARIANTS:-default,warm-uncapped}" ${KT:---kernel-times} --out "$out/ablation_256x3_H200.json" 2>&1 | filter | tail -24
+fi
+if [ "$what" = neighbour ]; then
+  timeout ${T:-300} python perf/neighbour_pass.py --size 256 --device cuda:0 --repeat 20 --blocks 3 --kernel-times \
+    --out "$out/neighbour_pass_256_H200.json" 2>&1 | filter | tail -8
+fi
+if [ "$what" = diligent ]; then
+  timeout ${T:-300} python perf/reconstruct_folder_timing.py .data/diligent/ball .data/diligent/bear --device cuda:0 --repeat 3 \
+    --out "$out/diligent_ball_bear_cuda0_H200.json" 2>&1 | filter | python -c "
+import json, sys
+for line in sys.stdin:
+    try:
+        r = json.loads(line); print(r['folder'], r['call'], round(r['wall_s'], 3), round(r['maen_deg'], 4), {k: round(v, 3) for k, v in r['timings'].items()})
+    except Exception:
+        pass"
+fi
+if [ "$what" = cache ]; then  # the Warp kernel cache this machine compiled, for a later session to carry
+  (cd /tmp/gpps-cache && tar cf - warp | xz -T8 -6 | split -b 15M - "$out/warp_cache.tar.xz.part-")
+  find /tmp/gpps-cache/warp -maxdepth 2 | head -5; du -sh /tmp/gpps-cache/warp
+fi
+ls -la "$out"
