@@ -186,9 +186,15 @@ def test_subset_resolve_holds_underdetermined_pixels_to_their_neighbours(device)
         sub = wp.array(few.astype(np.uint8), device=device)
         s.step_subset(sub, cfg)
         again = s.fetch(("normals", "albedo", "flags"))
+        # the whole frame's pass runs starts-parallel where the solve does (CUDA), the subset's in one thread a
+        # pixel: the same arithmetic in another order, equal to float32 rounding there and bit for bit elsewhere
+        split = s._uses_split()
         for k in ("normals", "albedo", "flags"):
-            np.testing.assert_array_equal(again[k][few], whole[k][few], err_msg=k)
             np.testing.assert_array_equal(again[k][~few], whole[k][~few], err_msg=k)
+            if split and k != "flags":
+                np.testing.assert_allclose(again[k][few], whole[k][few], rtol=0, atol=1e-5, err_msg=k)
+            else:
+                np.testing.assert_array_equal(again[k][few], whole[k][few], err_msg=k)
         # without the pass (neighbour_radius 0) the subset's albedo is free: another answer
         s.normals.assign(np.where(few[..., None], 0.0, whole["normals"]).astype(np.float32))
         s.step_subset(sub, SolverConfig(neighbour_radius=0))

@@ -51,6 +51,42 @@ class NeighbourStats:
     reach: wp.int32
 
 
+NEIGHBOUR_LIST = 256  # determined neighbours :func:`neighbour_stats` keeps in its list (more: it scans the rings)
+_NeighbourList = wp.types.vector(length=NEIGHBOUR_LIST, dtype=wp.int32)
+
+
+@wp.func
+def _pack_offset(di: int, dj: int):
+    """``(di, dj)`` (each within +-511: ``SolverConfig.neighbour_radius`` is at most 256) in one non-negative int32."""
+    return ((di + 512) << 10) | (dj + 512)
+
+
+@wp.func
+def _unpack_offset(code: int):
+    """The ``(di, dj)`` of :func:`_pack_offset`."""
+    return (code >> 10) - 512, (code & 1023) - 512
+
+
+@wp.func
+def _weiszfeld_terms(a: wp.vec3, q: wp.vec3, mk: wp.vec3, mn: wp.vec3, ek: float):
+    """One neighbour's terms of a Weiszfeld step: ``(u a, u, z q, z)`` with ``u = 1 / |a - mk|``, ``z = 1 / |q - mn|``
+    (floored)."""
+    u = 1.0 / wp.max(wp.length(a - mk), ek)
+    z = 1.0 / wp.max(wp.length(q - mn), 1.0e-4)
+    return u * a, u, z * q, z
+
+
+@wp.func
+def _linear_terms(q: wp.vec3, di: int, dj: int, it: int, lin: wp.vec3, gi: wp.vec3, gj: wp.vec3):
+    """One neighbour's terms of an IRLS round of the first-order model: ``(w x x^T, w q0 x, w q1 x, w q2 x)``,
+    ``x = (1, di, dj)``, ``w`` 1 in round 0 and ``1 / |residual|`` (floored) after."""
+    x = wp.vec3(1.0, float(di), float(dj))
+    wgt = float(1.0)
+    if it > 0:
+        wgt = 1.0 / wp.max(wp.length(q - lin - float(di) * gi - float(dj) * gj), 1.0e-3)
+    return wgt * wp.outer(x, x), wgt * q[0] * x, wgt * q[1] * x, wgt * q[2] * x
+
+
 @wp.func
 def neighbour_stats(
     i: int,
@@ -77,6 +113,13 @@ def neighbour_stats(
     the normal keeps turning, so their median lags where the extrapolation does
     not.  ``lin_ok`` 0: the fit was singular (neighbours on a line).
     ``count`` 0: none found.
+
+    The ring search keeps the found pixels' offsets in a list (up to :data:`NEIGHBOUR_LIST`, in the search's
+    order), and the 13 passes of the two fits run over that list instead of scanning the rings' squares again
+    (a pixel deep in an under-determined region scans hundreds of pixels a pass to find its few dozen: that scan
+    was most of the neighbour pass's time on the GPU, where a launch costs its slowest thread).  The terms are
+    summed in the same order either way, so the results are the same bits; more pixels than the list holds
+    fall back to the scans.
     """
     out = NeighbourStats()
     acc = wp.vec3(0.0)
@@ -84,6 +127,8 @@ def neighbour_stats(
     cnt = float(0.0)
     r_stop = radius
     reach = int(0)
+    lst = _NeighbourList()
+    k = int(0)
     for r in range(1, radius + 1):
         if r > r_stop:
             break
@@ -94,8 +139,12 @@ def neighbour_stats(
                 acc += albedo[i + di, j + dj]
                 nacc += normals[i + di, j + dj]
                 cnt += 1.0
+                if k < NEIGHBOUR_LIST:
+                    lst[k] = _pack_offset(di, dj)
+                k += 1
         if cnt >= float(min_count) and r_stop == radius:
             r_stop = wp.min(r + 2, radius)
+    listed = k <= NEIGHBOUR_LIST
     out.count = cnt
     out.reach = reach
     if cnt == 0.0:
@@ -110,18 +159,24 @@ def neighbour_stats(
         wk = float(0.0)
         wn = float(0.0)
         ek = 1.0e-4 * wp.length(mk) + 1.0e-12
-        for r in range(1, reach + 1):
-            for t in range(8 * r):
-                di, dj = ring_offset(r, t)
-                if is_determined(mask, flags, i + di, j + dj):
-                    a = albedo[i + di, j + dj]
-                    q = normals[i + di, j + dj]
-                    u = 1.0 / wp.max(wp.length(a - mk), ek)
-                    z = 1.0 / wp.max(wp.length(q - mn), 1.0e-4)
-                    ak += u * a
-                    wk += u
-                    an += z * q
-                    wn += z
+        if listed:
+            for m in range(k):
+                di, dj = _unpack_offset(lst[m])
+                ua, u, zq, z = _weiszfeld_terms(albedo[i + di, j + dj], normals[i + di, j + dj], mk, mn, ek)
+                ak += ua
+                wk += u
+                an += zq
+                wn += z
+        else:
+            for r in range(1, reach + 1):
+                for t in range(8 * r):
+                    di, dj = ring_offset(r, t)
+                    if is_determined(mask, flags, i + di, j + dj):
+                        ua, u, zq, z = _weiszfeld_terms(albedo[i + di, j + dj], normals[i + di, j + dj], mk, mn, ek)
+                        ak += ua
+                        wk += u
+                        an += zq
+                        wn += z
         mk = ak / wk
         mn = an / wn
     out.kd = mk
@@ -137,19 +192,24 @@ def neighbour_stats(
         b0 = wp.vec3(0.0)
         b1 = wp.vec3(0.0)
         b2 = wp.vec3(0.0)
-        for r in range(1, reach + 1):
-            for t in range(8 * r):
-                di, dj = ring_offset(r, t)
-                if is_determined(mask, flags, i + di, j + dj):
-                    q = normals[i + di, j + dj]
-                    x = wp.vec3(1.0, float(di), float(dj))
-                    wgt = float(1.0)
-                    if it > 0:
-                        wgt = 1.0 / wp.max(wp.length(q - lin - float(di) * gi - float(dj) * gj), 1.0e-3)
-                    am += wgt * wp.outer(x, x)
-                    b0 += wgt * q[0] * x
-                    b1 += wgt * q[1] * x
-                    b2 += wgt * q[2] * x
+        if listed:
+            for m in range(k):
+                di, dj = _unpack_offset(lst[m])
+                ta, t0, t1, t2 = _linear_terms(normals[i + di, j + dj], di, dj, it, lin, gi, gj)
+                am += ta
+                b0 += t0
+                b1 += t1
+                b2 += t2
+        else:
+            for r in range(1, reach + 1):
+                for t in range(8 * r):
+                    di, dj = ring_offset(r, t)
+                    if is_determined(mask, flags, i + di, j + dj):
+                        ta, t0, t1, t2 = _linear_terms(normals[i + di, j + dj], di, dj, it, lin, gi, gj)
+                        am += ta
+                        b0 += t0
+                        b1 += t1
+                        b2 += t2
         fa = wp.sqrt(wp.ddot(am, am))
         if wp.abs(wp.determinant(am)) <= 1.0e-6 * fa * fa * fa:
             ok = 0
@@ -165,7 +225,6 @@ def neighbour_stats(
     out.n_lin = lin
     out.lin_ok = ok
     return out
-
 
 
 @wp.func
