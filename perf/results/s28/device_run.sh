@@ -1,6 +1,6 @@
 #!/bin/bash
 # Session 28's GPU runs on the lent H200 after the kit's install (source /tmp/gpps-env.sh):
-#   bash perf/results/s28/device_run.sh OUTDIR tests|solvers|ablation|neighbour|diligent|cache
+#   bash perf/results/s28/device_run.sh OUTDIR tests|solvers|ablation|neighbour|gaps|bench|full|diligent|cache
 out=${1:-$OUT}; what=${2:-tests}
 mkdir -p "$out"
 filter() { grep -v "SyntaxWarning\|Save a field\|GppsWarning\|notes = self\|warnings.warn\|detect_clipping" ; }
@@ -32,6 +32,20 @@ for line in sys.stdin:
         r = json.loads(line); print(r['folder'], r['call'], round(r['wall_s'], 3), round(r['maen_deg'], 4), {k: round(v, 3) for k, v in r['timings'].items()})
     except Exception:
         pass"
+fi
+if [ "$what" = gaps ]; then
+  timeout 240 python perf/idle_gaps.py --synthetic 256 --images 3 --device cuda:0 --warm 5 --reconstructor \
+    --out "$out/idle_gaps_256x3_reconstructor_H200.json" 2>&1 | filter | tail -30 | tee "$out/idle_gaps_log.txt"
+  timeout 120 python perf/stage_timeline.py --synthetic 256 --images 3 --device cuda:0 --repeat 3 \
+    --out "$out/timeline_256x3_H200.json" 2>&1 | filter | tail -45 > "$out/timeline_log.txt"; tail -45 "$out/timeline_log.txt"
+fi
+if [ "$what" = bench ]; then
+  timeout ${T:-220} python perf/bench.py --device cuda:0 --sizes 1024 --repeat 20 2>&1 | filter | tail -30 > "$out/bench_1024_log.txt"
+  tail -14 "$out/bench_1024_log.txt"; cp perf/results/bench_NVIDIA_H200.json "$out/" 2>/dev/null
+fi
+if [ "$what" = full ]; then
+  timeout ${T:-330} python perf/stream_full.py --size 1024 --frames 160 --timed 80 --device cuda:0 2>&1 | filter | tail -12 | tee "$out/stream_full_1024_log.txt"
+  cp perf/results/stream_full_NVIDIA_H200.json "$out/" 2>/dev/null
 fi
 if [ "$what" = cache ]; then  # the Warp kernel cache this machine compiled, for a later session to carry
   (cd /tmp/gpps-cache && tar cf - warp | xz -T8 -6 | split -b 15M - "$out/warp_cache.tar.xz.part-")
