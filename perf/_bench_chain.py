@@ -425,7 +425,18 @@ def pixel_solve_rows(ctx, n_images):
     _sync(ctx)
     ctx.log(f"[chain {ctx.size}] pixel solve {n_images} images: compile and first solve {time.perf_counter() - t0:.1f}s")
     name = f"pixel_solve_{n_images}img"
-    t = _time_or_register(ctx, name, "(solve|underdetermined)_kernel", ps.step, inner=2, per_launch=2)
+    # the kernels ps.step launches: the cold solve (solve_kernel, its lights-parallel form solve_kernel_lanes, or
+    # where it runs starts-parallel, CUDA's default, three launches: prelude, one thread a start, pick and store),
+    # then the neighbour pass (underdetermined_kernel, or its three starts-parallel launches where the solve's
+    # config would run starts-parallel)
+    lanes, split = ps._uses_lanes(), ps._uses_split()
+    pattern = "(solve|underdetermined|split_(prelude|starts|finish)|under_(prelude|starts|finish))_kernel"
+    launches = (1 if lanes or not split else 3) + (3 if split else 1)
+    what = " + ".join([("solve_kernel_lanes" if lanes else "split_prelude/starts/finish_kernel" if split
+                        else "solve_kernel"),
+                       ("under_prelude/starts/finish_kernel" if split else "underdetermined_kernel")
+                       + " (the neighbour pass)"])
+    t = _time_or_register(ctx, name, pattern, ps.step, inner=2, per_launch=launches)
     if t is not None:
         from gpps.host.metrics import normal_errors
 
@@ -439,7 +450,7 @@ def pixel_solve_rows(ctx, n_images):
             extra={"images": n_images, "mask_pixels": int(ev.size), "mean_evaluations": float(ev.mean()),
                    "mean_lit": float(lit.mean()), "maen_deg": normal_errors(out["normals"], sc.normals, m)["mean"],
                    "summary": f"{ev.mean():.1f} evaluations/px",
-                   "note": "solve_kernel + underdetermined_kernel (the neighbour pass), default SolverConfig"})
+                   "note": f"{what}, default SolverConfig"})
     ctx.keep.append(ps)
 
 
