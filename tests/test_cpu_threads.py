@@ -8,7 +8,7 @@ import platform
 import numpy as np
 import pytest
 from cases import make_case
-from conftest import DEVICES
+from conftest import DEVICES, RENDER_DEVICE
 
 from gpps.pipeline import cpu_threads as ct
 from gpps.pipeline.material import MaterialScorer
@@ -164,3 +164,55 @@ def test_taichi_init_leaves_the_callers_floating_point_mode():
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
     assert p.returncode == 0, p.stderr
     assert p.stdout.split()[-3:] == ["False", "False", "True"], p.stdout
+
+
+def test_run_reporting_reports_while_the_task_runs_and_reraises():
+    import threading
+    import time
+
+    seen, threads = [], []
+
+    def slow():
+        threads.append(threading.current_thread())
+        time.sleep(0.35)
+
+    ct.run_reporting(slow, lambda s: seen.append((s, threading.current_thread())), every=0.1)
+    assert len(seen) >= 2 and all(b > a for (a, _), (b, _) in zip(seen, seen[1:]))
+    assert all(t is threading.current_thread() for _, t in seen)  # reports on the caller's thread
+    assert threads[0] is not threading.current_thread()  # the task on a helper
+    ct.run_reporting(slow, None)
+    assert threads[1] is threading.current_thread()  # no report: inline
+
+    def bad():
+        raise KeyError("boom")
+
+    with pytest.raises(KeyError, match="boom"):
+        ct.run_reporting(bad, lambda s: None, every=0.05)
+
+
+def test_solver_load_reports_while_its_modules_load(monkeypatch, device):
+    """``PixelSolver.load(progress=)`` keeps the caller's progress moving while a module compiles (a cold cache:
+    seconds on the CPU, minutes on CUDA), and loads nothing when the modules are loaded."""
+    import time
+
+    import warp as wp
+
+    img, lights, sc, mat = make_case("sphere", 16, "orthographic", "directional", "blinn-phong", device=RENDER_DEVICE)
+    ps = PixelSolver(img.shape[:3], sc.camera, lights, mat, SolverConfig(), device=device)
+    ps.load()
+    calls = []
+    ps.load(progress=lambda *a: calls.append(a))
+    assert calls == []  # loaded: no helper thread, nothing to report
+    orig = wp.load_module
+
+    def slow_load(module, *a, **k):
+        time.sleep(1.3)
+        return orig(module, *a, **k)
+
+    monkeypatch.setattr(wp, "load_module", slow_load)
+    monkeypatch.setattr(PixelSolver, "_loaded", lambda self, m: False)
+    ps.load(progress=lambda *a: calls.append(a))
+    assert calls and all(t is None and "loading the solver's kernels" in msg for _, t, msg in calls)
+    out = ps.run(img, sc.mask)
+    assert np.isfinite(out["normals"][sc.mask]).all()
+    ps.close()

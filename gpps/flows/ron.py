@@ -1254,7 +1254,8 @@ class RON:
                 # apart from the solve, whose progress comes as its rows finish
                 step(3 * r - 2, total, f"round {r}: normals: loading the solver's kernels")
                 self.solver.set_material(material)  # (the config is the cold solve's since least squares)
-                self.solver.load()
+                self.solver.load(progress=lambda s, _t, msg, r=r: step(3 * r - 2, total,
+                                                                         f"round {r}: normals: {msg}"))
                 step(3 * r - 2, total, f"round {r}: normals")
             out = self._solve(images, solve_depth, valid, material, init=init, init_mask=init_mask,
                               cold=(r <= c.cold_rounds or init is None), fetch=not on_device,

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Sequence
 
@@ -23,7 +24,7 @@ import numpy as np
 from gpps import _fpenv
 from gpps._runtime import warp
 
-__all__ = ["cpu_threads", "run_all", "balanced_bounds", "load_first"]
+__all__ = ["cpu_threads", "run_all", "balanced_bounds", "load_first", "run_reporting"]
 
 _POOL: ThreadPoolExecutor | None = None
 _POOL_LOCK = threading.Lock()
@@ -49,6 +50,37 @@ def cpu_threads() -> int:
 def load_first(kernel, device) -> None:
     """Compile / load ``kernel``'s Warp module on this thread before launches from several threads race to."""
     warp().load_module(kernel.module, device=device)
+
+
+def run_reporting(task: Callable[[], None], report: Callable[[float], None] | None, every: float = 1.0) -> None:
+    """``task()`` on a helper thread while this thread calls ``report(elapsed seconds)`` every ``every`` seconds
+    until it ends, then raises here what it raised.  For work that holds no progress of its own (a kernel module's
+    first compile: seconds on the CPU, minutes on CUDA) so that the caller's progress keeps moving, and the
+    callback keeps being called on the caller's thread.  Without ``report``: ``task()`` on this thread.
+
+    (Warp loads modules from its own worker threads too: ``warp.load_module(..., max_workers=)``.)
+    """
+    if report is None:
+        task()
+        return
+    box: dict = {}
+
+    def run():
+        try:
+            task()
+        except BaseException as e:  # (re-raised on the caller's thread)
+            box["error"] = e
+
+    t0 = time.perf_counter()
+    worker = threading.Thread(target=run, name="gpps-load", daemon=True)
+    worker.start()
+    while True:
+        worker.join(every)
+        if not worker.is_alive():
+            break
+        report(time.perf_counter() - t0)
+    if "error" in box:
+        raise box["error"]
 
 
 def _in_env(task, env):

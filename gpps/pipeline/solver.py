@@ -51,7 +51,7 @@ from gpps.names import (
 )
 from gpps.names import ROBUST_TAG as _ROBUST_TAG
 from gpps.names import SOLVER_TAG as _SOLVER_TAG
-from gpps.pipeline.cpu_threads import balanced_bounds, cpu_threads, run_all
+from gpps.pipeline.cpu_threads import balanced_bounds, cpu_threads, run_all, run_reporting
 from gpps.pipeline.params import camera_params, light_params, material_params, resolve_parallel, uses_lanes
 from gpps.pipeline.stage import Stage
 
@@ -607,10 +607,15 @@ class PixelSolver(Stage):
         """``(solve_kernel, underdetermined_kernel, smooth_kernel)`` that :meth:`step` uses (the last two None for solver "none")."""
         return self._solve_kernel, self._underdetermined_kernel, self._smooth_kernel
 
-    def load(self) -> None:
+    def load(self, progress=None) -> None:
         """Compile (first use in this installation) and load the kernels the current config's :meth:`step` launches,
         now rather than at its first launch: a caller reporting progress can say so between the compile and the
-        solve (a cold kernel cache costs seconds a module on the CPU).  A no-op for loaded modules."""
+        solve (a cold kernel cache costs seconds a module on the CPU, minutes on CUDA).  A no-op for loaded modules.
+
+        Args:
+            progress: optional ``progress(seconds, None, message)``, told every second while the modules load
+                (they load on a helper thread; the callback is called on this one: :func:`run_reporting`).
+        """
         self._check_open()
         wp = warp()
         kernels = [self._solve_kernel, self._lanes_kernel]
@@ -619,8 +624,24 @@ class PixelSolver(Stage):
             kernels += list(self._sk.get_split_kernels(self.config.solver, self.material.brdf, robust))
             if self.config.neighbour_radius > 0:
                 kernels += list(self._sk.get_split_under_kernels(self.config.solver, self.material.brdf, robust))
-        for module in {id(k.module): k.module for k in kernels if k is not None}.values():
-            wp.load_module(module, device=self.device)
+        modules = [m for m in {id(k.module): k.module for k in kernels if k is not None}.values()
+                   if not self._loaded(m)]
+
+        def task():
+            for module in modules:
+                wp.load_module(module, device=self.device)
+        report = None if progress is None or not modules else (
+            lambda s: progress(s, None, f"loading the solver's kernels ({s:.0f} s)"))
+        run_reporting(task, report)
+
+    def _loaded(self, module) -> bool:
+        """Whether ``module`` is loaded on this solver's device (Warp's table of loaded variants, keyed by device
+        context and block size; False when it cannot tell, and :meth:`load` loads it, a no-op then)."""
+        try:
+            ctx = warp().get_device(self.device).context
+            return any(key[0] == ctx for key in module.execs)
+        except Exception:  # (a Warp without that table)
+            return False
 
     def set_config(self, config: SolverConfig) -> None:
         if not isinstance(config, SolverConfig):
