@@ -1,6 +1,6 @@
 #!/bin/bash
 # Session 28's GPU runs on the lent H200 after the kit's install (source /tmp/gpps-env.sh):
-#   bash perf/results/s28/device_run.sh OUTDIR tests|solvers|ablation|neighbour|gaps|bench|full|diligent|cache
+#   bash perf/results/s28/device_run.sh OUTDIR tests|solvers|ablation|neighbour|gaps|bench|full|diligent|beforeafter|cache
 out=${1:-$OUT}; what=${2:-tests}
 mkdir -p "$out"
 filter() { grep -v "SyntaxWarning\|Save a field\|GppsWarning\|notes = self\|warnings.warn\|detect_clipping" ; }
@@ -46,6 +46,16 @@ fi
 if [ "$what" = full ]; then
   timeout ${T:-330} python perf/stream_full.py --size 1024 --frames 160 --timed 80 --device cuda:0 2>&1 | filter | tail -12 | tee "$out/stream_full_1024_log.txt"
   cp perf/results/stream_full_NVIDIA_H200.json "$out/" 2>/dev/null
+fi
+if [ "$what" = beforeafter ]; then  # session 27's last tree (.carry-old: its gpps and the two perf files) against
+  # this tree, one process each, alternated on one machine (the lent hosts differ: only figures of one machine compare)
+  for i in 1 2; do
+    for t in old new; do
+      root=.; [ $t = old ] && root=.carry-old
+      timeout 200 python $root/perf/reconstruct_ablation.py --size 256 --images 3 --device cuda:0 --repeat 7 --blocks 1 \
+        --variants default --out "$out/ablation_${t}_$i.json" 2>&1 | filter | grep "^default" | sed "s/^/$t $i: /"
+    done
+  done
 fi
 if [ "$what" = cache ]; then  # the Warp kernel cache this machine compiled, for a later session to carry
   (cd /tmp/gpps-cache && tar cf - warp | xz -T8 -6 | split -b 15M - "$out/warp_cache.tar.xz.part-")
