@@ -384,7 +384,8 @@ class RONConfig:
             length.  12 = three times the median; chosen on our own data: the 256^2 x 3 case gives the same
             estimate and normals bit for bit at 12 and 16 as uncapped, and the 40 Mitsuba development captures
             (3 and 12 lights, seeds 3000-3009) the same MAEN in 21, a mean change of -0.02 deg, non-diffuse means
-            15.35 -> 15.31 (3 lights) and 4.29 -> 4.28 (12); the largest moves are 3-light point-light captures
+            13.77 -> 13.78 and 16.93 -> 16.85 (3 directional / point lights), 4.17 -> 4.16 and 4.40 -> 4.40 (12);
+            the largest moves are 3-light point-light captures
             whose material is not identifiable (five spheres +0.69, copper superquadric -1.44).  The cold fits
             (the first round's grid and simplex) keep ``max_iters``.
     """
