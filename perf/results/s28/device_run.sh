@@ -1,6 +1,6 @@
 #!/bin/bash
 # Session 28's GPU runs on the lent H200 after the kit's install (source /tmp/gpps-env.sh):
-#   bash perf/results/s28/device_run.sh OUTDIR tests|solvers|ablation|neighbour|gaps|bench|full|diligent|beforeafter|cache
+#   bash perf/results/s28/device_run.sh OUTDIR tests|solvers|ablation|neighbour|gaps|bench|full|diligent|beforeafter|usecache|cache
 out=${1:-$OUT}; what=${2:-tests}
 mkdir -p "$out"
 filter() { grep -v "SyntaxWarning\|Save a field\|GppsWarning\|notes = self\|warnings.warn\|detect_clipping" ; }
@@ -56,6 +56,9 @@ if [ "$what" = beforeafter ]; then  # session 27's last tree (.carry-old: its gp
         --variants default --out "$out/ablation_${t}_$i.json" 2>&1 | filter | grep "^default" | sed "s/^/$t $i: /"
     done
   done
+fi
+if [ "$what" = usecache ]; then  # a kernel cache built here (perf/device_cache.py), carried: carry .kit/cache
+  mkdir -p "$WARP_CACHE_PATH" && cp -r .kit/cache/warp/* "$WARP_CACHE_PATH"/ && ls "$WARP_CACHE_PATH"/* | wc -l
 fi
 if [ "$what" = cache ]; then  # the Warp kernel cache this machine compiled, for a later session to carry
   (cd /tmp/gpps-cache && tar cf - warp | xz -T8 -6 | split -b 15M - "$out/warp_cache.tar.xz.part-")
