@@ -17,7 +17,8 @@ This script compiles into ``OUT/<warp version>/<module id>/`` (Warp's own layout
   (:mod:`gpps.kernels.solve_batched`), each with CUDA's term cache (:func:`gpps.kernels.solve.term_cache_size`).
 
 A module already in ``OUT`` is skipped (its name carries its content's hash: a changed module gets a new
-directory; ``--prune`` removes the directories of modules this tree no longer has).  On the GPU machine, before the
+directory; ``--prune`` removes the gpps module directories outside this run's selection: old versions, and the
+models and losses not asked for).  On the GPU machine, before the
 first launch::
 
     mkdir -p "$WARP_CACHE_PATH" && cp -r <carried OUT>/* "$WARP_CACHE_PATH"/
@@ -47,7 +48,6 @@ os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 
 def gpps_modules(methods, brdfs, robusts) -> list:
     """The Warp modules of gpps's kernels, with the solver's specialisations for the given choices built."""
-    import warp as wp
     from warp._src import context
 
     import gpps.kernels
@@ -67,7 +67,6 @@ def gpps_modules(methods, brdfs, robusts) -> list:
                 solve_batched.get_batched_kernel(method, brdf, robust)
                 solve_batched.get_batched_kernel(method, brdf, robust, lanes=True)
                 solve_batched.get_batched_starts_kernels(method, brdf, robust)
-    del wp
     return sorted((m for name, m in context.user_modules.items() if name.startswith("gpps.") and m.kernels),
                   key=lambda m: m.name)
 
@@ -82,7 +81,9 @@ def main(argv=None) -> int:
     ap.add_argument("--brdfs", default="all", help="reflectance models, comma-separated, or all")
     ap.add_argument("--robust", default="none,cauchy", help="robust losses, comma-separated (none, huber, cauchy)")
     ap.add_argument("--part", default="0/1", help="I/N: compile every N-th module from the I-th (parallel runs)")
-    ap.add_argument("--prune", action="store_true", help="remove module directories this tree does not build")
+    ap.add_argument("--prune", action="store_true",
+                    help="remove the gpps module directories outside this run's selection (this tree's modules for "
+                         "the given --methods, --brdfs and --robust)")
     ap.add_argument("--list", action="store_true", help="list the modules and whether they are in OUT; compile nothing")
     a = ap.parse_args(argv)
 
