@@ -57,8 +57,15 @@ if [ "$what" = beforeafter ]; then  # session 27's last tree (.carry-old: its gp
     done
   done
 fi
-if [ "$what" = usecache ]; then  # a kernel cache built here (perf/device_cache.py), carried: carry .kit/cache
-  mkdir -p "$WARP_CACHE_PATH" && cp -r .kit/cache/warp/* "$WARP_CACHE_PATH"/ && ls "$WARP_CACHE_PATH"/* | wc -l
+if [ "$what" = usecache ]; then  # a kernel cache built here (perf/device_cache.py), carried: carry .kit/cache (the
+  # directory) or .kit/cachexz (it as one tar.xz: tar cf - -C .kit/cache warp | xz > .kit/cachexz/warp_cache.tar.xz)
+  mkdir -p "$WARP_CACHE_PATH"
+  if [ -f .kit/cachexz/warp_cache.tar.xz ]; then
+    xz -d < .kit/cachexz/warp_cache.tar.xz | tar x -C "$(dirname "$WARP_CACHE_PATH")"
+  else
+    cp -r .kit/cache/warp/* "$WARP_CACHE_PATH"/
+  fi
+  ls "$WARP_CACHE_PATH"/* | wc -l
 fi
 if [ "$what" = cache ]; then  # the Warp kernel cache this machine compiled, for a later session to carry
   (cd /tmp/gpps-cache && tar cf - warp | xz -T8 -6 | split -b 15M - "$out/warp_cache.tar.xz.part-")
