@@ -35,7 +35,7 @@ from gpps.kernels.solve_common import (
     vec19,
 )
 from gpps.kernels.solve_methods import solver_funcs
-from gpps.kernels.solve_neighbours import held_pixel, neighbour_prior, neighbour_stats
+from gpps.kernels.solve_neighbours import held_pixel, neighbour_prior, neighbour_stats, prior_start
 
 
 @wp.func
@@ -451,10 +451,7 @@ def underdetermined_kernel_for(solve_pixel, module, sfx: str):
         gmax = grey_max(images, i, j, lights.count)
         prior = neighbour_prior(nb, px.v, gmax)
         px = held_pixel(px, nb.kd, prior)
-        ninit = normals[i, j]
-        pn = wp.vec3(prior[0], prior[1], prior[2])
-        if wp.length(pn) > 0.0:
-            ninit = pn
+        ninit = prior_start(prior, normals[i, j])
         sol = solve_pixel(ninit, gmax, images, weights, px, lights, mat, prm)
         sol.total = sol.total + iterations[i, j]
         store_solution(sol, f | FLAG_ALBEDO_FROM_NEIGHBOURS, weights, px, lights.count, normals, albedo, residual, iterations, flags)

@@ -244,6 +244,16 @@ def neighbour_prior(nb: NeighbourStats, v: wp.vec3, gmax: float):
 
 
 @wp.func
+def prior_start(prior: wp.vec4, n: wp.vec3):
+    """The start normal of an under-determined pixel's solve: the prior's normal (:func:`neighbour_prior`) where it
+    set one, else ``n`` (the pixel's current normal)."""
+    pn = wp.vec3(prior[0], prior[1], prior[2])
+    if wp.length(pn) > 0.0:
+        return pn
+    return n
+
+
+@wp.func
 def held_pixel(px: Pixel, kd: wp.vec3, prior: wp.vec4):
     """``px`` with its albedo held at ``kd`` (the neighbours') and, where ``prior`` holds a normal
     (:func:`neighbour_prior`), that normal as its prior with the prior's weight."""

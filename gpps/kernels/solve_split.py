@@ -33,7 +33,7 @@ from gpps.kernels.solve_common import (
     pick_start,
     store_solution,
 )
-from gpps.kernels.solve_neighbours import held_pixel, neighbour_prior, neighbour_stats
+from gpps.kernels.solve_neighbours import held_pixel, neighbour_prior, neighbour_stats, prior_start
 
 __all__ = ["split_kernels_for", "split_under_kernels_for"]
 
@@ -205,10 +205,7 @@ def split_under_kernels_for(one_start, finish_pixel, module, sfx: str):
         px = make_pixel(cam, depth, i, j, prm)
         gmax = grey_max(images, i, j, lights.count)
         prior = neighbour_prior(nb, px.v, gmax)
-        ninit = normals[i, j]
-        pn = wp.vec3(prior[0], prior[1], prior[2])
-        if wp.length(pn) > 0.0:
-            ninit = pn
+        ninit = prior_start(prior, normals[i, j])
         ninit_buf[i, j] = ninit
         gmax_buf[i, j] = gmax
         kd_buf[i, j] = nb.kd

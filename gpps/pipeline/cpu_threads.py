@@ -9,6 +9,9 @@ result is the same as in one launch (each thread writes only its own pixels).
 
 The thread count is ``GPPS_CPU_THREADS`` when set (1 disables the split), else the cores this process
 may run on.
+
+Also :func:`run_reporting` (any device): a task on a helper thread while the caller's progress keeps moving (a
+kernel module's first compile).
 """
 
 from __future__ import annotations
