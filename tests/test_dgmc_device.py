@@ -340,3 +340,62 @@ def test_step_without_starts_gives_the_front_its_maps_only(device):
     np.testing.assert_array_equal(full.highlight, part.highlight)
     np.testing.assert_array_equal(full.gaussian, part.gaussian)
     st.close()
+
+
+def test_solver_normals_taken_on_the_device(device):
+    """upload() with a solve's float32 normals (a Warp vec3 array, as RON passes PixelSolver.normals): converted on
+    the device by RON's former host rule (float64; (0, 0, 1) where the normal is not unit within 1e-3 or outside
+    the mask), so the stage's normals and its whole result equal an upload of that rule's numpy normals; the
+    curvatures can stay on the device (fetch_start(curvatures=False))."""
+    import warp as wp
+
+    img, L, sc, _, _ = _scene("bumps", 48, "orthographic", "directional", 8)
+    rng = np.random.default_rng(3)
+    n32 = np.zeros(sc.mask.shape + (3,), np.float32)
+    v = rng.normal(size=(int(sc.mask.sum()), 3)) + (0.0, 0.0, 3.0)
+    n32[sc.mask] = (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
+    ys, xs = np.nonzero(sc.mask)
+    n32[ys[0], xs[0]] = 0.0  # undetermined (zero), not finite, too long, and a unit normal outside the mask
+    n32[ys[1], xs[1]] = np.nan
+    n32[ys[2], xs[2]] *= 1.01
+    n32[~sc.mask] = (0.6, 0.0, 0.8)
+    ref = n32.astype(np.float64)  # RON's host rule before the device took it
+    with np.errstate(invalid="ignore"):
+        ok = sc.mask & (np.abs(np.linalg.norm(ref, axis=-1) - 1.0) < 1e-3)
+    ref[~ok] = (0.0, 0.0, 1.0)
+    assert (~ok & sc.mask).sum() == 3
+    host = DeviceDGMC(img.shape[:3], device=device)
+    host.upload(img, sc.mask, ref, lights=L)
+    host.step(starts=False)
+    want = host.fetch_start()
+    st = DeviceDGMC(img.shape[:3], device=device)
+    st.upload(img, sc.mask, wp.array(n32, dtype=wp.vec3, device=device), lights=L)
+    np.testing.assert_array_equal(st.normals.numpy(), ref)
+    st.step(starts=False)
+    got = st.fetch_start(curvatures=False)
+    assert got.gaussian is None and got.mean is None
+    np.testing.assert_array_equal(got.highlight, want.highlight)
+    np.testing.assert_array_equal(st.gc.numpy().astype(np.float32), want.gaussian)
+    with pytest.raises(ValueError, match=r"^normals: expected a \(48, 48\) vec3d or vec3 array"):
+        st.upload(img, sc.mask, wp.zeros((48, 47), dtype=wp.vec3, device=device), lights=L)
+    host.close()
+    st.close()
+
+
+def test_kept_stage_takes_a_new_mask(device):
+    """The mask's device copies are made once per mask (a kept stage sees one mask frame after frame); a
+    different mask, then the first again, give the results of a fresh stage for each."""
+    img, L, sc, nrm, _ = _scene("bumps", 48, "orthographic", "directional", 8)
+    small = sc.mask.copy()
+    small[:, :24] = False
+    st = DeviceDGMC(img.shape[:3], device=device)
+    for m in (sc.mask, small, sc.mask.copy()):
+        fresh = DeviceDGMC(img.shape[:3], device=device)
+        fresh.upload(img, m, nrm, lights=L)
+        fresh.step()
+        st.upload(img, m, nrm, lights=L)
+        st.step()
+        assert st.count == int(m.sum())
+        _assert_same(fresh.fetch(), st.fetch())
+        fresh.close()
+    st.close()

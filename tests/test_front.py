@@ -289,6 +289,29 @@ def test_select_pixels_and_subset_step(device, parallel):
         solver.select_pixels(pix, 0, 3, np.ones(3))
 
 
+def test_curvatures_read_on_the_device(device):
+    """Curvature maps given as Warp float64 arrays (DeviceDGMC.gc / mc, as RON passes them) are rounded to float32
+    on the device: the front equals the one given the host's float32 maps (DGMCStart's), bit for bit."""
+    import warp as wp
+
+    img, sc, solver, dg, sol, depth = _case(device, "bumps", 48, "perspective", "cook-torrance", "directional", 3)
+    g64 = np.asarray(dg.gaussian, np.float64) * (1.0 + 1e-9)  # (float64 values that float32 rounds)
+    m64 = np.asarray(dg.mean, np.float64) * (1.0 - 1e-9)
+    assert not np.array_equal(g64, g64.astype(np.float32).astype(np.float64))
+    ref = propagate_front(solver, None, sc.mask, dg.highlight, sol, gaussian=g64.astype(np.float32),
+                          mean=m64.astype(np.float32))
+    with DeviceFront(solver) as front:
+        front.upload(sc.mask, dg.highlight, sol, gaussian=wp.array(g64, dtype=wp.float64, device=device),
+                     mean=wp.array(m64, dtype=wp.float64, device=device))
+        np.testing.assert_array_equal(front.gc.numpy(), g64.astype(np.float32).astype(np.float64))
+        np.testing.assert_array_equal(front.mc.numpy(), m64.astype(np.float32).astype(np.float64))
+        front.step()
+        _assert_same(front.fetch(), ref)
+        with pytest.raises(ValueError, match=r"^gaussian: expected a \(48, 48\) float64 array"):
+            front.upload(sc.mask, dg.highlight, sol, gaussian=wp.array(g64.astype(np.float32), device=device),
+                         mean=m64)
+
+
 def test_stage_protocol_and_bad_input(device):
     img, sc, solver, dg, sol, depth = _case(device, "sphere", 32, "orthographic", "blinn-phong", "directional", 3)
     hm = dg.highlight

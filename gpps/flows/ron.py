@@ -1268,15 +1268,17 @@ class RON:
                 tf = time.perf_counter()
                 self.solver.set_material(material)
                 start = start.copy()
+                # the curvatures, as DGMC left them on the device (_least_squares_and_dgmc fetched none)
+                gc, mc = (dg.gaussian, dg.mean) if dg.gaussian is not None else (self._dgmc.gc, self._dgmc.mc)
                 if on_device:  # (read from and merged into the solver's outputs: nothing but the sources back)
                     if self._front is None:
                         self._front = DeviceFront(self.solver)
-                    pix, src_normals = propagate_front_device(self.solver, m, highlight, gaussian=dg.gaussian,
-                                                              mean=dg.mean, config=c.dgmc_config, keep_better=True,
+                    pix, src_normals = propagate_front_device(self.solver, m, highlight, gaussian=gc, mean=mc,
+                                                              config=c.dgmc_config, keep_better=True,
                                                               front=self._front)
                     start.reshape(-1, 3)[pix] = src_normals
                 else:  # (the frame is on the solver's device: _solve put it there)
-                    fr = propagate_front(self.solver, None, m, highlight, out, gaussian=dg.gaussian, mean=dg.mean,
+                    fr = propagate_front(self.solver, None, m, highlight, out, gaussian=gc, mean=mc,
                                          depth=solve_depth, valid=valid, config=c.dgmc_config, keep_better=True)
                     for k in ("normals", "albedo", "residual", "flags"):
                         out[k] = getattr(fr, k)
@@ -1487,18 +1489,17 @@ class RON:
         self._frame(images, solve_depth, valid)
         self._set_mask(m)
         s.step()
-        ls = s.fetch(("normals",))  # (only the start normals are read)
+        dgmc = c.dgmc and self.material.brdf != "lambertian"
+        if not dgmc:
+            start = s.fetch(("normals",))["normals"]  # (only the start normals are read)
         s.set_config(c.solver)
         timings["least_squares"] += time.perf_counter() - t
-        start, highlight, dg = ls["normals"], np.zeros(m.shape, bool), None
-        if c.dgmc and self.material.brdf != "lambertian":
+        highlight, dg = np.zeros(m.shape, bool), None
+        if dgmc:
             if report is not None:
                 report("dgmc: highlights and curvatures")
             t = time.perf_counter()
             pts = self.camera.backproject(np.where(m, solve_depth, 1.0)) if self.point else None
-            nrm = ls["normals"].astype(np.float64)
-            ok = m & (np.abs(np.linalg.norm(nrm, axis=-1) - 1.0) < 1e-3)
-            nrm[~ok] = (0.0, 0.0, 1.0)
             # RGB frames: DGMC copies the solver's uploaded frame on the device (the same float32 values);
             # grey ones go up again (DGMC keeps one channel where the solver replicated it to three)
             rgb = np.ndim(images) == 4 and np.shape(images)[-1] == 3
@@ -1509,10 +1510,16 @@ class RON:
             if self._dgmc is None:  # (kept for the RON's later runs: its buffers allocated once)
                 self._dgmc = DeviceDGMC(self.shape, config=c.dgmc_config, device=self.device)
             stage = self._dgmc
-            stage.upload(self.solver.images if rgb else images, m, nrm, lights=self.lights, points=pts)
+            # the least-squares normals go from the solver's buffer to DGMC's on the device (the pixels least
+            # squares left undetermined start from (0, 0, 1): DeviceDGMC.upload); the curvatures stay there for
+            # the front (DeviceFront.upload reads them): only the highlights and the start normals come back
+            stage.upload(self.solver.images if rgb else images, m, s.normals, lights=self.lights, points=pts)
             stage.step(starts=not front)
-            dg = stage.fetch_start()
-            start = (nrm if front else dg.normals).astype(np.float32)
+            dg = stage.fetch_start(curvatures=not front)
+            if front:
+                start = stage.normals.numpy().astype(np.float32)
+            else:
+                start = dg.normals.astype(np.float32)
             highlight = dg.highlight
             timings["dgmc"] += time.perf_counter() - t
         return start, highlight, dg

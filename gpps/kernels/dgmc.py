@@ -173,6 +173,28 @@ def eval_obs(kind: int, k: int, i: int, j: int, images: wp.array3d(dtype=wp.vec3
     return eval_two(a0, grey_of(images, channels, o0, i, j), a1, grey_of(images, channels, o1, i, j), s, rho)
 
 
+# --------------------------------------------------------------------------- the start normals in
+
+
+@wp.kernel
+def start_normals_kernel(src: wp.array2d(dtype=wp.vec3), mask: wp.array2d(dtype=wp.uint8),
+                         out: wp.array2d(dtype=wp.vec3d)):
+    """out = a solve's float32 normals in float64 inside the mask where they are unit (``| |n| - 1 | < 1e-3``, the
+    length in float64); (0, 0, 1) elsewhere: outside the mask and at pixels the solve left undetermined (zero
+    or non-finite normals)."""
+    i, j = wp.tid()
+    s = src[i, j]
+    n = wp.vec3d(wp.float64(s[0]), wp.float64(s[1]), wp.float64(s[2]))
+    ok = False
+    if mask[i, j] != wp.uint8(0):
+        ln = wp.sqrt((n[0] * n[0] + n[1] * n[1]) + n[2] * n[2])
+        ok = wp.abs(ln - wp.float64(1.0)) < wp.float64(1e-3)  # (NaN: False)
+    if ok:
+        out[i, j] = n
+    else:
+        out[i, j] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(1.0))
+
+
 # --------------------------------------------------------------------------- highlights
 
 

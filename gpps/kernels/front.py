@@ -29,7 +29,15 @@ step by step in the same order, the first candidate when none qualifies; tests/t
 import warp as wp
 
 __all__ = ["front_source_kernel", "scatter_mask_kernel", "front_start_kernel", "front_merge_kernel",
-           "front_write_back_kernel", "front_source_normals_kernel"]
+           "front_write_back_kernel", "front_source_normals_kernel", "curvature_in_kernel"]
+
+
+@wp.kernel(enable_backward=False)
+def curvature_in_kernel(src: wp.array2d(dtype=wp.float64), out: wp.array2d(dtype=wp.float64)):
+    """out = src rounded to float32 (and back): a curvature map taken on the device holds the values the host's
+    float32 maps (:class:`gpps.pipeline.dgmc.DGMCStart`) would give."""
+    i, j = wp.tid()
+    out[i, j] = wp.float64(wp.float32(src[i, j]))
 
 
 @wp.func

@@ -117,6 +117,7 @@ class DeviceDGMC(Stage):
         self.channels = 3
         self.light_kind = 0
         self.count = 0
+        self._mask_host = None  # (the mask whose device copies the buffers hold)
         self.sweeps = 0
         self._starts = True
         self._uploaded = False
@@ -131,8 +132,12 @@ class DeviceDGMC(Stage):
             images: (N, H, W) grey or (N, H, W, 3) RGB numpy images >= 0, or a Warp (N, H, W) vec3 array on the
                 stage's device (copied on the device; not checked for values).
             mask: (H, W) bool object mask, not empty.
-            normals: (H, W, 3) unit normals inside the mask (numpy; e.g. the least-squares solution), or a Warp
-                (H, W) vec3d array on the stage's device.
+            normals: (H, W, 3) unit normals inside the mask (numpy; e.g. the least-squares solution), a Warp
+                (H, W) vec3d array on the stage's device (copied as it is), or a Warp (H, W) vec3 (float32) array
+                there, a solve's output such as :attr:`gpps.pipeline.solver.PixelSolver.normals` (converted on the
+                device, :func:`gpps.kernels.dgmc.start_normals_kernel`: a pixel whose normal is not unit within
+                1e-3, one the solve left undetermined, starts from (0, 0, 1), as do the pixels outside the mask;
+                no copy to the host).
             lights: DirectionalLights, PointLights (needs ``points``) or (N, 3) directions; needed for
                 ``config.rule="lambertian"``.
             points: (H, W, 3) surface points (scene units) for point lights.
@@ -142,14 +147,21 @@ class DeviceDGMC(Stage):
         n, h, w = self.shape
         self._upload_images(images)
         m = as_mask("mask", mask, (h, w))
-        self.mask.assign(m.astype(np.uint8))
-        self.count = int(m.sum())
-        self.fill.assign(fill_indices(m))
+        if self._mask_host is None or not np.array_equal(self._mask_host, m):
+            # (a kept stage sees one mask frame after frame: its device copies are made once)
+            self.mask.assign(m.astype(np.uint8))
+            self.count = int(m.sum())
+            self.fill.assign(fill_indices(m))
+            self._mask_host = m.copy()
         if isinstance(normals, wp.array):
-            if normals.shape != (h, w) or normals.dtype != wp.vec3d or normals.device != self.device:
-                raise ValueError(f"normals: expected a ({h}, {w}) vec3d array on {self.device}, "
+            if (normals.shape != (h, w) or normals.dtype not in (wp.vec3d, wp.vec3)
+                    or normals.device != self.device):
+                raise ValueError(f"normals: expected a ({h}, {w}) vec3d or vec3 array on {self.device}, "
                                  f"got {normals.shape} {normals.dtype} on {normals.device}")
-            wp.copy(self.normals, normals)
+            if normals.dtype == wp.vec3d:
+                wp.copy(self.normals, normals)
+            else:
+                self._launch(dk.start_normals_kernel, (h, w), [normals, self.mask, self.normals])
         else:
             nrm = np.asarray(normals)
             if nrm.shape != (h, w, 3):
@@ -420,15 +432,20 @@ class DeviceDGMC(Stage):
             config=self.config,
         )
 
-    def fetch_start(self) -> "DGMCStart":
+    def fetch_start(self, *, curvatures: bool = True) -> "DGMCStart":
         """The part of the last step a reconstruction reads (:class:`DGMCStart`): four (H, W) maps come back
         instead of :meth:`fetch`'s fourteen (RON's start, its front's curvature similarity); three after a step
-        with ``starts=False`` (``normals`` None)."""
+        with ``starts=False`` (``normals`` None).
+
+        ``curvatures=False``: ``gaussian`` and ``mean`` stay on the device (None in the result): a caller whose
+        next stage reads them there (:meth:`gpps.pipeline.front.DeviceFront.upload` takes :attr:`gc` and
+        :attr:`mc`) fetches only the highlights (and the start normals)."""
         self._check_open()
         _, h, w = self.shape
         nrm = self.out_normals.numpy().reshape(h, w, 3) if self._starts else None
-        return DGMCStart(normals=nrm, highlight=self.region.numpy().astype(bool),
-                         gaussian=self.gc.numpy().astype(np.float32), mean=self.mc.numpy().astype(np.float32))
+        gc = self.gc.numpy().astype(np.float32) if curvatures else None
+        mc = self.mc.numpy().astype(np.float32) if curvatures else None
+        return DGMCStart(normals=nrm, highlight=self.region.numpy().astype(bool), gaussian=gc, mean=mc)
 
     def close(self) -> None:
         """Give the device buffers back to the process's pool (:mod:`gpps.pipeline.buffers`)."""
@@ -447,12 +464,13 @@ class DeviceDGMC(Stage):
 class DGMCStart:
     """What :meth:`DeviceDGMC.fetch_start` returns (the fields of :class:`gpps.host.dgmc.DGMCResult` of the same
     names): ``normals`` (H, W, 3) float32 start normals (None after :meth:`DeviceDGMC.step` with
-    ``starts=False``), ``highlight`` (H, W) bool region, ``gaussian`` and ``mean`` (H, W) float32 curvatures (4.16)."""
+    ``starts=False``), ``highlight`` (H, W) bool region, ``gaussian`` and ``mean`` (H, W) float32 curvatures (4.16;
+    None from ``fetch_start(curvatures=False)``)."""
 
     normals: np.ndarray | None
     highlight: np.ndarray
-    gaussian: np.ndarray
-    mean: np.ndarray
+    gaussian: np.ndarray | None
+    mean: np.ndarray | None
 
 
 def dgmc_start_device(images, mask, normals, *, lights=None, config: DGMCConfig | None = None, points=None,

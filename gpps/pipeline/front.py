@@ -93,7 +93,10 @@ class DeviceFront(Stage):
                 pixels are the alternative each ring's solve must beat.  None: the solver's outputs, as its last
                 step left them (copied on the device: no host round trip; :meth:`write_back` returns the merged
                 solution there).
-            gaussian, mean: (H, W) curvatures (4.16); None: the test of 4.17-4.18 is skipped (nearest neighbour).
+            gaussian, mean: (H, W) curvatures (4.16): numpy, or Warp float64 arrays on the solver's device
+                (:attr:`gpps.pipeline.dgmc.DeviceDGMC.gc` / ``mc``, read there and rounded to float32 as
+                :meth:`gpps.pipeline.dgmc.DeviceDGMC.fetch_start` returns them: the same values, no copy to the
+                host); None: the test of 4.17-4.18 is skipped (nearest neighbour).
             config: :class:`gpps.host.dgmc.DGMCConfig` (tolerance, widen_factor, widen_steps).
         """
         self._check_open()
@@ -113,8 +116,15 @@ class DeviceFront(Stage):
                 raise ValueError(f"solution['{k}']: expected shape {shp}, got {np.shape(solution[k])}")
         curv = gaussian is not None and mean is not None
         if curv:
-            self.gc.assign(as_array("gaussian", gaussian, shape=(h, w), dtype=np.float64))
-            self.mc.assign(as_array("mean", mean, shape=(h, w), dtype=np.float64))
+            wp = warp()
+            for name, a, buf in (("gaussian", gaussian, self.gc), ("mean", mean, self.mc)):
+                if isinstance(a, wp.array):
+                    if a.shape != (h, w) or a.dtype != wp.float64 or a.device != wp.get_device(self.device):
+                        raise ValueError(f"{name}: expected a ({h}, {w}) float64 array on {self.device}, got "
+                                         f"{a.shape} {getattr(a.dtype, '__name__', a.dtype)} on {a.device}")
+                    wp.launch(fk.curvature_in_kernel, dim=(h, w), inputs=[a], outputs=[buf], device=self.device)
+                else:
+                    buf.assign(as_array(name, a, shape=(h, w), dtype=np.float64))
         ring, pixels, sizes = front_rings(m, hl)
         n = sizes.size - 1
         starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
