@@ -162,6 +162,52 @@ def test_energies_equal_pixel_solver_eight_noisy_images(brdf, light_kind, device
     assert int(np.argmin(ref)) == 0 and np.sort(ref)[1] > (1.4 if brdf == "plastic" else 2.0) * ref[0]
 
 
+@pytest.mark.parametrize("light_kind", ["directional", "point"])
+def test_upload_from_a_solver_scores_with_the_frames_noise(light_kind, device):
+    """upload_from (RON's path): the sample gathered from a PixelSolver's resident frame (images, valid, depth) with
+    the solver's noise levels (the whole frame's estimate) scores exactly as a host upload of the same sample given
+    those levels, and equals PixelSolver.run on the sample mask with them.  The frame's estimate is not the
+    sample's: a sparse sample has no 3x3 neighbourhoods to estimate from (0, unknown), so without it the scores
+    would treat dim observations the solver calls unlit as lit."""
+    img, lights, sc, mat = _many_lights_case("cook-torrance", light_kind, 8, device=device)
+    sample = sample_mask(sc.mask, 200, seed=4)
+    depth = sc.depth if light_kind == "point" else None
+    valid = np.random.default_rng(5).random(img.shape[:3]) > 0.1
+    cands = candidates_around(mat)
+    cfg = fit_config(shadow_threshold=0.02)
+    with PixelSolver(img.shape[:3], sc.camera, lights, mat, SolverConfig(), device=device) as frame:
+        frame.upload(img, sc.mask, depth=depth, valid=valid)
+        noise = frame.noise_level.copy()
+        assert np.all(noise > 0)
+        kw = dict(max_samples=int(sample.sum()) + 7, max_candidates=8, trim=TRIM, device=device)
+        with MaterialScorer(img.shape[:3], sc.camera, lights, "cook-torrance", cfg, **kw) as a, \
+                MaterialScorer(img.shape[:3], sc.camera, lights, "cook-torrance", cfg, **kw) as b:
+            a.upload(img, sample, depth=depth, valid=valid)
+            assert np.all(a.noise_level == 0)  # (the sample's own estimate: unknown)
+            b.upload_from(frame, sample)
+            np.testing.assert_array_equal(b.noise_level, noise)
+            a.upload(img, sample, depth=depth, valid=valid, noise=noise)
+            np.testing.assert_array_equal(b.rows_host, a.rows_host)
+            for sc_ in (a, b):
+                sc_.step(cands)
+            np.testing.assert_array_equal(b.fetch(), a.fetch())
+            for k, v in b.fetch_pixels().items():
+                np.testing.assert_array_equal(v, a.fetch_pixels()[k], err_msg=k)
+            e = b.fetch()
+            with pytest.raises(ValueError, match=r"^solver: expected a PixelSolver for"):
+                with PixelSolver((img.shape[0], 16, 16), sc.camera, lights, mat, SolverConfig(),
+                                 device=device) as other:
+                    b.upload_from(other, sample)
+    ref = []
+    with PixelSolver(img.shape[:3], sc.camera, lights, mat, cfg, device=device) as solver:
+        for m in cands:
+            solver.set_material(m)
+            out = solver.run(img, sample, depth=depth, valid=valid, noise=noise)
+            r = np.sort(out["residual"][sample].astype(np.float64) ** 2)
+            ref.append(float(np.mean(r[: max(1, int(round(r.size * (1.0 - TRIM))))])))
+    assert_energies_equal(e, np.array(ref), scale_of(img, sc.mask))
+
+
 def test_robust_loss_and_chunked_progress(device):
     """Huber IRLS (per-candidate weights buffer) equals PixelSolver; a chunked step with a progress
     callback gives the same energies as one launch and reports K * P pixel solves."""

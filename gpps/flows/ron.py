@@ -808,7 +808,8 @@ class RON:
                           smoothness=0.0, warm_start=False)
             self._fit_solver = PixelSolver(self.shape, self.camera, self.lights, material, cfg, device=self.device)
         self._fit_solver.set_material(material)
-        out = self._fit_solver.run(images, sample, depth=depth, valid=valid)
+        # (the frame's noise levels, as the scorer's: MaterialScorer.upload_from)
+        out = self._fit_solver.run(images, sample, depth=depth, valid=valid, noise=self.solver.noise_level)
         r = np.sort(out["residual"][sample].astype(np.float64) ** 2)
         keep = max(1, int(round(r.size * (1.0 - self.config.material_trim))))
         return float(np.mean(r[:keep]))
@@ -827,7 +828,14 @@ class RON:
                                                 device=self.device)
         held = self._scored.get(key)
         if held is None or any(a is not b for a, b in zip(held, inputs)):
-            self._scorers[key].upload(images, sample, depth=depth, valid=valid)
+            scorer = self._scorers[key]
+            frame = self._frame_key is not None and self._frame_key[0] == id(images)
+            if frame and self._frame_key[1] == id(valid) and depth is self._frame_depth:
+                # the solver holds this frame, observation mask and depth: the sample is gathered there
+                scorer.upload_from(self.solver, sample)
+            else:  # (e.g. the shadow rounds' observations): from the host, with the frame's noise levels
+                scorer.upload(images, sample, depth=depth, valid=valid,
+                              noise=self.solver.noise_level if frame else None)
             self._scored[key] = inputs
         return self._scorers[key]
 

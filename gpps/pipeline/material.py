@@ -403,6 +403,40 @@ class MaterialScorer(Stage):
                   device=self.device)
         self._prepare(p)
 
+    def upload_from(self, solver, sample_mask) -> None:
+        """:meth:`upload` from a :class:`gpps.pipeline.solver.PixelSolver` that holds the frame (its last upload):
+        the sample is gathered on the device from the solver's images, observation mask and depth
+        (:meth:`upload_device`), and scored with the solver's noise levels (:attr:`PixelSolver.noise`: the whole
+        frame's estimate, which decides there which dim observations count as lit), so the candidates are fitted
+        to the observations the solver's own fits use.  Only the sample's pixel indices go to the device.
+
+        Args:
+            solver: a PixelSolver on this scorer's device, for this (N, H, W), with this scorer's camera and lights
+                (only the shape and the device are checked), holding the frame.
+            sample_mask: (H, W) bool, the P <= ``max_samples`` pixels to score on (inside the solver's mask).
+
+        Raises:
+            ValueError: another shape or device, an empty or too large sample.
+        """
+        self._check_open()
+        n, h, w = self.shape
+        if tuple(solver.shape) != self.shape or str(solver.device) != str(self.device):
+            raise ValueError(f"solver: expected a PixelSolver for {self.shape} on {self.device}, got "
+                             f"{tuple(solver.shape)} on {solver.device}")
+        m = as_mask("sample_mask", sample_mask, (h, w))
+        rows, cols = np.nonzero(m)
+        p = int(rows.size)
+        if p > self.max_samples:
+            raise ValueError(f"sample_mask: expected at most max_samples={self.max_samples} pixels, got {p}")
+        pm = self.max_samples
+        self.rows.assign(np.pad(rows.astype(np.int32), (0, pm - p)))
+        self.cols.assign(np.pad(cols.astype(np.int32), (0, pm - p)))
+        self.upload_device(solver.images, self.rows, self.cols, p, valid=solver.valid, depth=solver.depth,
+                           noise=solver.noise)
+        self.noise_level = np.asarray(solver.noise_level, np.float32).copy()
+        self.candidates = 0
+        self.rows_host, self.cols_host = rows, cols
+
     def _prepare(self, p: int) -> None:
         """The material-free terms of the ``p`` gathered sample pixels (one launch)."""
         warp().launch(sb.prepare_samples_kernel, dim=p,
