@@ -286,6 +286,23 @@ def check_problem(shape, lights) -> tuple[int, int, int]:
     return n, h, w
 
 
+def _masked_grey(img: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(N, P) grey values of the mask's pixels of (N, H, W, 3) float32 images: ``img[:, mask].mean(-1)`` bit for bit
+    (numpy's mean over the channel axis sums left to right, then divides), image by image over the whole frame (in
+    cache) and then gathered (a boolean index of the (N, H, W, 3) stack costs ~10x as much)."""
+    n, h, w = img.shape[:3]
+    idx = np.flatnonzero(mask)
+    flat = img.reshape(n, h * w, 3)
+    g = np.empty((n, idx.size), np.float32)
+    tmp = np.empty(h * w, np.float32)
+    for k in range(n):
+        np.add(flat[k, :, 0], flat[k, :, 1], out=tmp)
+        tmp += flat[k, :, 2]
+        tmp /= np.float32(3.0)
+        np.take(tmp, idx, out=g[k])
+    return g
+
+
 def estimate_noise(images, mask, *, max_pixels: int = 1 << 16) -> np.ndarray:
     """Noise standard deviation of each image's grey values: (N,) float32.
 
@@ -718,11 +735,10 @@ class PixelSolver(Stage):
             self.noise_level = np.full(n, c.noise_level, np.float32)
         self.noise.assign(self.noise_level)
         # (always: a later config may add the smoothness term without another upload)
-        sub = img[:, m]  # (N, P, 3)
-        g = ((sub[..., 0] + sub[..., 1]) + sub[..., 2]) / np.float32(3.0)  # = sub.mean(-1) exactly, 10x faster
+        g = _masked_grey(img, m)  # (N, P) = img[:, m].mean(-1) exactly
         self.intensity_scale = float(max(np.percentile(g, 99.0), 1e-12))
         check_scale(self.intensity_scale, low=False)
-        lit = g > 0 if val is None else (g > 0) & (val[:, m] != 0)
+        lit = g > 0 if val is None else (g > 0) & (np.take(val.reshape(n, h * w), np.flatnonzero(m), axis=1) != 0)
         if not np.any(lit):
             # degenerate: no pixel can be solved (a dark tile of a larger frame is the tiled flow's to judge)
             warnings.warn("images: no observation inside the mask is lit" + ("" if val is None else " and valid")
