@@ -101,6 +101,11 @@ SPLIT_UNDER_MAX_REGISTERS = 128
 # instead of a block of their own.  With ~70 of 1M pixels marked its starts launch took 0.156 ms on an H200
 # against 0.179 over the whole grid (perf/stream_frame_split.py); 8 x 256 threads fill an SM.
 SUBSET_BLOCKS_PER_SM = 8
+# sets of recorded launches a PixelSolver keeps, one per (config, material) pair, most recent first: RON switches
+# among a few configs (least squares, the cold and warm solves, the front's) with one material inside a round, and
+# each switch used to drop the recorded launches, so the next launches packed their arguments again (on the H200
+# host ~0.1 ms a launch; 154 of the 165 recordings of a 256^2 x 3 reconstruction on the CPU were repeats)
+SOLVER_CMD_SETS = 8
 # lights whose reflectance terms the solver's cost evaluation keeps between its two passes (the albedo's normal
 # equations, then the residuals: gpps.kernels.solve_cost.evaluate_for); the lights after them are evaluated
 # again in the second pass.  4 covers the streamed triples and the 3-image captures, whose solves spend most of

@@ -64,3 +64,40 @@ def test_set_depth_and_errors(device):
         PixelSolver(img.shape[:3], sc.camera, lights, mat, device=device).merge_saved()
     with pytest.raises(ValueError, match="normals"):
         s.set_start(np.zeros((3, 3, 3)))
+
+
+def test_recorded_launches_kept_per_config_and_material(device):
+    """set_config / set_material switch to the recorded launches of that (config, material) pair (kept for the
+    last SOLVER_CMD_SETS pairs) instead of dropping them: switching back reuses the same recorded objects, and
+    every solve equals a fresh solver's with that config and material."""
+    from gpps.names import SOLVER_CMD_SETS
+
+    img, lights, sc, mat = make_case("sphere", 32, "perspective", "directional", "cook-torrance", device=device)
+    m = sc.mask
+    a, b = SolverConfig(starts=3), SolverConfig(starts=1, max_iters=7)
+    other = replace(mat, ks=0.5 * mat.ks)
+    s = PixelSolver(img.shape[:3], sc.camera, lights, mat, a, device=device)
+    s.upload(img, m)
+
+    def fresh(cfg, material):
+        with PixelSolver(img.shape[:3], sc.camera, lights, material, cfg, device=device) as f:
+            return f.run(img, m)
+
+    want = {(cfg, mt): fresh(cfg, mt) for cfg in (a, b) for mt in (mat, other)}
+    s.set_config(a)
+    s.step()
+    held = dict(s._cmds)  # noqa: SLF001
+    assert held
+    for cfg, mt in ((b, mat), (a, other), (b, other), (a, mat)):
+        s.set_config(cfg)
+        s.set_material(mt)
+        s.step()
+        got = s.fetch(NAMES)
+        for k in NAMES:
+            np.testing.assert_array_equal(got[k], want[(cfg, mt)][k], err_msg=f"{k} {cfg.starts} {mt.ks}")
+    assert all(s._cmds[k] is v for k, v in held.items())  # noqa: SLF001  (a, mat) again: the same objects
+    for i in range(SOLVER_CMD_SETS + 1):
+        s.set_config(replace(b, max_iters=8 + i))
+    assert len(s._cmd_sets) == SOLVER_CMD_SETS  # noqa: SLF001
+    assert (a, mat) not in s._cmd_sets  # noqa: SLF001  (the oldest pairs dropped)
+    s.close()

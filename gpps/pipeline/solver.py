@@ -43,6 +43,7 @@ from gpps.names import (
     FLAG_WOODHAM_FALLBACK,
     LIGHT_LANES,
     ROBUST_NAMES,
+    SOLVER_CMD_SETS,
     SOLVER_NAMES,
     SUBSET_BLOCKS_PER_SM,
     ParallelName,
@@ -582,9 +583,9 @@ class PixelSolver(Stage):
             bounds = None
         if bounds != self._row_bounds:
             self._row_bounds = bounds
-            cmds = self.__dict__.get("_cmds", {})
-            for k in [k for k in cmds if k[0] == "solve"]:
-                del cmds[k]
+            for cmds in self.__dict__.get("_cmd_sets", {}).values():
+                for k in [k for k in cmds if k[0] == "solve"]:
+                    del cmds[k]
 
     def _params(self, c: SolverConfig):
         return solver_params(c)
@@ -666,13 +667,26 @@ class PixelSolver(Stage):
         self.config = config
         self.prm = self._params(config)
         self._select_kernels()
-        self.__dict__.pop("_cmds", None)
+        self._switch_cmds()
 
     def set_material(self, material: Material) -> None:
         self.material = material
         self.mp = material_params(material)
         self._select_kernels()
-        self.__dict__.pop("_cmds", None)
+        self._switch_cmds()
+
+    def _switch_cmds(self) -> None:
+        """Make the recorded launches of the current config and material the ones in use (``_cmds``): the set
+        recorded the last time this pair was current, else a new one.  The last :data:`gpps.names.SOLVER_CMD_SETS`
+        pairs' sets are kept: a recorded launch holds its arguments packed, so it is valid exactly while the
+        config (``prm``) and material (``mp``) it was packed from are the current ones again."""
+        sets = self.__dict__.setdefault("_cmd_sets", {})
+        key = (self.config, self.material)
+        cmds = sets.pop(key, None)
+        sets[key] = {} if cmds is None else cmds  # (the most recent last)
+        while len(sets) > SOLVER_CMD_SETS:
+            del sets[next(iter(sets))]
+        self._cmds = sets[key]
 
     # ------------------------------------------------------------------ per frame
 
@@ -1117,7 +1131,7 @@ class PixelSolver(Stage):
         refuses work afterwards (its buffers are gone)."""
         self._release_buffers()
         for name in ("images", "mask", "valid", "depth", "noise", "weights", "normals", "albedo", "residual",
-                     "iterations", "flags", "cond", "_saved", "_cmds", "_split_scratch"):
+                     "iterations", "flags", "cond", "_saved", "_cmds", "_cmd_sets", "_split_scratch"):
             self.__dict__.pop(name, None)
         self._closed = True
 
