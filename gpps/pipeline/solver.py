@@ -665,7 +665,14 @@ class PixelSolver(Stage):
         if not isinstance(config, SolverConfig):
             raise TypeError(f"config: expected PixelSolver.Config, got {type(config).__name__}")
         self.config = config
-        self.prm = self._params(config)
+        # (the struct is built once per config: ~0.1 ms of host time each, and RON switches configs ~16 times a
+        # call; it is never changed after, so the launches recorded with it stay valid)
+        cache = self.__dict__.setdefault("_prm_current", {})
+        if config not in cache:
+            if len(cache) >= 4 * SOLVER_CMD_SETS:
+                cache.clear()
+            cache[config] = self._params(config)
+        self.prm = cache[config]
         self._select_kernels()
         self._switch_cmds()
 
