@@ -102,6 +102,21 @@ def test_material_ambiguity_measures_the_normals():
     assert material_ambiguity([1.0, 1.0, 1.0], holes, noise_var=0.0)["ambiguity_deg"] == pytest.approx(10.0, abs=1e-6)
     with pytest.raises(ValueError, match="normals: expected"):
         material_ambiguity([1.0, 2.0], normals, noise_var=0.0)
+    # the plain formula (finite, length > 0.5 for every candidate; the near candidates' mean angle to the best's)
+    rng = np.random.default_rng(7)
+    for k, noise in ((25, 1.0), (9, 0.3), (4, 0.0)):
+        n = rng.normal(size=(k, 300, 3)) + (0.0, 0.0, 2.0)
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        n[rng.integers(0, k, 12), rng.integers(0, 300, 12)] = 0.0
+        n[rng.integers(0, k, 5), rng.integers(0, 300, 5), 1] = np.nan
+        e = rng.random(k)
+        best = int(np.argmin(e))
+        near = np.nonzero(e - e[best] <= noise)[0]
+        ok = np.all(np.isfinite(n), axis=(0, 2)) & np.all(np.linalg.norm(n, axis=2) > 0.5, axis=0)
+        cos = np.clip(np.einsum("kpc,pc->kp", n[near][:, ok], n[best, ok]), -1.0, 1.0)
+        want = float(np.degrees(np.arccos(cos)).mean(axis=1).max())
+        got = material_ambiguity(e, n, noise_var=noise)
+        assert got["near"] == near.size and got["ambiguity_deg"] == pytest.approx(want, rel=1e-12, abs=1e-12)
 
 
 def test_grey_three_image_material_is_reported_open(device):

@@ -148,10 +148,16 @@ def material_ambiguity(energies, normals, noise_var: float) -> dict:
         raise ValueError(f"normals: expected ({e.size}, P, 3), got {n.shape}")
     best = int(np.argmin(e))
     near = np.nonzero(e - e[best] <= max(float(noise_var), 0.0))[0]
-    ok = np.all(np.isfinite(n), axis=(0, 2)) & np.all(np.linalg.norm(n, axis=2) > 0.5, axis=0)
+    # (per pixel: every candidate's normal finite and longer than 0.5; one pass over the (K, P) lengths)
+    with np.errstate(invalid="ignore", over="ignore"):
+        ln = np.sqrt(np.einsum("kpc,kpc->kp", n, n))
+    ok = np.all(np.isfinite(ln) & (ln > 0.5), axis=0)
     worst = 0.0
     if ok.any():
-        cos = np.clip(np.einsum("kpc,pc->kp", n[near][:, ok], n[best, ok]), -1.0, 1.0)
+        # (each pixel's cosines do not depend on the others: computed for all, then the usable pixels kept)
+        with np.errstate(invalid="ignore"):
+            cos = np.einsum("kpc,pc->kp", n[near], n[best])
+        cos = np.clip(cos if ok.all() else cos[:, ok], -1.0, 1.0)
         worst = float(np.degrees(np.arccos(cos)).mean(axis=1).max())
     return {"ambiguity_deg": worst, "near": int(near.size), "candidates": int(e.size), "noise_var": float(noise_var)}
 
