@@ -544,3 +544,25 @@ def test_as_images_errors_and_no_copy():
         np.testing.assert_array_equal(as_images("images", x, dtype=np.float64), x.astype(np.float64) / info.max)
     with pytest.raises(TypeError, match="int32"):
         as_images("images", np.zeros(3, np.int32))
+
+
+@pytest.mark.parametrize("channels", [3, 1, None])
+def test_working_scale_equals_the_strided_mean_formula(channels):
+    """working_scale gathers its strided grid by flat index and sums the channels in float64 left to right: the
+    scales equal those of ``img[:, ::step, ::step][:, sub].mean(axis=-1, dtype=np.float64)`` exactly."""
+    from gpps.flows.photometric import SCALE_SAMPLE, working_scale
+    from gpps.lights import DirectionalLights, ring_directions
+
+    rng = np.random.default_rng(11)
+    for n, h, w in ((3, 97, 131), (5, 256, 200), (4, 40, 33)):
+        shape = (n, h, w) + (() if channels is None else (channels,))
+        img = (rng.random(shape) ** 3 * 7.0).astype(np.float32)
+        mask = rng.random((h, w)) > 0.3
+        lights = DirectionalLights(ring_directions(n), intensities=rng.uniform(0.5, 2.0, (n, 3)))
+        got = working_scale(img if img.ndim == 4 else img, mask, lights)
+        x = img if img.ndim == 4 else img[..., None]
+        step = max(1, int(np.sqrt(np.count_nonzero(mask) / max(SCALE_SAMPLE // n, 1024))))
+        grey = x[:, ::step, ::step][:, mask[::step, ::step]].mean(axis=-1, dtype=np.float64)
+        per = 1.0 / np.asarray(lights.intensities, np.float64).mean(axis=1)
+        assert got["image_scale"] == float(np.percentile(grey, 99.9))
+        assert got["albedo_scale"] == float(np.percentile(grey * per[:, None], 99.9))

@@ -213,8 +213,15 @@ def working_scale(images, mask, lights, *, reference_depth: float | None = None)
     n = img.shape[0]
     pixels = max(SCALE_SAMPLE // max(n, 1), 1024)
     step = max(1, int(np.sqrt(np.count_nonzero(mask) / pixels)))
-    sub = mask[::step, ::step]
-    grey = img[:, ::step, ::step][:, sub].mean(axis=-1, dtype=np.float64)  # (N, P): a strided grid's observations
+    h, w = mask.shape
+    r, c = np.nonzero(mask[::step, ::step])
+    # (N, P): a strided grid's observations, their channels' mean in float64 as img[:, ::step, ::step][:, sub]
+    # .mean(axis=-1, dtype=np.float64) sums them (left to right, then / C), gathered by flat index
+    x = np.take(img.reshape(n, h * w, img.shape[-1]), (r * step) * w + c * step, axis=1).astype(np.float64)
+    grey = x[..., 0]
+    for k in range(1, x.shape[-1]):
+        grey = grey + x[..., k]
+    grey = grey / x.shape[-1]
     e = np.asarray(lights.intensities, np.float64).mean(axis=1)  # (N,)
     per = np.where(e > 0, 1.0 / np.where(e > 0, e, 1.0), 0.0)
     if isinstance(lights, PointLights) and reference_depth is not None:
