@@ -77,6 +77,7 @@ def test_recorded_launches_kept_per_config_and_material(device):
     a, b = SolverConfig(starts=3), SolverConfig(starts=1, max_iters=7)
     other = replace(mat, ks=0.5 * mat.ks)
     s = PixelSolver(img.shape[:3], sc.camera, lights, mat, a, device=device)
+    assert s._cmds is s._cmd_sets[(a, mat)]  # noqa: SLF001  (the first pair's set, from the start)
     s.upload(img, m)
 
     def fresh(cfg, material):

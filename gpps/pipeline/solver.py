@@ -551,6 +551,7 @@ class PixelSolver(Stage):
         self.mp = material_params(material)
         self.prm = self._params(self.config)
         self._select_kernels()
+        self._switch_cmds()  # (the recorded launches of the first config and material: see _switch_cmds)
         d = self.device
         self.images = self._buffer((n, h, w), wp.vec3, d)
         self.mask = self._buffer((h, w), wp.uint8, d)
