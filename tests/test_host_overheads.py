@@ -559,7 +559,7 @@ def test_working_scale_equals_the_strided_mean_formula(channels):
         img = (rng.random(shape) ** 3 * 7.0).astype(np.float32)
         mask = rng.random((h, w)) > 0.3
         lights = DirectionalLights(ring_directions(n), intensities=rng.uniform(0.5, 2.0, (n, 3)))
-        got = working_scale(img if img.ndim == 4 else img, mask, lights)
+        got = working_scale(img, mask, lights)
         x = img if img.ndim == 4 else img[..., None]
         step = max(1, int(np.sqrt(np.count_nonzero(mask) / max(SCALE_SAMPLE // n, 1024))))
         grey = x[:, ::step, ::step][:, mask[::step, ::step]].mean(axis=-1, dtype=np.float64)

@@ -419,7 +419,7 @@ class MaterialScorer(Stage):
             ValueError: another shape or device, an empty or too large sample.
         """
         self._check_open()
-        n, h, w = self.shape
+        _, h, w = self.shape
         if tuple(solver.shape) != self.shape or str(solver.device) != str(self.device):
             raise ValueError(f"solver: expected a PixelSolver for {self.shape} on {self.device}, got "
                              f"{tuple(solver.shape)} on {solver.device}")
