@@ -15,7 +15,8 @@ default with ``refine=False`` / ``True``: session 18's automatic refinement with
 (the default with ``interreflections="subtract"``: session 20's interreflection compensation), ``compare`` (the
 model chosen by residual between Blinn-Phong and plastic: ``models=("plastic",)``), ``compare_subtract`` (both), ``conductor``
 (Blinn-Phong or the rough conductor by residual: ``models=("conductor",)``, session 21), ``compare3`` (all three)
-and ``nocompare`` (no comparison: ``models=()``, the default before session 21).  The table reads
+and ``nocompare`` (no comparison: ``models=()``, the default before session 21), ``ks0`` (no specular lobe:
+``ks=0`` given, session 29).  The table reads
 the ``pipeline`` rows of each file (and ``ls``); the last argument of ``run`` is the device (default ``cpu``).
 """
 
@@ -35,7 +36,8 @@ CONFIGS = {"pipeline": {}, "ls": {"solver": "none", "integrate": False}, "norefi
            "refine": {"refine": True}, "subtract": {"interreflections": "subtract"}, "compare": {"models": ("plastic",)},
            "compare_subtract": {"models": ("plastic",), "interreflections": "subtract"},
            "conductor": {"models": ("conductor",)}, "compare3": {"models": ("plastic", "conductor")},
-           "conductor_refine": {"models": ("conductor",), "refine": True}, "nocompare": {"models": ()}}
+           "conductor_refine": {"models": ("conductor",), "refine": True}, "nocompare": {"models": ()},
+           "ks0": {"ks": 0.0}}
 
 
 def run(out: str, patterns: str, methods: str = "pipeline", device: str = "cpu") -> None:
