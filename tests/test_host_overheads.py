@@ -368,13 +368,16 @@ def test_masked_grey_is_numpys_channel_mean():
     grey, bad, peak = _masked_statistics(img, mask, None, None)
     assert bad is None and _same(grey, img.mean(axis=-1)[:, mask])
     np.testing.assert_array_equal(peak, img.max(axis=-1)[:, mask])
-    from gpps.pipeline.solver import _masked_grey  # (PixelSolver.upload's, float32 frames)
+    from gpps.host.observations import masked_grey  # (PixelSolver.upload's and this function's)
 
-    assert _same(_masked_grey(img, mask), img.mean(axis=-1)[:, mask])
+    assert _same(masked_grey(img, mask), img.mean(axis=-1)[:, mask])
     rng = np.random.default_rng(6)
     frame = rng.random((3, 17, 13, 3)).astype(np.float32) ** 3
     m = rng.random((17, 13)) > 0.5
-    np.testing.assert_array_equal(_masked_grey(frame, m), frame[:, m].mean(-1))
+    np.testing.assert_array_equal(masked_grey(frame, m), frame[:, m].mean(-1))
+    g, p = masked_grey(frame, m, peak=True)
+    np.testing.assert_array_equal(g, frame[:, m].mean(-1))
+    np.testing.assert_array_equal(p, frame[:, m].max(-1))
     rng = np.random.default_rng(5)
     for dtype in (np.float32, np.float64):
         img = rng.random((4, 9, 11, 3)).astype(dtype) ** 3

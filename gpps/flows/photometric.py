@@ -30,6 +30,7 @@ from gpps._check import IMAGE_FULL_SCALE, as_array, as_flags, as_images, as_mask
 from gpps._runtime import warp
 from gpps.camera import Orthographic, Perspective
 from gpps.host.clipping import clipped_observations
+from gpps.host.observations import masked_grey
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material, check_model_images
 from gpps.pipeline.render import Renderer
@@ -256,24 +257,14 @@ def _masked_statistics(img, mask, valid, saturation):
             bad = inv if bad is None else bad | inv
         return grey, bad, peak
     idx = np.flatnonzero(mask)
-    grey = np.empty((n, idx.size), img.dtype)
-    peak = np.empty((n, idx.size), img.dtype)
+    if c == 3:
+        grey, peak = masked_grey(img, mask, idx=idx, peak=True)
+    else:
+        grey = np.take(img[..., 0].reshape(n, -1), idx, axis=1)
+        peak = grey
     bad = None if saturation is None and valid is None else np.zeros((n, idx.size), bool)
     val = None if valid is None else np.asarray(valid, bool)
-    tmp = np.empty(mask.size, img.dtype)
     for k in range(n):
-        a = img[k].reshape(-1, c)
-        if c == 3:
-            np.add(a[:, 0], a[:, 1], out=tmp)
-            tmp += a[:, 2]
-            tmp /= 3
-            np.take(tmp, idx, out=grey[k])
-            np.maximum(a[:, 0], a[:, 1], out=tmp)
-            np.maximum(tmp, a[:, 2], out=tmp)
-            np.take(tmp, idx, out=peak[k])
-        else:
-            np.take(a[:, 0], idx, out=grey[k])
-            peak[k] = grey[k]
         if saturation is not None:
             bad[k] = peak[k] >= saturation
         if val is not None:

@@ -30,6 +30,7 @@ from gpps._check import (
     check_shape,
 )
 from gpps._runtime import block_lanes, resolve_device, warp
+from gpps.host.observations import masked_grey
 from gpps.kernels import front as fk
 from gpps.kernels import merge as mk
 from gpps.kernels import solve as sk
@@ -285,23 +286,6 @@ def check_problem(shape, lights) -> tuple[int, int, int]:
     if len(lights) != n:
         raise ValueError(f"lights: expected {n} lights (one per image), got {len(lights)}")
     return n, h, w
-
-
-def _masked_grey(img: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """(N, P) grey values of the mask's pixels of (N, H, W, 3) float32 images: ``img[:, mask].mean(-1)`` bit for bit
-    (numpy's mean over the channel axis sums left to right, then divides), image by image over the whole frame (in
-    cache) and then gathered (a boolean index of the (N, H, W, 3) stack costs ~10x as much)."""
-    n, h, w = img.shape[:3]
-    idx = np.flatnonzero(mask)
-    flat = img.reshape(n, h * w, 3)
-    g = np.empty((n, idx.size), np.float32)
-    tmp = np.empty(h * w, np.float32)
-    for k in range(n):
-        np.add(flat[k, :, 0], flat[k, :, 1], out=tmp)
-        tmp += flat[k, :, 2]
-        tmp /= np.float32(3.0)
-        np.take(tmp, idx, out=g[k])
-    return g
 
 
 def estimate_noise(images, mask, *, max_pixels: int = 1 << 16) -> np.ndarray:
@@ -757,10 +741,11 @@ class PixelSolver(Stage):
             self.noise_level = np.full(n, c.noise_level, np.float32)
         self.noise.assign(self.noise_level)
         # (always: a later config may add the smoothness term without another upload)
-        g = _masked_grey(img, m)  # (N, P) = img[:, m].mean(-1) exactly
+        idx = np.flatnonzero(m)
+        g = masked_grey(img, m, idx=idx)  # (N, P) = img[:, m].mean(-1) exactly
         self.intensity_scale = float(max(np.percentile(g, 99.0), 1e-12))
         check_scale(self.intensity_scale, low=False)
-        lit = g > 0 if val is None else (g > 0) & (np.take(val.reshape(n, h * w), np.flatnonzero(m), axis=1) != 0)
+        lit = g > 0 if val is None else (g > 0) & (np.take(val.reshape(n, h * w), idx, axis=1) != 0)
         if not np.any(lit):
             # degenerate: no pixel can be solved (a dark tile of a larger frame is the tiled flow's to judge)
             warnings.warn("images: no observation inside the mask is lit" + ("" if val is None else " and valid")
