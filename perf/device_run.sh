@@ -1,19 +1,21 @@
 #!/bin/bash
-# Session 29's GPU runs on the lent H200 after the kit's install (source /tmp/gpps-env.sh):
-#   bash perf/results/s29/device_run.sh OUTDIR tests|solvers|ablation|neighbour|gaps|bench|full|diligent|beforeafter|usecache|cache
+# The GPU runs of a session on the lent H200, after the kit's install (source /tmp/gpps-env.sh):
+#   bash perf/device_run.sh OUTDIR tests|solvers|ablation|neighbour|gaps|bench|full|diligent|beforeafter|hostprof|usecache|cache
+# Environment: T (a mode's time limit, s), MORE (more pytest arguments), TAG (a suffix of the output names),
+# VARIANTS, BLOCKS, KT (ablation), PAIRS (beforeafter alternations).  Sessions up to 28 kept a copy of this script in
+# perf/results/sNN/ as their record; from session 29 the results README names the modes it ran.
 out=${1:-$OUT}; what=${2:-tests}
 mkdir -p "$out"
 filter() { grep -v "SyntaxWarning\|Save a field\|GppsWarning\|notes = self\|warnings.warn\|detect_clipping" ; }
-if [ "$what" = tests ]; then  # code that last ran on a GPU before session 27's review mend, and this session's cap
-  timeout ${T:-420} python -m pytest -q -p no:cacheprovider tests/test_solve_split.py \
-    tests/test_material_device.py::test_warm_max_iters_caps_warm_steps_only tests/test_stream_full.py \
+if [ "$what" = tests ]; then  # the stream and reconstructor files (MORE adds others)
+  timeout ${T:-420} python -m pytest -q -p no:cacheprovider tests/test_solve_split.py tests/test_stream_full.py \
     tests/test_stream_retry.py tests/test_stream_recovery.py tests/test_reconstructor.py ${MORE:-} 2>&1 \
-    | tail -40 > "$out/cuda_tests_s29.txt"
-  tail -6 "$out/cuda_tests_s29.txt"
+    | tail -40 > "$out/cuda_tests${TAG:-}.txt"
+  tail -6 "$out/cuda_tests${TAG:-}.txt"
 fi
 if [ "$what" = solvers ]; then
-  timeout ${T:-400} python -m pytest -q -p no:cacheprovider tests/test_solvers.py ${MORE:-} 2>&1 | tail -30 > "$out/cuda_tests_solvers_s29.txt"
-  tail -6 "$out/cuda_tests_solvers_s29.txt"
+  timeout ${T:-400} python -m pytest -q -p no:cacheprovider tests/test_solvers.py ${MORE:-} 2>&1 | tail -30 > "$out/cuda_tests_solvers${TAG:-}.txt"
+  tail -6 "$out/cuda_tests_solvers${TAG:-}.txt"
 fi
 if [ "$what" = ablation ]; then
   timeout ${T:-400} python perf/reconstruct_ablation.py --size 256 --images 3 --device cuda:0 --repeat 5 --blocks ${BLOCKS:-2} \
@@ -47,9 +49,9 @@ if [ "$what" = full ]; then
   timeout ${T:-330} python perf/stream_full.py --size 1024 --frames 160 --timed 80 --device cuda:0 2>&1 | filter | tail -12 | tee "$out/stream_full_1024_log.txt"
   cp perf/results/stream_full_NVIDIA_H200.json "$out/" 2>/dev/null
 fi
-if [ "$what" = beforeafter ]; then  # session 28's last tree (06573da, .carry-old: its gpps and perf scripts) against
+if [ "$what" = beforeafter ]; then  # an earlier tree (carried as .carry-old: its gpps and perf scripts) against
   # this tree, one process each, alternated on one machine (the lent hosts differ: only figures of one machine compare)
-  for i in 1 2; do
+  for i in $(seq ${PAIRS:-2}); do
     for t in old new; do
       root=.; [ $t = old ] && root=.carry-old
       timeout 200 python $root/perf/reconstruct_ablation.py --size 256 --images 3 --device cuda:0 --repeat 7 --blocks 1 \
@@ -73,6 +75,6 @@ if [ "$what" = cache ]; then  # the Warp kernel cache this machine compiled, for
 fi
 ls -la "$out"
 if [ "$what" = hostprof ]; then  # the host's functions in a warm 256^2 x 3 Reconstructor call (cProfile)
-  timeout ${T:-200} python perf/results/s29/probe_host_profile.py.txt --size 256 --images 3 --device cuda:0 --warm 3 --repeat 7 \
-    --out "$out/host_profile_256x3_H200${TAG:-}.json" 2>&1 | filter | tail -75 | tee "$out/host_profile_log${TAG:-}.txt"
+  timeout ${T:-200} python perf/profile_reconstruct.py --synthetic 256 --images 3 --device cuda:0 --reconstructor \
+    --out "$out/host_profile_256x3_H200${TAG:-}" 2>&1 | filter | tail -40
 fi
