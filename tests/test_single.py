@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from gpps.nn.model import ARCH, DEC, ENC, WEIGHTS_PATH, SingleNet, conv3x3, load_weights, prepare_input
+from gpps.nn.model import ARCH, DEFAULT_WIDTHS, WEIGHTS_PATH, SingleNet, arch, conv3x3, layers, load_weights, prepare_input
 
 
 # --------------------------------------------------------------------------- independent numpy reference
@@ -21,13 +21,14 @@ def _conv_ref(x, w, b):
     return np.einsum("chwij,ocij->ohw", win, w.astype(np.float64)) + b[:, None, None]
 
 
-def _forward_ref(p, x):
+def _forward_ref(p, x, widths=DEFAULT_WIDTHS):
+    enc, dec, _, _ = layers(widths)
     relu = lambda a: np.maximum(a, 0.0)  # noqa: E731
     block = lambda name, a: relu(_conv_ref(relu(_conv_ref(a, p[f"{name}.conv1.weight"], p[f"{name}.conv1.bias"])),  # noqa: E731
                                            p[f"{name}.conv2.weight"], p[f"{name}.conv2.bias"]))
     skips = []
     a = x.astype(np.float64)
-    for k, (name, _, _) in enumerate(ENC):
+    for k, (name, _, _) in enumerate(enc):
         if k:
             c, h, w = a.shape
             a = a.reshape(c, h // 2, 2, w // 2, 2).mean((2, 4))
@@ -36,7 +37,7 @@ def _forward_ref(p, x):
     g = relu(p["glob.fc1.weight"] @ a.mean((1, 2)) + p["glob.fc1.bias"])
     g = p["glob.fc2.weight"] @ g + p["glob.fc2.bias"]
     a = relu(a + g[:, None, None])
-    for (name, _, _), s in zip(DEC, skips[-2::-1]):
+    for (name, _, _), s in zip(dec, skips[-2::-1]):
         up = np.kron(a, np.ones((1, 2, 2)))
         a = block(name, np.concatenate([up, s], 0))
     return _conv_ref(a, p["head.weight"], p["head.bias"])
@@ -66,10 +67,41 @@ def test_forward_against_reference_random_weights():
         net.forward(x[:, :30])
 
 
+def test_other_widths_forward_and_load(tmp_path):
+    """A network of other widths and depth (four scales): its layer table, forward against the reference, the
+    input multiple, and a weights file naming its widths loads (one of the wrong shapes does not)."""
+    widths = (6, 10, 12, 20)
+    enc, dec, glob, head = layers(widths)
+    assert [c for _, _, c in enc] == list(widths) and enc[0][1] == 4
+    assert [(n, i, o) for n, i, o in dec] == [("dec2", 32, 12), ("dec1", 22, 10), ("dec0", 16, 6)]
+    assert glob == [("glob.fc1", 20, 20), ("glob.fc2", 20, 20)] and head == ("head", 6, 4)
+    rng = np.random.default_rng(3)
+    params = {k: (rng.normal(size=s) * (0.5 / np.sqrt(np.prod(s[1:])) if len(s) > 1 else 0.1)).astype(np.float32)
+              for k, s in arch(widths).items()}
+    net = SingleNet(params, {"size": 16, "widths": list(widths)})
+    assert net.multiple == 8
+    x = rng.uniform(0, 1, (4, 16, 24)).astype(np.float32)
+    np.testing.assert_allclose(net.forward(x), _forward_ref(params, x, widths), rtol=1e-3, atol=1e-4)
+    with pytest.raises(ValueError, match="multiples of 8"):
+        net.forward(x[:, :12])
+    n, h = net.predict(rng.uniform(0, 1, (21, 30, 3)).astype(np.float32))
+    assert n.shape == (21, 30, 3) and h.shape == (21, 30)
+    path = tmp_path / "w.npz"
+    np.savez(path, meta=np.array(json.dumps({"size": 16, "widths": list(widths)})), **params)
+    loaded = SingleNet.load(path)
+    assert loaded.widths == widths and np.array_equal(loaded.forward(x), net.forward(x))
+    np.savez(path, meta=np.array(json.dumps({"size": 16})), **params)  # no widths: the default's shapes
+    with pytest.raises(ValueError, match="expected shape"):
+        load_weights(path)
+    for bad in ((16,), (16, 0), "ab", (8, 2.5)):
+        with pytest.raises(ValueError, match="widths"):
+            layers(bad)
+
+
 def test_shipped_weights_and_their_size():
     params, meta = load_weights()
     assert WEIGHTS_PATH.stat().st_size < 20e6
-    assert set(ARCH) <= set(params)
+    assert set(arch(meta.get("widths", DEFAULT_WIDTHS))) == set(params)
     assert meta["size"] == 128 and meta["steps"] > 1000
     assert meta["numpy_vs_torch_max_abs"] < 1e-2  # measured at export, on the training machine
 

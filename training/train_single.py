@@ -41,7 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # a script run from a checkout, not an installed package
     sys.path.insert(0, str(ROOT))
 
-from gpps.nn.model import ARCH, DEC, ENC, GLOBAL, HEAD, prepare_input  # noqa: E402
+from gpps.nn.model import arch, layers, prepare_input  # noqa: E402
 from shapes import TRAIN_SEED_LIMIT, SceneRenderer, random_scene, render_random_sample  # noqa: E402
 
 
@@ -86,8 +86,33 @@ def _fake(n, size, n_lights):
     return X, nr.astype(np.float16), Z, np.ones((n, 1, size, size), np.uint8), {}
 
 
-def make_model(torch):
+def load_mitsuba(folder, size, log=None):
+    """The Mitsuba-rendered scenes of ``folder``'s shards (:mod:`mitsuba_random`): inputs (N, 1, 4, S, S) f16,
+    normals (N, 3, S, S) f16, height (N, 1, S, S) f16 (zero: these scenes train the normals only), mask
+    (N, 1, S, S) u8 and the per-scene info records."""
+    from mitsuba_random import decode_shard
+
+    shards = sorted(Path(folder).glob("mts_*.npz"))
+    if not shards:
+        raise FileNotFoundError(f"--mitsuba: no mts_*.npz shards in {folder}")
+    Xs, Ns, Ms, info = [], [], [], []
+    for f in shards:
+        d = decode_shard(f)
+        if d["images"].shape[1] != size:
+            raise ValueError(f"{f}: expected {size}^2 scenes, got {d['images'].shape[1:3]}")
+        Xs.append(np.stack([prepare_input(im, m) for im, m in zip(d["images"], d["mask"])])[:, None].astype(np.float16))
+        Ns.append(d["normals"].transpose(0, 3, 1, 2).astype(np.float16))
+        Ms.append(d["mask"][:, None].astype(np.uint8))
+        info += d["info"]
+    X, N, M = np.concatenate(Xs), np.concatenate(Ns), np.concatenate(Ms)
+    if log:
+        log(f"mitsuba: {len(X)} scenes from {len(shards)} shards in {folder}")
+    return X, N, np.zeros(M.shape, np.float16), M, info
+
+
+def make_model(torch, widths):
     nn = torch.nn
+    ENC, DEC, GLOBAL, HEAD = layers(widths)
 
     class Block(nn.Module):
         def __init__(self, cin, cout):
@@ -133,7 +158,7 @@ def make_model(torch):
 
 
 def losses(torch, out, n_gt, z_gt, m, size):
-    """(L_n (6.10), L_d (6.11), MAEN deg per image) for a batch."""
+    """(L_n (6.10), L_d (6.11), MAEN deg per image) for a batch (each per image: the caller weights them)."""
     out = out.float()
     n = torch.nn.functional.normalize(out[:, :3], dim=1, eps=1e-6)
     mf = m.float()
@@ -198,6 +223,10 @@ def main(argv=None):
     ap.add_argument("--smoke", action="store_true", help="random tensors instead of renders (tests the torch code only)")
     ap.add_argument("--init", default=None, help="start from these weights (a single_net.npz): fine-tuning")
     ap.add_argument("--warmup", type=int, default=300, help="learning-rate warm-up steps")
+    ap.add_argument("--widths", default="24,48,96,144,192", help="encoder channel widths, one per scale")
+    ap.add_argument("--mitsuba", default=None, help="folder of Mitsuba-rendered shards (training/mitsuba_random.py)")
+    ap.add_argument("--mitsuba-val", default=None, help="folder of Mitsuba-rendered validation shards")
+    ap.add_argument("--mitsuba-frac", type=float, default=0.5, help="share of each batch drawn from --mitsuba")
     args = ap.parse_args(argv)
 
     import torch
@@ -226,12 +255,26 @@ def main(argv=None):
             Xva, Nva, Zva, Mva, _ = build_dataset(va_seeds, args.size, 1, warp_device, pool)
     t_data = time.time() - t_start
     log(f"data: {args.train} train x {args.lights} lights, {args.val} val scenes at {args.size}^2 in {t_data:.1f}s")
+    widths = tuple(int(x) for x in args.widths.split(","))
+    frac = float(args.mitsuba_frac) if args.mitsuba else 0.0
+    if not 0.0 <= frac <= 1.0:
+        raise SystemExit(f"--mitsuba-frac: expected a share in [0, 1], got {frac}")
+    mts_info = []
+    if args.mitsuba:
+        Xmt, Nmt, Zmt, Mmt, mts_info = load_mitsuba(args.mitsuba, args.size, log)
+    vals = {"gpps": (Xva[:, 0], Nva, Zva, Mva)}
+    if args.mitsuba_val:
+        Xmv, Nmv, Zmv, Mmv, _ = load_mitsuba(args.mitsuba_val, args.size, log)
+        vals["mitsuba"] = (Xmv[:, 0], Nmv, Zmv, Mmv)
 
     to = lambda a, dt: torch.from_numpy(a).to(dev, dt)  # noqa: E731
     Xtr_t, Ntr_t, Ztr_t, Mtr_t = to(Xtr, torch.float16), to(Ntr, torch.float32), to(Ztr, torch.float32), to(Mtr, torch.bool)
-    Xva_t, Nva_t, Zva_t, Mva_t = to(Xva[:, 0], torch.float32), to(Nva, torch.float32), to(Zva, torch.float32), to(Mva, torch.bool)
+    if args.mitsuba:
+        Xmt_t, Nmt_t, Mmt_t = to(Xmt, torch.float16), to(Nmt, torch.float32), to(Mmt, torch.bool)
+        Zmt_t = torch.zeros(Mmt_t.shape, device=dev, dtype=torch.float32)
+    vals_t = {k: (to(x, torch.float32), to(n, torch.float32), to(z, torch.float32), to(m, torch.bool)) for k, (x, n, z, m) in vals.items()}
 
-    model = make_model(torch)
+    model = make_model(torch, widths)
     if args.init:
         from gpps.nn.model import load_weights
 
@@ -243,29 +286,33 @@ def main(argv=None):
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=1e-4)
     use_amp = dev.type == "cuda"
 
-    def evaluate():
+    def evaluate(name):
+        Xv, Nv, Zv, Mv = vals_t[name]
         model.eval()
         maens, sis, lns, lds = [], [], [], []
         with torch.no_grad():
-            for s in range(0, Xva_t.shape[0], 64):
-                xb = Xva_t[s : s + 64].contiguous(memory_format=torch.channels_last)
+            for s in range(0, Xv.shape[0], 64):
+                xb = Xv[s : s + 64].contiguous(memory_format=torch.channels_last)
                 with torch.autocast("cuda", dtype=torch.bfloat16, enabled=use_amp):
                     o = model(xb)
-                ln, ld, maen = losses(torch, o, Nva_t[s : s + 64], Zva_t[s : s + 64], Mva_t[s : s + 64], args.size)
+                ln, ld, maen = losses(torch, o, Nv[s : s + 64], Zv[s : s + 64], Mv[s : s + 64], args.size)
                 maens.append(maen)
-                sis.append(si_error(torch, o, Zva_t[s : s + 64], Mva_t[s : s + 64]))
+                sis.append(si_error(torch, o, Zv[s : s + 64], Mv[s : s + 64]))
                 lns.append(ln)
                 lds.append(ld)
         model.train()
         cat = lambda v: float(torch.cat(v).mean())  # noqa: E731
         return {"maen_deg": cat(maens), "si_height": cat(sis), "loss_normal": cat(lns), "loss_depth": cat(lds)}
 
-    # flat-plane baseline on the validation set: n = (0, 0, 1), height 0
-    flat = torch.zeros_like(Xva_t)
-    flat[:, 2] = 1.0
-    _, _, flat_maen = losses(torch, flat, Nva_t, Zva_t, Mva_t, args.size)
-    flat_si = si_error(torch, flat, Zva_t, Mva_t)
-    log(f"model: {n_params} parameters; flat-plane baseline val MAEN {float(flat_maen.mean()):.2f} deg, SI height {float(flat_si.mean()):.4f}")
+    # flat-plane baseline on each validation set: n = (0, 0, 1), height 0
+    flat_maen, flat_si = {}, {}
+    for name, (Xv, Nv, Zv, Mv) in vals_t.items():
+        flat = torch.zeros_like(Xv)
+        flat[:, 2] = 1.0
+        flat_maen[name] = float(losses(torch, flat, Nv, Zv, Mv, args.size)[2].mean())
+        flat_si[name] = float(si_error(torch, flat, Zv, Mv).mean())
+    log(f"model: widths {widths}, {n_params} parameters; flat-plane val MAEN "
+        + ", ".join(f"{k} {v:.2f} deg" for k, v in flat_maen.items()))
 
     budget = args.minutes * 60.0
     t_train = time.time()
@@ -273,55 +320,71 @@ def main(argv=None):
     history = []
     ema = None
     ntr = Xtr_t.shape[0]
+    n_mts = int(round(args.batch * frac))
     while step < args.max_steps:
-        frac = (time.time() - t_train) / budget
-        if frac >= 1.0:
+        tfrac = (time.time() - t_train) / budget
+        if tfrac >= 1.0:
             break
-        lr = args.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0)))) * min(1.0, (step + 1) / max(args.warmup, 1))
+        lr = args.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(tfrac, 1.0)))) * min(1.0, (step + 1) / max(args.warmup, 1))
         for g in opt.param_groups:
             g["lr"] = lr
-        idx = torch.randint(0, ntr, (args.batch,), device=dev)
-        li = torch.randint(0, args.lights, (args.batch,), device=dev)
-        xb = Xtr_t[idx, li].float()
-        xb, nb, zb, mb = augment(torch, xb, Ntr_t[idx], Ztr_t[idx], Mtr_t[idx])
+        nb_g = args.batch - n_mts
+        idx = torch.randint(0, ntr, (nb_g,), device=dev)
+        li = torch.randint(0, args.lights, (nb_g,), device=dev)
+        xb, nb, zb, mb = Xtr_t[idx, li].float(), Ntr_t[idx], Ztr_t[idx], Mtr_t[idx]
+        wd = torch.full((nb_g,), args.wd, device=dev)
+        if n_mts:
+            j = torch.randint(0, Xmt_t.shape[0], (n_mts,), device=dev)
+            xb = torch.cat([xb, Xmt_t[j, 0].float()])
+            nb, zb, mb = torch.cat([nb, Nmt_t[j]]), torch.cat([zb, Zmt_t[j]]), torch.cat([mb, Mmt_t[j]])
+            wd = torch.cat([wd, torch.zeros(n_mts, device=dev)])  # no height target for the Mitsuba scenes
+        xb, nb, zb, mb = augment(torch, xb, nb, zb, mb)
         xb = xb.contiguous(memory_format=torch.channels_last)
         with torch.autocast("cuda", dtype=torch.bfloat16, enabled=use_amp):
             o = model(xb)
         ln, ld, maen = losses(torch, o, nb, zb, mb, args.size)
-        loss = ln.mean() + args.wd * ld.mean()
+        loss = ln.mean() + (wd * ld).mean()
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         opt.step()
         step += 1
-        cur = np.array([float(ln.mean()), float(ld.mean()), float(maen.mean())]) if step % 50 == 0 else None
+        cur = np.array([float(ln.mean()), float(ld[:nb_g].mean()) if nb_g else 0.0, float(maen.mean())]) if step % 50 == 0 else None
         if cur is not None:
             ema = cur if ema is None else 0.9 * ema + 0.1 * cur
-        if step % 500 == 0:
-            v = evaluate()
+        if step % 1000 == 0:
+            v = {name: evaluate(name) for name in vals_t}
             rec = {"step": step, "time_s": round(time.time() - t_train, 1), "lr": lr,
                    "train_loss_normal": float(ema[0]), "train_loss_depth": float(ema[1]), "train_maen_deg": float(ema[2]),
-                   **{f"val_{k}": val for k, val in v.items()}}
+                   **{f"val_{name}_{k}": val for name, r in v.items() for k, val in r.items()}}
             history.append(rec)
-            log(f"step {step} lr {lr:.2e} train L_n {ema[0]:.4f} L_d {ema[1]:.4f} MAEN {ema[2]:.2f} | val MAEN {v['maen_deg']:.2f} SI {v['si_height']:.4f}")
+            log(f"step {step} lr {lr:.2e} train L_n {ema[0]:.4f} L_d {ema[1]:.4f} MAEN {ema[2]:.2f} | val MAEN "
+                + ", ".join(f"{name} {r['maen_deg']:.2f}" for name, r in v.items()))
     t_train = time.time() - t_train
-    final = evaluate()
-    log(f"done: {step} steps in {t_train:.1f}s; val MAEN {final['maen_deg']:.2f} deg (flat {float(flat_maen.mean()):.2f})")
+    finals = {name: evaluate(name) for name in vals_t}
+    final = finals["gpps"]
+    log(f"done: {step} steps in {t_train:.1f}s; val MAEN " + ", ".join(
+        f"{name} {r['maen_deg']:.2f} deg (flat {flat_maen[name]:.2f})" for name, r in finals.items()))
 
     params = {k: v.detach().float().cpu().numpy() for k, v in model.state_dict().items()}
-    for k, shape in ARCH.items():
+    shapes = arch(widths)
+    for k, shape in shapes.items():
         assert params[k].shape == shape, (k, params[k].shape, shape)
-    extra = set(params) - set(ARCH)
+    extra = set(params) - set(shapes)
     assert not extra, extra
     # a numpy check of the exported weights on one validation image
     from gpps.nn.model import SingleNet
 
-    meta = {"size": args.size, "steps": step, "init": args.init, "train_seconds": round(t_train, 1), "val_maen_deg": final["maen_deg"],
+    # val_maen_deg is what the flow takes as the network's expected error (the highlight fit's prior): the
+    # physically based validation set's when there is one, the closer of the two to images from the wild
+    expected = finals.get("mitsuba", final)["maen_deg"]
+    meta = {"size": args.size, "widths": list(widths), "steps": step, "init": args.init, "train_seconds": round(t_train, 1),
+            "val_maen_deg": expected, "val_maen_deg_by_set": {k: r["maen_deg"] for k, r in finals.items()},
             "trained_with": f"torch {torch.__version__}", "parameters": n_params}
     net = SingleNet(params, meta)
     o_np = net.forward(Xva[0, 0].astype(np.float32))
     with torch.no_grad():
-        o_t = model.float()(Xva_t[:1].contiguous(memory_format=torch.channels_last))[0].cpu().numpy()
+        o_t = model.float()(vals_t["gpps"][0][:1].contiguous(memory_format=torch.channels_last))[0].cpu().numpy()
     meta["numpy_vs_torch_max_abs"] = float(np.max(np.abs(o_np - o_t)))
     np.savez(out / "single_net.npz", meta=np.array(json.dumps(meta)), **{k: v.astype(np.float32) for k, v in params.items()})
     report = {
@@ -332,14 +395,20 @@ def main(argv=None):
             "val_scenes": args.val, "counts": stats,
             "augmentation": "flips, transpose (normals rotated with the image), input gamma in [0.8, 1.25]",
             "data_seconds": round(t_data, 1),
+            "mitsuba": None if not args.mitsuba else {
+                "generator": "mitsuba_random.render_random (recipe v2's shapes as a 2.5D shell, Mitsuba 3 path tracer)",
+                "scenes": len(mts_info), "batch_share": frac, "folder": str(args.mitsuba),
+                "counts": {key: {v: sum(1 for r in mts_info if str(r[key]) == v) for v in sorted({str(r[key]) for r in mts_info})}
+                           for key in ("family", "bsdf_objects", "bsdf_support", "light", "bits")}},
         },
-        "model": {"parameters": n_params, "architecture": "gpps.nn.model docstring"},
+        "model": {"parameters": n_params, "widths": list(widths), "architecture": "gpps.nn.model docstring"},
         "training": {"optimizer": "AdamW wd 1e-4", "lr": args.lr, "init": args.init,
                      "schedule": f"{args.warmup}-step warm-up, cosine to 2% over the time budget",
                      "batch": args.batch, "steps": step, "seconds": round(t_train, 1), "depth_loss_weight": args.wd,
                      "mixed_precision": "bf16 autocast" if use_amp else "none", "device": str(dev)},
         "losses": {"normal": "6.10: -(1/m) sum N.N*", "depth": "6.11 with lambda 1/2 and gradient terms (spacing 2/S)"},
-        "validation": {**final, "flat_plane_maen_deg": float(flat_maen.mean()), "flat_plane_si_height": float(flat_si.mean())},
+        "validation": {**final, "flat_plane_maen_deg": flat_maen["gpps"], "flat_plane_si_height": flat_si["gpps"],
+                       "by_set": {k: {**r, "flat_plane_maen_deg": flat_maen[k]} for k, r in finals.items()}},
         "numpy_vs_torch_max_abs": meta["numpy_vs_torch_max_abs"],
         "history": history,
         "log": log_lines,

@@ -19,6 +19,8 @@ of the normal and a relative depth at every pixel::
       dec0  up2, concat enc0, conv 48->16, 16->16
       head  conv3x3 16->4: normal = normalize(out[0:3]), depth = out[3]
 
+The channel widths above are :data:`DEFAULT_WIDTHS`; a weights file may name other widths (its meta's
+``"widths"``: the encoder's, one per scale), and :func:`layers` derives every layer from them.
 Every conv is 3x3, zero padding 1, followed by ReLU (except the head).  The
 training code (``training/``, PyTorch) builds the same layers with the same
 names; the weights ship as ``gpps/nn/single_net.npz`` and are evaluated here
@@ -35,38 +37,63 @@ from typing import Literal, get_args
 import cv2
 import numpy as np
 
-__all__ = ["ARCH", "SingleNet", "load_weights", "prepare_input", "conv3x3", "WEIGHTS_PATH", "NET_SIZE"]
+__all__ = ["ARCH", "DEFAULT_WIDTHS", "layers", "arch", "SingleNet", "load_weights", "prepare_input", "conv3x3", "WEIGHTS_PATH", "NET_SIZE"]
 
 WEIGHTS_PATH = Path(__file__).with_name("single_net.npz")
 NET_SIZE = 128  # the resolution the shipped network was trained at
 TTAName = Literal["none", "flips", "dihedral"]  # test-time augmentation of SingleNet.predict
 TTA_NAMES: tuple[str, ...] = get_args(TTAName)
 
-# (name, in_channels, out_channels) of the conv layers, in order; the training code uses the same table.
-ENC = [("enc0", 4, 16), ("enc1", 16, 32), ("enc2", 32, 64), ("enc3", 64, 96), ("enc4", 96, 128)]
-DEC = [("dec3", 128 + 96, 96), ("dec2", 96 + 64, 64), ("dec1", 64 + 32, 32), ("dec0", 32 + 16, 16)]
-GLOBAL = [("glob.fc1", 128, 128), ("glob.fc2", 128, 128)]
-HEAD = ("head", 16, 4)
+#: the encoder's channel widths of the first shipped network (issue 8); a weights file names its own in its meta
+DEFAULT_WIDTHS: tuple[int, ...] = (16, 32, 64, 96, 128)
 
 
-def _arch() -> dict:
-    """Every parameter's name and shape (conv: (out, in, 3, 3), fc: (out, in), biases (out,))."""
+def layers(widths=DEFAULT_WIDTHS) -> tuple[list, list, list, tuple]:
+    """The conv / fc layer tables ``(enc, dec, glob, head)`` of the network with encoder ``widths``.
+
+    ``enc``: ``(name, in, out)`` of each scale's block (``enc0`` at full resolution, then each after a 2x
+    pooling), ``dec``: the decoder blocks from the coarsest skip up (input: the upsampled coarser features
+    concatenated with the skip), ``glob``: the two fully connected layers of the global scale, ``head``: the
+    3x3 output conv (4 channels).  The training code builds the same layers from the same tables.
+
+    Raises:
+        ValueError: ``widths`` is not a sequence of at least two positive integers.
+    """
+    try:
+        w = tuple(int(x) for x in widths)
+    except (TypeError, ValueError):
+        raise ValueError(f"widths: expected a sequence of positive integers, got {widths!r}") from None
+    if len(w) < 2 or min(w) < 1 or any(float(x) != int(x) for x in widths):
+        raise ValueError(f"widths: expected at least two positive integers, got {widths!r}")
+    enc = [(f"enc{k}", 4 if k == 0 else w[k - 1], w[k]) for k in range(len(w))]
+    dec = [(f"dec{k}", w[k + 1] + w[k], w[k]) for k in reversed(range(len(w) - 1))]
+    glob = [("glob.fc1", w[-1], w[-1]), ("glob.fc2", w[-1], w[-1])]
+    return enc, dec, glob, ("head", w[0], 4)
+
+
+# (name, in_channels, out_channels) of the default network's conv layers, in order
+ENC, DEC, GLOBAL, HEAD = layers()
+
+
+def arch(widths=DEFAULT_WIDTHS) -> dict:
+    """Every parameter's name and shape (conv: (out, in, 3, 3), fc: (out, in), biases (out,)) for ``widths``."""
+    enc, dec, glob, head = layers(widths)
     shapes = {}
-    for name, cin, cout in ENC + DEC:
+    for name, cin, cout in enc + dec:
         shapes[f"{name}.conv1.weight"] = (cout, cin, 3, 3)
         shapes[f"{name}.conv1.bias"] = (cout,)
         shapes[f"{name}.conv2.weight"] = (cout, cout, 3, 3)
         shapes[f"{name}.conv2.bias"] = (cout,)
-    for name, cin, cout in GLOBAL:
+    for name, cin, cout in glob:
         shapes[f"{name}.weight"] = (cout, cin)
         shapes[f"{name}.bias"] = (cout,)
-    name, cin, cout = HEAD
+    name, cin, cout = head
     shapes[f"{name}.weight"] = (cout, cin, 3, 3)
     shapes[f"{name}.bias"] = (cout,)
     return shapes
 
 
-ARCH = _arch()
+ARCH = arch()
 
 
 def prepare_input(image: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
@@ -130,7 +157,8 @@ def _up2(x):
 
 
 def load_weights(path: str | Path | None = None) -> tuple[dict, dict]:
-    """Read a weights file: ``(params, meta)``; params checked against :data:`ARCH`.
+    """Read a weights file: ``(params, meta)``; params checked against :func:`arch` of the widths its meta
+    names (``meta["widths"]``; files without it have :data:`DEFAULT_WIDTHS`).
 
     Raises:
         FileNotFoundError: no such file.
@@ -142,7 +170,8 @@ def load_weights(path: str | Path | None = None) -> tuple[dict, dict]:
     with np.load(path, allow_pickle=False) as z:
         params = {k: np.asarray(z[k], np.float32) for k in z.files if k != "meta"}
         meta = json.loads(str(z["meta"])) if "meta" in z.files else {}
-    for k, shape in ARCH.items():
+    shapes = arch(meta.get("widths", DEFAULT_WIDTHS))
+    for k, shape in shapes.items():
         if k not in params:
             raise ValueError(f"weights: parameter {k!r} missing from {path}")
         if params[k].shape != shape:
@@ -171,19 +200,31 @@ class SingleNet:
     def size(self) -> int:
         return int(self.meta.get("size", NET_SIZE))
 
+    @property
+    def widths(self) -> tuple[int, ...]:
+        """The encoder's channel widths (the weights file's meta, else :data:`DEFAULT_WIDTHS`)."""
+        return tuple(int(x) for x in self.meta.get("widths", DEFAULT_WIDTHS))
+
+    @property
+    def multiple(self) -> int:
+        """Input sides must be multiples of this (one 2x pooling per scale below the first)."""
+        return 2 ** (len(self.widths) - 1)
+
     def _block(self, name, x):
         p = self.params
         x = _relu(conv3x3(x, p[f"{name}.conv1.weight"], p[f"{name}.conv1.bias"]))
         return _relu(conv3x3(x, p[f"{name}.conv2.weight"], p[f"{name}.conv2.bias"]))
 
     def forward(self, x: np.ndarray) -> np.ndarray:
-        """Raw output (4, H, W) for an input (4, H, W) with H, W multiples of 16."""
+        """Raw output (4, H, W) for an input (4, H, W) with H, W multiples of :attr:`multiple` (16 for five scales)."""
         p = self.params
         c, h, w = x.shape
-        if c != 4 or h % 16 or w % 16:
-            raise ValueError(f"x: expected (4, H, W) with H, W multiples of 16, got {x.shape}")
+        q = self.multiple
+        if c != 4 or h % q or w % q:
+            raise ValueError(f"x: expected (4, H, W) with H, W multiples of {q}, got {x.shape}")
+        enc, dec, _, _ = layers(self.widths)
         skips = []
-        for k, (name, _, _) in enumerate(ENC):
+        for k, (name, _, _) in enumerate(enc):
             if k:
                 x = _pool2(x)
             x = self._block(name, x)
@@ -192,7 +233,7 @@ class SingleNet:
         g = np.maximum(p["glob.fc1.weight"] @ g + p["glob.fc1.bias"], 0.0)
         g = p["glob.fc2.weight"] @ g + p["glob.fc2.bias"]
         x = _relu(x + g[:, None, None])
-        for (name, _, _), skip in zip(DEC, skips[-2::-1]):
+        for (name, _, _), skip in zip(dec, skips[-2::-1]):
             x = self._block(name, np.concatenate([_up2(x), skip], 0))
         return conv3x3(x, p["head.weight"], p["head.bias"])
 
@@ -230,7 +271,7 @@ class SingleNet:
         """Normals (H, W, 3) and relative depth (H, W) of one image.
 
         The image is resized so that its longer side is ``size`` (default: the
-        training size), padded to a multiple of 16, evaluated, and the outputs
+        training size), padded to a multiple of :attr:`multiple`, evaluated, and the outputs
         are resized back (normals renormalised).  The relative depth is in
         units of half the image's longer side, mean 0 over the mask; larger
         values are nearer the camera (it is a height).
@@ -256,7 +297,8 @@ class SingleNet:
         ms = xs[3] > 0.5
         xs[:3] *= ms
         xs[3] = ms
-        H, W = -(-hs // 16) * 16, -(-ws // 16) * 16
+        q = self.multiple
+        H, W = -(-hs // q) * q, -(-ws // q) * q
         oy, ox = (H - hs) // 2, (W - ws) // 2
         xp = np.zeros((4, H, W), np.float32)
         xp[:, oy : oy + hs, ox : ox + ws] = xs
