@@ -83,7 +83,7 @@ def _run_folder(folder, method: str, device: str) -> dict:
     return {**_maen(res.normals, cap.dataset.normal_gt, cap.dataset.mask), "seconds": dt}
 
 
-def _run_single(folder, n_images: int, device: str, generations: int) -> list[dict]:
+def _run_single(folder, n_images: int, device: str, generations: int, net=None) -> list[dict]:
     import gpps
     from gpps.io import read_capture
     from gpps.pipeline.cuckoo import CuckooConfig
@@ -91,7 +91,7 @@ def _run_single(folder, n_images: int, device: str, generations: int) -> list[di
     ds = read_capture(folder, normalise=False).dataset
     cfg = gpps.SingleConfig(cuckoo=CuckooConfig(nests=12, generations=generations), integrate=False)
     t = time.perf_counter()
-    res = gpps.reconstruct_single(ds.images[:n_images], ds.mask, config=cfg, device=device)
+    res = gpps.reconstruct_single(ds.images[:n_images], ds.mask, config=cfg, device=device, net=net)
     dt = time.perf_counter() - t
     net = res.normals_net_first if n_images == 1 else res.normals_net
     return [{"method": f"single{n_images}_net", **_maen(net, ds.normal_gt, ds.mask), "seconds": res.timings["network"]},
@@ -133,11 +133,15 @@ def main():
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--scenes", default=None, help=f"a subset of {[s[0] for s in HELDOUT]} (no JSON written)")
     ap.add_argument("--generations", type=int, default=80, help="cuckoo generations of gpps single")
+    ap.add_argument("--weights", default=None, help="the single-image network's weights file (default: the shipped one)")
     ap.add_argument("--root", default=None, help="capture cache (default $GPPS_CACHE_DIR/mitsuba_captures)")
     ap.add_argument("--render-only", action="store_true")
     ap.add_argument("--tag", default=None, help="results name suffix: perf/results/heldout_eval_<tag>_<device>.json "
                     "(a partial run, e.g. --methods flat,single, must not replace the full table)")
     args = ap.parse_args()
+    from gpps.nn.model import SingleNet
+
+    net = SingleNet.load(args.weights)
     args.lights = [int(x) for x in args.lights.split(",") if x]
     args.kinds = [x for x in args.kinds.split(",") if x]
     methods = [x for x in args.methods.split(",") if x]
@@ -176,7 +180,7 @@ def main():
                 rows.append({**base, "method": m, **_run_folder(folder, m, args.device)})
         if "single" in methods and spec.light_kind == "directional" and spec.n_lights == 3:
             for k in (1, 3):
-                rows += [{**base, **r} for r in _run_single(folder, k, args.device, args.generations)]
+                rows += [{**base, **r} for r in _run_single(folder, k, args.device, args.generations, net)]
         print("  ".join(f"{r['scene']}/{r['kind'][:3]}{r['n_lights']}/{r['method']}: {r['maen']:.2f}" for r in rows
                         if r["capture"] == folder.name), flush=True)
     scenes = [s[0] for s in HELDOUT if not args.scenes or s[0] in args.scenes]

@@ -42,8 +42,13 @@ def main(argv=None) -> int:
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data"))
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out-dir", default=str(ROOT / "perf" / "results" / "single_real"))
+    ap.add_argument("--weights", default=None, help="the single-image network's weights file (default: the shipped one)")
+    ap.add_argument("--tag", default=None, help="results name suffix: perf/results/single_real_<tag>_<device>.json")
     a = ap.parse_args(argv)
     import gpps
+    from gpps.nn.model import SingleNet
+
+    net = SingleNet.load(a.weights)
     from gpps.host.metrics import normal_errors
 
     data, out = Path(a.data), Path(a.out_dir)
@@ -60,7 +65,7 @@ def main(argv=None) -> int:
         runs = [(f"1:{tri[i] + 1:03d}", imgs[i:i + 1]) for i in range(3)] + [(f"3:{'/'.join(f'{k + 1:03d}' for k in tri)}", imgs)]
         for label, im in runs:
             t = time.perf_counter()
-            res = gpps.reconstruct_single(im, m, device=a.device)
+            res = gpps.reconstruct_single(im, m, device=a.device, net=net)
             dt = time.perf_counter() - t
             e_net = normal_errors(res.normals_net, gt, res.mask)["mean"]
             e_ref = normal_errors(res.normals, gt, res.mask)["mean"]
@@ -89,16 +94,17 @@ def main(argv=None) -> int:
     bi = sorted(p for p in b.iterdir() if p.suffix.lower() in (".png", ".bmp", ".jpg", ".tif") and "mask" not in p.name)
     bm = cv2.imread(str(b / "mask.png"), cv2.IMREAD_GRAYSCALE) > 0
     bimg = np.stack([cv2.imread(str(p), cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255.0 for p in bi[:3]])
-    res = gpps.reconstruct_single(bimg, bm, device=a.device)
+    res = gpps.reconstruct_single(bimg, bm, device=a.device, net=net)
     cv2.imwrite(str(out / "beethoven_3img.png"), _view(bimg, res.mask, [res.normals_net, res.normals]))
     y = data / "yaleb" / "yaleB01"
     yf = sorted(y.glob("*P00A+000E+00.pgm"))[0]
     yim = cv2.imread(str(yf), cv2.IMREAD_UNCHANGED).astype(np.float32) / 255.0
     ym = np.ones(yim.shape, bool)
-    res = gpps.reconstruct_single(yim, ym, device=a.device)
+    res = gpps.reconstruct_single(yim, ym, device=a.device, net=net)
     cv2.imwrite(str(out / "yaleB01_1img.png"), _view(yim[None], res.mask, [res.normals_net, res.normals]))
-    print("wrote", write_results("single_real", a.device, {"rows": rows, "summary": summary,
-                                                            "rule": "DiLiGenT: the best-conditioned light triple"}))
+    name = f"single_real_{a.tag}" if a.tag else "single_real"
+    print("wrote", write_results(name, a.device, {"rows": rows, "summary": summary, "weights": a.weights or "shipped",
+                                                   "rule": "DiLiGenT: the best-conditioned light triple"}))
     return 0
 
 

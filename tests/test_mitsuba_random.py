@@ -117,3 +117,34 @@ def test_lambertian_shell_agrees_with_gpps_render():
     assert inner.sum() > 100
     assert abs(np.median(ratio) - 1.0) < 0.03, np.median(ratio)
     assert np.mean(np.abs(ratio - 1.0) < 0.1) > 0.9
+
+
+def test_first_shards_normals_come_back_from_their_seeds(tmp_path):
+    """The first shards held (n_x, n_y) codes only: decoding derives n_z from unit length, and packing recomputes
+    the normals from the scenes' seeds (the same scene_normals the renders used), masked as stored."""
+    import json
+
+    from mitsuba_random import scene_normals
+
+    size, seeds = 32, [500000, 500001]
+    normals, masks = [], []
+    for s in seeds:
+        _, n = scene_normals(size, s)
+        m = np.linalg.norm(n, axis=-1) > 0.5
+        m[0, :] = False  # a mask smaller than the scene's (the shell's covered pixels)
+        normals.append(np.where(m[..., None], n, 0.0))
+        masks.append(m)
+    np.savez_compressed(tmp_path / "mts_500000.npz", images=np.zeros((2, size, size, 3), np.uint8),
+                        normals=np.stack([np.round(127 * n[..., :2]).astype(np.int8) for n in normals]),
+                        mask=np.stack([np.packbits(m.ravel()) for m in masks]), seeds=np.array(seeds), size=np.array(size),
+                        info=np.array(json.dumps([{"seed": s} for s in seeds])))
+    legacy = decode_shard(tmp_path / "mts_500000.npz")
+    packed = decode_shard(pack_shard(tmp_path / "mts_500000.npz", tmp_path / "packed.npz"))
+    for k in range(2):
+        m = masks[k]
+        ok = normals[k][..., 2] > 0.5  # away from grazing, the derived n_z is close
+        cos = np.sum(legacy["normals"][k] * normals[k], -1)
+        assert np.degrees(np.arccos(np.clip(cos[m & ok], -1, 1))).max() < 1.0
+        cos = np.sum(packed["normals"][k] * normals[k], -1)
+        assert np.degrees(np.arccos(np.clip(cos[m], -1, 1))).max() < 0.5  # everywhere, grazing too
+        assert np.all(packed["normals"][k][~m] == 0) and np.array_equal(packed["mask"][k], m)
