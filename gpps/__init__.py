@@ -32,6 +32,7 @@ _LAZY = {
     "UncalibratedConfig": "gpps.flows.uncalibrated",
     "reconstruct_single": "gpps.flows.single",
     "SingleConfig": "gpps.flows.single",
+    "SingleNet": "gpps.nn.model",
     "reconstruct_folder": "gpps.flows.folder",
     "FolderConfig": "gpps.flows.folder",
     "FolderResult": "gpps.flows.folder",

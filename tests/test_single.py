@@ -396,7 +396,20 @@ def test_cli_single(tmp_path, capsys):
     rep = json.loads((out / "report.json").read_text())
     assert rep["depth"]["scale"] == "relative" and rep["depth"]["unit"] == "pixel"
     assert rep["pixels"] == int(sc.mask.sum()) and len(rep["light_directions"]) == 3
+    assert rep["network"]["weights"] == "shipped"
     assert main(["single", str(tmp_path / "missing.png"), "--out", str(out)]) == 2
+    # --weights: another network (here the shipped one, copied), named in the report; a missing file is an error
+    import shutil
+
+    shutil.copy(WEIGHTS_PATH, tmp_path / "net.npz")
+    rc = main(["--device", "cpu", "single", *paths, "--mask", str(tmp_path / "mask.png"), "--out", str(tmp_path / "out2"),
+               "--generations", "5", "--nests", "4", "--weights", str(tmp_path / "net.npz")])
+    assert rc == 0
+    rep2 = json.loads((tmp_path / "out2" / "report.json").read_text())
+    assert rep2["network"]["weights"] == str(tmp_path / "net.npz")
+    assert np.array_equal(np.load(tmp_path / "out2" / "normals_net.npy"), np.load(out / "normals_net.npy"))
+    assert main(["--device", "cpu", "single", paths[0], "--weights", str(tmp_path / "none.npz"), "--out", str(tmp_path / "o3")]) == 2
+    assert "none.npz" in capsys.readouterr().err and not (tmp_path / "o3").exists()
     for opt, val in (("--pc", "1.5"), ("--nests", "0"), ("--rounds", "-1")):  # errors name the options
         assert main(["--device", "cpu", "single", paths[0], opt, val, "--out", str(tmp_path / "bad")]) == 2
         assert f"error: {opt}: expected" in capsys.readouterr().err

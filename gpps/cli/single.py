@@ -41,6 +41,8 @@ def register(subparsers) -> None:
     p.add_argument("--max-size", type=int, default=512, help="downscale images whose longer side exceeds this")
     p.add_argument("--tta", choices=["none", "flips", "dihedral"], default="flips",
                    help="the network's test-time augmentation: mean over the mirror images (flips), and their transposes")
+    p.add_argument("--weights", default=None,
+                   help="the single-image network's weights file (.npz, as training/train_single.py writes); default: the shipped one")
     p.add_argument("--min-explained", type=float, default=0.5,
                    help="keep the network's normal where the refined model explains less of a pixel's observations")
     p.set_defaults(func=run)
@@ -61,6 +63,7 @@ def run(args) -> int:
         raise ValueError(f"images: expected 1 to 3 images, got {len(args.images)}")
     inputs = [*args.images, args.mask]
     out_dir = prepare_out(args, inputs=inputs)
+    net = gpps.SingleNet.load(args.weights)  # before any work: a missing or wrong file is reported first
     imgs = [_read(p) for p in args.images]
     if any(i.shape[:2] != imgs[0].shape[:2] for i in imgs):
         raise ValueError(f"images: expected one size, got {[i.shape[:2] for i in imgs]}")
@@ -82,7 +85,7 @@ def run(args) -> int:
             rounds=args.rounds, prior_weight=args.prior_weight, tta=args.tta, min_explained=args.min_explained,
         )
     device = None if args.device == "auto" else args.device
-    res = gpps.reconstruct_single(imgs, mask, config=cfg, device=device, progress=bar("single"))
+    res = gpps.reconstruct_single(imgs, mask, config=cfg, device=device, net=net, progress=bar("single"))
     m = res.mask
     cam = Orthographic(1.0)
     conv = depth_convention(cam)
@@ -100,6 +103,7 @@ def run(args) -> int:
             "config": {"rounds": cfg.rounds, "nests": args.nests, "generations": args.generations, "beta": args.beta,
                        "p_c": args.pc, "seed": args.seed, "prior_weight": cfg.prior_weight},
             "light_directions": res.light_directions, "light_intensities": res.light_intensities, "ks": res.ks,
+            "network": {"weights": args.weights or "shipped", **{k: net.meta.get(k) for k in ("widths", "steps", "val_maen_deg")}},
             "shininess": res.shininess, "highlights": res.highlights, "objective": res.objective, "timings_s": res.timings,
             "view": written.get("view"), "depth": conv, "outputs": written["files"] + ["normals_net.npy", "normals_net.png", "height_net.npy"],
         }
