@@ -12,7 +12,6 @@ Writes perf/results/single_timing_<sphere | the capture's first word>_<device>.j
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -30,8 +29,12 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--weights", default=None, help="the single-image network's weights file (default: the shipped one)")
+    ap.add_argument("--tag", default=None, help="a suffix of the results name")
     a = ap.parse_args(argv)
     import gpps
+
+    net = gpps.SingleNet.load(a.weights)
     from gpps.host.metrics import normal_errors
 
     if a.capture:
@@ -54,7 +57,7 @@ def main(argv=None) -> int:
         ts = []
         for r in range(a.repeat + 1):
             t = time.perf_counter()
-            res = gpps.reconstruct_single(images[:k], mask, device=a.device)
+            res = gpps.reconstruct_single(images[:k], mask, device=a.device, net=net)
             ts.append(time.perf_counter() - t)
         row = {"images": k, "seconds": statistics.median(ts[1:]), "runs_s": ts[1:], "first_s": ts[0],
                "timings": {kk: float(v) for kk, v in res.timings.items()},
@@ -64,7 +67,9 @@ def main(argv=None) -> int:
         print(f"{name} {k} image(s) on {a.device}: {row['seconds']:.3f} s (first {ts[0]:.2f} s), "
               f"MAEN net {row['maen_net']:.2f} refined {row['maen']:.2f}", flush=True)
     tag = "sphere" if not a.capture else name.split("-")[0]
-    path = write_results(f"single_timing_{tag}", a.device, {"capture": name, "repeat": a.repeat, "rows": rows})
+    tag = f"{tag}_{a.tag}" if a.tag else tag
+    path = write_results(f"single_timing_{tag}", a.device, {"capture": name, "repeat": a.repeat, "rows": rows,
+                                                            "weights": a.weights or "shipped", "widths": net.widths})
     if a.out:
         Path(a.out).write_text(path.read_text())
     print(f"wrote {path}")
