@@ -22,8 +22,8 @@ real cast shadows, rough dielectric and metallic lobes with Fresnel, and Monte C
 * a camera: exposure (a percentile of the object's pixels to a level below full scale: highlights clip),
   shot and read noise, 8- or 16-bit quantisation.
 
-Shards (``mts_<first seed>.npz``) hold, per scene: ``images`` (n, S, S, 3) uint8 ``round(255 sqrt(x))`` of the
-exposed image x in [0, 1] (square-root coded: 8-bit steps near black stay below the read noise),
+Shards (``mts_<first seed>.npz``) hold, per scene: ``images`` (n, S, S, 3), or (n, L, S, S, 3) with ``--lights L``
+> 1, uint8 ``round(255 sqrt(x))`` of the exposed image x in [0, 1] (square-root coded: 8-bit steps near black stay below the read noise),
 ``normals`` (n, S, S, 3) int8 ``round(127 n)`` (renormalised when read: under half a degree; the first shards
 held only ``n_x, n_y``, which lose precision near the occluding contours, and :func:`pack_shard` recomputes
 their normals from the seeds), ``mask`` (n, S, S)
@@ -138,7 +138,7 @@ def _expose(linear: np.ndarray, mask: np.ndarray, rng) -> tuple[np.ndarray, dict
     pct, level = float(rng.uniform(97.0, 99.9)), float(rng.uniform(0.6, 1.0))
     full_well, read = _log_uniform(rng, 1e3, 5e4), float(rng.uniform(0.0, 2e-3))
     bits = 8 if rng.random() < 0.5 else 16
-    ref = np.percentile(linear[mask].max(-1), pct)
+    ref = np.percentile(linear.reshape((-1,) + mask.shape + (3,))[:, mask].max(-1), pct)  # one exposure for all images
     x = linear.astype(np.float64) * (level / max(float(ref), 1e-12))
     x = x + rng.standard_normal(x.shape) * np.sqrt(read**2 + np.maximum(x, 0.0) / full_well)
     full = 2**bits - 1
@@ -156,16 +156,18 @@ def scene_normals(size: int, seed: int, renderer: SceneRenderer | None = None, *
 
 def render_random(size: int, seed: int, *, spp: int = 32, max_depth: int = 4, renderer: SceneRenderer | None = None,
                   tmp: Path | None = None, family: str | None = None, bsdf: str | None = None, lights=None,
-                  expose: bool = True) -> dict:
-    """Render the random scene of ``seed`` (perspective camera) under one random light with Mitsuba.
+                  expose: bool = True, n_lights: int = 1) -> dict:
+    """Render the random scene of ``seed`` (perspective camera) under ``n_lights`` random lights (one image
+    each, one exposure for all) with Mitsuba.
 
     ``family``, ``bsdf`` (one of :data:`BSDF_KINDS` for every part, its parameters drawn), ``lights`` (gpps
     lights, the first is used) override the random draws; ``expose=False`` returns the linear render
     (gpps's units: ``kd cos I`` for a Lambertian surface) without the camera model (tests).
 
     Returns:
-        ``{"image": (S, S, 3) float32 (in [0, 1] when exposed), "normals": (S, S, 3) float32, "mask": (S, S)
-        bool, "height": (S, S) float32 relative height, "albedo": (S, S, 3) float32, "info": dict}``.
+        ``{"image": (S, S, 3) float32 (in [0, 1] when exposed) the first light's, "images": (L, S, S, 3) every
+        light's, "normals": (S, S, 3) float32, "mask": (S, S) bool, "height": (S, S) float32 relative height,
+        "albedo": (S, S, 3) float32, "info": dict}``.
     """
     mi = mitsuba()
     rng = np.random.default_rng([seed, 29])
@@ -185,7 +187,7 @@ def render_random(size: int, seed: int, *, spp: int = 32, max_depth: int = 4, re
     bsdf_obj, kind_obj = _random_bsdf(rng, tex, bsdf)
     same = rng.random() < 0.5 or bsdf is not None
     bsdf_sup, kind_sup = (bsdf_obj, kind_obj) if same else _random_bsdf(rng, tex)
-    lights_drawn = random_light(rng, 1)
+    lights_drawn = random_light(rng, int(n_lights))
     lights = lights_drawn if lights is None else lights
     shapes = {}
     own = tmp is None
@@ -210,27 +212,34 @@ def render_random(size: int, seed: int, *, spp: int = 32, max_depth: int = 4, re
         "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
         "sampler": {"type": "independent", "sample_count": spp}})
     env = float(rng.uniform(0.01, 0.08)) if rng.random() < 0.3 else 0.0
-    scene_dict = {"type": "scene", "integrator": {"type": "path", "max_depth": int(max_depth)}, "sensor": sensor,
-                  **shapes, "light": _emitter(lights, 0)}
-    if env > 0:
-        scene_dict["env"] = {"type": "constant", "radiance": {"type": "rgb", "value": [env] * 3}}
     t = time.perf_counter()
-    linear = np.asarray(mi.render(mi.load_dict(scene_dict), seed=int(seed) % 2**31, spp=spp), np.float32)
+    linear = []
+    for k in range(len(lights)):
+        scene_dict = {"type": "scene", "integrator": {"type": "path", "max_depth": int(max_depth)}, "sensor": sensor,
+                      **shapes, "light": _emitter(lights, k)}
+        if env > 0:
+            scene_dict["env"] = {"type": "constant", "radiance": {"type": "rgb", "value": [env] * 3}}
+        linear.append(np.asarray(mi.render(mi.load_dict(scene_dict), seed=(int(seed) + 1_000_003 * k) % 2**31, spp=spp),
+                                 np.float32))
     t_render = time.perf_counter() - t
+    linear = np.stack(linear)
     linear = np.where(np.isfinite(linear), np.maximum(linear, 0.0), 0.0)
-    image, cam = _expose(linear, mask, rng) if expose else (linear, {})
+    images, cam = _expose(linear, mask, rng) if expose else (linear, {})
+    dirs = (lights.directions if isinstance(lights, DirectionalLights)
+            else lights.positions / np.linalg.norm(lights.positions, axis=1, keepdims=True))
     info = {"seed": int(seed), "family": sc.family, "bsdf_objects": kind_obj, "bsdf_support": kind_sup,
             "light": lights.kind, "environment": env, "render_s": round(t_render, 3), **cam,
-            "light_direction": (lights.directions[0] if isinstance(lights, DirectionalLights)
-                                else lights.positions[0] / np.linalg.norm(lights.positions[0])).tolist()}
+            "light_direction": dirs[0].tolist(), "light_directions": dirs.tolist()}
     normals = np.where(mask[..., None], normals, 0.0).astype(np.float32)
-    return {"image": image, "normals": normals, "mask": mask, "height": sc.relative_height() * mask, "albedo": albedo,
-            "info": info}
+    return {"image": images[0], "images": images, "normals": normals, "mask": mask, "height": sc.relative_height() * mask,
+            "albedo": albedo, "info": info}
 
 
 def write_shard(path: Path, samples: list[dict]) -> Path:
     """Write ``samples`` (:func:`render_random` outputs) as one compressed shard (temporary name, then rename)."""
-    imgs = np.stack([np.round(255.0 * np.sqrt(np.clip(s["image"], 0.0, 1.0))).astype(np.uint8) for s in samples])
+    multi = any(len(s.get("images", [None])) > 1 for s in samples)
+    key = "images" if multi else "image"
+    imgs = np.stack([np.round(255.0 * np.sqrt(np.clip(s[key], 0.0, 1.0))).astype(np.uint8) for s in samples])
     nrm = np.stack([np.round(127.0 * s["normals"]).astype(np.int8) for s in samples])
     masks = np.stack([np.packbits(s["mask"].ravel()) for s in samples])
     path = Path(path)
@@ -256,7 +265,9 @@ def pack_shard(src, dst, *, quality: int = 95) -> Path:
     with np.load(src, allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}
     blobs = []
-    for im in arrays.pop("images"):
+    images = arrays.pop("images")
+    arrays["images_shape"] = np.array(images.shape)
+    for im in images.reshape((-1,) + images.shape[-3:]):
         ok, buf = cv2.imencode(".jpg", im, [cv2.IMWRITE_JPEG_QUALITY, int(quality),
                                             cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444])
         if not ok:
@@ -282,7 +293,7 @@ def pack_shard(src, dst, *, quality: int = 95) -> Path:
 
 def decode_shard(path) -> dict:
     """A shard's arrays (:func:`write_shard`'s or :func:`pack_shard`'s form): ``images`` (n, S, S, 3) float32 in
-    [0, 1], ``normals`` (n, S, S, 3) float32 unit (zero outside), ``mask`` (n, S, S) bool, ``seeds`` (n,),
+    [0, 1] ((n, L, S, S, 3) for scenes of L lights), ``normals`` (n, S, S, 3) float32 unit (zero outside), ``mask`` (n, S, S) bool, ``seeds`` (n,),
     ``info`` list."""
     with np.load(path, allow_pickle=False) as z:
         s = int(z["size"])
@@ -291,6 +302,8 @@ def decode_shard(path) -> dict:
 
             blob, off = z["jpeg"], z["jpeg_offsets"]
             codes = np.stack([cv2.imdecode(blob[off[k] : off[k + 1]], cv2.IMREAD_UNCHANGED) for k in range(len(off) - 1)])
+            if "images_shape" in z.files:
+                codes = codes.reshape(tuple(int(x) for x in z["images_shape"]))
             shape = tuple(int(x) for x in z["normals_shape"])
             raw = lzma.decompress(z["normals_xz"].tobytes(), format=lzma.FORMAT_RAW, filters=_NORMAL_FILTERS)
             ncode = np.frombuffer(raw, np.int8).reshape(shape)
@@ -316,6 +329,7 @@ def main(argv=None) -> int:
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--spp", type=int, default=32)
     ap.add_argument("--max-depth", type=int, default=4)
+    ap.add_argument("--lights", type=int, default=1, help="lights (images) per scene")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -326,7 +340,8 @@ def main(argv=None) -> int:
             if path.exists():
                 continue
             t = time.perf_counter()
-            samples = [render_random(args.size, s, spp=args.spp, max_depth=args.max_depth, renderer=renderer, tmp=Path(tmp))
+            samples = [render_random(args.size, s, spp=args.spp, max_depth=args.max_depth, renderer=renderer, tmp=Path(tmp),
+                                     n_lights=args.lights)
                        for s in range(s0, min(s0 + args.shard, args.first + args.count))]
             write_shard(path, samples)
             print(f"{path.name}: {len(samples)} scenes in {time.perf_counter() - t:.1f} s", flush=True)

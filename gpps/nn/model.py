@@ -19,8 +19,10 @@ of the normal and a relative depth at every pixel::
       dec0  up2, concat enc0, conv 48->16, 16->16
       head  conv3x3 16->4: normal = normalize(out[0:3]), depth = out[3]
 
-The channel widths above are :data:`DEFAULT_WIDTHS`; a weights file may name other widths (its meta's
-``"widths"``: the encoder's, one per scale), and :func:`layers` derives every layer from them.
+The channel widths above are :data:`DEFAULT_WIDTHS` (the issue-8 network's); a weights file may name other
+widths (its meta's ``"widths"``: the encoder's, one per scale), and :func:`layers` derives every layer from
+them.  The shipped network (session 30, issue 24) has widths (24, 48, 96, 144, 192): 2.1 M parameters, trained
+on recipe v2's scenes rendered by gpps and by Mitsuba's path tracer (``training/``).
 Every conv is 3x3, zero padding 1, followed by ReLU (except the head).  The
 training code (``training/``, PyTorch) builds the same layers with the same
 names; the weights ship as ``gpps/nn/single_net.npz`` and are evaluated here
