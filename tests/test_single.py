@@ -27,13 +27,15 @@ def _forward_ref(p, x, widths=DEFAULT_WIDTHS):
     block = lambda name, a: relu(_conv_ref(relu(_conv_ref(a, p[f"{name}.conv1.weight"], p[f"{name}.conv1.bias"])),  # noqa: E731
                                            p[f"{name}.conv2.weight"], p[f"{name}.conv2.bias"]))
     skips = []
-    a = x.astype(np.float64)
+    per = [im.astype(np.float64) for im in (x[None] if x.ndim == 3 else x)]  # K images: fused by their maximum
     for k, (name, _, _) in enumerate(enc):
-        if k:
-            c, h, w = a.shape
-            a = a.reshape(c, h // 2, 2, w // 2, 2).mean((2, 4))
-        a = block(name, a)
-        skips.append(a)
+        for i, a in enumerate(per):
+            if k:
+                c, h, w = a.shape
+                a = a.reshape(c, h // 2, 2, w // 2, 2).mean((2, 4))
+            per[i] = block(name, a)
+        skips.append(np.maximum.reduce(per))
+    a = skips[-1]
     g = relu(p["glob.fc1.weight"] @ a.mean((1, 2)) + p["glob.fc1.bias"])
     g = p["glob.fc2.weight"] @ g + p["glob.fc2.bias"]
     a = relu(a + g[:, None, None])
@@ -96,6 +98,43 @@ def test_other_widths_forward_and_load(tmp_path):
     for bad in ((16,), (16, 0), "ab", (8, 2.5)):
         with pytest.raises(ValueError, match="widths"):
             layers(bad)
+
+
+def test_fused_images_forward_and_predict_many():
+    """K images of one object: the numpy forward against the reference (per-image encoder, elementwise maximum
+    at every scale), the order of the images free, one image the plain network; the flow uses the fused
+    answer when the network was trained so (meta "fusion")."""
+    widths = (6, 10, 12, 20)
+    rng = np.random.default_rng(4)
+    params = {k: (rng.normal(size=s) * (0.5 / np.sqrt(np.prod(s[1:])) if len(s) > 1 else 0.1)).astype(np.float32)
+              for k, s in arch(widths).items()}
+    net = SingleNet(params, {"size": 16, "widths": list(widths), "fusion": "max"})
+    assert net.fusion and not SingleNet(params, {"widths": list(widths)}).fusion
+    x = rng.uniform(0, 1, (3, 4, 16, 24)).astype(np.float32)
+    out = net.forward(x)
+    np.testing.assert_allclose(out, _forward_ref(params, x, widths), rtol=1e-3, atol=1e-4)
+    np.testing.assert_allclose(net.forward(x[[2, 0, 1]]), out, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(net.forward(x[:1]), net.forward(x[0]))
+    with pytest.raises(ValueError, match="K, 4, H, W"):
+        net.forward(x[:, :3])
+    imgs = rng.uniform(0, 1, (3, 21, 30, 3)).astype(np.float32)
+    m = np.ones((21, 30), bool)
+    m[:3] = False
+    n3, h3 = net.predict_many(imgs, m, tta="flips")
+    assert n3.shape == (21, 30, 3) and np.allclose(np.linalg.norm(n3[m], axis=-1), 1, atol=1e-4) and np.all(n3[~m] == 0)
+    np.testing.assert_allclose(net.predict_many(imgs[::-1], m, tta="flips")[0], n3, atol=1e-5)
+    np.testing.assert_array_equal(net.predict_many(imgs[:1], m)[0], net.predict(imgs[0], m)[0])
+    with pytest.raises(ValueError, match="images"):
+        net.predict_many([imgs[0], imgs[1][:20]], m)
+    from gpps.flows.single import SingleConfig, reconstruct_single
+
+    res = reconstruct_single(imgs, m, config=SingleConfig(rounds=0, integrate=False, tta="none"), net=net)
+    np.testing.assert_allclose(res.normals_net, net.predict_many(imgs, m)[0], atol=1e-6)
+    plain = SingleNet(params, {"size": 16, "widths": list(widths)})  # not trained to fuse: the mean of one-image answers
+    res = reconstruct_single(imgs, m, config=SingleConfig(rounds=0, integrate=False, tta="none"), net=plain)
+    mean = sum(plain.predict(im, m)[0] for im in imgs)
+    mean[m] /= np.linalg.norm(mean[m], axis=-1, keepdims=True)
+    np.testing.assert_allclose(res.normals_net, mean, atol=1e-5)
 
 
 def test_shipped_weights_and_their_size():

@@ -87,8 +87,8 @@ def _fake(n, size, n_lights):
 
 
 def load_mitsuba(folder, size, log=None):
-    """The Mitsuba-rendered scenes of ``folder``'s shards (:mod:`mitsuba_random`): inputs (N, 1, 4, S, S) f16,
-    normals (N, 3, S, S) f16, height (N, 1, S, S) f16 (zero: these scenes train the normals only), mask
+    """The Mitsuba-rendered scenes of ``folder``'s shards (:mod:`mitsuba_random`): inputs (N, L, 4, S, S) f16 (L
+    lights a scene, one per shard folder), normals (N, 3, S, S) f16, height (N, 1, S, S) f16 (zero: these scenes train the normals only), mask
     (N, 1, S, S) u8 and the per-scene info records."""
     from mitsuba_random import decode_shard
 
@@ -98,9 +98,10 @@ def load_mitsuba(folder, size, log=None):
     Xs, Ns, Ms, info = [], [], [], []
     for f in shards:
         d = decode_shard(f)
-        if d["images"].shape[1] != size:
-            raise ValueError(f"{f}: expected {size}^2 scenes, got {d['images'].shape[1:3]}")
-        Xs.append(np.stack([prepare_input(im, m) for im, m in zip(d["images"], d["mask"])])[:, None].astype(np.float16))
+        ims = d["images"] if d["images"].ndim == 5 else d["images"][:, None]  # (n, L, S, S, 3)
+        if ims.shape[2] != size or (Xs and ims.shape[1] != Xs[0].shape[1]):
+            raise ValueError(f"{f}: expected {size}^2 scenes of one light count, got {ims.shape[1:4]}")
+        Xs.append(np.stack([[prepare_input(im, m) for im in sc] for sc, m in zip(ims, d["mask"])]).astype(np.float16))
         Ns.append(d["normals"].transpose(0, 3, 1, 2).astype(np.float16))
         Ms.append(d["mask"][:, None].astype(np.uint8))
         info += d["info"]
@@ -143,12 +144,17 @@ def make_model(torch, widths):
             self.head = nn.Conv2d(HEAD[1], HEAD[2], 3, padding=1)
 
         def forward(self, x):
+            # x (B, 4, S, S), or (B, K, 4, S, S): K images of one scene, encoded one by one and fused by the
+            # elementwise maximum at every scale (gpps.nn.model.SingleNet.forward)
+            b, k_img = x.shape[0], (x.shape[1] if x.dim() == 5 else 1)
+            x = x.reshape((b * k_img,) + tuple(x.shape[-3:]))
             skips = []
             for k, (name, _, _) in enumerate(ENC):
                 if k:
                     x = torch.nn.functional.avg_pool2d(x, 2)
                 x = getattr(self, name)(x)
-                skips.append(x)
+                skips.append(x if k_img == 1 else x.reshape((b, k_img) + tuple(x.shape[1:])).amax(1))
+            x = skips[-1]
             x = torch.relu(x + self.glob(x)[:, :, None, None])
             for (name, _, _), skip in zip(DEC, skips[-2::-1]):
                 x = getattr(self, name)(torch.cat([torch.nn.functional.interpolate(x, scale_factor=2, mode="nearest"), skip], 1))
@@ -190,7 +196,8 @@ def si_error(torch, out, z_gt, m):
 
 
 def augment(torch, x, n, z, m):
-    """Random flips / 90-degree rotations (normals rotated with the image) and a gamma on the input."""
+    """Random flips / 90-degree rotations (normals rotated with the image) and a gamma on the input; ``x``
+    (B, 4, S, S) or (B, K, 4, S, S) (a scene's K images transformed alike, each its own gamma)."""
     if torch.rand(()) < 0.5:  # horizontal flip: columns reversed, n_x -> -n_x
         x, n, z, m = (t.flip(-1) for t in (x, n, z, m))
         n = torch.cat([-n[:, :1], n[:, 1:]], 1)
@@ -200,8 +207,8 @@ def augment(torch, x, n, z, m):
     if torch.rand(()) < 0.5:  # transpose (rows <-> columns): x right <-> y down, so (nx, ny) -> (-ny, -nx)
         x, n, z, m = (t.transpose(-1, -2) for t in (x, n, z, m))
         n = torch.cat([-n[:, 1:2], -n[:, :1], n[:, 2:]], 1)
-    g = torch.exp(torch.empty(x.shape[0], 1, 1, 1, device=x.device).uniform_(math.log(0.8), math.log(1.25)))
-    x = torch.cat([x[:, :3].clamp_min(0.0) ** g, x[:, 3:]], 1)
+    g = torch.exp(torch.empty(x.shape[:-3] + (1, 1, 1), device=x.device).uniform_(math.log(0.8), math.log(1.25)))
+    x = torch.cat([x[..., :3, :, :].clamp_min(0.0) ** g, x[..., 3:, :, :]], -3)
     return x, n, z, m
 
 
@@ -227,6 +234,10 @@ def main(argv=None):
     ap.add_argument("--mitsuba", default=None, help="folder of Mitsuba-rendered shards (training/mitsuba_random.py)")
     ap.add_argument("--mitsuba-val", default=None, help="folder of Mitsuba-rendered validation shards")
     ap.add_argument("--mitsuba-frac", type=float, default=0.5, help="share of each batch drawn from --mitsuba")
+    ap.add_argument("--fusion", choices=["none", "max"], default="none",
+                    help="max: train on 1 to --max-images images of a scene at once, fused by their maximum (--lights, and "
+                         "the Mitsuba shards' lights, at least that many)")
+    ap.add_argument("--max-images", type=int, default=3, help="with --fusion max: the most images of one sample")
     args = ap.parse_args(argv)
 
     import torch
@@ -266,6 +277,14 @@ def main(argv=None):
     if args.mitsuba_val:
         Xmv, Nmv, Zmv, Mmv, _ = load_mitsuba(args.mitsuba_val, args.size, log)
         vals["mitsuba"] = (Xmv[:, 0], Nmv, Zmv, Mmv)
+        if args.fusion == "max" and Xmv.shape[1] > 1:  # the same scenes, all their images fused
+            vals[f"mitsuba_k{Xmv.shape[1]}"] = (Xmv, Nmv, Zmv, Mmv)
+    kmax = 1
+    if args.fusion == "max":
+        kmax = min(args.max_images, args.lights, Xmt.shape[1] if args.mitsuba else args.lights)
+        if kmax < 2:
+            raise SystemExit(f"--fusion max: expected --lights and the Mitsuba shards' lights >= 2, got {args.lights} "
+                             f"and {Xmt.shape[1] if args.mitsuba else '-'}")
 
     to = lambda a, dt: torch.from_numpy(a).to(dev, dt)  # noqa: E731
     Xtr_t, Ntr_t, Ztr_t, Mtr_t = to(Xtr, torch.float16), to(Ntr, torch.float32), to(Ztr, torch.float32), to(Mtr, torch.bool)
@@ -274,11 +293,13 @@ def main(argv=None):
         Zmt_t = torch.zeros(Mmt_t.shape, device=dev, dtype=torch.float32)
     vals_t = {k: (to(x, torch.float32), to(n, torch.float32), to(z, torch.float32), to(m, torch.bool)) for k, (x, n, z, m) in vals.items()}
 
-    model = make_model(torch, widths)
     if args.init:
         from gpps.nn.model import load_weights
 
         init_params, init_meta = load_weights(args.init)
+        widths = tuple(int(x) for x in init_meta.get("widths", widths))  # the initial network's widths
+    model = make_model(torch, widths)
+    if args.init:
         model.load_state_dict({k: torch.from_numpy(v) for k, v in init_params.items()})
         log(f"initialised from {args.init} (trained {init_meta.get('steps')} steps, val MAEN {init_meta.get('val_maen_deg')})")
     model = model.to(dev).to(memory_format=torch.channels_last)
@@ -292,7 +313,8 @@ def main(argv=None):
         maens, sis, lns, lds = [], [], [], []
         with torch.no_grad():
             for s in range(0, Xv.shape[0], 64):
-                xb = Xv[s : s + 64].contiguous(memory_format=torch.channels_last)
+                xb = Xv[s : s + 64]
+                xb = xb.contiguous(memory_format=torch.channels_last) if xb.dim() == 4 else xb.contiguous()
                 with torch.autocast("cuda", dtype=torch.bfloat16, enabled=use_amp):
                     o = model(xb)
                 ln, ld, maen = losses(torch, o, Nv[s : s + 64], Zv[s : s + 64], Mv[s : s + 64], args.size)
@@ -307,7 +329,7 @@ def main(argv=None):
     # flat-plane baseline on each validation set: n = (0, 0, 1), height 0
     flat_maen, flat_si = {}, {}
     for name, (Xv, Nv, Zv, Mv) in vals_t.items():
-        flat = torch.zeros_like(Xv)
+        flat = torch.zeros((Xv.shape[0], 4) + tuple(Xv.shape[-2:]), device=dev)
         flat[:, 2] = 1.0
         flat_maen[name] = float(losses(torch, flat, Nv, Zv, Mv, args.size)[2].mean())
         flat_si[name] = float(si_error(torch, flat, Zv, Mv).mean())
@@ -329,17 +351,21 @@ def main(argv=None):
         for g in opt.param_groups:
             g["lr"] = lr
         nb_g = args.batch - n_mts
+        k_img = int(torch.randint(1, kmax + 1, ()))  # images of each sample this step (1 without fusion)
         idx = torch.randint(0, ntr, (nb_g,), device=dev)
-        li = torch.randint(0, args.lights, (nb_g,), device=dev)
-        xb, nb, zb, mb = Xtr_t[idx, li].float(), Ntr_t[idx], Ztr_t[idx], Mtr_t[idx]
+        li = torch.rand(nb_g, args.lights, device=dev).argsort(1)[:, :k_img]  # k distinct lights of each scene
+        xb, nb, zb, mb = Xtr_t[idx[:, None], li].float(), Ntr_t[idx], Ztr_t[idx], Mtr_t[idx]
         wd = torch.full((nb_g,), args.wd, device=dev)
         if n_mts:
             j = torch.randint(0, Xmt_t.shape[0], (n_mts,), device=dev)
-            xb = torch.cat([xb, Xmt_t[j, 0].float()])
+            lj = torch.rand(n_mts, Xmt_t.shape[1], device=dev).argsort(1)[:, :k_img]
+            xb = torch.cat([xb, Xmt_t[j[:, None], lj].float()])
             nb, zb, mb = torch.cat([nb, Nmt_t[j]]), torch.cat([zb, Zmt_t[j]]), torch.cat([mb, Mmt_t[j]])
             wd = torch.cat([wd, torch.zeros(n_mts, device=dev)])  # no height target for the Mitsuba scenes
+        if k_img == 1:
+            xb = xb[:, 0]
         xb, nb, zb, mb = augment(torch, xb, nb, zb, mb)
-        xb = xb.contiguous(memory_format=torch.channels_last)
+        xb = xb.contiguous(memory_format=torch.channels_last) if xb.dim() == 4 else xb.contiguous()
         with torch.autocast("cuda", dtype=torch.bfloat16, enabled=use_amp):
             o = model(xb)
         ln, ld, maen = losses(torch, o, nb, zb, mb, args.size)
@@ -378,7 +404,8 @@ def main(argv=None):
     # val_maen_deg is what the flow takes as the network's expected error (the highlight fit's prior): the
     # physically based validation set's when there is one, the closer of the two to images from the wild
     expected = finals.get("mitsuba", final)["maen_deg"]
-    meta = {"size": args.size, "widths": list(widths), "steps": step, "init": args.init, "train_seconds": round(t_train, 1),
+    meta = {"size": args.size, "widths": list(widths), "fusion": args.fusion, "max_images": kmax, "steps": step,
+            "init": args.init, "train_seconds": round(t_train, 1),
             "val_maen_deg": expected, "val_maen_deg_by_set": {k: r["maen_deg"] for k, r in finals.items()},
             "trained_with": f"torch {torch.__version__}", "parameters": n_params}
     net = SingleNet(params, meta)
@@ -386,6 +413,13 @@ def main(argv=None):
     with torch.no_grad():
         o_t = model.float()(vals_t["gpps"][0][:1].contiguous(memory_format=torch.channels_last))[0].cpu().numpy()
     meta["numpy_vs_torch_max_abs"] = float(np.max(np.abs(o_np - o_t)))
+    fused = [k for k in vals_t if k.startswith("mitsuba_k")]
+    if fused:  # the fusion too: one validation scene's images at once
+        xk = vals_t[fused[0]][0][:1]
+        o_np = net.forward(xk[0].cpu().numpy())
+        with torch.no_grad():
+            o_t = model(xk.contiguous())[0].cpu().numpy()
+        meta["numpy_vs_torch_fused_max_abs"] = float(np.max(np.abs(o_np - o_t)))
     np.savez(out / "single_net.npz", meta=np.array(json.dumps(meta)), **{k: v.astype(np.float32) for k, v in params.items()})
     report = {
         "recipe": {

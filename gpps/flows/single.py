@@ -161,7 +161,8 @@ class SingleResult:
 
     Attributes:
         mask: (H, W) bool pixels reconstructed.
-        normals_net: (H, W, 3) the network's normals (averaged over the images).
+        normals_net: (H, W, 3) the network's normals: from all the images at once when the network was trained
+            so (:attr:`gpps.nn.model.SingleNet.fusion`), else the mean of its one-image answers.
         normals_net_first: (H, W, 3) the network's normals from the first image alone.
         height_net: (H, W) the network's relative depth (a height: larger is nearer;
             units of half the longer image side, mean 0).
@@ -229,10 +230,13 @@ def reconstruct_single(images, mask=None, *, camera=None, config: SingleConfig |
     total = 1 + cfg.rounds + (1 if cfg.integrate else 0)
     preds = [net.predict(I[k], m, size=cfg.net_size, tta=cfg.tta) for k in range(n_img)]
     n_first, h_net = preds[0]
-    n_net = np.sum([p[0] for p in preds], 0)
-    n_net /= np.maximum(np.linalg.norm(n_net, axis=-1, keepdims=True), 1e-8)
-    n_net[~m] = 0.0
-    h_net = np.mean([p[1] for p in preds], 0).astype(np.float32)
+    if n_img > 1 and net.fusion:  # a network trained on several images at once sees them together
+        n_net, h_net = net.predict_many(I, m, size=cfg.net_size, tta=cfg.tta)
+    else:  # else the mean of its one-image answers
+        n_net = np.sum([p[0] for p in preds], 0)
+        n_net /= np.maximum(np.linalg.norm(n_net, axis=-1, keepdims=True), 1e-8)
+        n_net[~m] = 0.0
+        h_net = np.mean([p[1] for p in preds], 0).astype(np.float32)
     timings["network"] = time.perf_counter() - t0
     if progress:
         progress(1, total, "network")

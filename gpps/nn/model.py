@@ -217,20 +217,33 @@ class SingleNet:
         x = _relu(conv3x3(x, p[f"{name}.conv1.weight"], p[f"{name}.conv1.bias"]))
         return _relu(conv3x3(x, p[f"{name}.conv2.weight"], p[f"{name}.conv2.bias"]))
 
+    @property
+    def fusion(self) -> bool:
+        """Whether the network was trained on several images of one object at once (``meta["fusion"] == "max"``):
+        then :meth:`predict_many` fuses them; otherwise the flow averages its per-image predictions."""
+        return self.meta.get("fusion") == "max"
+
     def forward(self, x: np.ndarray) -> np.ndarray:
-        """Raw output (4, H, W) for an input (4, H, W) with H, W multiples of :attr:`multiple` (16 for five scales)."""
+        """Raw output (4, H, W) for an input (4, H, W), or for K images of one object (K, 4, H, W), with H, W
+        multiples of :attr:`multiple` (16 for five scales).
+
+        K images go through the encoder one by one; at every scale their features are fused by the elementwise
+        maximum over the images (PS-FCN's order-free fusion), and the global scale and the decoder see the fused
+        features only.  One image is the same network without the fusion.
+        """
         p = self.params
-        c, h, w = x.shape
+        x = np.asarray(x, np.float32)
+        xs = x[None] if x.ndim == 3 else x
         q = self.multiple
-        if c != 4 or h % q or w % q:
-            raise ValueError(f"x: expected (4, H, W) with H, W multiples of {q}, got {x.shape}")
+        if xs.ndim != 4 or xs.shape[0] < 1 or xs.shape[1] != 4 or xs.shape[2] % q or xs.shape[3] % q:
+            raise ValueError(f"x: expected (4, H, W) or (K, 4, H, W) with H, W multiples of {q}, got {x.shape}")
         enc, dec, _, _ = layers(self.widths)
+        per = list(xs)
         skips = []
         for k, (name, _, _) in enumerate(enc):
-            if k:
-                x = _pool2(x)
-            x = self._block(name, x)
-            skips.append(x)
+            per = [self._block(name, _pool2(a) if k else a) for a in per]
+            skips.append(per[0] if len(per) == 1 else np.max(np.stack(per), axis=0))
+        x = skips[-1]
         g = x.mean(axis=(1, 2))
         g = np.maximum(p["glob.fc1.weight"] @ g + p["glob.fc1.bias"], 0.0)
         g = p["glob.fc2.weight"] @ g + p["glob.fc2.bias"]
@@ -240,7 +253,8 @@ class SingleNet:
         return conv3x3(x, p["head.weight"], p["head.bias"])
 
     def _forward_tta(self, x: np.ndarray, tta: str) -> np.ndarray:
-        """:meth:`forward`, averaged over the transforms of ``tta`` (see :meth:`predict`)."""
+        """:meth:`forward`, averaged over the transforms of ``tta`` (see :meth:`predict`); ``x`` (4, H, W) or
+        (K, 4, H, W), every image transformed alike."""
         if tta not in TTA_NAMES:
             raise ValueError(f"tta: expected one of {list(TTA_NAMES)}, got {tta!r}")
         transposes = (False, True) if tta == "dihedral" else (False,)
@@ -248,9 +262,9 @@ class SingleNet:
         acc = None
         for tr in transposes:
             for fj, fi in flips:
-                y = x.transpose(0, 2, 1) if tr else x
-                y = y[:, ::-1] if fi else y
-                y = y[:, :, ::-1] if fj else y
+                y = np.swapaxes(x, -1, -2) if tr else x
+                y = y[..., ::-1, :] if fi else y
+                y = y[..., :, ::-1] if fj else y
                 o = self.forward(np.ascontiguousarray(y))
                 o = o[:, :, ::-1] if fj else o  # undo in reverse order, mapping the normal components back
                 o = o[:, ::-1] if fi else o
@@ -287,24 +301,42 @@ class SingleNet:
         Returns:
             (normals, height): float32, zero outside the mask.
         """
+        return self._predict([np.asarray(image, np.float32)], mask, size, tta)
 
-        img = np.asarray(image, np.float32)
-        h, w = img.shape[:2]
+    def predict_many(self, images, mask: np.ndarray | None = None, *, size: int | None = None, tta: TTAName = "none"):
+        """Normals (H, W, 3) and relative depth (H, W) from K images of one object under other lights, fused
+        inside the network (:meth:`forward`; meaningful for a network trained so, :attr:`fusion`).
+
+        Args:
+            images: (K, H, W) or (K, H, W, 3), or a list of K such images of one size; any positive scale each.
+            mask, size, tta: as :meth:`predict`.
+
+        Raises:
+            ValueError: no image, or images of different sizes.
+        """
+        ims = [np.asarray(im, np.float32) for im in images]
+        if not ims or any(im.shape[:2] != ims[0].shape[:2] or im.ndim not in (2, 3) for im in ims):
+            raise ValueError(f"images: expected K >= 1 images (H, W) or (H, W, 3) of one size, got {[im.shape for im in ims]}")
+        return self._predict(ims, mask, size, tta)
+
+    def _predict(self, ims: list, mask, size, tta):
+        h, w = ims[0].shape[:2]
         m = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
-        x = prepare_input(img, m)
         s = int(size or self.size)
         scale = s / max(h, w)
         hs, ws = max(1, round(h * scale)), max(1, round(w * scale))
-        xs = np.stack([cv2.resize(ch, (ws, hs), interpolation=cv2.INTER_AREA) for ch in x])
-        ms = xs[3] > 0.5
-        xs[:3] *= ms
-        xs[3] = ms
         q = self.multiple
         H, W = -(-hs // q) * q, -(-ws // q) * q
         oy, ox = (H - hs) // 2, (W - ws) // 2
-        xp = np.zeros((4, H, W), np.float32)
-        xp[:, oy : oy + hs, ox : ox + ws] = xs
-        out = self._forward_tta(xp, tta)[:, oy : oy + hs, ox : ox + ws]
+        xp = np.zeros((len(ims), 4, H, W), np.float32)
+        for k, img in enumerate(ims):
+            x = prepare_input(img, m)
+            xs = np.stack([cv2.resize(ch, (ws, hs), interpolation=cv2.INTER_AREA) for ch in x])
+            ms = xs[3] > 0.5
+            xs[:3] *= ms
+            xs[3] = ms
+            xp[k, :, oy : oy + hs, ox : ox + ws] = xs
+        out = self._forward_tta(xp[0] if len(ims) == 1 else xp, tta)[:, oy : oy + hs, ox : ox + ws]
         out = np.stack([cv2.resize(ch, (w, h), interpolation=cv2.INTER_LINEAR) for ch in out])
         n = out[:3].transpose(1, 2, 0)
         n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-8)
