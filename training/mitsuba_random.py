@@ -52,7 +52,7 @@ for p in (str(ROOT), str(Path(__file__).resolve().parent)):
     if p not in sys.path:
         sys.path.insert(0, p)
 
-from gpps.host.scenes import default_camera  # noqa: E402
+from gpps.host.scenes import D0, default_camera  # noqa: E402
 from gpps.lights import DirectionalLights  # noqa: E402
 from mitsuba_scenes import _emitter, _write_ply, mitsuba  # noqa: E402
 from shapes import SceneRenderer, random_light, random_scene  # noqa: E402
@@ -161,7 +161,7 @@ def render_random(size: int, seed: int, *, spp: int = 32, max_depth: int = 4, re
     each, one exposure for all) with Mitsuba.
 
     ``family``, ``bsdf`` (one of :data:`BSDF_KINDS` for every part, its parameters drawn), ``lights`` (gpps
-    lights, the first is used) override the random draws; ``expose=False`` returns the linear render
+    lights, one image each) override the random draws; ``expose=False`` returns the linear render
     (gpps's units: ``kd cos I`` for a Lambertian surface) without the camera model (tests).
 
     Returns:
@@ -225,8 +225,8 @@ def render_random(size: int, seed: int, *, spp: int = 32, max_depth: int = 4, re
     linear = np.stack(linear)
     linear = np.where(np.isfinite(linear), np.maximum(linear, 0.0), 0.0)
     images, cam = _expose(linear, mask, rng) if expose else (linear, {})
-    dirs = (lights.directions if isinstance(lights, DirectionalLights)
-            else lights.positions / np.linalg.norm(lights.positions, axis=1, keepdims=True))
+    rel = None if isinstance(lights, DirectionalLights) else lights.positions - np.array([0.0, 0.0, -D0])
+    dirs = lights.directions if rel is None else rel / np.linalg.norm(rel, axis=1, keepdims=True)  # from the scene's centre
     info = {"seed": int(seed), "family": sc.family, "bsdf_objects": kind_obj, "bsdf_support": kind_sup,
             "light": lights.kind, "environment": env, "render_s": round(t_render, 3), **cam,
             "light_direction": dirs[0].tolist(), "light_directions": dirs.tolist()}
