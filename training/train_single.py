@@ -1,8 +1,10 @@
-"""Train the single-image normal / depth network (issue 8) on scenes gpps renders itself.
+"""Train the single-image normal / depth network (issues 8 and 24) on scenes gpps renders itself and, with
+``--mitsuba``, the same generator's scenes rendered by Mitsuba's path tracer (:mod:`mitsuba_random`).
 
-Runs on the GPU machine (PyTorch + the Warp kit; see /work/shared/device/README.md)::
+Runs on the GPU machine (PyTorch + the Warp kit; ``training/device_train.sh`` carries the Mitsuba shards and
+runs this in its own process session)::
 
-    source .device/b/install.sh && python3 training/train_single.py --out $OUT --minutes 5
+    python3 training/train_single.py --out DIR --minutes 15 --batch 64 --mitsuba SHARDS --mitsuba-val VAL
 
 Data recipe v2 (:mod:`shapes`, issue 24): ``--train`` random scenes of seeds ``0..train-1`` (height
 fields, surfaces of revolution, smooth-union blobs, composed solids occluding each other, objects on a
@@ -13,6 +15,11 @@ exposure with clipping, noise, 8-bit quantisation), each
 rendered under ``--lights`` random lights by gpps's Warp renderer; validation scenes use seeds
 ``TRAIN_SEED_LIMIT - 1 - k`` (never trained on).  Augmentation: flips and 90-degree rotations
 (normals rotated with the image) and a gamma in [0.8, 1.25] on the normalised input.
+
+``--mitsuba``: a share (``--mitsuba-frac``) of each batch from the Mitsuba shards (normal loss only: they hold no
+height target).  ``--fusion max``: each step draws K in 1..``--max-images`` and gives the network K images of each
+scene (distinct lights), fused inside it (:meth:`gpps.nn.model.SingleNet.forward`).  ``--init``: start from a
+weights file (its widths).
 
 Losses (seed 6.10, 6.11): ``L_n = -(1/m) sum_i N_i . N*_i`` over the m mask pixels, and
 ``L_d = (1/m) sum D_i^2 - (1/(2 m^2)) (sum D_i)^2 + (1/m) sum (grad_x D_i^2 + grad_y D_i^2)`` with
