@@ -7,9 +7,11 @@ one kind with the recipe's cast shadows, fill light, exposure, noise and quantis
 refinement's Blinn-Phong model lacks.  Reports per scene the network's MAEN (deg) and the refined MAEN, and the
 share of scenes the refinement made worse.  ``--set KEY=VALUE`` overrides :class:`gpps.SingleConfig` fields
 (numbers or names), so variants are compared on the same scenes.  This is the data refinement rules are chosen
-on; the Mitsuba held-out set (perf/heldout_eval.py) is the check afterwards.
+on; the Mitsuba held-out set (perf/heldout_eval.py) is the check afterwards.  ``--mitsuba SHARD``: the scenes of a
+three-light shard of :mod:`training/mitsuba_random.py` instead (the same generator rendered by Mitsuba's path
+tracer: interreflections, real rough dielectrics and metals; validation seeds 910000+, never trained on).
 
-    python perf/single_dev.py [--scenes 30] [--size 128] [--set prior_weight=0.01] [--tag T]
+    python perf/single_dev.py [--scenes 30] [--size 128] [--set prior_weight=0.01] [--mitsuba SHARD] [--tag T]
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--set", action="append", default=[], help="KEY=VALUE of SingleConfig")
     ap.add_argument("--tag", default=None)
+    ap.add_argument("--mitsuba", default=None, help="a three-light shard of training/mitsuba_random.py")
     a = ap.parse_args(argv)
     from shapes import TRAIN_SEED_LIMIT, SceneRenderer, render_random_sample
 
@@ -51,17 +54,29 @@ def main(argv=None) -> int:
     kw = {k: _value(v) for k, v in (s.split("=", 1) for s in a.set)}
     cfg = gpps.SingleConfig(integrate=False, **kw)
     rend = SceneRenderer(a.device)
+    shard = None
+    if a.mitsuba:
+        from mitsuba_random import decode_shard
+
+        shard = decode_shard(a.mitsuba)
+        if shard["images"].ndim != 5 or shard["images"].shape[1] < 3:
+            raise SystemExit(f"--mitsuba: expected a shard of scenes with three lights, got images {shard['images'].shape}")
     rows = []
     t0 = time.perf_counter()
-    for k in range(a.scenes):
-        sc, n, imgs, lights = render_random_sample(a.size, TRAIN_SEED_LIMIT - 1 - k, rend, n_lights=3)
-        res = gpps.reconstruct_single(imgs, sc.mask, config=cfg, device=a.device)
+    for k in range(a.scenes if shard is None else min(a.scenes, len(shard["mask"]))):
+        if shard is None:
+            sc, n, imgs, lights = render_random_sample(a.size, TRAIN_SEED_LIMIT - 1 - k, rend, n_lights=3)
+            mask, seed, family, brdf, kind = sc.mask, TRAIN_SEED_LIMIT - 1 - k, sc.family, sc.material.brdf, lights.kind
+        else:
+            info = shard["info"][k]
+            imgs, n, mask = shard["images"][k][:3], shard["normals"][k], shard["mask"][k]
+            seed, family, brdf, kind = info["seed"], info["family"], info["bsdf_objects"], info["light"]
+        res = gpps.reconstruct_single(imgs, mask, config=cfg, device=a.device)
         e_net = normal_errors(res.normals_net, n, res.mask)["mean"]
         e_ref = normal_errors(res.normals, n, res.mask)["mean"]
-        rows.append({"seed": int(TRAIN_SEED_LIMIT - 1 - k), "family": sc.family, "brdf": sc.material.brdf,
-                     "lights": lights.kind, "maen_net": e_net, "maen": e_ref, "kept_network": res.kept_network,
-                     "pixels": int(res.mask.sum())})
-        print(f"{k:3d} {sc.family:12s} {sc.material.brdf:18s} {lights.kind:11s} net {e_net:6.2f}  refined {e_ref:6.2f}"
+        rows.append({"seed": int(seed), "family": family, "brdf": brdf, "lights": kind, "maen_net": e_net, "maen": e_ref,
+                     "kept_network": res.kept_network, "pixels": int(res.mask.sum())})
+        print(f"{k:3d} {family:12s} {brdf:18s} {kind:11s} net {e_net:6.2f}  refined {e_ref:6.2f}"
               f"  kept {res.kept_network / res.mask.sum():.2f}", flush=True)
     net = np.array([r["maen_net"] for r in rows])
     ref = np.array([r["maen"] for r in rows])
@@ -72,6 +87,7 @@ def main(argv=None) -> int:
           f"(by > 1 deg {100 * summary['worse_by_1deg_share']:.0f} %), worst +{summary['worst_delta']:.2f} deg")
     name = "single_dev" + (f"_{a.tag}" if a.tag else "")
     print("wrote", write_results(name, a.device, {"config": {k: str(v) for k, v in kw.items()}, "scenes": a.scenes,
+                                                  "data": a.mitsuba or "recipe v2, gpps renders",
                                                   "rows": rows, "summary": summary}))
     return 0
 
