@@ -54,7 +54,8 @@ for p in (str(ROOT), str(Path(__file__).resolve().parent)):
 
 from gpps.host.scenes import D0, default_camera  # noqa: E402
 from gpps.lights import DirectionalLights  # noqa: E402
-from mitsuba_scenes import _emitter, _write_ply, mitsuba  # noqa: E402
+from mitsuba_scenes import CaptureSpec, _emitter, _sensor, _write_ply, mitsuba  # noqa: E402
+from mitsuba_scenes import _expose as _expose_capture  # noqa: E402
 from shapes import SceneRenderer, random_light, random_scene  # noqa: E402
 
 __all__ = ["METALS", "BSDF_KINDS", "scene_normals", "shell_mesh", "render_random", "decode_shard", "write_shard", "pack_shard"]
@@ -133,17 +134,15 @@ def _random_bsdf(rng, albedo_tex, kind: str | None = None) -> tuple[dict, str]:
 
 
 def _expose(linear: np.ndarray, mask: np.ndarray, rng) -> tuple[np.ndarray, dict]:
-    """Exposure (a percentile of the mask's brightest channel to a level), shot and read noise, clipping,
-    8- or 16-bit quantisation: the image in [0, 1] and the draws."""
+    """A random camera (a percentile of the mask's brightest channel to a level, shot and read noise, 8 or 16 bits)
+    applied to ``linear`` (L, S, S, 3) by :func:`mitsuba_scenes._expose` (one exposure for all images): the images
+    in [0, 1] and the draws."""
     pct, level = float(rng.uniform(97.0, 99.9)), float(rng.uniform(0.6, 1.0))
     full_well, read = _log_uniform(rng, 1e3, 5e4), float(rng.uniform(0.0, 2e-3))
     bits = 8 if rng.random() < 0.5 else 16
-    ref = np.percentile(linear.reshape((-1,) + mask.shape + (3,))[:, mask].max(-1), pct)  # one exposure for all images
-    x = linear.astype(np.float64) * (level / max(float(ref), 1e-12))
-    x = x + rng.standard_normal(x.shape) * np.sqrt(read**2 + np.maximum(x, 0.0) / full_well)
-    full = 2**bits - 1
-    x = np.round(np.clip(x, 0.0, 1.0) * full) / full
-    return x.astype(np.float32), {"percentile": pct, "level": level, "full_well": full_well, "read_noise": read, "bits": bits}
+    camera = CaptureSpec(bits=bits, full_well=full_well, read_noise=read, exposure_percentile=pct, exposure_level=level)
+    images, _ = _expose_capture(linear, mask, camera, rng)
+    return images, {"percentile": pct, "level": level, "full_well": full_well, "read_noise": read, "bits": bits}
 
 
 def scene_normals(size: int, seed: int, renderer: SceneRenderer | None = None, *, family: str | None = None):
@@ -205,12 +204,7 @@ def render_random(size: int, seed: int, *, spp: int = 32, max_depth: int = 4, re
             for f in tmpdir.glob("*.ply"):
                 f.unlink()
             tmpdir.rmdir()
-    fov = float(np.rad2deg(2 * np.arctan(size / (2 * K[0, 0]))))
-    sensor = mi.load_dict({
-        "type": "perspective", "fov_axis": "x", "fov": fov, "near_clip": 0.1, "far_clip": 1000.0,
-        "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=[0, 0, -1], up=[0, 1, 0]),
-        "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
-        "sampler": {"type": "independent", "sample_count": spp}})
+    sensor = mi.load_dict(_sensor(K, size, spp))
     env = float(rng.uniform(0.01, 0.08)) if rng.random() < 0.3 else 0.0
     t = time.perf_counter()
     linear = []
