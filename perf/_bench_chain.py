@@ -1,4 +1,5 @@
-"""The offline chain's kernels for ``perf/bench.py --chain``: DGMC, the material scorer, the pixel solve, BiNI.
+"""The offline chain's kernels for ``perf/bench.py --chain``: DGMC, the material scorer, the pixel solve, BiNI,
+the material search, DGMC's solved front, RON's device rounds.
 
 Scene (one for every row, DiLiGenT-ball-like): a perspective sphere (``make_scene("sphere", size,
 "perspective", albedo="texture")``), Blinn-Phong (``Material.default_for``: the default model of
@@ -25,7 +26,20 @@ the stream), 16-bit with 0.5 % noise, divided by the light intensities.  Rows (`
   (:func:`gpps.kernels.material_search.trimmed_rank_kernel`, 4 candidates x P samples x P / RANK_SEGMENT
   segments, P compares an item in all); ``search_pass_no_solve``: a search pass without the scorer's solve (points,
   rank, contributions, partial sums, energy, Nelder-Mead step: :meth:`NelderMeadSearch._pass`'s other six
-  launches; no ratio).
+  launches; no ratio);
+* DGMC's solved front as RON runs it (least squares, DGMC's highlights and curvatures, the cold solve, then
+  :func:`gpps.pipeline.front.propagate_front_device` on a :class:`DeviceFront`): ``front_step``:
+  :meth:`DeviceFront.step` (the sources, then per ring mask, starts, warm solve and merge; no ratio);
+  ``front_source``: one ``front_source_kernel`` over every ring pixel; on the largest ring one launch each of
+  ``scatter_mask_kernel`` (``front_scatter_mask``), ``front_start_kernel`` (``front_start``) and
+  ``front_merge_kernel`` (``front_merge``, keep_better on the merged ring); ``front_write_back`` (over the
+  image) and ``front_source_normals`` (every ring pixel); the rings' solves are the pixel solve's kernels;
+* RON's device rounds (:class:`gpps.pipeline.ron_rounds.DeviceRounds`, on the default full-image solve):
+  ``rounds_sums``: one ``round_sums_kernel`` (the round's energy and normal change, float64);
+  ``rounds_integrate``: :meth:`DeviceRounds.integrate`, the final depth on the device (RON's rounds'
+  integrator: multigrid, ``"normal"`` weighting, tol 1e-5; no ratio); ``rounds_pcg_iteration``: one fused
+  ``pcg_iteration`` launch of its PCG (:func:`gpps.kernels.poisson.pcg_iteration`: cg_step, the V-cycle over
+  every level, cg_direction; Taichi, float32 fields).
 
 Counts (:data:`COUNTS_CHAIN`, by hand per item, documented there).  Unlike the stream's rows, the bytes
 are the *compulsory* traffic: every input element read once and every output written once (a
@@ -97,6 +111,55 @@ COUNTS_CHAIN = {
     # from cache, NaN key, two compares and an index compare, count: 5 ops each), one atomic add a segment;
     # bytes: its residual read 4 and its int32 count added 4 (the row's other values: cache hits).
     "search_trimmed_rank": lambda p: ((8, 5 * p),),
+    # DGMC's solved front (gpps.kernels.front; one thread a ring pixel unless said).  front_source_kernel, per ring
+    # pixel (all rings, one launch): its index, level 4, GC/MC 16 read, its source 4 written (the neighbours'
+    # levels and curvatures: cache); index 2 and loads ~2, the widening loop's test every step (ws + 1); per
+    # step scanned (entered still searching): 8 neighbour slots, each the offset decoded from r (~6), a, b (2),
+    # the gate found < 0 and 4 bounds (9: Warp evaluates every operand), 17, and the tolerance's product 1;
+    # per slot gated in (in bounds) the level compare 1; per solved neighbour reached the first-candidate test
+    # and the curvature flag 2 and the test 11 (2 sub, 4 abs, 2 mul, 2 compares, and).  The tests are float64, the
+    # bulk of the ops integer: the float32 bound (as dgmc_start_search).
+    "front_source": lambda steps, gated, checks, ws: ((28, 4 + (ws + 1) + 137 * steps + gated + 13 * checks),),
+    # scatter_mask_kernel (PixelSolver.select_pixels), per ring pixel: its index 4 read, the mask byte written;
+    # start + t, p // W, p % W.
+    "front_scatter_mask": lambda: ((5, 3),),
+    # front_start_kernel, per ring pixel: index and source 8 read, the start normal 12 written; index 1, two
+    # divisions and two remainders 4; per distinct source of the ring: its current normal 12 read.
+    "front_start": lambda: ((20, 5), (12, 0)),
+    # front_merge_kernel (keep_better), per ring pixel: index 4, the solve's evaluations 4 read and written 4,
+    # the two residuals and the flags 12 read; index 3, compare, and, flag test, not ~5; per pixel where the
+    # solve wins: its normal and albedo 24 read, the current normal, albedo, residual, flags and won 33 written.
+    "front_merge": lambda: ((24, 8), (57, 0)),
+    # front_write_back_kernel, per pixel (dim H x W): the merged normal, albedo, residual, flags and both
+    # evaluation counts 40 read, the solver's five outputs 36 written; one add.
+    "front_write_back": lambda: ((76, 1),),
+    # front_source_normals_kernel, per ring pixel (all rings): its source 4 read, the normal 12 written; the
+    # test, division and remainder 3; per distinct source: its merged normal 12 read.
+    "front_source_normals": lambda: ((16, 3), (12, 0)),
+    # round_sums_kernel (RON's device rounds; one thread a run of ROUND_CHUNK pixels of a row), per mask pixel:
+    # residual 4, normal 12, previous normal 12 read; float64: r^2 and its sum 3, 6 widenings, both |v|^2 10,
+    # their tests 3, the cross product 9, its length 6 (sqrt 1), a.b 5, atan2 ~40 (a division and a polynomial
+    # of degree ~20 in Horner form), the two sums 2: ~84.  Per pixel: the mask byte, its test and the loop 3.
+    # (Each thread's three float64 atomic adds, all to one address, are not traffic.)
+    "rounds_sums": lambda: ((28, 84), (1, 3)),
+    # one fused PCG iteration of the rounds' multigrid integrator (gpps.kernels.poisson.pcg_iteration, float32
+    # fields, float64 sums), counted per Taichi task (a top-level loop: tasks meet at a global barrier, so a
+    # value written by one task and read by the next counts in both, as bini_cg_iteration), per grid point of
+    # each level, active (dg > 0: in the mask) or not; neighbours' values and weights are cache hits.
+    # Level 0's CG loops, active: q = A p (dg, p, wx, wy 16 read, q 4 written; the 4-neighbour sum ~13 with its
+    # bounds tests, d p - s, p.q widened and summed: 20); the update (x, p, r, q read, x, r, f, e written 32 B;
+    # 2 axpys, r^2 widened and summed, alpha cast: 8); r.e (8 B, 4); p = e + beta p (12 B, 2): 72 B, 34 FLOPs;
+    # inactive: A p reads dg and p and writes q (12 B, 5), the other three loops as active: 64 B, 19 FLOPs.
+    # V-cycle, per point of each level but the coarsest (down, then up), active: 4 damped Jacobi sweeps
+    # (smooth_pairs 1: 2 before and 2 after; dg, e, f, wx, wy read, t or e written 24 B; test, 1 - omega
+    # product, f + neighbour sum 14, / d, omega *, + : 18), the residual (24 B, 17), the injection (dg, e 8
+    # read, the coarse e 1 a point, e written 4: 13 B; test, add, 2 index halvings: 4): 133 B, 93 FLOPs;
+    # inactive (dg read and tested, the store; x * 0 taken as folded by fast math, no read): 4 sweeps and the
+    # residual 8 B, 1 each, injection 4 B, 1: 44 B, 6 FLOPs.  Per point of each coarser level (restriction): 4 fine residuals
+    # 16 read, f and e 8 written, 3 adds and 3 bounds tests.  The coarsest level's exact solve (one serial
+    # task): nc^2 entries of pinv 4 B and a multiply-add, the gathered f, cidx and e 16 B per active cell.
+    "rounds_pcg_iteration": lambda nc: (((72, 34), (64, 19)), ((133, 93), (44, 6)), (24, 6),
+                                        (4 * nc * nc + 16 * nc, 2 * nc * nc)),
 }
 
 
@@ -491,7 +554,7 @@ def bini_rows(ctx):
     ctx.keep.append(bi)
 
 
-PARTS = ("dgmc", "scorer", "solve", "lanes", "bini", "search")
+PARTS = ("dgmc", "scorer", "solve", "lanes", "bini", "search", "front", "rounds")
 
 
 def search_rows(ctx, samples):
@@ -542,6 +605,282 @@ def search_rows(ctx, samples):
     ctx.keep.extend([search, scorer])
 
 
+# ----------------------------------------------------------------------------- DGMC's solved front
+
+
+def _front_source_work(front, cfg, curv):
+    """Per ring pixel of ``front`` (all rings, in list order): the steps the widening loop of
+    :func:`gpps.kernels.front.front_source_kernel` scans, the neighbour slots gated in (in bounds, still
+    searching) and the solved neighbours it tests, replayed on the host from the front's level map and
+    curvatures (the kernel's float64 tests, its tolerance products in its order)."""
+    pixels = front._plan[1].astype(np.int64)
+    level = front.level.numpy()
+    gc, mc = front.gc.numpy(), front.mc.numpy()
+    h, w = level.shape
+    i, j = pixels // w, pixels % w
+    di = np.array([-1, 0, 0, 1, -1, -1, 1, 1])  # edge_first_offset's order
+    dj = np.array([0, -1, 1, 0, -1, 1, -1, 1])
+    a, b = i[:, None] + di, j[:, None] + dj
+    inb = (a >= 0) & (a < h) & (b >= 0) & (b < w)
+    ac, bc = np.clip(a, 0, h - 1), np.clip(b, 0, w - 1)
+    solved = inb & (level[ac, bc] < level[i, j][:, None])
+    gp, mp = gc[i, j][:, None], mc[i, j][:, None]
+    searching = np.ones(pixels.size, bool)
+    steps, gated, checks = (np.zeros(pixels.size) for _ in range(3))
+    tt = np.float64(cfg.tolerance)
+    slot = np.arange(8)[None, :]
+    for _ in range(int(cfg.widen_steps) + 1):
+        upto = np.ones((pixels.size, 8), bool)
+        hit = np.zeros(pixels.size, bool)
+        if curv:
+            ok = solved & (np.abs(gc[ac, bc] - gp) <= tt * np.abs(gp)) & (np.abs(mc[ac, bc] - mp) <= tt * np.abs(mp))
+            hit = searching & ok.any(1)
+            upto = np.where(hit[:, None], slot <= ok.argmax(1)[:, None], True)
+        live = searching[:, None] & upto
+        steps += searching
+        gated += (live & inb).sum(1)
+        checks += (live & solved).sum(1)
+        searching &= ~hit
+        tt = tt * np.float64(cfg.widen_factor)
+    return steps, gated, checks
+
+
+def front_rows(ctx, n_images):
+    """DGMC's solved front as RON runs it on the device (round 1: least squares, DGMC's highlights and curvatures,
+    the cold solve of the mask, :func:`gpps.pipeline.front.propagate_front_device` on a :class:`DeviceFront`):
+    the whole ring loop (host time), then each front kernel one launch as the stage launches it: the sources of
+    every ring pixel, on the largest ring the solve mask, the starts and the merge, then the write-back of the
+    merged solution and the sources' normals (the ring's solve itself is the pixel solve's kernel: its rows)."""
+    from gpps.host.dgmc import DGMCConfig
+    from gpps.kernels import front as fk
+    from gpps.names import FLAG_FEW_OBSERVATIONS
+    from gpps.pipeline.dgmc import DeviceDGMC
+    from gpps.pipeline.front import DeviceFront, propagate_front_device
+    from gpps.pipeline.solver import PixelSolver, SolverConfig
+
+    wp = _wp()
+    t0 = time.perf_counter()
+    sc, mat, lights, img = ball_scene(ctx.size, n_images, ctx.device)
+    m = sc.mask
+    h, w = m.shape
+    cfg = DGMCConfig()  # RON's dgmc_config (start="front")
+    ps = PixelSolver(img.shape[:3], sc.camera, lights, mat, replace(SolverConfig(), solver="none", smoothness=0.0),
+                     device=ctx.device)
+    ps.upload(img, m)
+    ps.step()  # least squares, DGMC's start
+    dgmc = DeviceDGMC(img.shape[:3], config=cfg, device=ctx.device)
+    ctx.keep.extend([ps, dgmc])
+    dgmc.upload(ps.images, m, ps.normals, lights=lights)  # (RGB: the solver's frame, on the device)
+    dgmc.step(starts=False)  # the highlights and the curvatures only (the front picks its sources itself)
+    highlight = dgmc.region.numpy().astype(bool)
+    ps.set_config(SolverConfig())  # round 1's cold solve of the mask (RON's default solver config)
+    ps.step()
+    front = DeviceFront(ps)
+    ctx.keep.append(front)
+    propagate_front_device(ps, m, highlight, gaussian=dgmc.gc, mean=dgmc.mc, config=cfg, keep_better=True,
+                           front=front)
+    _sync(ctx)
+    ring, pixels, sizes, starts, _, curv, _ = front._plan
+    n_rings = sizes.size - 1
+    if n_rings == 0:
+        raise RuntimeError(f"front: no ring on the {ctx.size}^2 x {n_images} ball "
+                           f"({int(highlight.sum())} highlight px)")
+    k = 1 + int(np.argmax(sizes[1:]))  # the largest ring (the first, in practice)
+    a, c = int(starts[k]), int(sizes[k])
+    p_all = int(pixels.size)
+    ctx.log(f"[chain {ctx.size}] front {n_images} images, {n_rings} rings, {p_all} ring px: least squares, DGMC, "
+            f"solve and first front {time.perf_counter() - t0:.1f}s")
+    info = {"images": n_images, "mask_pixels": int(m.sum()), "highlight_pixels": int(highlight.sum()),
+            "rings": n_rings, "ring_pixels": p_all, "ring": k, "ring_size": c}
+    if not ctx.driver:
+        reps = max(3, ctx.repeat // 4)
+        t = ctx.median_time(lambda: front.step(keep_better=True), lambda: _sync(ctx), reps, warmup=1)
+        row(ctx, "front_step", t, extra={**info, "summary": f"{n_rings} rings, {p_all} px",
+                                          "note": "DeviceFront.step: the sources, then per ring the mask, starts, "
+                                                  "warm solve (PixelSolver.step) and merge (host time, no ratio)"})
+
+    def source():
+        wp.launch(fk.front_source_kernel, dim=p_all,
+                  inputs=[front.pixels, front.level, front.gc, front.mc, int(curv), float(cfg.tolerance),
+                          float(cfg.widen_factor), int(cfg.widen_steps)],
+                  outputs=[front.sources], device=ctx.device)
+
+    t = _time_or_register(ctx, "front_source", "front_source_kernel", source, inner=10)
+    if t is not None:
+        steps, gated, checks = _front_source_work(front, cfg, curv)
+        ((pb, pf),) = COUNTS_CHAIN["front_source"](steps, gated, checks, int(cfg.widen_steps))
+        row(ctx, "front_source", t, pb * p_all, float(np.sum(pf)),
+            extra={**info, "mean_steps": float(steps.mean()), "mean_tests": float(checks.mean()),
+                   "summary": f"{p_all} px, {steps.mean():.2f} steps, {checks.mean():.1f} tests/px",
+                   "note": "every ring pixel, one launch a front step"})
+
+    src = front.sources.numpy()[:p_all]
+
+    def scatter():  # (the solver's mask was cleared by the ring's select_pixels; here it holds the last ring's)
+        wp.launch(fk.scatter_mask_kernel, dim=c, inputs=[front.pixels, a, w], outputs=[ps.mask], device=ctx.device)
+
+    t = _time_or_register(ctx, "front_scatter_mask", "scatter_mask_kernel", scatter, inner=20)
+    if t is not None:
+        ((pb, pf),) = COUNTS_CHAIN["front_scatter_mask"]()
+        row(ctx, "front_scatter_mask", t, pb * c, pf * c,
+            extra={**info, "summary": f"ring {k}: {c} px",
+                   "note": "PixelSolver.select_pixels' scatter on the largest ring (its mask clear not timed); a "
+                           "ring's few hundred threads: the launch's fixed cost dominates"})
+
+    def start():
+        wp.launch(fk.front_start_kernel, dim=c, inputs=[front.pixels, front.sources, a, w, front.normals],
+                  outputs=[ps.normals], device=ctx.device)
+
+    t = _time_or_register(ctx, "front_start", "front_start_kernel", start, inner=20)
+    if t is not None:
+        (pb, pf), (qb, _) = COUNTS_CHAIN["front_start"]()
+        u = int(np.unique(src[a:a + c]).size)
+        row(ctx, "front_start", t, pb * c + qb * u, pf * c,
+            extra={**info, "distinct_sources": u, "summary": f"ring {k}: {c} px, {u} sources",
+                   "note": "the largest ring's starts; its few hundred threads: the launch's fixed cost dominates"})
+
+    few = int(FLAG_FEW_OBSERVATIONS)
+
+    def merge():
+        wp.launch(fk.front_merge_kernel, dim=c,
+                  inputs=[front.pixels, a, w, 1, few, ps.normals, ps.albedo, ps.residual, ps.iterations, ps.flags],
+                  outputs=[front.normals, front.albedo, front.residual, front.flags, front.iterations, front.won],
+                  device=ctx.device)
+
+    t = _time_or_register(ctx, "front_merge", "front_merge_kernel", merge, inner=20)
+    if t is not None:
+        (pb, pf), (wb, _) = COUNTS_CHAIN["front_merge"]()
+        q = pixels[a:a + c]
+        # the pixels the timed launches kept (the ring's solve already merged: where it won, the residuals are equal)
+        wins = int(np.sum((ps.residual.numpy().ravel()[q] < front.residual.numpy().ravel()[q])
+                          & ((ps.flags.numpy().ravel()[q] & few) == 0)))
+        won = int(front.won.numpy().ravel()[q].sum())
+        row(ctx, "front_merge", t, pb * c + wb * wins, pf * c,
+            extra={**info, "won_in_step": won, "won_in_timed": wins,
+                   "summary": f"ring {k}: {c} px, {won} won in the step",
+                   "note": "keep_better on the merged ring: the timed launches keep nothing (the step kept "
+                           "won_in_step), its stores of the winners are not timed"})
+
+    t = _time_or_register(ctx, "front_write_back", "front_write_back_kernel", front.write_back, inner=10)
+    if t is not None:
+        ((pb, pf),) = COUNTS_CHAIN["front_write_back"]()
+        row(ctx, "front_write_back", t, pb * h * w, pf * h * w,
+            extra={**info, "summary": f"{h}x{w} px", "note": "DeviceFront.write_back: one launch over the image"})
+
+    def source_normals():
+        wp.launch(fk.front_source_normals_kernel, dim=p_all, inputs=[front.pixels, front.sources, w, front.normals],
+                  outputs=[front.source_normals], device=ctx.device)
+
+    t = _time_or_register(ctx, "front_source_normals", "front_source_normals_kernel", source_normals, inner=20)
+    if t is not None:
+        (pb, pf), (qb, _) = COUNTS_CHAIN["front_source_normals"]()
+        u = int(np.unique(src[src >= 0]).size)
+        row(ctx, "front_source_normals", t, pb * p_all + qb * u, pf * p_all,
+            extra={**info, "distinct_sources": u, "summary": f"{p_all} px, {u} sources",
+                   "note": "DeviceFront.fetch_sources' gather (its two small copies back not timed)"})
+
+
+# ----------------------------------------------------------------------------- RON's device rounds
+
+
+def rounds_rows(ctx, n_images):
+    """RON's device rounds (:class:`gpps.pipeline.ron_rounds.DeviceRounds`) on the default full-image solve: the
+    round's sums (one ``round_sums_kernel`` launch), then the final depth's integration on the device (RON's
+    default rounds' integrator: multigrid, ``"normal"`` weighting under perspective, tol 1e-5, fused launches):
+    the whole :meth:`DeviceRounds.integrate` (host time) and one ``pcg_iteration`` launch (Taichi)."""
+    from gpps._taichi import taichi_device, ti
+    from gpps.kernels.ron import ROUND_CHUNK, round_sums_kernel
+    from gpps.pipeline.integration import Integrator, IntegratorConfig
+    from gpps.pipeline.ron_rounds import DeviceRounds
+    from gpps.pipeline.solver import PixelSolver, SolverConfig
+
+    wp = _wp()
+    t0 = time.perf_counter()
+    sc, mat, lights, img = ball_scene(ctx.size, n_images, ctx.device)
+    m = sc.mask
+    h, w = m.shape
+    ps = PixelSolver(img.shape[:3], sc.camera, lights, mat, SolverConfig(), device=ctx.device)
+    ps.upload(img, m)
+    ps.step()
+    # (RON's integrator: IntegratorConfig(tol=1e-5, weighting="normal" under perspective), on its Taichi device)
+    icfg = IntegratorConfig(tol=1e-5, weighting="normal" if sc.camera.is_perspective else "uniform")
+    integ = Integrator(m, camera=sc.camera, config=icfg, device=taichi_device(ctx.device))
+    rounds = DeviceRounds(ps, m, integ)
+    ctx.keep.extend([ps, integ, rounds])
+    rounds.upload(np.where(m[..., None], sc.normals, 0.0).astype(np.float32))  # the previous round's normals
+    rounds.step()
+    got = rounds.fetch()
+    _sync(ctx)
+    ctx.log(f"[chain {ctx.size}] rounds {n_images} images: scene, solve and first round sums "
+            f"{time.perf_counter() - t0:.1f}s")
+    mp = int(m.sum())
+    info = {"images": n_images, "mask_pixels": mp}
+    threads = h * ((w + ROUND_CHUNK - 1) // ROUND_CHUNK)
+
+    def sums():  # (the sums accumulate over the timed launches: the work is the same)
+        wp.launch(round_sums_kernel, dim=(h, (w + ROUND_CHUNK - 1) // ROUND_CHUNK),
+                  inputs=[rounds.mask, ps.residual, ps.normals, rounds.prev, rounds.sums], device=ctx.device)
+
+    t = _time_or_register(ctx, "rounds_sums", "round_sums_kernel", sums, inner=20)
+    if t is not None:
+        (mb, mf), (ab, af) = COUNTS_CHAIN["rounds_sums"]()
+        row(ctx, "rounds_sums", t, mb * mp + ab * h * w, mf * mp + af * h * w, f64=True,
+            extra={**info, "threads": threads, "energy": got["energy"], "change_deg": got["change_deg"],
+                   "summary": f"{mp} px, {threads} threads",
+                   "note": "DeviceRounds.step's reduction (its sums' clear and the copy into prev not timed)"})
+
+    t1 = time.perf_counter()
+    how = "DeviceRounds.integrate"
+    try:
+        if not rounds.integrates:
+            raise ValueError(f"integrator: the device rounds do not build {icfg}")
+        rounds.integrate(1.0, into_solver=False)  # (RON's final depth: reference 1 without one)
+        last = dict(rounds.last)
+    except ImportError as e:  # (CUDA without torch: the same fields and CG from the host's assembly)
+        ctx.log(f"[chain {ctx.size}] rounds: {e}; the integrator's host assembly fills the fields")
+        how = "Integrator.run (no torch: the host's assembly, the same PCG launches)"
+        res = integ.run(ps.fetch(("normals",))["normals"], reference_depth=1.0)
+        last = {"iterations": int(res.iterations), "residual": float(res.residual)}
+    ti.sync()
+    ctx.log(f"[chain {ctx.size}] rounds: compile and first integration {time.perf_counter() - t1:.1f}s")
+    info.update(integration=how, pcg_iterations=int(last.get("iterations", 0)),
+                pcg_residual=float(last.get("residual", float("nan"))))
+    if not ctx.driver and how == "DeviceRounds.integrate":
+        reps = max(3, ctx.repeat // 4)
+        t = ctx.median_time(lambda: rounds.integrate(1.0, into_solver=False), lambda: (_sync(ctx), ti.sync()),
+                            reps, warmup=1)
+        row(ctx, "rounds_integrate", t,
+            extra={**info, "summary": f"{info['pcg_iterations']} PCG iterations",
+                   "note": "DeviceRounds.integrate: assembly, edges, levels, the coarsest pinv (host), the PCG "
+                           "to tol (a host read every check_every iterations), depth written (host time, no ratio)"})
+
+    d = integ._ensure_device()
+    start, iteration = integ._pcg_launches(integ._block_sums())
+    d["z"].fill(0)  # a fresh solve: the timed iterations are its first ones (the same work as any other)
+    start()
+    ti.sync()
+    t = _time_or_register(ctx, "rounds_pcg_iteration", "^pcg_iteration", iteration, inner=10, taichi=True,
+                          per_launch=None)
+    if t is not None:
+        (ca, ci), (va, vi), (rb, rf), (cb, cf) = COUNTS_CHAIN["rounds_pcg_iteration"](int(d["nc"]))
+        dg = d["dg"].to_numpy()
+        act = [int((dg[:hh, o:o + ww] > 0).sum()) for o, (hh, ww) in zip(d["offs"], d["shapes"])]
+        pts = [int(hh * ww) for hh, ww in d["shapes"]]
+        nl = len(pts)
+        by = ca[0] * act[0] + ci[0] * (pts[0] - act[0]) + cb
+        fl = ca[1] * act[0] + ci[1] * (pts[0] - act[0]) + cf
+        for lv in range(nl - 1):
+            by += va[0] * act[lv] + vi[0] * (pts[lv] - act[lv]) + rb * pts[lv + 1]
+            fl += va[1] * act[lv] + vi[1] * (pts[lv] - act[lv]) + rf * pts[lv + 1]
+        row(ctx, "rounds_pcg_iteration", t, by, fl,
+            extra={**info, "levels": nl, "level_points": pts, "level_active": act, "coarsest_cells": int(d["nc"]),
+                   "launch": integ._launch(), "block_sums": bool(integ._block_sums()),
+                   "summary": f"{h}x{w}, {nl} levels, {by / (h * w):.0f} B {fl / (h * w):.0f} FLOP/px",
+                   "note": "one pcg_iteration launch (cg_step, the V-cycle, cg_direction: Taichi tasks); float32 "
+                           "fields; some 8 tasks a level, serial ones among them: at small sizes their fixed costs "
+                           "dominate; a working set in the last-level cache can beat the DRAM copy bound"})
+
+
 def bench_chain(ctx, parts, images, samples, candidates, errors):
     """All chain rows of ``parts`` (each part's failure is recorded in ``errors`` and the others go on)."""
     import traceback
@@ -553,6 +892,8 @@ def bench_chain(ctx, parts, images, samples, candidates, errors):
         "lanes": lambda: (scorer_lanes_rows(ctx, images), pixel_solve_lanes_rows(ctx, images)),
         "bini": lambda: bini_rows(ctx),
         "search": lambda: search_rows(ctx, samples),
+        "front": lambda: front_rows(ctx, images),
+        "rounds": lambda: rounds_rows(ctx, images),
     }
     for part in parts:
         try:

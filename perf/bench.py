@@ -377,7 +377,7 @@ def main(argv=None):
     ap.add_argument("--chain-samples", type=int, default=None, help="material scorer: sample pixels P (2000; CPU 200)")
     ap.add_argument("--chain-candidates", type=int, default=None, help="material scorer: candidates K (25; CPU 9)")
     ap.add_argument("--chain-parts", nargs="*", default=None,
-                    help="some of: dgmc scorer solve lanes bini search (default all)")
+                    help="some of: dgmc scorer solve lanes bini search front rounds (default all)")
     ap.add_argument("--ncu-driver", type=int, default=0, metavar="K",
                     help="no timing: launch each chain kernel K times in a CUDA profiler range (perf/ncu_chain.py)")
     a = ap.parse_args(argv)

@@ -44,6 +44,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "perf"))
+import _bench_chain  # noqa: E402  (its PARTS: numpy only at import)
 os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 BENCH = ROOT / "perf" / "bench.py"
 RESULTS = ROOT / "perf" / "results"
@@ -303,11 +304,15 @@ def main(argv=None) -> int:
         for e in manifest["launches"]:
             if e["taichi"] and not by_label[e["label"]]:
                 # Taichi's context is outside the Warp-side range: profile its first CG tasks by name
+                # (the part that registered the row: its label's prefix, bini_cg_iteration -> bini,
+                # rounds_pcg_iteration -> rounds)
+                part = e["label"].split("_")[0]
+                part = part if part in _bench_chain.PARTS else "bini"
                 log(f"{e['label']}: no launch in the profiler range (Taichi's own CUDA context?); "
-                    "a second pass profiles the first CG tasks of a BiNI-only driver")
-                rep2 = os.path.join(tmp, "bini")
-                drv2 = ["--device", a.device, "--ncu-driver", "1", "--out", os.path.join(tmp, "m2.json"), *chain,
-                        "--chain-parts", "bini"]
+                    f"a second pass profiles the first tasks of a {part}-only driver")
+                rep2 = os.path.join(tmp, part)
+                drv2 = ["--device", a.device, "--ncu-driver", "1", "--out", os.path.join(tmp, f"m2_{part}.json"),
+                        *chain, "--chain-parts", part]
                 _, _, err2 = profile(ncu, rep2, metrics, drv2, ["--kernel-name", "regex:" + e["pattern"],
                                                                  "--launch-count", str(12 * a.launches)], a.timeout)
                 if err2:

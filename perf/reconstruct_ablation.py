@@ -21,7 +21,10 @@ Variants (``--variants``, comma-separated):
   observations) as ``underdetermined_kernel``, every start of a pixel in its thread, instead of its
   starts-parallel form (``gpps.kernels.solve_split.split_under_kernels_for``; session 27);
 * ``warm-uncapped``: ``RONConfig(material_warm_iters=None)``: the material search's warm candidate solves run to
-  the solver's ``max_iters`` (50) instead of the default 12 (session 28).
+  the solver's ``max_iters`` (50) instead of the default 12 (session 28);
+* ``host-loop``: ``RONConfig(material_loop="host")``: the material search's Nelder-Mead steps decided on the host
+  (the same trajectory) instead of in CUDA graphs, so that ``--kernel-times`` (CUDA events a launch, which do not
+  see a graph's kernels) counts all of the GPU's work: the call's GPU floor (session 31).
 
 Only the time and the MAEN are compared; a variant with a worse MAEN is not a proposal, it says what the stage is
 worth.
@@ -51,7 +54,7 @@ import gpps  # noqa: E402
 from _common import device_label, reconstruct_inputs  # noqa: E402
 
 VARIANTS = ("default", "known", "no-dgmc", "no-depth", "rounds3", "rounds2", "evals20", "persistent-pcg",
-            "one-thread-neighbours", "warm-uncapped")
+            "one-thread-neighbours", "warm-uncapped", "host-loop")
 
 
 def _sync():
@@ -72,7 +75,10 @@ def variant_kwargs(name: str) -> dict:
     changes = {"no-dgmc": {"dgmc": False}, "no-depth": {"integrate": False}, "rounds3": {"rounds": 3},
                "rounds2": {"rounds": 2}, "evals20": {"material_evals": 20},
                "persistent-pcg": {"integrator": IntegratorConfig(launch="persistent")},
-               "warm-uncapped": {"material_warm_iters": None}}
+               "warm-uncapped": {"material_warm_iters": None},
+               # the material search's steps driven from the host: the same trajectory, but every scorer launch a
+               # plain launch (no CUDA graph), so --kernel-times sees all of the GPU's work
+               "host-loop": {"material_loop": "host"}}
     if name not in changes:
         raise ValueError(f"variant: expected one of {VARIANTS}, got {name!r}")
     return {"material": "cook-torrance", "config": replace(base, **changes[name])}
