@@ -17,9 +17,12 @@ the stream), 16-bit with 0.5 % noise, divided by the light intensities.  Rows (`
 * ``scorer_solve_<N>img``: one launch of the material scorer's batched solve
   (:mod:`gpps.kernels.solve_batched`, as :meth:`MaterialScorer.step` launches it) for K candidates x P
   samples, RON's fit config (4 starts, no neighbour pass); ``scorer_step_fetch_<N>img``: ``step`` +
-  ``fetch`` as RON calls them (host time, no ratio);
-* ``pixel_solve_<N>img``: :meth:`PixelSolver.step` on the whole image with the default
-  :class:`SolverConfig` (10 starts, neighbour pass): the offline normals step;
+  ``fetch`` as RON calls them (host time, no ratio); ``scorer_starts_<N>img`` where the scorer runs its cold
+  solves starts-parallel (CUDA): one :meth:`MaterialScorer.launch` of that build (``solve_starts_kernel``, one
+  thread a start, and ``solve_finish_kernel``, the pick), RON's first-round grid;
+* ``pixel_solve_<N>img`` (N = ``images`` and 3: the 256^2 x 3 case's build, starts-parallel on CUDA):
+  :meth:`PixelSolver.step` on the whole image with the default :class:`SolverConfig` (10 starts, neighbour
+  pass): the offline normals step;
 * ``bini_cg_iteration``: one Jacobi-PCG iteration of BiNI (one ``cg`` launch runs ``unroll`` of them;
   time / unroll), float64;
 * ``search_trimmed_rank``: one launch of the device material search's trimmed-energy rank kernel
@@ -407,6 +410,19 @@ def scorer_rows(ctx, n_images, samples, n_cand):
                 "mean_lit": float(lit.mean()), "energy_min": float(np.min(energies)),
                 "summary": f"K={n_cand} P={p}, {ev.mean():.1f} evaluations/item"}
         row(ctx, name, t, cb * ev.size + sb * p, float(np.sum(cf)), extra=info)
+        if scorer.split_starts:
+            # RON's cold candidate solves on CUDA: the starts-parallel build (one thread a start, then the pick)
+            scorer.set_candidates(cands)
+            ts = _time_or_register(ctx, f"scorer_starts_{n_images}img", "solve_(starts|finish)_kernel",
+                                   scorer.launch, inner=3, per_launch=2)
+            if ts is not None:
+                ev2 = scorer.iterations.numpy()[:n_cand, :p].astype(np.float64)
+                (cb2, cf2), _ = COUNTS_CHAIN["scorer_solve"](ev2, lit[None, :], n_images)
+                row(ctx, f"scorer_starts_{n_images}img", ts, cb2 * ev2.size + sb * p, float(np.sum(cf2)),
+                    extra={**info, "mean_evaluations": float(ev2.mean()),
+                           "summary": f"K={n_cand} P={p}, {ev2.mean():.1f} evaluations/item",
+                           "note": "MaterialScorer.launch, starts-parallel: solve_starts_kernel (one thread a "
+                                   "start) + solve_finish_kernel (the pick); counts as the one-thread build's"})
         th = ctx.median_time(lambda: (scorer.step(cands), scorer.fetch()), lambda: _sync(ctx), ctx.repeat)
         row(ctx, f"scorer_step_fetch_{n_images}img", th,
             extra={**info, "note": "MaterialScorer.step + fetch (host time, candidates uploaded, energies back)"})
@@ -459,7 +475,11 @@ def pixel_solve_lanes_rows(ctx, n_images, pixels=500):
     ctx.log(f"[chain {ctx.size}] lanes pixel solve {n_images} images, {int(ring.sum())} px: compile and first "
             f"solve {time.perf_counter() - t0:.1f}s")
     name = f"pixel_solve_{n_images}img_lanes"
-    t = _time_or_register(ctx, name, "(solve|underdetermined)_kernel", ps.step, inner=2, per_launch=2)
+    # the lights-parallel solve, then the neighbour pass: underdetermined_kernel, or where the config's cold solve
+    # would run starts-parallel (CUDA) its three starts-parallel launches (as pixel_solve_rows)
+    split = ps._uses_split()
+    pattern = "(solve_kernel_lanes|underdetermined_kernel|under_(prelude|starts|finish)_kernel)"
+    t = _time_or_register(ctx, name, pattern, ps.step, inner=2, per_launch=1 + (3 if split else 1))
     if t is not None:
         out = ps.fetch(("normals", "iterations"))
         ev = out["iterations"][ring].astype(np.float64)
@@ -469,7 +489,9 @@ def pixel_solve_lanes_rows(ctx, n_images, pixels=500):
             extra={"images": n_images, "mask_pixels": int(ev.size), "lanes": 32,
                    "mean_evaluations": float(ev.mean()), "mean_lit": float(lit.mean()),
                    "summary": f"{int(ev.size)} px x 32 lanes, {ev.mean():.1f} evaluations/px",
-                   "note": "solve_kernel (lights-parallel) + underdetermined_kernel on a ring subset"})
+                   "note": "solve_kernel (lights-parallel) + "
+                           + ("under_prelude/starts/finish_kernel" if split else "underdetermined_kernel")
+                           + " (the neighbour pass) on a ring subset"})
     ctx.keep.append(ps)
 
 
@@ -888,7 +910,7 @@ def bench_chain(ctx, parts, images, samples, candidates, errors):
     jobs = {
         "dgmc": lambda: dgmc_rows(ctx, images),
         "scorer": lambda: [scorer_rows(ctx, n, samples, candidates) for n in dict.fromkeys((images, 3))],
-        "solve": lambda: pixel_solve_rows(ctx, images),
+        "solve": lambda: [pixel_solve_rows(ctx, n) for n in dict.fromkeys((images, 3))],
         "lanes": lambda: (scorer_lanes_rows(ctx, images), pixel_solve_lanes_rows(ctx, images)),
         "bini": lambda: bini_rows(ctx),
         "search": lambda: search_rows(ctx, samples),
