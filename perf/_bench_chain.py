@@ -410,22 +410,23 @@ def scorer_rows(ctx, n_images, samples, n_cand):
                 "mean_lit": float(lit.mean()), "energy_min": float(np.min(energies)),
                 "summary": f"K={n_cand} P={p}, {ev.mean():.1f} evaluations/item"}
         row(ctx, name, t, cb * ev.size + sb * p, float(np.sum(cf)), extra=info)
-        if scorer.split_starts:
-            # RON's cold candidate solves on CUDA: the starts-parallel build (one thread a start, then the pick)
-            scorer.set_candidates(cands)
-            ts = _time_or_register(ctx, f"scorer_starts_{n_images}img", "solve_(starts|finish)_kernel",
-                                   scorer.launch, inner=3, per_launch=2)
-            if ts is not None:
-                ev2 = scorer.iterations.numpy()[:n_cand, :p].astype(np.float64)
-                (cb2, cf2), _ = COUNTS_CHAIN["scorer_solve"](ev2, lit[None, :], n_images)
-                row(ctx, f"scorer_starts_{n_images}img", ts, cb2 * ev2.size + sb * p, float(np.sum(cf2)),
-                    extra={**info, "mean_evaluations": float(ev2.mean()),
-                           "summary": f"K={n_cand} P={p}, {ev2.mean():.1f} evaluations/item",
-                           "note": "MaterialScorer.launch, starts-parallel: solve_starts_kernel (one thread a "
-                                   "start) + solve_finish_kernel (the pick); counts as the one-thread build's"})
         th = ctx.median_time(lambda: (scorer.step(cands), scorer.fetch()), lambda: _sync(ctx), ctx.repeat)
         row(ctx, f"scorer_step_fetch_{n_images}img", th,
             extra={**info, "note": "MaterialScorer.step + fetch (host time, candidates uploaded, energies back)"})
+    if scorer.split_starts:
+        # RON's cold candidate solves on CUDA: the starts-parallel build (one thread a start, then the pick)
+        scorer.set_candidates(cands)
+        ts = _time_or_register(ctx, f"scorer_starts_{n_images}img", "solve_(starts|finish)_kernel", scorer.launch,
+                               inner=3, per_launch=2)
+        if ts is not None:
+            ev2 = scorer.iterations.numpy()[:n_cand, :p].astype(np.float64)
+            lit = lit_count(sc.normals[scorer.rows_host, scorer.cols_host], lights.directions)
+            (cb2, cf2), (sb2, _) = COUNTS_CHAIN["scorer_solve"](ev2, lit[None, :], n_images)
+            row(ctx, f"scorer_starts_{n_images}img", ts, cb2 * ev2.size + sb2 * p, float(np.sum(cf2)),
+                extra={"images": n_images, "candidates": n_cand, "samples": p, "mean_evaluations": float(ev2.mean()),
+                       "mean_lit": float(lit.mean()), "summary": f"K={n_cand} P={p}, {ev2.mean():.1f} evaluations/item",
+                       "note": "MaterialScorer.launch, starts-parallel: solve_starts_kernel (one thread a start) + "
+                               "solve_finish_kernel (the pick); counts as the one-thread build's"})
     ctx.keep.append(scorer)
 
 
