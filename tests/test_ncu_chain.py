@@ -93,3 +93,26 @@ def test_highlight_count_is_the_sum_over_flagging_rounds():
         (b, fl), (ab, _) = _bench_chain.COUNTS_CHAIN["dgmc_highlight"](f, n)
         assert fl == loop
         assert (b, ab) == (12 * n, 5 * n + 1)
+
+
+def test_roofline_table_puts_each_rows_counters_beside_its_ratio():
+    """perf/chain_roofline.py: one line per (row, Warp kernel) with that row's bench ratio, a Taichi row's tasks
+    summed into one line, and the reason given for the row in the last column."""
+    import chain_roofline
+
+    k = {"launches": 2, "registers_per_thread": 128.0, "theoretical_occupancy_pct": 25.0,
+         "achieved_occupancy_pct": 16.5, "issue_slots_pct": 47.7, "fma_pipe_pct": 20.7, "fp64_pipe_pct": 0.0,
+         "xu_pipe_pct": 15.6, "dram_throughput_pct": 1.4, "threads_per_warp_inst": 12.9, "duration_ns": 850600.0}
+    task = {"launches": 2, "registers_per_thread": 27.0, "achieved_occupancy_pct": 9.0, "issue_slots_pct": 4.0,
+            "dram_throughput_pct": 2.4, "duration_ns": 3000.0}
+    bench = {"rows": [{"kernel": "pixel_solve_3img", "seconds": 1.393e-3, "ratio": 29.47, "limited_by": "compute"},
+                      {"kernel": "rounds_pcg_iteration", "seconds": 2.66e-4, "ratio": 191.2, "limited_by": "memory"}]}
+    ncu = {"summary": {"pixel_solve_3img": {"split_starts_kernel__x_cuda_kernel_forward": k,
+                                            "split_finish_kernel__x_cuda_kernel_forward": dict(k, duration_ns=12900.0)},
+                       "rounds_pcg_iteration": {f"pcg_iteration_c116_0_kernel_{i}_range_for": task for i in range(5)}}}
+    out = chain_roofline.lines(bench, ncu, {"pixel_solve_3img": "latency-bound"})
+    body = out[2:]
+    assert len(body) == 3  # two kernels of the solve, one line for the five Taichi tasks
+    assert body[0].startswith("| pixel_solve_3img | 1.393 | 29.5 | compute | split_starts_kernel")
+    assert "| 128 | 25.0 / 16.5 | 47.7 | 20.7 | 0.0 | 15.6 | 1.4 | 12.9 | 850.6 | latency-bound |" in body[0]
+    assert "(5 tasks)" in body[2] and "| 191.2 |" in body[2] and "| 15.0 |" in body[2]  # 5 x 3 us
