@@ -14,6 +14,14 @@ the stream), 16-bit with 0.5 % noise, divided by the light intensities.  Rows (`
   as in the first sweeps; the stage ping-pongs the two list buffers, no copy), from the converged lists: the
   sweep's full work;
 * ``dgmc_start_search``: one launch of ``select_kernel`` (4.17-4.18);
+* the step's other kernels, one launch each (outputs into scratch arrays where a launch would change what another
+  row reads): ``dgmc_albedo_sample`` (``albedo_sample_kernel``, the reference albedo's sample) and ``dgmc_median``
+  (``median_kernel``, one thread; the radix sort between them is Warp's: no row), ``dgmc_saturation``
+  (``saturation_kernel``), the curvatures (4.16): ``dgmc_field`` (``field_kernel``), ``dgmc_correlate_i`` /
+  ``dgmc_correlate_j`` (one ``correlate_kernel`` pass along each axis; a step runs 6, or 8 for the normals' field)
+  and ``dgmc_curvature`` (``curvature_kernel``); the regions: ``dgmc_label_init``, ``dgmc_label_min`` (one step at
+  the fixed point), ``dgmc_roots``, ``dgmc_label_number`` (the labels' scan between them is Warp's: no row),
+  ``dgmc_boundary``; the geodesics' set-up: ``dgmc_list_reset`` (one of two a step) and ``dgmc_geodesic_slots``;
 * ``scorer_solve_<N>img``: one launch of the material scorer's batched solve
   (:mod:`gpps.kernels.solve_batched`, as :meth:`MaterialScorer.step` launches it) for K candidates x P
   samples, RON's fit config (4 starts, no neighbour pass); ``scorer_step_fetch_<N>img``: ``step`` +
@@ -22,14 +30,19 @@ the stream), 16-bit with 0.5 % noise, divided by the light intensities.  Rows (`
   thread a start, and ``solve_finish_kernel``, the pick), RON's first-round grid;
 * ``pixel_solve_<N>img`` (N = ``images`` and 3: the 256^2 x 3 case's build, starts-parallel on CUDA):
   :meth:`PixelSolver.step` on the whole image with the default :class:`SolverConfig` (10 starts, neighbour
-  pass): the offline normals step;
+  pass): the offline normals step; ``least_squares_<N>img``: RON's first step, Woodham's least squares
+  (``PixelSolver`` with solver ``"none"``): one launch of its ``solve_kernel`` over the image (the CPU's row split
+  left out);
 * ``bini_cg_iteration``: one Jacobi-PCG iteration of BiNI (one ``cg`` launch runs ``unroll`` of them;
   time / unroll), float64;
 * ``search_trimmed_rank``: one launch of the device material search's trimmed-energy rank kernel
   (:func:`gpps.kernels.material_search.trimmed_rank_kernel`, 4 candidates x P samples x P / RANK_SEGMENT
   segments, P compares an item in all); ``search_pass_no_solve``: a search pass without the scorer's solve (points,
   rank, contributions, partial sums, energy, Nelder-Mead step: :meth:`NelderMeadSearch._pass`'s other six
-  launches; no ratio);
+  launches; no ratio); the pass's other kernels one launch each: ``search_points`` (``search_points_kernel``, one
+  thread a candidate), ``search_contrib`` (``trimmed_contrib_kernel``), ``search_partial``
+  (``trimmed_partial_kernel``), ``search_energy`` (``trimmed_energy_kernel``) and ``search_step``
+  (``search_step_kernel``, one thread; xatol -1: every timed launch a whole pass);
 * DGMC's solved front as RON runs it (least squares, DGMC's highlights and curvatures, the cold solve, then
   :func:`gpps.pipeline.front.propagate_front_device` on a :class:`DeviceFront`): ``front_step``:
   :meth:`DeviceFront.step` (the sources, then per ring mask, starts, warm solve and merge; no ratio);
@@ -42,7 +55,13 @@ the stream), 16-bit with 0.5 % noise, divided by the light intensities.  Rows (`
   ``rounds_integrate``: :meth:`DeviceRounds.integrate`, the final depth on the device (RON's rounds'
   integrator: multigrid, ``"normal"`` weighting, tol 1e-5; no ratio); ``rounds_pcg_iteration``: one fused
   ``pcg_iteration`` launch of its PCG (:func:`gpps.kernels.poisson.pcg_iteration`: cg_step, the V-cycle over
-  every level, cg_direction; Taichi, float32 fields).
+  every level, cg_direction; Taichi, float32 fields); the integration's other Taichi calls, each timed on its own
+  as :class:`gpps.pipeline.integration_rounds.DeviceSystem` makes it: ``rounds_assemble_pixels``
+  (``assemble_pixels``), ``rounds_assemble_edges`` (``assemble_edges``), ``rounds_coarsen`` (``coarsen``, every
+  level's call), ``rounds_gather_level`` (``gather_level``), ``rounds_residual_norm`` (``residual_norm``: the CG
+  start's |b|^2), ``rounds_pcg_start`` (the fused ``pcg_start``), then after the CG ``rounds_component_sums``,
+  ``rounds_depth_exp`` (perspective), ``rounds_depth_write`` and ``rounds_depth_fill`` (Taichi's own field fills
+  and copies, and the labelling of dropped normals, which the ball does not run: no rows).
 
 Counts (:data:`COUNTS_CHAIN`, by hand per item, documented there).  Unlike the stream's rows, the bytes
 are the *compulsory* traffic: every input element read once and every output written once (a
@@ -96,6 +115,63 @@ COUNTS_CHAIN = {
     # the outputs 32 (normal 12, source 8, distance 4, rank 4, tolerance 4).
     "dgmc_start_search": lambda lsteps, checks, k: ((4 * k + 16 * checks + 44, 3 * lsteps + 30 * checks + 50),
                                                     (25, 0), (33, 0)),
+    # The rest of DeviceDGMC.step's kernels (gpps.kernels.dgmc, gpps.kernels.dgmc_geodesic; one thread a pixel unless
+    # said; Warp's `and` short-circuits, so an operand past a false one is neither read nor computed).
+    # albedo_sample_kernel (the reference albedo's sample), per pixel: mask 1 read, the flat index (2) written as the
+    # value 4 and the key 8 (inf outside); per mask pixel: its N observations 12 N read; per light: the grey value
+    # (3 widenings, 2 adds, a division, the channel test: 7), the moments s s^T (9 mul + 9 add) and r += g s (3 FMA:
+    # 6), the light vector's kind test 1: 32; then the regularised 3x3 solve (eps added 9, inverse ~54, A^-1 r 15)
+    # and |b| (6): 84.  Float64.
+    "dgmc_albedo_sample": lambda n: ((12 * n, 32 * n + 84), (13, 4)),
+    # median_kernel: one thread, the middle two of the sorted keys 16 B read, rho 8 written; halving, parity test,
+    # add, divide: ~5.
+    "dgmc_median": lambda: ((24, 5),),
+    # saturation_kernel, per pixel and light: the `use` test 1, the flag 1 B read and tested 1, the saturated byte
+    # 1 B written; the region byte 1 B written a pixel.  With `use` (DGMCConfig.saturation set), per mask pixel and
+    # light: the observation 12 B, mask 1 B (a cache hit after the first light), the channel max 2, widening,
+    # compare: 4 more FLOPs (the flags a saturated observation sets not counted).
+    "dgmc_saturation": lambda n, use: ((2 * n + 1 + (1 if use else 0), 2 * n), ((12 * n, 4 * n) if use else (0, 0))),
+    # field_kernel, per pixel: its fill index (row, column) 8 read, f0 8 written (kind 1: f0, f1 16); kind 0
+    # ("intensity"): the mean grey value of the filled pixel's N observations (grey_of 7 and the sum 1 each, the
+    # division 2), the observations 12 N per mask pixel (a pixel outside the mask reads its nearest mask pixel's: a
+    # cache hit); kind 1: the filled pixel's normal 24 per mask pixel, clamp, 2 negations, 2 divisions 5.
+    "dgmc_field": lambda n, kind: (((16, 8 * n + 3), (12 * n, 0)) if kind == 0 else ((24, 6), (24, 0))),
+    # correlate_kernel (one separable pass of a Gaussian-derivative filter of nw taps), per pixel: its own value 8
+    # read (the other taps' values: cache hits) and the result 8 written; per tap: the axis test 1, the index
+    # (i + t - r: 2), scipy's reflect (%, < 0 and >= n tests and the fold: ~5), the weight's FMA 2: 10; the
+    # radius 2.  Float64 FMA but mostly integer work: the float32 bound (as dgmc_start_search).
+    "dgmc_correlate": lambda nw: ((16, 10 * nw + 2),),
+    # curvature_kernel, per pixel: mask 1 read, GC and MC 16 written, the test 1; per mask pixel: the three
+    # second derivatives 24 read (kind 1: four, 32), the eigenvalues (half trace 2, root 6 with its sqrt, k1 k2 2)
+    # and GC, MC 3: 13 (kind 1: 3 more).  Float64.
+    "dgmc_curvature": lambda kind: ((17, 1), ((24, 13) if kind == 0 else (32, 16))),
+    # label_init_kernel, per pixel: region 1 read, label 4 written; the test and i W + j: 3.
+    "dgmc_label_init": lambda: ((5, 3),),
+    # label_min_kernel at the fixed point (no label changes: the last step of the labelling), per pixel: region 1
+    # read and tested 1; per region pixel: its label 4 read (the neighbours' labels and region bytes: cache hits),
+    # 9 offsets' neighbour tests (~3 each), per neighbour the offsets 2, bounds 4, region test 1, min 1 (8), the
+    # pointer jump (division, remainder, min 3) and the change test 1: 95.
+    "dgmc_label_min": lambda: ((4, 95), (1, 1)),
+    # roots_kernel, per pixel: label 4 read, root flag 4 written; flat index 2, compare, select 2.
+    "dgmc_roots": lambda: ((8, 4),),
+    # label_number_kernel (in place), per pixel: label 4 read and 4 written, the test and the gather's index 2 (the
+    # gathered numbers: one per region, cache hits).
+    "dgmc_label_number": lambda: ((8, 2),),
+    # boundary_kernel, per pixel: mask 1 read, boundary 4 written, the mask test 1; per mask pixel: region 1 read
+    # and tested 1; per mask pixel off the region: 9 offsets' neighbour tests (3 each) and per neighbour the
+    # offsets 2, bounds 4, label > 0 1, the best test 2 (9): 99, and its own label 4 B (read by its neighbours:
+    # the labels of the region's ring are cache hits).
+    "dgmc_boundary": lambda: ((5, 1), (1, 1), (4, 99)),
+    # list_reset_kernel (one thread a list entry, H W K), per entry: key and source 8 written, the t == 0 test 1;
+    # per pixel: its change mark 4 written.
+    "dgmc_list_reset": lambda: ((8, 1), (4, 0)),
+    # geodesic_slots_kernel, per pixel: region 1 read and tested 1, the slot code 4 written; per region pixel: its
+    # label 4 read (the neighbours' labels, mask and region bytes: cache hits), 8 slots of offsets 2 (constant
+    # loads) + adds 2, bounds 4, label compare 1, the code's shift and or 3 (10 each); per slot on another label
+    # (borders called): its mask and region tests 2; per scanned offset of a borders call (a mask pixel off the
+    # region: raster order until a pixel of the label is found) the neighbour test 3 and for a neighbour the adds
+    # 2, bounds 4, label compare 1: 7 more (counted on the host from the labels).
+    "dgmc_geodesic_slots": lambda: ((5, 1), (4, 80)),
     # per (candidate, sample): e evaluations of the sample's lit/unlit lights; outputs normal 12, albedo 12,
     # residual, iterations, flags 4 each.  Per sample (once for all candidates): strip 12 N, weights 4 N,
     # point, view, start 12 each, gmax and flags 4 each.
@@ -105,6 +181,22 @@ COUNTS_CHAIN = {
     # every pixel: mask 1, outputs 40 (normal, albedo 12 each; residual, iterations, flags, cond 4 each).
     "pixel_solve": lambda e, lit, n: ((17 * n + 4, e * (EVAL_LIT * lit + EVAL_UNLIT * (n - lit) + EVAL_FIXED)),
                                       (41, 0)),
+    # solve_kernel of solver "none" (Woodham's least squares: gpps.kernels.solve_kernels' pixel_prelude, then
+    # solve_common.store_least_squares; one thread a pixel, directional lights), per mask pixel with fg of its n
+    # observations in the fit (weight != 0: kept or dark) and fl in the least squares (fg, or n where the lights'
+    # Gram matrix is singular: FLAG_WOODHAM_FALLBACK): bytes: images 12 n, valid n, depth 4 read, weights 4 n, the
+    # six outputs 40 written (normal, albedo 12 each; residual, iterations, flags, cond 4 each), mask 1 (the noise
+    # levels and the lights: cache hits).  FLOPs: per light grey_max (grey 3, max 1), the weights (valid test,
+    # grey 3, shadow and lit tests with their products ~8, the dark test, counts ~3: 14), the in-fit tests of the
+    # Gram, least-squares and residual loops (~12): 30; per light in the fit the Gram's l l^T (9 mul + 9 add) and
+    # the light's kind test: 19; per light in the least squares: y = I / E (3 tests, 3 divisions), l l^T 18,
+    # b_c += y_c l (9 FMA: 18), kind tests 2: 44, and the residual (n.l 5, per channel E kd (n.l) 2, I - that 1,
+    # r^2 summed 2: 15, ws 1, kind tests 2): 23; per pixel: the point and view direction ~22, cond_frobenius
+    # (determinant 17, |A|_F 18, the singular test 6, inverse ~54, |A^-1|_F 19: ~114), the flags ~5, the solution
+    # (b_g 6, determinant, norm and test 41, inverse 54, A^-1 b_g 15, normalise 15, the three channels' A^-1 b_c . n
+    # 60: ~191), the albedo clamp 3, the residual's sqrt, division, test 3: ~340.  Per pixel outside the mask: the
+    # mask 1 read, its outputs 40 and weights 4 n written; the test and n stores' loop n + 1.
+    "least_squares": lambda n, fg, fl: ((17 * n + 45, 340 + 30 * n + 19 * fg + 67 * fl), (4 * n + 41, n + 1)),
     # per valid pixel and CG iteration (float64): loop 1 reads z, p_old, W_r, W_d, nb (4 int32) and writes q,
     # p_new (64 B; the 4 neighbours' z, p_old, W: cache); fused p = z + beta p_old for itself and 4
     # neighbours and A p (~25 FLOPs), p.q; loop 2 reads x, p_new, r, q, D^-1, writes x, r, z (64 B), 9 FLOPs
@@ -114,6 +206,28 @@ COUNTS_CHAIN = {
     # from cache, NaN key, two compares and an index compare, count: 5 ops each), one atomic add a segment;
     # bytes: its residual read 4 and its int32 count added 4 (the row's other values: cache hits).
     "search_trimmed_rank": lambda p: ((8, 5 * p),),
+    # The device material search's other per-pass kernels (gpps.kernels.material_search; d searched parameters, K = 4
+    # candidates, P samples, L = PARTIAL_LANES), float64.  search_points_kernel (one thread a candidate, a step pass),
+    # per candidate: its material row 28 and point 8 d written; per parameter: the centroid (d adds, a division),
+    # the worst vertex, the candidate's branch (<= 3 compares) and coefficients (~4), the clip 2, exp ~20, the
+    # float32 cast 1, the field's branch <= 3: d + 34; the phase test 1.  Per launch (read once by all four): the
+    # base row 28, the phase 4, the simplex 8 d (d + 1), bounds and fields 20 d.
+    "search_points": lambda d: ((28 + 8 * d, 1 + d * (d + 34)), (32 + 8 * d * (d + 1) + 20 * d, 0)),
+    # trimmed_contrib_kernel, per (candidate, sample): the rank count 4 read and cleared 4, the residual 4 read (its
+    # sectors are fetched whether or not the value is kept), the contribution 8 written; the keep test 1, widening
+    # and square 2 for a kept value (after the first timed launch every count is 0 < keep: all kept).
+    "search_contrib": lambda: ((20, 3),),
+    # trimmed_partial_kernel, per (candidate, sample): its contribution 8 read, the add and the strided loop's
+    # index and test 3; per (candidate, lane): its partial 8 written, the start and lanes 2.
+    "search_partial": lambda: ((8, 3), (8, 2)),
+    # trimmed_energy_kernel (one thread a candidate): its L partials 8 L read, L adds and loop steps 2 L, the division
+    # by keep 1 (and its widening), the energy 8 written.
+    "search_energy": lambda lanes: ((8 * lanes + 8, 2 * lanes + 2),),
+    # search_step_kernel (one thread), a step pass: cond 4, the state 16 read and written, up to two energies 16, the
+    # simplex's values fsim 8 (d + 1) and vertices 8 d (d + 1) read and written (the stable re-sort, the accepted
+    # point), the accepted candidate 8 d read; the decision ~16 (compares, budget tests, counters), the re-sort
+    # (per vertex _after's NaN tests and compare ~4, a move of d values ~2 d), the size test (3 d^2 + 1).
+    "search_step": lambda d: ((52 + 16 * (d + 1) + 16 * d * (d + 1) + 8 * d, 17 + d * (4 + 2 * d) + 3 * d * d),),
     # DGMC's solved front (gpps.kernels.front; one thread a ring pixel unless said).  front_source_kernel, per ring
     # pixel (all rings, one launch): its index, level 4, GC/MC 16 read, its source 4 written (the neighbours'
     # levels and curvatures: cache); index 2 and loads ~2, the widening loop's test every step (ws + 1); per
@@ -163,6 +277,52 @@ COUNTS_CHAIN = {
     # task): nc^2 entries of pinv 4 B and a multiply-add, the gathered f, cidx and e 16 B per active cell.
     "rounds_pcg_iteration": lambda nc: (((72, 34), (64, 19)), ((133, 93), (44, 6)), (24, 6),
                                         (4 * nc * nc + 16 * nc, 2 * nc * nc)),
+    # The rest of the rounds' integration (DeviceRounds.integrate -> gpps.pipeline.integration_rounds.DeviceSystem,
+    # its Taichi kernels gpps.kernels.poisson_weighted and the integrator's gpps.kernels.poisson; float64 assembly
+    # fields gj, gi, cj, ci, float32 multigrid fields, i32 mask and labels; Taichi does not short-circuit `and`:
+    # every operand is read).  Counted per Taichi task as rounds_pcg_iteration, per grid point.
+    # assemble_pixels, per pixel: mask 4 read, gj, gi, cj, ci 32 written, the test 1; per mask pixel: its normal 12
+    # read (float32), 3 widenings, |n| 6, the validity tests 5, normalise 3, the camera-facing test 11, m's clamp 1,
+    # the steps 6, the factors -f m 2 and their squares 2 ("normal" weighting), the two statistics' adds 2: 41.
+    # Float64 (perspective, weighted: RON's case).
+    "rounds_assemble_pixels": lambda: ((36, 1), (12, 41)),
+    # assemble_edges, per pixel: gj, gi, cj, ci 32 read (the neighbours': cache hits), wx, wy, dg, b 16 written; its
+    # (up to) 4 edges each computed (both pixels of an edge compute it): shares 4 mul, the validity tests and a + b
+    # 6: 10, and per valid edge the flux (2 mul, add, division, product: 5 more); the bounds tests 4, d and rhs
+    # sums 8, 4 casts: 56 + 5 a valid edge end.  Float64.
+    "rounds_assemble_edges": lambda: ((48, 56), (0, 5)),
+    # coarsen (one call a level; two tasks), per coarse point: task 1 reads the fine weights leaving its block (two
+    # j-edges of its right column, two i-edges of its bottom row: 16 B; the others are never read) and writes its wx,
+    # wy 8: its tests and indices ~20, 4 widenings and adds, the alpha products and casts 4: ~30; task 2 reads its
+    # wx, wy 8 (the neighbours': cache hits) and writes dg 4, 3 adds and 2 tests 5.  Float64 products, mostly
+    # integer work: the float32 bound.
+    "rounds_coarsen": lambda: ((36, 35),),
+    # gather_level, per coarsest cell: wx, wy 8 read, 2 float64 16 written; 2 widenings, the offset index 1.
+    "rounds_gather_level": lambda: ((24, 3),),
+    # residual_norm (|b|^2 at the CG's start: r = b - A x, sc[RR] = |r|^2), per level-0 point, active (dg > 0): dg,
+    # x, b, wx, wy 20 read, r 4 written; the 4-neighbour sum with its bounds tests ~13, b - d x and + 3, the test,
+    # widening, square and sum 4: 20; inactive: dg 4 read, r 4 written, the test, square and sum 3.
+    "rounds_residual_norm": lambda: ((24, 20), (8, 3)),
+    # pcg_start (fused: cg_start, the first V-cycle, cg_first_direction), per level-0 point: cg_start active:
+    # dg, x, b, wx, wy 20 read, r, f, e 12 written, 20 FLOPs (as residual_norm); inactive: dg 4 read, r, f, e 12
+    # written, 3; cg_first_direction at every point: r, e 8 read, p 4 written, r e widened and summed 4; the V-cycle
+    # as rounds_pcg_iteration's.
+    "rounds_pcg_start": lambda: (((32, 20), (16, 3)), (12, 4)),
+    # component_sums, per pixel (csum, ccnt, cmax, cmin are dense H W fields indexed by a component's root pixel):
+    # the clear of the four 32 written, cj 8 and lab 4 read, the tests 3, the span task's ccnt 8 read and test 1;
+    # per valid pixel: z 4 read, widening, 2 adds, atomic max and min 5 (the atomics to one component's entries: cache
+    # hits, not traffic; on CUDA they contend).  Float64.
+    "rounds_component_sums": lambda: ((52, 4), (4, 5)),
+    # depth_exp (perspective), per pixel: cden's clear 8 written, cj 8, lab 4 read, the tests 3; per valid pixel: z
+    # 4 read, widening and - max z 2, exp ~20, the add 1: 23.  Float64.
+    "rounds_depth_exp": lambda: ((20, 3), (4, 23)),
+    # depth_write, per pixel: cj 8 and lab 4 read, the tests 3; per valid pixel: z 4 read, the depth 4 written
+    # (float32); u (widening, mean z, sub) 3, + ref 1, the perspective form (exp(z - max z) ~21, the mean's and
+    # ref's divisions, the product 3), the cast 1, the fill sums 3: 32.  Float64.
+    "rounds_depth_write": lambda: ((12, 3), (8, 32)),
+    # depth_fill, per pixel: mask 4 read and tested 1; outside the mask: the depth 4 written; per mask pixel: cj
+    # 8, lab 4 and the depth 4 read, the three tests, and, not 5 (a dropped pixel's fill store not counted).
+    "rounds_depth_fill": lambda: ((4, 1), (4, 0), (16, 5)),
 }
 
 
@@ -339,6 +499,154 @@ def dgmc_rows(ctx, n_images):
                    "found_within_tolerance": float(found.mean()) if found.size else 0.0,
                    "summary": f"{int(has.sum())} px, {checks.mean() if checks.size else 0:.1f} checks/px"})
     ctx.keep.append(st)
+    _dgmc_other_rows(ctx, st, info, m, region)
+
+
+def _slots_work(mask, region, labels, conn):
+    """Per region pixel: the FLOPs of :func:`gpps.kernels.dgmc_geodesic.geodesic_slots_kernel`'s ``borders`` calls
+    (COUNTS_CHAIN["dgmc_geodesic_slots"]), replayed on the host from the labels: 2 a slot on another label, and
+    for a mask pixel off the region there the scan of its 3 x 3 offsets in raster order until a neighbour of the
+    label (3 an offset, 7 more a neighbour offset)."""
+    h, w = labels.shape
+    ri, rj = np.nonzero(region)
+    lab = labels[ri, rj][:, None]
+    oi = np.array([-1, -1, -1, 0, 0, 1, 1, 1])
+    oj = np.array([-1, 0, 1, -1, 1, -1, 0, 1])
+    a, b = ri[:, None] + oi, rj[:, None] + oj
+    inb = (a >= 0) & (a < h) & (b >= 0) & (b < w)
+    ac, bc = np.clip(a, 0, h - 1), np.clip(b, 0, w - 1)
+    other = inb & (labels[ac, bc] != lab)
+    scan = other & mask[ac, bc] & ~region[ac, bc]
+    di, dj = np.repeat([-1, 0, 1], 3), np.tile([-1, 0, 1], 3)
+    nb = ~((di == 0) & (dj == 0)) & ((conn == 8) | (di == 0) | (dj == 0))
+    c, d = ac[..., None] + di, bc[..., None] + dj
+    inb2 = (c >= 0) & (c < h) & (d >= 0) & (d < w)
+    hit = nb & inb2 & (labels[np.clip(c, 0, h - 1), np.clip(d, 0, w - 1)] == lab[..., None])
+    visited = np.where(hit.any(-1), hit.argmax(-1) + 1, 9)  # offsets scanned (the found one included)
+    nbv = np.cumsum(nb)[visited - 1]  # neighbour offsets among them
+    return (2 * other + scan * (3 * visited + 7 * nbv)).sum(1).astype(np.float64)
+
+
+def _dgmc_other_rows(ctx, st, info, m, region):
+    """The rest of :meth:`DeviceDGMC.step`'s kernels, one launch each as the step launches them (outputs into scratch
+    arrays where a launch would change what another row reads): the reference albedo's sample and median, the
+    saturation pass, the curvatures' field, one correlate pass along each axis and the curvatures, the regions'
+    labelling (init, one min-label step at the fixed point, roots, numbering, boundary), a list reset and the
+    geodesic slots.  (Warp's radix sort of the median and the labels' scan are library launches: no rows.)"""
+    from gpps.kernels import dgmc as dk
+    from gpps.kernels import dgmc_geodesic as dg
+
+    wp = _wp()
+    dev = ctx.device
+    n, h, w = st.shape
+    cfg = st.config
+    hw = h * w
+    mp = int(m.sum())
+    nr = int(region.sum())
+    conn = int(cfg.connectivity)
+    light = [st.light_kind, st.lvec, st.laxis, st.lmu, st.lint, st.points]
+    f64, i32, u8 = wp.float64, wp.int32, wp.uint8
+    keys_s, vals_s = wp.empty(2 * hw, dtype=f64, device=dev), wp.empty(2 * hw, dtype=i32, device=dev)
+    rho_s = wp.zeros(1, dtype=f64, device=dev)
+    sat_s, reg_s = wp.empty((n, h, w), dtype=u8, device=dev), wp.empty((h, w), dtype=u8, device=dev)
+    f_s = [wp.empty((h, w), dtype=f64, device=dev) for _ in range(4)]
+    lab_s, lab2_s = wp.empty((h, w), dtype=i32, device=dev), wp.empty((h, w), dtype=i32, device=dev)
+    roots_s, bnd_s = wp.empty(hw, dtype=i32, device=dev), wp.empty((h, w), dtype=i32, device=dev)
+    k = int(cfg.k_nearest)
+    lk_s, ls_s = wp.empty((h, w, k), dtype=i32, device=dev), wp.empty((h, w, k), dtype=i32, device=dev)
+    ch_s, slots_s = wp.empty((h, w), dtype=i32, device=dev), wp.empty((h, w), dtype=i32, device=dev)
+    count_s = wp.zeros(1, dtype=i32, device=dev)
+    ctx.keep.append((keys_s, vals_s, rho_s, sat_s, reg_s, f_s, lab_s, lab2_s, roots_s, bnd_s, lk_s, ls_s, ch_s,
+                     slots_s, count_s))
+
+    def launch(kernel, dim, inputs):
+        return lambda: wp.launch(kernel, dim=dim, inputs=inputs, device=dev)
+
+    def one(name, kernel, dim, inputs, by=None, fl=None, f64=False, extra=None, inner=10):
+        t = _time_or_register(ctx, name, f"^{kernel.key}_", launch(kernel, dim, inputs), inner=inner)
+        if t is not None:
+            row(ctx, name, t, by, fl, f64=f64, extra={**info, **(extra or {})})
+        return t
+
+    if cfg.rule == "lambertian":
+        (pb, pf), (ab, af) = COUNTS_CHAIN["dgmc_albedo_sample"](n)
+        one("dgmc_albedo_sample", dk.albedo_sample_kernel, (h, w),
+            [st.images, st.channels, st.mask, *light, keys_s, vals_s], pb * mp + ab * hw, pf * mp + af * hw,
+            f64=True, extra={"summary": f"{mp} px x {n} observations", "note": "the reference albedo's sample"})
+        ((b1, f1),) = COUNTS_CHAIN["dgmc_median"]()
+        one("dgmc_median", dk.median_kernel, 1, [st.sort_keys, st.count, rho_s, 0], b1, f1, f64=True,
+            extra={"summary": "one thread", "note": "one thread on the sorted keys: the launch's fixed cost is all "
+                                                    "of it (the radix sort before it: Warp's, no row)"})
+    sat = cfg.saturation
+    use = sat is not None
+    (sb, sf), (ub, uf) = COUNTS_CHAIN["dgmc_saturation"](n, use)
+    one("dgmc_saturation", dk.saturation_kernel, (h, w),
+        [st.images, st.channels, st.mask, 0.0 if sat is None else float(sat), int(use), st.flags, sat_s, reg_s],
+        sb * hw + ub * mp, sf * hw + uf * mp, extra={"saturation_test": use, "summary": f"{h}x{w} px x {n} flags",
+               "note": "the saturated observations join the flags (none without DGMCConfig.saturation: the "
+                       "images not read), the region byte"})
+    kind = 0 if cfg.curvature_field == "intensity" else 1
+    (fb, ff), (gb, _) = COUNTS_CHAIN["dgmc_field"](n, kind)
+    one("dgmc_field", dk.field_kernel, (h, w), [st.images, st.channels, st.normals, kind, st.fill, f_s[0], f_s[1]],
+        fb * hw + gb * mp, ff * hw, f64=True, extra={"curvature_field": cfg.curvature_field,
+                                                    "summary": f"{h}x{w} px, {mp} in the mask",
+                                                    "note": "the curvatures' field, filled outside the mask"})
+    wt = st.weights[2 if kind == 0 else 1]
+    nw = int(wt.shape[0])
+    ((cb, cf),) = COUNTS_CHAIN["dgmc_correlate"](nw)
+    for axis, src, dst in ((0, st.f[0], f_s[2]), (1, f_s[2], f_s[3])):
+        one(f"dgmc_correlate_{'ij'[axis]}", dk.correlate_kernel, (h, w), [src, wt, axis, dst], cb * hw, cf * hw,
+            extra={"taps": nw, "axis": axis, "summary": f"{h}x{w} px, {nw} taps along {'ij'[axis]}",
+                   "note": f"one separable pass ({2 * (3 if kind == 0 else 4)} a step, along both axes)"})
+    (pb, pf), (qb, qf) = COUNTS_CHAIN["dgmc_curvature"](kind)
+    d = st.deriv
+    one("dgmc_curvature", dk.curvature_kernel, (h, w), [st.mask, kind, d[0], d[1], d[2], d[3], f_s[0], f_s[1]],
+        pb * hw + qb * mp, pf * hw + qf * mp, f64=True, extra={"summary": f"{h}x{w} px, {mp} in the mask",
+                                     "note": "GC and MC from the filtered derivatives"})
+
+    # the regions: the labelling's kernels on scratch labels (the stage's numbered labels stay as they are)
+    ((ib, i_f),) = COUNTS_CHAIN["dgmc_label_init"]()
+    one("dgmc_label_init", dg.label_init_kernel, (h, w), [st.region, lab_s], ib * hw, i_f * hw,
+        extra={"summary": f"{h}x{w} px", "note": "the labels' start (into scratch labels)"})
+    wp.launch(dg.label_init_kernel, dim=(h, w), inputs=[st.region, lab_s], device=dev)
+    for _ in range(hw + 1):  # to the fixed point (as DeviceDGMC._regions)
+        count_s.zero_()
+        wp.launch(dg.label_min_kernel, dim=(h, w), inputs=[st.region, conn, lab_s, count_s], device=dev)
+        if int(count_s.numpy()[0]) == 0:
+            break
+    (rb, rf), (pb, pf) = COUNTS_CHAIN["dgmc_label_min"]()
+    one("dgmc_label_min", dg.label_min_kernel, (h, w), [st.region, conn, lab_s, count_s], rb * nr + pb * hw,
+        rf * nr + pf * hw, extra={"region_pixels": nr, "summary": f"{nr} region px",
+                                  "note": "one min-label step at the fixed point (nothing changes: the last of the "
+                                          "labelling's steps; the others write their changed labels)"})
+    ((ob, of),) = COUNTS_CHAIN["dgmc_roots"]()
+    one("dgmc_roots", dg.roots_kernel, (h, w), [lab_s, roots_s], ob * hw, of * hw,
+        extra={"summary": f"{h}x{w} px", "note": "the components' first pixels (on the fixed-point labels)"})
+    wp.copy(lab2_s, lab_s)
+    ((nb_, nf),) = COUNTS_CHAIN["dgmc_label_number"]()
+    one("dgmc_label_number", dg.label_number_kernel, (h, w), [st.numbers, lab2_s], nb_ * hw, nf * hw,
+        extra={"summary": f"{h}x{w} px", "note": "in place on a scratch copy of the min labels (the launches after "
+                                                 "the first renumber numbers: the same per-pixel work)"})
+    mask_h = st.mask.numpy().astype(bool)
+    cand = mask_h & ~region
+    (ab, af), (mb, mf), (xb, xf) = COUNTS_CHAIN["dgmc_boundary"]()
+    one("dgmc_boundary", dg.boundary_kernel, (h, w), [st.mask, st.region, st.labels, conn, bnd_s],
+        ab * hw + mb * mp + xb * int(cand.sum()), af * hw + mf * mp + xf * int(cand.sum()),
+        extra={"summary": f"{int(cand.sum())} mask px off the region",
+               "note": "the outer boundary labelled with the smallest adjacent region (into scratch)"})
+
+    # the geodesic phase's set-up: a list reset (two a step) and the slot kinds
+    (eb, ef), (cb2, _) = COUNTS_CHAIN["dgmc_list_reset"]()
+    one("dgmc_list_reset", dg.list_reset_kernel, (h, w, k), [lk_s, ls_s, ch_s], eb * hw * k + cb2 * hw,
+        ef * hw * k, extra={"k_nearest": k, "summary": f"{h}x{w} x {k} entries",
+                            "note": "one of the step's two list resets"})
+    (sb, sf), (rb, rf) = COUNTS_CHAIN["dgmc_geodesic_slots"]()
+    extra_fl = _slots_work(mask_h, region, st.labels.numpy(), conn)
+    one("dgmc_geodesic_slots", dg.geodesic_slots_kernel, (h, w), [st.mask, st.region, st.labels, conn, slots_s],
+        sb * hw + rb * nr, sf * hw + rf * nr + float(extra_fl.sum()),
+        extra={"region_pixels": nr, "mean_border_flops": float(extra_fl.mean()) if nr else 0.0,
+               "summary": f"{nr} region px",
+               "note": "the 8 slots' kinds of every region pixel (borders' scans counted on the host)"})
 
 
 # ----------------------------------------------------------------------------- material scorer
@@ -540,6 +848,52 @@ def pixel_solve_rows(ctx, n_images):
     ctx.keep.append(ps)
 
 
+def least_squares_rows(ctx, n_images):
+    """RON's first step: Woodham's least squares over the whole image (``PixelSolver`` with solver ``"none"``, as
+    :func:`front_rows` runs it), one launch of its ``solve_kernel`` (the CPU's row split of ``PixelSolver.step``
+    left out: one launch, as on CUDA)."""
+    from gpps.names import FLAG_WOODHAM_FALLBACK
+    from gpps.pipeline.solver import PixelSolver, SolverConfig
+
+    wp = _wp()
+    t0 = time.perf_counter()
+    sc, mat, lights, img = ball_scene(ctx.size, n_images, ctx.device)
+    m = sc.mask
+    h, w = m.shape
+    ps = PixelSolver(img.shape[:3], sc.camera, lights, mat, replace(SolverConfig(), solver="none", smoothness=0.0),
+                     device=ctx.device)
+    ctx.keep.append(ps)
+    ps.upload(img, m)
+    ps.step()
+    _sync(ctx)
+    ctx.log(f"[chain {ctx.size}] least squares {n_images} images: compile and first solve "
+            f"{time.perf_counter() - t0:.1f}s")
+    name = f"least_squares_{n_images}img"
+    # (recorded once: a plain CPU launch re-packs its struct arguments every time)
+    cmd = wp.launch(ps._solve_kernel, dim=(h, w),
+                    inputs=[ps.images, ps.mask, ps.valid, ps.depth, ps.noise, ps.cam, ps.lp, ps.mp, ps.prm],
+                    outputs=[ps.weights, ps.normals, ps.albedo, ps.residual, ps.iterations, ps.flags, ps.cond],
+                    device=ctx.device, record_cmd=True)
+    t = _time_or_register(ctx, name, "^solve_kernel__none_", cmd.launch, inner=5)
+    if t is not None:
+        from gpps.host.metrics import normal_errors
+        from gpps.names import ASIDE_WEIGHT
+
+        wt = ps.weights.numpy()[:, m]  # (N, mask pixels)
+        fg = ((wt != 0.0) & (wt != ASIDE_WEIGHT)).sum(0).astype(np.float64)
+        fallback = (ps.flags.numpy()[m] & int(FLAG_WOODHAM_FALLBACK)) != 0
+        fl = np.where(fallback, float(n_images), fg)
+        (pb, pf), (ob, of) = COUNTS_CHAIN["least_squares"](n_images, fg, fl)
+        mp = int(m.sum())
+        row(ctx, name, t, pb * mp + ob * (h * w - mp), float(np.sum(pf)) + of * (h * w - mp),
+            extra={"images": n_images, "mask_pixels": mp, "mean_in_fit": float(fg.mean()),
+                   "woodham_fallback": int(fallback.sum()),
+                   "maen_deg": normal_errors(ps.fetch(("normals",))["normals"], sc.normals, m)["mean"],
+                   "summary": f"{mp} px, {fg.mean():.1f}/{n_images} observations in the fit",
+                   "note": "solve_kernel of solver 'none' (observation weights, lights' condition, Woodham's "
+                           "least squares and its residual), one launch over the image"})
+
+
 # ----------------------------------------------------------------------------- BiNI
 
 
@@ -607,24 +961,81 @@ def search_rows(ctx, samples):
         row(ctx, "search_trimmed_rank", t, cb * kc * p, float(cf * kc * p),
             extra={"candidates": kc, "samples": p, "summary": f"K={kc} P={p}, {p} compares/item"})
 
-    def rest():  # the pass less the scorer's solve (the condition stays set: xatol 0, no budget)
+    d = search.dims
+    info = {"candidates": kc, "samples": p, "dims": d}
+
+    def points():
         wp.launch(ms.search_points_kernel, dim=kc,
-                  inputs=[search.sim, 1, search.lo, search.hi, search.fields, search.base, search.state],
+                  inputs=[search.sim, d, search.lo, search.hi, search.fields, search.base, search.state],
                   outputs=[search.cand, scorer.mats], device=ctx.device)
-        rank()
+
+    t = _time_or_register(ctx, "search_points", "^search_points_kernel_", points, inner=20)
+    if t is not None:
+        (cb, cf), (lb, _) = COUNTS_CHAIN["search_points"](d)
+        row(ctx, "search_points", t, cb * kc + lb, cf * kc, f64=True,
+            extra={**info, "summary": f"K={kc}, d={d}",
+                   "note": "one thread a candidate: the launch's fixed cost is all of it"})
+
+    def contrib():  # (the first launch reads the rank row's accumulated counts and clears them: then all kept)
         wp.launch(ms.trimmed_contrib_kernel, dim=(kc, p), inputs=[scorer.residual, keep],
                   outputs=[search.before, search.contrib], device=ctx.device)
-        wp.launch(ms.trimmed_partial_kernel, dim=(kc, ms.PARTIAL_LANES), inputs=[search.contrib, p],
+
+    t = _time_or_register(ctx, "search_contrib", "^trimmed_contrib_kernel_", contrib, inner=20)
+    if t is not None:
+        ((cb, cf),) = COUNTS_CHAIN["search_contrib"]()
+        row(ctx, "search_contrib", t, cb * kc * p, cf * kc * p, f64=True,
+            extra={**info, "keep": keep, "summary": f"K={kc} P={p}",
+                   "note": "trimmed_contrib_kernel, every value kept (the counts cleared by the first launch)"})
+
+    lanes = ms.PARTIAL_LANES
+
+    def partial():
+        wp.launch(ms.trimmed_partial_kernel, dim=(kc, lanes), inputs=[search.contrib, p],
                   outputs=[search.partial], device=ctx.device)
+
+    t = _time_or_register(ctx, "search_partial", "^trimmed_partial_kernel_", partial, inner=20)
+    if t is not None:
+        (sb, sf), (lb, lf) = COUNTS_CHAIN["search_partial"]()
+        row(ctx, "search_partial", t, sb * kc * p + lb * kc * lanes, sf * kc * p + lf * kc * lanes, f64=True,
+            extra={**info, "lanes": lanes, "summary": f"K={kc} x {lanes} lanes, P={p}",
+                   "note": "strided partial sums of the contributions (K x PARTIAL_LANES threads)"})
+
+    def energy():
         wp.launch(ms.trimmed_energy_kernel, dim=kc, inputs=[search.partial, keep], outputs=[search.energy],
                   device=ctx.device)
-        wp.launch(ms.search_step_kernel, dim=1, inputs=[search.energy, search.cand, 1, 10 ** 9, wp.float64(0.0)],
+
+    t = _time_or_register(ctx, "search_energy", "^trimmed_energy_kernel_", energy, inner=20)
+    if t is not None:
+        ((eb, ef),) = COUNTS_CHAIN["search_energy"](lanes)
+        row(ctx, "search_energy", t, eb * kc, ef * kc, f64=True,
+            extra={**info, "lanes": lanes, "summary": f"K={kc}, {lanes} partials each",
+                   "note": "one thread a candidate: the launch's fixed cost is all of it"})
+
+    def step():  # xatol -1: the condition never clears (every timed launch runs a whole pass); no budget
+        wp.launch(ms.search_step_kernel, dim=1, inputs=[search.energy, search.cand, d, 10 ** 9, wp.float64(-1.0)],
+                  outputs=[search.sim, search.fsim, search.state, search.cond], device=ctx.device)
+
+    t = _time_or_register(ctx, "search_step", "^search_step_kernel_", step, inner=20)
+    if t is not None:
+        ((sb, sf),) = COUNTS_CHAIN["search_step"](d)
+        row(ctx, "search_step", t, sb, sf, f64=True,
+            extra={**info, "cond_after": int(search.cond.numpy()[0]), "summary": f"one thread, d={d}",
+                   "note": "search_step_kernel on the same energies launch after launch (steps and shrinks); one "
+                           "thread: the launch's fixed cost is all of it"})
+
+    def rest():  # the pass less the scorer's solve (the condition stays set: xatol 0, no budget)
+        points()
+        rank()
+        contrib()
+        partial()
+        energy()
+        wp.launch(ms.search_step_kernel, dim=1, inputs=[search.energy, search.cand, d, 10 ** 9, wp.float64(0.0)],
                   outputs=[search.sim, search.fsim, search.state, search.cond], device=ctx.device)
 
     if not ctx.driver:
         t = ctx.graph_time(wp, rest, ctx.device, ctx.repeat, inner=10)
         row(ctx, "search_pass_no_solve", t, extra={"candidates": kc, "samples": p,
-                                                   "note": "five launches of a search pass without the solve"})
+                                                   "note": "the six launches of a search pass without the solve"})
     ctx.keep.extend([search, scorer])
 
 
@@ -878,30 +1289,189 @@ def rounds_rows(ctx, n_images):
                            "to tol (a host read every check_every iterations), depth written (host time, no ratio)"})
 
     d = integ._ensure_device()
+    dg = d["dg"].to_numpy()
+    act = [int((dg[:hh, o:o + ww] > 0).sum()) for o, (hh, ww) in zip(d["offs"], d["shapes"])]
+    pts = [int(hh * ww) for hh, ww in d["shapes"]]
+    nl, nc = len(pts), int(d["nc"])
+    lv_info = {"levels": nl, "level_points": pts, "level_active": act, "coarsest_cells": nc}
     start, iteration = integ._pcg_launches(integ._block_sums())
+    system = rounds.system if how == "DeviceRounds.integrate" else None
+    if system is not None:
+        _rounds_assembly_rows(ctx, rounds, integ, d, info, lv_info, start)
+    else:
+        ctx.log(f"[chain {ctx.size}] rounds: no device assembly ({how}): its rows skipped")
     d["z"].fill(0)  # a fresh solve: the timed iterations are its first ones (the same work as any other)
     start()
     ti.sync()
     t = _time_or_register(ctx, "rounds_pcg_iteration", "^pcg_iteration", iteration, inner=10, taichi=True,
                           per_launch=None)
     if t is not None:
-        (ca, ci), (va, vi), (rb, rf), (cb, cf) = COUNTS_CHAIN["rounds_pcg_iteration"](int(d["nc"]))
-        dg = d["dg"].to_numpy()
-        act = [int((dg[:hh, o:o + ww] > 0).sum()) for o, (hh, ww) in zip(d["offs"], d["shapes"])]
-        pts = [int(hh * ww) for hh, ww in d["shapes"]]
-        nl = len(pts)
-        by = ca[0] * act[0] + ci[0] * (pts[0] - act[0]) + cb
-        fl = ca[1] * act[0] + ci[1] * (pts[0] - act[0]) + cf
-        for lv in range(nl - 1):
-            by += va[0] * act[lv] + vi[0] * (pts[lv] - act[lv]) + rb * pts[lv + 1]
-            fl += va[1] * act[lv] + vi[1] * (pts[lv] - act[lv]) + rf * pts[lv + 1]
+        (ca, ci), *vc = COUNTS_CHAIN["rounds_pcg_iteration"](nc)
+        vb, vf = _vcycle_work(vc, act, pts)
+        by = ca[0] * act[0] + ci[0] * (pts[0] - act[0]) + vb
+        fl = ca[1] * act[0] + ci[1] * (pts[0] - act[0]) + vf
         row(ctx, "rounds_pcg_iteration", t, by, fl,
-            extra={**info, "levels": nl, "level_points": pts, "level_active": act, "coarsest_cells": int(d["nc"]),
-                   "launch": integ._launch(), "block_sums": bool(integ._block_sums()),
+            extra={**info, **lv_info, "launch": integ._launch(), "block_sums": bool(integ._block_sums()),
                    "summary": f"{h}x{w}, {nl} levels, {by / (h * w):.0f} B {fl / (h * w):.0f} FLOP/px",
                    "note": "one pcg_iteration launch (cg_step, the V-cycle, cg_direction: Taichi tasks); float32 "
                            "fields; some 8 tasks a level, serial ones among them: at small sizes their fixed costs "
                            "dominate; a working set in the last-level cache can beat the DRAM copy bound"})
+    if system is not None:
+        _rounds_depth_rows(ctx, rounds, integ, d, info)
+
+
+def _vcycle_work(vc, act, pts):
+    """(bytes, FLOPs) of one V-cycle from rounds_pcg_iteration's counts ``vc`` = (per point of a level but the
+    coarsest (active, inactive), the restriction per coarse point, the coarsest solve) and the levels' active
+    and all points."""
+    (va, vi), (rb, rf), (cb, cf) = vc
+    by, fl = cb, cf
+    for lv in range(len(pts) - 1):
+        by += va[0] * act[lv] + vi[0] * (pts[lv] - act[lv]) + rb * pts[lv + 1]
+        fl += va[1] * act[lv] + vi[1] * (pts[lv] - act[lv]) + rf * pts[lv + 1]
+    return by, fl
+
+
+def _rounds_assembly_rows(ctx, rounds, integ, d, info, lv_info, start):
+    """The device integration's set-up as :meth:`DeviceSystem.step` runs it (Taichi, each call timed on its own):
+    the per-pixel assembly, the edges, the levels' coarsening (every level's call), the coarsest level's gather,
+    the |b|^2 of the CG's start (residual_norm) and the fused PCG start.  The fields already hold the system: the
+    calls recompute it (the statistics ``st`` accumulate over the repeats: counts and their ratio, all the edges
+    read)."""
+    from gpps._taichi import ti
+    from gpps.kernels import poisson as K
+    from gpps.kernels import poisson_weighted as KW
+    from gpps.pipeline.integration import coarse_alpha
+
+    system = rounds.system
+    F = system._F
+    cfg = integ.config
+    h, w = integ.shape
+    cam, wtd = system._cam, system._weighted
+    nrm = rounds._view()[0]
+    sh, of = d["shapes"], d["offs"]
+    pts, act, nc = lv_info["level_points"], lv_info["level_active"], lv_info["coarsest_cells"]
+    hw = h * w
+    mp = int(integ.mask.sum())
+
+    def taichi_row(name, pattern, fn, by, fl, f64=False, extra=None, inner=10):
+        t = _time_or_register(ctx, name, pattern, fn, inner=inner, taichi=True, per_launch=None)
+        if t is not None:
+            row(ctx, name, t, by, fl, f64=f64, extra={**info, **(extra or {})})
+
+    def assemble():
+        KW.assemble_pixels(nrm, F["mask"], F["gj"], F["gi"], F["cj"], F["ci"], F["st"], cam[0], wtd, *cam[1:],
+                           float(cfg.min_nz), h, w)
+
+    (pb, pf), (qb, qf) = COUNTS_CHAIN["rounds_assemble_pixels"]()
+    taichi_row("rounds_assemble_pixels", "^assemble_pixels", assemble, pb * hw + qb * mp, pf * hw + qf * mp, f64=True,
+               extra={"perspective": bool(cam[0]), "weighted": bool(wtd), "summary": f"{h}x{w}, {mp} mask px",
+                      "note": "assemble_pixels: the normals' checks, steps and confidences (float64 fields)"})
+
+    def edges():
+        KW.assemble_edges(F["gj"], F["gi"], F["cj"], F["ci"], F["st"], wtd, d["wx"], d["wy"], d["dg"], d["b"], h, w)
+
+    ti.sync()
+    edges()
+    ti.sync()
+    ve = int((d["wx"].to_numpy()[:h, :w] > 0).sum() + (d["wy"].to_numpy()[:h, :w] > 0).sum())
+    (eb, ef), (_, vf) = COUNTS_CHAIN["rounds_assemble_edges"]()
+    taichi_row("rounds_assemble_edges", "^assemble_edges", edges, eb * hw, ef * hw + vf * 2 * ve, f64=True,
+               extra={"valid_edges": ve, "summary": f"{h}x{w}, {ve} edges",
+                      "note": "assemble_edges: level-0 weights, diagonal and right-hand side (each edge computed by "
+                              "both its pixels)"})
+
+    alpha = coarse_alpha(not wtd, False)
+
+    def coarsen():
+        for k in range(len(sh) - 1):
+            KW.coarsen(d["wx"], d["wy"], d["dg"], int(of[k]), sh[k][0], sh[k][1], int(of[k + 1]), sh[k + 1][0],
+                       sh[k + 1][1], alpha)
+
+    ((cb, cf),) = COUNTS_CHAIN["rounds_coarsen"]()
+    coarse = sum(pts[1:])
+    taichi_row("rounds_coarsen", "^coarsen", coarsen, cb * coarse, cf * coarse,
+               extra={**lv_info, "summary": f"{len(sh) - 1} calls, {coarse} coarse points",
+                      "note": "every level's coarsen call (two tasks each): small launches, their fixed costs "
+                              "dominate"})
+    hc, wc = sh[-1]
+
+    def gather():
+        KW.gather_level(d["wx"], d["wy"], int(of[len(sh) - 1]), hc, wc, F["lvl"])
+
+    ((gb, gf),) = COUNTS_CHAIN["rounds_gather_level"]()
+    taichi_row("rounds_gather_level", "^gather_level", gather, gb * hc * wc, gf * hc * wc,
+               extra={"summary": f"{hc}x{wc} cells", "note": "the coarsest level's weights for the host's "
+                                                              "pseudo-inverse (read back after it: not timed)"})
+    blk = integ._block_sums()
+
+    def residual_norm():  # (|b|^2: x = r, cleared by the integrator first; the work does not depend on x)
+        K.residual_norm(d["r"], d["b"], d["q"], d["wx"], d["wy"], d["dg"], d["sc"], h, w, blk)
+
+    (ra, ri) = COUNTS_CHAIN["rounds_residual_norm"]()
+    taichi_row("rounds_residual_norm", "^residual_norm", residual_norm, ra[0] * act[0] + ri[0] * (pts[0] - act[0]),
+               ra[1] * act[0] + ri[1] * (pts[0] - act[0]),
+               extra={"active": act[0], "summary": f"{h}x{w}, {act[0]} active",
+                      "note": "residual_norm as the CG's start runs it for |b|^2 (the sum's serial store too)"})
+    ((sa, si), (db, df)), vc = COUNTS_CHAIN["rounds_pcg_start"](), COUNTS_CHAIN["rounds_pcg_iteration"](nc)[1:]
+    vb, vf = _vcycle_work(vc, act, pts)
+    by = sa[0] * act[0] + si[0] * (pts[0] - act[0]) + db * pts[0] + vb
+    fl = sa[1] * act[0] + si[1] * (pts[0] - act[0]) + df * pts[0] + vf
+    taichi_row("rounds_pcg_start", "^pcg_start", start, by, fl,
+               extra={**lv_info, "summary": f"{h}x{w}, {len(pts)} levels",
+                      "note": "one pcg_start launch (cg_start, the first V-cycle, cg_first_direction: Taichi tasks)"})
+
+
+def _rounds_depth_rows(ctx, rounds, integ, d, info):
+    """The device integration's depth out, as :meth:`DeviceSystem._solve_assembled` runs it after the CG (Taichi,
+    each call timed on its own): the components' sums, the perspective's exp sums, the depth's write and fill."""
+    from gpps.kernels import poisson_weighted as KW
+
+    system = rounds.system
+    F = system._F
+    h, w = integ.shape
+    hw = h * w
+    persp = system._cam[0]
+    out = rounds._view()[1]
+    mp = int(integ.mask.sum())
+    valid = int(((F["cj"].to_numpy() > 0) & (F["lab"].to_numpy() >= 0)).sum())
+    xinfo = {**info, "valid_pixels": valid, "summary": f"{h}x{w}, {valid} valid px"}
+
+    def taichi_row(name, pattern, fn, by, fl, note):
+        t = _time_or_register(ctx, name, pattern, fn, inner=10, taichi=True, per_launch=None)
+        if t is not None:
+            row(ctx, name, t, by, fl, f64=True, extra={**xinfo, "note": note})
+
+    def sums():
+        KW.component_sums(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], F["cmax"], F["cmin"], F["st"], h, w)
+
+    (pb, pf), (vb, vf) = COUNTS_CHAIN["rounds_component_sums"]()
+    taichi_row("rounds_component_sums", "^component_sums", sums, pb * hw + vb * valid, pf * hw + vf * valid,
+               "component_sums: the clear of the H W component fields, the per-component sums (atomics), the span")
+    if persp:
+        def dexp():
+            KW.depth_exp(d["z"], F["cj"], F["lab"], F["cmax"], F["cden"], h, w)
+
+        (pb, pf), (vb, vf) = COUNTS_CHAIN["rounds_depth_exp"]()
+        taichi_row("rounds_depth_exp", "^depth_exp", dexp, pb * hw + vb * valid, pf * hw + vf * valid,
+                   "depth_exp: the per-component sums of exp(z - max z) (perspective)")
+
+    ref = 1.0
+
+    def write():
+        KW.depth_write(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], F["cmax"], F["cden"], F["st"], out, persp,
+                       ref, h, w)
+
+    (pb, pf), (vb, vf) = COUNTS_CHAIN["rounds_depth_write"]()
+    taichi_row("rounds_depth_write", "^depth_write", write, pb * hw + vb * valid, pf * hw + vf * valid,
+               "depth_write: the depth of the valid pixels (float32) and the fill value's sums")
+
+    def fill():
+        KW.depth_fill(F["cj"], F["lab"], F["mask"], F["st"], out, ref, 1.0, h, w)
+
+    (pb, pf), (ob, _), (mb, mf) = COUNTS_CHAIN["rounds_depth_fill"]()
+    taichi_row("rounds_depth_fill", "^depth_fill", fill, pb * hw + ob * (hw - mp) + mb * mp, pf * hw + mf * mp,
+               "depth_fill: outside the mask and the dropped pixels")
 
 
 def bench_chain(ctx, parts, images, samples, candidates, errors):
@@ -911,7 +1481,7 @@ def bench_chain(ctx, parts, images, samples, candidates, errors):
     jobs = {
         "dgmc": lambda: dgmc_rows(ctx, images),
         "scorer": lambda: [scorer_rows(ctx, n, samples, candidates) for n in dict.fromkeys((images, 3))],
-        "solve": lambda: [pixel_solve_rows(ctx, n) for n in dict.fromkeys((images, 3))],
+        "solve": lambda: [(pixel_solve_rows(ctx, n), least_squares_rows(ctx, n)) for n in dict.fromkeys((images, 3))],
         "lanes": lambda: (scorer_lanes_rows(ctx, images), pixel_solve_lanes_rows(ctx, images)),
         "bini": lambda: bini_rows(ctx),
         "search": lambda: search_rows(ctx, samples),
