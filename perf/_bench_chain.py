@@ -15,8 +15,10 @@ the stream), 16-bit with 0.5 % noise, divided by the light intensities.  Rows (`
   sweep's full work;
 * ``dgmc_start_search``: one launch of ``select_kernel`` (4.17-4.18);
 * the step's other kernels, one launch each (outputs into scratch arrays where a launch would change what another
-  row reads): ``dgmc_albedo_sample`` (``albedo_sample_kernel``, the reference albedo's sample) and ``dgmc_median``
-  (``median_kernel``, one thread; the radix sort between them is Warp's: no row), ``dgmc_saturation``
+  row reads): ``dgmc_start_normals`` (``start_normals_kernel``: :meth:`DeviceDGMC.upload`'s conversion of a solve's
+  float32 normals, as RON uploads its solver's), ``dgmc_albedo_sample`` (``albedo_sample_kernel``, the reference
+  albedo's sample) and ``dgmc_median`` (``median_kernel``, one thread; the radix sort between them is Warp's: no
+  row), ``dgmc_saturation``
   (``saturation_kernel``), the curvatures (4.16): ``dgmc_field`` (``field_kernel``), ``dgmc_correlate_i`` /
   ``dgmc_correlate_j`` (one ``correlate_kernel`` pass along each axis; a step runs 6, or 8 for the normals' field)
   and ``dgmc_curvature`` (``curvature_kernel``); the regions: ``dgmc_label_init``, ``dgmc_label_min`` (one step at
@@ -27,12 +29,21 @@ the stream), 16-bit with 0.5 % noise, divided by the light intensities.  Rows (`
   samples, RON's fit config (4 starts, no neighbour pass); ``scorer_step_fetch_<N>img``: ``step`` +
   ``fetch`` as RON calls them (host time, no ratio); ``scorer_starts_<N>img`` where the scorer runs its cold
   solves starts-parallel (CUDA): one :meth:`MaterialScorer.launch` of that build (``solve_starts_kernel``, one
-  thread a start, and ``solve_finish_kernel``, the pick), RON's first-round grid;
+  thread a start, and ``solve_finish_kernel``, the pick), RON's first-round grid; the sample's kernels, one launch
+  each, on a sample gathered from a least-squares ``PixelSolver``'s frame as RON does:
+  ``scorer_gather_samples_<N>img`` (``gather_samples_kernel``, :meth:`MaterialScorer.upload_from`),
+  ``scorer_prepare_samples_<N>img`` (``prepare_samples_kernel``, the sample's material-free terms) and
+  ``scorer_gather_start_<N>img`` (``gather_start_kernel``, :meth:`MaterialScorer.set_start` with ``frame``);
 * ``pixel_solve_<N>img`` (N = ``images`` and 3: the 256^2 x 3 case's build, starts-parallel on CUDA):
   :meth:`PixelSolver.step` on the whole image with the default :class:`SolverConfig` (10 starts, neighbour
-  pass): the offline normals step; ``least_squares_<N>img``: RON's first step, Woodham's least squares
+  pass): the offline normals step; ``pixel_solve_warm_<N>img``: RON's warm rounds (``RON._solve(..., cold=False)``:
+  that config with ``warm_start=True, starts=1``, the neighbour pass kept; never starts-parallel) from the solver's
+  own cold normals: :meth:`PixelSolver.step` (``solve_kernel`` and ``underdetermined_kernel``);
+  ``least_squares_<N>img``: RON's first step, Woodham's least squares
   (``PixelSolver`` with solver ``"none"``): one launch of its ``solve_kernel`` over the image (the CPU's row split
-  left out);
+  left out); ``merge_saved`` (3 images): one ``merge_saved_kernel`` launch over the image
+  (:meth:`PixelSolver.merge_saved` after ``save``, the cold solve, and a warm solve of the mask, as RON's cold
+  rounds with start normals);
 * ``bini_cg_iteration``: one Jacobi-PCG iteration of BiNI (one ``cg`` launch runs ``unroll`` of them;
   time / unroll), float64;
 * ``search_trimmed_rank``: one launch of the device material search's trimmed-energy rank kernel
@@ -46,6 +57,7 @@ the stream), 16-bit with 0.5 % noise, divided by the light intensities.  Rows (`
 * DGMC's solved front as RON runs it (least squares, DGMC's highlights and curvatures, the cold solve, then
   :func:`gpps.pipeline.front.propagate_front_device` on a :class:`DeviceFront`): ``front_step``:
   :meth:`DeviceFront.step` (the sources, then per ring mask, starts, warm solve and merge; no ratio);
+  ``front_curvature_in``: :meth:`DeviceFront.upload`'s two ``curvature_in_kernel`` launches (GC and MC);
   ``front_source``: one ``front_source_kernel`` over every ring pixel; on the largest ring one launch each of
   ``scatter_mask_kernel`` (``front_scatter_mask``), ``front_start_kernel`` (``front_start``) and
   ``front_merge_kernel`` (``front_merge``, keep_better on the merged ring); ``front_write_back`` (over the
@@ -123,6 +135,10 @@ COUNTS_CHAIN = {
     # 6), the light vector's kind test 1: 32; then the regularised 3x3 solve (eps added 9, inverse ~54, A^-1 r 15)
     # and |b| (6): 84.  Float64.
     "dgmc_albedo_sample": lambda n: ((12 * n, 32 * n + 84), (13, 4)),
+    # start_normals_kernel (DeviceDGMC.upload of a solve's float32 normals), per pixel: the normal 12 and mask 1 read,
+    # the float64 normal 24 written; 3 widenings, the mask and ok tests 2; per mask pixel: the length (3 mul, 2 add,
+    # sqrt: 6), the sub, abs and compare 3.  Float64.
+    "dgmc_start_normals": lambda: ((37, 5), (0, 9)),
     # median_kernel: one thread, the middle two of the sorted keys 16 B read, rho 8 written; halving, parity test,
     # add, divide: ~5.
     "dgmc_median": lambda: ((24, 5),),
@@ -177,10 +193,41 @@ COUNTS_CHAIN = {
     # point, view, start 12 each, gmax and flags 4 each.
     "scorer_solve": lambda e, lit, n: ((36, e * (EVAL_LIT * lit + EVAL_UNLIT * (n - lit) + EVAL_FIXED)),
                                        (16 * n + 44, 0)),
+    # The scorer's sample kernels (gpps.kernels.solve_batched; one thread a sample pixel).  gather_samples_kernel
+    # (MaterialScorer.upload_from: the solver's frame, its valid flags and depth read), per sample: its row and
+    # column 8 and depth 4 read, the strip's depth 4 written, the use_depth test 1; per image: the observation 12 and
+    # valid flag 1 read, strip 12 and strip_valid 1 written, the loop's step and test 2 and the use_valid test 1.
+    "scorer_gather_samples": lambda n: ((16 + 26 * n, 1 + 3 * n),),
+    # prepare_samples_kernel (the material-free part of solve_kernel: least_squares' work without its residual),
+    # per sample with fg of its n observations in the fit and fl in the least squares (as least_squares): bytes:
+    # the strip 12 n and strip_valid n, row, column, depth 12 read, weights 4 n, point, view, start normal 36 and
+    # gmax, flags, cond 12 written (the noise levels and the lights: cache hits).  FLOPs: per light grey_max 4 and the
+    # weights 14, the in-fit tests of the Gram and least-squares loops ~8: 26; per light in the fit the Gram 19; per
+    # light in the least squares 44 (least_squares'); per sample: the point and view direction ~22, cond_frobenius
+    # ~114, the flags ~5, the solution ~191: ~332.
+    "scorer_prepare_samples": lambda n, fg, fl: ((17 * n + 60, 332 + 26 * n + 19 * fg + 44 * fl),),
+    # gather_start_kernel (MaterialScorer.set_start(frame=...): warm starts from a solve's normals), per sample: row
+    # and column 8 and the frame's normal 12 read, the start 12 written; its length (3 mul, 2 add, sqrt: 6), the two
+    # compares and the and 3; per sample whose normal is not unit: Woodham's start 12 read.
+    "scorer_gather_start": lambda: ((32, 9), (12, 0)),
     # per masked pixel: e evaluations (all starts); images 12 N, valid N, weights written 4 N, depth 4;
     # every pixel: mask 1, outputs 40 (normal, albedo 12 each; residual, iterations, flags, cond 4 each).
     "pixel_solve": lambda e, lit, n: ((17 * n + 4, e * (EVAL_LIT * lit + EVAL_UNLIT * (n - lit) + EVAL_FIXED)),
                                       (41, 0)),
+    # the warm solve (RON's rounds after the cold ones: warm_start, one start): pixel_solve's counts with the warm
+    # solve's evaluations (its own and the neighbour pass's: the iterations output sums both), plus the start normal
+    # 12 read per masked pixel (the normals buffer, then overwritten).  (The neighbour pass's ring search, Weiszfeld
+    # medians and first-order fit of an under-determined pixel are not counted: as pixel_solve.)
+    "pixel_solve_warm": lambda e, lit, n: ((17 * n + 16, e * (EVAL_LIT * lit + EVAL_UNLIT * (n - lit) + EVAL_FIXED)),
+                                           (41, 0)),
+    # merge_saved_kernel (PixelSolver.merge_saved after save: a warm solve of the selected pixels merged into the
+    # saved cold one), per pixel: the selection byte 1 read and tested 1; per selected pixel: iterations, saved
+    # iterations, residual, saved residual 16 read, the sum 4 written; the add and the compare 2; per selected pixel
+    # with the lower residual: its flags 4 read, the and and test 2 (kept there where FLAG_FEW_OBSERVATIONS is
+    # clear: nothing more); per restored pixel (not selected, or selected and not kept): the saved normal, albedo,
+    # flags and cond 32 read, the five outputs (normal, albedo 12 each; residual, flags, cond 4 each) 36 written;
+    # per pixel not selected: the saved iterations 4 read and written 4, the saved residual 4 read.
+    "merge_saved": lambda: ((1, 1), (20, 2), (4, 2), (68, 0), (12, 0)),
     # solve_kernel of solver "none" (Woodham's least squares: gpps.kernels.solve_kernels' pixel_prelude, then
     # solve_common.store_least_squares; one thread a pixel, directional lights), per mask pixel with fg of its n
     # observations in the fit (weight != 0: kept or dark) and fl in the least squares (fg, or n where the lights'
@@ -253,6 +300,9 @@ COUNTS_CHAIN = {
     # front_source_normals_kernel, per ring pixel (all rings): its source 4 read, the normal 12 written; the
     # test, division and remainder 3; per distinct source: its merged normal 12 read.
     "front_source_normals": lambda: ((16, 3), (12, 0)),
+    # curvature_in_kernel (DeviceFront.upload: DGMC's device curvatures rounded to float32 and back, one launch a
+    # map; dim H x W), per pixel and map: the value 8 read, 8 written, the two casts 2.  Float64.
+    "front_curvature_in": lambda: ((16, 2),),
     # round_sums_kernel (RON's device rounds; one thread a run of ROUND_CHUNK pixels of a row), per mask pixel:
     # residual 4, normal 12, previous normal 12 read; float64: r^2 and its sum 3, 6 widenings, both |v|^2 10,
     # their tests 3, the cross product 9, its length 6 (sqrt 1), a.b 5, atan2 ~40 (a division and a polynomial
@@ -568,6 +618,15 @@ def _dgmc_other_rows(ctx, st, info, m, region):
             row(ctx, name, t, by, fl, f64=f64, extra={**info, **(extra or {})})
         return t
 
+    # the upload's conversion of a solve's float32 normals (RON uploads its solver's normals buffer): the stage's
+    # float64 normals as float32, into scratch
+    src_s = wp.array(st.normals.numpy().astype(np.float32), dtype=wp.vec3, device=dev)
+    nrm_s = wp.empty((h, w), dtype=wp.vec3d, device=dev)
+    ctx.keep.append((src_s, nrm_s))
+    (pb, pf), (qb, qf) = COUNTS_CHAIN["dgmc_start_normals"]()
+    one("dgmc_start_normals", dk.start_normals_kernel, (h, w), [src_s, st.mask, nrm_s], pb * hw + qb * mp,
+        pf * hw + qf * mp, f64=True, extra={"summary": f"{h}x{w} px, {mp} in the mask",
+                                             "note": "DeviceDGMC.upload of a solve's float32 normals (into scratch)"})
     if cfg.rule == "lambertian":
         (pb, pf), (ab, af) = COUNTS_CHAIN["dgmc_albedo_sample"](n)
         one("dgmc_albedo_sample", dk.albedo_sample_kernel, (h, w),
@@ -738,6 +797,84 @@ def scorer_rows(ctx, n_images, samples, n_cand):
     ctx.keep.append(scorer)
 
 
+def scorer_sample_rows(ctx, n_images, samples, n_cand):
+    """The scorer's sample kernels as RON launches them, one launch each: the gather of the sample from a
+    :class:`PixelSolver`'s frame (:meth:`MaterialScorer.upload_from`: ``gather_samples_kernel``), the sample's
+    material-free terms (``prepare_samples_kernel``, :meth:`MaterialScorer.upload` too) and the warm starts from
+    the solver's normals (:meth:`MaterialScorer.set_start` with ``frame``: ``gather_start_kernel``).  The solver is
+    RON's first step (least squares: its normals stand in for a round's; the gather tests only that they are
+    unit)."""
+    from gpps.kernels import solve_batched as sb
+    from gpps.pipeline.solver import PixelSolver, SolverConfig
+
+    wp = _wp()
+    dev = ctx.device
+    t0 = time.perf_counter()
+    sc, mat, lights, img, scorer, p = _sample_scorer(ctx, n_images, samples, n_cand)
+    ps = PixelSolver(img.shape[:3], sc.camera, lights, mat, replace(SolverConfig(), solver="none", smoothness=0.0),
+                     device=dev)
+    ctx.keep.extend([scorer, ps])
+    ps.upload(img, sc.mask)
+    ps.step()
+    sample = np.zeros(sc.mask.shape, bool)
+    sample[scorer.rows_host, scorer.cols_host] = True
+    scorer.upload_from(ps, sample)
+    scorer.set_start(frame=ps.normals)
+    _sync(ctx)
+    ctx.log(f"[chain {ctx.size}] scorer sample {n_images} images, P={p}: solve, gather and start "
+            f"{time.perf_counter() - t0:.1f}s")
+    info = {"images": n_images, "samples": p}
+
+    def gather():  # (upload_from's: the solver's valid flags and depth read)
+        wp.launch(sb.gather_samples_kernel, dim=p,
+                  inputs=[ps.images, ps.valid, ps.depth, scorer.rows, scorer.cols, 1, 1],
+                  outputs=[scorer.strip, scorer.strip_valid, scorer.sample_depth], device=dev)
+
+    name = f"scorer_gather_samples_{n_images}img"
+    t = _time_or_register(ctx, name, "^gather_samples_kernel_", gather, inner=20)
+    if t is not None:
+        ((gb, gf),) = COUNTS_CHAIN["scorer_gather_samples"](n_images)
+        row(ctx, name, t, gb * p, gf * p,
+            extra={**info, "summary": f"P={p} x {n_images} observations",
+                   "note": "MaterialScorer.upload_from's gather from the solver's frame (valid and depth read)"})
+
+    # (recorded once: a plain CPU launch re-packs its struct arguments every time)
+    cmd = wp.launch(sb.prepare_samples_kernel, dim=p,
+                    inputs=[scorer.strip, scorer.strip_valid, scorer.rows, scorer.cols, scorer.sample_depth,
+                            scorer.noise, scorer.cam, scorer.lp, scorer.prm],
+                    outputs=[scorer.base_weights, scorer.points, scorer.views, scorer.ninit, scorer.gmax,
+                             scorer.flags, scorer.cond], device=dev, record_cmd=True)
+    name = f"scorer_prepare_samples_{n_images}img"
+    t = _time_or_register(ctx, name, "^prepare_samples_kernel_", cmd.launch, inner=20)
+    if t is not None:
+        from gpps.names import ASIDE_WEIGHT, FLAG_WOODHAM_FALLBACK
+
+        wt = scorer.base_weights.numpy()[:, 0, :p]  # (N, P)
+        fg = ((wt != 0.0) & (wt != ASIDE_WEIGHT)).sum(0).astype(np.float64)
+        fallback = (scorer.flags.numpy()[:p] & int(FLAG_WOODHAM_FALLBACK)) != 0
+        fl = np.where(fallback, float(n_images), fg)
+        ((qb, qf),) = COUNTS_CHAIN["scorer_prepare_samples"](n_images, fg, fl)
+        row(ctx, name, t, qb * p, float(np.sum(qf)),
+            extra={**info, "mean_in_fit": float(fg.mean()), "woodham_fallback": int(fallback.sum()),
+                   "summary": f"P={p}, {fg.mean():.1f}/{n_images} observations in the fit",
+                   "note": "MaterialScorer's prepare (upload, upload_from): weights, flags, the lights' condition "
+                           "and Woodham's start of every sample pixel"})
+
+    def start():
+        wp.launch(sb.gather_start_kernel, dim=p, inputs=[ps.normals, scorer.rows, scorer.cols, scorer.ninit],
+                  outputs=[scorer.nwarm], device=dev)
+
+    name = f"scorer_gather_start_{n_images}img"
+    t = _time_or_register(ctx, name, "^gather_start_kernel_", start, inner=20)
+    if t is not None:
+        ln = np.linalg.norm(ps.normals.numpy()[scorer.rows_host, scorer.cols_host].astype(np.float64), axis=1)
+        off = int(np.sum(~((ln > 0.999) & (ln < 1.001))))
+        (sb_, sf), (ob, _) = COUNTS_CHAIN["scorer_gather_start"]()
+        row(ctx, name, t, sb_ * p + ob * off, sf * p,
+            extra={**info, "not_unit": off, "summary": f"P={p}, {off} not unit",
+                   "note": "MaterialScorer.set_start(frame=...): the sample's warm starts from the solver's normals"})
+
+
 def scorer_lanes_rows(ctx, n_images, samples=500, n_cand=4):
     """The scorer's lights-parallel build (``parallel="lights"``: one 32-lane block a (candidate, pixel)
     solve), at the size where ``"auto"`` picks it: a later round's K x P <= 500 x N solves."""
@@ -846,6 +983,106 @@ def pixel_solve_rows(ctx, n_images):
                    "summary": f"{ev.mean():.1f} evaluations/px",
                    "note": f"{what}, default SolverConfig"})
     ctx.keep.append(ps)
+
+
+def pixel_solve_warm_rows(ctx, n_images):
+    """RON's warm solve (its rounds after the cold ones, ``RON._solve(..., cold=False)``): the default
+    :class:`SolverConfig` with ``warm_start=True, starts=1`` (the neighbour pass kept) from the solver's own cold
+    normals, :meth:`PixelSolver.step` over the whole image."""
+    from gpps.pipeline.solver import PixelSolver, SolverConfig
+
+    t0 = time.perf_counter()
+    sc, mat, lights, img = ball_scene(ctx.size, n_images, ctx.device)
+    m = sc.mask
+    h, w = m.shape
+    ps = PixelSolver(img.shape[:3], sc.camera, lights, mat, SolverConfig(), device=ctx.device)
+    ctx.keep.append(ps)
+    ps.upload(img, m)
+    ps.step()  # the cold rounds' solve
+    cold = ps.fetch(("normals", "iterations"))
+    cfg = replace(SolverConfig(), warm_start=True, starts=1)  # RON's warm rounds
+    ps.set_config(cfg)
+    ps.set_start(cold["normals"])  # (RON: the previous round's normals)
+    ps.step()
+    _sync(ctx)
+    ctx.log(f"[chain {ctx.size}] warm pixel solve {n_images} images: cold and first warm solve "
+            f"{time.perf_counter() - t0:.1f}s")
+    name = f"pixel_solve_warm_{n_images}img"
+    # the kernels ps.step launches with a warm config: the solve (never starts-parallel: one start; its
+    # lights-parallel form where config.parallel picks it), then the neighbour pass, underdetermined_kernel
+    # (starts-parallel only where the config's whole-image solve is: never warm)
+    lanes, split = ps._uses_lanes(), ps._uses_split()
+    if split:
+        raise RuntimeError(f"{name}: a warm config runs starts-parallel ({cfg})")
+    solve = ps._lanes_kernel if lanes else ps._solve_kernel
+    under = cfg.neighbour_radius > 0 and ps._underdetermined_kernel is not None
+    keys = [solve.key] + ([ps._underdetermined_kernel.key] if under else [])
+    t = _time_or_register(ctx, name, f"^({'|'.join(keys)})_", ps.step, inner=2, per_launch=len(keys))
+    if t is not None:
+        from gpps.host.metrics import normal_errors
+        from gpps.names import FLAG_FEW_OBSERVATIONS
+
+        out = ps.fetch(("normals", "iterations", "flags"))
+        ev = out["iterations"][m].astype(np.float64)
+        few = (out["flags"][m] & int(FLAG_FEW_OBSERVATIONS)) != 0
+        lit = lit_count(sc.normals[m], lights.directions)
+        (pb, pf), (ab, _) = COUNTS_CHAIN["pixel_solve_warm"](ev, lit, n_images)
+        row(ctx, name, t, pb * ev.size + ab * h * w, float(np.sum(pf)),
+            extra={"images": n_images, "mask_pixels": int(ev.size), "mean_evaluations": float(ev.mean()),
+                   "cold_mean_evaluations": float(cold["iterations"][m].mean()),
+                   "neighbour_pass_pixels": int(few.sum()),
+                   "neighbour_pass_mean_evaluations": float(ev[few].mean()) if few.any() else 0.0,
+                   "mean_lit": float(lit.mean()), "maen_deg": normal_errors(out["normals"], sc.normals, m)["mean"],
+                   "summary": f"{ev.mean():.1f} evaluations/px, {int(few.sum())} px in the neighbour pass",
+                   "note": " + ".join(["solve_kernel_lanes" if lanes else "solve_kernel"]
+                                      + (["underdetermined_kernel (the neighbour pass)"] if under else []))
+                           + ", default SolverConfig with warm_start=True, starts=1 (RON's warm rounds), from the "
+                             "solver's own cold normals: at the solution the LM stops after a few evaluations, as "
+                             "RON's warm rounds do from the previous round's normals (representative)"})
+
+
+def merge_saved_rows(ctx, n_images=3):
+    """:meth:`PixelSolver.merge_saved` as RON's cold rounds with start normals run it (``RON._solve`` with
+    ``init``): the cold solve of the mask, :meth:`PixelSolver.save`, the warm solve of the mask (one start, no
+    neighbour pass) from the cold normals, then the merge: one ``merge_saved_kernel`` launch over the image (3 images:
+    RON's 256^2 x 3 case; the kernel reads no observations)."""
+    from gpps.names import FLAG_FEW_OBSERVATIONS
+    from gpps.pipeline.solver import PixelSolver, SolverConfig
+
+    t0 = time.perf_counter()
+    sc, mat, lights, img = ball_scene(ctx.size, n_images, ctx.device)
+    m = sc.mask
+    h, w = m.shape
+    cfg = SolverConfig()
+    ps = PixelSolver(img.shape[:3], sc.camera, lights, mat, cfg, device=ctx.device)
+    ctx.keep.append(ps)
+    ps.upload(img, m)
+    ps.step()
+    start = ps.fetch(("normals",))["normals"]
+    ps.save()
+    ps.set_config(replace(cfg, warm_start=True, starts=1, neighbour_radius=0, smoothness=0.0))
+    ps.set_start(start)  # (RON: the previous round's normals)
+    ps.step()
+    ps.merge_saved()
+    _sync(ctx)
+    ctx.log(f"[chain {ctx.size}] merge {n_images} images: cold and warm solves, first merge "
+            f"{time.perf_counter() - t0:.1f}s")
+    t = _time_or_register(ctx, "merge_saved", "^merge_saved_kernel_", ps.merge_saved, inner=20)
+    if t is not None:
+        sel = ps.mask.numpy().astype(bool)
+        sv = ps._saved
+        lower = sel & (ps.residual.numpy() < sv["residual"].numpy())
+        kept = lower & ((ps.flags.numpy() & int(FLAG_FEW_OBSERVATIONS)) == 0)
+        restored = ~kept
+        n_sel, n_lower, n_kept, n_rest = (int(x.sum()) for x in (sel, lower, kept, restored))
+        (xb, xf), (sb, sf), (lb, lf), (rb, _), (ub, _) = COUNTS_CHAIN["merge_saved"]()
+        hw = h * w
+        row(ctx, "merge_saved", t, xb * hw + sb * n_sel + lb * n_lower + rb * n_rest + ub * (hw - n_sel),
+            xf * hw + sf * n_sel + lf * n_lower,
+            extra={"images": n_images, "selected_pixels": n_sel, "kept_pixels": n_kept, "restored_pixels": n_rest,
+                   "summary": f"{h}x{w} px, {n_kept}/{n_sel} selected kept",
+                   "note": "merge_saved_kernel, one launch over the image after a warm solve of the mask from the "
+                           "cold normals (in place: the timed launches keep and restore the same pixels)"})
 
 
 def least_squares_rows(ctx, n_images):
@@ -1132,6 +1369,18 @@ def front_rows(ctx, n_images):
         row(ctx, "front_step", t, extra={**info, "summary": f"{n_rings} rings, {p_all} px",
                                           "note": "DeviceFront.step: the sources, then per ring the mask, starts, "
                                                   "warm solve (PixelSolver.step) and merge (host time, no ratio)"})
+
+    def curvature_in():  # (DeviceFront.upload's two launches: the same values written again)
+        for a, buf in ((dgmc.gc, front.gc), (dgmc.mc, front.mc)):
+            wp.launch(fk.curvature_in_kernel, dim=(h, w), inputs=[a], outputs=[buf], device=ctx.device)
+
+    t = _time_or_register(ctx, "front_curvature_in", "^curvature_in_kernel_", curvature_in, inner=10, per_launch=2)
+    if t is not None:
+        ((cb, cf),) = COUNTS_CHAIN["front_curvature_in"]()
+        row(ctx, "front_curvature_in", t, cb * 2 * h * w, cf * 2 * h * w, f64=True,
+            extra={**info, "summary": f"{h}x{w} px x 2 maps",
+                   "note": "DeviceFront.upload: DGMC's device curvatures (GC and MC) rounded to float32, one "
+                           "launch a map"})
 
     def source():
         wp.launch(fk.front_source_kernel, dim=p_all,
@@ -1480,8 +1729,10 @@ def bench_chain(ctx, parts, images, samples, candidates, errors):
 
     jobs = {
         "dgmc": lambda: dgmc_rows(ctx, images),
-        "scorer": lambda: [scorer_rows(ctx, n, samples, candidates) for n in dict.fromkeys((images, 3))],
-        "solve": lambda: [(pixel_solve_rows(ctx, n), least_squares_rows(ctx, n)) for n in dict.fromkeys((images, 3))],
+        "scorer": lambda: [(scorer_rows(ctx, n, samples, candidates), scorer_sample_rows(ctx, n, samples, candidates))
+                           for n in dict.fromkeys((images, 3))],
+        "solve": lambda: ([(pixel_solve_rows(ctx, n), pixel_solve_warm_rows(ctx, n), least_squares_rows(ctx, n))
+                           for n in dict.fromkeys((images, 3))], merge_saved_rows(ctx)),
         "lanes": lambda: (scorer_lanes_rows(ctx, images), pixel_solve_lanes_rows(ctx, images)),
         "bini": lambda: bini_rows(ctx),
         "search": lambda: search_rows(ctx, samples),
