@@ -278,12 +278,16 @@ COUNTS_CHAIN = {
     # DGMC's solved front (gpps.kernels.front; one thread a ring pixel unless said).  front_source_kernel, per ring
     # pixel (all rings, one launch): its index, level 4, GC/MC 16 read, its source 4 written (the neighbours'
     # levels and curvatures: cache); index 2 and loads ~2, the widening loop's test every step (ws + 1); per
-    # step scanned (entered still searching): 8 neighbour slots, each the offset decoded from r (~6), a, b (2),
-    # the gate found < 0 and 4 bounds (9: Warp evaluates every operand), 17, and the tolerance's product 1;
-    # per slot gated in (in bounds) the level compare 1; per solved neighbour reached the first-candidate test
-    # and the curvature flag 2 and the test 11 (2 sub, 4 abs, 2 mul, 2 compares, and).  The tests are float64, the
-    # bulk of the ops integer: the float32 bound (as dgmc_start_search).
-    "front_source": lambda steps, gated, checks, ws: ((28, 4 + (ws + 1) + 137 * steps + gated + 13 * checks),),
+    # step scanned (entered still searching): 8 neighbour slots, each the offset decoded from r (~6), a, b (2) and
+    # the gate's found < 0 (1): 9, and the tolerance's product 1: 73; Warp's `and` short-circuits (its generated
+    # code tests each operand only after the previous one held), so a slot still searching adds 2 (compare, and)
+    # per bound test evaluated, up to the first that fails (``bounds``, counted on the host); per slot gated in (in
+    # bounds) the level compare 1; per solved neighbour reached the first-candidate test and the curvature flag 2
+    # and the Gaussian curvature's half of the test 5 (sub, 2 abs, mul, compare), and where that half holds the
+    # mean curvature's 5 and the and 1 (``second``).  The tests are float64, the bulk of the ops integer: the
+    # float32 bound (as dgmc_start_search).
+    "front_source": lambda steps, bounds, gated, checks, second, ws: (
+        (28, 4 + (ws + 1) + 73 * steps + 2 * bounds + gated + 7 * checks + 6 * second),),
     # scatter_mask_kernel (PixelSolver.select_pixels), per ring pixel: its index 4 read, the mask byte written;
     # start + t, p // W, p % W.
     "front_scatter_mask": lambda: ((5, 3),),
@@ -459,6 +463,14 @@ def _time_or_register(ctx, label, pattern, launch, inner=20, taichi=False, per_l
 
         return ctx.median_time(launch, ti.sync, ctx.repeat, inner=inner)
     return ctx.graph_time(_wp(), launch, ctx.device, ctx.repeat, inner=inner)
+
+
+def _taichi_row(ctx, name, pattern, fn, by, fl, *, f64=False, extra=None, inner=10):
+    """A Taichi call's row: timed with ``ti.sync`` (or registered for the profiler, its tasks matched by
+    ``pattern``), with its counts ``by`` and ``fl``."""
+    t = _time_or_register(ctx, name, pattern, fn, inner=inner, taichi=True, per_launch=None)
+    if t is not None:
+        row(ctx, name, t, by, fl, f64=f64, extra=extra)
 
 
 # ----------------------------------------------------------------------------- DGMC
@@ -1280,10 +1292,12 @@ def search_rows(ctx, samples):
 
 
 def _front_source_work(front, cfg, curv):
-    """Per ring pixel of ``front`` (all rings, in list order): the steps the widening loop of
-    :func:`gpps.kernels.front.front_source_kernel` scans, the neighbour slots gated in (in bounds, still
-    searching) and the solved neighbours it tests, replayed on the host from the front's level map and
-    curvatures (the kernel's float64 tests, its tolerance products in its order)."""
+    """Per ring pixel of ``front`` (all rings, in list order), replayed on the host from the front's level map and
+    curvatures (the kernel's float64 tests, its tolerance products in its order) with Warp's short-circuit `and`
+    (:func:`gpps.kernels.front.front_source_kernel`): the steps the widening loop scans, the bound tests evaluated
+    in the slots still searching (up to the first that fails), the slots gated in (in bounds, still searching),
+    the solved neighbours tested and those whose Gaussian-curvature half of the test held (the mean curvature's
+    half evaluated)."""
     pixels = front._plan[1].astype(np.int64)
     level = front.level.numpy()
     gc, mc = front.gc.numpy(), front.mc.numpy()
@@ -1293,27 +1307,33 @@ def _front_source_work(front, cfg, curv):
     dj = np.array([0, -1, 1, 0, -1, 1, -1, 1])
     a, b = i[:, None] + di, j[:, None] + dj
     inb = (a >= 0) & (a < h) & (b >= 0) & (b < w)
+    # bound tests evaluated: a >= 0, a < h, b >= 0, b < w, stopping at the first false
+    tests = np.where(a < 0, 1, np.where(a >= h, 2, np.where(b < 0, 3, 4)))
     ac, bc = np.clip(a, 0, h - 1), np.clip(b, 0, w - 1)
     solved = inb & (level[ac, bc] < level[i, j][:, None])
     gp, mp = gc[i, j][:, None], mc[i, j][:, None]
     searching = np.ones(pixels.size, bool)
-    steps, gated, checks = (np.zeros(pixels.size) for _ in range(3))
+    steps, bounds, gated, checks, second = (np.zeros(pixels.size) for _ in range(5))
     tt = np.float64(cfg.tolerance)
     slot = np.arange(8)[None, :]
     for _ in range(int(cfg.widen_steps) + 1):
         upto = np.ones((pixels.size, 8), bool)
         hit = np.zeros(pixels.size, bool)
+        g_ok = np.zeros((pixels.size, 8), bool)
         if curv:
-            ok = solved & (np.abs(gc[ac, bc] - gp) <= tt * np.abs(gp)) & (np.abs(mc[ac, bc] - mp) <= tt * np.abs(mp))
+            g_ok = solved & (np.abs(gc[ac, bc] - gp) <= tt * np.abs(gp))
+            ok = g_ok & (np.abs(mc[ac, bc] - mp) <= tt * np.abs(mp))
             hit = searching & ok.any(1)
             upto = np.where(hit[:, None], slot <= ok.argmax(1)[:, None], True)
         live = searching[:, None] & upto
         steps += searching
+        bounds += np.where(live, tests, 0).sum(1)
         gated += (live & inb).sum(1)
         checks += (live & solved).sum(1)
+        second += (live & g_ok).sum(1)
         searching &= ~hit
         tt = tt * np.float64(cfg.widen_factor)
-    return steps, gated, checks
+    return steps, bounds, gated, checks, second
 
 
 def front_rows(ctx, n_images):
@@ -1390,8 +1410,8 @@ def front_rows(ctx, n_images):
 
     t = _time_or_register(ctx, "front_source", "front_source_kernel", source, inner=10)
     if t is not None:
-        steps, gated, checks = _front_source_work(front, cfg, curv)
-        ((pb, pf),) = COUNTS_CHAIN["front_source"](steps, gated, checks, int(cfg.widen_steps))
+        steps, bounds, gated, checks, second = _front_source_work(front, cfg, curv)
+        ((pb, pf),) = COUNTS_CHAIN["front_source"](steps, bounds, gated, checks, second, int(cfg.widen_steps))
         row(ctx, "front_source", t, pb * p_all, float(np.sum(pf)),
             extra={**info, "mean_steps": float(steps.mean()), "mean_tests": float(checks.mean()),
                    "summary": f"{p_all} px, {steps.mean():.2f} steps, {checks.mean():.1f} tests/px",
@@ -1604,9 +1624,7 @@ def _rounds_assembly_rows(ctx, rounds, integ, d, info, lv_info, start):
     mp = int(integ.mask.sum())
 
     def taichi_row(name, pattern, fn, by, fl, f64=False, extra=None, inner=10):
-        t = _time_or_register(ctx, name, pattern, fn, inner=inner, taichi=True, per_launch=None)
-        if t is not None:
-            row(ctx, name, t, by, fl, f64=f64, extra={**info, **(extra or {})})
+        _taichi_row(ctx, name, pattern, fn, by, fl, f64=f64, extra={**info, **(extra or {})}, inner=inner)
 
     def assemble():
         KW.assemble_pixels(nrm, F["mask"], F["gj"], F["gi"], F["cj"], F["ci"], F["st"], cam[0], wtd, *cam[1:],
@@ -1687,9 +1705,7 @@ def _rounds_depth_rows(ctx, rounds, integ, d, info):
     xinfo = {**info, "valid_pixels": valid, "summary": f"{h}x{w}, {valid} valid px"}
 
     def taichi_row(name, pattern, fn, by, fl, note):
-        t = _time_or_register(ctx, name, pattern, fn, inner=10, taichi=True, per_launch=None)
-        if t is not None:
-            row(ctx, name, t, by, fl, f64=True, extra={**xinfo, "note": note})
+        _taichi_row(ctx, name, pattern, fn, by, fl, f64=True, extra={**xinfo, "note": note})
 
     def sums():
         KW.component_sums(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], F["cmax"], F["cmin"], F["st"], h, w)

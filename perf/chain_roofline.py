@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 
 
@@ -27,11 +28,12 @@ def lines(bench: dict, ncu: dict, why: dict) -> list[str]:
         ms = f"{b['seconds'] * 1e3:.3f}" if "seconds" in b else "-"
         bound = b.get("limited_by", "-")
         items = list(kernels.items())
-        taichi = len(items) > 4 and all("_c" in k and ("range_for" in k or "serial" in k) for k, _ in items)
+        taichi = all(re.search(r"_c\d+_\d+_kernel_\d+_(range_for|serial)$", k) for k, _ in items)  # Taichi tasks
         if taichi:  # one line for the task list
             dur = sum(v.get("duration_ns", 0.0) for _, v in items) / 1e3
-            occ = [v.get("achieved_occupancy_pct", 0.0) for _, v in items if "range_for" in _]
-            iss = [v.get("issue_slots_pct", 0.0) for _, v in items if "range_for" in _]
+            par = [v for k, v in items if k.endswith("range_for")] or [v for _, v in items]  # (the parallel tasks)
+            occ = [v.get("achieved_occupancy_pct", 0.0) for v in par]
+            iss = [v.get("issue_slots_pct", 0.0) for v in par]
             dram = [v.get("dram_throughput_pct", 0.0) for _, v in items]
             name = items[0][0].rsplit("_kernel_", 1)[0] + f" ({len(items)} tasks)"
             out.append(f"| {row} | {ms} | {ratio} | {bound} | {name} | {items[0][1].get('launches', '')} | "

@@ -116,3 +116,8 @@ def test_roofline_table_puts_each_rows_counters_beside_its_ratio():
     assert body[0].startswith("| pixel_solve_3img | 1.393 | 29.5 | compute | split_starts_kernel")
     assert "| 128 | 25.0 / 16.5 | 47.7 | 20.7 | 0.0 | 15.6 | 1.4 | 12.9 | 850.6 | latency-bound |" in body[0]
     assert "(5 tasks)" in body[2] and "| 191.2 |" in body[2] and "| 15.0 |" in body[2]  # 5 x 3 us
+    # a Taichi call of two tasks (a serial one and a loop) is folded too, its occupancy read from the loop
+    two = {"summary": {"rounds_depth_write": {"depth_write_c146_0_kernel_0_serial": dict(task, achieved_occupancy_pct=1.5),
+                                              "depth_write_c146_0_kernel_1_range_for": task}}}
+    (line,) = chain_roofline.lines({"rows": []}, two, {})[2:]
+    assert "(2 tasks)" in line and "| - / 9.0-9.0 |" in line
