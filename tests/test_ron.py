@@ -13,6 +13,7 @@ import pytest
 
 import gpps
 from cases import depth_error
+from conftest import RENDER_DEVICE
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
 from gpps.host.metrics import angular_error
@@ -190,6 +191,66 @@ def test_warm_rounds_match_cold_rounds(device):
     assert e_warm <= max(1.1 * e_cold, e_cold + 0.02), (e_warm, e_cold)
     for k, v in est_cold.items():
         assert est_warm[k] == pytest.approx(v, rel=0.02), (est_warm, est_cold)
+
+
+def test_material_fixed_point_stops_the_rounds(device):
+    """The rounds stop at their fixed point (RON._material_settled): the last material fit moved no parameter by its
+    resolution and the normals by less than ``tol_normals_deg``, even when the energy's last digits still move by
+    more than ``tol``.  Issue 20's capture (Cook-Torrance bumps, perspective, 3 lights, 16-bit, 256^2) is such a
+    case: its fourth round's energy moves 0.27 % (the noise floor's digits), its normals 0.008 deg.  Another round
+    (``tol_normals_deg=0``: no stop before the cap) must reproduce it, or the stop was not a fixed point."""
+    import sys
+    from pathlib import Path
+
+    from gpps.flows import ron as ron_mod
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "perf"))
+    from _common import reconstruct_inputs
+
+    c = reconstruct_inputs(256, 3, RENDER_DEVICE)
+    recs = {}
+    for name, cfg in (("default", None), ("capped", RONConfig(tol_normals_deg=0.0))):
+        recs[name] = gpps.reconstruct(c["images"], c["mask"], c["lights"], camera=c["camera"],
+                                      material="cook-torrance", config=cfg, device=device)
+    a, b = recs["default"], recs["capped"]
+    cfg = RONConfig()
+    assert a.converged and a.rounds < cfg.rounds and not b.converged and b.rounds == cfg.rounds
+    e, ch = a.details.energy, a.details.normal_change_deg
+    assert ch[-1] < cfg.tol_normals_deg
+    assert abs(e[-1] - e[-2]) / e[-2] >= cfg.tol  # (the energy test alone would have gone on)
+    fits = a.details.material_fit
+    assert len(fits) == a.rounds - 1 and not fits[-1]["grid"]
+    assert np.all(np.abs(np.log([fits[-1]["values"][k] / fits[-2]["values"][k] for k in fits[-1]["values"]]))
+                  < ron_mod._XATOL)
+    # the rounds after the stop change nothing the caller could see
+    assert angular_error(a.normals, b.normals, c["mask"])[c["mask"]].mean() < 0.01
+    for k, v in b.estimated.items():
+        assert abs(np.log(a.estimated[k] / v)) < ron_mod._XATOL, (a.estimated, b.estimated)
+    for rec in (a, b):
+        assert gpps.normal_errors(rec.normals, c["normals"], c["mask"])["mean"] < 0.02
+
+
+def test_material_settled_needs_a_fine_fit_that_did_not_move():
+    """RON._material_settled's predicate on its own: a later (non-grid) photometric fit whose every parameter moved
+    less than _XATOL (log units); never the first (grid) fit, the depth-rms rule or nothing estimated."""
+    from types import SimpleNamespace
+
+    from gpps.flows import ron as ron_mod
+
+    tiny, big = np.array([0.5, -0.5]) * ron_mod._XATOL, np.array([0.5, 2.0]) * ron_mod._XATOL
+    fine, grid = {"rule": "photometric", "grid": False}, {"rule": "photometric", "grid": True}
+    cfg = RONConfig(estimate=("ks", "roughness"))
+
+    def settled(fits, move, config=cfg):
+        return RON._material_settled(SimpleNamespace(config=config, _last_move=move), fits)
+
+    assert settled([grid, fine], tiny)
+    assert not settled([grid, fine], big)
+    assert not settled([grid], tiny)  # (the coarse first fit)
+    assert not settled([grid, fine], None)
+    assert not settled([], tiny)
+    assert not settled([grid, {"rule": "depth-rms", "values": {}}], tiny)
+    assert not settled([grid, fine], tiny, RONConfig(estimate=()))
 
 
 def test_reconstruct_known_material_is_solve_then_integrate(device):

@@ -204,8 +204,9 @@ class RONConfig:
 
     Attributes:
         rounds: cap on rounds of Algorithm 2.
-        tol: stop when the energy changes by less than this fraction between
-            rounds and the normals by less than ``tol_normals_deg`` on average.
+        tol: stop when the normals change by less than ``tol_normals_deg`` on average between rounds and either
+            the energy by less than this fraction or (photometric estimation, from round 3 on) the last material
+            fit moved no parameter by its resolution (the rounds' fixed point: :meth:`RON._material_settled`).
         tol_normals_deg: see ``tol`` (degrees).
         dgmc: start highlight pixels from DGMC normals (4.16-4.18) in round 1.
         dgmc_config: the DGMC settings.
@@ -1018,6 +1019,25 @@ class RON:
             info["ambiguity"] = ambiguity
         return with_lobe(material, values), info
 
+    def _material_settled(self, fits: list) -> bool:
+        """Whether the material is at its fixed point: the last fit was a later (fine) one and it moved every
+        estimated parameter by less than its own resolution (``_XATOL``, log units) from the material this round's
+        normals were solved with.
+
+        With the normals also changed by less than ``tol_normals_deg``, the round is then a fixed point of
+        Algorithm 2 (5): the next fit would start from the same material with normals it cannot tell apart, so
+        another round reproduces this one; the relative energy test need not hold as well.  That test alone
+        misreads the rounds near the noise floor, where the energy is the noise's and its last digits move by more
+        than ``tol`` between rounds whose normals and material no longer change (the 256^2 x 3 case of issue 20: a
+        fourth fit that returned the third's values exactly, and a fifth round whose normals moved 8e-6 deg).
+        """
+        c = self.config
+        if not (c.estimate and c.material_rule == "photometric" and fits) or self._last_move is None:
+            return False
+        last = fits[-1]
+        return (not last.get("grid", True) and last.get("rule") == "photometric"
+                and bool(np.all(np.abs(self._last_move) < _XATOL)))
+
     def _device_loop(self) -> bool:
         """Whether Nelder-Mead's steps run on the device (``RONConfig.material_loop``)."""
         loop = self.config.material_loop
@@ -1320,7 +1340,7 @@ class RON:
             # a photometric estimate is final only after a later (fine) fit: the first one is coarse
             if r > (2 if estimating and c.material_rule == "photometric" else 1):
                 de = abs(energies[-1] - energies[-2]) / max(energies[-2], 1e-300)
-                if de < c.tol and changes[-1] < c.tol_normals_deg:
+                if changes[-1] < c.tol_normals_deg and (de < c.tol or self._material_settled(fits)):
                     converged = True
                     break
             if r == c.rounds:
