@@ -124,13 +124,15 @@ def reconstruct_case(size: int, n: int, device):
     return call
 
 
-def reconstructor_case(size: int, n: int, device):
+def reconstructor_case(size: int, n: int, device, *, known: bool = False):
     """:func:`reconstruct_case` through one kept ``gpps.Reconstructor`` (its stages built at the first call and kept):
-    ``call() -> (Reconstruction, maen)``; ``call.close()`` releases the stages."""
+    ``call() -> (Reconstruction, maen)``; ``call.close()`` releases the stages.  ``known``: the rendered material
+    given (Cook-Torrance ks 0.8, roughness 0.2, f0 0.5: no estimation)."""
     import gpps
 
     c = reconstruct_inputs(size, n, device)
-    rc = gpps.Reconstructor(c["mask"], c["lights"], camera=c["camera"], material="cook-torrance", device=device)
+    mat = gpps.Material("cook-torrance", ks=0.8, roughness=0.2, f0=0.5) if known else "cook-torrance"
+    rc = gpps.Reconstructor(c["mask"], c["lights"], camera=c["camera"], material=mat, device=device)
 
     def call():
         rec = rc(c["images"])

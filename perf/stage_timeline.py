@@ -7,7 +7,11 @@ synchronisation costs a little and removes overlap between host and device, so t
 than an unwrapped call; use it to see which part of the chain to shorten, and ``perf/profile_reconstruct.py``
 for the call's real time.
 
-Usage:  python perf/stage_timeline.py [--synthetic 256] [--images 3] [--device cuda:0] [--repeat 3] [--out FILE]
+``--reconstructor``: the calls go through one kept ``gpps.Reconstructor`` (issue 20's 30 ms line is measured that
+way: no stage built in a warm call); ``--known``: with it, the rendered material given (no estimation).
+
+Usage:  python perf/stage_timeline.py [--synthetic 256] [--images 3] [--device cuda:0] [--repeat 3]
+        [--reconstructor [--known]] [--out FILE]
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ sys.path.insert(0, str(ROOT / "perf"))
 os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 
 import gpps  # noqa: E402
-from _common import reconstruct_case  # noqa: E402
+from _common import reconstruct_case, reconstructor_case  # noqa: E402
 from gpps.flows import ron as ron_mod  # noqa: E402
 from gpps.pipeline import dgmc as dgmc_mod  # noqa: E402
 from gpps.pipeline import front as front_mod  # noqa: E402
@@ -40,6 +44,7 @@ from gpps.flows import reconstruction as rec_mod  # noqa: E402
 
 TOTALS: dict = defaultdict(lambda: [0, 0.0])
 ACTIVE = [True]
+ITERATIONS: list = []  # the integrator's CG iterations, call by call
 
 
 def _sync():
@@ -61,18 +66,24 @@ def _wrap(owner, name: str, label: str) -> None:
             return fn(*a, **k)
         _sync()
         t = time.perf_counter()
+        got = None
         try:
-            return fn(*a, **k)
+            got = fn(*a, **k)
+            return got
         finally:
             _sync()
             s = TOTALS[label]
             s[0] += 1
             s[1] += time.perf_counter() - t
+            if label == "integrator.pcg" and isinstance(got, tuple):
+                ITERATIONS.append(int(got[0]))  # (its CG iterations: a stage's time read beside its work)
     setattr(owner, name, inner)
 
 
 WRAPS = [
     (rec_mod, "reconstruct", "reconstruct"),
+    (rec_mod.Reconstructor, "__call__", "Reconstructor.call"),
+    (rec_mod, "_prepare", "prepare"),
     (ron_mod.RON, "run", "RON.run"),
     (ron_mod.RON, "__init__", "RON.__init__"),
     (ron_mod.RON, "_least_squares_and_dgmc", "ls+dgmc"),
@@ -125,9 +136,14 @@ def main(argv=None):
     ap.add_argument("--images", type=int, default=3)
     ap.add_argument("--device", default=None)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--reconstructor", action="store_true", help="one kept gpps.Reconstructor")
+    ap.add_argument("--known", action="store_true", help="with --reconstructor: the material given")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
-    call = reconstruct_case(a.synthetic, a.images, a.device)
+    if a.known and not a.reconstructor:
+        ap.error("--known needs --reconstructor")
+    call = (reconstructor_case(a.synthetic, a.images, a.device, known=a.known) if a.reconstructor
+            else reconstruct_case(a.synthetic, a.images, a.device))
     t = time.perf_counter()
     call()
     cold = time.perf_counter() - t
@@ -142,18 +158,20 @@ def main(argv=None):
     # (reconstruct is re-exported: wrap the public name too)
     gpps.reconstruct = rec_mod.reconstruct
     TOTALS.clear()
+    ITERATIONS.clear()
     runs = max(1, a.repeat)
     for _ in range(runs):
         rec, maen = call()
     maen = maen()
     rows = {k: {"calls": v[0] / runs, "ms": 1e3 * v[1] / runs} for k, v in sorted(TOTALS.items(),
                                                                                   key=lambda kv: -kv[1][1])}
-    out = {"device": a.device, "size": a.synthetic, "images": a.images, "cold_s": cold, "warm_s": sorted(warm),
-           "maen_deg": maen, "timings_ms": {k: 1e3 * v for k, v in rec.timings.items()}, "methods": rows}
+    out = {"device": a.device, "size": a.synthetic, "images": a.images, "reconstructor": a.reconstructor,
+           "known": a.known, "cold_s": cold, "warm_s": sorted(warm),
+           "maen_deg": maen, "pcg_iterations": list(ITERATIONS), "timings_ms": {k: 1e3 * v for k, v in rec.timings.items()}, "methods": rows}
     text = json.dumps(out, indent=1)
     if a.out:
         Path(a.out).write_text(text)
-    print(f"warm {sorted(warm)}  maen {maen:.6f}")
+    print(f"warm {sorted(warm)}  maen {maen:.6f}  pcg iterations {ITERATIONS}")
     for k, v in rows.items():
         print(f"  {k:22s} {v['calls']:7.1f} calls {v['ms']:9.2f} ms")
 
