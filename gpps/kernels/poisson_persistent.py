@@ -15,7 +15,9 @@ The arithmetic is :mod:`gpps.kernels.poisson`'s, through its per-point funcs (``
 restriction; the coarsest level's exact pseudo-inverse; per level the injected correction and ``2 npairs``
 sweeps), and the stopping rule of :meth:`gpps.pipeline.integration.Integrator._iterate`: ``|r|^2`` compared with
 ``tol^2 |b|^2`` after every ``check_every``-th iteration (and at the cap), and the float32 stagnation stop
-(``|r|^2 > 0.8`` of the previous check's and below ``1e-8 |b|^2``).  What differs is the order of the float64
+(``|r|^2 > 0.8`` of the previous check's, and this check's or the previous one's below ``1e-8 |b|^2``; the fused
+launches then return the iterate of the lowest residual checked below that floor, this task the last one).  What
+differs is the order of the float64
 additions of the dot products: each sum is strided over the threads, tree-reduced per block in shared memory and
 added by one float64 atomic a block (on CUDA), so ``alpha`` and ``beta`` may differ from the fused launch's in
 their last bits.  The iteration that meets the tolerance skips its V-cycle and direction (they touch neither the
@@ -214,8 +216,8 @@ def make_pcg_persistent(d: dict, geom: tuple, omega: float, npairs: int, nblocks
                         rr = acc[A_RR + s]
                         if rr <= tol2:
                             break
-                        if stagnation != 0 and rr > 0.8 * prev and rr < 1e-8 * bb:
-                            break
+                        if stagnation != 0 and rr > 0.8 * prev and ti.min(rr, prev) < 1e-8 * bb:
+                            break  # (the float32 floor: stalled there, or thrown back up from it)
                     if its >= cap:
                         break
                     # the V-cycle, then rz' = r . M r, p = M r + (rz'/rz) p (poisson._cg_direction)

@@ -89,6 +89,14 @@ def warn_log_depth_span(span: float) -> None:
                       GppsWarning, stacklevel=3)
 
 
+#: ``|r|^2 / |b|^2`` below which a float32 multigrid CG is at its precision floor (a relative residual of 1e-4, a
+#: few times float32's epsilon times sqrt(pixels) at the sizes gpps solves): there a check that does not cut
+#: ``|r|^2`` by 20 % stops the CG.  On CUDA the float32 V-cycle is not the same operator from one application to
+#: the next (the order of its atomic sums), and CG at the floor can be thrown back up by orders of magnitude
+#: before it comes down again (256^2 perspective, n_z^2 weights: 1.3e-5 at 14 iterations, 7.7e-3 at 20, 5.7e-6 at
+#: 30; perf/probe_pcg_floor.py): that rise stops it too, with the iterate of the lowest residual checked.
+_FLOOR_RR = 1e-8
+
 # device fields of closed integrators, by (Taichi device, H, W, coarsest, dtype): Taichi compiles its
 # kernels for each set of fields, so reusing them skips the compilation (BiNI's stage pools likewise)
 _POOL: dict = {}
@@ -964,6 +972,8 @@ class Integrator(Stage):
             start, iteration = self._pcg_launches(blk)
             start()
             rr = float(d["sc"][K.RR])
+            f32 = cfg.dtype == "float32"
+            best = math.inf  # the lowest |r|^2 checked at the float32 floor, its iterate kept in z0
             if rr > tol2:
                 while its < cap:
                     iteration()
@@ -974,7 +984,14 @@ class Integrator(Stage):
                             progress(its, cap, f"residual {math.sqrt(rr / bb):.2e}")
                         if rr <= tol2:
                             break
-                        if cfg.dtype == "float32" and rr > 0.8 * rr_prev and rr < 1e-8 * bb:
-                            break  # stagnation at the float32 precision floor
+                        if f32 and rr > 0.8 * rr_prev and min(rr, rr_prev) < _FLOOR_RR * bb:
+                            # the float32 precision floor (_FLOOR_RR): stalled, or thrown back up from it
+                            if best < rr:
+                                d["z"].copy_from(d["z0"])
+                                rr = best
+                            break
+                        if f32 and rr < _FLOOR_RR * bb and rr < best:
+                            d["z0"].copy_from(d["z"])  # (at most a check or two: one device copy each)
+                            best = rr
             res = math.sqrt(rr / bb)
         return its, res
