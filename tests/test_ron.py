@@ -13,7 +13,6 @@ import pytest
 
 import gpps
 from cases import depth_error
-from conftest import RENDER_DEVICE
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
 from gpps.host.metrics import angular_error
@@ -207,7 +206,7 @@ def test_material_fixed_point_stops_the_rounds(device):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "perf"))
     from _common import reconstruct_inputs
 
-    c = reconstruct_inputs(256, 3, RENDER_DEVICE)
+    c = reconstruct_inputs(256, 3, device)
     recs = {}
     for name, cfg in (("default", None), ("capped", RONConfig(tol_normals_deg=0.0))):
         recs[name] = gpps.reconstruct(c["images"], c["mask"], c["lights"], camera=c["camera"],
