@@ -428,5 +428,10 @@ def test_reconstruct_is_scale_free():
         assert r.material.ks == pytest.approx(ref.material.ks * f, rel=0.05)
         assert np.median(r.albedo[m][:, 0]) == pytest.approx(np.median(ref.albedo[m][:, 0]) * f, rel=0.05)
         assert np.median(r.residual[m]) == pytest.approx(np.median(ref.residual[m]) * s, rel=0.5)
-        assert r.energy[-1] == pytest.approx(ref.energy[-1] * s * s, rel=0.5)  # (the converged round)
+        # the converged round's energy, in the caller's scale: a scale error would be off by the working scale's
+        # power of two (2^10 or more here).  Each run stops at its own fixed point (normals and material within
+        # their resolutions: RON._material_settled), and near zero energy (16-bit, no noise) such a round's energy
+        # can still fall 2.5x in a round that moves the normals 0.002 deg: unit scale stops at 1.57e-10 (MAEN
+        # 0.00187 deg; a fifth round would give 6.2e-11 and 0.00189), the x1000 run at 6.6e-11 (x1000^2)
+        assert 1 / 3 < r.energy[-1] / (ref.energy[-1] * s * s) < 3
         assert any("albedo scale" in w for w in r.warnings)
