@@ -107,7 +107,7 @@ def reconstruct_inputs(size: int, n: int, device) -> dict:
     true = gpps.Material("cook-torrance", ks=0.8, roughness=0.2, f0=0.5)
     img = gpps.render(sc, true, L, bits=16, device=device) / L.intensities[:, None, None, :]
     return {"images": img, "mask": sc.mask, "lights": gpps.DirectionalLights(L.directions), "camera": sc.camera,
-            "normals": sc.normals}
+            "normals": sc.normals, "material": true}
 
 
 def reconstruct_case(size: int, n: int, device):
@@ -127,11 +127,11 @@ def reconstruct_case(size: int, n: int, device):
 def reconstructor_case(size: int, n: int, device, *, known: bool = False):
     """:func:`reconstruct_case` through one kept ``gpps.Reconstructor`` (its stages built at the first call and kept):
     ``call() -> (Reconstruction, maen)``; ``call.close()`` releases the stages.  ``known``: the rendered material
-    given (Cook-Torrance ks 0.8, roughness 0.2, f0 0.5: no estimation)."""
+    given (:func:`reconstruct_inputs`' rendered one: no estimation)."""
     import gpps
 
     c = reconstruct_inputs(size, n, device)
-    mat = gpps.Material("cook-torrance", ks=0.8, roughness=0.2, f0=0.5) if known else "cook-torrance"
+    mat = c["material"] if known else "cook-torrance"
     rc = gpps.Reconstructor(c["mask"], c["lights"], camera=c["camera"], material=mat, device=device)
 
     def call():

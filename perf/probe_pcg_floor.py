@@ -33,11 +33,11 @@ def patched(self, progress, tol):
     LOG.append((got, seq))
     return got
 integ_mod.Integrator._iterate = patched
-KNOWN = gpps.Material("cook-torrance", ks=0.8, roughness=0.2, f0=0.5)
+KNOWN = c["material"]
 for name, mat, cfg in (("known", KNOWN, None), ("default", "cook-torrance", None),
                        ("known-f64", KNOWN, RONConfig(integrator=IntegratorConfig(tol=1e-5, weighting="normal", dtype="float64")))):
     with gpps.Reconstructor(c["mask"], c["lights"], camera=c["camera"], material=mat, device=dev, config=cfg) as rc:
-        ref = rc(c["images"]); rc(c["images"]); LOG.clear()
+        rc(c["images"]); rc(c["images"]); LOG.clear()
         t = time.perf_counter(); rec = rc(c["images"]); dt = time.perf_counter() - t
         (its, res), seq = LOG[-1]
         print(f"{name}: {1e3 * dt:.1f} ms, integration {1e3 * rec.timings['integration']:.1f} ms, CG {its} iterations, "

@@ -1034,9 +1034,8 @@ class RON:
         c = self.config
         if not (c.estimate and c.material_rule == "photometric" and fits) or self._last_move is None:
             return False
-        last = fits[-1]
-        return (not last.get("grid", True) and last.get("rule") == "photometric"
-                and bool(np.all(np.abs(self._last_move) < _XATOL)))
+        # (a photometric fit records whether it had the grid; the depth-rms rule's records do not)
+        return not fits[-1].get("grid", True) and bool(np.all(np.abs(self._last_move) < _XATOL))
 
     def _device_loop(self) -> bool:
         """Whether Nelder-Mead's steps run on the device (``RONConfig.material_loop``)."""
