@@ -28,6 +28,10 @@ DEFAULT_F0: dict[str, float] = {name: 0.5 for name in BRDF_NAMES} | {"plastic": 
 # and a colour seen only through the lobe, which most lights miss) is exact on our synthetic metals with 6 and 12
 # lights and 6-10 deg off with 3 (tests/test_conductor.py); every model with a diffuse term needs 3
 CONDUCTOR_MIN_IMAGES = 6
+# RON's model comparison (RONConfig.models, gpps.host.model_evidence): another model replaces the configured one only
+# when the sample pixels' paired differences of squared residuals are above zero by more than this many standard
+# errors (one-sided, the normal distribution's 99th percentile: the conventional 1 % level)
+MODEL_SWITCH_Z = 2.326
 
 # the scene parameters the material searches estimate per model ("eta" ties Ashikhmin-Shirley's eta_u = eta_v),
 # and each one's log-space search range (lo, hi): RON's material fit (gpps.flows.ron) and the stream's full mode

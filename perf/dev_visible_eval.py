@@ -42,6 +42,8 @@ CONFIGS = {"pipeline": {}, "ls": {"solver": "none", "integrate": False}, "norefi
 
 def run(out: str, patterns: str, methods: str = "pipeline", device: str = "cpu") -> None:
     import gpps
+    if os.environ.get("GPPS_DEV_LOWEST_ENERGY"):  # (a probe: the comparison before session 33, lowest energy wins)
+        gpps.names.MODEL_SWITCH_Z = -np.inf
     from gpps.host.metrics import normal_errors
     from gpps.io import read_capture
 
@@ -63,7 +65,9 @@ def run(out: str, patterns: str, methods: str = "pipeline", device: str = "cpu")
                            backfacing=int(((r.normals[..., 2] < 0) & ds.mask).sum()), device=device,
                            refine=r.report.get("refine"), material_ambiguity=r.report.get("material_ambiguity"),
                            brdf=(r.report.get("material") or {}).get("brdf"),
-                           interreflections=r.report.get("interreflections"))
+                           interreflections=r.report.get("interreflections"),
+                           model_energies=r.report.get("model_energies"),
+                           model_evidence=r.report.get("model_evidence"))
                 f.write(json.dumps(row) + "\n")
                 f.flush()
                 print(row, flush=True)

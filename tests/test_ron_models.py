@@ -1,5 +1,6 @@
 """RON's choice of reflectance model by residual (``RONConfig.models``, ``gpps.reconstruct(material=(...))``, issue
-25): the first material fit runs for each model on the same sample pixels and the lowest sampled energy wins.
+25): the first material fit runs for each model on the same sample pixels and the lowest sampled energy wins
+(where it is lower beyond the sample's noise: tests/test_model_evidence.py).
 Scenes rendered by gpps with one model each (the image model is exact, so the rendered model must win and its
 parameters come back); configuration errors name the argument."""
 

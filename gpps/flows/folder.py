@@ -631,8 +631,9 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
         fits = rec.details.material_fit
         if fits and fits[0].get("ambiguity") is not None:  # (how far the images leave the material open)
             report["material_ambiguity"] = {**fits[0]["ambiguity"], "identifiable": fits[0]["identifiable"]}
-        if fits and "models" in fits[0]:  # (--compare-models: each model's sampled energy, the lowest kept)
+        if fits and "models" in fits[0]:  # (compared models: each one's sampled energy and the switch's test)
             report["model_energies"] = fits[0]["models"]
+            report["model_evidence"] = fits[0].get("evidence", {})
     return out
 
 

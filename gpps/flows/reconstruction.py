@@ -158,6 +158,9 @@ def _unscaled_result(res, factor: float, s_images: float):
             f["ambiguity"] = {**f["ambiguity"], "noise_var": f["ambiguity"]["noise_var"] * inv2}
         if "models" in f:  # (each compared model's sampled energy)
             f["models"] = {k: v * inv2 for k, v in f["models"].items()}
+        if "evidence" in f:  # (the comparison's test: its energies are squared residuals, its ratios scale-free)
+            f["evidence"] = {k: {**v, "energy_base": v["energy_base"] * inv2, "energy_other": v["energy_other"] * inv2}
+                             for k, v in f["evidence"].items()}
         fits.append(f)
     ref = None
     if res.refinement is not None:

@@ -70,6 +70,7 @@ from gpps._check import (
 from gpps._runtime import resolve_device, warp
 from gpps._taichi import taichi_device
 from gpps.host.dgmc import DGMCConfig
+from gpps.host.model_evidence import energy_drop_evidence
 from gpps.host.two_light import dark_observations, two_light_log_depth
 from gpps.lights import PointLights
 from gpps.material import Material
@@ -342,9 +343,12 @@ class RONConfig:
         models: other reflectance models to compare with the material's (issue 25: e.g. ``("plastic",)``,
             the dielectric coating, beside ``"cook-torrance"``): the first round's material fit runs for each
             (its lobe parameters, :data:`gpps.names.LOBE_PARAMETERS`, from the model's
-            :meth:`Material.default_for`) on the same sample pixels, and the model with the lowest sampled
-            energy (trimmed mean of squared residuals at its best parameters) is kept for the later rounds
-            (``RONResult.material_fit[0]["models"]``: each one's energy).  Needs every lobe parameter of the
+            :meth:`Material.default_for`) on the same sample pixels, and the material's own model is kept for the
+            later rounds unless another's sampled energy (trimmed mean of squared residuals at its best
+            parameters) is lower beyond the sample's noise (:func:`gpps.host.model_evidence.energy_drop_evidence`:
+            a one-sided paired test of the pixels' squared residuals at the 1 % level, session 33); of those that
+            are, the lowest energy wins (``RONResult.material_fit[0]["models"]``: each one's energy;
+            ``["evidence"]``: the test's numbers per other model).  Needs every lobe parameter of the
             material estimated by the photometric rule.  () (default): the material's model only.  Measured on
             Mitsuba captures (perf/plastic_vs_ct.py, perf/results/plastic_vs_ct_cpu.json, seeds 2501-2504):
             the model with the lower residual also had the lower MAEN in 6 of 8 captures, the other two within
@@ -880,14 +884,17 @@ class RON:
 
     def _select_model(self, images, depth, valid, material, sample, *, progress=None) -> tuple[Material, dict]:
         """Step 4 of the first round with several models (``RONConfig.models``): each model's parameters
-        fitted (:meth:`_fit_material`, grid and search, on the same sample pixels), the model with the lowest
-        sampled energy kept.  The energies compare directly: the same pixels, observations and trimmed mean of
-        squared residuals, each model at its own best parameters.  ``info["models"]``: each model's energy.
+        fitted (:meth:`_fit_material`, grid and search, on the same sample pixels); the configured model is kept
+        unless another's sampled energy is lower beyond the sample's noise (:func:`energy_drop_evidence`: the
+        pixels' paired squared residuals at each model's best parameters), and of those that are, the lowest
+        energy wins.  The energies compare directly: the same pixels, observations and trimmed mean of squared
+        residuals, each model at its own best parameters.  ``info["models"]``: each model's energy;
+        ``info["evidence"]``: per other model, the test's numbers.
         """
         c = self.config
         cands = [material.brdf] + [b for b in c.models if b != material.brdf]
         report = progress or (lambda *a: None)
-        best = None
+        fits = []
         energies = {}
         for i, brdf in enumerate(cands):
             mat = material if brdf == material.brdf else Material.default_for(brdf)
@@ -899,11 +906,23 @@ class RON:
             self._last_move = None
             got, info = self._fit_material(images, depth, valid, mat, sample, grid=True, progress=part, names=names)
             energies[brdf] = info["energy"]
-            if best is None or info["energy"] < best[1]["energy"]:
-                best = (got, info, self._last_move)
-        got, info, self._last_move = best
-        info = dict(info, models=energies)
+            fits.append((got, info, self._last_move, self._sample_residuals(images, depth, valid, got, sample)))
+        evidence = {}
+        best = fits[0]
+        for (got, info, move, res), brdf in zip(fits[1:], cands[1:]):
+            ev = energy_drop_evidence(fits[0][3], res, c.material_trim)
+            evidence[brdf] = ev
+            if ev["significant"] and info["energy"] < best[1]["energy"]:
+                best = (got, info, move, res)
+        got, info, self._last_move, _ = best
+        info = dict(info, models=energies, evidence=evidence)
         return got, info
+
+    def _sample_residuals(self, images, depth, valid, material, sample) -> np.ndarray:
+        """(P,) RMS residual of each sample pixel solved with ``material`` (cold, as the first fit scores)."""
+        scorer = self._scorer_for(images, depth, valid, sample, material)
+        scorer.step([material])
+        return scorer.fetch_pixels(("residual",))["residual"][0].astype(np.float64)
 
     def _fit_material(self, images, depth, valid, material, sample, *, grid: bool, progress=None,
                       normals=None, names=None) -> tuple[Material, dict]:
