@@ -116,8 +116,8 @@ def test_lights_parallel_and_split_starts_builds_equal_the_one_thread_solve(devi
 
 
 def test_folder_flow_compares_the_conductor_from_six_images(tmp_path, device):
-    """``gpps reconstruct``'s default (``FolderConfig(models=None)``): the conductor is fitted beside Blinn-Phong from
-    :data:`CONDUCTOR_IMAGES` images on, and chosen on a metal; with 3 images, or ``models=()`` / ``--compare-models
+    """``gpps reconstruct``'s default (``FolderConfig(models=None)``): the conductor (and plastic) are fitted beside
+    Blinn-Phong from :data:`CONDUCTOR_IMAGES` images on, and the conductor is chosen on a metal; with 3 images, or ``models=()`` / ``--compare-models
     none``, it is not compared; the report says which rule decided."""
     import argparse
 
@@ -126,8 +126,9 @@ def test_folder_flow_compares_the_conductor_from_six_images(tmp_path, device):
     from gpps.flows.folder import CONDUCTOR_IMAGES, FolderConfig, automatic_models
 
     assert CONDUCTOR_IMAGES == 6
-    assert automatic_models(3, FolderConfig()) == ((), "automatic: none with 3 images (the conductor from 6)")
-    assert automatic_models(6, FolderConfig())[0] == ("conductor",)
+    assert automatic_models(3, FolderConfig()) == ((), "automatic: none with 3 images (the conductor and plastic "
+                                                       "from 6)")
+    assert automatic_models(6, FolderConfig())[0] == ("conductor", "plastic")
     assert automatic_models(96, FolderConfig(models=())) == ((), "turned off")
     assert automatic_models(96, FolderConfig(models=("plastic",))) == (("plastic",), "asked")
     with pytest.raises(TypeError, match="models: expected None or a tuple"):
@@ -137,7 +138,9 @@ def test_folder_flow_compares_the_conductor_from_six_images(tmp_path, device):
                  "--camera", "perspective", "--out", str(out)]) == 0
     (out / "material.json").unlink()  # the material unknown to the reconstruction
     rec = gpps.reconstruct_folder(out, device=device)
-    assert rec.report["models"]["compared"] == ["conductor"] and rec.report["models"]["why"].startswith("automatic")
+    assert rec.report["models"]["compared"] == ["conductor", "plastic"]
+    assert rec.report["models"]["why"].startswith("automatic")
+    assert rec.report["model_evidence"]["conductor"]["significant"]
     assert rec.report["material"]["brdf"] == "conductor"
     p = argparse.ArgumentParser()
     add_reconstruct_options(p)

@@ -86,9 +86,9 @@ def add_reconstruct_options(p) -> None:
                    help="with --interreflections subtract: physical albedo over the estimated one (1: radiometric "
                         "light intensities)")
     p.add_argument("--compare-models", default=None, metavar="MODEL[,MODEL...]",
-                   help="RON: other reflectance models to fit beside --brdf's in the first material fit; the one with "
-                        "the lower residual is kept (e.g. plastic; none: no comparison; default: the rough conductor "
-                        "with 6 or more images)")
+                   help="RON: other reflectance models to fit beside --brdf's in the first material fit; one whose "
+                        "residual is lower beyond the sample's noise is kept (e.g. plastic; none: no comparison; "
+                        "default: the rough conductor and plastic with 6 or more images)")
     p.add_argument("--material-rule", default="photometric", choices=["photometric", "depth-rms"], help="RON material update (depth-rms: the seed's 4.19)")
     p.add_argument("--pixel-size", type=float, default=None, help="orthographic camera (no K.txt): scene units per pixel; default: depth in pixels")
     p.add_argument("--reference-depth", "--depth", dest="reference_depth", type=float, default=None,
