@@ -56,7 +56,8 @@ from gpps.names import BRDF, BRDF_NAMES, CONDUCTOR_MIN_IMAGES, SHADOW_RELATIVE_M
 from gpps.pipeline.integration import IntegratorConfig
 
 __all__ = ["FolderConfig", "FolderResult", "reconstruct_folder", "automatic_solver_options", "flip_decision",
-           "MANY_IMAGES", "REFINE_IMAGES", "CONDUCTOR_IMAGES", "AUTOMATIC_MODELS", "automatic_refine", "automatic_models", "ESTIMATED_FILES"]
+           "MANY_IMAGES", "REFINE_IMAGES", "CONDUCTOR_IMAGES", "AUTOMATIC_MODELS", "automatic_refine", "automatic_models",
+           "ESTIMATED_FILES"]
 
 FolderMethod = Literal["ron", "ppn", "pps"]
 FolderIntegration = Literal["bini", "poisson"]
@@ -70,10 +71,11 @@ REFINE_IMAGES = 3
 """With this many images RON's depth refinement runs unless the caller says otherwise (:func:`automatic_refine`)."""
 
 CONDUCTOR_IMAGES = CONDUCTOR_MIN_IMAGES
-#: the models the automatic policy compares from CONDUCTOR_IMAGES images on (:func:`automatic_models`)
+"""From this many images the folder flow also fits the rough conductor (a metal) and the plastic model in RON's first
+material fit and keeps one where its residual is lower beyond the sample's noise (:func:`automatic_models`)."""
+
 AUTOMATIC_MODELS: tuple[str, ...] = ("conductor", "plastic")
-"""From this many images the folder flow also fits the rough conductor (a metal) in RON's first material fit and
-keeps it where its residual is lower (:func:`automatic_models`)."""
+"""The models the automatic policy compares from :data:`CONDUCTOR_IMAGES` images on (:func:`automatic_models`)."""
 
 ESTIMATED_FILES = ("lights_estimated.txt", "light_intensities_estimated.txt", "filenames_used.txt")
 """The files an uncalibrated result writes beside the output set (:meth:`FolderResult.write`)."""
@@ -362,8 +364,8 @@ def automatic_models(n_images: int, config: FolderConfig) -> tuple[tuple[str, ..
 
     The caller's ``config.models`` decides when given (``()``: none).  Otherwise, from :data:`CONDUCTOR_IMAGES`
     images on, the rough conductor and the plastic (dielectric coating) model, each kept only when its sampled
-    energy is lower than the configured model's beyond the sample's noise (:func:`gpps.host.model_evidence.
-    energy_drop_evidence`, session 33).
+    energy is lower than the configured model's beyond the sample's noise
+    (:func:`gpps.host.model_evidence.energy_drop_evidence`, session 33).
 
     The conductor: a metal has no diffuse term, which neither the seed's models nor plastic can
     drop, and the residual tells the two classes apart once the conductor's own per-pixel fit (a normal and a
@@ -388,47 +390,6 @@ def automatic_models(n_images: int, config: FolderConfig) -> tuple[tuple[str, ..
     bear unchanged (the plastic model's energy there is 0.1 % lower, within the sample's noise).  Warm on an H200
     DiLiGenT's ball took 0.65 s before and 0.63 s after, bear 0.93-1.02 s and 1.19-1.23 s; on the 2-core CPU ball
     29 -> 39 s.
-
-    Args:
-        n_images: the number of images N.
-        config: the folder flow's settings.
-        device: the resolved device (``"cpu"``, ``"cuda:0"``, ...).
-
-    Returns:
-        ``(on, reason)``: ``reason`` says which rule decided (for the report).
-    """
-    if config.refine is False:
-        return False, "turned off"
-    if config.method != "ron" or config.solver == "none" or not config.integrate:
-        return False, ("asked, but " if config.refine else "automatic: ") + (
-            "it needs RON's rounds with a nonlinear solver and the integrated depth")
-    if config.refine:
-        return True, "asked"
-    if n_images != REFINE_IMAGES:
-        return False, f"automatic: off with {n_images} images (on with {REFINE_IMAGES})"
-    if str(device).startswith("cuda") and importlib.util.find_spec("torch") is None:
-        return False, ("automatic: skipped on CUDA without PyTorch (pip install 'gpps[cuda]'): results differ from "
-                       "the CPU's, which refines with 3 images")
-    return True, f"automatic: on with {REFINE_IMAGES} images"
-
-
-def automatic_models(n_images: int, config: FolderConfig) -> tuple[tuple[str, ...], str]:
-    """The reflectance models RON's first material fit compares with ``config.brdf`` (``RONConfig.models``), and why.
-
-    The caller's ``config.models`` decides when given (``()``: none).  Otherwise, from :data:`CONDUCTOR_IMAGES`
-    images on, the rough conductor: a metal has no diffuse term, which neither the seed's models nor plastic can
-    drop, and the residual tells the two classes apart once the conductor's own per-pixel fit (a normal and a
-    colour, nothing but the lobe to see them by) is determined.  With fewer images it is not: on our synthetic
-    metals (tests/test_conductor.py) the known-material solve gets the normals exactly with 6 and 12 lights and
-    misses them by 6-10 deg with 3, where any surface fits the lobe of some normal and the comparison would pick
-    the conductor on non-metals.  Checked on our Mitsuba development captures only (perf/results/s21/README.md;
-    128^2, 16-bit, seeds 3000-3009): with 12 lights it is chosen on the four rough-copper captures and on none of
-    the sixteen others (whose results stay the same bits); on the metals the mean goes 6.13 -> 5.05 deg (the convex
-    superquadric 3.9 -> 0.6, a concave copper relief under directional light 7.2 -> 9.8: the light its ridges send
-    each other looks like a diffuse term the conductor cannot hold, though its median goes 2.8 -> 2.0).  Run after
-    the choice on our held-out scenes (seeds 1000-1007, 12 lights): chosen on the one metal only (a copper
-    superquadric, 3.80 / 4.45 -> 0.65 / 0.70 deg).  The extra fit costs DiLiGenT's ball and bear 0.1 s warm on an
-    H200 (neither is taken for a metal).
 
     Args:
         n_images: the number of images N.
