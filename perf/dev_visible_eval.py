@@ -10,13 +10,17 @@ from each tree (``PYTHONPATH=<tree>``) into its own file::
     python perf/dev_visible_eval.py run OUT.jsonl "*directional12*seed300*,*point12*seed300*" [pipeline,ls] [cpu]
     python perf/dev_visible_eval.py table A.jsonl B.jsonl [...]
 
-Methods: ``pipeline`` (the default ``FolderConfig()``; from session 21 it compares the rough conductor from 6 images on), ``ls`` (least squares), ``norefine`` / ``refine`` (the
+Methods: ``pipeline`` (the default ``FolderConfig()``; from session 21 it compares the rough conductor from 6 images
+on, from session 33 plastic too), ``ls`` (least squares), ``norefine`` / ``refine`` (the
 default with ``refine=False`` / ``True``: session 18's automatic refinement with 3 images, issue 25), ``subtract``
 (the default with ``interreflections="subtract"``: session 20's interreflection compensation), ``compare`` (the
 model chosen by residual between Blinn-Phong and plastic: ``models=("plastic",)``), ``compare_subtract`` (both), ``conductor``
 (Blinn-Phong or the rough conductor by residual: ``models=("conductor",)``, session 21), ``compare3`` (all three)
 and ``nocompare`` (no comparison: ``models=()``, the default before session 21), ``ks0`` (no specular lobe:
-``ks=0`` given, session 29).  The table reads
+``ks=0`` given, session 29).  With ``GPPS_DEV_LOWEST_ENERGY=1`` in the environment ``run`` compares models as
+before session 33 (the lowest sampled energy wins, no evidence test: ``gpps.names.MODEL_SWITCH_Z`` set to -inf);
+each row records the compared models' energies and the test (``model_energies``, ``model_evidence``).  The table
+reads
 the ``pipeline`` rows of each file (and ``ls``); the last argument of ``run`` is the device (default ``cpu``).
 """
 

@@ -117,8 +117,9 @@ def test_lights_parallel_and_split_starts_builds_equal_the_one_thread_solve(devi
 
 def test_folder_flow_compares_the_conductor_from_six_images(tmp_path, device):
     """``gpps reconstruct``'s default (``FolderConfig(models=None)``): the conductor (and plastic) are fitted beside
-    Blinn-Phong from :data:`CONDUCTOR_IMAGES` images on, and the conductor is chosen on a metal; with 3 images, or ``models=()`` / ``--compare-models
-    none``, it is not compared; the report says which rule decided."""
+    Blinn-Phong from :data:`CONDUCTOR_IMAGES` images on, and the conductor is chosen on a metal with the evidence
+    test passed; with 3 images, or ``models=()`` / ``--compare-models none``, nothing is compared; the report says
+    which rule decided."""
     import argparse
 
     from gpps.cli import main
