@@ -94,3 +94,29 @@ def test_ron_switches_only_on_evidence(device, monkeypatch):
     kept = gpps.reconstruct(img, sc.mask, L, **kw)
     assert kept.material.brdf == "cook-torrance"
     assert not kept.details.material_fit[0]["evidence"]["plastic"]["significant"]
+
+
+def test_pixels_without_a_residual_take_no_part(device, monkeypatch):
+    """A sample pixel whose re-solve left no finite residual (under either model) is left out of the test, which
+    still decides on the others; the reconstruction does not fail."""
+    from test_ron_models import PLASTIC, _case
+
+    from gpps.flows.ron import RON
+
+    real = RON._sample_residuals
+    sizes = []
+
+    def holes(self, *args, **kwargs):
+        r = real(self, *args, **kwargs).copy()
+        r[::7] = np.nan
+        sizes.append(r.size)
+        return r
+
+    monkeypatch.setattr(RON, "_sample_residuals", holes)
+    img, L, sc, sat = _case(PLASTIC)
+    rec = gpps.reconstruct(img, sc.mask, L, camera=sc.camera, material=("cook-torrance", "plastic"), saturation=sat,
+                           reference_depth=float(sc.depth[sc.mask].mean()), device=device)
+    ev = rec.details.material_fit[0]["evidence"]["plastic"]
+    assert ev["significant"] and rec.material.brdf == "plastic"
+    p = sizes[0]
+    assert len(sizes) == 2 and 0 < ev["pixels"] <= p - len(range(0, p, 7))

@@ -910,7 +910,9 @@ class RON:
         evidence = {}
         best = fits[0]
         for (got, info, move, res), brdf in zip(fits[1:], cands[1:]):
-            ev = energy_drop_evidence(fits[0][3], res, c.material_trim)
+            ok = np.isfinite(fits[0][3]) & np.isfinite(res)  # (a pixel a model's solve left without a residual
+            # takes no part: the test compares what both models fitted)
+            ev = energy_drop_evidence(fits[0][3][ok], res[ok], c.material_trim)
             evidence[brdf] = ev
             if ev["significant"] and info["energy"] < best[1]["energy"]:
                 best = (got, info, move, res)
