@@ -67,7 +67,7 @@ def _filled_depth(rec) -> np.ndarray:
 
 
 def interreflection_terms(images, mask, lights, camera, rec, *, config: InterreflectionConfig | None = None,
-                          device=None) -> dict:
+                          max_albedo: float = np.inf, device=None) -> dict:
     """The quantities of one compensation round from a reconstruction ``rec`` of ``images``.
 
     Args:
@@ -75,9 +75,14 @@ def interreflection_terms(images, mask, lights, camera, rec, *, config: Interref
         mask: (H, W) bool; lights, camera: as given to ``reconstruct``.
         rec: its :class:`gpps.flows.reconstruction.Reconstruction` (with a depth).
         config: :class:`InterreflectionConfig`.
+        max_albedo: the receivers' albedo is taken as at most this (``1 / tau``: a diffuse surface reflects at
+            most what it receives).  A pixel no light reaches (a cast shadow under every light) is fitted with
+            any albedo times a vanishing shading, up to 10^5 and more on our development captures; unclipped,
+            such a pixel's ``rho * S`` exceeded the whole image's sum.
 
     Returns:
-        ``{"B": (N, H, W, 3) rho * S (the indirect light per unit tau), "sources": S, "stride": stride}``.
+        ``{"B": (N, H, W, 3) rho * S (the indirect light per unit tau, ``rho`` clipped to ``[0, max_albedo]``),
+        "sources": S, "stride": stride}``.
     """
     camera = Orthographic() if camera is None else camera
     if images.ndim != 4 or images.shape[-1] != 3:
@@ -97,7 +102,8 @@ def interreflection_terms(images, mask, lights, camera, rec, *, config: Interref
         st.step()
         S = st.fetch()
         stride, sources = st.stride, st.sources
-    return {"B": (albedo[None] * S).astype(np.float32), "sources": sources, "stride": stride}
+    kd = np.minimum(albedo, np.float32(max_albedo)) if np.isfinite(max_albedo) else albedo
+    return {"B": (kd[None] * S).astype(np.float32), "sources": sources, "stride": stride}
 
 
 def tau_bound(albedo, mask) -> float:
@@ -162,7 +168,8 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
         taus.append(tau)
         if progress is not None:
             progress(r, int(rounds), f"interreflections: gathering over the surface (round {r + 1} of {int(rounds)})")
-        terms = interreflection_terms(images, m, lights, camera, rec, config=config, device=device)
+        terms = interreflection_terms(images, m, lights, camera, rec, config=config, max_albedo=1.0 / tau,
+                                      device=device)
         shares.append(float((tau * terms["B"])[:, m].sum() / max(float(images[:, m].sum()), 1e-30)))
         info.update(bound=bound if np.isfinite(bound) else None, sources=terms["sources"], stride=terms["stride"])
         corrected = np.clip(images - np.float32(tau) * terms["B"], 0.0, None)
