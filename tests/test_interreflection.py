@@ -345,3 +345,134 @@ def test_cli_options():
         folder_config(p.parse_args(["--albedo-scale", "-1"]))
     with pytest.raises(ValueError, match="^--interreflections"):
         folder_config(p.parse_args(["--interreflections", "subtract", "--method", "ppn"]))
+
+
+def _model_reference(cam, m, depth, nrm, albedo, material, dirs, intens, visible, src, area_scale):
+    """numpy float64 of :func:`gpps.kernels.interreflection.model_gather_kernel` (its docstring's sum, no
+    occlusion between patches), directional lights ``dirs`` (N, 3) of RGB radiance ``intens`` (N, 3)."""
+    from reference_models import terms
+
+    pts = cam.backproject(depth).astype(np.float64)
+    recv = np.argwhere(m)
+    pr, nr = pts[recv[:, 0], recv[:, 1]], nrm[recv[:, 0], recv[:, 1]].astype(np.float64)
+    ps, ns = pts[src[:, 0], src[:, 1]], nrm[src[:, 0], src[:, 1]].astype(np.float64)
+    ar, as_ = albedo[recv[:, 0], recv[:, 1]].astype(np.float64), albedo[src[:, 0], src[:, 1]].astype(np.float64)
+    w = ps[None] - pr[:, None]
+    d = np.linalg.norm(w, axis=-1)
+    om = w / np.maximum(d, 1e-30)[..., None]
+    cr = np.einsum("rc,rsc->rs", nr, om)
+    cs = -np.einsum("sc,rsc->rs", ns, om)
+    dist = np.linalg.norm(ps, axis=-1)
+    view_s = -ps / dist[:, None]
+    area = dist**2 * (-ps[:, 2] / dist) ** 3 / (cam.fx * cam.fy * np.maximum((ns * view_s).sum(-1), 0.1))
+    F = np.where((cr > 0) & (cs > 0), cr * cs * area_scale * area[None] / (np.pi * np.maximum(d, 1e-30) ** 2), 0.0)
+    sep = np.hypot(*(recv[:, None, :] - src[None, :, :]).transpose(2, 0, 1))
+    F[sep < 1.5] = 0.0
+    vr = -pr / np.linalg.norm(pr, axis=-1, keepdims=True)
+    R, S = F.shape
+    n_r = np.broadcast_to(nr[:, None], (R, S, 3))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0r, t1r = terms(material, n_r, om, np.broadcast_to(vr[:, None], (R, S, 3)))  # the receiver, lit from omega
+    T = ar[:, None] * t0r[..., None] + material.ks * t1r[..., None]  # (R, S, 3)
+    out = np.zeros((len(dirs),) + m.shape + (3,))
+    for k, (l, e) in enumerate(zip(dirs, intens)):
+        lk = np.broadcast_to(l, (R, S, 3))
+        with np.errstate(divide="ignore", invalid="ignore"):  # (pairs the reference's np.where leaves out)
+            t0s, t1s = terms(material, np.broadcast_to(ns[None], (R, S, 3)), lk, -om)  # the source toward r
+        Ls = e * (as_[None] * t0s[..., None] + material.ks * t1s[..., None]) * visible[k, src[:, 0], src[:, 1]][None, :, None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            g = np.where(F > 0, F / cr, 0.0)
+        out[k, recv[:, 0], recv[:, 1]] = np.einsum("rs,rsc->rc", g, T * Ls)
+    return out
+
+
+@pytest.mark.parametrize("brdf", ["lambertian", "blinn-phong", "conductor", "plastic"])
+def test_model_gather_matches_numpy(device, brdf):
+    """The one-bounce gather under the reflectance model at both ends against numpy float64 from its formula, on a
+    perspective concave surface (no occlusion between patches), one light cast-shadowed at some sources."""
+    from gpps.lights import DirectionalLights
+    from gpps.material import Material
+
+    cam, m, depth, nrm, _ = _surface()
+    mat = {"lambertian": Material("lambertian"), "blinn-phong": Material("blinn-phong", ks=0.6, shininess=12.0),
+           "conductor": Material("conductor", roughness=0.3, f0=0.8),
+           "plastic": Material("plastic", ks=0.5, roughness=0.25, f0=0.04)}[brdf]
+    rng = np.random.default_rng(5)
+    albedo = rng.uniform(0.3, 0.9, m.shape + (3,)).astype(np.float32)
+    dirs = np.array([[0.3, 0.2, 0.93], [-0.5, 0.1, 0.86]])
+    dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+    intens = np.array([[1.0, 0.9, 0.8], [0.7, 0.7, 0.7]])
+    lights = DirectionalLights(dirs, intens)
+    visible = np.ones((2,) + m.shape, bool)
+    visible[1, ::2, :] = False
+    cfg = InterreflectionConfig(max_sources=120, visibility=False, max_rows=97)
+    with Interreflections((2,) + m.shape, cam, cfg, device=device) as st:
+        st.upload(depth, m, nrm, np.zeros((2,) + m.shape + (3,), np.float32))
+        got = st.gather_model(albedo, mat, lights, visible)
+        stride = st.stride
+    src, _ = source_pixels(m, 120)
+    ref = _model_reference(cam, m, depth, nrm, albedo, mat, dirs, intens, visible, src, float(stride**2))
+    assert ref[:, m].max() > 1e-3 and np.all(got[:, ~m] == 0)
+    np.testing.assert_allclose(got, ref, rtol=2e-3, atol=2e-6)
+    if brdf == "lambertian":  # a matte source's radiance is its image: the diffuse gather times the albedo
+        with Interreflections((2,) + m.shape, cam, cfg, device=device) as st:
+            img = (albedo[None] * np.clip(np.einsum("kc,hwc->khw", dirs, nrm), 0, None)[..., None]
+                   * intens[:, None, None, :] * visible[..., None]).astype(np.float32)
+            S = st.run(depth, m, nrm, img)
+        np.testing.assert_allclose(got, albedo[None] * S, rtol=1e-4, atol=1e-6)
+
+
+def test_model_gather_checks(device):
+    from gpps.lights import DirectionalLights
+    from gpps.material import Material
+
+    cam, m, depth, nrm, _ = _surface(12)
+    lights = DirectionalLights(np.array([[0.0, 0.0, 1.0]]))
+    with Interreflections((1,) + m.shape, cam, device=device) as st:
+        with pytest.raises(ValueError, match="upload"):
+            st.gather_model(np.ones(m.shape + (3,)), Material("conductor"), lights)
+        st.upload(depth, m, nrm, np.zeros((1,) + m.shape + (3,), np.float32))
+        with pytest.raises(ValueError, match="albedo"):
+            st.gather_model(np.ones(m.shape), Material("conductor"), lights)
+        with pytest.raises(ValueError, match="lights"):
+            st.gather_model(np.ones(m.shape + (3,)), Material("conductor"),
+                            DirectionalLights(np.array([[0.0, 0.0, 1.0], [0.0, 0.6, 0.8]])))
+        with pytest.raises(ValueError, match="visible"):
+            st.gather_model(np.ones(m.shape + (3,)), Material("conductor"), lights, np.ones((2,) + m.shape, bool))
+        with pytest.raises(TypeError, match="material"):
+            st.gather_model(np.ones(m.shape + (3,)), "conductor", lights)
+
+
+def test_glossy_terms_of_a_matte_surface_are_the_diffuse_ones(device):
+    """``interreflection_terms(glossy=True)`` sends on the model's direct radiance (cast shadows from the depth);
+    for a Lambertian surface whose images are exactly that radiance, it equals the diffuse gather of the images
+    times the albedo (both with the receivers' albedo clipped at ``max_albedo``)."""
+    from types import SimpleNamespace
+
+    from gpps.flows.interreflection import interreflection_terms
+    from gpps.lights import DirectionalLights
+    from gpps.material import Material
+    from gpps.pipeline.render import Renderer
+    from gpps.pipeline.shadows import CastShadows
+
+    cam, m, depth, nrm, _ = _surface(24)
+    dirs = np.array([[0.95, 0.1, 0.3], [-0.2, -0.9, 0.4], [0.0, 0.0, 1.0]])
+    lights = DirectionalLights(dirs / np.linalg.norm(dirs, axis=-1, keepdims=True))
+    albedo = np.random.default_rng(2).uniform(0.2, 0.9, m.shape + (3,)).astype(np.float32)
+    albedo[5, 7] = 40.0  # (a wild fit: clipped at max_albedo, as a receiver and as a source of modelled light)
+    mat = Material("lambertian")
+    with Renderer(m.shape, cam, lights, mat, device=device) as rd:
+        direct = rd.run(depth, m, np.minimum(albedo, 1.0), nrm)
+    with CastShadows((3,) + m.shape, cam, lights, device=device) as cs:
+        cs.upload(depth, m)
+        cs.step()
+        vis = cs.fetch()
+    assert not vis[:, m].all()  # (the concave surface shadows itself under the oblique lights)
+    images = (direct * vis[..., None]).astype(np.float32)
+    rec = SimpleNamespace(normals=nrm, depth=depth, depth_mask=m, albedo=albedo, material=mat)
+    cfg = InterreflectionConfig(max_sources=150)
+    g = interreflection_terms(images, m, lights, cam, rec, config=cfg, max_albedo=1.0, glossy=True, device=device)
+    d = interreflection_terms(images, m, lights, cam, rec, config=cfg, max_albedo=1.0, device=device)
+    assert g["stride"] == d["stride"] and g["sources"] == d["sources"]
+    assert d["B"][:, m].max() > 1e-3
+    np.testing.assert_allclose(g["B"], d["B"], rtol=2e-4, atol=1e-6)

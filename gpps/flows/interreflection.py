@@ -67,7 +67,7 @@ def _filled_depth(rec) -> np.ndarray:
 
 
 def interreflection_terms(images, mask, lights, camera, rec, *, config: InterreflectionConfig | None = None,
-                          max_albedo: float = np.inf, device=None) -> dict:
+                          max_albedo: float = np.inf, glossy: bool = False, device=None) -> dict:
     """The quantities of one compensation round from a reconstruction ``rec`` of ``images``.
 
     Args:
@@ -79,6 +79,12 @@ def interreflection_terms(images, mask, lights, camera, rec, *, config: Interref
             most what it receives).  A pixel no light reaches (a cast shadow under every light) is fitted with
             any albedo times a vanishing shading, up to 10^5 and more on our development captures; unclipped,
             such a pixel's ``rho * S`` exceeded the whole image's sum.
+        glossy: the first bounce under the fitted model at both ends
+            (:meth:`gpps.pipeline.interreflection.Interreflections.gather_model`: what a glossy source sends toward
+            the receiver and what the receiver's lobe sends on to the camera, each light's cast shadows at the
+            sources from the depth) instead of the diffuse gather of the observed radiance; ``B`` is then the
+            indirect light itself (per unit ``tau``), not ``rho`` times a gathered radiance, and the sources'
+            albedo is clipped at ``max_albedo`` as the receivers' is.
 
     Returns:
         ``{"B": (N, H, W, 3) rho * S (the indirect light per unit tau, ``rho`` clipped to ``[0, max_albedo]``),
@@ -92,6 +98,19 @@ def interreflection_terms(images, mask, lights, camera, rec, *, config: Interref
     normals = rec.normals
     # (a pixel the solver could not fit may carry a negative or NaN albedo: it reflects nothing here)
     albedo = np.clip(np.nan_to_num(np.asarray(rec.albedo, np.float32)), 0.0, None)
+    if glossy:
+        from gpps.pipeline.shadows import CastShadows
+
+        kd = np.minimum(albedo, np.float32(max_albedo)) if np.isfinite(max_albedo) else albedo
+        with CastShadows((n, h, w), camera, lights, device=device) as cs:
+            cs.upload(depth, mask)
+            cs.step()
+            visible = cs.fetch()
+        with Interreflections((n, h, w), camera, config, device=device) as st:
+            st.upload(depth, mask, normals, np.zeros((n, h, w), np.float32))  # (no observed radiance used)
+            B = st.gather_model(kd, rec.material, lights, visible)
+            stride, sources = st.stride, st.sources
+        return {"B": B, "sources": sources, "stride": stride}
     with Renderer((h, w), camera, lights, rec.material, device=device) as rd:
         predicted = rd.run(depth, mask, albedo, normals)
     with Renderer((h, w), camera, lights, replace(rec.material, ks=0.0), device=device) as rd:
@@ -149,6 +168,10 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
         bound = tau_bound(rec.albedo, m)
         tau = float(albedo_scale)
         if r == 0 and rec.material.brdf == "conductor":
+            # (the first bounce under the fitted lobe, interreflection_terms(glossy=True), predicts a metal's
+            # interreflections from the true surface (copper ridges: correlation 0.95 with the rendered indirect
+            # light) but not from the first reconstruction, whose normals the interreflections bent: there the
+            # rounds oscillate and the error does not fall; session 34, perf/results/s34/README.md)
             warn("interreflections: the model chosen is the conductor (a metal: its albedo map weighs a specular "
                  "lobe, there is no diffuse albedo to send light on); the diffuse compensation does not apply and "
                  "the interreflections are left in")

@@ -30,10 +30,11 @@ singular there.
 
 import warp as wp
 
-from gpps.kernels.brdf import CameraParams, pixel_point, view_dir
+from gpps.kernels.brdf import (CameraParams, LightParams, MaterialParams, brdf_terms, light_dir, light_radiance,
+                               pixel_point, shade, view_dir)
 from gpps.kernels.shadows import march
 
-__all__ = ["form_factor_kernel", "gather_kernel", "MIN_COS_VIEW", "MIN_SEPARATION_PX"]
+__all__ = ["form_factor_kernel", "gather_kernel", "model_gather_kernel", "MIN_COS_VIEW", "MIN_SEPARATION_PX"]
 
 MIN_COS_VIEW = wp.constant(0.1)
 MIN_SEPARATION_PX = wp.constant(1.5)
@@ -126,3 +127,66 @@ def gather_kernel(F: wp.array2d(dtype=wp.float32), x: wp.array2d(dtype=wp.float3
     for s in range(F.shape[1]):
         acc += F[r, s] * x[s, c]
     out[r, c] = acc
+
+
+@wp.kernel(enable_backward=False)
+def model_gather_kernel(
+    F: wp.array2d(dtype=wp.float32),
+    depth: wp.array2d(dtype=wp.float32),
+    normals: wp.array2d(dtype=wp.vec3),
+    albedo: wp.array2d(dtype=wp.vec3),
+    visible: wp.array3d(dtype=wp.uint8),
+    mat: MaterialParams,
+    lights: LightParams,
+    cam: CameraParams,
+    recv: wp.array(dtype=wp.vec2i),
+    src: wp.array(dtype=wp.vec2i),
+    out: wp.array2d(dtype=wp.vec3),
+):
+    """One bounce of glossy (or any modelled) interreflection: the radiance each receiver sends toward the camera
+    from the direct light its sources send it, both ends under the reflectance model (dim (R, N)).
+
+    For receiver ``r`` under light ``k``, with ``omega`` the unit direction from ``r`` to source ``s``::
+
+        out[r, k] = sum_s (F_rs / (n_r . omega)) * T_r(omega -> camera) * L_k,s(-> r)
+
+    ``T_r(l -> v) = albedo_r * t0 + ks * t1`` is the model's reflected radiance per unit radiance arriving from
+    ``l`` (:func:`gpps.kernels.brdf.brdf_terms`: its cosine included, so ``F`` is divided by the receiver's
+    cosine; for a Lambertian receiver this is ``albedo_r * F_rs``, :func:`gather_kernel`'s term), and
+    ``L_k,s(-> r)`` the source's direct radiance toward the receiver under light ``k``
+    (:func:`gpps.kernels.brdf.shade` with the view direction ``-omega``), zero where light ``k`` is cast-shadowed
+    at the source (``visible``).  A glossy source sends toward the receiver what it does not send toward the
+    camera, so the observed images cannot stand for it (they do in :func:`gather_kernel`, for diffuse sources);
+    the model fitted to the images can.  Only the first bounce: the light the sources receive indirectly is not
+    sent on (its share is the albedo times this one's).
+
+    Args:
+        F: (R, S) form factors of :func:`form_factor_kernel` for these receivers (visibility included).
+        depth, normals, albedo: (H, W) the surface (depth > 0 in the mask, unit normals, RGB albedo).
+        visible: (N, H, W) 1 where light ``k`` reaches the pixel (:mod:`gpps.pipeline.shadows`).
+        mat: the reflectance model; lights: the N lights; cam: the camera.
+        recv: (R,) receiver pixels; src: (S,) source pixels (row, column).
+        out: (R, N) RGB radiance toward the camera, per receiver and light.
+    """
+    r, k = wp.tid()
+    ri = recv[r]
+    pr = pixel_point(cam, ri[0], ri[1], depth[ri[0], ri[1]])
+    nr = normals[ri[0], ri[1]]
+    ar = albedo[ri[0], ri[1]]
+    vr = view_dir(cam, pr)
+    acc = wp.vec3(0.0, 0.0, 0.0)
+    for s in range(F.shape[1]):
+        f = F[r, s]
+        if f > 0.0:
+            si = src[s]
+            if visible[k, si[0], si[1]] != wp.uint8(0):
+                ps = pixel_point(cam, si[0], si[1], depth[si[0], si[1]])
+                om = wp.normalize(ps - pr)
+                cr = wp.dot(nr, om)
+                if cr > 0.0:
+                    ls = light_dir(lights, k, ps)
+                    Ls = shade(mat, albedo[si[0], si[1]], normals[si[0], si[1]], ls, -om,
+                               light_radiance(lights, k, ps))
+                    t = brdf_terms(mat, nr, om, vr)
+                    acc = acc + (f / cr) * wp.cw_mul(ar * t[0] + wp.vec3(mat.ks * t[1]), Ls)
+    out[r, k] = acc

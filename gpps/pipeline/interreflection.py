@@ -185,6 +185,67 @@ class Interreflections(Stage):
                 wp.launch(ik.gather_kernel, dim=(r1 - r0, self.out.shape[1]), inputs=[blk, self.radiance,
                           self.out[r0:r1]], device=d)
 
+    def gather_model(self, albedo, material, lights, visible=None) -> np.ndarray:
+        """One bounce of interreflection under the reflectance model at both ends
+        (:func:`gpps.kernels.interreflection.model_gather_kernel`), over the uploaded surface.
+
+        The diffuse gather (:meth:`step`) sends on the sources' observed radiance, right for a matte source, and
+        reflects it with the receiver's albedo; a glossy source (a metal) sends toward another part of the
+        surface what the camera does not see, and a glossy receiver reflects it by its lobe: here both come from
+        the fitted model.  Costs ``R * S * N`` pairs of model evaluations (the form factors ``R * S`` once).
+
+        Args:
+            albedo: (H, W, 3) albedo (the model's per-pixel weight; finite, clipped by the caller as it sees fit).
+            material: :class:`gpps.Material` fitted to the images.
+            lights: :class:`gpps.DirectionalLights` or :class:`gpps.PointLights` (N), as the images were fitted.
+            visible: (N, H, W) bool, True where light ``k`` reaches the pixel (cast shadows,
+                :class:`gpps.pipeline.shadows.CastShadows`); None: every light reaches every pixel.
+
+        Returns:
+            (N, H, W, 3) float32 radiance toward the camera per image (0 off the mask).
+        """
+        from gpps.pipeline.params import light_params, material_params
+
+        wp = warp()
+        self._check_open()
+        if self.recv is None:
+            raise ValueError("Interreflections: upload a surface first")
+        n, h, w = self.shape
+        alb = as_array("albedo", albedo, shape=(h, w, 3), dtype=np.float32)
+        if len(lights) != n:
+            raise ValueError(f"lights: expected {n} lights (the stage's shape[0]), got {len(lights)}")
+        vis = np.ones((n, h, w), bool) if visible is None else np.asarray(visible)
+        if vis.shape != (n, h, w) or vis.dtype != bool:
+            raise ValueError(f"visible: expected a ({n}, {h}, {w}) bool array, got {vis.shape} {vis.dtype}")
+        d = self.device
+        c = self.config
+        R, S = int(self.recv.shape[0]), int(self.src.shape[0])
+        res = np.zeros((n, h, w, 3), np.float32)
+        if R == 0 or S == 0:
+            return res
+        alb_d = wp.array(np.where(self._mask_host[..., None], alb, 0.0), dtype=wp.vec3, device=d)
+        vis_d = wp.array(vis.astype(np.uint8), dtype=wp.uint8, device=d)
+        mp = material_params(material)
+        lp = light_params(lights, d)
+        out = wp.zeros((R, n), dtype=wp.vec3, device=d)
+        self.dmin.fill_(float(sk.BIG))
+        wp.launch(sk.min_depth_kernel, dim=(h, w), inputs=[self.depth, self.mask, self.dmin], device=d)
+        rows = max(1, min(R, int(c.max_rows)))
+        F = wp.empty((rows, S), dtype=wp.float32, device=d)
+        for r0 in range(0, R, rows):
+            r1 = min(R, r0 + rows)
+            blk = F if r1 - r0 == rows else wp.empty((r1 - r0, S), dtype=wp.float32, device=d)
+            wp.launch(ik.form_factor_kernel, dim=(r1 - r0, S),
+                      inputs=[self.depth, self.mask, self.normals, self.cam, self.recv[r0:r1], self.src,
+                              float(self.stride**2), self.dmin, float(c.tolerance_px), float(c.step_px),
+                              self.max_steps, int(c.visibility), blk], device=d)
+            wp.launch(ik.model_gather_kernel, dim=(r1 - r0, n),
+                      inputs=[blk, self.depth, self.normals, alb_d, vis_d, mp, lp, self.cam, self.recv[r0:r1],
+                              self.src, out[r0:r1]], device=d)
+        recv = self.recv.numpy()
+        res[:, recv[:, 0], recv[:, 1], :] = out.numpy().transpose(1, 0, 2)
+        return res
+
     def fetch(self) -> np.ndarray:
         """(N, H, W, 3) float32 gathered radiance per unit albedo (0 off the mask)."""
         self._check_open()
