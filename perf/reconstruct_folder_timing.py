@@ -2,7 +2,8 @@
 per call, per-stage timings, the longest stretches without a progress report (and the reports around them) and MAEN
 where ground truth exists.  Usage:
 ``python perf/reconstruct_folder_timing.py FOLDER... [--device cuda:0] [--repeat 2] [--refine] [--out FILE]``
-(``--refine``: ``FolderConfig(refine=True)``, the depth refinement after RON's rounds)."""
+(``--refine``: ``FolderConfig(refine=True)``, the depth refinement after RON's rounds; ``--interreflections
+subtract`` [``--interreflection-rounds K``]: the interreflection compensation)."""
 
 from __future__ import annotations
 
@@ -28,8 +29,14 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--out", default=None)
     ap.add_argument("--refine", action="store_true", help="FolderConfig(refine=True)")
+    ap.add_argument("--interreflections", default=None, choices=("off", "subtract"),
+                    help="FolderConfig(interreflections=...); default: the FolderConfig default")
+    ap.add_argument("--interreflection-rounds", type=int, default=None)
     a = ap.parse_args(argv)
-    cfg = gpps.FolderConfig(refine=a.refine)
+    extra = {} if a.interreflections is None else {"interreflections": a.interreflections}
+    if a.interreflection_rounds is not None:
+        extra["interreflection_rounds"] = a.interreflection_rounds
+    cfg = gpps.FolderConfig(refine=a.refine, **extra)
     rows = []
     for folder in a.folders:
         for k in range(a.repeat):
@@ -48,13 +55,13 @@ def main(argv=None):
             row = {"folder": Path(folder).name, "call": k, "wall_s": wall, "maen_deg": rep.get("maen_deg"),
                    "timings": rep.get("timings"), "images": rep.get("images"), "shape": rep.get("shape"),
                    "max_progress_gap_s": max(g[0] for g in gaps), "refine": a.refine,
-                   "refinement": rep.get("refinement"),
+                   "refinement": rep.get("refinement"), "interreflections": rep.get("interreflections"),
                    # the three longest stretches without a report: (seconds, the report before, the report after)
                    "longest_gaps": sorted(gaps, key=lambda g: -g[0])[:3]}
             rows.append(row)
             print(json.dumps(row, default=json_default), flush=True)
     if a.out:
-        Path(a.out).write_text(json.dumps({"device": a.device, "refine": a.refine, "rows": rows}, indent=1, default=json_default))
+        Path(a.out).write_text(json.dumps({"device": a.device, "refine": a.refine, "config": str(cfg), "rows": rows}, indent=1, default=json_default))
 
 
 if __name__ == "__main__":

@@ -306,6 +306,38 @@ def test_compensation_recovers_a_self_lit_cap(device):
     np.testing.assert_allclose(maen(rec4.normals), before, rtol=1e-6)
 
 
+def test_convex_surface_is_not_reconstructed_again(device):
+    """A convex surface sends itself no light: the first gather's share is below ``NEGLIGIBLE_SHARE`` and the
+    compensation returns the first reconstruction without solving again."""
+    from types import SimpleNamespace
+
+    from gpps.flows.interreflection import NEGLIGIBLE_SHARE, reconstruct_subtracting
+    from gpps.lights import DirectionalLights
+    from gpps.material import Material
+
+    size, R = 40, 16.0
+    ii, jj = np.mgrid[0:size, 0:size].astype(float)
+    x, y = jj - (size - 1) / 2, -(ii - (size - 1) / 2)
+    m = x * x + y * y < (0.9 * R) ** 2
+    zz = np.sqrt(np.clip(R * R - x * x - y * y, 0, None))
+    depth = np.where(m, 100.0 - zz, 1.0).astype(np.float32)  # (a sphere seen from outside)
+    n = np.where(m[..., None], np.stack([x, y, zz], -1) / R, (0.0, 0.0, 1.0)).astype(np.float32)
+    dirs = np.array([[0.3, 0.2, 0.93], [-0.4, 0.1, 0.91], [0.0, -0.5, 0.87]])
+    lights = DirectionalLights(dirs / np.linalg.norm(dirs, axis=-1, keepdims=True))
+    images = np.repeat(np.clip(np.einsum("kc,hwc->khw", lights.directions, n), 0, None)[..., None], 3, -1)
+    images = (0.7 * images * m[None, ..., None]).astype(np.float32)
+    calls = []
+
+    def solve(imgs):
+        calls.append(imgs)
+        return SimpleNamespace(normals=n, albedo=np.full(m.shape + (3,), 0.7, np.float32), depth=depth,
+                               depth_mask=m, material=Material("lambertian"))
+
+    rec, info = reconstruct_subtracting(solve, images, m, lights, Orthographic(1.0), rounds=2, device=device)
+    assert len(calls) == 1 and info["negligible"] and not info["skipped"]
+    assert len(info["indirect_share"]) == 1 and info["indirect_share"][0] < NEGLIGIBLE_SHARE
+
+
 def test_folder_flow_subtracts(tmp_path, device):
     """``gpps.reconstruct_folder`` with ``interreflections="subtract"`` on the self-lit cap written as a capture
     folder (16-bit, orthographic): the report carries the rounds' record and the normals beat the default's."""
@@ -326,6 +358,39 @@ def test_folder_flow_subtracts(tmp_path, device):
     a = normal_errors(off.normals, n, m)["mean"]
     b = normal_errors(on.normals, n, m)["mean"]
     assert b < 0.5 * a, (a, b)
+
+
+def test_folder_flow_keeps_the_first_model(tmp_path, device, monkeypatch):
+    """With models compared (the default from 6 images), the compensation's later reconstructions keep the model
+    the first one chose on the observed images, with its parameters estimated again (no second comparison), and
+    the report keeps that comparison."""
+    import gpps
+    import gpps.flows.folder as ff
+    from gpps.io import Dataset, write_dataset
+
+    m, depth, n, lights, cam, direct, images = _self_lit(device)
+    ds = Dataset(images=images, mask=m, light_directions=lights.directions, light_intensities=np.ones((8, 3), np.float32),
+                 normal_gt=n, filenames=[f"{i:03d}.png" for i in range(1, 9)])
+    folder = write_dataset(tmp_path / "cap", ds, bits=16)
+    calls = []
+    real = ff.reconstruct
+
+    def spy(images, mask, lights, **kw):
+        r = real(images, mask, lights, **kw)
+        calls.append((kw["config"].models, kw["material"], kw["estimate"], r.material))
+        return r
+
+    monkeypatch.setattr(ff, "reconstruct", spy)
+    on = gpps.reconstruct_folder(folder, gpps.FolderConfig(interreflections="subtract", interreflection_rounds=2),
+                                 device=device)
+    assert len(calls) == 3
+    assert set(calls[0][0]) == {"conductor", "plastic"} and calls[0][1].brdf == "blinn-phong"
+    chosen = calls[0][3]
+    for models, material, estimate, _ in calls[1:]:
+        assert models == () and material == chosen
+        assert set(estimate) == set(ff.LOBE_PARAMETERS[chosen.brdf])
+    assert set(on.report["model_energies"]) == {"blinn-phong", "conductor", "plastic"}
+    assert on.report["material"]["brdf"] == chosen.brdf
 
 
 def test_cli_options():

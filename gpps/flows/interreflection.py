@@ -44,7 +44,7 @@ from gpps.camera import Orthographic
 from gpps.pipeline.interreflection import InterreflectionConfig, Interreflections
 from gpps.pipeline.render import Renderer
 
-__all__ = ["interreflection_terms", "tau_bound", "reconstruct_subtracting", "MAX_APPARENT_ALBEDO"]
+__all__ = ["interreflection_terms", "tau_bound", "reconstruct_subtracting", "MAX_APPARENT_ALBEDO", "NEGLIGIBLE_SHARE"]
 
 #: the largest albedo (times ``albedo_scale``, 99th percentile) the compensation accepts from the first
 #: reconstruction.  A matte surface's apparent albedo exceeds its true one by the indirect light it receives: a
@@ -53,6 +53,11 @@ __all__ = ["interreflection_terms", "tau_bound", "reconstruct_subtracting", "MAX
 #: intensities are not radiometric.  (On the development captures the rough conductors show 2.0-2.1, every other
 #: capture at most 1.2: any value in 1.25-2 decides the same there.)
 MAX_APPARENT_ALBEDO = 1.5
+
+#: below this share of the images' light (summed over the mask) the indirect light is not taken out and no round
+#: reconstructs again: a relative change of 1e-6 in the images moves a normal by about 1e-6 rad, and a convex
+#: surface (DiLiGenT's ball: 1e-9) sends itself nothing; the rounds would return the first reconstruction
+NEGLIGIBLE_SHARE = 1e-6
 
 def _filled_depth(rec) -> np.ndarray:
     """RON's depth on its depth mask, the mask's other pixels filled with the nearest depth (> 0 everywhere)."""
@@ -155,7 +160,8 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
     Returns:
         ``(reconstruction, info)``: the last reconstruction and ``{"tau": [...] per round, "bound": ...,
         "sources": ..., "stride": ..., "indirect_share": [...], "lowered": ..., "skipped": ...}`` (the
-        indirect light's share of the images' sum over the mask, per round).
+        indirect light's share of the images' sum over the mask, per round); ``"negligible": True`` where a
+        round's share fell below :data:`NEGLIGIBLE_SHARE` and the rounds stopped without reconstructing again.
     """
     from gpps._check import warn
 
@@ -163,7 +169,7 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
     m = np.asarray(mask, bool)
     rec = solve(images)
     taus, shares = [], []
-    info: dict = {"albedo_scale": float(albedo_scale), "skipped": False, "lowered": False}
+    info: dict = {"albedo_scale": float(albedo_scale), "skipped": False, "lowered": False, "negligible": False}
     for r in range(int(rounds)):
         bound = tau_bound(rec.albedo, m)
         tau = float(albedo_scale)
@@ -195,6 +201,9 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
                                       device=device)
         shares.append(float((tau * terms["B"])[:, m].sum() / max(float(images[:, m].sum()), 1e-30)))
         info.update(bound=bound if np.isfinite(bound) else None, sources=terms["sources"], stride=terms["stride"])
+        if shares[-1] < NEGLIGIBLE_SHARE:
+            info["negligible"] = True  # (a convex surface sends itself nothing: the images would not change)
+            break
         corrected = np.clip(images - np.float32(tau) * terms["B"], 0.0, None)
         rec = solve(corrected)
     info.update(tau=taus, indirect_share=shares)
