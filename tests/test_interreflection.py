@@ -335,6 +335,8 @@ def test_convex_surface_is_not_reconstructed_again(device):
 
     rec, info = reconstruct_subtracting(solve, images, m, lights, Orthographic(1.0), rounds=2, device=device)
     assert len(calls) == 1 and info["negligible"] and not info["skipped"]
+    rs = info["round_seconds"]
+    assert len(rs["gather"]) == 1 and rs["solve"] == [] and rs["first"] >= 0 and rs["gather"][0] > 0
     assert len(info["indirect_share"]) == 1 and info["indirect_share"][0] < NEGLIGIBLE_SHARE
 
 

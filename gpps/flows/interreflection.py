@@ -36,6 +36,7 @@ of a reconstruction and needs radiometric light intensities.
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -161,13 +162,16 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
         ``(reconstruction, info)``: the last reconstruction and ``{"tau": [...] per round, "bound": ...,
         "sources": ..., "stride": ..., "indirect_share": [...], "lowered": ..., "skipped": ...}`` (the
         indirect light's share of the images' sum over the mask, per round); ``"negligible": True`` where a
-        round's share fell below :data:`NEGLIGIBLE_SHARE` and the rounds stopped without reconstructing again.
+        round's share fell below :data:`NEGLIGIBLE_SHARE` and the rounds stopped without reconstructing again;
+        ``"round_seconds"``: ``{"first": s, "gather": [s per round], "solve": [s per round]}`` (wall time).
     """
     from gpps._check import warn
 
     images = np.asarray(images, np.float32)
     m = np.asarray(mask, bool)
+    t0 = time.perf_counter()
     rec = solve(images)
+    seconds = {"first": time.perf_counter() - t0, "gather": [], "solve": []}
     taus, shares = [], []
     info: dict = {"albedo_scale": float(albedo_scale), "skipped": False, "lowered": False, "negligible": False}
     for r in range(int(rounds)):
@@ -197,14 +201,17 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
         taus.append(tau)
         if progress is not None:
             progress(r, int(rounds), f"interreflections: gathering over the surface (round {r + 1} of {int(rounds)})")
+        t0 = time.perf_counter()
         terms = interreflection_terms(images, m, lights, camera, rec, config=config, max_albedo=1.0 / tau,
                                       device=device)
         shares.append(float((tau * terms["B"])[:, m].sum() / max(float(images[:, m].sum()), 1e-30)))
+        seconds["gather"].append(time.perf_counter() - t0)  # (the model's renders and the gather)
         info.update(bound=bound if np.isfinite(bound) else None, sources=terms["sources"], stride=terms["stride"])
         if shares[-1] < NEGLIGIBLE_SHARE:
             info["negligible"] = True  # (a convex surface sends itself nothing: the images would not change)
             break
-        corrected = np.clip(images - np.float32(tau) * terms["B"], 0.0, None)
-        rec = solve(corrected)
-    info.update(tau=taus, indirect_share=shares)
+        t0 = time.perf_counter()
+        rec = solve(np.clip(images - np.float32(tau) * terms["B"], 0.0, None))
+        seconds["solve"].append(time.perf_counter() - t0)  # (the images' update and the reconstruction)
+    info.update(tau=taus, indirect_share=shares, round_seconds=seconds)
     return rec, info
