@@ -30,8 +30,16 @@ deg (2.02 -> 0.81 under point lights), a sphere on a plane 2.41 -> 2.01, one-pix
 7.33; glossy surfaces gain little or lose (a rough-plastic bowl under point lights 2.42 -> 3.35: its fitted
 "albedo" is not a diffuse albedo and its interreflections are glossy).  With the reflectance model chosen by
 residual between Blinn-Phong and plastic (``models=("plastic",)``), whose albedo is the diffuse albedo under the
-coating, the plastics gain too (bowl 3.17 -> 1.80, bumps 1.67 -> 0.65).  It is off by default: it triples the time
-of a reconstruction and needs radiometric light intensities.
+coating, the plastics gain too (bowl 3.17 -> 1.80, bumps 1.67 -> 0.65).
+
+Since session 34 (perf/results/s34/README.md: the receivers' albedo bounded by ``1 / tau``, the later rounds kept on
+the first round's model, no round where nothing is sent) no 12-light capture of our development or held-out sets
+gets worse with it: development non-diffuse mean 3.88 -> 3.36 deg, matte 2.83 -> 1.74; held-out 2.57 -> 2.12 and
+5.66 -> 3.54; DiLiGenT bear 4.50 -> 4.39.  It is off by default: one round costs a gather and a second
+reconstruction (DiLiGenT bear on an H200 1.0 -> 2.4 s warm, beyond issue 20's 2 s), and it needs radiometric light
+intensities (``albedo_scale``).  Metals are skipped: the first bounce under their fitted lobe
+(:meth:`gpps.pipeline.interreflection.Interreflections.gather_model`) predicts their interreflections from the true
+surface but not from a reconstruction the interreflections have bent.
 """
 
 from __future__ import annotations
