@@ -543,3 +543,38 @@ def test_glossy_terms_of_a_matte_surface_are_the_diffuse_ones(device):
     assert g["stride"] == d["stride"] and g["sources"] == d["sources"]
     assert d["B"][:, m].max() > 1e-3
     np.testing.assert_allclose(g["B"], d["B"], rtol=2e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("brdf", ["blinn-phong", "plastic"])
+def test_sources_less_specular_match_the_renders(device, brdf):
+    """``upload(..., less_specular=(material, lights))``: the sources' radiance is the images less the model's
+    specular part, evaluated at the sources only; it equals the images less (the render less its render with
+    ks = 0) there, clipped at 0 (what the flow computed with two full renders before)."""
+    from dataclasses import replace
+
+    from gpps.lights import PointLights
+    from gpps.material import Material
+    from gpps.pipeline.render import Renderer
+
+    cam, m, depth, nrm, pts = _surface(24)
+    mat = {"blinn-phong": Material("blinn-phong", ks=0.7, shininess=15.0),
+           "plastic": Material("plastic", ks=0.5, roughness=0.2, f0=0.04)}[brdf]
+    lights = PointLights(np.array([[2.0, 1.0, 0.0], [-1.5, 0.5, 1.0], [0.0, -2.0, -1.0]]),
+                         np.full((3, 3), 100.0))  # (the surface is ~10 units away)
+    albedo = np.random.default_rng(4).uniform(0.2, 0.9, m.shape + (3,)).astype(np.float32)
+    images = np.random.default_rng(5).uniform(0.0, 0.3, (3,) + m.shape + (3,)).astype(np.float32)
+    with Renderer(m.shape, cam, lights, mat, device=device) as rd:
+        full = rd.run(depth, m, albedo, nrm)
+    with Renderer(m.shape, cam, lights, replace(mat, ks=0.0), device=device) as rd:
+        diffuse = rd.run(depth, m, albedo, nrm)
+    cfg = InterreflectionConfig(max_sources=100)
+    with Interreflections((3,) + m.shape, cam, cfg, device=device) as st:
+        st.upload(depth, m, nrm, images + full, less_specular=(mat, lights))
+        got = st.radiance.numpy()
+        with pytest.raises(ValueError, match="less_specular"):
+            st.upload(depth, m, nrm, images, less_specular=(mat, PointLights(np.ones((2, 3)))))
+    src, _ = source_pixels(m, 100)
+    ref = np.clip(images + full - (full - diffuse), 0.0, None)[:, src[:, 0], src[:, 1], :]
+    ref = ref.transpose(1, 0, 2).reshape(len(src), 9)
+    assert (full - diffuse)[:, src[:, 0], src[:, 1]].max() > 0.05  # (the sources do show a specular part)
+    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-6)

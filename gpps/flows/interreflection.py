@@ -45,13 +45,11 @@ surface but not from a reconstruction the interreflections have bent.
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 
 import numpy as np
 
 from gpps.camera import Orthographic
 from gpps.pipeline.interreflection import InterreflectionConfig, Interreflections
-from gpps.pipeline.render import Renderer
 
 __all__ = ["interreflection_terms", "tau_bound", "reconstruct_subtracting", "MAX_APPARENT_ALBEDO", "NEGLIGIBLE_SHARE"]
 
@@ -125,18 +123,15 @@ def interreflection_terms(images, mask, lights, camera, rec, *, config: Interref
             B = st.gather_model(kd, rec.material, lights, visible)
             stride, sources = st.stride, st.sources
         return {"B": B, "sources": sources, "stride": stride}
-    with Renderer((h, w), camera, lights, rec.material, device=device) as rd:
-        predicted = rd.run(depth, mask, albedo, normals)
-    with Renderer((h, w), camera, lights, replace(rec.material, ks=0.0), device=device) as rd:
-        diffuse = rd.run(depth, mask, albedo, normals)
-    radiance = np.clip(images - (predicted - diffuse), 0.0, None)  # the sources' diffuse radiance
     with Interreflections((n, h, w), camera, config, device=device) as st:
-        st.upload(depth, mask, normals, radiance)
+        # (the sources' diffuse radiance: the images less the model's specular part, at the sources only)
+        st.upload(depth, mask, normals, images, less_specular=(rec.material, lights))
         st.step()
         S = st.fetch()
         stride, sources = st.stride, st.sources
     kd = np.minimum(albedo, np.float32(max_albedo)) if np.isfinite(max_albedo) else albedo
-    return {"B": (kd[None] * S).astype(np.float32), "sources": sources, "stride": stride}
+    S *= kd[None]  # (in place: S is this call's own array)
+    return {"B": S, "sources": sources, "stride": stride}
 
 
 def tau_bound(albedo, mask) -> float:
@@ -180,6 +175,7 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
     t0 = time.perf_counter()
     rec = solve(images)
     seconds = {"first": time.perf_counter() - t0, "gather": [], "solve": []}
+    total = max(float(images[:, m].sum(dtype=np.float64)), 1e-30)  # (the images' light in the mask)
     taus, shares = [], []
     info: dict = {"albedo_scale": float(albedo_scale), "skipped": False, "lowered": False, "negligible": False}
     for r in range(int(rounds)):
@@ -212,14 +208,15 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
         t0 = time.perf_counter()
         terms = interreflection_terms(images, m, lights, camera, rec, config=config, max_albedo=1.0 / tau,
                                       device=device)
-        shares.append(float((tau * terms["B"])[:, m].sum() / max(float(images[:, m].sum()), 1e-30)))
+        shares.append(tau * float(terms["B"].sum(dtype=np.float64)) / total)  # (B is 0 off the mask)
         seconds["gather"].append(time.perf_counter() - t0)  # (the model's renders and the gather)
         info.update(bound=bound if np.isfinite(bound) else None, sources=terms["sources"], stride=terms["stride"])
         if shares[-1] < NEGLIGIBLE_SHARE:
             info["negligible"] = True  # (a convex surface sends itself nothing: the images would not change)
             break
         t0 = time.perf_counter()
-        rec = solve(np.clip(images - np.float32(tau) * terms["B"], 0.0, None))
+        corrected = images - np.float32(tau) * terms["B"]
+        rec = solve(np.maximum(corrected, 0.0, out=corrected))
         seconds["solve"].append(time.perf_counter() - t0)  # (the images' update and the reconstruction)
     info.update(tau=taus, indirect_share=shares, round_seconds=seconds)
     return rec, info

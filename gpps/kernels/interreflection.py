@@ -34,7 +34,8 @@ from gpps.kernels.brdf import (CameraParams, LightParams, MaterialParams, brdf_t
                                pixel_point, shade, view_dir)
 from gpps.kernels.shadows import march
 
-__all__ = ["form_factor_kernel", "gather_kernel", "model_gather_kernel", "MIN_COS_VIEW", "MIN_SEPARATION_PX"]
+__all__ = ["form_factor_kernel", "gather_kernel", "model_gather_kernel", "source_specular_kernel", "MIN_COS_VIEW",
+           "MIN_SEPARATION_PX"]
 
 MIN_COS_VIEW = wp.constant(0.1)
 MIN_SEPARATION_PX = wp.constant(1.5)
@@ -190,3 +191,29 @@ def model_gather_kernel(
                     t = brdf_terms(mat, nr, om, vr)
                     acc = acc + (f / cr) * wp.cw_mul(ar * t[0] + wp.vec3(mat.ks * t[1]), Ls)
     out[r, k] = acc
+
+
+@wp.kernel(enable_backward=False)
+def source_specular_kernel(
+    depth: wp.array2d(dtype=wp.float32),
+    normals: wp.array2d(dtype=wp.vec3),
+    mat: MaterialParams,
+    lights: LightParams,
+    cam: CameraParams,
+    src: wp.array(dtype=wp.vec2i),
+    out: wp.array2d(dtype=wp.vec3),
+):
+    """The model's specular part toward the camera at each source pixel under each light, ``E_k * ks * s`` (dim
+    (S, N)): what a rendered image less its render with ``ks = 0`` holds there (:func:`gpps.kernels.brdf.shade`;
+    the albedo-weighted term is the same in both and cancels), computed at the sources only.
+
+    Args:
+        depth, normals: (H, W) the surface; mat: the model; lights: the N lights; cam: the camera.
+        src: (S,) source pixels (row, column).
+        out: (S, N) RGB specular radiance.
+    """
+    s, k = wp.tid()
+    si = src[s]
+    p = pixel_point(cam, si[0], si[1], depth[si[0], si[1]])
+    t = brdf_terms(mat, normals[si[0], si[1]], light_dir(lights, k, p), view_dir(cam, p))
+    out[s, k] = wp.cw_mul(light_radiance(lights, k, p), wp.vec3(mat.ks * t[1]))

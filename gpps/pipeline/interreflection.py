@@ -117,7 +117,7 @@ class Interreflections(Stage):
         """The number of source pixels of the last upload."""
         return 0 if self.src is None else int(self.src.shape[0])
 
-    def upload(self, depth, mask, normals, images) -> None:
+    def upload(self, depth, mask, normals, images, *, less_specular=None) -> None:
         """Copy the surface and the images into the stage's buffers.
 
         Args:
@@ -125,6 +125,10 @@ class Interreflections(Stage):
             mask: (H, W) bool: the object.
             normals: (H, W, 3) unit normals inside the mask (gpps frame).
             images: (N, H, W, 3) (or (N, H, W)) linear images, the sources' radiance.
+            less_specular: optional ``(material, lights)``: the sources' radiance is the images less the model's
+                specular part toward the camera (``E ks s``, :func:`gpps.kernels.interreflection.source_specular_kernel`,
+                evaluated at the source pixels only), clipped at 0: a glossy source's highlight is sent toward the
+                camera, not toward the rest of the surface.
         """
         wp = warp()
         self._check_open()
@@ -151,6 +155,18 @@ class Interreflections(Stage):
         self.src = wp.array(src, dtype=wp.vec2i, device=d)
         # (S, 3N): the sources' radiance, one column per image and channel
         x = np.ascontiguousarray(img[:, src[:, 0], src[:, 1], :].transpose(1, 0, 2).reshape(len(src), 3 * n))
+        if less_specular is not None and len(src):
+            from gpps.pipeline.params import light_params, material_params
+
+            material, lights = less_specular
+            if len(lights) != n:
+                raise ValueError(f"less_specular: expected {n} lights (the stage's shape[0]), got {len(lights)}")
+            spec = wp.empty((len(src), n), dtype=wp.vec3, device=d)
+            lp = light_params(lights, d)
+            wp.launch(ik.source_specular_kernel, dim=(len(src), n),
+                      inputs=[self.depth, self.normals, material_params(material), lp, self.cam, self.src, spec],
+                      device=d)
+            x = np.clip(x - spec.numpy().reshape(len(src), 3 * n), 0.0, None)
         self.radiance = wp.array(np.nan_to_num(x).astype(np.float32), dtype=wp.float32, device=d)
         self.out = wp.zeros((len(recv), 3 * n), dtype=wp.float32, device=d)
 
