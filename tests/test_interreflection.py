@@ -364,8 +364,8 @@ def test_folder_flow_subtracts(tmp_path, device):
 
 def test_folder_flow_keeps_the_first_model(tmp_path, device, monkeypatch):
     """With models compared (the default from 6 images), the compensation's later reconstructions keep the model
-    the first one chose on the observed images, with its parameters estimated again (no second comparison), and
-    the report keeps that comparison."""
+    the first one chose on the observed images, its parameters refined from the first's estimate (no second
+    comparison, no grid), and the report keeps that comparison."""
     import gpps
     import gpps.flows.folder as ff
     from gpps.io import Dataset, write_dataset
@@ -379,7 +379,7 @@ def test_folder_flow_keeps_the_first_model(tmp_path, device, monkeypatch):
 
     def spy(images, mask, lights, **kw):
         r = real(images, mask, lights, **kw)
-        calls.append((kw["config"].models, kw["material"], kw["estimate"], r.material))
+        calls.append((kw["config"].models, kw["material"], kw["estimate"], r.material, kw["config"].material_grid))
         return r
 
     monkeypatch.setattr(ff, "reconstruct", spy)
@@ -387,9 +387,10 @@ def test_folder_flow_keeps_the_first_model(tmp_path, device, monkeypatch):
                                  device=device)
     assert len(calls) == 3
     assert set(calls[0][0]) == {"conductor", "plastic"} and calls[0][1].brdf == "blinn-phong"
+    assert calls[0][4] == gpps.RONConfig().material_grid
     chosen = calls[0][3]
-    for models, material, estimate, _ in calls[1:]:
-        assert models == () and material == chosen
+    for models, material, estimate, _, grid in calls[1:]:  # (refined from the first's estimate: no grid)
+        assert models == () and material == chosen and grid == 1
         assert set(estimate) == set(ff.LOBE_PARAMETERS[chosen.brdf])
     assert set(on.report["model_energies"]) == {"blinn-phong", "conductor", "plastic"}
     assert on.report["material"]["brdf"] == chosen.brdf

@@ -626,20 +626,21 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
         first: dict = {}
 
         def solve(images):
-            if first and compare:
-                # (the compensation's later reconstructions keep the model the first one chose, its parameters
-                # estimated again from its fit: the rounds iterate one forward model, images <- observed -
-                # indirect(surface); re-deciding the model on images a fraction of a percent apart flipped DiLiGenT
-                # bear's choice at z = 2.39 against the threshold's 2.33 and cost 1.1 deg, session 34)
+            if first:
+                # (the compensation's later reconstructions: the rounds iterate one forward model, images <-
+                # observed - indirect(surface), so they keep the model the first reconstruction chose on the
+                # observed images (re-deciding it on images a fraction of a percent apart flipped DiLiGenT bear's
+                # choice at z = 2.39 against the threshold's 2.33 and cost 1.1 deg, session 34), and its
+                # parameters are refined from the first's estimate (no grid: the images moved by a few percent)
                 m0 = first["rec"].material
                 return reconstruct(images, ds.mask, lights, camera=camera, material=m0,
-                                   estimate=LOBE_PARAMETERS[m0.brdf], reference_depth=internal_reference,
-                                   valid=valid, config=replace(cfg, models=()), device=device, progress=progress)
-            r = reconstruct(images, ds.mask, lights, camera=camera, material=material, estimate=estimate,
-                            reference_depth=internal_reference, valid=valid, config=cfg, device=device,
-                            progress=progress)
-            first.setdefault("rec", r)
-            return r
+                                   estimate=LOBE_PARAMETERS[m0.brdf] if compare else estimate,
+                                   reference_depth=internal_reference, valid=valid,
+                                   config=replace(cfg, models=(), material_grid=1), device=device, progress=progress)
+            first["rec"] = reconstruct(images, ds.mask, lights, camera=camera, material=material, estimate=estimate,
+                                       reference_depth=internal_reference, valid=valid, config=cfg, device=device,
+                                       progress=progress)
+            return first["rec"]
 
         if config.interreflections == "subtract":
             from gpps.flows.interreflection import reconstruct_subtracting
@@ -662,12 +663,8 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
                       cast_shadows=rec.details.shadows)  # (RON's passes: observations dropped per round)
         if rec.details.refinement is not None:
             report["refinement"] = rec.details.refinement
-        fits = rec.details.material_fit
-        if compare and first["rec"] is not rec:  # (the comparison was made once, on the observed images)
-            first_fits = first["rec"].details.material_fit
-            if first_fits and "models" in first_fits[0]:
-                report["model_energies"] = first_fits[0]["models"]
-                report["model_evidence"] = first_fits[0].get("evidence", {})
+        # (the material's ambiguity and the models' comparison come from the first fit on the observed images)
+        fits = first["rec"].details.material_fit
         if fits and fits[0].get("ambiguity") is not None:  # (how far the images leave the material open)
             report["material_ambiguity"] = {**fits[0]["ambiguity"], "identifiable": fits[0]["identifiable"]}
         if fits and "models" in fits[0]:  # (compared models: each one's sampled energy and the switch's test)
