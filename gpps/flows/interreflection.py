@@ -34,10 +34,10 @@ coating, the plastics gain too (bowl 3.17 -> 1.80, bumps 1.67 -> 0.65).
 
 Since session 34 (perf/results/s34/README.md: the receivers' albedo bounded by ``1 / tau``, the later rounds kept on
 the first round's model, no round where nothing is sent) no 12-light capture of our development or held-out sets
-gets worse with it: development non-diffuse mean 3.88 -> 3.36 deg, matte 2.83 -> 1.74; held-out 2.57 -> 2.12 and
-5.66 -> 3.54; DiLiGenT bear 4.50 -> 4.39.  It is off by default: one round costs a gather and a second
-reconstruction (DiLiGenT bear on an H200 1.0 -> 2.4 s warm, beyond issue 20's 2 s), and it needs radiometric light
-intensities (``albedo_scale``).  Metals are skipped: the first bounce under their fitted lobe
+gets worse with it: development non-diffuse mean 3.88 -> 3.36 deg, matte 2.83 -> 1.78; held-out 2.57 -> 2.12 and
+5.66 -> 3.54; DiLiGenT bear 4.50 -> 4.41.  With three lights it helps matte surfaces and hurts glossy ones.  It is off
+by default: one round costs a gather and a second reconstruction (DiLiGenT bear on an H200 1.0-1.2 -> 2.2-2.4 s
+warm, beyond issue 20's 2 s), and it needs radiometric light intensities (``albedo_scale``).  Metals are skipped: the first bounce under their fitted lobe
 (:meth:`gpps.pipeline.interreflection.Interreflections.gather_model`) predicts their interreflections from the true
 surface but not from a reconstruction the interreflections have bent.
 """
@@ -209,7 +209,7 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
         terms = interreflection_terms(images, m, lights, camera, rec, config=config, max_albedo=1.0 / tau,
                                       device=device)
         shares.append(tau * float(terms["B"].sum(dtype=np.float64)) / total)  # (B is 0 off the mask)
-        seconds["gather"].append(time.perf_counter() - t0)  # (the model's renders and the gather)
+        seconds["gather"].append(time.perf_counter() - t0)  # (the sources' radiance, the gather, B)
         info.update(bound=bound if np.isfinite(bound) else None, sources=terms["sources"], stride=terms["stride"])
         if shares[-1] < NEGLIGIBLE_SHARE:
             info["negligible"] = True  # (a convex surface sends itself nothing: the images would not change)

@@ -4,9 +4,10 @@ Given a depth map, its normals and the observed images, the stage gathers at eve
 radiance the other patches of the surface send it (:mod:`gpps.kernels.interreflection`: form factors with
 visibility marched over the depth map).  The result ``S`` (N, H, W, 3) is in the images' units per unit albedo: a
 Lambertian receiver of albedo ``kd`` shows the indirect light ``kd * S[k]`` in image ``k``.  The sources' radiance
-is the pixel value of the images given (the radiance toward the camera: exact for Lambertian sources;
-:func:`gpps.flows.interreflection.reconstruct_subtracting` gives the observed images less the model's specular
-part), which it uses to take the indirect light out of the images.
+is the pixel value of the images given (the radiance toward the camera: exact for Lambertian sources), less the
+model's specular part at the sources with ``upload(..., less_specular=(material, lights))`` (what
+:func:`gpps.flows.interreflection.reconstruct_subtracting` asks for, to take the indirect light out of the
+images).  :meth:`Interreflections.gather_model` gathers the first bounce under the model at both ends instead.
 
 Cost: ``R * S`` form factors (``R`` mask pixels, ``S <= max_sources`` sources, each a march of up to the pair's
 distance in pixels) and ``R * S * 3N`` multiply-adds for the gather (numpy's BLAS on the CPU, a kernel on CUDA).
