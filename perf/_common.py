@@ -201,3 +201,28 @@ def diligent_subset(src: Path, dst: Path, idx) -> Path:
     for f in ("K.txt", "normal_gt.npy", "mask.png"):
         shutil.copy(src / f, dst / f)
     return dst
+
+
+def folder_solve(folder, device):
+    """The folder flow's reconstruction of ``folder`` with the compensation asked for, stopped before its first
+    gather: ``(solve, first)``, the flow's ``solve(images) -> Reconstruction`` (later calls are the compensation's
+    later reconstructions: the first's model kept, its material refined) and the first reconstruction (of the
+    observed images).  For probes that run their own compensation rounds (perf/glossy_interreflection_probe.py,
+    perf/interreflection_oracle_probe.py)."""
+    import gpps
+    import gpps.flows.interreflection as gi
+
+    captured = {}
+    orig = gi.reconstruct_subtracting
+
+    def grab(solve, images, *args, **kw):
+        captured["solve"] = solve
+        captured["first"], _ = orig(solve, images, *args, **{**kw, "rounds": 0})
+        return captured["first"], _
+
+    gi.reconstruct_subtracting = grab
+    try:
+        gpps.reconstruct_folder(folder, gpps.FolderConfig(interreflections="subtract"), device=device)
+    finally:
+        gi.reconstruct_subtracting = orig
+    return captured["solve"], captured["first"]

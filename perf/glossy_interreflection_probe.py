@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 import warnings
 from dataclasses import replace
 from pathlib import Path
@@ -33,6 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "perf"))
 sys.path.insert(0, str(ROOT / "training"))
+from _common import folder_solve  # noqa: E402
 from dev_eval import DEV  # noqa: E402
 
 
@@ -87,27 +87,14 @@ def main(argv=None) -> None:
         compare("truth", gi.interreflection_terms(I4.astype(np.float32), m, lights, cam, rec, glossy=True,
                                                   device=a.device)["B"])
 
-    captured = {}
-    orig = gi.reconstruct_subtracting
-
-    def grab(solve, images, *args, **kw):
-        captured["solve"] = solve
-        return orig(solve, images, *args, **{**kw, "rounds": 0})
-
-    gi.reconstruct_subtracting = grab
-    try:
-        gpps.reconstruct_folder(d4, gpps.FolderConfig(interreflections="subtract"), device=a.device)
-    finally:
-        gi.reconstruct_subtracting = orig
-    solve = captured["solve"]
+    solve, first = folder_solve(d4, a.device)
 
     def maen(r):
         return float(np.degrees(np.arccos(np.clip((r.normals * gt).sum(-1), -1, 1)))[m].mean())
 
     images = I4.astype(np.float32)
-    t = time.perf_counter()
-    rec = solve(images)
-    print(f"round 0: MAEN {maen(rec):.3f} deg, model {rec.material.brdf} ({time.perf_counter() - t:.1f} s)", flush=True)
+    rec = first
+    print(f"round 0: MAEN {maen(rec):.3f} deg, model {rec.material.brdf}", flush=True)
     for r in range(a.rounds):
         B = gi.interreflection_terms(images, m, lights, cam, rec, glossy=True, device=a.device)["B"]
         compare(f"round {r + 1} gather on the last reconstruction", B)

@@ -29,11 +29,13 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "perf"))
 
 
 def main(argv=None) -> None:
     import gpps
     import gpps.flows.interreflection as gi
+    from _common import folder_solve
     from gpps.camera import camera_from_K
     from gpps.io import read_capture
 
@@ -52,19 +54,7 @@ def main(argv=None) -> None:
     if os.path.isdir(d2):
         i2 = read_capture(d2).dataset.images
         print(f"true indirect share {(images - i2)[:, m].sum() / images[:, m].sum():.4f}")
-    captured = {}
-    orig = gi.reconstruct_subtracting
-
-    def grab(solve, imgs, *a, **k):
-        captured["solve"] = solve
-        return orig(solve, imgs, *a, **{**k, "rounds": 0})
-
-    gi.reconstruct_subtracting = grab
-    try:
-        gpps.reconstruct_folder(c, gpps.FolderConfig(interreflections="subtract"), device="cpu")
-    finally:
-        gi.reconstruct_subtracting = orig
-    solve = captured["solve"]
+    solve, rec = folder_solve(c, "cpu")
     cam = camera_from_K(ds.K)
     lights = (gpps.PointLights(ds.light_positions) if ds.light_positions is not None
               else gpps.DirectionalLights(ds.light_directions))
@@ -72,7 +62,6 @@ def main(argv=None) -> None:
     def maen(r):
         return float(np.degrees(np.arccos(np.clip((r.normals * g).sum(-1), -1, 1)))[m].mean())
 
-    rec = solve(images)
     print(f"{os.path.basename(c)}\nfirst reconstruction: MAEN {maen(rec):.3f} deg ({rec.material.brdf})", flush=True)
     surfaces = {"reconstructed": SimpleNamespace(normals=rec.normals, depth=rec.depth, depth_mask=rec.depth_mask,
                                                  albedo=rec.albedo, material=rec.material),

@@ -72,9 +72,11 @@ def _surface(size=20):
     return cam, m, depth.astype(np.float32), nrm.astype(np.float32), pts
 
 
-def _reference(cam, m, depth, nrm, rad, src, area_scale):
-    """numpy float64 of F @ x without occlusion (module docstring of gpps.kernels.interreflection)."""
-    pts = cam.backproject(depth)
+def _form_factors(cam, m, depth, nrm, src, area_scale):
+    """numpy float64 form factors without occlusion (module docstring of gpps.kernels.interreflection): the
+    receivers (R, 2), their points and normals (R, 3), the sources' normals (S, 3), the unit directions receiver ->
+    source (R, S, 3), the receivers' cosines (R, S) and ``F`` (R, S)."""
+    pts = cam.backproject(depth).astype(np.float64)
     recv = np.argwhere(m)
     pr, nr = pts[recv[:, 0], recv[:, 1]], nrm[recv[:, 0], recv[:, 1]].astype(np.float64)
     ps, ns = pts[src[:, 0], src[:, 1]], nrm[src[:, 0], src[:, 1]].astype(np.float64)
@@ -90,6 +92,12 @@ def _reference(cam, m, depth, nrm, rad, src, area_scale):
     F = np.where((cr > 0) & (cs > 0), cr * cs * area_scale * area[None] / (np.pi * np.maximum(d, 1e-30) ** 2), 0.0)
     sep = np.hypot(*(recv[:, None, :] - src[None, :, :]).transpose(2, 0, 1))
     F[sep < 1.5] = 0.0
+    return recv, pr, nr, ns, om, cr, F
+
+
+def _reference(cam, m, depth, nrm, rad, src, area_scale):
+    """numpy float64 of F @ x without occlusion (module docstring of gpps.kernels.interreflection)."""
+    recv, *_, F = _form_factors(cam, m, depth, nrm, src, area_scale)
     n = rad.shape[0]
     x = rad[:, src[:, 0], src[:, 1], :].transpose(1, 0, 2).reshape(len(src), 3 * n).astype(np.float64)
     out = np.zeros(rad.shape)
@@ -420,22 +428,8 @@ def _model_reference(cam, m, depth, nrm, albedo, material, dirs, intens, visible
     occlusion between patches), directional lights ``dirs`` (N, 3) of RGB radiance ``intens`` (N, 3)."""
     from reference_models import terms
 
-    pts = cam.backproject(depth).astype(np.float64)
-    recv = np.argwhere(m)
-    pr, nr = pts[recv[:, 0], recv[:, 1]], nrm[recv[:, 0], recv[:, 1]].astype(np.float64)
-    ps, ns = pts[src[:, 0], src[:, 1]], nrm[src[:, 0], src[:, 1]].astype(np.float64)
+    recv, pr, nr, ns, om, cr, F = _form_factors(cam, m, depth, nrm, src, area_scale)
     ar, as_ = albedo[recv[:, 0], recv[:, 1]].astype(np.float64), albedo[src[:, 0], src[:, 1]].astype(np.float64)
-    w = ps[None] - pr[:, None]
-    d = np.linalg.norm(w, axis=-1)
-    om = w / np.maximum(d, 1e-30)[..., None]
-    cr = np.einsum("rc,rsc->rs", nr, om)
-    cs = -np.einsum("sc,rsc->rs", ns, om)
-    dist = np.linalg.norm(ps, axis=-1)
-    view_s = -ps / dist[:, None]
-    area = dist**2 * (-ps[:, 2] / dist) ** 3 / (cam.fx * cam.fy * np.maximum((ns * view_s).sum(-1), 0.1))
-    F = np.where((cr > 0) & (cs > 0), cr * cs * area_scale * area[None] / (np.pi * np.maximum(d, 1e-30) ** 2), 0.0)
-    sep = np.hypot(*(recv[:, None, :] - src[None, :, :]).transpose(2, 0, 1))
-    F[sep < 1.5] = 0.0
     vr = -pr / np.linalg.norm(pr, axis=-1, keepdims=True)
     R, S = F.shape
     n_r = np.broadcast_to(nr[:, None], (R, S, 3))

@@ -177,18 +177,31 @@ class Interreflections(Stage):
         self._check_open()
         if self.recv is None:
             raise ValueError("Interreflections: upload a surface first")
-        c = self.config
         d = self.device
         R, S = int(self.recv.shape[0]), int(self.src.shape[0])
         if R == 0 or S == 0:
             return
+        cpu = str(d) == "cpu"
+        x_host = self.radiance.numpy() if cpu else None
+        out_host = self.out.numpy() if cpu else None  # (a view of the CPU array: written in place)
+        for r0, r1, blk in self._form_factor_blocks():
+            if cpu:
+                out_host[r0:r1] = blk.numpy() @ x_host
+            else:
+                wp.launch(ik.gather_kernel, dim=(r1 - r0, self.out.shape[1]), inputs=[blk, self.radiance,
+                          self.out[r0:r1]], device=d)
+
+    def _form_factor_blocks(self):
+        """The form factors of the uploaded surface in blocks of ``max_rows`` receivers: yields ``(r0, r1, F)``
+        with ``F`` the (r1 - r0, S) Warp array of receivers ``r0:r1`` (launched, not waited on; the next block
+        reuses the buffer, so a caller launches its gather on it before asking for the next)."""
+        wp = warp()
+        c, d = self.config, self.device
+        R, S = int(self.recv.shape[0]), int(self.src.shape[0])
         self.dmin.fill_(float(sk.BIG))
         wp.launch(sk.min_depth_kernel, dim=self.shape[1:], inputs=[self.depth, self.mask, self.dmin], device=d)
         rows = max(1, min(R, int(c.max_rows)))
         F = wp.empty((rows, S), dtype=wp.float32, device=d)
-        cpu = str(d) == "cpu"
-        x_host = self.radiance.numpy() if cpu else None
-        out_host = self.out.numpy() if cpu else None  # (a view of the CPU array: written in place)
         for r0 in range(0, R, rows):
             r1 = min(R, r0 + rows)
             blk = F if r1 - r0 == rows else wp.empty((r1 - r0, S), dtype=wp.float32, device=d)
@@ -196,11 +209,7 @@ class Interreflections(Stage):
                       inputs=[self.depth, self.mask, self.normals, self.cam, self.recv[r0:r1], self.src,
                               float(self.stride**2), self.dmin, float(c.tolerance_px), float(c.step_px),
                               self.max_steps, int(c.visibility), blk], device=d)
-            if cpu:
-                out_host[r0:r1] = blk.numpy() @ x_host
-            else:
-                wp.launch(ik.gather_kernel, dim=(r1 - r0, self.out.shape[1]), inputs=[blk, self.radiance,
-                          self.out[r0:r1]], device=d)
+            yield r0, r1, blk
 
     def gather_model(self, albedo, material, lights, visible=None) -> np.ndarray:
         """One bounce of interreflection under the reflectance model at both ends
@@ -235,7 +244,6 @@ class Interreflections(Stage):
         if vis.shape != (n, h, w) or vis.dtype != bool:
             raise ValueError(f"visible: expected a ({n}, {h}, {w}) bool array, got {vis.shape} {vis.dtype}")
         d = self.device
-        c = self.config
         R, S = int(self.recv.shape[0]), int(self.src.shape[0])
         res = np.zeros((n, h, w, 3), np.float32)
         if R == 0 or S == 0:
@@ -245,17 +253,7 @@ class Interreflections(Stage):
         mp = material_params(material)
         lp = light_params(lights, d)
         out = wp.zeros((R, n), dtype=wp.vec3, device=d)
-        self.dmin.fill_(float(sk.BIG))
-        wp.launch(sk.min_depth_kernel, dim=(h, w), inputs=[self.depth, self.mask, self.dmin], device=d)
-        rows = max(1, min(R, int(c.max_rows)))
-        F = wp.empty((rows, S), dtype=wp.float32, device=d)
-        for r0 in range(0, R, rows):
-            r1 = min(R, r0 + rows)
-            blk = F if r1 - r0 == rows else wp.empty((r1 - r0, S), dtype=wp.float32, device=d)
-            wp.launch(ik.form_factor_kernel, dim=(r1 - r0, S),
-                      inputs=[self.depth, self.mask, self.normals, self.cam, self.recv[r0:r1], self.src,
-                              float(self.stride**2), self.dmin, float(c.tolerance_px), float(c.step_px),
-                              self.max_steps, int(c.visibility), blk], device=d)
+        for r0, r1, blk in self._form_factor_blocks():
             wp.launch(ik.model_gather_kernel, dim=(r1 - r0, n),
                       inputs=[blk, self.depth, self.normals, alb_d, vis_d, mp, lp, self.cam, self.recv[r0:r1],
                               self.src, out[r0:r1]], device=d)
