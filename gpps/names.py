@@ -148,17 +148,27 @@ LIGHTS_PARALLEL_PAIRS_PER_IMAGE = 500
 
 # bits of the solver's per-pixel ``flags`` (int32)
 FLAG_ILL_CONDITIONED = 1  # light matrix of the pixel's valid lights is (nearly) singular (3.13)
-FLAG_FEW_OBSERVATIONS = 2  # fewer than 3 valid observations
+FLAG_FEW_OBSERVATIONS = 2  # fewer than 3 valid observations (or an unfounded fit: FLAG_UNFOUNDED)
 FLAG_NOT_CONVERGED = 4  # the best start hit the iteration cap
 FLAG_WOODHAM_FALLBACK = 8  # weighted least squares was singular; all observations used
 FLAG_ALBEDO_FROM_NEIGHBOURS = 16  # under-determined pixel solved with its neighbours' albedo
+# the fit explained every observation it kept with a diffuse shading below UNFOUNDED_SHADING of a frontal light's
+# (its albedo over UNFOUNDED_SHADING times the largest I_k / E_k it kept): the data fix no albedo there, and the
+# normal came from a free albedo (e.g. a normal grazing to the view, where plastic's diffuse term vanishes, with an
+# albedo of 1e5).  Set with FLAG_FEW_OBSERVATIONS, so that the neighbour pass re-solves the pixel with its
+# neighbours' albedo and no neighbour reads it (gpps.kernels.solve_common.unfounded_flag)
+FLAG_UNFOUNDED = 32
 FLAG_NAMES = {
     FLAG_ILL_CONDITIONED: "ill_conditioned",
     FLAG_FEW_OBSERVATIONS: "few_observations",
     FLAG_NOT_CONVERGED: "not_converged",
     FLAG_WOODHAM_FALLBACK: "woodham_fallback",
     FLAG_ALBEDO_FROM_NEIGHBOURS: "albedo_from_neighbours",
+    FLAG_UNFOUNDED: "unfounded",
 }
+# FLAG_UNFOUNDED's level: a diffuse shading of 0.05 is a Lambertian surface lit 87 deg from its normal; a fit that
+# puts every kept observation beyond it has all its brightness in a term the albedo multiplies by almost nothing
+UNFOUNDED_SHADING = 0.05
 
 # clipping of images given without a saturation level (gpps._check.clipping, for check_observations and the
 # single-image flow's gpps.host.single.prepare_images): observations whose brightest channel sits at one of these values (the

@@ -70,6 +70,7 @@ from gpps.kernels.solve_common import (
     FLAG_FEW_OBSERVATIONS,
     FLAG_ILL_CONDITIONED,
     FLAG_NOT_CONVERGED,
+    FLAG_UNFOUNDED,
     FLAG_WOODHAM_FALLBACK,
     LM,
     NONE,
@@ -108,7 +109,7 @@ from gpps.kernels.solve_neighbours import (
 __all__ = [
     "BFGS", "DOGLEG", "LM", "NONE", "ROBUST_CAUCHY", "ROBUST_HUBER", "ROBUST_NONE",
     "FLAG_ALBEDO_FROM_NEIGHBOURS", "FLAG_FEW_OBSERVATIONS", "FLAG_ILL_CONDITIONED", "FLAG_NOT_CONVERGED",
-    "FLAG_WOODHAM_FALLBACK", "LINEAR_ITERS", "NEIGHBOUR_MIN_COUNT", "WEISZFELD_ITERS",
+    "FLAG_UNFOUNDED", "FLAG_WOODHAM_FALLBACK", "LINEAR_ITERS", "NEIGHBOUR_MIN_COUNT", "WEISZFELD_ITERS",
     "Eval", "NeighbourStats", "Pixel", "PixelSolution", "SolverParams", "StartResult",
     "brightest_half_vector", "cond_frobenius", "grey", "is_determined", "light_gram", "make_pixel",
     "neighbour_stats", "ring_offset", "solve22", "start_normal", "store_least_squares", "store_solution",

@@ -29,6 +29,8 @@ FLAG_FEW_OBSERVATIONS = wp.constant(names.FLAG_FEW_OBSERVATIONS)
 FLAG_NOT_CONVERGED = wp.constant(names.FLAG_NOT_CONVERGED)
 FLAG_WOODHAM_FALLBACK = wp.constant(names.FLAG_WOODHAM_FALLBACK)
 FLAG_ALBEDO_FROM_NEIGHBOURS = wp.constant(names.FLAG_ALBEDO_FROM_NEIGHBOURS)
+FLAG_UNFOUNDED = wp.constant(names.FLAG_UNFOUNDED)
+UNFOUNDED_SHADING = wp.constant(names.UNFOUNDED_SHADING)
 ASIDE = wp.constant(names.ASIDE_WEIGHT)
 CAST_CONFLICT = wp.constant(names.CAST_CONFLICT)
 
@@ -492,6 +494,54 @@ def store_least_squares(
 
 # ---------------------------------------------------------------- lights-parallel pieces
 # Used only by the lights-parallel builds (``lanes=True`` in :func:`gpps.kernels.solve_methods.solver_funcs`),
+@wp.func
+def albedo_floor(images: wp.array3d(dtype=wp.vec3), weights: wp.array3d(dtype=wp.float32), px: Pixel,
+                 lights: LightParams):
+    """``max_k grey(I_k) / grey(E_k(p))`` over the lane's observations in the fit (:func:`in_fit`), 0 when none.
+
+    With the image model ``I_k = E_k (kd t_d,k + ks t_s,k)`` (``t_s >= 0``) every kept observation has
+    ``grey(kd) t_d,k <= grey(I_k) / grey(E_k)``, so an albedo above ``floor / s`` puts every one of them at a
+    diffuse shading ``t_d,k`` below ``s`` (:func:`unfounded_flag`)."""
+    f = float(0.0)
+    for k in range(px.lane, lights.count, px.lanes):
+        if in_fit(weights[k, px.i, px.j]):
+            e = grey(light_radiance(lights, k, px.p))
+            if e > 0.0:
+                f = wp.max(f, grey(images[k, px.i, px.j]) / e)
+    return f
+
+
+@wp.func
+def unfounded_flag(kd: wp.vec3, floor: float):
+    """``FLAG_UNFOUNDED | FLAG_FEW_OBSERVATIONS`` when the fitted albedo ``kd`` exceeds ``floor`` (the pixel's
+    :func:`albedo_floor`) over :data:`gpps.names.UNFOUNDED_SHADING`, else 0: the fit explains every observation
+    it kept with a diffuse shading below that level, so the data do not fix the albedo (nor, through it, the
+    normal).  The FEW bit sends the pixel to the neighbour pass (its neighbours' albedo held) and keeps it out of
+    other pixels' neighbour statistics."""
+    if grey(kd) * UNFOUNDED_SHADING > floor:
+        return FLAG_UNFOUNDED | FLAG_FEW_OBSERVATIONS
+    return int(0)
+
+
+@wp.func
+def store_checked(
+    sol: PixelSolution,
+    flag: int,
+    images: wp.array3d(dtype=wp.vec3),
+    weights: wp.array3d(dtype=wp.float32),
+    px: Pixel,
+    lights: LightParams,
+    normals: wp.array2d(dtype=wp.vec3),
+    albedo: wp.array2d(dtype=wp.vec3),
+    residual: wp.array2d(dtype=wp.float32),
+    iterations: wp.array2d(dtype=wp.int32),
+    flags: wp.array2d(dtype=wp.int32),
+):
+    """:func:`store_solution` of a free-albedo fit, flagged by :func:`unfounded_flag` (one thread a pixel)."""
+    f = flag | unfounded_flag(sol.best.kd, albedo_floor(images, weights, px, lights))
+    store_solution(sol, f, weights, px, lights.count, normals, albedo, residual, iterations, flags)
+
+
 # launched with ``wp.launch_tiled`` so that one block of ``lanes`` threads solves one pixel: every lane runs
 # the same (uniform) solver steps and takes a strided share of the light loops; the sums are reduced over
 # the block (``wp.tile_sum``) and every lane reads the same total, so the lanes' control flow stays uniform.
@@ -544,3 +594,23 @@ def store_solution_lanes(
     """:func:`store_solution` over the lanes: the weight sum reduced over the block, lane 0 writes."""
     wsum = lanes_sum(weight_sum(weights, px, nl_))
     store_solution_sum(sol, flag, wsum, px, normals, albedo, residual, iterations, flags)
+
+
+@wp.func
+def store_checked_lanes(
+    sol: PixelSolution,
+    flag: int,
+    images: wp.array3d(dtype=wp.vec3),
+    weights: wp.array3d(dtype=wp.float32),
+    px: Pixel,
+    lights: LightParams,
+    normals: wp.array2d(dtype=wp.vec3),
+    albedo: wp.array2d(dtype=wp.vec3),
+    residual: wp.array2d(dtype=wp.float32),
+    iterations: wp.array2d(dtype=wp.int32),
+    flags: wp.array2d(dtype=wp.int32),
+):
+    """:func:`store_checked` over the lanes: the albedo floor's maximum reduced over the block."""
+    floor = wp.tile_max(wp.tile(albedo_floor(images, weights, px, lights)))[0]
+    f = flag | unfounded_flag(sol.best.kd, floor)
+    store_solution_lanes(sol, f, weights, px, lights.count, normals, albedo, residual, iterations, flags)

@@ -30,8 +30,9 @@ from gpps.kernels.solve_common import (
     light_gram_range,
     make_pixel,
     store_least_squares,
+    store_checked,
+    store_checked_lanes,
     store_solution,
-    store_solution_lanes,
     vec19,
 )
 from gpps.kernels.solve_methods import solver_funcs
@@ -385,9 +386,9 @@ def solve_kernel_for(method, solve_pixel, module, sfx: str, lanes: bool = False)
                     return
             sol = solve_pixel(ninit, gmax, images, weights, px, lights, mat, prm)
             if wp.static(lanes):
-                store_solution_lanes(sol, flag, weights, px, nl_, normals, albedo, residual, iterations, flags)
+                store_checked_lanes(sol, flag, images, weights, px, lights, normals, albedo, residual, iterations, flags)
             else:
-                store_solution(sol, flag, weights, px, nl_, normals, albedo, residual, iterations, flags)
+                store_checked(sol, flag, images, weights, px, lights, normals, albedo, residual, iterations, flags)
 
     return solve_kernel
 

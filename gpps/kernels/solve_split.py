@@ -31,6 +31,7 @@ from gpps.kernels.solve_common import (
     grey_max,
     make_pixel,
     pick_start,
+    store_checked,
     store_solution,
 )
 from gpps.kernels.solve_neighbours import held_pixel, neighbour_prior, neighbour_stats, prior_start
@@ -144,7 +145,7 @@ def split_kernels_for(prelude, one_start, finish_pixel, module, sfx: str):
         best, total = pick_start(start_n, start_kd, start_cost, start_iters, start_conv, i, j, wp.max(prm.starts, 1),
                                  ninit, px.v)
         sol = finish_pixel(best, total, ninit, gmax_buf[i, j], images, weights, px, lights, mat, prm)
-        store_solution(sol, flag_buf[i, j], weights, px, lights.count, normals, albedo, residual, iterations, flags)
+        store_checked(sol, flag_buf[i, j], images, weights, px, lights, normals, albedo, residual, iterations, flags)
 
     return split_prelude_kernel, split_starts_kernel, split_finish_kernel
 

@@ -41,6 +41,7 @@ from gpps.names import (
     FLAG_FEW_OBSERVATIONS,
     FLAG_ILL_CONDITIONED,
     FLAG_NOT_CONVERGED,
+    FLAG_UNFOUNDED,
     FLAG_WOODHAM_FALLBACK,
     LIGHT_LANES,
     ROBUST_NAMES,
@@ -69,6 +70,7 @@ __all__ = [
     "FLAG_NOT_CONVERGED",
     "FLAG_WOODHAM_FALLBACK",
     "FLAG_ALBEDO_FROM_NEIGHBOURS",
+    "FLAG_UNFOUNDED",
     "check_light_configuration",
     "estimate_noise",
     "solver_params",
@@ -129,7 +131,12 @@ class SolverConfig:
             with a weak tie-breaking prior toward the first-order (affine, least
             absolute deviations) extrapolation of their normals.  The robust fits
             ignore the few rim pixels that noise on a shadowed observation made
-            look determined.  0 disables the pass.
+            look determined.  A fit whose albedo the data do not fix
+            (``FLAG_UNFOUNDED``: every kept observation explained with a
+            diffuse shading below :data:`gpps.names.UNFOUNDED_SHADING`, e.g. a
+            normal grazing to the view, where plastic's diffuse term vanishes,
+            with an albedo of 1e5) is flagged ``FLAG_FEW_OBSERVATIONS`` too and
+            takes the same pass.  0 disables the pass.
         lit_threshold: an observation counts as lit (informative) when its grey
             value exceeds this fraction of the pixel's brightest and
             ``lit_sigmas`` times the image's noise level; pixels with fewer than
