@@ -348,6 +348,15 @@ def test_cli_reconstruct_runs_pipeline(tmp_path, device):
     assert rep["maen_deg"] < 2.0
     for f in ("normals.npy", "albedo.png", "normals.png", "depth.npy", "depth.tiff", "mesh.ply", "view.png"):
         assert (out / f).is_file(), f
+    # the solver's flags: written, counted in the report, 0 outside the mask
+    from gpps.names import FLAG_NAMES
+
+    flags = np.load(out / "flags.npy")
+    mask = np.load(out / "normals.npy")[..., 2] != 0
+    assert flags.dtype == np.int32 and np.all(flags[~mask] == 0) and "flags.npy" in rep["outputs"]
+    counts = rep["flag_counts"]
+    assert counts["any"] == rep["flagged_pixels"] == np.count_nonzero(flags)
+    assert all(counts[name] == np.count_nonzero(flags & bit) for bit, name in FLAG_NAMES.items())
     r = subprocess.run(env_py + ["reconstruct", str(cap), "--out", str(out), "--rounds", "0"], capture_output=True, text=True)
     assert r.returncode == 2 and "--rounds" in r.stderr
 

@@ -44,7 +44,7 @@ from gpps.flows.ron import LOBE_PARAMETERS, MaterialRule, RONConfig
 from gpps.flows.uncalibrated import UncalibratedConfig, solve_uncalibrated
 from gpps.host.automask import lit_pixels
 from gpps.host.gbr import dark_images
-from gpps.host.metrics import normal_errors
+from gpps.host.metrics import flag_counts, normal_errors
 from gpps.host.perspective import pps_blinn_phong
 from gpps.io import atomic_write, save_json
 from gpps.io.capture import Capture, read_capture
@@ -236,6 +236,9 @@ class FolderResult:
         report: the ``report.json`` entries known after the solve (the outputs, the total time and
             the warnings are added by :meth:`write`).
         started: ``time.perf_counter()`` when the flow started (the report's total time counts from it).
+        flags: (H, W) int32 the per-pixel solver's flag bits (:data:`gpps.names.FLAG_NAMES`; 0 outside ``mask``),
+            written as ``flags.npy``; None where no per-pixel solver ran (method ``"pps"``, uncalibrated).
+            ``report["flag_counts"]`` counts the mask's pixels by flag name.
     """
 
     normals: np.ndarray
@@ -252,6 +255,7 @@ class FolderResult:
     images_used: list[str] = field(default_factory=list)
     report: dict = field(default_factory=dict)
     started: float = field(default_factory=time.perf_counter)
+    flags: np.ndarray | None = None
 
     def write(self, folder, *, warnings: list[str] | None = None, started: float | None = None) -> dict:
         """Write the output set, the estimated lights (uncalibrated) and ``report.json`` into ``folder``.
@@ -271,7 +275,8 @@ class FolderResult:
         """
         folder = Path(folder)
         written = write_outputs(folder, normals=self.normals, albedo=self.albedo, mask=self.mask, depth=self.depth,
-                                depth_mask=self.depth_mask, camera=self.camera, depth_info=self.depth_info)
+                                depth_mask=self.depth_mask, camera=self.camera, depth_info=self.depth_info,
+                                flags=self.flags)
         if self.uncalibrated:
             hdr = ("gpps uncalibrated estimate, one row per image used (images_used in report.json, in order): "
                    "{}; gpps frame: x right, y up, z toward the camera")
@@ -590,7 +595,8 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
     valid = _saturation(cap)
     opts = automatic_solver_options(n, config.robust)
     robust = opts["robust"]
-    out = {"lights": lights, "depth": None, "depth_mask": None, "reference": reference, "source": source}
+    out = {"lights": lights, "depth": None, "depth_mask": None, "reference": reference, "source": source,
+           "flags": None}
     if config.method == "pps":
         if not camera.is_perspective or not isinstance(lights, DirectionalLights):
             raise ValueError("method pps: expected a perspective camera (K.txt) and directional lights")
@@ -605,10 +611,10 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
             depth=None if not isinstance(lights, PointLights) else np.full((h, w), internal_reference, np.float32),
             valid=valid, device=device, progress=progress, **opts,
         )
-        out.update(normals=res.normals, albedo=res.albedo)
+        out.update(normals=res.normals, albedo=res.albedo, flags=res.flags)
         report.update(solver=config.solver, robust=robust, timings=res.timings, material=material.to_dict(),
                       mean_iterations=float(res.iterations[ds.mask].mean()),
-                      flagged_pixels=int(np.count_nonzero(res.flags[ds.mask])))
+                      flagged_pixels=int(np.count_nonzero(res.flags[ds.mask])), flag_counts=flag_counts(res.flags, ds.mask))
     else:
         # (comparing models needs every lobe parameter estimated by the photometric rule: RONConfig.models)
         models, models_why = automatic_models(n, config)
@@ -652,14 +658,14 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
             report["interreflections"] = {**info, "seconds": time.perf_counter() - t}
         else:
             rec = solve(ds.images)
-        out.update(normals=rec.normals, albedo=rec.albedo, depth=rec.depth, depth_mask=rec.depth_mask)
+        out.update(normals=rec.normals, albedo=rec.albedo, depth=rec.depth, depth_mask=rec.depth_mask, flags=rec.flags)
         report.update(solver=config.solver, robust=robust, timings=rec.timings, material=rec.material.to_dict(),
                       estimated=rec.estimated, fixed=rec.fixed,
                       known=sorted(given_names) if not config.known_material else "material.json",
                       energy_per_round=rec.energy, rounds=rec.rounds, converged=rec.converged,
                       highlight_pixels=int(rec.highlight.sum()),
                       mean_iterations=float(rec.iterations[ds.mask].mean()),
-                      flagged_pixels=int(np.count_nonzero(rec.flags[ds.mask])),
+                      flagged_pixels=int(np.count_nonzero(rec.flags[ds.mask])), flag_counts=flag_counts(rec.flags, ds.mask),
                       cast_shadows=rec.details.shadows)  # (RON's passes: observations dropped per round)
         if rec.details.refinement is not None:
             report["refinement"] = rec.details.refinement
@@ -762,4 +768,5 @@ def reconstruct_folder(folder, config: FolderConfig | None = None, *, lights=Non
     return FolderResult(normals=normals, albedo=sol["albedo"], mask=ds.mask, depth=depth, depth_mask=dmask, camera=camera,
                         depth_info=conv if depth is not None else None, lights=sol["lights"], uncalibrated=uncalibrated,
                         light_directions=sol.get("directions"), light_intensities=sol.get("intensities"),
-                        images_used=sol.get("used", list(ds.filenames)), report=report, started=started)
+                        images_used=sol.get("used", list(ds.filenames)), report=report, started=started,
+                        flags=None if sol.get("flags") is None else np.where(ds.mask, sol["flags"], 0).astype(np.int32))

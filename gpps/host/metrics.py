@@ -6,7 +6,7 @@ import numpy as np
 
 from gpps._check import as_array, as_images, as_mask, check_number
 
-__all__ = ["angular_error", "slant_tilt", "normal_errors", "reprojection_error", "depth_error"]
+__all__ = ["angular_error", "slant_tilt", "normal_errors", "reprojection_error", "depth_error", "flag_counts"]
 
 
 def _normals_pair(est, gt, mask):
@@ -146,3 +146,21 @@ def depth_error(depth, depth_mask, scene) -> float:
     else:
         d = d - np.mean(d - g)
     return float(np.mean(np.abs(d - g)) / span)
+
+
+def flag_counts(flags, mask) -> dict:
+    """How many of the mask's pixels carry each of the per-pixel solver's flag bits.
+
+    Args:
+        flags: (H, W) int the solver's flags (:data:`gpps.names.FLAG_NAMES`).
+        mask: (H, W) bool.
+
+    Returns:
+        ``{name: count}`` for every flag name, and ``"any"``: the pixels with at least one bit.
+    """
+    from gpps.names import FLAG_NAMES
+
+    f = np.asarray(flags)[np.asarray(mask, bool)]
+    out = {name: int(np.count_nonzero(f & bit)) for bit, name in FLAG_NAMES.items()}
+    out["any"] = int(np.count_nonzero(f))
+    return out

@@ -13,6 +13,8 @@ mesh.ply          binary PLY, one vertex per pixel (gpps frame), albedo as verte
 mesh.obj          the same mesh as OBJ (``v x y z r g b``)
 view.png          off-screen view of the mesh
 mask.png          the mask used (always; automatic when the input had none)
+flags.npy         (H, W) int32 the per-pixel solver's flag bits (gpps.names.FLAG_NAMES: e.g. 32 "unfounded",
+                  a fit whose albedo the data do not fix), 0 outside the mask; only where a per-pixel solver ran
 ================  ==================================================================
 
 Depth convention (:func:`depth_convention`), stated in ``report.json`` under
@@ -92,7 +94,7 @@ def _albedo_colors(albedo, mask):
 
 
 def write_outputs(folder, *, normals, albedo, mask, depth=None, depth_mask=None, camera=None, depth_info=None,
-                  view: bool = True) -> dict:
+                  view: bool = True, flags=None) -> dict:
     """Write the output set into ``folder`` (which the caller creates and renames atomically).
 
     Args:
@@ -105,6 +107,7 @@ def write_outputs(folder, *, normals, albedo, mask, depth=None, depth_mask=None,
         camera: the camera (mesh back-projection).
         depth_info: the convention (only checked for presence with depth).
         view: render ``view.png``.
+        flags: (H, W) int the per-pixel solver's flags (``flags.npy``), or None (not written).
 
     Returns:
         dict: ``files`` written and ``view`` (the renderer used, or why none).
@@ -128,6 +131,12 @@ def write_outputs(folder, *, normals, albedo, mask, depth=None, depth_mask=None,
         colors = _albedo_colors(a, mask)
         save_png(folder / "albedo.png", np.where(mask[..., None], colors, 0.0), bits=8)
         files += ["albedo.npy", "albedo.png"]
+    if flags is not None:
+        f = np.asarray(flags)
+        if f.shape != mask.shape or not np.issubdtype(f.dtype, np.integer):
+            raise ValueError(f"flags: expected {mask.shape} integers, got {f.shape} {f.dtype}")
+        save_npy(folder / "flags.npy", np.where(mask, f, 0).astype(np.int32))
+        files.append("flags.npy")
     out = {"files": files}
     if depth is not None:
         if depth_info is None:
