@@ -45,6 +45,7 @@ Only device code lives here; nothing allocates.
 import warp as wp
 
 from gpps.kernels.brdf import CameraParams, LightParams, MaterialParams, brdf_terms, light_dir, light_radiance, pixel_point, view_dir
+from gpps.kernels.solve_common import ASIDE
 
 #: central-difference step of the per-pixel Jacobian, in slope units (float32 residuals: ~1e-4 relative error)
 FD_STEP = wp.constant(1.0e-3)
@@ -513,3 +514,18 @@ def select_normals_kernel(
             out = nr
             wp.atomic_add(counts, 0, 1)
     normals[i, j] = out
+
+
+@wp.kernel(enable_backward=False)
+def kept_observations_kernel(
+    valid: wp.array3d(dtype=wp.uint8),
+    weights: wp.array3d(dtype=wp.float32),
+    kept: wp.array3d(dtype=wp.uint8),
+):
+    """``kept = valid`` except the observations the pixel solver set aside as cast shadows (weight ``ASIDE``:
+    its neighbour pass's attached / cast shadow choice, or its robust fit's cast-shadow refit); dim (N, H, W)."""
+    k, i, j = wp.tid()
+    out = valid[k, i, j]
+    if weights[k, i, j] == ASIDE:
+        out = wp.uint8(0)
+    kept[k, i, j] = out

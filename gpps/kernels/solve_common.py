@@ -53,6 +53,7 @@ class SolverParams:
     saturation: wp.float32
     warm_start: wp.int32
     warm_albedo: wp.int32  # 1: a warm-started pixel with fewer than 3 lit observations holds its albedo buffer's value
+    held_dark: wp.int32  # 1: the neighbour pass chooses between an attached and a cast shadow (held_dark_refit)
     grey_albedo: wp.int32
     cond_threshold: wp.float32
     early_exit: wp.int32

@@ -393,11 +393,12 @@ def solve_kernel_for(method, solve_pixel, module, sfx: str, lanes: bool = False)
     return solve_kernel
 
 
-def underdetermined_kernel_for(solve_pixel, module, sfx: str):
+def underdetermined_kernel_for(solve_pixel, held_dark_refit, module, sfx: str):
     """``underdetermined_kernel``: the neighbour pass for pixels with fewer than 3 lit observations.
 
     Args:
         solve_pixel: the nonlinear solve (:func:`gpps.kernels.solve_methods.solve_pixel_for`).
+        held_dark_refit: the attached / cast shadow choice (``held_dark_refit`` of :func:`gpps.kernels.solve_methods.solve_pixel_for`).
         module: Warp module of the kernel.
         sfx: key suffix of the kernel.
     """
@@ -454,6 +455,7 @@ def underdetermined_kernel_for(solve_pixel, module, sfx: str):
         px = held_pixel(px, nb.kd, prior)
         ninit = prior_start(prior, normals[i, j])
         sol = solve_pixel(ninit, gmax, images, weights, px, lights, mat, prm)
+        sol = held_dark_refit(sol, ninit, gmax, images, weights, px, lights, mat, prm)
         sol.total = sol.total + iterations[i, j]
         store_solution(sol, f | FLAG_ALBEDO_FROM_NEIGHBOURS, weights, px, lights.count, normals, albedo, residual, iterations, flags)
 
@@ -583,6 +585,6 @@ def make_kernels(method, brdf, robust, module_name: str, sfx: str, cache: int = 
     solve_kernel = solve_kernel_for(method, funcs.solve_pixel, module, sfx)
     if method == "none":
         return solve_kernel, None, None
-    underdetermined_kernel = underdetermined_kernel_for(funcs.solve_pixel, module, sfx)
+    underdetermined_kernel = underdetermined_kernel_for(funcs.solve_pixel, funcs.held_dark_refit, module, sfx)
     smooth_kernel = smooth_kernel_for(funcs.run_method, module, sfx)
     return solve_kernel, underdetermined_kernel, smooth_kernel

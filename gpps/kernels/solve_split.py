@@ -150,7 +150,7 @@ def split_kernels_for(prelude, one_start, finish_pixel, module, sfx: str):
     return split_prelude_kernel, split_starts_kernel, split_finish_kernel
 
 
-def split_under_kernels_for(one_start, finish_pixel, module, sfx: str):
+def split_under_kernels_for(one_start, finish_pixel, held_dark_refit, module, sfx: str):
     """``(under_prelude_kernel, under_starts_kernel, under_finish_kernel)``: the starts-parallel form of
     ``underdetermined_kernel`` (:func:`gpps.kernels.solve_kernels.underdetermined_kernel_for`), the solver's
     neighbour pass for pixels with fewer than 3 lit observations.
@@ -166,7 +166,8 @@ def split_under_kernels_for(one_start, finish_pixel, module, sfx: str):
     * ``under_starts_kernel`` (dim (H, W, S)): start ``s`` of such a pixel in a thread of its own, with the
       prelude's albedo held and its prior (``one_start``); a warm config runs start 0 only, as the loop does;
     * ``under_finish_kernel`` (dim (H, W)): the best start by the loop's rule (``pick_start``), ``finish_pixel``
-      (the IRLS rounds) and the store, flagged ``FLAG_ALBEDO_FROM_NEIGHBOURS``.
+      (the IRLS rounds), the attached / cast shadow choice (``held_dark_refit``) and the store, flagged
+      ``FLAG_ALBEDO_FROM_NEIGHBOURS``.
 
     The prelude reads only pixels the pass does not write (well-determined ones), and the writes wait for the
     last launch, so the statistics see what the one-kernel pass's threads see; the same device functions on
@@ -279,6 +280,7 @@ def split_under_kernels_for(one_start, finish_pixel, module, sfx: str):
             nstarts = 1
         best, total = pick_start(start_n, start_kd, start_cost, start_iters, start_conv, i, j, nstarts, ninit, px.v)
         sol = finish_pixel(best, total, ninit, gmax_buf[i, j], images, weights, px, lights, mat, prm)
+        sol = held_dark_refit(sol, ninit, gmax_buf[i, j], images, weights, px, lights, mat, prm)
         sol.total = sol.total + iterations[i, j]
         store_solution(sol, f | FLAG_ALBEDO_FROM_NEIGHBOURS, weights, px, lights.count, normals, albedo, residual,
                        iterations, flags)

@@ -5,7 +5,8 @@ shadows, saturation, light bounced from another part) has too few left to fix it
 the start gave it.  :class:`DepthRefiner` fits the *depth* instead: the unknown is the integrator's ``u``
 (log-depth under perspective, as the seed's perspective PS parameterises the surface; depth under the
 orthographic camera), a pixel's normal is the normal of ``u``'s differences (:mod:`gpps.kernels.depth_refine`),
-and the energy is the image model's robust misfit summed over every valid observation of every mask pixel::
+and the energy is the image model's robust misfit summed over every valid observation of every mask pixel (less
+those the pixel solver set aside as cast shadows, weight ``gpps.names.ASIDE_WEIGHT``)::
 
     E(u) = sum_pixels sum_(k, c) rho(I_kc - E_kc (kd_c t_d(n(u), l_k, v) + ks t_s(n(u), l_k, v)))
 
@@ -55,7 +56,8 @@ import numpy as np
 from gpps import _taichi
 from gpps._check import check_choices, check_number
 from gpps._runtime import warp
-from gpps.kernels.depth_refine import refine_eval_kernel, refine_targets_kernel, residual_sample_kernel, select_normals_kernel
+from gpps.kernels.depth_refine import (kept_observations_kernel, refine_eval_kernel, refine_targets_kernel,
+                                       residual_sample_kernel, select_normals_kernel)
 from gpps.lights import PointLights
 from gpps.pipeline.integration import Integrator
 from gpps.pipeline.integration_rounds import DeviceSystem
@@ -197,6 +199,8 @@ class DepthRefiner(Stage):
         self.steps = self._buffer((h, w, 2), wp.float32, d)
         self.conf = self._buffer((h, w, 2), wp.float32, d)
         self.wplus = self._buffer((h, w, 2), wp.float32, d)
+        # the solver's valid observations less those its fit set aside as cast shadows (:meth:`step`)
+        self.valid = self._buffer((n, h, w), wp.uint8, d)
         self.sums = wp.zeros(3, dtype=wp.float64, device=d)
         self.counts = wp.zeros(1, dtype=wp.int32, device=d)
         # the robust scale's sample: every stride-th pixel in each direction, at most SCALE_PIXELS of them
@@ -265,6 +269,10 @@ class DepthRefiner(Stage):
         self._mp = material_params(s.material)
         self._lp = s.lp
         robust = 1 if cfg.robust == "cauchy" else 0
+        # the observations: the solver's valid ones less those its last solve set aside as cast shadows (dark at
+        # any normal: no evidence about the surface; the robust loss would still feel them)
+        warp().launch(kept_observations_kernel, dim=tuple(s.shape), inputs=[s.valid, s.weights], outputs=[self.valid],
+                      device=self.device)
         self.scale = cfg.sigma / CAUCHY_C if cfg.sigma is not None else self._scale()
         sigma = CAUCHY_C * self.scale
         self.sigma = sigma
@@ -350,7 +358,7 @@ class DepthRefiner(Stage):
         counts = self.counts
         counts.zero_()
         wp.launch(select_normals_kernel, dim=(h, w),
-                  inputs=[self.depth, self.mask, *self._edges(), s.images, s.valid, self.cam, self._lp, self._mp,
+                  inputs=[self.depth, self.mask, *self._edges(), s.images, self.valid, self.cam, self._lp, self._mp,
                           self.albedo, float(sigma), float(scale), CHI2_2_99],
                   outputs=[self.normals, counts], device=self.device)
         return int(counts.numpy()[0])
@@ -388,7 +396,7 @@ class DepthRefiner(Stage):
         s = self.solver
         out = self.sample
         wp.launch(residual_sample_kernel, dim=out.shape,
-                  inputs=[self.depth, self.mask, *self._edges(), s.images, s.valid, self.cam, self._lp, self._mp,
+                  inputs=[self.depth, self.mask, *self._edges(), s.images, self.valid, self.cam, self._lp, self._mp,
                           self.albedo, self._stride],
                   outputs=[out], device=self.device)
         r = out.numpy()
@@ -412,7 +420,7 @@ class DepthRefiner(Stage):
         h, w = self.shape
         self.sums.zero_()
         wp.launch(refine_eval_kernel, dim=(h, w),
-                  inputs=[depth, self.mask, *self._edges(), s.images, s.valid, self.cam, self._lp, self._mp, albedo_prev,
+                  inputs=[depth, self.mask, *self._edges(), s.images, self.valid, self.cam, self._lp, self._mp, albedo_prev,
                           float(sigma), int(robust)],
                   outputs=[self.hess, self.grad, self.albedo_new, self.rms, self.sums], device=self.device)
         e, tr, cnt = (float(v) for v in self.sums.numpy())

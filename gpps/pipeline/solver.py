@@ -137,6 +137,15 @@ class SolverConfig:
             normal grazing to the view, where plastic's diffuse term vanishes,
             with an albedo of 1e5) is flagged ``FLAG_FEW_OBSERVATIONS`` too and
             takes the same pass.  0 disables the pass.
+        held_dark_refit: in the neighbour pass (without reweighting rounds), a
+            pixel with dark observations is fitted again with them set aside
+            and that fit is kept when the one-sided terms cost the first more
+            than a dark-level misfit: a cast shadow, dark at any normal, rather
+            than an attached one (the rule and its measurements:
+            ``held_dark_refit`` of :func:`gpps.kernels.solve_methods.solve_pixel_for`).
+            The refinement (:class:`gpps.pipeline.depth_refine.DepthRefiner`)
+            leaves the set-aside observations out too.  False: the dark
+            observations always stay one-sided terms (before session 35).
         lit_threshold: an observation counts as lit (informative) when its grey
             value exceeds this fraction of the pixel's brightest and
             ``lit_sigmas`` times the image's noise level; pixels with fewer than
@@ -233,12 +242,14 @@ class SolverConfig:
     split_starts: bool | None = None
     shadow_relative: float = 0.0
     warm_albedo: bool = False
+    held_dark_refit: bool = True
 
     def __post_init__(self):
         check_choices(self)
         check_bool("early_exit", self.early_exit)
         check_bool("warm_start", self.warm_start)
         check_bool("warm_albedo", self.warm_albedo)
+        check_bool("held_dark_refit", self.held_dark_refit)
         check_number("max_iters", self.max_iters, lo=1, integer=True)
         check_number("starts", self.starts, lo=1, integer=True)
         check_number("irls_rounds", self.irls_rounds, lo=0, integer=True)
@@ -460,6 +471,7 @@ def solver_params(c: SolverConfig):
     p.irls_rounds = int(c.irls_rounds) if c.robust != "none" else 0
     p.shadow_threshold = float(c.shadow_threshold)
     p.shadow_relative = float(c.shadow_relative)
+    p.held_dark = int(bool(c.held_dark_refit))
     p.saturation = float(c.saturation) if c.saturation is not None else 0.0
     p.warm_start = int(bool(c.warm_start))
     p.warm_albedo = int(bool(c.warm_albedo))
