@@ -129,14 +129,18 @@ SHADOW_RELATIVE_MANY = 0.1
 # or one at the lit level or above below this fraction of its value (a contradiction: dark where the fit says lit,
 # or lit where it says dark; gpps.kernels.solve_methods, cast_shadow_start)
 CAST_CONFLICT = 0.5
-# the neighbour pass's test of a dark observation (gpps.kernels.solve_methods.held_dark_refit_for): with the albedo
-# held at the neighbours', a pixel's fit with its dark observations as one-sided terms (an attached shadow: the
-# normal faces away from the light) is compared with its fit without them (a cast shadow: dark at any normal).  An
-# attached shadow costs the first fit nothing (one of the two normals that fit the lit observations faces away);
-# a cast shadow leaves it no such normal.  The second fit is taken when the first costs more than one
-# observation off by this fraction of the pixel's brightest value (in every channel): a misfit at the level the
-# cast-shadow refit calls dark (SHADOW_RELATIVE_MANY)
+# the neighbour pass's test of an unlit observation (held_dark_refit of gpps.kernels.solve_methods.solve_pixel_for):
+# with the albedo held at the neighbours', a pixel's fit with its unlit observations in (an attached shadow: the
+# normal faces away from the light) is compared with its fit without them (a cast shadow: dark at any normal).  The
+# second fit is taken when it predicts a set-aside observation above this fraction of the pixel's brightest value
+# and the first paid for the terms: a misfit of more than one observation off by it in every channel, or the other
+# normal of the two the lit observations allow (below).  The level is the one the cast-shadow refit calls dark
+# (SHADOW_RELATIVE_MANY)
 HELD_DARK_CONFLICT = SHADOW_RELATIVE_MANY
+# ... or when the first fit's normal is more than this many times as far (in angle) from the neighbours' prior normal
+# as the refit's: with 2 lit observations the two fits are the two normals those allow, and the prior must favour the
+# refit's clearly (an attached shadow's prior, extrapolated from afar, can lie nearer the wrong one)
+HELD_DARK_PRIOR_RATIO = 2.0
 # the weight that marks a set-aside observation in the solver's weights buffer: negative (a one-sided term, as a
 # dark observation) and so small that it adds nothing to a cost, a gradient or an albedo
 ASIDE_WEIGHT = -1.0e-30

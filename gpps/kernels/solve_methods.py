@@ -44,6 +44,7 @@ from gpps.kernels.solve_common import (
 from gpps.kernels.solve_cost import diffuse_value_grad_for, evaluate_for, light_terms_for, specular_value_grad_for
 
 HELD_DARK_CONFLICT = wp.constant(names.HELD_DARK_CONFLICT)
+HELD_DARK_PRIOR_RATIO = wp.constant(names.HELD_DARK_PRIOR_RATIO)
 
 
 def lm_for(evaluate, module, sfx: str):
@@ -709,17 +710,25 @@ def solve_pixel_for(robust, run_method, spec_vg, diff_vg, module, sfx: str, lane
         22.1 deg with the term, 16.1 without it; the pixels with only attached shadows 12.9 with it, 14.2
         without; a plastic superquadric with attached shadows only 3.4 with, 7.7 without: session 35.)
 
-        So the pixel is fitted again with its unlit observations (in the fit, at most ``prm.lit_threshold`` of the
+        The rule: the pixel is fitted again with its unlit observations (in the fit, at most ``prm.lit_threshold`` of the
         brightest: the one-sided dark terms and the dim ordinary ones) set aside (``ASIDE``), from the prior's start
-        ``ninit``, and that fit is taken when the first costs more than ``1.5 (HELD_DARK_CONFLICT gmax)^2`` above it
-        (one observation off by that fraction of the pixel's brightest grey value in all 3 channels, the cost being
-        ``1/2 sum w r^2``): an attached shadow costs the first fit about nothing (one of the two normals faces away),
-        a cast shadow leaves it no normal that explains the lit observations with the held albedo.  (Also
-        requiring the refit to predict a set-aside observation at ``CAST_CONFLICT`` times the lit level, as the
-        robust fit's cast-shadow refit does, kept most cast shadows' terms: the spheres above 8.4 -> 17.1 deg
-        through the folder flow.)  A metal breaks the premise: its dark observations say where the lobe is
-        not, and the refit moves the lobe (a rough-conductor superquadric under 3 point lights, fitted with
-        Blinn-Phong: 17.3 -> 23.8 deg, as bad as least squares either way).  Then the dark
+        ``ninit``, and that fit is taken when it predicts a set-aside observation brighter than the dark level
+        ``HELD_DARK_CONFLICT gmax`` (a contradiction, as in ``cast_shadow_start``) and the first fit paid for its
+        terms: it costs more than ``1.5 (HELD_DARK_CONFLICT gmax)^2`` above the refit (one observation off by the
+        dark level in all 3 channels, the cost being ``1/2 sum w r^2``: a cast shadow leaves no normal that
+        explains the lit observations with the held albedo), or its normal is the other of the two, more than
+        ``HELD_DARK_PRIOR_RATIO`` times as far from the neighbours' prior normal as the refit's (the refit starts
+        at the prior and ends at the nearer one; an attached shadow's two fits agree).  Measured (session 35,
+        this CPU): the analytic cast-shadow scenes of tests/ron_shadow_scenes.py, 3 lights, cast pixels 31.9 ->
+        1.5 deg (bumps), 47.8 -> 6.5 (hemisphere on a plane); gpps's renders without cast shadows 6.03 -> 6.20
+        (sphere), 1.63 -> 1.73 (bumps); the Mitsuba development set through the folder flow, 3 lights: dielectric
+        mean 11.43 -> 8.17 (largest loss 0.05), diffuse 9.74 -> 6.37.  The ratio: with the first fit merely
+        farther (ratio 1) the plastic superquadric above (attached shadows only, where the prior is an
+        extrapolation from afar) went 3.36 -> 6.08 deg; 2 asks the prior to favour the refit clearly.  Also
+        requiring the refit to predict the observation at ``CAST_CONFLICT`` times the lit level (the robust
+        refit's test) kept most cast shadows' terms (spheres 8.4 -> 17.1).  A metal breaks the premise: its dark
+        observations say where the lobe is not, and the refit moves the lobe (the rough-conductor superquadric
+        under 3 point lights, fitted with Blinn-Phong: 17.3 -> 25.7 deg, as bad as least squares either way).  Then the dark
         observations stay set aside in ``weights``; otherwise they are restored and the first fit stands (its
         evaluations counted with the second's).  Only without reweighting rounds (``prm.irls_rounds == 0``: the
         weights are exactly -1 or 1, restored from a bit mask, hence at most 32 lights; with them the robust fit's
@@ -753,9 +762,10 @@ def solve_pixel_for(robust, run_method, spec_vg, diff_vg, module, sfx: str, lane
                     if grey(model_value(alt, k, px, lights, mat)) > level:
                         conflict = 1
             # ... and the first fit paid for its terms: a misfit above the dark level, or the other of the two
-            # normals the lit observations allow, farther from the neighbours' than the refit's
+            # normals the lit observations allow, clearly farther from the neighbours' than the refit's
             misfit = sol.best.cost > alt.cost + 1.5 * level * level
-            farther = px.prior_w > 0.0 and wp.dot(sol.best.n, px.prior_n) < wp.dot(alt.n, px.prior_n)
+            farther = px.prior_w > 0.0 and wp.acos(wp.clamp(wp.dot(sol.best.n, px.prior_n), -1.0, 1.0)) > (
+                HELD_DARK_PRIOR_RATIO * wp.acos(wp.clamp(wp.dot(alt.n, px.prior_n), -1.0, 1.0)))
             if conflict != 0 and (misfit or farther):
                 out.best = alt
                 return out

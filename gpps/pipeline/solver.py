@@ -138,14 +138,16 @@ class SolverConfig:
             with an albedo of 1e5) is flagged ``FLAG_FEW_OBSERVATIONS`` too and
             takes the same pass.  0 disables the pass.
         held_dark_refit: in the neighbour pass (without reweighting rounds), a
-            pixel with dark observations is fitted again with them set aside
-            and that fit is kept when the one-sided terms cost the first more
-            than a dark-level misfit: a cast shadow, dark at any normal, rather
-            than an attached one (the rule and its measurements:
+            pixel with unlit observations is fitted again with them set aside
+            (from its neighbours' prior start), and that fit is kept when it
+            predicts one of them lit and the first fit paid for them (a misfit,
+            or the other of the two normals its 2 lit observations allow,
+            clearly farther from the neighbours'): a cast shadow, dark at any
+            normal, rather than an attached one (the rule and its measurements:
             ``held_dark_refit`` of :func:`gpps.kernels.solve_methods.solve_pixel_for`).
             The refinement (:class:`gpps.pipeline.depth_refine.DepthRefiner`)
-            leaves the set-aside observations out too.  False: the dark
-            observations always stay one-sided terms (before session 35).
+            leaves the set-aside observations out too.  False: the unlit
+            observations always stay in the fit (before session 35).
         lit_threshold: an observation counts as lit (informative) when its grey
             value exceeds this fraction of the pixel's brightest and
             ``lit_sigmas`` times the image's noise level; pixels with fewer than
