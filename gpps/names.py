@@ -133,14 +133,9 @@ CAST_CONFLICT = 0.5
 # with the albedo held at the neighbours', a pixel's fit with its unlit observations in (an attached shadow: the
 # normal faces away from the light) is compared with its fit without them (a cast shadow: dark at any normal).  The
 # second fit is taken when it predicts a set-aside observation above this fraction of the pixel's brightest value
-# and the first paid for the terms: a misfit of more than one observation off by it in every channel, or the other
-# normal of the two the lit observations allow (below).  The level is the one the cast-shadow refit calls dark
-# (SHADOW_RELATIVE_MANY)
+# and the first paid for the terms: a misfit of more than one observation off by it in every channel.  The level is
+# the one the cast-shadow refit calls dark (SHADOW_RELATIVE_MANY)
 HELD_DARK_CONFLICT = SHADOW_RELATIVE_MANY
-# ... or when the first fit's normal is more than this many times as far (in angle) from the neighbours' prior normal
-# as the refit's: with 2 lit observations the two fits are the two normals those allow, and the prior must favour the
-# refit's clearly (an attached shadow's prior, extrapolated from afar, can lie nearer the wrong one)
-HELD_DARK_PRIOR_RATIO = 2.0
 # the weight that marks a set-aside observation in the solver's weights buffer: negative (a one-sided term, as a
 # dark observation) and so small that it adds nothing to a cost, a gradient or an albedo
 ASIDE_WEIGHT = -1.0e-30

@@ -39,10 +39,14 @@ def _solve(case, device, **kw):
         s.close()
 
 
-@pytest.mark.parametrize("scene,kind", [("bump", "directional"), ("bump", "point"), ("hemisphere", "directional"),
-                                        ("hemisphere", "point")])
-def test_cast_shadows_leave_the_fit(scene, kind, device):
-    case = bump_case(kind, 3, size=48) if scene == "bump" else solid_case("hemisphere", kind, 3, size=48)
+def test_cast_shadows_leave_the_fit(device):
+    """The hemisphere on a plane under 3 point lights (exact 3D cast shadows; the pixel solver on the true depth, the
+    material known): where a cast shadow leaves no normal that explains the lit observations with the neighbours'
+    albedo, the dark term goes.  Measured on the CPU: cast-shadow pixels 40.0 -> 26.0 deg, whole mask 10.56 ->
+    6.92, 234 pixels refitted.  (Where the other of the two normals faces away from the shadowing light, the
+    pixel's data cannot tell the shadows apart and nothing changes: the bumps and the hemisphere under directional
+    lights here; there the refinement's two-light start, tests/test_two_light.py, and RON's rounds mend them.)"""
+    case = solid_case("hemisphere", "point", 3, size=48)
     m = case["mask"]
     cast = m & case["shadow"].any(axis=0)  # (a light facing the surface hidden from it)
     res = {}
@@ -50,13 +54,11 @@ def test_cast_shadows_leave_the_fit(scene, kind, device):
         out = _solve(case, device, held_dark_refit=on)
         e = angular_error(out["normals"], case["normals"], m)
         res[on] = (float(e[m].mean()), float(e[cast].mean()), out)
-    # measured on this CPU (session 35): cast pixels 31.9 -> 1.5 (bump, directional), 28.0 -> 1.5 (point),
-    # 47.8 -> 6.5 / 40.0 -> 10.1 (hemisphere); whole mask 2.76 -> 1.17, 4.10 -> 1.87, 8.27 -> 1.67, 10.56 -> 3.54
-    assert res[True][1] < 0.3 * res[False][1], res
-    assert res[True][0] < res[False][0], res
+    assert res[True][1] < 0.75 * res[False][1], res
+    assert res[True][0] < 0.8 * res[False][0], res
     out = res[True][2]
     aside = (out["weights"] == ASIDE).any(axis=0)
-    assert aside.any()
+    assert aside.sum() > 100
     # only the neighbour pass sets observations aside this way (no reweighting rounds here)
     assert np.all((out["flags"][aside] & FLAG_ALBEDO_FROM_NEIGHBOURS) != 0)
     # ... and only unlit ones: at most lit_threshold of the pixel's brightest
@@ -65,6 +67,38 @@ def test_cast_shadows_leave_the_fit(scene, kind, device):
     assert np.all(g[k, i, j] <= SolverConfig().lit_threshold * g[:, i, j].max(axis=0) * (1 + 1e-6))
     off = res[False][2]
     assert not (off["weights"] == ASIDE).any()
+
+
+def test_folder_flow_mends_cast_shadows_and_keeps_attached_ones(tmp_path, device, monkeypatch):
+    """The Gaussian bumps with exact cast shadows under 3 directional lights at slant 60 (long attached shadows
+    beside short cast ones), written as a 16-bit capture folder, ``gpps.reconstruct_folder`` without the refinement:
+    the choice on and off.  Measured on the CPU: cast-shadow pixels 9.70 -> 5.36 deg, attached-shadow pixels 1.25 ->
+    1.25, whole mask 1.035 -> 0.694 (the choice with the neighbours' prior as a tie-breaker turned the attached
+    pixels into 7.01)."""
+    import gpps
+    import gpps.flows.folder as ff
+    from gpps.io import Dataset, write_dataset
+
+    case = bump_case("directional", 3, 48, slant=60.0)
+    cam = case["camera"]
+    ds = Dataset(images=case["images"], mask=case["mask"], light_directions=case["lights"].directions,
+                 light_intensities=np.ones((3, 3), np.float32), K=np.asarray(cam.K), normal_gt=case["normals"],
+                 depth_gt=case["depth"], filenames=[f"{i:03d}.png" for i in range(1, 4)])
+    folder = write_dataset(tmp_path / "cap", ds, bits=16)
+    m = case["mask"]
+    cast = m & case["shadow"].any(axis=0)
+    attached = m & (~case["scene"].facing(case["lights"])).any(axis=0) & ~cast
+    orig = ff.automatic_solver_options
+    e = {}
+    for on in (False, True):
+        monkeypatch.setattr(ff, "automatic_solver_options", lambda n, robust=None, on=on: {
+            **orig(n, robust), "held_dark_refit": on})
+        r = gpps.reconstruct_folder(folder, gpps.FolderConfig(refine=False), device=device)
+        a = angular_error(r.normals, case["normals"], m)
+        e[on] = (float(a[m].mean()), float(a[cast].mean()), float(a[attached].mean()))
+    assert e[True][1] < 0.7 * e[False][1], e
+    assert e[True][2] < e[False][2] + 0.2, e
+    assert e[True][0] < e[False][0], e
 
 
 @pytest.mark.parametrize("kind", ["directional"])

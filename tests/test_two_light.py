@@ -267,7 +267,9 @@ def test_gradient_round_trip_reference():
 def test_folder_flow_two_light(tmp_path, device):
     """``gpps.reconstruct_folder`` on the box standing on a plane (3 directional lights, 16-bit files): the default
     refines from both starts and reports them (the two-light surface kept, MAEN under 1 deg); ``two_light=False``
-    refines from the integrated depth alone (no ``starts``; measured on the CPU 0.20 against 10.28 deg)."""
+    refines from the integrated depth alone (no ``starts``).  Measured on the CPU: 0.24 against 0.45 deg; before
+    the neighbour pass told cast shadows from attached ones (``SolverConfig.held_dark_refit``, session 35) the
+    integrated start alone gave 10.28."""
     import gpps
     from gpps.io import Dataset, write_dataset
 
@@ -286,4 +288,4 @@ def test_folder_flow_two_light(tmp_path, device):
     assert on.report["refinement"]["chosen"] == "two-light" and set(on.report["refinement"]["starts"]) == {
         "integrated", "two-light"}
     assert "starts" not in off.report["refinement"]
-    assert e_on < 1.0 < 5.0 < e_off
+    assert e_on < 1.0 and e_on < e_off < 1.0

@@ -44,7 +44,6 @@ from gpps.kernels.solve_common import (
 from gpps.kernels.solve_cost import diffuse_value_grad_for, evaluate_for, light_terms_for, specular_value_grad_for
 
 HELD_DARK_CONFLICT = wp.constant(names.HELD_DARK_CONFLICT)
-HELD_DARK_PRIOR_RATIO = wp.constant(names.HELD_DARK_PRIOR_RATIO)
 
 
 def lm_for(evaluate, module, sfx: str):
@@ -702,38 +701,42 @@ def solve_pixel_for(robust, run_method, spec_vg, diff_vg, module, sfx: str, lane
         """The neighbour pass's choice between an attached and a cast shadow (``held_dark_refit``).
 
         A pixel of the neighbour pass (fewer than 3 lit observations; albedo held at its neighbours', weak prior
-        toward their extrapolated normal) keeps its dark observations as one-sided terms: an attached shadow, the
-        normal facing away from the light.  A cast shadow darkens an observation at any normal, and there the
-        one-sided term pulls the normal away from a light that does face it: with 3 lights, 2 lit observations and
-        the held albedo leave two normals, and the dark term picks the one facing away, or bends both.  (Mitsuba
-        development captures under 3 point lights, rough-plastic spheres on a plane: the pixels with a cast shadow
-        22.1 deg with the term, 16.1 without it; the pixels with only attached shadows 12.9 with it, 14.2
-        without; a plastic superquadric with attached shadows only 3.4 with, 7.7 without: session 35.)
+        toward their extrapolated normal) keeps its unlit observations in the fit: right for an attached shadow,
+        where the normal faces away from the light, wrong for a cast shadow, dark at any normal, where the term
+        pulls the normal away from a light that does face it.  Dropping every unlit observation instead (the
+        many-images setting ``shadow_threshold`` 0.02 with 3 images; Mitsuba development captures under 3 point
+        lights, the pixel solver, session 35): rough-plastic spheres on a plane, pixels with a cast shadow 35.2 ->
+        16.1 deg, pixels with attached shadows only 12.9 -> 14.2; a plastic superquadric (attached shadows only)
+        3.4 -> 7.7.  So each pixel is asked which it is.
 
-        The rule: the pixel is fitted again with its unlit observations (in the fit, at most ``prm.lit_threshold`` of the
-        brightest: the one-sided dark terms and the dim ordinary ones) set aside (``ASIDE``), from the prior's start
-        ``ninit``, and that fit is taken when it predicts a set-aside observation brighter than the dark level
+        The rule: the pixel is fitted again with its unlit observations (in the fit, at most ``prm.lit_threshold``
+        of the brightest: the one-sided dark terms and the dim ordinary ones) set aside (``ASIDE``), from the prior's
+        start ``ninit``, and that fit is taken when it predicts a set-aside observation brighter than the dark level
         ``HELD_DARK_CONFLICT gmax`` (a contradiction, as in ``cast_shadow_start``) and the first fit paid for its
         terms: it costs more than ``1.5 (HELD_DARK_CONFLICT gmax)^2`` above the refit (one observation off by the
-        dark level in all 3 channels, the cost being ``1/2 sum w r^2``: a cast shadow leaves no normal that
-        explains the lit observations with the held albedo), or its normal is the other of the two, more than
-        ``HELD_DARK_PRIOR_RATIO`` times as far from the neighbours' prior normal as the refit's (the refit starts
-        at the prior and ends at the nearer one; an attached shadow's two fits agree).  Measured (session 35,
-        this CPU): the analytic cast-shadow scenes of tests/ron_shadow_scenes.py, 3 lights, cast pixels 31.9 ->
-        1.5 deg (bumps), 47.8 -> 6.5 (hemisphere on a plane); gpps's renders without cast shadows 6.03 -> 6.20
-        (sphere), 1.63 -> 1.73 (bumps); the Mitsuba development set through the folder flow, 3 lights: dielectric
-        mean 11.43 -> 8.17 (largest loss 0.05), diffuse 9.74 -> 6.37.  The ratio: with the first fit merely
-        farther (ratio 1) the plastic superquadric above (attached shadows only, where the prior is an
-        extrapolation from afar) went 3.36 -> 6.08 deg; 2 asks the prior to favour the refit clearly.  Also
-        requiring the refit to predict the observation at ``CAST_CONFLICT`` times the lit level (the robust
-        refit's test) kept most cast shadows' terms (spheres 8.4 -> 17.1).  A metal breaks the premise: its dark
-        observations say where the lobe is not, and the refit moves the lobe (the rough-conductor superquadric
-        under 3 point lights, fitted with Blinn-Phong: 17.3 -> 25.7 deg, as bad as least squares either way).  Then the dark
-        observations stay set aside in ``weights``; otherwise they are restored and the first fit stands (its
-        evaluations counted with the second's).  Only without reweighting rounds (``prm.irls_rounds == 0``: the
-        weights are exactly -1 or 1, restored from a bit mask, hence at most 32 lights; with them the robust fit's
-        own cast-shadow refit, ``SolverConfig.shadow_relative``, decides) and with ``prm.held_dark``
-        (``SolverConfig.held_dark_refit``).
+        dark level in all 3 channels, the cost being ``1/2 sum w r^2``).  An attached shadow costs the first fit
+        about nothing (one of the two normals the lit observations allow faces away from the light); a cast shadow
+        where neither does leaves no normal that explains the lit observations with the held albedo.  Where the
+        other normal does face away, the pixel's data cannot tell the two shadows apart, and the first fit stands:
+        taking the refit there when the first fit's normal was the farther from the neighbours' prior (twice the
+        angle) mended analytic cast shadows (gpps's bumps with exact shadows, the pixel solver on the true depth:
+        31.9 -> 1.5 deg) but, through the folder flow, turned attached shadows into the wrong normal (the same
+        bumps: attached pixels 1.25 -> 7.01 deg), and a metal's too (below).
+
+        Measured (session 35, this CPU, the folder flow, 3 lights): the Mitsuba development set's dielectric mean
+        11.43 -> 8.67 deg (largest loss 0.34), diffuse 9.74 -> 6.55, metals 25.46 -> 25.75; the held-out captures
+        (seeds 1000+, run for both forms; the prior's form gave 7.49, 9.47 and 18.49 there) dielectric 12.58 ->
+        7.93 (none worse), diffuse 14.73 -> 9.53, metals 19.71 -> 18.60; the bumps above 1.035 -> 0.694
+        (cast-shadow pixels 9.70 -> 5.36, attached 1.25 unchanged).  Also requiring the refit to predict the
+        observation at ``CAST_CONFLICT`` times the lit level (the robust refit's test) kept most cast shadows'
+        terms (a development capture 8.4 -> 17.1 deg).  A metal breaks the premise: its dark observations say where
+        the lobe is not, and the refit moves the lobe (the prior's form: development metals 25.46 -> 27.69).
+
+        A refit taken leaves the unlit observations set aside in ``weights``; otherwise they are restored and the
+        first fit stands (its evaluations counted with the second's).  Only without reweighting rounds
+        (``prm.irls_rounds == 0``: the weights are exactly -1 or 1, restored from a bit mask, hence at most 32
+        lights; with them the robust fit's own cast-shadow refit, ``SolverConfig.shadow_relative``, decides) and
+        with ``prm.held_dark`` (``SolverConfig.held_dark_refit``).
         """
         if prm.irls_rounds > 0 or prm.held_dark == 0 or lights.count > 32:
             return sol
@@ -761,12 +764,8 @@ def solve_pixel_for(robust, run_method, spec_vg, diff_vg, module, sfx: str, lane
                 if weights[k, i, j] == ASIDE:
                     if grey(model_value(alt, k, px, lights, mat)) > level:
                         conflict = 1
-            # ... and the first fit paid for its terms: a misfit above the dark level, or the other of the two
-            # normals the lit observations allow, clearly farther from the neighbours' than the refit's
-            misfit = sol.best.cost > alt.cost + 1.5 * level * level
-            farther = px.prior_w > 0.0 and wp.acos(wp.clamp(wp.dot(sol.best.n, px.prior_n), -1.0, 1.0)) > (
-                HELD_DARK_PRIOR_RATIO * wp.acos(wp.clamp(wp.dot(alt.n, px.prior_n), -1.0, 1.0)))
-            if conflict != 0 and (misfit or farther):
+            # ... and the first fit paid for its terms: a misfit above the dark level
+            if conflict != 0 and sol.best.cost > alt.cost + 1.5 * level * level:
                 out.best = alt
                 return out
         for k in range(lights.count):
