@@ -723,11 +723,11 @@ def solve_pixel_for(robust, run_method, spec_vg, diff_vg, module, sfx: str, lane
         31.9 -> 1.5 deg) but, through the folder flow, turned attached shadows into the wrong normal (the same
         bumps: attached pixels 1.25 -> 7.01 deg), and a metal's too (below).
 
-        Measured (session 35, this CPU, the folder flow, 3 lights): the Mitsuba development set's dielectric mean
-        11.43 -> 8.67 deg (largest loss 0.34), diffuse 9.74 -> 6.55, metals 25.46 -> 25.75; the held-out captures
-        (seeds 1000+, run for both forms; the prior's form gave 7.49, 9.47 and 18.49 there) dielectric 12.58 ->
-        7.93 (none worse), diffuse 14.73 -> 9.53, metals 19.71 -> 18.60; the bumps above 1.035 -> 0.694
-        (cast-shadow pixels 9.70 -> 5.36, attached 1.25 unchanged).  Also requiring the refit to predict the
+        Measured (session 35, this CPU, the folder flow, 3 lights; perf/results/s35): the Mitsuba development set's
+        dielectric mean 11.43 -> 8.67 deg (largest loss 0.34), diffuse 9.74 -> 6.55, metals 25.46 -> 25.50; the
+        held-out captures (seeds 1000+, run for both forms; the prior's form gave 7.49, 9.47 and 18.49 there)
+        dielectric 12.58 -> 8.10 (largest loss 0.21), diffuse 14.73 -> 9.53, metals 19.71 -> 19.37; the bumps
+        above 1.035 -> 0.694 (cast-shadow pixels 9.70 -> 5.36, attached 1.25 unchanged).  Also requiring the refit to predict the
         observation at ``CAST_CONFLICT`` times the lit level (the robust refit's test) kept most cast shadows'
         terms (a development capture 8.4 -> 17.1 deg).  A metal breaks the premise: its dark observations say where
         the lobe is not, and the refit moves the lobe (the prior's form: development metals 25.46 -> 27.69).
