@@ -24,7 +24,9 @@ Variants (``--variants``, comma-separated):
   the solver's ``max_iters`` (50) instead of the default 12 (session 28);
 * ``host-loop``: ``RONConfig(material_loop="host")``: the material search's Nelder-Mead steps decided on the host
   (the same trajectory) instead of in CUDA graphs, so that ``--kernel-times`` (CUDA events a launch, which do not
-  see a graph's kernels) counts all of the GPU's work: the call's GPU floor (session 31).
+  see a graph's kernels) counts all of the GPU's work: the call's GPU floor (session 31);
+* ``no-held-dark``: ``SolverConfig(held_dark_refit=False)`` in RON's solver: the neighbour pass without the
+  attached / cast shadow refit, the pipeline before session 35.
 
 Only the time and the MAEN are compared; a variant with a worse MAEN is not a proposal, it says what the stage is
 worth.
@@ -54,7 +56,7 @@ import gpps  # noqa: E402
 from _common import device_label, reconstruct_inputs  # noqa: E402
 
 VARIANTS = ("default", "known", "no-dgmc", "no-depth", "rounds3", "rounds2", "evals20", "persistent-pcg",
-            "one-thread-neighbours", "warm-uncapped", "host-loop")
+            "one-thread-neighbours", "warm-uncapped", "host-loop", "no-held-dark")
 
 
 def _sync():
@@ -78,7 +80,9 @@ def variant_kwargs(name: str) -> dict:
                "warm-uncapped": {"material_warm_iters": None},
                # the material search's steps driven from the host: the same trajectory, but every scorer launch a
                # plain launch (no CUDA graph), so --kernel-times sees all of the GPU's work
-               "host-loop": {"material_loop": "host"}}
+               "host-loop": {"material_loop": "host"},
+               # the neighbour pass without its attached / cast shadow refit (session 35)
+               "no-held-dark": {"solver": replace(base.solver, held_dark_refit=False)}}
     if name not in changes:
         raise ValueError(f"variant: expected one of {VARIANTS}, got {name!r}")
     return {"material": "cook-torrance", "config": replace(base, **changes[name])}

@@ -614,7 +614,8 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
         out.update(normals=res.normals, albedo=res.albedo, flags=res.flags)
         report.update(solver=config.solver, robust=robust, timings=res.timings, material=material.to_dict(),
                       mean_iterations=float(res.iterations[ds.mask].mean()),
-                      flagged_pixels=int(np.count_nonzero(res.flags[ds.mask])), flag_counts=flag_counts(res.flags, ds.mask))
+                      flagged_pixels=int(np.count_nonzero(res.flags[ds.mask])),
+                      flag_counts=flag_counts(res.flags, ds.mask))
     else:
         # (comparing models needs every lobe parameter estimated by the photometric rule: RONConfig.models)
         models, models_why = automatic_models(n, config)
@@ -665,7 +666,8 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
                       energy_per_round=rec.energy, rounds=rec.rounds, converged=rec.converged,
                       highlight_pixels=int(rec.highlight.sum()),
                       mean_iterations=float(rec.iterations[ds.mask].mean()),
-                      flagged_pixels=int(np.count_nonzero(rec.flags[ds.mask])), flag_counts=flag_counts(rec.flags, ds.mask),
+                      flagged_pixels=int(np.count_nonzero(rec.flags[ds.mask])),
+                      flag_counts=flag_counts(rec.flags, ds.mask),
                       cast_shadows=rec.details.shadows)  # (RON's passes: observations dropped per round)
         if rec.details.refinement is not None:
             report["refinement"] = rec.details.refinement

@@ -238,7 +238,8 @@ def get_split_under_kernels(method, brdf, robust="none"):
     ``"_split_under"``: built, and compiled, only where the pass runs), with the register cap
     :data:`gpps.names.SPLIT_UNDER_MAX_REGISTERS`."""
     return _split_module(method, brdf, robust, "_split_under", names.SPLIT_UNDER_MAX_REGISTERS,
-                         lambda f, module, sfx: split_under_kernels_for(f.one_start, f.finish_pixel, f.held_dark_refit, module, sfx))
+                         lambda f, module, sfx: split_under_kernels_for(f.one_start, f.finish_pixel, f.held_dark_refit,
+                                                                        module, sfx))
 
 
 def get_solve_kernels(method, brdf, robust="none", cache: int = names.SOLVE_TERM_CACHE):

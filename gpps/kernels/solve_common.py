@@ -493,8 +493,6 @@ def store_least_squares(
     flags[i, j] = flag
 
 
-# ---------------------------------------------------------------- lights-parallel pieces
-# Used only by the lights-parallel builds (``lanes=True`` in :func:`gpps.kernels.solve_methods.solver_funcs`),
 @wp.func
 def albedo_floor(images: wp.array3d(dtype=wp.vec3), weights: wp.array3d(dtype=wp.float32), px: Pixel,
                  lights: LightParams):
@@ -543,6 +541,8 @@ def store_checked(
     store_solution(sol, f, weights, px, lights.count, normals, albedo, residual, iterations, flags)
 
 
+# ---------------------------------------------------------------- lights-parallel pieces
+# Used only by the lights-parallel builds (``lanes=True`` in :func:`gpps.kernels.solve_methods.solver_funcs`),
 # launched with ``wp.launch_tiled`` so that one block of ``lanes`` threads solves one pixel: every lane runs
 # the same (uniform) solver steps and takes a strided share of the light loops; the sums are reduced over
 # the block (``wp.tile_sum``) and every lane reads the same total, so the lanes' control flow stays uniform.

@@ -386,7 +386,8 @@ def solve_kernel_for(method, solve_pixel, module, sfx: str, lanes: bool = False)
                     return
             sol = solve_pixel(ninit, gmax, images, weights, px, lights, mat, prm)
             if wp.static(lanes):
-                store_checked_lanes(sol, flag, images, weights, px, lights, normals, albedo, residual, iterations, flags)
+                store_checked_lanes(sol, flag, images, weights, px, lights, normals, albedo, residual, iterations,
+                                    flags)
             else:
                 store_checked(sol, flag, images, weights, px, lights, normals, albedo, residual, iterations, flags)
 
@@ -398,7 +399,8 @@ def underdetermined_kernel_for(solve_pixel, held_dark_refit, module, sfx: str):
 
     Args:
         solve_pixel: the nonlinear solve (:func:`gpps.kernels.solve_methods.solve_pixel_for`).
-        held_dark_refit: the attached / cast shadow choice (``held_dark_refit`` of :func:`gpps.kernels.solve_methods.solve_pixel_for`).
+        held_dark_refit: the attached / cast shadow choice (``held_dark_refit`` of
+            :func:`gpps.kernels.solve_methods.solve_pixel_for`).
         module: Warp module of the kernel.
         sfx: key suffix of the kernel.
     """

@@ -727,10 +727,11 @@ def solve_pixel_for(robust, run_method, spec_vg, diff_vg, module, sfx: str, lane
         dielectric mean 11.43 -> 8.67 deg (largest loss 0.34), diffuse 9.74 -> 6.55, metals 25.46 -> 25.50; the
         held-out captures (seeds 1000+, run for both forms; the prior's form gave 7.49, 9.47 and 18.49 there)
         dielectric 12.58 -> 8.10 (largest loss 0.21), diffuse 14.73 -> 9.53, metals 19.71 -> 19.37; the bumps
-        above 1.035 -> 0.694 (cast-shadow pixels 9.70 -> 5.36, attached 1.25 unchanged).  Also requiring the refit to predict the
-        observation at ``CAST_CONFLICT`` times the lit level (the robust refit's test) kept most cast shadows'
-        terms (a development capture 8.4 -> 17.1 deg).  A metal breaks the premise: its dark observations say where
-        the lobe is not, and the refit moves the lobe (the prior's form: development metals 25.46 -> 27.69).
+        above 1.035 -> 0.694 (cast-shadow pixels 9.70 -> 5.36, attached 1.25 unchanged).  Also requiring the
+        refit to predict the observation at ``CAST_CONFLICT`` times the lit level (the robust refit's test) kept
+        most cast shadows' terms (a development capture 8.4 -> 17.1 deg).  A metal breaks the premise: its dark
+        observations say where the lobe is not, and the refit moves the lobe (the prior's form: development
+        metals 25.46 -> 27.69).
 
         A refit taken leaves the unlit observations set aside in ``weights``; otherwise they are restored and the
         first fit stands (its evaluations counted with the second's).  Only without reweighting rounds

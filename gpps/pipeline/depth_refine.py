@@ -420,8 +420,8 @@ class DepthRefiner(Stage):
         h, w = self.shape
         self.sums.zero_()
         wp.launch(refine_eval_kernel, dim=(h, w),
-                  inputs=[depth, self.mask, *self._edges(), s.images, self.valid, self.cam, self._lp, self._mp, albedo_prev,
-                          float(sigma), int(robust)],
+                  inputs=[depth, self.mask, *self._edges(), s.images, self.valid, self.cam, self._lp, self._mp,
+                          albedo_prev, float(sigma), int(robust)],
                   outputs=[self.hess, self.grad, self.albedo_new, self.rms, self.sums], device=self.device)
         e, tr, cnt = (float(v) for v in self.sums.numpy())
         return e, tr, cnt
