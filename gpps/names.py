@@ -136,6 +136,16 @@ CAST_CONFLICT = 0.5
 # and the first paid for the terms: a misfit of more than one observation off by it in every channel.  The level is
 # the one the cast-shadow refit calls dark (SHADOW_RELATIVE_MANY)
 HELD_DARK_CONFLICT = SHADOW_RELATIVE_MANY
+# with more images than this the per-pixel solves expect outliers (cast shadows, interreflections, highlights the model
+# misses) and fit robustly: a Cauchy loss, observations below 0.02 of the pixel's brightest taken as shadowed, the
+# cast-shadow refit (SHADOW_RELATIVE_MANY) and 4 starts (gpps.flows.folder.automatic_solver_options, and
+# gpps.reconstruct without a config).  Principle: a pixel's fit has 3 unknowns (a normal's two angles and an
+# albedo); a robust loss can outvote one outlier only where at least two observations are redundant, so from 5
+# images on.  (Sessions up to 34 used 6, i.e. from 7 images on.  Measured in session 35 on the Mitsuba captures,
+# folder flow, this CPU, from 7 -> from 5: 6 lights development dielectric mean 10.09 -> 4.87 deg, diffuse 10.28 ->
+# 3.75, metals 17.06 -> 14.71; 5 lights dielectric 12.12 -> 6.66, diffuse 11.06 -> 5.03, metals 21.92 -> 27.65 (a
+# rough conductor fitted with Blinn-Phong); held-out 6 lights dielectric 9.16 -> 3.82, metals 1.89 -> 4.17.)
+MANY_IMAGES = 4
 # the weight that marks a set-aside observation in the solver's weights buffer: negative (a one-sided term, as a
 # dark observation) and so small that it adds nothing to a cost, a gradient or an albedo
 ASIDE_WEIGHT = -1.0e-30

@@ -52,7 +52,8 @@ from gpps.io.formats import Transfer
 from gpps.io.outputs import apply_depth_convention, depth_convention, write_outputs
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
-from gpps.names import BRDF, BRDF_NAMES, CONDUCTOR_MIN_IMAGES, SHADOW_RELATIVE_MANY, InterreflectionName, RobustName, SolverName
+from gpps.names import (BRDF, BRDF_NAMES, CONDUCTOR_MIN_IMAGES, MANY_IMAGES, SHADOW_RELATIVE_MANY, InterreflectionName,
+                         RobustName, SolverName)
 from gpps.pipeline.integration import IntegratorConfig
 
 __all__ = ["FolderConfig", "FolderResult", "reconstruct_folder", "automatic_solver_options", "flip_decision",
@@ -63,9 +64,6 @@ FolderMethod = Literal["ron", "ppn", "pps"]
 FolderIntegration = Literal["bini", "poisson"]
 Progress = Callable[[float, float, str], None]
 
-MANY_IMAGES = 6
-"""With more images than this, the per-pixel solves expect outliers (shadows, highlights): a Cauchy loss,
-observations below 0.02 taken as shadowed and 4 starts (:func:`automatic_solver_options`)."""
 
 REFINE_IMAGES = 3
 """With this many images RON's depth refinement runs unless the caller says otherwise (:func:`automatic_refine`)."""
@@ -303,12 +301,13 @@ def _save_rows(path, rows, header: str) -> None:
 def automatic_solver_options(n_images: int, robust: RobustName | None = None) -> dict:
     """The per-pixel solver options the folder flow uses for ``n_images`` images.
 
-    With more than :data:`MANY_IMAGES` images some observations are expected to be outliers
+    With more than :data:`gpps.names.MANY_IMAGES` (4) images some observations are expected to be outliers
     (cast shadows, interreflections, highlights the model misses): the loss is Cauchy, observations
     below 0.02 of the pixel's brightest count as shadowed, a pixel whose fit contradicts its split into lit
     and dark observations (dark: below :data:`gpps.names.SHADOW_RELATIVE_MANY` of its lit level) is solved
     again with the dark ones set aside (``SolverConfig.shadow_relative``), and each pixel is started from 4
-    normals.  With fewer, every observation is needed: no robust loss, the solver's defaults.
+    normals.  With fewer, every observation is needed (no two redundant ones to outvote an outlier): no robust
+    loss, the solver's defaults.
 
     Args:
         n_images: the number of images N.

@@ -43,7 +43,7 @@ from gpps.flows.photometric import (
 from gpps.flows.ron import LOBE_PARAMETERS, RON, RONConfig
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import BRDF_NAMES, Material, check_model_images
-from gpps.names import SHADOW_RELATIVE_MANY
+from gpps.names import MANY_IMAGES, SHADOW_RELATIVE_MANY
 
 __all__ = ["reconstruct", "Reconstruction", "Reconstructor", "RONConfig"]
 
@@ -284,8 +284,8 @@ def _prepare(images, mask, lights, camera, material, estimate, depth, reference_
     solver = cfg.solver
     if saturation is not None:
         solver = replace(solver, saturation=float(saturation))
-    if n > 6 and solver.robust == "none" and config is None:
-        # many real images: shadows and inter-reflections; robust loss and shadow dropping
+    if n > MANY_IMAGES and solver.robust == "none" and config is None:
+        # enough images to outvote an outlier (shadows, interreflections): robust loss and shadow dropping
         solver = replace(solver, robust="cauchy", shadow_threshold=0.02, shadow_relative=SHADOW_RELATIVE_MANY,
                          starts=min(solver.starts, 4))
     cfg = replace(cfg, estimate=names, solver=solver, **({"models": models} if models else {}))
