@@ -144,7 +144,8 @@ HELD_DARK_CONFLICT = SHADOW_RELATIVE_MANY
 # images on.  (Sessions up to 34 used 6, i.e. from 7 images on.  Measured in session 35 on the Mitsuba captures,
 # folder flow, this CPU, from 7 -> from 5: 6 lights development dielectric mean 10.09 -> 4.87 deg, diffuse 10.28 ->
 # 3.75, metals 17.06 -> 14.71; 5 lights dielectric 12.12 -> 6.66, diffuse 11.06 -> 5.03, metals 21.92 -> 27.65 (a
-# rough conductor fitted with Blinn-Phong); held-out 6 lights dielectric 9.16 -> 3.82, metals 1.89 -> 4.17.)
+# rough conductor fitted with Blinn-Phong); held-out 6 lights dielectric 10.49 -> 4.38, diffuse 12.03 -> 7.31, metals
+# 1.89 -> 4.17.)
 MANY_IMAGES = 4
 # the weight that marks a set-aside observation in the solver's weights buffer: negative (a one-sided term, as a
 # dark observation) and so small that it adds nothing to a cost, a gradient or an albedo
