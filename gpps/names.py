@@ -139,14 +139,17 @@ HELD_DARK_CONFLICT = SHADOW_RELATIVE_MANY
 # with more images than this the per-pixel solves expect outliers (cast shadows, interreflections, highlights the model
 # misses) and fit robustly: a Cauchy loss, observations below 0.02 of the pixel's brightest taken as shadowed, the
 # cast-shadow refit (SHADOW_RELATIVE_MANY) and 4 starts (gpps.flows.folder.automatic_solver_options, and
-# gpps.reconstruct without a config).  Principle: a pixel's fit has 3 unknowns (a normal's two angles and an
-# albedo); a robust loss can outvote one outlier only where at least two observations are redundant, so from 5
-# images on.  (Sessions up to 34 used 6, i.e. from 7 images on.  Measured in session 35 on the Mitsuba captures,
-# folder flow, this CPU, from 7 -> from 5: 6 lights development dielectric mean 10.09 -> 4.87 deg, diffuse 10.28 ->
-# 3.75, metals 17.06 -> 14.71; 5 lights dielectric 12.12 -> 6.66, diffuse 11.06 -> 5.03, metals 21.92 -> 27.65 (a
-# rough conductor fitted with Blinn-Phong); held-out 6 lights dielectric 10.49 -> 4.38, diffuse 12.03 -> 7.31, metals
-# 1.89 -> 4.17.)
-MANY_IMAGES = 4
+# gpps.reconstruct without a config).  Principle: a pixel's fit has 3 unknowns (a normal's two angles and an albedo);
+# from 4 images on one observation beyond them lets the cast-shadow refit judge a dark observation against the fit
+# of the others (a cast shadow predicted lit is set aside), and from 5 the Cauchy loss can outvote one outlier.  With
+# 3 images the neighbour pass's attached / cast shadow choice does it (SolverConfig.held_dark_refit).  Sessions up to
+# 34 used 6 (robust from 7 images).  Measured in session 35 on the Mitsuba captures (folder flow, this CPU, from 7
+# -> from 4): 4 lights development dielectric mean 13.12 -> 8.62 deg, diffuse 10.87 -> 4.56, metals 36.35 -> 36.13;
+# held-out 4 lights dielectric 13.36 -> 6.24, diffuse 13.52 -> 10.29, metals 28.99 -> 27.91; 5 lights development
+# dielectric 12.12 -> 6.66, diffuse 11.06 -> 5.03, metals 21.92 -> 27.65 (a rough conductor fitted with
+# Blinn-Phong); 6 lights development dielectric 10.09 -> 4.87, diffuse 10.28 -> 3.75, metals 17.06 -> 14.71;
+# held-out 6 lights dielectric 10.49 -> 4.38, diffuse 12.03 -> 7.31, metals 1.89 -> 4.17
+MANY_IMAGES = 3
 # the weight that marks a set-aside observation in the solver's weights buffer: negative (a one-sided term, as a
 # dark observation) and so small that it adds nothing to a cost, a gradient or an albedo
 ASIDE_WEIGHT = -1.0e-30

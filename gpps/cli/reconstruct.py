@@ -53,7 +53,7 @@ def add_reconstruct_options(p) -> None:
                         "ppn: one per-pixel solve (known material) then integration; pps: perspective Blinn-Phong in log depth")
     p.add_argument("--brdf", default=None, help="reflectance model (default: material.json's, else blinn-phong)")
     p.add_argument("--solver", default="lm", choices=["lm", "dogleg", "bfgs", "none"], help="per-pixel solver (none: Lambertian least squares)")
-    p.add_argument("--robust", default=None, choices=["none", "huber", "cauchy"], help="robust loss (default: cauchy for N > 4 images, none otherwise)")
+    p.add_argument("--robust", default=None, choices=["none", "huber", "cauchy"], help="robust loss (default: cauchy for N > 3 images, none otherwise)")
     p.add_argument("--ks", type=float, default=None, help="known specular weight (else estimated with --method ron)")
     p.add_argument("--shininess", type=float, default=None, help="known Phong/Blinn-Phong exponent (else estimated)")
     p.add_argument("--roughness", type=float, default=None, help="known Cook-Torrance / plastic roughness m (else estimated)")

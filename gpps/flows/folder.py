@@ -301,13 +301,13 @@ def _save_rows(path, rows, header: str) -> None:
 def automatic_solver_options(n_images: int, robust: RobustName | None = None) -> dict:
     """The per-pixel solver options the folder flow uses for ``n_images`` images.
 
-    With more than :data:`gpps.names.MANY_IMAGES` (4) images some observations are expected to be outliers
+    With more than :data:`gpps.names.MANY_IMAGES` (3) images some observations are expected to be outliers
     (cast shadows, interreflections, highlights the model misses): the loss is Cauchy, observations
     below 0.02 of the pixel's brightest count as shadowed, a pixel whose fit contradicts its split into lit
     and dark observations (dark: below :data:`gpps.names.SHADOW_RELATIVE_MANY` of its lit level) is solved
     again with the dark ones set aside (``SolverConfig.shadow_relative``), and each pixel is started from 4
-    normals.  With fewer, every observation is needed (no two redundant ones to outvote an outlier): no robust
-    loss, the solver's defaults.
+    normals.  With 3, every observation is needed (none beyond the three unknowns to judge a dark one against):
+    no robust loss, the solver's defaults, and the neighbour pass's attached / cast shadow choice.
 
     Args:
         n_images: the number of images N.

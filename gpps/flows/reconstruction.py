@@ -285,7 +285,8 @@ def _prepare(images, mask, lights, camera, material, estimate, depth, reference_
     if saturation is not None:
         solver = replace(solver, saturation=float(saturation))
     if n > MANY_IMAGES and solver.robust == "none" and config is None:
-        # enough images to outvote an outlier (shadows, interreflections): robust loss and shadow dropping
+        # observations beyond the fit's three unknowns to judge outliers by (cast shadows, interreflections):
+        # robust loss, shadow dropping and the cast-shadow refit (gpps.names.MANY_IMAGES)
         solver = replace(solver, robust="cauchy", shadow_threshold=0.02, shadow_relative=SHADOW_RELATIVE_MANY,
                          starts=min(solver.starts, 4))
     cfg = replace(cfg, estimate=names, solver=solver, **({"models": models} if models else {}))
