@@ -14,9 +14,8 @@ import json
 import os
 import sys
 
-
-def cls(k):
-    return "metal" if "conductor" in k else ("diffuse" if "diffuse" in k else "dielectric")
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from held_dark_table import classes as cls  # noqa: E402
 
 
 def load(path, held_dark_only=False):

@@ -174,6 +174,18 @@ def solid_case(name: str, kind: str, n: int, size: int = 64, camera: str = "pers
             "reference_depth": float(sc.depth[sc.mask].mean()), "scene": sc}
 
 
+def write_case_folder(case, path):
+    """A case of this module (directional lights) as a 16-bit capture folder at ``path`` (images, mask, lights,
+    intrinsics and the ground truth, as users have it): ``gpps.reconstruct_folder``'s input.  Returns the folder."""
+    from gpps.io import Dataset, write_dataset
+
+    n = len(case["lights"])
+    ds = Dataset(images=case["images"], mask=case["mask"], light_directions=case["lights"].directions,
+                 light_intensities=np.ones((n, 3), np.float32), K=np.asarray(case["camera"].K),
+                 normal_gt=case["normals"], depth_gt=case["depth"], filenames=[f"{i:03d}.png" for i in range(1, n + 1)])
+    return write_dataset(path, ds, bits=16)
+
+
 def run_ron(device, case, **cfg):
     """RON on a case of this module (its lights, material and mask, its reference depth), ``RONConfig(**cfg)``."""
     n = len(case["lights"])

@@ -10,7 +10,7 @@ with their exact cast shadows (images times the analytic visibility) and on shad
 import numpy as np
 import pytest
 import reference_models as ref
-from ron_shadow_scenes import bump_case, run_ron
+from ron_shadow_scenes import bump_case, run_ron, write_case_folder
 
 from gpps._runtime import warp
 from gpps._taichi import taichi_device
@@ -587,14 +587,9 @@ def test_folder_flow_refines_three_images(tmp_path, device):
     record) and the refined normals are closer to the truth than the unrefined ones (``refine=False``).  Measured
     on the CPU: MAEN 1.04 -> 0.42 deg."""
     import gpps
-    from gpps.io import Dataset, write_dataset
 
     case = bump_case("directional", 3, 48, slant=60.0)
-    cam = case["camera"]
-    ds = Dataset(images=case["images"], mask=case["mask"], light_directions=case["lights"].directions,
-                 light_intensities=np.ones((3, 3), np.float32), K=np.asarray(cam.K), normal_gt=case["normals"],
-                 depth_gt=case["depth"], filenames=[f"{i:03d}.png" for i in range(1, 4)])
-    folder = write_dataset(tmp_path / "cap", ds, bits=16)
+    folder = write_case_folder(case, tmp_path / "cap")
     auto = gpps.reconstruct_folder(folder, device=device)
     off = gpps.reconstruct_folder(folder, gpps.FolderConfig(refine=False), device=device)
     assert auto.report["refine"] == {"on": True, "why": "automatic: on with 3 images"}

@@ -19,7 +19,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from ron_shadow_scenes import bump_case, solid_case  # noqa: E402
+from ron_shadow_scenes import bump_case, solid_case, write_case_folder  # noqa: E402
 
 from gpps.host.metrics import angular_error  # noqa: E402
 from gpps.lights import DirectionalLights, ring_directions  # noqa: E402
@@ -77,14 +77,8 @@ def test_folder_flow_mends_cast_shadows_and_keeps_attached_ones(tmp_path, device
     pixels into 7.01)."""
     import gpps
     import gpps.flows.folder as ff
-    from gpps.io import Dataset, write_dataset
-
     case = bump_case("directional", 3, 48, slant=60.0)
-    cam = case["camera"]
-    ds = Dataset(images=case["images"], mask=case["mask"], light_directions=case["lights"].directions,
-                 light_intensities=np.ones((3, 3), np.float32), K=np.asarray(cam.K), normal_gt=case["normals"],
-                 depth_gt=case["depth"], filenames=[f"{i:03d}.png" for i in range(1, 4)])
-    folder = write_dataset(tmp_path / "cap", ds, bits=16)
+    folder = write_case_folder(case, tmp_path / "cap")
     m = case["mask"]
     cast = m & case["shadow"].any(axis=0)
     attached = m & (~case["scene"].facing(case["lights"])).any(axis=0) & ~cast

@@ -15,7 +15,7 @@ import pytest
 from scipy import stats
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ron_shadow_scenes import bump_case, run_ron, solid_case  # noqa: E402
+from ron_shadow_scenes import bump_case, run_ron, solid_case, write_case_folder  # noqa: E402
 
 from gpps.camera import Orthographic, Perspective  # noqa: E402
 from gpps.flows.ron import RONConfig  # noqa: E402
@@ -271,14 +271,9 @@ def test_folder_flow_two_light(tmp_path, device):
     the neighbour pass told cast shadows from attached ones (``SolverConfig.held_dark_refit``, session 35) the
     integrated start alone gave 10.28."""
     import gpps
-    from gpps.io import Dataset, write_dataset
 
     case = solid_case("box", "directional", 3, 64)
-    cam = case["camera"]
-    ds = Dataset(images=case["images"], mask=case["mask"], light_directions=case["lights"].directions,
-                 light_intensities=np.ones((3, 3), np.float32), K=np.asarray(cam.K), normal_gt=case["normals"],
-                 depth_gt=case["depth"], filenames=[f"{i:03d}.png" for i in range(1, 4)])
-    folder = write_dataset(tmp_path / "cap", ds, bits=16)
+    folder = write_case_folder(case, tmp_path / "cap")
     on = gpps.reconstruct_folder(folder, device=device)
     off = gpps.reconstruct_folder(folder, gpps.FolderConfig(two_light=False), device=device)
     m = case["mask"]
