@@ -25,9 +25,12 @@ SEED_BRDF_NAMES: tuple[str, ...] = BRDF_NAMES[:5]
 DEFAULT_F0: dict[str, float] = {name: 0.5 for name in BRDF_NAMES} | {"plastic": 0.04, "conductor": 1.0}
 
 # images below which a model's per-pixel fit does not determine the normals: the conductor (no diffuse term: a normal
-# and a colour seen only through the lobe, which most lights miss) is exact on our synthetic metals with 6 and 12
-# lights and 6-10 deg off with 3 (tests/test_conductor.py); every model with a diffuse term needs 3
-CONDUCTOR_MIN_IMAGES = 6
+# and a colour seen only through the lobe, which most lights miss).  A pixel's N values per channel are one colour
+# times the lobe, so N - 1 ratios carry the normal's 2 degrees of freedom, and a light outside the lobe adds none.
+# Measured on gpps's own noise-free metals (GGX alpha 0.15 and 0.3, bumps and spheres, directional and point lights,
+# 48^2, the material known; perf/results/s36/README.md): 3 lights 3.9-10.1 deg mean, 4 lights 0.4-2.1, 5 lights
+# 0.00-0.11, 6 lights 0.00 (tests/test_conductor.py asserts 5, 6 and 12).  Every model with a diffuse term needs 3
+CONDUCTOR_MIN_IMAGES = 5
 # RON's model comparison (RONConfig.models, gpps.host.model_evidence): another model replaces the configured one only
 # when the sample pixels' paired differences of squared residuals are above zero by more than this many standard
 # errors (one-sided, the normal distribution's 99th percentile: the conventional 1 % level)

@@ -56,18 +56,21 @@ def _case(scene="bumps", n_lights=12, kind="directional", size=48, noise=0.0, ma
 
 
 @pytest.mark.parametrize("scene,kind", [("bumps", "directional"), ("sphere", "point")])
-@pytest.mark.parametrize("n_lights", [6, 12])
+@pytest.mark.parametrize("n_lights", [5, 6, 12])
 def test_solve_recovers_normals_noise_free(device, scene, kind, n_lights):
-    """Known material, perspective, 16-bit: the normals and the metal's colour back.  Measured at 64^2: MAEN
-    0.0004-0.004 deg.  (With 3 lights a pixel has three equations for its normal and its colour's scale: the
-    normals are not determined, 6-10 deg; not asserted.)"""
+    """Known material, perspective, 16-bit: the normals and the metal's colour back from
+    :data:`gpps.names.CONDUCTOR_MIN_IMAGES` (5) lights on.  Measured at 48^2: MAEN 0.0004-0.004 deg with 6 and 12
+    lights; with 5 0.01 (bumps) and 0.11 (the sphere under point lights: a few rim pixels see only 3 of the lights
+    inside the lobe).  (With 3 lights a pixel has three equations for its normal and its colour's scale: the normals
+    are not determined, 4-10 deg; with 4, 0.4-2.1 deg; not asserted.)"""
     from gpps.flows.photometric import solve_normals
 
     img, L, sc, sat = _case(scene, n_lights, kind)
     depth = sc.depth if kind == "point" else None
     r = solve_normals(img, sc.mask, L, camera=sc.camera, material=TRUE, depth=depth, saturation=sat, device=device)
     e = normal_errors(r.normals, sc.normals, sc.mask)
-    assert e["mean"] <= 0.05, e
+    assert e["mean"] <= (0.25 if n_lights == 5 else 0.05), e
+    assert e["median"] <= 0.01, e
     ok = sc.mask & ((r.flags & 2) == 0)
     assert np.median(np.abs(r.albedo[ok] - sc.albedo[ok])) < 1e-3
 
@@ -115,7 +118,7 @@ def test_lights_parallel_and_split_starts_builds_equal_the_one_thread_solve(devi
     assert normal_errors(out["normals"], sc.normals, sc.mask)["median"] < 2.5  # measured 1.22 (1 % noise on a metal)
 
 
-def test_folder_flow_compares_the_conductor_from_six_images(tmp_path, device):
+def test_folder_flow_compares_the_conductor_from_five_images(tmp_path, device):
     """``gpps reconstruct``'s default (``FolderConfig(models=None)``): the conductor (and plastic) are fitted beside
     Blinn-Phong from :data:`CONDUCTOR_IMAGES` images on, and the conductor is chosen on a metal with the evidence
     test passed; with 3 images, or ``models=()`` / ``--compare-models none``, nothing is compared; the report says
@@ -126,10 +129,10 @@ def test_folder_flow_compares_the_conductor_from_six_images(tmp_path, device):
     from gpps.cli.reconstruct import add_reconstruct_options, folder_config
     from gpps.flows.folder import CONDUCTOR_IMAGES, FolderConfig, automatic_models
 
-    assert CONDUCTOR_IMAGES == 6
-    assert automatic_models(3, FolderConfig()) == ((), "automatic: none with 3 images (the conductor and plastic "
-                                                       "from 6)")
-    assert automatic_models(6, FolderConfig())[0] == ("conductor", "plastic")
+    assert CONDUCTOR_IMAGES == 5
+    assert automatic_models(4, FolderConfig()) == ((), "automatic: none with 4 images (the conductor and plastic "
+                                                       "from 5)")
+    assert automatic_models(5, FolderConfig())[0] == ("conductor", "plastic")
     assert automatic_models(96, FolderConfig(models=())) == ((), "turned off")
     assert automatic_models(96, FolderConfig(models=("plastic",))) == (("plastic",), "asked")
     with pytest.raises(TypeError, match="models: expected None or a tuple"):
@@ -150,10 +153,10 @@ def test_folder_flow_compares_the_conductor_from_six_images(tmp_path, device):
     assert folder_config(p.parse_args(["--compare-models", "plastic,conductor"])).models == ("plastic", "conductor")
 
 
-def test_fewer_than_six_images_of_a_metal_warn(device):
+def test_fewer_than_five_images_of_a_metal_warn(device):
     """A metal's normals are not determined by fewer than :data:`gpps.names.CONDUCTOR_MIN_IMAGES` images (3 lights:
-    6-10 deg off with the material known, tests above): the array API, the per-pixel solve and the stream say so;
-    with 6 they do not."""
+    4-10 deg off with the material known, 4 lights 0.4-2.1, tests above): the array API, the per-pixel solve and the
+    stream say so; with 5 they do not."""
     import warnings
 
     from gpps.flows.photometric import solve_normals
@@ -161,14 +164,14 @@ def test_fewer_than_six_images_of_a_metal_warn(device):
     from gpps.names import CONDUCTOR_MIN_IMAGES
     from gpps.pipeline.stream import Stream, StreamConfig
 
-    assert CONDUCTOR_MIN_IMAGES == 6
+    assert CONDUCTOR_MIN_IMAGES == 5
     sink: list = []
-    with pytest.warns(gpps.GppsWarning, match="does not determine the normals from 3 images"):
-        check_model_images(("blinn-phong", "conductor"), 3, sink)
-    assert len(sink) == 1 and "6 or more images" in sink[0]
+    with pytest.warns(gpps.GppsWarning, match="does not determine the normals from 4 images"):
+        check_model_images(("blinn-phong", "conductor"), 4, sink)
+    assert len(sink) == 1 and "5 or more images" in sink[0]
     with warnings.catch_warnings():
         warnings.simplefilter("error", gpps.GppsWarning)
-        check_model_images(("blinn-phong", "conductor"), 6)
+        check_model_images(("blinn-phong", "conductor"), 5)
         check_model_images(("blinn-phong", "plastic"), 3)
     img, L, sc, sat = _case("sphere", 3, size=24)
     with pytest.warns(gpps.GppsWarning, match="conductor"):

@@ -371,7 +371,7 @@ def test_folder_flow_subtracts(tmp_path, device):
 
 
 def test_folder_flow_keeps_the_first_model(tmp_path, device, monkeypatch):
-    """With models compared (the default from 6 images), the compensation's later reconstructions keep the model
+    """With models compared (the default from 5 images), the compensation's later reconstructions keep the model
     the first one chose on the observed images, its parameters refined from the first's estimate (no second
     comparison, no grid), and the report keeps that comparison."""
     import gpps

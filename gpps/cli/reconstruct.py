@@ -88,7 +88,7 @@ def add_reconstruct_options(p) -> None:
     p.add_argument("--compare-models", default=None, metavar="MODEL[,MODEL...]",
                    help="RON: other reflectance models to fit beside --brdf's in the first material fit; one whose "
                         "residual is lower beyond the sample's noise is kept (e.g. plastic; none: no comparison; "
-                        "default: the rough conductor and plastic with 6 or more images)")
+                        "default: the rough conductor and plastic with 5 or more images)")
     p.add_argument("--material-rule", default="photometric", choices=["photometric", "depth-rms"], help="RON material update (depth-rms: the seed's 4.19)")
     p.add_argument("--pixel-size", type=float, default=None, help="orthographic camera (no K.txt): scene units per pixel; default: depth in pixels")
     p.add_argument("--reference-depth", "--depth", dest="reference_depth", type=float, default=None,

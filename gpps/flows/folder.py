@@ -375,10 +375,15 @@ def automatic_models(n_images: int, config: FolderConfig) -> tuple[tuple[str, ..
 
     The conductor: a metal has no diffuse term, which neither the seed's models nor plastic can
     drop, and the residual tells the two classes apart once the conductor's own per-pixel fit (a normal and a
-    colour, nothing but the lobe to see them by) is determined.  With fewer images it is not: on our synthetic
-    metals (tests/test_conductor.py) the known-material solve gets the normals exactly with 6 and 12 lights and
-    misses them by 6-10 deg with 3, where any surface fits the lobe of some normal and the comparison would pick
-    the conductor on non-metals.  Checked on our Mitsuba development captures only (perf/results/s21/README.md;
+    colour, nothing but the lobe to see them by) is determined.  With fewer images it is not: on gpps's own
+    noise-free metals (:data:`gpps.names.CONDUCTOR_MIN_IMAGES`; tests/test_conductor.py) the known-material solve
+    gets the normals exactly from 5 lights on and misses them by 0.4-2.1 deg with 4 and 4-10 deg with 3, where any
+    surface fits the lobe of some normal and the comparison would pick the conductor on non-metals (with 4 it did
+    on 2 of 16 non-metal development captures, perf/results/s36/README.md).  The threshold was 6 until session 36;
+    at 5 (development captures, 5 lights, seeds 3000-3009) the metals went 27.65 -> 15.17 deg (the conductor chosen
+    on 3 of 4) and the others 6.25 -> 5.70 (plastic chosen on 11 of 16); on the held-out captures (seeds 1000-1007,
+    5 lights, run after the choice) the metals 17.22 -> 4.67 and the others 6.50 -> 6.59 (plastic chosen on two
+    diffuse captures, at worst +1.02).  Checked on our Mitsuba development captures only (perf/results/s21/README.md;
     128^2, 16-bit, seeds 3000-3009): with 12 lights it is chosen on the four rough-copper captures and on none of
     the sixteen others (whose results stay the same bits); on the metals the mean goes 6.13 -> 5.05 deg (the convex
     superquadric 3.9 -> 0.6, a concave copper relief under directional light 7.2 -> 9.8: the light its ridges send
