@@ -108,7 +108,12 @@ class SolverConfig:
             contradicts the fit: a cast shadow darkens an observation at any
             normal, and a tilted normal (or a low albedo under which the lit
             observations become the outliers) can win the fit (a backdrop seen
-            through a hole, shadowed for half of the lights).  Such a pixel is solved again
+            through a hole, shadowed for half of the lights).  So does a fit
+            that misses the lit observations (at or above the dark level) by
+            more than the dark level, RMS over their channels, while the pixel
+            has a dark one whose light the fit turned the surface from (its n.l
+            below that factor times the lit observations' mean): the normal
+            was tilted until a shadowed light grazed it.  Such a pixel is solved again
             with every observation that dark set aside, from the lit
             observations' least squares, the fit's normal and the view
             direction; the reweighting rounds then take an observation back, as
