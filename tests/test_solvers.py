@@ -654,8 +654,9 @@ def test_cast_shadow_refit_from_the_lit_misfit(device):
     determined, and the refit must find it.  Before session 37 the robust fit often kept the shadowed observation
     dark by tilting the normal until that light grazed it, paying with every lit observation; the fit then predicts
     the dark observation dark and the lit ones not far below their values, so neither contradiction of
-    ``cast_shadow_start`` fired (these pixels: 90th percentile of the error 25.6 deg).  The third test (the fit misses
-    its lit observations by more than the dark level) sets the shadowed observation aside."""
+    ``cast_shadow_start`` fired (on this scene at 945a028: 90th percentile of their error 31.3 deg).  The third test
+    (the fit misses its lit observations by more than the dark level, and turned the surface away from the dark
+    observation's light) sets the shadowed observation aside."""
     dirs, mat, nrm, shad, img = _planes_under_cast_shadows(device)
     h, w = img.shape[1:3]
     one = shad.sum(0) == 1
