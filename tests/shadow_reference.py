@@ -246,3 +246,35 @@ def march_reference(depth, mask, camera, lights, *, tau=1.0, step_px=1.0, max_st
         act = act[~(done | shadow)]
     vis[:, mask] = res.reshape(n, m)
     return vis
+
+
+def planes_under_cast_shadows(device, seed=1, h=12, w=12, brdf="blinn-phong"):
+    """Planes of ``brdf`` (Blinn-Phong ks 0.2, n 20; others ks 0.5, roughness 0.3; normals within 40 deg of the view, albedo 0.3-0.7) under 5 directional lights at 30-65
+    deg elevation; in every pixel one light (two in 30 %) casts a shadow where it faces the surface by n.l > 0.2,
+    the observation replaced by 0-4 % of the albedo (light bounced from elsewhere), then noise 0.002 (the test of the cast-shadow refit and perf/cast_misfit_planes.py).
+    ``(dirs, mat, normals, shadowed (N, H, W) bool, images)``."""
+    from gpps.camera import Orthographic
+    from gpps.lights import DirectionalLights
+    from gpps.material import Material
+    from gpps.pipeline.render import Renderer
+
+    rng = np.random.default_rng(seed)
+    nl = 5
+    el = np.radians(rng.uniform(30, 65, nl))
+    az = np.radians(np.arange(nl) * 360 / nl + rng.uniform(-20, 20, nl))
+    dirs = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], 1)
+    t = np.radians(rng.uniform(0, 40, (h, w)))
+    p = rng.uniform(0, 2 * np.pi, (h, w))
+    nrm = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1).astype(np.float32)
+    kd = rng.uniform(0.3, 0.7, (h, w, 1)).repeat(3, -1).astype(np.float32)
+    mat = Material(brdf, ks=0.2, shininess=20.0) if brdf == "blinn-phong" else Material(brdf, ks=0.5, roughness=0.3)
+    img = Renderer((h, w), Orthographic(), DirectionalLights(dirs), mat, device=device).run(
+        np.ones((h, w), np.float32), np.ones((h, w), bool), kd, normals=nrm)
+    k1 = rng.integers(0, nl, (h, w))
+    two = rng.random((h, w)) < 0.3
+    k2 = (k1 + rng.integers(1, nl, (h, w))) % nl
+    shad = np.stack([(k1 == k) | (two & (k2 == k)) for k in range(nl)]) & (np.einsum("hwc,kc->khw", nrm, dirs) > 0.2)
+    dark = rng.uniform(0.0, 0.04, (nl, h, w))[..., None] * kd[None]
+    img = np.where(shad[..., None], dark, img)
+    img = np.maximum(img + rng.normal(0, 0.002, img.shape), 0).astype(np.float32)
+    return dirs, mat, nrm, shad, img

@@ -10,6 +10,7 @@ from gpps.material import Material
 from gpps.host.metrics import normal_errors, slant_tilt
 from gpps.flows.photometric import solve_normals
 from gpps.pipeline.solver import FLAG_FEW_OBSERVATIONS, PixelSolver, SolverConfig, check_light_configuration
+from shadow_reference import planes_under_cast_shadows
 
 
 def _case(brdf="blinn-phong", size=48, camera="perspective", lights="directional", noise=0.0):
@@ -620,35 +621,6 @@ def test_cast_shadow_refit(device, solver):
         np.testing.assert_allclose(out["normals"], outs[0.1]["normals"], atol=1e-5)
 
 
-def _planes_under_cast_shadows(device, seed=1, h=12, w=12):
-    """Blinn-Phong planes (normals within 40 deg of the view, albedo 0.3-0.7) under 5 directional lights at 30-65
-    deg elevation; in every pixel one light (two in 30 %) casts a shadow where it faces the surface by n.l > 0.2,
-    the observation replaced by 0-4 % of the albedo (light bounced from elsewhere), then noise 0.002.
-    ``(dirs, mat, normals, shadowed (N, H, W) bool, images)``."""
-    from gpps.pipeline.render import Renderer
-
-    rng = np.random.default_rng(seed)
-    nl = 5
-    el = np.radians(rng.uniform(30, 65, nl))
-    az = np.radians(np.arange(nl) * 360 / nl + rng.uniform(-20, 20, nl))
-    dirs = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], 1)
-    t = np.radians(rng.uniform(0, 40, (h, w)))
-    p = rng.uniform(0, 2 * np.pi, (h, w))
-    nrm = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1).astype(np.float32)
-    kd = rng.uniform(0.3, 0.7, (h, w, 1)).repeat(3, -1).astype(np.float32)
-    mat = Material("blinn-phong", ks=0.2, shininess=20.0)
-    img = Renderer((h, w), Orthographic(), DirectionalLights(dirs), mat, device=device).run(
-        np.ones((h, w), np.float32), np.ones((h, w), bool), kd, normals=nrm)
-    k1 = rng.integers(0, nl, (h, w))
-    two = rng.random((h, w)) < 0.3
-    k2 = (k1 + rng.integers(1, nl, (h, w))) % nl
-    shad = np.stack([(k1 == k) | (two & (k2 == k)) for k in range(nl)]) & (np.einsum("hwc,kc->khw", nrm, dirs) > 0.2)
-    dark = rng.uniform(0.0, 0.04, (nl, h, w))[..., None] * kd[None]
-    img = np.where(shad[..., None], dark, img)
-    img = np.maximum(img + rng.normal(0, 0.002, img.shape), 0).astype(np.float32)
-    return dirs, mat, nrm, shad, img
-
-
 def test_cast_shadow_refit_from_the_lit_misfit(device):
     """One cast shadow among 5 lights leaves 4 lit observations, more than a pixel's 3 unknowns: the normal is
     determined, and the refit must find it.  Before session 37 the robust fit often kept the shadowed observation
@@ -657,7 +629,7 @@ def test_cast_shadow_refit_from_the_lit_misfit(device):
     ``cast_shadow_start`` fired (on this scene at 945a028: 90th percentile of their error 31.3 deg).  The third test
     (the fit misses its lit observations by more than the dark level, and turned the surface away from the dark
     observation's light) sets the shadowed observation aside."""
-    dirs, mat, nrm, shad, img = _planes_under_cast_shadows(device)
+    dirs, mat, nrm, shad, img = planes_under_cast_shadows(device)
     h, w = img.shape[1:3]
     one = shad.sum(0) == 1
     errs, outs = {}, {}
