@@ -162,6 +162,41 @@ def test_no_mask_pixels_or_black_images():
     assert keep is None and info["observations"] == 0
 
 
+@pytest.mark.parametrize("levels_of", ["8-bit", "16-bit", "float", "few", "ties"])
+def test_levels_below_equal_the_rule(levels_of, monkeypatch):
+    """The pile-up's levels from the rows' largest values (np.partition, more when they do not hold the levels)
+    equal the rule level by level over whole rows: quantised data with many pixels a level (8-bit: more than the
+    first selection), 16-bit, float data, rows with fewer levels than asked, out-of-use (-inf) values and a plateau
+    with exact ties at its edge; with the default first selection and with one of a single value beyond the
+    plateau (every row then needs the larger ones)."""
+    from gpps.host import clipping
+    from gpps.host.clipping import _TOL, _levels_below, _levels_below_reference
+
+    rng = np.random.default_rng(7)
+    p = 5000
+    rows = {
+        "8-bit": np.round(rng.beta(5, 2, (6, p)) * 255) / 255 * 1.25,
+        "16-bit": np.round(rng.beta(5, 2, (6, p)) * 65535) / 65535 * 1.25,
+        "float": rng.random((6, p)).astype(np.float32),
+        "few": np.where(rng.random((6, p)) < 0.5, 1.0, np.where(rng.random((6, p)) < 0.5, 0.5, -np.inf)),
+        "ties": np.round(rng.random((6, p)) * 40) / 40,
+    }[levels_of]
+    rows[:, :700] = rows.max()  # a plateau piled up at the maximum (more than the first selection's margin)
+    rows[1, 900:1400] = -np.inf  # out of use
+    rows[2] = -np.inf
+    rows[2, :3] = (1.0, 0.5, 0.25)
+    top = rows.max(axis=-1)
+    lo = top - np.abs(top) * rows.dtype.type(_TOL)
+    count = np.count_nonzero(rows >= lo[:, None], axis=-1)
+    for margin in (clipping._TOP_MARGIN, 1):
+        monkeypatch.setattr(clipping, "_TOP_MARGIN", margin)
+        for levels in (1, 4, 9):
+            got, want = _levels_below(rows, lo, count, levels), _levels_below_reference(rows, lo, count, levels)
+            np.testing.assert_array_equal(got[0], want[0])
+            np.testing.assert_array_equal(got[1], want[1])
+            assert got[1].sum() > 0
+
+
 # ---------------------------------------------------------------------------------------------- in the flows
 
 
