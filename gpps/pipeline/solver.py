@@ -360,15 +360,17 @@ def estimate_noise(images, mask, *, max_pixels: int = 1 << 16) -> np.ndarray:
     sel = sel[:, c0 : c1 - 2]
     wc = c1 - c0
 
-    def take_rows(a, idx):
-        """``a[idx]``, a view when ``idx`` (increasing) is an arithmetic progression."""
+    def rows_of(idx):
+        """The index of ``a[idx]`` rows: a slice (a view) when ``idx`` (increasing) is an arithmetic progression
+        (worked out once: the loop below takes the same rows 19 times an image)."""
         d = np.diff(idx)
         if idx.size == 1 or np.all(d == d[0]):
-            return a[int(idx[0]) : int(idx[-1]) + 1 : int(d[0]) if idx.size > 1 else 1]
-        return a[idx]
+            return slice(int(idx[0]), int(idx[-1]) + 1, int(d[0]) if idx.size > 1 else 1)
+        return idx
 
     used = np.unique(np.concatenate([rows, rows + 1, rows + 2]))  # the image rows above, at and below
-    at = [np.searchsorted(used, rows + 1 + di) for di in (-1, 0, 1)]
+    at = [rows_of(np.searchsorted(used, rows + 1 + di)) for di in (-1, 0, 1)]
+    used_rows = rows_of(used)
     taps = [(di, dj, (1 + (di == 0)) * (1 + (dj == 0)) * (-1) ** (di + dj)) for di in (-1, 0, 1) for dj in (-1, 0, 1)]
     grey = np.empty((used.size, wc), np.float32)
     lit = np.empty(grey.shape, bool)
@@ -377,7 +379,7 @@ def estimate_noise(images, mask, *, max_pixels: int = 1 << 16) -> np.ndarray:
     pos = np.empty(lap.shape, bool)
     mid = np.empty(2, np.float32)
     for k in range(n):  # one image at a time: the (U, Wc) blocks stay in cache
-        blk = take_rows(img[k, :, c0:c1], used)
+        blk = img[k, :, c0:c1][used_rows]
         if blk.ndim == 3:  # (U, Wc, C): the mean of R, G, B in float32, summed left to right
             blk = blk.astype(np.float32, copy=False)
             np.add(blk[..., 0], blk[..., 1], out=grey)
@@ -388,8 +390,8 @@ def estimate_noise(images, mask, *, max_pixels: int = 1 << 16) -> np.ndarray:
         np.greater(grey, 0.0, out=lit)
         pos[...] = sel
         for i, (di, dj, kk) in enumerate(taps):  # lap = sum of K[di, dj] I[r + di, c + dj] in this order
-            sh = take_rows(grey, at[di + 1])[:, 1 + dj : wc - 1 + dj]
-            pos &= take_rows(lit, at[di + 1])[:, 1 + dj : wc - 1 + dj]
+            sh = grey[at[di + 1]][:, 1 + dj : wc - 1 + dj]
+            pos &= lit[at[di + 1]][:, 1 + dj : wc - 1 + dj]
             if i == 0:  # 0 + 1 sh: sh (bit for bit where it counts: sh > 0 there)
                 lap[...] = sh
             elif kk == 1:
