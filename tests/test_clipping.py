@@ -165,10 +165,9 @@ def test_no_mask_pixels_or_black_images():
 @pytest.mark.parametrize("levels_of", ["8-bit", "16-bit", "float", "few", "ties"])
 def test_levels_below_equal_the_rule(levels_of, monkeypatch):
     """The pile-up's levels from the rows' largest values (np.partition, more when they do not hold the levels)
-    equal the rule level by level over whole rows: quantised data with many pixels a level (8-bit: more than the
-    first selection), 16-bit, float data, rows with fewer levels than asked, out-of-use (-inf) values and a plateau
-    with exact ties at its edge; with the default first selection and with one of a single value beyond the
-    plateau (every row then needs the larger ones)."""
+    equal the rule level by level over whole rows: 8- and 16-bit quantised data, float data, rows with fewer levels
+    than asked, out-of-use (-inf) values and a plateau with exact ties at its edge; with the default first selection
+    and with one of a single value beyond the plateau (every row then needs the larger selections)."""
     from gpps.host import clipping
     from gpps.host.clipping import _TOL, _levels_below, _levels_below_reference
 
