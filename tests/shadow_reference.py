@@ -249,10 +249,11 @@ def march_reference(depth, mask, camera, lights, *, tau=1.0, step_px=1.0, max_st
 
 
 def planes_under_cast_shadows(device, seed=1, h=12, w=12, brdf="blinn-phong"):
-    """Planes of ``brdf`` (Blinn-Phong ks 0.2, n 20; others ks 0.5, roughness 0.3; normals within 40 deg of the view, albedo 0.3-0.7) under 5 directional lights at 30-65
-    deg elevation; in every pixel one light (two in 30 %) casts a shadow where it faces the surface by n.l > 0.2,
-    the observation replaced by 0-4 % of the albedo (light bounced from elsewhere), then noise 0.002 (the test of the cast-shadow refit and perf/cast_misfit_planes.py).
-    ``(dirs, mat, normals, shadowed (N, H, W) bool, images)``."""
+    """Planes of ``brdf`` (Blinn-Phong ks 0.2, n 20; others ks 0.5, roughness 0.3; normals within 40 deg of the
+    view, albedo 0.3-0.7) under 5 directional lights at 30-65 deg elevation; in every pixel one light (two in 30 %)
+    casts a shadow where it faces the surface by n.l > 0.2, the observation replaced by 0-4 % of the albedo (light
+    bounced from elsewhere), then noise 0.002 (the scene of the cast-shadow refit's test and
+    perf/cast_misfit_planes.py).  ``(dirs, mat, normals, shadowed (N, H, W) bool, images)``."""
     from gpps.camera import Orthographic
     from gpps.lights import DirectionalLights
     from gpps.material import Material

@@ -60,12 +60,12 @@ def _levels_below(rows, plateau_lo, count, levels):
     Returns:
         ``(values, counts)``: (M, levels) float (-inf where a row has fewer) and (M, levels) int (0 there).
 
-    Cost: the rule (:func:`_levels_below_reference`: level by level, the largest value below the previous level's
-    lower edge and the count at or above its own) only needs a row's largest values: each row's ``count`` plus
-    :data:`_TOP_MARGIN` largest are selected (``np.partition``, one pass) and sorted, and the walk runs on them,
-    taking twice as many while the selection's smallest value is not below the last level's lower edge (then a
-    value outside it could still count).  The same values and counts as the reference, one pass over a row instead
-    of two a level (tests/test_clipping.py compares them).
+    Cost: the rule (level by level, the largest value below the previous level's lower edge and the count at or
+    above its own; tests/test_clipping.py holds it written as it reads, over whole rows) only needs a row's largest
+    values: each row's ``count`` plus :data:`_TOP_MARGIN` largest are selected (``np.partition``, one pass) and
+    sorted, and the walk runs on them, taking twice as many while the selection's smallest value is not below the
+    last level's lower edge (then a value outside it could still count).  The same values and counts as the rule over whole rows, one pass over a
+    row instead of two a level.
     """
     m, p = rows.shape
     values = np.full((m, levels), -np.inf)
@@ -98,24 +98,6 @@ def _levels_below(rows, plateau_lo, count, levels):
         for i, (v, cnt) in enumerate(got):
             values[r, i] = v
             counts[r, i] = cnt
-    return values, counts
-
-
-def _levels_below_reference(rows, plateau_lo, count, levels):
-    """:func:`_levels_below` as the rule reads, two passes over the rows a level (the tests' reference)."""
-    m = rows.shape[0]
-    values = np.full((m, levels), -np.inf)
-    counts = np.zeros((m, levels), np.int64)
-    lo, above = plateau_lo, count
-    for i in range(levels):
-        v = np.max(rows, axis=-1, where=rows < lo[:, None], initial=-np.inf)  # (M,) the next lower value
-        if not np.isfinite(v).any():
-            break
-        lo = v - np.abs(v) * rows.dtype.type(_TOL)
-        at_or_above = np.count_nonzero(rows >= lo[:, None], axis=-1)
-        values[:, i] = v
-        counts[:, i] = np.where(np.isfinite(v), at_or_above - above, 0)
-        above = at_or_above
     return values, counts
 
 
