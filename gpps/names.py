@@ -63,9 +63,23 @@ SlitsName = Literal["keep", "drop"]
 SLITS_NAMES: tuple[str, ...] = get_args(SlitsName)
 
 # what the folder flow does about light the surface sends itself (gpps.flows.interreflection): "off" nothing;
-# "subtract" the diffuse interreflections gathered over the reconstructed surface, then reconstruct again
-InterreflectionName = Literal["off", "subtract"]
+# "subtract" the diffuse interreflections gathered over the reconstructed surface, then reconstruct again; "auto"
+# subtract from INTERREFLECTION_MIN_IMAGES images on (gpps.flows.folder.automatic_interreflections)
+InterreflectionName = Literal["auto", "off", "subtract"]
 INTERREFLECTION_NAMES: tuple[str, ...] = get_args(InterreflectionName)
+# images from which the folder flow compensates interreflections by default: the compensation sends the fitted
+# diffuse albedo's light, and only from CONDUCTOR_MIN_IMAGES images does the folder flow compare models (plastic,
+# whose albedo is the diffuse one under the coating; the conductor, a metal, which the compensation skips); below,
+# a glossy surface is fitted with Blinn-Phong and its "albedo" holds some of the lobe (3 lights, session 34: the
+# glossy development captures got worse, the matte ones better)
+INTERREFLECTION_MIN_IMAGES = CONDUCTOR_MIN_IMAGES
+# the albedo the compensation assumes for the surface's brightest pixels (their 99th percentile) when the light
+# intensities are not known to be radiometric (FolderConfig.albedo_scale None; DiLiGenT's are relative).  The light a
+# surface of albedo rho sends itself scales as rho (times the gathered radiance, which the images give); taken as
+# if its albedo were a, the light left in or taken out too much scales as |rho - a|.  Over every albedo in [0, 1] the
+# worst case is smallest at a = 1/2 (half that of no compensation, a = 0, on a white surface), and any
+# rho > a / 2 gains (gpps.flows.interreflection)
+ASSUMED_BRIGHT_ALBEDO = 0.5
 
 # ---------------------------------------------------------------- lights
 LIGHT_DIRECTIONAL, LIGHT_POINT = 0, 1  # device tags of gpps.kernels.brdf.LightParams.kind

@@ -2,7 +2,7 @@
 # The GPU runs of a session on the lent H200, after the kit's install (source /tmp/gpps-env.sh):
 #   bash perf/device_run.sh OUTDIR tests|solvers|ablation|neighbour|gaps|bench|full|diligent|beforeafter|hostprof|usecache|cache
 # Environment: T (a mode's time limit, s), MORE (more pytest arguments), TAG (a suffix of the output names),
-# VARIANTS, BLOCKS, KT (ablation), PAIRS (beforeafter alternations).  Sessions up to 28 kept a copy of this script in
+# VARIANTS, BLOCKS, KT (ablation), PAIRS (beforeafter alternations), IR (diligent: --interreflections auto|off|subtract).  Sessions up to 28 kept a copy of this script in
 # perf/results/sNN/ as their record; from session 29 the results README names the modes it ran.
 out=${1:-$OUT}; what=${2:-tests}
 mkdir -p "$out"
@@ -27,11 +27,13 @@ if [ "$what" = neighbour ]; then
 fi
 if [ "$what" = diligent ]; then
   timeout ${T:-300} python perf/reconstruct_folder_timing.py .data/diligent/ball .data/diligent/bear --device cuda:0 --repeat 3 \
-    --out "$out/diligent_ball_bear_cuda0_H200.json" 2>&1 | filter | python -c "
+    ${IR:+--interreflections $IR} --out "$out/diligent_ball_bear${IR:+_$IR}_cuda0_H200.json" 2>&1 | filter | python -c "
 import json, sys
 for line in sys.stdin:
     try:
-        r = json.loads(line); print(r['folder'], r['call'], round(r['wall_s'], 3), round(r['maen_deg'], 4), {k: round(v, 3) for k, v in r['timings'].items()})
+        r = json.loads(line); ir = r.get('interreflections') or {}
+        print(r['folder'], r['call'], round(r['wall_s'], 3), round(r['maen_deg'], 4), {k: round(v, 3) for k, v in r['timings'].items()},
+              {k: ir.get(k) for k in ('tau', 'indirect_share', 'negligible', 'skipped', 'round_seconds', 'why')})
     except Exception:
         pass"
 fi

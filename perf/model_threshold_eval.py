@@ -7,6 +7,7 @@ Variants (env VARIANTS, comma-separated): ``old`` (``FolderConfig(models=())``: 
 perf/heldout_eval.py ``--render-only --lights N``).
 
 Usage:  VARIANTS=old,default python perf/model_threshold_eval.py SEEDS COUNTS PART  (e.g. 3000,3001 4,5 0/2)
+(env SKIP: comma-separated JSON-lines files whose captures are left out)
 """
 import glob
 import json
@@ -29,6 +30,10 @@ for f in sorted(glob.glob(os.path.join(os.environ.get('GPPS_CACHE_DIR', '.cache'
     for c in counts:
         if f'-directional{c}-' in name or f'-point{c}-' in name:
             files.append(f)
+done = set()
+for path in filter(None, os.environ.get('SKIP', '').split(',')):  # (captures already in these JSON-lines files)
+    done |= {json.loads(line)['cap'] for line in open(path) if line.strip()}
+files = [f for f in files if f.split('/')[-1] not in done]
 for j, f in enumerate(files):
     if j % n_part != i_part:
         continue
@@ -40,4 +45,8 @@ for j, f in enumerate(files):
         row[tag] = float(gpps.normal_errors(res.normals, ds.normal_gt, ds.mask)['mean'])
         row[tag + '_brdf'] = res.report['material']['brdf']
         row[tag + '_s'] = round(time.time() - t, 1)
+        ir = res.report.get('interreflections') or {}
+        if ir.get('tau') is not None or ir.get('skipped'):
+            row[tag + '_ir'] = {'tau': ir.get('tau'), 'share': ir.get('indirect_share'), 'skipped': ir.get('skipped'),
+                                'why': ir.get('why')}
     print(json.dumps(row), flush=True)

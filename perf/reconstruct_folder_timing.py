@@ -29,7 +29,7 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--out", default=None)
     ap.add_argument("--refine", action="store_true", help="FolderConfig(refine=True)")
-    ap.add_argument("--interreflections", default=None, choices=("off", "subtract"),
+    ap.add_argument("--interreflections", default=None, choices=("auto", "off", "subtract"),
                     help="FolderConfig(interreflections=...); default: the FolderConfig default")
     ap.add_argument("--interreflection-rounds", type=int, default=None)
     a = ap.parse_args(argv)

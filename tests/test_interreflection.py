@@ -359,21 +359,21 @@ def test_folder_flow_subtracts(tmp_path, device):
     ds = Dataset(images=images, mask=m, light_directions=lights.directions, light_intensities=np.ones((8, 3), np.float32),
                  normal_gt=n, filenames=[f"{i:03d}.png" for i in range(1, 9)])
     folder = write_dataset(tmp_path / "cap", ds, bits=16)
-    off = gpps.reconstruct_folder(folder, gpps.FolderConfig(brdf="lambertian"), device=device)
+    off = gpps.reconstruct_folder(folder, gpps.FolderConfig(brdf="lambertian", interreflections="off"), device=device)
     on = gpps.reconstruct_folder(folder, gpps.FolderConfig(brdf="lambertian", interreflections="subtract",
-                                                           interreflection_rounds=1), device=device)
+                                                           albedo_scale=1.0), device=device)
     ir = on.report["interreflections"]
-    assert "interreflections" not in off.report
-    assert ir["tau"] == [1.0] and not ir["skipped"] and ir["indirect_share"][0] > 0.05
+    assert off.report["interreflections"] == {"skipped": True, "why": "turned off"}
+    assert ir["tau"] == [1.0] and not ir["skipped"] and ir["indirect_share"][0] > 0.05 and ir["why"] == "asked"
     a = normal_errors(off.normals, n, m)["mean"]
     b = normal_errors(on.normals, n, m)["mean"]
     assert b < 0.5 * a, (a, b)
 
 
 def test_folder_flow_keeps_the_first_model(tmp_path, device, monkeypatch):
-    """With models compared (the default from 5 images), the compensation's later reconstructions keep the model
-    the first one chose on the observed images, its parameters refined from the first's estimate (no second
-    comparison, no grid), and the report keeps that comparison."""
+    """With models compared (the default from 5 images), the compensation's later reconstructions keep the material
+    the first one estimated on the observed images (no second comparison, no estimation) and start every pixel warm
+    from the last reconstruction's normals; the report keeps the first comparison."""
     import gpps
     import gpps.flows.folder as ff
     from gpps.io import Dataset, write_dataset
@@ -387,7 +387,7 @@ def test_folder_flow_keeps_the_first_model(tmp_path, device, monkeypatch):
 
     def spy(images, mask, lights, **kw):
         r = real(images, mask, lights, **kw)
-        calls.append((kw["config"].models, kw["material"], kw["estimate"], r.material, kw["config"].material_grid))
+        calls.append((kw["config"].models, kw["material"], kw["estimate"], r, kw.get("start")))
         return r
 
     monkeypatch.setattr(ff, "reconstruct", spy)
@@ -395,13 +395,103 @@ def test_folder_flow_keeps_the_first_model(tmp_path, device, monkeypatch):
                                  device=device)
     assert len(calls) == 3
     assert set(calls[0][0]) == {"conductor", "plastic"} and calls[0][1].brdf == "blinn-phong"
-    assert calls[0][4] == gpps.RONConfig().material_grid
-    chosen = calls[0][3]
-    for models, material, estimate, _, grid in calls[1:]:  # (refined from the first's estimate: no grid)
-        assert models == () and material == chosen and grid == 1
-        assert set(estimate) == set(ff.LOBE_PARAMETERS[chosen.brdf])
+    assert calls[0][4] is None
+    chosen = calls[0][3].material
+    for k, (models, material, estimate, rec, start) in enumerate(calls[1:]):  # (the material kept, warm starts)
+        assert models == () and material == chosen and estimate == () and rec.material == chosen
+        assert start is calls[k][3]  # (the last reconstruction's)
     assert set(on.report["model_energies"]) == {"blinn-phong", "conductor", "plastic"}
     assert on.report["material"]["brdf"] == chosen.brdf
+
+
+def gpps_default_config():
+    import gpps
+
+    return gpps.FolderConfig()
+
+
+def test_assumed_scale_follows_the_rule(device):
+    """With the light's scale unknown (``albedo_scale=None``) ``tau`` makes the brightest pixels' albedo
+    ``ASSUMED_BRIGHT_ALBEDO``, once, from the first reconstruction (later rounds keep it); the light left in then
+    scales as ``|kd - a|``: a cap of albedo ``a`` comes back as with its true scale, one of albedo ``a / 2`` (the
+    rule's break-even) no better and no worse by much, and a darker one gets at most the error of an uncompensated
+    cap of albedo ``a``."""
+    from types import SimpleNamespace
+
+    from gpps.flows.interreflection import reconstruct_subtracting, tau_bound
+    from gpps.material import Material
+    from gpps.names import ASSUMED_BRIGHT_ALBEDO as A
+
+    def run(kd, scale, rounds=1):
+        m, depth, n, lights, cam, direct, images = _self_lit(device, kd)
+        L = lights.directions
+
+        def solve(imgs):
+            g = imgs.mean(-1)[:, m]
+            b = np.linalg.lstsq(L, g, rcond=None)[0].T
+            rho = np.linalg.norm(b, axis=-1)
+            nn = np.zeros(m.shape + (3,), np.float32)
+            nn[m] = b / rho[:, None]
+            nn[~m] = (0, 0, 1)
+            alb = np.zeros(m.shape + (3,), np.float32)
+            alb[m] = rho[:, None]
+            return SimpleNamespace(normals=nn, albedo=alb, depth=depth, depth_mask=m, material=Material("lambertian"))
+
+        def maen(nn):
+            return float(np.degrees(np.arccos(np.clip((nn[m] * n[m]).sum(-1), -1, 1))).mean())
+
+        first = solve(images)
+        rec, info = reconstruct_subtracting(solve, images, m, lights, cam, rounds=rounds, albedo_scale=scale,
+                                            device=device)
+        return maen(first.normals), maen(rec.normals), info, tau_bound(first.albedo, m)
+
+    before, after, info, bound = run(0.8, None, rounds=2)
+    assert info["scale"] == "assumed" and info["albedo_scale"] is None and not info["skipped"]
+    assert info["tau"] == [A * bound, A * bound]  # (set once: the second round's albedo does not move it)
+    true_before, true_after, _, _ = run(0.8, 1.0, rounds=2)
+    assert true_before == before and true_after < after < 0.7 * before  # (|0.8 - 0.5| of 0.8 left in)
+    # albedo a: as the true scale
+    b, a_assumed, _, _ = run(A, None)
+    _, a_true, _, _ = run(A, 1.0)
+    assert a_assumed < 0.3 * b and abs(a_assumed - a_true) < 0.1 * b
+    # albedo a / 2: the break-even, as much taken out too much as was in
+    b, half, _, _ = run(A / 2, None)
+    assert 0.5 * b < half < 1.5 * b
+    # a dark cap: at most what an uncompensated cap of albedo a shows
+    b, dark, _, _ = run(A / 8, None)
+    assert dark < before * A / 0.8 and dark < run(A, None)[0]
+
+
+def test_automatic_policy(tmp_path, device):
+    """``interreflections="auto"`` (the default) subtracts from ``INTERREFLECTION_MIN_IMAGES`` images on, with RON's
+    integrated depth; the report says which rule decided."""
+    import gpps
+    from gpps.flows.folder import automatic_interreflections
+    from gpps.io import Dataset, write_dataset
+    from gpps.names import INTERREFLECTION_MIN_IMAGES as K
+
+    cfg = gpps.FolderConfig()
+    assert cfg.interreflections == "auto" and cfg.albedo_scale is None
+    assert automatic_interreflections(K - 1, cfg) == (False, f"automatic: off with {K - 1} images (on from {K})")
+    assert automatic_interreflections(K, cfg) == (True, f"automatic: on from {K} images")
+    assert automatic_interreflections(96, gpps.FolderConfig(method="ppn"))[0] is False
+    assert automatic_interreflections(96, gpps.FolderConfig(integrate=False))[0] is False
+    assert automatic_interreflections(3, gpps.FolderConfig(interreflections="subtract")) == (True, "asked")
+    assert automatic_interreflections(96, gpps.FolderConfig(interreflections="off")) == (False, "turned off")
+
+    m, depth, n, lights, cam, direct, images = _self_lit(device)
+    ds = Dataset(images=images, mask=m, light_directions=lights.directions, light_intensities=np.ones((8, 3), np.float32),
+                 normal_gt=n, filenames=[f"{i:03d}.png" for i in range(1, 9)])
+    folder = write_dataset(tmp_path / "cap", ds, bits=16)
+    res = gpps.reconstruct_folder(folder, gpps.FolderConfig(brdf="lambertian"), device=device)
+    ir = res.report["interreflections"]
+    assert ir["why"] == f"automatic: on from {K} images" and ir["scale"] == "assumed" and len(ir["tau"]) == 1
+    assert ir["indirect_share"][0] > 0.02
+    few = write_dataset(tmp_path / "few", Dataset(images=images[:4], mask=m, light_directions=lights.directions[:4],
+                                                  light_intensities=np.ones((4, 3), np.float32), normal_gt=n,
+                                                  filenames=[f"{i:03d}.png" for i in range(1, 5)]), bits=16)
+    res4 = gpps.reconstruct_folder(few, gpps.FolderConfig(brdf="lambertian"), device=device)
+    assert res4.report["interreflections"] == {"skipped": True, "why": f"automatic: off with 4 images (on from {K})"}
 
 
 def test_cli_options():
@@ -416,7 +506,9 @@ def test_cli_options():
     cfg = folder_config(p.parse_args(["--interreflections", "subtract", "--albedo-scale", "0.5",
                                       "--interreflection-rounds", "3"]))
     assert (cfg.interreflections, cfg.albedo_scale, cfg.interreflection_rounds) == ("subtract", 0.5, 3)
-    assert folder_config(p.parse_args([])).interreflections == "off"
+    default = folder_config(p.parse_args([]))
+    assert (default.interreflections, default.albedo_scale, default.interreflection_rounds) == ("auto", None, 1)
+    assert default == gpps_default_config()
     with pytest.raises(ValueError, match="^--albedo-scale"):
         folder_config(p.parse_args(["--albedo-scale", "-1"]))
     with pytest.raises(ValueError, match="^--interreflections"):

@@ -77,14 +77,15 @@ def add_reconstruct_options(p) -> None:
     p.add_argument("--two-light", action=argparse.BooleanOptionalAction, default=True,
                    help="RON's refinement (3 images): also start from the surface the pixels with two lit "
                         "observations fix, and keep the likelier (cast shadows under directional lights; default on)")
-    p.add_argument("--interreflections", default="off", choices=["off", "subtract"],
+    p.add_argument("--interreflections", default="auto", choices=["auto", "off", "subtract"],
                    help="RON: 'subtract' takes the diffuse interreflections gathered over the reconstructed surface out "
-                        "of the images and reconstructs again (matte concave objects; not glossy or metallic ones)")
-    p.add_argument("--interreflection-rounds", type=int, default=2,
-                   help="with --interreflections subtract: gather-and-reconstruct rounds")
-    p.add_argument("--albedo-scale", type=float, default=1.0,
-                   help="with --interreflections subtract: physical albedo over the estimated one (1: radiometric "
-                        "light intensities)")
+                        "of the images and reconstructs again (skipped on metals and convex objects); default auto: "
+                        "subtract from 5 images on")
+    p.add_argument("--interreflection-rounds", type=int, default=1,
+                   help="interreflection compensation: gather-and-reconstruct rounds")
+    p.add_argument("--albedo-scale", type=float, default=None,
+                   help="interreflection compensation: physical albedo over the estimated one (1: radiometric light "
+                        "intensities); default: unknown, the brightest pixels' albedo taken as 0.5")
     p.add_argument("--compare-models", default=None, metavar="MODEL[,MODEL...]",
                    help="RON: other reflectance models to fit beside --brdf's in the first material fit; one whose "
                         "residual is lower beyond the sample's noise is kept (e.g. plastic; none: no comparison; "

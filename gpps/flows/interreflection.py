@@ -15,9 +15,22 @@ bounce, so one gather gives all of the indirect light.  The images less ``tau * 
 
 ``tau``, the ratio of the physical albedo to the estimated one, is 1 when the light intensities are radiometric
 (the images are ``kd cos`` under unit lights: gpps's renders and our Mitsuba development captures); real captures
-may give intensities up to one unknown scale (DiLiGenT's are relative): the caller gives it (``albedo_scale``).
-Where it would make the albedo of more than 1 % of the pixels exceed 1 it is lowered to that bound; where the
+may give intensities up to one unknown scale (DiLiGenT's are relative).  The caller may give it (``albedo_scale``):
+where it would make the albedo of more than 1 % of the pixels exceed 1 it is lowered to that bound; where the
 first reconstruction's albedo is far beyond 1 (:data:`MAX_APPARENT_ALBEDO`) nothing is taken out, with a warning.
+
+**When the scale is unknown** (``albedo_scale=None``, the default), ``tau`` is chosen so that the brightest pixels'
+albedo (99th percentile) is ``a`` = :data:`gpps.names.ASSUMED_BRIGHT_ALBEDO` = 1/2.  Why: the gathered radiance
+``S`` comes from the images themselves (its scale is theirs), so the light taken out is ``a (rho / rho_99) S``
+where the truth is ``rho S``; on a surface of one albedo the light left in (or taken out too much) is
+``|rho - a| S``, against ``rho S`` without the compensation.  The compensation gains wherever ``rho > a / 2``, and
+over every albedo in [0, 1] the worst case, ``max(a, 1 - a) S``, is smallest at ``a = 1/2``: half that of no
+compensation on a white surface, and a black one gets at most what a grey one of albedo 1/2 would have sent
+itself.  No figure of any data set chose it.  Measured (perf/results/s39/README.md, our Mitsuba development
+captures, 12 lights, ``albedo_scale`` 0.5, 1 (the truth) and 2, two rounds): the 14 concave non-metal captures
+all better than without the compensation at half the true scale and at the true scale; at twice it (the rule's
+break-even) 9 skipped by the apparent-albedo check, 3 better, and the one run at exactly twice the true scale
+worse (rough-plastic spheres, directional, 2.80 -> 3.14 deg).
 
 **Estimating tau from the images does not work** (measured on our development renders, session 20): the least-
 squares coefficient of ``rho * S`` in the model's residual came out 0.01 where the truth is 1 (the normals and the
@@ -34,10 +47,13 @@ coating, the plastics gain too (bowl 3.17 -> 1.80, bumps 1.67 -> 0.65).
 
 Since session 34 (perf/results/s34/README.md: the receivers' albedo bounded by ``1 / tau``, the later rounds kept on
 the first round's model, no round where nothing is sent) no 12-light capture of our development or held-out sets
-gets worse with it: development non-diffuse mean 3.88 -> 3.36 deg, matte 2.83 -> 1.78; held-out 2.57 -> 2.12 and
-5.66 -> 3.54; DiLiGenT bear 4.50 -> 4.41.  With three lights it helps matte surfaces and hurts glossy ones.  It is off
-by default: one round costs a gather and a second reconstruction (DiLiGenT bear on an H200 1.0-1.2 -> 2.2-2.4 s
-warm, beyond issue 20's 2 s), and it needs radiometric light intensities (``albedo_scale``).  Metals are skipped: the first bounce under their fitted lobe
+got worse with it at the true scale.  Since session 39 it is the folder flow's default from
+:data:`gpps.names.INTERREFLECTION_MIN_IMAGES` images (:func:`gpps.flows.folder.automatic_interreflections`), one
+round, with the assumed scale above, the later reconstruction keeping the first's material and starting every pixel
+warm from its normals (``gpps.reconstruct(..., start=...)``: no least squares, DGMC or cold starts); 12-light
+development captures (perf/results/s39/README.md): non-diffuse mean 3.83 -> 3.46 deg, matte 2.74 -> 2.08, none
+worse.  With three lights it helps matte surfaces and hurts glossy ones (a glossy surface's Blinn-Phong "albedo"
+holds some of its lobe), so it stays off there.  Metals are skipped: the first bounce under their fitted lobe
 (:meth:`gpps.pipeline.interreflection.Interreflections.gather_model`) predicts their interreflections from the true
 surface but not from a reconstruction the interreflections have bent.
 """
@@ -49,6 +65,7 @@ import time
 import numpy as np
 
 from gpps.camera import Orthographic
+from gpps.names import ASSUMED_BRIGHT_ALBEDO
 from gpps.pipeline.interreflection import InterreflectionConfig, Interreflections
 
 __all__ = ["interreflection_terms", "tau_bound", "reconstruct_subtracting", "MAX_APPARENT_ALBEDO", "NEGLIGIBLE_SHARE"]
@@ -144,7 +161,7 @@ def tau_bound(albedo, mask) -> float:
     return 1.0 / q if q > 0 else float("inf")
 
 
-def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int = 2, albedo_scale: float = 1.0,
+def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int = 1, albedo_scale: float | None = None,
                             config: InterreflectionConfig | None = None, device=None, progress=None):
     """``solve(images)`` (a reconstruction with depth) on the images with the interreflections taken out.
 
@@ -156,7 +173,9 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
             Where ``tau`` times the albedo exceeds 1 on more than 1 % of the pixels ``tau`` is lowered to
             :func:`tau_bound` (the brightest pixels taken as white; ``info["lowered"]``); where it exceeds
             :data:`MAX_APPARENT_ALBEDO` in the first round nothing is taken out (``info["skipped"]``, a
-            :class:`gpps.GppsWarning`).
+            :class:`gpps.GppsWarning`).  None (default): the intensities' scale is unknown (relative, as
+            DiLiGenT's); ``tau`` is set once, from the first reconstruction, so that the brightest pixels' albedo
+            (99th percentile) is :data:`gpps.names.ASSUMED_BRIGHT_ALBEDO` (the module docstring says why).
         config: :class:`InterreflectionConfig`.
         progress: optional ``progress(done, total, message)``, called before each round's gather (``solve``
             reports its own progress in between).
@@ -175,12 +194,20 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
     t0 = time.perf_counter()
     rec = solve(images)
     seconds = {"first": time.perf_counter() - t0, "gather": [], "solve": []}
-    total = max(float(images[:, m].sum(dtype=np.float64)), 1e-30)  # (the images' light in the mask)
+    # (the images' light in the mask: per pixel first, no copy of the masked stack)
+    total = max(float(images.sum(axis=(0, 3) if images.ndim == 4 else 0, dtype=np.float64)[m].sum()), 1e-30)
     taus, shares = [], []
-    info: dict = {"albedo_scale": float(albedo_scale), "skipped": False, "lowered": False, "negligible": False}
+    assumed = albedo_scale is None
+    info: dict = {"albedo_scale": None if assumed else float(albedo_scale), "scale": "assumed" if assumed else "given",
+                  "skipped": False, "lowered": False, "negligible": False}
+    tau0 = None
     for r in range(int(rounds)):
         bound = tau_bound(rec.albedo, m)
-        tau = float(albedo_scale)
+        if assumed:
+            # (once, from the first reconstruction: the capture's scale, which later rounds' albedo must not move;
+            # a black albedo reflects nothing whatever tau)
+            tau0 = (ASSUMED_BRIGHT_ALBEDO * bound if np.isfinite(bound) else 1.0) if tau0 is None else tau0
+        tau = tau0 if assumed else float(albedo_scale)
         if r == 0 and rec.material.brdf == "conductor":
             # (the first bounce under the fitted lobe, interreflection_terms(glossy=True), predicts a metal's
             # interreflections from the true surface (copper ridges: correlation 0.95 with the rendered indirect
@@ -191,7 +218,7 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
                  "the interreflections are left in")
             info.update(skipped=True, bound=None, apparent_albedo=None)
             break
-        if r == 0 and tau > MAX_APPARENT_ALBEDO * bound:
+        if r == 0 and not assumed and tau > MAX_APPARENT_ALBEDO * bound:
             warn(f"interreflections: the estimated albedo times albedo_scale ({tau:g}) reaches "
                  f"{tau / bound:.3g} on 1 % of the pixels, beyond what a matte surface lit by itself shows "
                  f"({MAX_APPARENT_ALBEDO:g}): the surface is glossy or metallic (its fitted albedo is no diffuse "
@@ -215,7 +242,9 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
             info["negligible"] = True  # (a convex surface sends itself nothing: the images would not change)
             break
         t0 = time.perf_counter()
-        corrected = images - np.float32(tau) * terms["B"]
+        corrected = terms.pop("B")  # (this round's own array: images - tau B, clipped at 0, in its place)
+        np.multiply(corrected, np.float32(-tau), out=corrected)
+        corrected += images
         rec = solve(np.maximum(corrected, 0.0, out=corrected))
         seconds["solve"].append(time.perf_counter() - t0)  # (the images' update and the reconstruction)
     info.update(tau=taus, indirect_share=shares, round_seconds=seconds)

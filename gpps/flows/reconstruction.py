@@ -188,6 +188,7 @@ def reconstruct(
     config: RONConfig | None = None,
     device=None,
     progress=None,
+    start=None,
 ) -> Reconstruction:
     """Calibrated photometric stereo with DGMC starts and the RON alternation (Algorithm 2).
 
@@ -224,6 +225,9 @@ def reconstruct(
         config: :class:`RONConfig` (its ``estimate`` is set from the arguments).
         device: Warp device (None: CUDA if present); the integrator runs on the same.
         progress: ``progress(done, total, message)``.
+        start: optional earlier :class:`Reconstruction` of nearly the same images (or ``(normals, highlight)``):
+            every pixel's solve starts warm from its normals, with no least squares, DGMC or cold starts
+            (``RON.run``'s ``start``; the interreflection compensation's later reconstructions).
 
     Returns:
         :class:`Reconstruction`.
@@ -237,7 +241,10 @@ def reconstruct(
                     config)
     ron = RON(prep.shape, prep.camera, prep.lights, prep.material, prep.mask, prep.config, device=device)
     try:
-        res = ron.run(prep.images, depth=depth, reference_depth=reference_depth, valid=prep.valid, progress=progress)
+        if start is not None and not isinstance(start, tuple):
+            start = (start.normals, start.highlight)
+        res = ron.run(prep.images, depth=depth, reference_depth=reference_depth, valid=prep.valid, progress=progress,
+                      start=start)
     finally:
         ron.close()
     return _result(res, prep)

@@ -1242,7 +1242,7 @@ class RON:
     # ------------------------------------------------------------------ the loop
 
     def run(self, images, *, depth=None, reference_depth: float | None = None, valid=None,
-            progress: Progress | None = None) -> RONResult:
+            progress: Progress | None = None, start=None) -> RONResult:
         """Run Algorithm 2.
 
         Args:
@@ -1255,11 +1255,30 @@ class RON:
                 (perspective).  Needed for point lights without ``depth``.
             valid: optional (N, H, W) bool observations to use.
             progress: ``progress(done, total, message)``.
+            start: optional ``(normals, highlight)``: (H, W, 3) normals every mask pixel's solve starts from and
+                (H, W) bool highlight pixels (or None: none), from an earlier reconstruction of nearly the same
+                images (the interreflection compensation's later ones, :mod:`gpps.flows.interreflection`).  Every
+                round then solves warm from the last normals only: no least squares, no DGMC, no cold starts (the
+                earlier reconstruction ran them; a pixel its images moved by a little stays in its basin).
 
         Returns:
             :class:`RONResult`.
         """
         t_all = time.perf_counter()
+        warm_start = start is not None
+        if warm_start:
+            start_normals, start_highlight = start
+            start_normals = np.asarray(start_normals, np.float32)
+            if start_normals.shape != self.mask.shape + (3,):
+                raise ValueError(f"start: expected ({self.mask.shape[0]}, {self.mask.shape[1]}, 3) normals, got shape "
+                                 f"{start_normals.shape}")
+            if not np.all(np.isfinite(start_normals[self.mask])):
+                raise ValueError("start: expected finite normals on the mask")
+            start_highlight = (np.zeros(self.mask.shape, bool) if start_highlight is None
+                               else np.asarray(start_highlight, bool))
+            if start_highlight.shape != self.mask.shape:
+                raise ValueError(f"start: expected an ({self.mask.shape[0]}, {self.mask.shape[1]}) highlight mask, got "
+                                 f"shape {start_highlight.shape}")
         c = self.config
         m = self.mask
         self._last_move = None
@@ -1274,10 +1293,13 @@ class RON:
         rref = self._rounds_reference(reference_depth) if shadows else reference_depth
         solve_depth = cur_depth if self.point else None
         total = float(c.rounds * 3 + 2)
-        step(0, total, "least squares")
-        start, highlight, dg = self._least_squares_and_dgmc(images, solve_depth, valid, timings,
-                                                            report=lambda msg: step(0.5, total, msg))
-        step(1, total, "dgmc")
+        if warm_start:
+            start, highlight, dg = start_normals, start_highlight & m, None
+        else:
+            step(0, total, "least squares")
+            start, highlight, dg = self._least_squares_and_dgmc(images, solve_depth, valid, timings,
+                                                                report=lambda msg: step(0.5, total, msg))
+            step(1, total, "dgmc")
         sh, shadow_stats, fit_valid = None, [], valid
         if shadows:
             sh = self._shadow_pass()
@@ -1299,8 +1321,10 @@ class RON:
             # steps 1-2 (5): normals and albedo with the current material and depth
             t = time.perf_counter()
             init, init_mask = (start, highlight) if r == 1 else (dev.prev if on_dev else prev, None)
-            front = r == 1 and highlight.any() and c.dgmc_config.start == "front"
-            if r == 1 and (not highlight.any() or front):
+            front = r == 1 and highlight.any() and c.dgmc_config.start == "front" and not warm_start
+            if r == 1 and warm_start:
+                init_mask = None  # (every pixel from the given normals)
+            elif r == 1 and (not highlight.any() or front):
                 init = None
             # with the device rounds the front too stays there (its merge written back into the solver's outputs)
             on_device = dev is not None
@@ -1313,7 +1337,7 @@ class RON:
                                                                          f"round {r}: normals: {msg}"))
                 step(3 * r - 2, total, f"round {r}: normals")
             out = self._solve(images, solve_depth, valid, material, init=init, init_mask=init_mask,
-                              cold=(r <= c.cold_rounds or init is None), fetch=not on_device,
+                              cold=not warm_start and (r <= c.cold_rounds or init is None), fetch=not on_device,
                               progress=lambda f: step(3 * r - 2 + f, total, f"round {r}: normals"))
             if front:
                 # DGMC on the solved front (4.16-4.18): highlight pixels start from their solved
