@@ -54,6 +54,15 @@ def test_warm_start_checks(device):
     bad[sc.mask] = np.nan
     with pytest.raises(ValueError, match="^start: expected finite normals"):
         gpps.reconstruct(img, sc.mask, lights, start=(bad, None), **kw)
+    with pytest.raises(TypeError, match="^start: expected a Reconstruction or"):
+        gpps.reconstruct(img, sc.mask, lights, start=np.zeros(sc.mask.shape + (3,)), **kw)
+    with pytest.raises(ValueError, match="^start: expected \\(normals, highlight\\), got 3 items"):
+        gpps.reconstruct(img, sc.mask, lights, start=(bad, None, None), **kw)
+    # a pixel the earlier solve left without a normal (zero) starts facing the camera: the solve still runs
+    zero = np.tile(np.float32([0.0, 0.0, 1.0]), sc.mask.shape + (1,))
+    zero[sc.mask.nonzero()[0][:5], sc.mask.nonzero()[1][:5]] = 0.0
+    rec = gpps.reconstruct(img, sc.mask, lights, start=(zero, None), **kw)
+    assert np.all(np.isfinite(rec.normals[sc.mask]))
     with pytest.raises(ValueError, match="^start: expected an .* highlight mask"):
         gpps.reconstruct(img, sc.mask, lights, start=(np.tile([0, 0, 1.0], sc.mask.shape + (1,)), np.zeros(3, bool)),
                          **kw)

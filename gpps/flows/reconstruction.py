@@ -241,8 +241,12 @@ def reconstruct(
                     config)
     ron = RON(prep.shape, prep.camera, prep.lights, prep.material, prep.mask, prep.config, device=device)
     try:
-        if start is not None and not isinstance(start, tuple):
+        if start is not None and not isinstance(start, (tuple, list)):
+            if not (hasattr(start, "normals") and hasattr(start, "highlight")):
+                raise TypeError(f"start: expected a Reconstruction or (normals, highlight), got {type(start).__name__}")
             start = (start.normals, start.highlight)
+        elif start is not None and len(start) != 2:
+            raise ValueError(f"start: expected (normals, highlight), got {len(start)} items")
         res = ron.run(prep.images, depth=depth, reference_depth=reference_depth, valid=prep.valid, progress=progress,
                       start=start)
     finally:

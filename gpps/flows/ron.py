@@ -1274,6 +1274,10 @@ class RON:
                                  f"{start_normals.shape}")
             if not np.all(np.isfinite(start_normals[self.mask])):
                 raise ValueError("start: expected finite normals on the mask")
+            # (unit length; a pixel the earlier solve left without a normal starts facing the camera)
+            length = np.linalg.norm(start_normals, axis=-1, keepdims=True)
+            start_normals = np.where(length > 1e-6, start_normals / np.maximum(length, 1e-6),
+                                     np.float32((0.0, 0.0, 1.0))).astype(np.float32)
             start_highlight = (np.zeros(self.mask.shape, bool) if start_highlight is None
                                else np.asarray(start_highlight, bool))
             if start_highlight.shape != self.mask.shape:
