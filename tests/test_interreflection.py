@@ -404,12 +404,6 @@ def test_folder_flow_keeps_the_first_model(tmp_path, device, monkeypatch):
     assert on.report["material"]["brdf"] == chosen.brdf
 
 
-def gpps_default_config():
-    import gpps
-
-    return gpps.FolderConfig()
-
-
 def test_assumed_scale_follows_the_rule(device):
     """With the light's scale unknown (``albedo_scale=None``) ``tau`` makes the brightest pixels' albedo
     ``ASSUMED_BRIGHT_ALBEDO``, once, from the first reconstruction (later rounds keep it); the light left in then
@@ -499,6 +493,7 @@ def test_cli_options():
     FolderConfig; errors name the options."""
     import argparse
 
+    import gpps
     from gpps.cli.reconstruct import add_reconstruct_options, folder_config
 
     p = argparse.ArgumentParser()
@@ -508,7 +503,7 @@ def test_cli_options():
     assert (cfg.interreflections, cfg.albedo_scale, cfg.interreflection_rounds) == ("subtract", 0.5, 3)
     default = folder_config(p.parse_args([]))
     assert (default.interreflections, default.albedo_scale, default.interreflection_rounds) == ("auto", None, 1)
-    assert default == gpps_default_config()
+    assert default == gpps.FolderConfig()
     with pytest.raises(ValueError, match="^--albedo-scale"):
         folder_config(p.parse_args(["--albedo-scale", "-1"]))
     with pytest.raises(ValueError, match="^--interreflections"):

@@ -177,7 +177,8 @@ class FolderConfig:
         if self.albedo_scale is not None:
             object.__setattr__(self, "albedo_scale", check_number("albedo_scale", self.albedo_scale, lo=0.0,
                                                                   lo_open=True))
-        if self.interreflections == "subtract" and (self.method != "ron" or not self.integrate or self.solver == "none"):
+        if self.interreflections == "subtract" and (self.method != "ron" or not self.integrate
+                                                    or self.solver == "none"):
             raise ValueError("interreflections: gathers over RON's depth, expected method='ron', integrate=True and "
                              f"a solver, got method={self.method!r}, integrate={self.integrate}, solver={self.solver!r}")
         check_bool("cast_shadows", self.cast_shadows)
@@ -388,8 +389,10 @@ def automatic_interreflections(n_images: int, config: FolderConfig) -> tuple[boo
 
     Measured (perf/results/s39/README.md; our Mitsuba development captures, seeds 3000-3009, which chose nothing
     but the rule's form; the held-out captures and DiLiGenT ran after): the compensation's result against its scale
-    follows ``|rho - a|`` (the light left in), no capture worse than without it while ``a`` is within twice the true
-    albedo.
+    follows ``|rho - a|`` (the light left in): with 12 lights at half and at the true scale every concave non-metal
+    capture better than without it, at twice it (the break-even) one of the four not skipped worse.  By default
+    (5, 6 and 12 lights): development non-diffuse 12-light mean 3.83 -> 3.46 deg, the held-out captures 39 of 48
+    better and none worse by more than 0.05 deg; DiLiGenT bear (96 images) 4.49 -> 4.01, ball unchanged.
 
     Args:
         n_images: the number of images N.

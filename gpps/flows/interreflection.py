@@ -53,9 +53,9 @@ round, with the assumed scale above, the later reconstruction keeping the first'
 warm from its normals (``gpps.reconstruct(..., start=...)``: no least squares, DGMC or cold starts); 12-light
 development captures (perf/results/s39/README.md): non-diffuse mean 3.83 -> 3.46 deg, matte 2.74 -> 2.08, none
 worse.  With three lights it helps matte surfaces and hurts glossy ones (a glossy surface's Blinn-Phong "albedo"
-holds some of its lobe), so it stays off there.  Metals are skipped: the first bounce under their fitted lobe
-(:meth:`gpps.pipeline.interreflection.Interreflections.gather_model`) predicts their interreflections from the true
-surface but not from a reconstruction the interreflections have bent.
+holds some of its lobe), so below that many images it stays off.  Metals are skipped: the first bounce under their
+fitted lobe (:meth:`gpps.pipeline.interreflection.Interreflections.gather_model`) predicts their interreflections
+from the true surface but not from a reconstruction the interreflections have bent.
 """
 
 from __future__ import annotations
@@ -185,7 +185,8 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
         "sources": ..., "stride": ..., "indirect_share": [...], "lowered": ..., "skipped": ...}`` (the
         indirect light's share of the images' sum over the mask, per round); ``"negligible": True`` where a
         round's share fell below :data:`NEGLIGIBLE_SHARE` and the rounds stopped without reconstructing again;
-        ``"round_seconds"``: ``{"first": s, "gather": [s per round], "solve": [s per round]}`` (wall time).
+        ``"round_seconds"``: ``{"first": s, "gather": [s per round], "solve": [s per round]}`` (wall time);
+        ``"scale"``: ``"assumed"`` (``albedo_scale`` None) or ``"given"``, and ``"albedo_scale"`` as given.
     """
     from gpps._check import warn
 
