@@ -2,8 +2,9 @@
 # The GPU runs of a session on the lent H200, after the kit's install (source /tmp/gpps-env.sh):
 #   bash perf/device_run.sh OUTDIR tests|solvers|ablation|neighbour|gaps|bench|full|diligent|beforeafter|hostprof|usecache|cache
 # Environment: T (a mode's time limit, s), MORE (more pytest arguments), TAG (a suffix of the output names),
-# VARIANTS, BLOCKS, KT (ablation), PAIRS (beforeafter alternations), IR (diligent: --interreflections auto|off|subtract).  Sessions up to 28 kept a copy of this script in
-# perf/results/sNN/ as their record; from session 29 the results README names the modes it ran.
+# VARIANTS, BLOCKS, KT (ablation), PAIRS (beforeafter alternations), IR (diligent: --interreflections
+# auto|off|subtract).  Sessions up to 28 kept a copy of this script in perf/results/sNN/ as their record; from
+# session 29 the results README names the modes it ran.
 out=${1:-$OUT}; what=${2:-tests}
 mkdir -p "$out"
 filter() { grep -v "SyntaxWarning\|Save a field\|GppsWarning\|notes = self\|warnings.warn\|detect_clipping" ; }
