@@ -226,3 +226,18 @@ def folder_solve(folder, device):
     finally:
         gi.reconstruct_subtracting = orig
     return captured["solve"], captured["first"]
+
+
+def cached_captures(seeds: str, counts) -> list[str]:
+    """The cached Mitsuba captures (``$GPPS_CACHE_DIR/mitsuba_captures``, perf/dev_eval.py's and
+    perf/heldout_eval.py's ``--render-only``) of the comma-separated ``seeds`` under any of ``counts`` directional or
+    point lights, sorted (a capture under several counts once)."""
+    import glob
+
+    out = []
+    for f in sorted(glob.glob(os.path.join(os.environ.get('GPPS_CACHE_DIR', '.cache'), 'mitsuba_captures', '*'))):
+        name = os.path.basename(f)
+        if any(f'seed{s}-' in name for s in seeds.split(',')) and any(
+                f'-directional{c}-' in name or f'-point{c}-' in name for c in counts):
+            out.append(f)
+    return out

@@ -12,19 +12,14 @@ warnings.simplefilter("ignore")
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import numpy as np
-from types import SimpleNamespace
+
 import test_interreflection as T
 from gpps.flows.interreflection import reconstruct_subtracting
-from gpps.material import Material
+
 for kd in (0.8, 0.5, 0.25, 0.0625):
     m, depth, n, lights, cam, direct, images = T._self_lit('cpu', kd)
-    L = lights.directions
-    def solve(imgs):
-        g = imgs.mean(-1)[:, m]; b = np.linalg.lstsq(L, g, rcond=None)[0].T; rho = np.linalg.norm(b, axis=-1)
-        nn = np.zeros(m.shape + (3,), np.float32); nn[m] = b / rho[:, None]; nn[~m] = (0, 0, 1)
-        alb = np.zeros(m.shape + (3,), np.float32); alb[m] = rho[:, None]
-        return SimpleNamespace(normals=nn, albedo=alb, depth=depth, depth_mask=m, material=Material("lambertian"))
-    maen = lambda nn: float(np.degrees(np.arccos(np.clip((nn[m] * n[m]).sum(-1), -1, 1))).mean())
+    solve = T._least_squares_solver(m, lights, depth)
+    maen = lambda nn: float(np.degrees(np.arccos(np.clip((nn[m] * n[m]).sum(-1), -1, 1))).mean())  # noqa: E731
     before = maen(solve(images).normals)
     out = {}
     for name, sc in (("assumed", None), ("true", 1.0)):

@@ -5,26 +5,21 @@ intensities are radiometric (the true ``tau`` is 1).  One JSON line a capture: p
 
 Usage:  python perf/interreflection_scale_eval.py SEEDS COUNTS SCALES PART   (e.g. 3000,3001 12 0.5,1,2 0/2)
 """
-import glob
 import json
 import os
 import sys
 import time
 import warnings
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..'))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 warnings.simplefilter('ignore')
 import gpps  # noqa: E402
 from gpps.io import read_capture  # noqa: E402
+from _common import cached_captures  # noqa: E402
 
 seeds, counts, scales, part = sys.argv[1], sys.argv[2].split(','), sys.argv[3].split(','), sys.argv[4]
 i_part, n_part = map(int, part.split('/'))
-files = []
-for f in sorted(glob.glob(os.path.join(os.environ.get('GPPS_CACHE_DIR', '.cache'), 'mitsuba_captures', '*'))):
-    name = f.split('/')[-1]
-    if not any(f'seed{s}-' in name for s in seeds.split(',')):
-        continue
-    if any(f'-directional{c}-' in name or f'-point{c}-' in name for c in counts):
-        files.append(f)
+files = cached_captures(seeds, counts)
 for j, f in enumerate(files):
     if j % n_part != i_part:
         continue

@@ -9,27 +9,21 @@ perf/heldout_eval.py ``--render-only --lights N``).
 Usage:  VARIANTS=old,default python perf/model_threshold_eval.py SEEDS COUNTS PART  (e.g. 3000,3001 4,5 0/2)
 (env SKIP: comma-separated JSON-lines files whose captures are left out)
 """
-import glob
 import json
 import os
 import sys
 import time
 import warnings
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..'))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 warnings.simplefilter('ignore')
 import gpps
 from gpps.io import read_capture
+from _common import cached_captures
 from gpps.flows.folder import AUTOMATIC_MODELS
 seeds, counts, part = sys.argv[1], sys.argv[2].split(','), sys.argv[3]
 i_part, n_part = map(int, part.split('/'))
-files = []
-for f in sorted(glob.glob(os.path.join(os.environ.get('GPPS_CACHE_DIR', '.cache'), 'mitsuba_captures', '*'))):
-    name = f.split('/')[-1]
-    if not any(f'seed{s}-' in name for s in seeds.split(',')):
-        continue
-    for c in counts:
-        if f'-directional{c}-' in name or f'-point{c}-' in name:
-            files.append(f)
+files = cached_captures(seeds, counts)
 done = set()
 for path in filter(None, os.environ.get('SKIP', '').split(',')):  # (captures already in these JSON-lines files)
     done |= {json.loads(line)['cap'] for line in open(path) if line.strip()}

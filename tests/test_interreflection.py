@@ -220,6 +220,28 @@ def _self_lit(device, kd=0.8):
     return m, depth, n, lights, cam, direct, images
 
 
+def _least_squares_solver(m, lights, depth):
+    """``solve(images)`` for :func:`gpps.flows.interreflection.reconstruct_subtracting`: Lambertian least squares on
+    the grey images of mask ``m`` with the true ``depth`` (a stand-in for the pipeline's reconstruction)."""
+    from types import SimpleNamespace
+
+    from gpps.material import Material
+
+    L = lights.directions
+
+    def solve(imgs):
+        g = imgs.mean(-1)[:, m]  # (N, P)
+        b = np.linalg.lstsq(L, g, rcond=None)[0].T  # (P, 3)
+        rho = np.linalg.norm(b, axis=-1)
+        nn = np.zeros(m.shape + (3,), np.float32)
+        nn[m] = b / rho[:, None]
+        nn[~m] = (0, 0, 1)
+        alb = np.zeros(m.shape + (3,), np.float32)
+        alb[m] = rho[:, None]
+        return SimpleNamespace(normals=nn, albedo=alb, depth=depth, depth_mask=m, material=Material("lambertian"))
+    return solve
+
+
 def test_compensation_recovers_a_self_lit_cap(device):
     """Images of a Lambertian concave cap with the exact multi-bounce indirect light of the same discretisation
     (``I = D + kd F I`` iterated): least squares tilts the normals toward the bright walls; with the
@@ -231,18 +253,7 @@ def test_compensation_recovers_a_self_lit_cap(device):
 
     kd = 0.8
     m, depth, n, lights, cam, direct, images = _self_lit(device, kd)
-    L = lights.directions
-
-    def solve(imgs):  # Lambertian least squares on the grey images, the true depth
-        g = imgs.mean(-1)[:, m]  # (N, P)
-        b = np.linalg.lstsq(L, g, rcond=None)[0].T  # (P, 3)
-        rho = np.linalg.norm(b, axis=-1)
-        nn = np.zeros(m.shape + (3,), np.float32)
-        nn[m] = b / rho[:, None]
-        nn[~m] = (0, 0, 1)
-        alb = np.zeros(m.shape + (3,), np.float32)
-        alb[m] = rho[:, None]
-        return SimpleNamespace(normals=nn, albedo=alb, depth=depth, depth_mask=m, material=Material("lambertian"))
+    solve = _least_squares_solver(m, lights, depth)
 
     def maen(nn):
         return np.degrees(np.arccos(np.clip((nn[m] * n[m]).sum(-1), -1, 1))).mean()
@@ -410,26 +421,12 @@ def test_assumed_scale_follows_the_rule(device):
     scales as ``|kd - a|``: a cap of albedo ``a`` comes back as with its true scale, one of albedo ``a / 2`` (the
     rule's break-even) no better and no worse by much, and a darker one gets at most the error of an uncompensated
     cap of albedo ``a``."""
-    from types import SimpleNamespace
-
     from gpps.flows.interreflection import reconstruct_subtracting, tau_bound
-    from gpps.material import Material
     from gpps.names import ASSUMED_BRIGHT_ALBEDO as A
 
     def run(kd, scale, rounds=1):
         m, depth, n, lights, cam, direct, images = _self_lit(device, kd)
-        L = lights.directions
-
-        def solve(imgs):
-            g = imgs.mean(-1)[:, m]
-            b = np.linalg.lstsq(L, g, rcond=None)[0].T
-            rho = np.linalg.norm(b, axis=-1)
-            nn = np.zeros(m.shape + (3,), np.float32)
-            nn[m] = b / rho[:, None]
-            nn[~m] = (0, 0, 1)
-            alb = np.zeros(m.shape + (3,), np.float32)
-            alb[m] = rho[:, None]
-            return SimpleNamespace(normals=nn, albedo=alb, depth=depth, depth_mask=m, material=Material("lambertian"))
+        solve = _least_squares_solver(m, lights, depth)
 
         def maen(nn):
             return float(np.degrees(np.arccos(np.clip((nn[m] * n[m]).sum(-1), -1, 1))).mean())
