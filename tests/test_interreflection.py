@@ -383,34 +383,53 @@ def test_folder_flow_subtracts(tmp_path, device):
 
 def test_folder_flow_keeps_the_first_model(tmp_path, device, monkeypatch):
     """With models compared (the default from 5 images), the compensation's later reconstructions keep the material
-    the first one estimated on the observed images (no second comparison, no estimation) and start every pixel warm
-    from the last reconstruction's normals; the report keeps the first comparison."""
+    the first one estimated on the observed images (no second comparison, no estimation), start every pixel warm
+    from the last reconstruction's normals and solve the frame the first one uploaded, as changed on the device (no
+    upload after the first reconstruction's); the report keeps the first comparison."""
     import gpps
-    import gpps.flows.folder as ff
+    import gpps.flows.reconstruction as fr
+    from gpps.flows.ron import _RESIDENT, RON
     from gpps.io import Dataset, write_dataset
+    from gpps.pipeline.solver import PixelSolver
 
     m, depth, n, lights, cam, direct, images = _self_lit(device)
     ds = Dataset(images=images, mask=m, light_directions=lights.directions, light_intensities=np.ones((8, 3), np.float32),
                  normal_gt=n, filenames=[f"{i:03d}.png" for i in range(1, 9)])
     folder = write_dataset(tmp_path / "cap", ds, bits=16)
-    calls = []
-    real = ff.reconstruct
+    runs, recs, uploads = [], [], []
+    real_run, real_again, real_upload = RON.run, fr.ResidentFrame.again, PixelSolver.upload
 
-    def spy(images, mask, lights, **kw):
-        r = real(images, mask, lights, **kw)
-        calls.append((kw["config"].models, kw["material"], kw["estimate"], r, kw.get("start")))
+    def run(self, images, **kw):
+        runs.append((images is _RESIDENT, self.config.models, self.config.estimate, self.material, kw.get("start"),
+                     len(uploads)))
+        return real_run(self, images, **kw)
+
+    def again(self, start, **kw):
+        r = real_again(self, start, **kw)
+        recs.append((start, r))
         return r
 
-    monkeypatch.setattr(ff, "reconstruct", spy)
+    def upload(self, *a, **kw):
+        uploads.append(1)
+        return real_upload(self, *a, **kw)
+
+    monkeypatch.setattr(RON, "run", run)
+    monkeypatch.setattr(fr.ResidentFrame, "again", again)
+    monkeypatch.setattr(PixelSolver, "upload", upload)
     on = gpps.reconstruct_folder(folder, gpps.FolderConfig(interreflections="subtract", interreflection_rounds=2),
                                  device=device)
-    assert len(calls) == 3
-    assert set(calls[0][0]) == {"conductor", "plastic"} and calls[0][1].brdf == "blinn-phong"
-    assert calls[0][4] is None
-    chosen = calls[0][3].material
-    for k, (models, material, estimate, rec, start) in enumerate(calls[1:]):  # (the material kept, warm starts)
-        assert models == () and material == chosen and estimate == () and rec.material == chosen
-        assert start is calls[k][3]  # (the last reconstruction's)
+    assert on.report["interreflections"]["resident"] is True
+    assert len(runs) == 3 and len(recs) == 2
+    resident, models, estimate, material, start, _ = runs[0]
+    assert not resident and set(models) == {"conductor", "plastic"} and material.brdf == "blinn-phong" and start is None
+    first_uploads = runs[1][5]
+    assert first_uploads >= 1 and len(uploads) == first_uploads  # (nothing uploaded after the first reconstruction)
+    chosen = recs[0][0].material  # (the first reconstruction's, in the caller's scale)
+    for k, (resident, models, estimate, material, start, _) in enumerate(runs[1:]):  # (the material kept, warm)
+        assert resident and models == () and estimate == ()
+        assert material.brdf == chosen.brdf and recs[k][1].material == chosen
+        np.testing.assert_array_equal(start[0], recs[k][0].normals)  # (the last reconstruction's normals)
+    assert recs[1][0] is recs[0][1]
     assert set(on.report["model_energies"]) == {"blinn-phong", "conductor", "plastic"}
     assert on.report["material"]["brdf"] == chosen.brdf
 

@@ -88,6 +88,7 @@ def test_folder_and_cli_pass_the_models(tmp_path, monkeypatch, capsys):
     ``FolderConfig(cast_shadows=...)`` reaches RON too."""
     import gpps.flows.folder as folder
     from gpps.cli import main
+    from gpps.flows.reconstruction import ResidentFrame
     from gpps.io import write_dataset
 
     sc = make_scene("sphere", 24, "orthographic")
@@ -95,15 +96,22 @@ def test_folder_and_cli_pass_the_models(tmp_path, monkeypatch, capsys):
     cap = write_dataset(tmp_path / "cap", ds)
     seen = []
     real = folder.reconstruct
+    real_init = ResidentFrame.__init__
 
     def spy(*a, config=None, **k):
         seen.append(config.models)
         shadows.append(config.cast_shadows)
         return real(*a, config=config, **k)
 
+    def spy_init(self, *a, config=None, **k):  # the folder flow's first reconstruction keeps its frame resident
+        seen.append(config.models)
+        shadows.append(config.cast_shadows)
+        return real_init(self, *a, config=config, **k)
+
     shadows = []
 
     monkeypatch.setattr(folder, "reconstruct", spy)
+    monkeypatch.setattr(ResidentFrame, "__init__", spy_init)
     cfg = gpps.FolderConfig(brdf="cook-torrance", rounds=2, models=("plastic",), integrate=False)
     res = gpps.reconstruct_folder(cap, cfg, device="cpu")
     assert seen[-1] == ("plastic",) and set(res.report["timings"]) >= {"material"}

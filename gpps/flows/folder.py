@@ -681,43 +681,23 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
                         refine=refine, refine_two_light=config.two_light,
                         final_integrator=IntegratorConfig(bilateral=True) if config.integration == "bini" else None)
         cfg = replace(cfg, solver=replace(cfg.solver, solver=config.solver, **opts))
-        first: dict = {}
-
-        def solve(images):
-            if first:
-                # (the compensation's later reconstructions: the rounds iterate one forward model, images <-
-                # observed - indirect(surface), with the material the first reconstruction estimated on the observed
-                # images (re-deciding the model on images a fraction of a percent apart flipped DiLiGenT bear's
-                # choice at z = 2.39 against the threshold's 2.33 and cost 1.1 deg, session 34; the lobe is seen in
-                # the highlights, which the diffuse indirect light hardly moves), every pixel's solve warm from the
-                # last reconstruction's normals (no least squares, DGMC or cold starts: the images moved by a few
-                # percent), and under point lights the rounds from its depth)
-                last = first.get("last", first["rec"])
-                rec = reconstruct(images, ds.mask, lights, camera=camera, material=last.material, estimate=(),
-                                  depth=last.depth if isinstance(lights, PointLights) and last.depth is not None
-                                  and np.all(last.depth[ds.mask] > 0) else None,
-                                  reference_depth=internal_reference, valid=valid,
-                                  config=replace(cfg, models=()), device=device, progress=progress,
-                                  start=last)
-                first["last"] = rec
-                return rec
-            first["rec"] = reconstruct(images, ds.mask, lights, camera=camera, material=material, estimate=estimate,
-                                       reference_depth=internal_reference, valid=valid, config=cfg, device=device,
-                                       progress=progress)
-            return first["rec"]
-
+        solve = _FolderSolve(ds.mask, lights, camera, material, estimate, internal_reference, valid, cfg, device,
+                             progress)
         subtract, subtract_why = automatic_interreflections(n, config)
-        if subtract:
-            from gpps.flows.interreflection import reconstruct_subtracting
+        try:
+            if subtract:
+                from gpps.flows.interreflection import reconstruct_subtracting
 
-            t = time.perf_counter()
-            rec, info = reconstruct_subtracting(solve, ds.images, ds.mask, lights, camera,
-                                                rounds=config.interreflection_rounds,
-                                                albedo_scale=config.albedo_scale, device=device, progress=progress)
-            report["interreflections"] = {**info, "seconds": time.perf_counter() - t, "why": subtract_why}
-        else:
-            rec = solve(ds.images)
-            report["interreflections"] = {"skipped": True, "why": subtract_why}
+                t = time.perf_counter()
+                rec, info = reconstruct_subtracting(solve, ds.images, ds.mask, lights, camera,
+                                                    rounds=config.interreflection_rounds,
+                                                    albedo_scale=config.albedo_scale, device=device, progress=progress)
+                report["interreflections"] = {**info, "seconds": time.perf_counter() - t, "why": subtract_why}
+            else:
+                rec = solve(ds.images)
+                report["interreflections"] = {"skipped": True, "why": subtract_why}
+        finally:
+            solve.close()
         out.update(normals=rec.normals, albedo=rec.albedo, depth=rec.depth, depth_mask=rec.depth_mask, flags=rec.flags)
         report.update(solver=config.solver, robust=robust, timings=rec.timings, material=rec.material.to_dict(),
                       estimated=rec.estimated, fixed=rec.fixed,
@@ -731,13 +711,58 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
         if rec.details.refinement is not None:
             report["refinement"] = rec.details.refinement
         # (the material's ambiguity and the models' comparison come from the first fit on the observed images)
-        fits = first["rec"].details.material_fit
+        fits = solve.first.details.material_fit
         if fits and fits[0].get("ambiguity") is not None:  # (how far the images leave the material open)
             report["material_ambiguity"] = {**fits[0]["ambiguity"], "identifiable": fits[0]["identifiable"]}
         if fits and "models" in fits[0]:  # (compared models: each one's sampled energy and the switch's test)
             report["model_energies"] = fits[0]["models"]
             report["model_evidence"] = fits[0].get("evidence", {})
     return out
+
+
+class _FolderSolve:
+    """The folder flow's ``solve(images) -> Reconstruction`` for :func:`gpps.flows.interreflection.reconstruct_subtracting`.
+
+    The first call reconstructs the observed images (:class:`gpps.flows.reconstruction.ResidentFrame`, kept open as
+    :attr:`frame`: the compensation's later rounds subtract on the device and solve it again there).  A later call
+    with host images (probes that run their own rounds, perf/_common.folder_solve) is one of the compensation's later
+    reconstructions: the rounds iterate one forward model, images <- observed - indirect(surface), with the material the
+    first reconstruction estimated on the observed images (re-deciding the model on images a fraction of a percent
+    apart flipped DiLiGenT bear's choice at z = 2.39 against the threshold's 2.33 and cost 1.1 deg, session 34; the
+    lobe is seen in the highlights, which the diffuse indirect light hardly moves), every pixel's solve warm from the
+    last reconstruction's normals (no least squares, DGMC or cold starts: the images moved by a few percent), and
+    under point lights the rounds from its depth.  :meth:`close` frees the frame.
+    """
+
+    def __init__(self, mask, lights, camera, material, estimate, reference, valid, config, device, progress):
+        self.mask, self.lights, self.camera = mask, lights, camera
+        self.material, self.estimate, self.reference, self.valid = material, estimate, reference, valid
+        self.config, self.device, self.progress = config, device, progress
+        self.frame = None  #: the first reconstruction's ResidentFrame (its frame on the device), after the first call
+        self.first = self.last = None  #: the first and the last reconstruction
+
+    def __call__(self, images):
+        from gpps.flows.reconstruction import ResidentFrame
+
+        if self.first is None:
+            self.frame = ResidentFrame(images, self.mask, self.lights, camera=self.camera, material=self.material,
+                                       estimate=self.estimate, reference_depth=self.reference, valid=self.valid,
+                                       config=self.config, device=self.device)
+            self.first = self.last = self.frame.run(progress=self.progress)
+            return self.first
+        last = self.last
+        self.last = reconstruct(images, self.mask, self.lights, camera=self.camera, material=last.material,
+                                estimate=(), depth=last.depth if isinstance(self.lights, PointLights)
+                                and last.depth is not None and np.all(last.depth[self.mask] > 0) else None,
+                                reference_depth=self.reference, valid=self.valid,
+                                config=replace(self.config, models=()), device=self.device, progress=self.progress,
+                                start=last)
+        return self.last
+
+    def close(self) -> None:
+        if self.frame is not None:
+            self.frame.close()
+            self.frame = None
 
 
 def reconstruct_folder(folder, config: FolderConfig | None = None, *, lights=None, mask=None, ambient: str | None = "auto",

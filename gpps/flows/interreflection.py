@@ -64,6 +64,7 @@ import time
 
 import numpy as np
 
+from gpps._runtime import warp
 from gpps.camera import Orthographic
 from gpps.names import ASSUMED_BRIGHT_ALBEDO
 from gpps.pipeline.interreflection import InterreflectionConfig, Interreflections
@@ -140,15 +141,28 @@ def interreflection_terms(images, mask, lights, camera, rec, *, config: Interref
             B = st.gather_model(kd, rec.material, lights, visible)
             stride, sources = st.stride, st.sources
         return {"B": B, "sources": sources, "stride": stride}
-    with Interreflections((n, h, w), camera, config, device=device) as st:
-        # (the sources' diffuse radiance: the images less the model's specular part, at the sources only)
-        st.upload(depth, mask, normals, images, less_specular=(rec.material, lights))
-        st.step()
+    with _diffuse_gather(images, mask, lights, camera, rec, config, device, depth=depth) as st:
         S = st.fetch()
         stride, sources = st.stride, st.sources
     kd = np.minimum(albedo, np.float32(max_albedo)) if np.isfinite(max_albedo) else albedo
     S *= kd[None]  # (in place: S is this call's own array)
     return {"B": S, "sources": sources, "stride": stride}
+
+
+def _diffuse_gather(images, mask, lights, camera, rec, config, device, *, depth=None) -> Interreflections:
+    """The stage with the diffuse gather over ``rec``'s surface done (the sources' radiance: ``images`` less the
+    model's specular part, at the sources only; ``depth``: :func:`_filled_depth` of ``rec``, when the caller has it);
+    the caller closes it (a ``with`` block)."""
+    n, h, w = images.shape[:3]
+    st = Interreflections((n, h, w), camera, config, device=device)
+    try:
+        st.upload(_filled_depth(rec) if depth is None else depth, mask, rec.normals, images,
+                  less_specular=(rec.material, lights))
+        st.step()
+    except BaseException:
+        st.close()
+        raise
+    return st
 
 
 def tau_bound(albedo, mask) -> float:
@@ -166,7 +180,13 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
     """``solve(images)`` (a reconstruction with depth) on the images with the interreflections taken out.
 
     Args:
-        solve: ``solve(images) -> Reconstruction`` (the caller's ``reconstruct`` with its other arguments).
+        solve: ``solve(images) -> Reconstruction`` (the caller's ``reconstruct`` with its other arguments).  Where
+            ``solve`` has a ``frame`` attribute that is not None after its first call (a
+            :class:`gpps.flows.reconstruction.ResidentFrame` holding that reconstruction's frame on the device: the
+            folder flow's), the later rounds run there: the gathered light is summed and subtracted on the device
+            (:meth:`gpps.pipeline.interreflection.Interreflections.subtract_from`) and ``frame.again`` solves the
+            frame warm, with the last reconstruction's material; no stack is fetched, checked or uploaded again.
+            Otherwise each later round calls ``solve`` with the corrected images.
         images, mask, lights, camera: the capture (as ``solve`` takes them).
         rounds: compensation rounds (each one gather over the last surface and one more ``solve``).
         albedo_scale: ``tau``, the physical albedo over the estimated one (1: radiometric light intensities).
@@ -186,7 +206,8 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
         indirect light's share of the images' sum over the mask, per round); ``"negligible": True`` where a
         round's share fell below :data:`NEGLIGIBLE_SHARE` and the rounds stopped without reconstructing again;
         ``"round_seconds"``: ``{"first": s, "gather": [s per round], "solve": [s per round]}`` (wall time);
-        ``"scale"``: ``"assumed"`` (``albedo_scale`` None) or ``"given"``, and ``"albedo_scale"`` as given.
+        ``"scale"``: ``"assumed"`` (``albedo_scale`` None) or ``"given"``, and ``"albedo_scale"`` as given;
+        ``"resident"``: whether the later rounds ran on the device-resident frame.
     """
     from gpps._check import warn
 
@@ -201,7 +222,7 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
     assumed = albedo_scale is None
     info: dict = {"albedo_scale": None if assumed else float(albedo_scale), "scale": "assumed" if assumed else "given",
                   "skipped": False, "lowered": False, "negligible": False}
-    tau0 = None
+    tau0 = observed = None
     for r in range(int(rounds)):
         bound = tau_bound(rec.albedo, m)
         if assumed:
@@ -234,6 +255,26 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
         if progress is not None:
             progress(r, int(rounds), f"interreflections: gathering over the surface (round {r + 1} of {int(rounds)})")
         t0 = time.perf_counter()
+        frame = getattr(solve, "frame", None)
+        if frame is not None:
+            # (the resident path: the gather's output stays on the device and is taken out of the solver's frame
+            # there; one float per receiver comes back for the share)
+            camera = Orthographic() if camera is None else camera
+            with _diffuse_gather(images, m, lights, camera, rec, config, device) as st:
+                shares.append(tau * st.indirect_total(rec.albedo, max_albedo=1.0 / tau) / total)
+                info.update(bound=bound if np.isfinite(bound) else None, sources=st.sources, stride=st.stride)
+                if shares[-1] >= NEGLIGIBLE_SHARE:
+                    if observed is None and int(rounds) > r + 1:  # (later rounds subtract from the observed frame)
+                        observed = warp().clone(frame.images)
+                    st.subtract_from(frame.images, tau * frame.scale, observed=observed)
+            seconds["gather"].append(time.perf_counter() - t0)  # (the sources' radiance, the gather, the frame's update)
+            if shares[-1] < NEGLIGIBLE_SHARE:
+                info["negligible"] = True
+                break
+            t0 = time.perf_counter()
+            rec = frame.again(rec, progress=progress)
+            seconds["solve"].append(time.perf_counter() - t0)
+            continue
         terms = interreflection_terms(images, m, lights, camera, rec, config=config, max_albedo=1.0 / tau,
                                       device=device)
         shares.append(tau * float(terms["B"].sum(dtype=np.float64)) / total)  # (B is 0 off the mask)
@@ -248,5 +289,5 @@ def reconstruct_subtracting(solve, images, mask, lights, camera, *, rounds: int 
         corrected += images
         rec = solve(np.maximum(corrected, 0.0, out=corrected))
         seconds["solve"].append(time.perf_counter() - t0)  # (the images' update and the reconstruction)
-    info.update(tau=taus, indirect_share=shares, round_seconds=seconds)
+    info.update(tau=taus, indirect_share=shares, round_seconds=seconds, resident=getattr(solve, "frame", None) is not None)
     return rec, info

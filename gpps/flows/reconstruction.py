@@ -45,7 +45,7 @@ from gpps.lights import DirectionalLights, PointLights
 from gpps.material import BRDF_NAMES, Material, check_model_images
 from gpps.names import MANY_IMAGES, SHADOW_RELATIVE_MANY
 
-__all__ = ["reconstruct", "Reconstruction", "Reconstructor", "RONConfig"]
+__all__ = ["reconstruct", "Reconstruction", "Reconstructor", "ResidentFrame", "RONConfig"]
 
 
 @dataclass
@@ -237,21 +237,124 @@ def reconstruct(
             names, fewer than 3 lights or degenerate light directions, point
             lights without a depth or a reference depth.
     """
-    prep = _prepare(images, mask, lights, camera, material, estimate, depth, reference_depth, valid, saturation,
-                    config)
-    ron = RON(prep.shape, prep.camera, prep.lights, prep.material, prep.mask, prep.config, device=device)
-    try:
-        if start is not None and not isinstance(start, (tuple, list)):
-            if not (hasattr(start, "normals") and hasattr(start, "highlight")):
-                raise TypeError(f"start: expected a Reconstruction or (normals, highlight), got {type(start).__name__}")
-            start = (start.normals, start.highlight)
-        elif start is not None and len(start) != 2:
-            raise ValueError(f"start: expected (normals, highlight), got {len(start)} items")
-        res = ron.run(prep.images, depth=depth, reference_depth=reference_depth, valid=prep.valid, progress=progress,
-                      start=start)
-    finally:
-        ron.close()
-    return _result(res, prep)
+    with ResidentFrame(images, mask, lights, camera=camera, material=material, estimate=estimate, depth=depth,
+                       reference_depth=reference_depth, valid=valid, saturation=saturation, config=config,
+                       device=device) as frame:
+        return frame.run(progress=progress, start=start)
+
+
+def _start_pair(start) -> tuple | None:
+    """``start`` (a :class:`Reconstruction` or ``(normals, highlight)``) as the pair ``RON.run`` takes."""
+    if start is not None and not isinstance(start, (tuple, list)):
+        if not (hasattr(start, "normals") and hasattr(start, "highlight")):
+            raise TypeError(f"start: expected a Reconstruction or (normals, highlight), got {type(start).__name__}")
+        return (start.normals, start.highlight)
+    if start is not None and len(start) != 2:
+        raise ValueError(f"start: expected (normals, highlight), got {len(start)} items")
+    return start
+
+
+class ResidentFrame:
+    """:func:`reconstruct` of one capture whose frame stays on the device for later solves of it as changed there.
+
+    The interreflection compensation (:mod:`gpps.flows.interreflection`) reconstructs, gathers the light the
+    surface sends itself and reconstructs the images less that light again.  Through :func:`reconstruct` the second
+    reconstruction checks, scales, estimates the noise of and uploads the (N, H, W, 3) stack again, and builds the
+    pipeline's stages again; here the stages and the frame of the first are kept: the compensation subtracts on the
+    device, in the solver's buffer (:attr:`images`), and :meth:`again` solves it warm.  (DiLiGenT bear, 96 images,
+    on an H200: the host's share of the second reconstruction was 0.4 s, perf/results/s40/README.md.)
+
+    Args:
+        images, mask, lights, camera, material, estimate, depth, reference_depth, valid, saturation, config, device:
+            as :func:`reconstruct`'s (checked here, at construction).
+
+    :meth:`run` is :func:`reconstruct`'s result; :meth:`again` re-solves the frame as changed on the device;
+    :meth:`close` (or a ``with`` block) frees the stages.  One call at a time.
+    """
+
+    def __init__(self, images, mask, lights, *, camera=None, material: Material | str = "blinn-phong", estimate="auto",
+                 depth=None, reference_depth: float | None = None, valid=None, saturation: float | None = None,
+                 config: RONConfig | None = None, device=None):
+        self._prep = _prepare(images, mask, lights, camera, material, estimate, depth, reference_depth, valid,
+                              saturation, config)
+        self._ron = RON(self._prep.shape, self._prep.camera, self._prep.lights, self._prep.material, self._prep.mask,
+                        self._prep.config, device=device)
+        self._depth, self._reference = depth, reference_depth
+        self.runs = 0  #: solves of the frame so far (:meth:`run` and :meth:`again`)
+
+    @property
+    def images(self):
+        """The frame on the device: (N, H, W) ``wp.vec3`` images at the working scale (:attr:`scale` times the
+        caller's); None before :meth:`run`."""
+        return self._live().frame
+
+    @property
+    def scale(self) -> float:
+        """The frame's values over the caller's images (:func:`gpps.flows.photometric.working_scale`; 1 for images
+        of order one)."""
+        return float(self._prep.scale["images"])
+
+    @property
+    def mask(self) -> np.ndarray:
+        """(H, W) bool: the checked object mask."""
+        return self._prep.mask
+
+    def _live(self) -> RON:
+        if self._ron is None:
+            raise RuntimeError("ResidentFrame: closed")
+        return self._ron
+
+    def run(self, *, progress=None, start=None) -> Reconstruction:
+        """:func:`reconstruct` of the images given at construction (``progress`` and ``start`` as its)."""
+        ron = self._live()
+        pair = _start_pair(start)
+        p = self._prep
+        res = ron.run(p.images, depth=self._depth, reference_depth=self._reference, valid=p.valid, progress=progress,
+                      start=pair)
+        self.runs += 1
+        return _result(res, p)
+
+    def again(self, start: Reconstruction, *, progress=None) -> Reconstruction:
+        """The frame as changed on the device since, solved again: ``start``'s material kept (nothing estimated),
+        every pixel warm from its normals (``RON.rerun``); under point lights the rounds start from its depth (where it
+        has one on the whole mask).
+
+        Args:
+            start: the last :class:`Reconstruction` of this frame (:meth:`run`'s or :meth:`again`'s).
+            progress: ``progress(done, total, message)``.
+
+        Returns:
+            :class:`Reconstruction` (in the caller's scale, as :meth:`run`'s).
+
+        Raises:
+            RuntimeError: before :meth:`run`, or closed.
+            TypeError: ``start`` is not a :class:`Reconstruction`.
+        """
+        ron = self._live()
+        if not isinstance(start, Reconstruction):
+            raise TypeError(f"start: expected a Reconstruction of this frame, got {type(start).__name__}")
+        p = self._prep
+        depth = self._depth
+        if isinstance(p.lights, PointLights) and start.depth is not None and np.all(start.depth[p.mask] > 0):
+            depth = start.depth
+        # (the material in the working scale: Reconstruction's is in the caller's)
+        material = _scaled_material(start.material, p.scale["images"] / p.scale["lights"])
+        res = ron.rerun((start.normals, start.highlight), material, depth=depth, reference_depth=self._reference,
+                        progress=progress)
+        self.runs += 1
+        return _result(res, p)
+
+    def close(self) -> None:
+        """Free the stages' buffers (later calls raise RuntimeError)."""
+        if self._ron is not None:
+            self._ron.close()
+            self._ron = None
+
+    def __enter__(self) -> "ResidentFrame":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 @dataclass

@@ -561,6 +561,9 @@ class RONResult:
 # the per-pixel outputs RON reads back from a solve
 _OUTPUTS = ("normals", "albedo", "residual", "iterations", "flags", "cond")
 
+#: ``RON.run``'s images when :meth:`RON.rerun` solves the frame the last run left on the solver's device
+_RESIDENT = object()
+
 
 def _part(progress, a: float, b: float):
     """A solver progress callback ``(done, total, message)`` mapped onto ``progress(fraction)`` in [a, b]."""
@@ -722,9 +725,10 @@ class RON:
     def _frame(self, images, depth, valid) -> None:
         """The frame on the solver's device: uploaded once per run (images, observation mask, noise
         levels); later solves change only the mask, start normals, config or material there, and a new
-        depth estimate (point lights, each round) is copied in alone."""
+        depth estimate (point lights, each round) is copied in alone.  ``images`` :data:`_RESIDENT`
+        (:meth:`rerun`): the frame already there, uploaded by an earlier run."""
         s = self.solver
-        key = (id(images), id(valid))
+        key = self._frame_key if images is _RESIDENT else (id(images), id(valid))
         if self._frame_key != key:
             cfg = s.config
             if cfg.warm_start:
@@ -1265,6 +1269,7 @@ class RON:
             :class:`RONResult`.
         """
         t_all = time.perf_counter()
+        resident = images is _RESIDENT
         warm_start = start is not None
         if warm_start:
             start_normals, start_highlight = start
@@ -1286,7 +1291,12 @@ class RON:
         c = self.config
         m = self.mask
         self._last_move = None
-        self._frame_key = self._frame_depth = self._solver_mask = None
+        self._solver_mask = None
+        if resident:
+            if self._shadows is not None:
+                self._shadows.restore()  # (the caller's observations: the last run's passes dropped some)
+        else:
+            self._frame_key = self._frame_depth = None
         step = progress or (lambda *a: None)
         timings = {"least_squares": 0.0, "dgmc": 0.0, "normals": 0.0, "integration": 0.0, "material": 0.0,
                    "shadows": 0.0}
@@ -1461,9 +1471,13 @@ class RON:
         refinement = None
         if c.refine and depth_out is not None:
             step(total, total, "depth refinement")
+            if resident and c.refine_two_light:  # (the two-light start reads the frame as it is on the device)
+                images = self.solver.images.numpy().reshape(self.shape + (3,))
+                v = self._shadows.valid0 if self._shadows is not None else self.solver.valid
+                valid = v.numpy().astype(bool)
             depth_out, refinement = self._refine(out, depth_out, depth_mask, material, timings,
                                                  progress=lambda d, t, msg: step(total, total, msg),
-                                                 images=images, valid=valid)
+                                                 images=None if images is _RESIDENT else images, valid=valid)
         shadowed = sh.shadowed() if sh is not None and shadow_stats else None
         step(total, total, "done")
         timings["total"] = time.perf_counter() - t_all
@@ -1477,6 +1491,37 @@ class RON:
             start_normals=start, material_fit=fits, integration_residual=ires, timings=timings, warnings=notes,
             shadows=shadow_stats, shadowed=shadowed, refinement=refinement,
         )
+
+    @property
+    def frame(self):
+        """The solver's frame on its device: (N, H, W) ``wp.vec3`` images, as the last run uploaded them (a
+        caller may change them there before :meth:`rerun`); None before a run."""
+        return None if self._frame_key is None else self.solver.images
+
+    def rerun(self, start, material: Material, *, depth=None, reference_depth: float | None = None,
+              progress: Progress | None = None) -> RONResult:
+        """:meth:`run` again on the frame the last run left on the solver's device, as a caller changed it there
+        since (:attr:`frame`; the interreflection compensation subtracts the indirect light in place,
+        :meth:`gpps.pipeline.interreflection.Interreflections.subtract_from`): nothing is uploaded, the noise
+        levels are the last upload's, the observations the caller's of that run (the cast-shadow passes' drops
+        undone).  ``material`` is known (nothing estimated, no models compared) and every pixel starts warm from
+        ``start`` (``(normals, highlight)``, as :meth:`run`'s).
+
+        Raises:
+            RuntimeError: no run has put a frame on the device.
+        """
+        if self._frame_key is None:
+            raise RuntimeError("rerun: no frame on the device (run first)")
+        if not isinstance(material, Material):
+            raise TypeError(f"material: expected gpps.material.Material, got {type(material).__name__}")
+        if start is None:
+            raise ValueError("start: expected (normals, highlight) to start every pixel from, got None")
+        saved = self.config, self.material
+        self.config, self.material = replace(self.config, estimate=(), models=()), material
+        try:
+            return self.run(_RESIDENT, depth=depth, reference_depth=reference_depth, progress=progress, start=start)
+        finally:
+            self.config, self.material = saved
 
     def _device_rounds(self, reference_depth, estimating: bool):
         """The device side of the rounds (:class:`DeviceRounds`, built once), or None (every round on

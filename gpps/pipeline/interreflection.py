@@ -261,6 +261,71 @@ class Interreflections(Stage):
         res[:, recv[:, 0], recv[:, 1], :] = out.numpy().transpose(1, 0, 2)
         return res
 
+    def indirect_total(self, albedo, max_albedo: float = np.inf) -> float:
+        """The indirect light per unit ``tau`` of the last :meth:`step`, summed over the receivers, images and
+        channels: ``sum kd * S`` with ``kd`` the albedo clipped to ``[0, max_albedo]`` (NaN: 0), reduced on the
+        device (one float per receiver comes back, summed in float64).  Keeps ``kd`` on the device for
+        :meth:`subtract_from`.
+
+        Args:
+            albedo: (H, W, 3) albedo of the receivers (the reconstruction's, in the images' scale).
+            max_albedo: the receivers' albedo is taken as at most this (> 0; ``1 / tau``).
+        """
+        from gpps.kernels import interreflection_subtract as isk
+
+        wp = warp()
+        self._check_open()
+        if self.recv is None or self.out is None:
+            raise ValueError("Interreflections: upload a surface and step first")
+        n, h, w = self.shape
+        alb = as_array("albedo", albedo, shape=(h, w, 3), dtype=np.float32, finite=False)
+        self._max_albedo = (float(max_albedo) if isinstance(max_albedo, (float, np.floating)) and np.isposinf(max_albedo)
+                            else check_number("max_albedo", max_albedo, lo=0.0, lo_open=True))
+        d = self.device
+        self._albedo = wp.array(alb, dtype=wp.vec3, device=d)
+        R = int(self.recv.shape[0])
+        if R == 0:
+            return 0.0
+        sums = wp.empty(R, dtype=wp.float32, device=d)
+        wp.launch(isk.indirect_sums_kernel, dim=R,
+                  inputs=[self.out, self.recv, self._albedo, float(min(self._max_albedo, 3.0e38)), sums], device=d)
+        return float(sums.numpy().sum(dtype=np.float64))
+
+    def subtract_from(self, frame, coef: float, *, observed=None) -> None:
+        """The frame less the indirect light, on the device: ``frame = max(observed - coef * kd * S, 0)`` at every
+        receiver, the other pixels untouched (:func:`gpps.kernels.interreflection_subtract.subtract_indirect_kernel`;
+        ``kd`` as the last :meth:`indirect_total` took it).
+
+        Args:
+            frame: (N, H, W) ``wp.vec3`` images on the stage's device (a pixel solver's frame,
+                :attr:`gpps.flows.reconstruction.ResidentFrame.images`), written in place.
+            coef: ``tau`` times the frame's scale over the images the sources' radiance came from (>= 0).
+            observed: the images to subtract from, as ``frame`` (None: ``frame`` itself; a later round subtracts
+                from the observed images, kept aside, not from the last round's result).
+        """
+        from gpps.kernels import interreflection_subtract as isk
+
+        wp = warp()
+        self._check_open()
+        if getattr(self, "_albedo", None) is None:
+            raise ValueError("Interreflections: indirect_total(albedo) first (it sets the receivers' albedo)")
+        coef = check_number("coef", coef, lo=0.0)
+        n, h, w = self.shape
+        src = frame if observed is None else observed
+        for name, arr in (("frame", frame), ("observed", src)):
+            if not isinstance(arr, wp.array) or arr.dtype != wp.vec3 or tuple(arr.shape) != (n, h, w):
+                got = (f"{type(arr).__name__}" if not isinstance(arr, wp.array)
+                       else f"shape {tuple(arr.shape)} of {wp.types.type_repr(arr.dtype)}")
+                raise ValueError(f"{name}: expected an ({n}, {h}, {w}) wp.vec3 array, got {got}")
+            if str(arr.device) != str(self.device):
+                raise ValueError(f"{name}: expected an array on {self.device}, got one on {arr.device}")
+        R = int(self.recv.shape[0])
+        if R == 0:
+            return
+        wp.launch(isk.subtract_indirect_kernel, dim=(R, n),
+                  inputs=[src, self.out, self.recv, self._albedo, float(min(self._max_albedo, 3.0e38)), float(coef),
+                          frame], device=self.device)
+
     def fetch(self) -> np.ndarray:
         """(N, H, W, 3) float32 gathered radiance per unit albedo (0 off the mask)."""
         self._check_open()
@@ -273,7 +338,7 @@ class Interreflections(Stage):
         return res
 
     def close(self) -> None:
-        for name in ("recv", "src", "radiance", "out"):
+        for name in ("recv", "src", "radiance", "out", "_albedo"):
             self.__dict__.pop(name, None)
         self._release_buffers()
         self._closed = True
