@@ -432,6 +432,14 @@ def test_folder_flow_keeps_the_first_model(tmp_path, device, monkeypatch):
     assert recs[1][0] is recs[0][1]
     assert set(on.report["model_energies"]) == {"blinn-phong", "conductor", "plastic"}
     assert on.report["material"]["brdf"] == chosen.brdf
+    # (report.json's stage times are the whole call's: the three reconstructions' summed, the gathers a stage)
+    t, ir = on.report["timings"], on.report["interreflections"]
+    every = [recs[0][0].timings] + [r.timings for _, r in recs]
+    for stage in ("least_squares", "dgmc", "normals", "material"):
+        assert t[stage] == pytest.approx(sum(x[stage] for x in every), rel=1e-9, abs=1e-12)
+    assert t["normals"] > recs[1][1].timings["normals"] > 0
+    assert t["interreflections"] == pytest.approx(sum(ir["round_seconds"]["gather"])) and t["interreflections"] > 0
+    assert t["total"] == ir["seconds"] >= sum(x["total"] for x in every) + t["interreflections"] - 1e-6
 
 
 def test_assumed_scale_follows_the_rule(device):

@@ -699,7 +699,13 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
         finally:
             solve.close()
         out.update(normals=rec.normals, albedo=rec.albedo, depth=rec.depth, depth_mask=rec.depth_mask, flags=rec.flags)
-        report.update(solver=config.solver, robust=robust, timings=rec.timings, material=rec.material.to_dict(),
+        # (the stage times of every reconstruction the call ran, summed; the compensation's gathers as a stage)
+        timings = solve.timings()
+        gathers = report["interreflections"].get("round_seconds", {}).get("gather", [])
+        if gathers:
+            timings["interreflections"] = float(sum(gathers))
+            timings["total"] = report["interreflections"]["seconds"]
+        report.update(solver=config.solver, robust=robust, timings=timings, material=rec.material.to_dict(),
                       estimated=rec.estimated, fixed=rec.fixed,
                       known=sorted(given_names) if not config.known_material else "material.json",
                       energy_per_round=rec.energy, rounds=rec.rounds, converged=rec.converged,
@@ -740,6 +746,16 @@ class _FolderSolve:
         self.config, self.device, self.progress = config, device, progress
         self.frame = None  #: the first reconstruction's ResidentFrame (its frame on the device), after the first call
         self.first = self.last = None  #: the first and the last reconstruction
+        self.calls = []  #: the stage times (s) of the reconstructions through this call's ``reconstruct``
+        self.frame_calls = []  #: the frame's solves' stage times (s): its first and its :meth:`ResidentFrame.again`
+
+    def timings(self) -> dict:
+        """Every reconstruction's stage times summed (s): the whole call's, not only the last reconstruction's."""
+        out = {}
+        for t in (self.frame.timings if self.frame is not None else self.frame_calls) + self.calls:
+            for k, v in t.items():
+                out[k] = out.get(k, 0.0) + v
+        return out
 
     def __call__(self, images):
         from gpps.flows.reconstruction import ResidentFrame
@@ -757,10 +773,12 @@ class _FolderSolve:
                                 reference_depth=self.reference, valid=self.valid,
                                 config=replace(self.config, models=()), device=self.device, progress=self.progress,
                                 start=last)
+        self.calls.append(dict(self.last.timings))
         return self.last
 
     def close(self) -> None:
         if self.frame is not None:
+            self.frame_calls = list(self.frame.timings)
             self.frame.close()
             self.frame = None
 

@@ -281,6 +281,7 @@ class ResidentFrame:
                         self._prep.config, device=device)
         self._depth, self._reference = depth, reference_depth
         self.runs = 0  #: solves of the frame so far (:meth:`run` and :meth:`again`)
+        self.timings: list[dict] = []  #: each solve's stage times (s), in order (:attr:`Reconstruction.timings`)
 
     @property
     def images(self):
@@ -312,7 +313,9 @@ class ResidentFrame:
         res = ron.run(p.images, depth=self._depth, reference_depth=self._reference, valid=p.valid, progress=progress,
                       start=pair)
         self.runs += 1
-        return _result(res, p)
+        out = _result(res, p)
+        self.timings.append(dict(out.timings))
+        return out
 
     def again(self, start: Reconstruction, *, progress=None) -> Reconstruction:
         """The frame as changed on the device since, solved again: ``start``'s material kept (nothing estimated),
@@ -342,7 +345,9 @@ class ResidentFrame:
         res = ron.rerun((start.normals, start.highlight), material, depth=depth, reference_depth=self._reference,
                         progress=progress)
         self.runs += 1
-        return _result(res, p)
+        out = _result(res, p)
+        self.timings.append(dict(out.timings))
+        return out
 
     def close(self) -> None:
         """Free the stages' buffers (later calls raise RuntimeError)."""
