@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import gpps
+from conftest import RENDER_DEVICE
 from gpps.flows.ron import RON, RONConfig
 from gpps.flows.synthetic import default_lights, render
 from gpps.host.metrics import normal_errors
@@ -82,7 +83,7 @@ def test_models_config_errors():
                          device="cpu")
 
 
-def test_folder_and_cli_pass_the_models(tmp_path, monkeypatch, capsys):
+def test_folder_and_cli_pass_the_models(tmp_path, monkeypatch, capsys, device):
     """``FolderConfig(models=...)`` / ``gpps reconstruct --compare-models`` reach RON when every lobe parameter
     is estimated; with a known parameter they are left out and the report says so; a bad name names the option;
     ``FolderConfig(cast_shadows=...)`` reaches RON too."""
@@ -92,7 +93,7 @@ def test_folder_and_cli_pass_the_models(tmp_path, monkeypatch, capsys):
     from gpps.io import write_dataset
 
     sc = make_scene("sphere", 24, "orthographic")
-    ds = gpps.render_dataset(sc, COOK, default_lights("directional", 6), bits=16, seed=0, device="cpu")
+    ds = gpps.render_dataset(sc, COOK, default_lights("directional", 6), bits=16, seed=0, device=RENDER_DEVICE)
     cap = write_dataset(tmp_path / "cap", ds)
     seen = []
     real = folder.reconstruct
@@ -113,15 +114,15 @@ def test_folder_and_cli_pass_the_models(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(folder, "reconstruct", spy)
     monkeypatch.setattr(ResidentFrame, "__init__", spy_init)
     cfg = gpps.FolderConfig(brdf="cook-torrance", rounds=2, models=("plastic",), integrate=False)
-    res = gpps.reconstruct_folder(cap, cfg, device="cpu")
+    res = gpps.reconstruct_folder(cap, cfg, device=device)
     assert seen[-1] == ("plastic",) and set(res.report["timings"]) >= {"material"}
     e = res.report["model_energies"]
     assert set(e) == {"cook-torrance", "plastic"} and res.report["material"]["brdf"] == min(e, key=e.get)
     res = gpps.reconstruct_folder(cap, gpps.FolderConfig(brdf="cook-torrance", rounds=2, models=("plastic",),
-                                                         integrate=False, ks=0.6), device="cpu")
+                                                         integrate=False, ks=0.6), device=device)
     assert seen[-1] == () and "models" in res.report["models_ignored"]
     gpps.reconstruct_folder(cap, gpps.FolderConfig(brdf="cook-torrance", rounds=2, integrate=False, known_material=True,
-                                                   cast_shadows=True), device="cpu")
+                                                   cast_shadows=True), device=device)
     assert shadows == [False, False, True]  # (FolderConfig.cast_shadows reaches RON; off by default)
     with pytest.raises(ValueError, match="models"):
         gpps.FolderConfig(models=("wood",))
