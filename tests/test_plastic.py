@@ -18,7 +18,7 @@ from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material
 from gpps.pipeline.params import material_params
 
-F32 = np.finfo(np.float32).eps  # the kernels' unit roundoff
+F32 = float(np.finfo(np.float32).eps)  # the kernels' unit roundoff (a Python float: pytest 9.2's approx refuses numpy scalars as tolerances)
 
 
 def _fresnel_sp(c, eta):
