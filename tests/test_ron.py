@@ -176,6 +176,35 @@ def test_reconstruct_unknown_material(brdf, camera, kind, device):
     assert [msgs.index(m) for m in order] == sorted(msgs.index(m) for m in order), msgs[:8]
 
 
+def test_later_rounds_report_their_kernels_loading(device, monkeypatch):
+    """A later round's solve can need kernels the first round's did not (the warm configuration, another model):
+    their first compile (seconds a module on the CPU, minutes on CUDA) reports as the first round's does, under the
+    round's name, so the progress keeps moving (issue 20: at least every 5 s).  The compile is simulated: every
+    solve's ``PixelSolver.load`` says it is loading; the solve itself is the real one."""
+    from gpps.pipeline.solver import PixelSolver
+
+    img, L, sc, sat = _case("blinn-phong", "orthographic", "directional")
+    real = PixelSolver.load
+    loads = []
+
+    def load(self, progress=None):
+        loads.append(progress is not None)
+        if progress is not None:
+            progress(1.0, None, "loading the solver's kernels (1 s)")
+        return real(self, progress=progress)
+
+    monkeypatch.setattr(PixelSolver, "load", load)
+    calls = []
+    rec = gpps.reconstruct(img, sc.mask, L, camera=sc.camera, material="blinn-phong", saturation=sat, device=device,
+                           progress=lambda d, t, msg: calls.append((d, t, msg)))
+    assert rec.rounds >= 2 and loads and all(loads)  # (every load was given a progress callback)
+    msgs = [m for _, _, m in calls]
+    for r in range(1, rec.rounds + 1):
+        assert f"round {r}: normals: loading the solver's kernels (1 s)" in msgs, (r, sorted(set(msgs)))
+    done = [d for d, _, _ in calls]
+    assert done == sorted(done)  # (the loading reports do not move the progress back)
+
+
 def test_warm_rounds_match_cold_rounds(device):
     """The continuation defaults (later material fits from warm starts, normals cold only in the first
     ``cold_rounds``) reach what every round cold reaches, on a 3-image Cook-Torrance scene."""

@@ -756,7 +756,7 @@ class RON:
             warp().copy(self.solver.normals, init)
 
     def _solve(self, images, depth, valid, material, *, starts=None, init=None, init_mask=None, mask=None,
-               cold: bool = True, progress=None, fetch: bool = True) -> dict | None:
+               cold: bool = True, progress=None, fetch: bool = True, load=None) -> dict | None:
         """Steps 1/2/5: cold multi-start solve of ``mask``; where ``init`` is given, also a
         warm-started solve from it (on ``init_mask``); the lower residual wins per pixel, merged on
         the device (:meth:`PixelSolver.merge_saved`).  ``cold=False`` (needs ``init`` on the whole
@@ -765,8 +765,16 @@ class RON:
         RON reads come back.  ``progress(fraction)``: on the CPU, told as the solves' row ranges
         finish (the cold solve is the first 0.8 of a cold+warm pair).  ``init``: (H, W, 3) host
         normals or a Warp buffer of them on the solver's device.  ``fetch=False``: nothing comes
-        back (None; the outputs stay in the solver's buffers)."""
+        back (None; the outputs stay in the solver's buffers).  ``load``: ``load(seconds, None, message)``, told
+        every second while a solve's kernels compile before it (:meth:`PixelSolver.load`; a later round's solve
+        can need kernels the first did not: another model, the warm configuration)."""
         s = self.solver
+
+        def step(part):
+            if load is not None:
+                s.load(progress=load)  # (a no-op once loaded)
+            s.step(part)
+
         cfg = self.config.solver
         m = self.mask if mask is None else mask
         s.set_material(material)
@@ -778,12 +786,12 @@ class RON:
                 s.set_config(replace(cfg, warm_start=True, starts=1))
                 self._set_mask(m)
                 self._set_start(init)
-                s.step(_part(progress, 0.0, 1.0))
+                step(_part(progress, 0.0, 1.0))
                 return s.fetch(_OUTPUTS) if fetch else None
             s.set_config(cfg if starts is None else replace(cfg, starts=starts))
             share = 0.8 if init is not None else 1.0
             self._set_mask(m)
-            s.step(_part(progress, 0.0, share))
+            step(_part(progress, 0.0, share))
             if init is not None:
                 im = m if init_mask is None else (init_mask & m)
                 if im.any():
@@ -792,7 +800,7 @@ class RON:
                     s.set_config(replace(cfg, warm_start=True, starts=1, neighbour_radius=0, smoothness=0.0))
                     self._set_mask(im)
                     self._set_start(init)
-                    s.step(_part(progress, share, 1.0))
+                    step(_part(progress, share, 1.0))
                     s.merge_saved()
             return s.fetch(_OUTPUTS) if fetch else None
         finally:
@@ -1350,9 +1358,16 @@ class RON:
                 self.solver.load(progress=lambda s, _t, msg, r=r: step(3 * r - 2, total,
                                                                          f"round {r}: normals: {msg}"))
                 step(3 * r - 2, total, f"round {r}: normals")
+            at = [3 * r - 2]  # (where the round's solves are: a kernels' load reports there, not back at the start)
+
+            def solved(f, r=r, at=at):
+                at[0] = 3 * r - 2 + f
+                step(at[0], total, f"round {r}: normals")
+
             out = self._solve(images, solve_depth, valid, material, init=init, init_mask=init_mask,
                               cold=not warm_start and (r <= c.cold_rounds or init is None), fetch=not on_device,
-                              progress=lambda f: step(3 * r - 2 + f, total, f"round {r}: normals"))
+                              progress=solved,
+                              load=lambda _s, _t, msg, r=r, at=at: step(at[0], total, f"round {r}: normals: {msg}"))
             if front:
                 # DGMC on the solved front (4.16-4.18): highlight pixels start from their solved
                 # neighbours ring by ring; the lower residual wins per pixel; each front pixel started from
