@@ -219,3 +219,15 @@ def valley_residual_kernel(
     u = b - 0.3 * a - 0.5 * a * a
     f = a * a + 8.0 * u * u + 0.01
     residual[k, i] = weights[i] * wp.sqrt(f)
+
+
+def make_scale_kernel(factor: float):
+    """A kernel ``out[i] = factor * a[i]`` in a Warp module of its own (a new module each call: a compile that no
+    cache holds for a new ``factor``; tests/test_prefetch.py)."""
+
+    @wp.kernel(module="unique")
+    def scale_kernel(a: wp.array(dtype=wp.float32), out: wp.array(dtype=wp.float32)):
+        i = wp.tid()
+        out[i] = wp.static(factor) * a[i]
+
+    return scale_kernel

@@ -75,18 +75,20 @@ from gpps.host.two_light import dark_observations, two_light_log_depth
 from gpps.lights import PointLights
 from gpps.material import Material
 from gpps.names import BRDF_NAMES, BRDF_TAG, CONDUCTOR, LOBE_PARAMETERS, LOBE_RANGES
+from gpps.pipeline.cpu_threads import cpu_threads
 from gpps.pipeline.depth_refine import DepthRefineConfig, DepthRefiner
 from gpps.pipeline.dgmc import DeviceDGMC
 from gpps.pipeline.front import DeviceFront, propagate_front, propagate_front_device
 from gpps.pipeline.integration import Integrator, IntegratorConfig, warn_log_depth_span
 from gpps.pipeline.integration_rounds import DeviceSystem
-from gpps.pipeline.material import MaterialScorer
+from gpps.pipeline.material import MaterialScorer, scorer_kernels
 from gpps.pipeline.material_search import NelderMeadSearch
 from gpps.pipeline.render import Renderer
 from gpps.pipeline.ron_rounds import DeviceRounds
 from gpps.pipeline.ron_shadows import RoundShadows
 from gpps.pipeline.shadows import ShadowConfig
-from gpps.pipeline.solver import PixelSolver, SolverConfig
+from gpps.pipeline.prefetch import KernelPrefetch, prefetch_enabled
+from gpps.pipeline.solver import PixelSolver, SolverConfig, solver_kernels
 from gpps.pipeline.stream_material import lobe_value, with_lobe
 
 __all__ = [
@@ -680,6 +682,7 @@ class RON:
         self._shadows = None  # the cast-shadow pass (RoundShadows), built at the first run that uses it
         self._dgmc = None  # DGMC's stage (DeviceDGMC), built at the first run that uses it
         self._front = None  # the solved front's stage on the solver (DeviceFront), likewise
+        self._prefetch = None  # the first run's compiles ahead (KernelPrefetch), kept until close
         self.integrator = None
         if self.config.integrate:
             # default, perspective: BiNI's n_z^2 confidence weighting: grazing rim normals (a few degrees off
@@ -692,6 +695,9 @@ class RON:
     def close(self) -> None:
         """Free the integrator's Taichi fields, the device rounds', the cast-shadow pass's, DGMC's, the front's, the
         material scorer's and searches' and the solvers' buffers (the RON refuses work afterwards)."""
+        if self._prefetch is not None:
+            self._prefetch.close()
+            self._prefetch = None
         if self._rounds is not None:
             self._rounds.close()
             self._rounds = None
@@ -719,6 +725,56 @@ class RON:
             if stage is not None:
                 stage.close()
                 setattr(self, name, None)
+
+    def kernel_plan(self, *, warm_start: bool = False, compared: bool = True) -> list:
+        """The Warp kernels and modules a :meth:`run` launches, in about the order of their first launch: what
+        :class:`gpps.pipeline.prefetch.KernelPrefetch` compiles ahead on a first run (an empty kernel cache).
+
+        Built from the stages' own choices (:func:`gpps.pipeline.solver.solver_kernels`,
+        :func:`gpps.pipeline.material.scorer_kernels`); the lights-parallel builds, the Taichi kernels and the
+        stages a run builds only for unusual settings are left out (they compile at their first launch, as
+        without a plan).  The compared models' solve kernels come last: only the chosen model's are launched.
+        ``tests/test_prefetch.py`` checks that a run launches no gpps module outside the plan.
+
+        Args:
+            warm_start: the plan of a run from given start normals (``run(start=...)``): no least squares, no DGMC.
+            compared: include the solve kernels of the compared models (``RONConfig.models``), of which the run
+                launches the chosen one's only.
+        """
+        c, n, dev, brdf = self.config, self.shape[0], self.device, self.material.brdf
+        plan: list = []
+        if not warm_start:
+            plan += solver_kernels(replace(c.solver, solver="none", smoothness=0.0), brdf, dev, n)
+            if c.dgmc and brdf != "lambertian":
+                plan += DeviceDGMC.kernel_modules()
+        plan += solver_kernels(c.solver, brdf, dev, n)
+        plan += DeviceFront.kernel_modules()
+        if c.device_rounds is not False and c.rounds > 1:
+            plan += DeviceRounds.kernel_modules()
+        models = (brdf,) + tuple(b for b in c.models if b != brdf)
+        if c.estimate and c.material_rule == "photometric":
+            fit = replace(c.solver, starts=c.material_starts, neighbour_radius=0, smoothness=0.0, warm_start=False)
+            for b in models:
+                plan += scorer_kernels(fit, b, dev, n)
+        if c.cast_shadows and c.integrate and c.rounds > 1:
+            plan += RoundShadows.kernel_modules()
+        if compared:
+            for b in models[1:]:
+                plan += solver_kernels(c.solver, b, dev, n)
+        return plan
+
+    def _compile_ahead(self, warm_start: bool) -> None:
+        """At the first run: :meth:`kernel_plan`'s modules compiled ahead on helper threads
+        (:mod:`gpps.pipeline.prefetch`; ``GPPS_PREFETCH=0`` turns it off).  Each module already in the kernel cache
+        costs the helper a hash; a loaded one nothing."""
+        if self._prefetch is not None or not prefetch_enabled():
+            return
+        self._prefetch = KernelPrefetch(self.device)
+        # the compared models' solves: all but one compiled for nothing.  On CUDA they compile on host cores the
+        # GPU's solves leave idle; on a CPU of few cores a helper's compile takes a core from the solves (DiLiGenT
+        # ball on 2 cores: 1.86 cores busy warm), so only from 4 cores on
+        compared = not self.device.startswith("cpu") or cpu_threads() >= 4
+        self._prefetch.submit(self.kernel_plan(warm_start=warm_start, compared=compared))
 
     # ------------------------------------------------------------------ steps
 
@@ -1298,6 +1354,7 @@ class RON:
                                  f"shape {start_highlight.shape}")
         c = self.config
         m = self.mask
+        self._compile_ahead(warm_start)
         self._last_move = None
         self._solver_mask = None
         if resident:
@@ -1630,6 +1687,9 @@ class RON:
         s.set_config(replace(c.solver, solver="none", smoothness=0.0))
         self._frame(images, solve_depth, valid)
         self._set_mask(m)
+        # (its kernels compile at their first use in an installation, or a helper compiling them ahead finishes:
+        # gpps.pipeline.prefetch; told as a least-squares message)
+        s.load(progress=None if report is None else (lambda _s, _t, msg: report(f"least squares: {msg}")))
         s.step()
         dgmc = c.dgmc and self.material.brdf != "lambertian"
         if not dgmc:

@@ -26,6 +26,7 @@ import numpy as np
 
 from gpps import _fpenv
 from gpps._runtime import warp
+from gpps.pipeline.prefetch import settle
 
 __all__ = ["cpu_threads", "run_all", "balanced_bounds", "load_first", "run_reporting"]
 
@@ -51,7 +52,9 @@ def cpu_threads() -> int:
 
 
 def load_first(kernel, device) -> None:
-    """Compile / load ``kernel``'s Warp module on this thread before launches from several threads race to."""
+    """Compile / load ``kernel``'s Warp module on this thread before launches from several threads race to (after a
+    helper's compile of it ahead, if one is running: :func:`gpps.pipeline.prefetch.settle`)."""
+    settle(kernel, device)
     warp().load_module(kernel.module, device=device)
 
 

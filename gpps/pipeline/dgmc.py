@@ -72,6 +72,7 @@ class DeviceDGMC(Stage):
         self.config = cfg
         self.shape = (n, h, w)
         self.device = resolve_device(device)
+        self._settle(*self.kernel_modules())
         d = self.device
         k = int(cfg.k_nearest)
         f64, i32, u8 = wp.float64, wp.int32, wp.uint8
@@ -124,6 +125,12 @@ class DeviceDGMC(Stage):
         self._closed = False
 
     # ------------------------------------------------------------------ upload
+
+    @staticmethod
+    def kernel_modules() -> list:
+        """The Warp modules this stage launches (:meth:`gpps.flows.ron.RON.kernel_plan`)."""
+        wp = warp()
+        return [wp.get_module(dk.__name__), wp.get_module(dg.__name__)]
 
     def upload(self, images, mask, normals, *, lights=None, points=None) -> None:
         """Copy a frame into the stage's buffers.

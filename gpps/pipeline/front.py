@@ -59,10 +59,16 @@ class DeviceFront(Stage):
     outside the rings as they were).
     """
 
+    @staticmethod
+    def kernel_modules() -> list:
+        """The Warp modules this stage launches (:meth:`gpps.flows.ron.RON.kernel_plan`)."""
+        return [warp().get_module(fk.__name__)]
+
     def __init__(self, solver):
         wp = warp()
         self.solver = solver
         self.device = solver.device
+        self._settle(*self.kernel_modules())
         h, w = solver.shape[1:]
         d = self.device
         self.pixels = wp.zeros(h * w, dtype=wp.int32, device=d)  # ring pixels (flat), ring by ring

@@ -99,6 +99,28 @@ def trimmed_energy(residual, trim: float) -> np.ndarray:
     return e[0] if one else e
 
 
+def _split_starts(config: SolverConfig, device: str, split_starts: bool | None, parallel: str) -> bool:
+    """Whether a :class:`MaterialScorer` runs its starts on threads of their own (its ``split_starts``)."""
+    if split_starts is None:
+        split_starts = config.split_starts
+    return (bool(split_starts) if split_starts is not None
+            else (str(device).startswith("cuda") and max(int(config.starts), 1) > 1)) and parallel != "lights"
+
+
+def scorer_kernels(config: SolverConfig, brdf: str, device: str, lights: int) -> list:
+    """The kernels a :class:`MaterialScorer` built with ``config`` (and its default ``parallel`` and
+    ``split_starts``) launches for the model ``brdf``, ``lights`` images on ``device``; the lights-parallel build
+    (launched with a block size of its own) left out.  For :mod:`gpps.pipeline.prefetch`'s plans."""
+    robust = config.robust if config.irls_rounds > 0 else "none"
+    parallel = resolve_parallel(config.parallel, device, lights)
+    kernels = [warp().get_module(sb.__name__)]  # (the trimmed-energy and gather kernels)
+    if parallel != "lights":
+        kernels.append(sb.get_batched_kernel(config.solver, brdf, robust, cache=term_cache_size(device, lights)))
+    if _split_starts(config, device, None, parallel):
+        kernels += list(sb.get_batched_starts_kernels(config.solver, brdf, robust))
+    return kernels
+
+
 class MaterialScorer(Stage):
     """Scores candidate materials on a resident pixel sample: K candidates x P pixels per launch.
 
@@ -199,14 +221,12 @@ class MaterialScorer(Stage):
         if split_starts is not None:
             check_bool("split_starts", split_starts)
         ns = max(int(config.starts), 1)
-        if split_starts is None:
-            split_starts = config.split_starts
-        self.split_starts = (bool(split_starts) if split_starts is not None
-                             else (self.device.startswith("cuda") and ns > 1)) and parallel != "lights"
+        self.split_starts = _split_starts(config, self.device, split_starts, parallel)
         if self.split_starts:
             self._starts_kernels = sb.get_batched_starts_kernels(config.solver, brdf, robust)
             self._start_bufs = [self._buffer((km, pm, ns), dt, d)
                                 for dt in (wp.vec3, wp.vec3, wp.float32, wp.int32, wp.int32)]
+        self._settle(wp.get_module(sb.__name__), self._kernel, *(self._starts_kernels if self.split_starts else ()))
         self.strip = self._buffer((n, 1, pm), wp.vec3, d)
         self.strip_valid = self._buffer((n, 1, pm), wp.uint8, d, fill=1)
         self.rows = self._buffer(pm, wp.int32, d)

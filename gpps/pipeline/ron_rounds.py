@@ -44,10 +44,16 @@ class DeviceRounds(Stage):
             rejects: no device integration, :attr:`integrates` False).
     """
 
+    @staticmethod
+    def kernel_modules() -> list:
+        """The Warp modules this stage launches (:meth:`gpps.flows.ron.RON.kernel_plan`)."""
+        return [round_sums_kernel.module]
+
     def __init__(self, solver: PixelSolver, mask, integrator: Integrator | None = None):
         wp = warp()
         self.solver = solver
         self.device = solver.device
+        self._settle(*self.kernel_modules())
         n, h, w = solver.shape
         m = np.asarray(mask, bool)
         if m.shape != (h, w):

@@ -49,12 +49,18 @@ class RoundShadows(Stage):
         few: ``"keep"`` or ``"flag"`` (module docstring).
     """
 
+    @staticmethod
+    def kernel_modules() -> list:
+        """The Warp modules this stage launches (:meth:`gpps.flows.ron.RON.kernel_plan`)."""
+        return [shadowed_valid_kernel.module]
+
     def __init__(self, solver: PixelSolver, mask, config: ShadowConfig | None = None, few: str = "keep"):
         wp = warp()
         if few not in FEW_RULES:
             raise ValueError(f"few: expected one of {list(FEW_RULES)}, got {few!r}")
         self.solver = solver
         self.device = solver.device
+        self._settle(*self.kernel_modules())
         n, h, w = solver.shape
         m = np.asarray(mask, bool)
         if m.shape != (h, w):

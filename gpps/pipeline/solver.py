@@ -55,6 +55,7 @@ from gpps.names import (
 from gpps.names import ROBUST_TAG as _ROBUST_TAG
 from gpps.names import SOLVER_TAG as _SOLVER_TAG
 from gpps.pipeline.cpu_threads import balanced_bounds, cpu_threads, run_all, run_reporting
+from gpps.pipeline.prefetch import settle
 from gpps.pipeline.params import camera_params, light_params, material_params, resolve_parallel, uses_lanes
 from gpps.pipeline.stage import Stage
 
@@ -518,6 +519,40 @@ def check_scale(scale: float, *, low: bool = True) -> None:
 OUTPUTS = ("normals", "albedo", "residual", "iterations", "flags", "cond", "weights")
 
 
+def _robust_code(c: SolverConfig) -> str:
+    """The robust loss the kernels are specialised for: none without a reweighting round (no IRLS code)."""
+    return c.robust if c.irls_rounds > 0 else "none"
+
+
+def _split_starts(c: SolverConfig, device: str) -> bool:
+    """Whether a whole-image solve with ``c`` runs the starts-parallel kernels (``SolverConfig.split_starts``)."""
+    on = c.split_starts if c.split_starts is not None else str(device).startswith("cuda")
+    return bool(on) and c.starts > 1 and not c.warm_start and c.solver != "none"
+
+
+def solver_kernels(config: SolverConfig, brdf: str, device: str, lights: int, *, split: bool | None = None) -> list:
+    """The kernels a :class:`PixelSolver` with ``config`` and the model ``brdf`` launches for a whole-image solve
+    of ``lights`` images on ``device`` (the specialisations :meth:`PixelSolver.load` loads; the lights-parallel
+    build, launched with a block size of its own, is left out), with the modules of its merge and subset scatter.
+    For :mod:`gpps.pipeline.prefetch`'s plans.
+
+    Args:
+        split: whether the solve runs the starts-parallel kernels (None: as :meth:`PixelSolver` decides for a cold
+            whole-image solve with this config).
+    """
+    robust = _robust_code(config)
+    solve, under, smooth = sk.get_solve_kernels(config.solver, brdf, robust,
+                                                cache=sk.term_cache_size(device, lights))
+    wp = warp()
+    kernels = [k for k in (solve, under, smooth) if k is not None]
+    kernels += [wp.get_module(mk.__name__), wp.get_module(fk.__name__)]  # (the device merge, a subset's scatter)
+    if split if split is not None else _split_starts(config, device):
+        kernels += list(sk.get_split_kernels(config.solver, brdf, robust))
+        if config.neighbour_radius > 0:
+            kernels += list(sk.get_split_under_kernels(config.solver, brdf, robust))
+    return kernels
+
+
 class PixelSolver(Stage):
     """Per-pixel calibrated photometric stereo on N images; buffers allocated once.
 
@@ -620,7 +655,7 @@ class PixelSolver(Stage):
         compiled on the first launch (or ``wp.load_module(kernel.module)``).
         """
         c = self.config
-        robust = c.robust if c.irls_rounds > 0 else "none"  # no reweighting round: no IRLS code
+        robust = _robust_code(c)
         self._solve_kernel, self._underdetermined_kernel, self._smooth_kernel = self._sk.get_solve_kernels(
             c.solver, self.material.brdf, robust, cache=self._sk.term_cache_size(self.device, self.shape[0])
         )
@@ -649,17 +684,14 @@ class PixelSolver(Stage):
         """
         self._check_open()
         wp = warp()
-        kernels = [self._solve_kernel, self._lanes_kernel]
-        if self._uses_split():
-            robust = self.config.robust if self.config.irls_rounds > 0 else "none"
-            kernels += list(self._sk.get_split_kernels(self.config.solver, self.material.brdf, robust))
-            if self.config.neighbour_radius > 0:
-                kernels += list(self._sk.get_split_under_kernels(self.config.solver, self.material.brdf, robust))
-        modules = [m for m in {id(k.module): k.module for k in kernels if k is not None}.values()
-                   if not self._loaded(m)]
+        kernels = [self._lanes_kernel] + solver_kernels(self.config, self.material.brdf, self.device,
+                                                        self.shape[0], split=self._uses_split())
+        found = (getattr(k, "module", k) for k in kernels if k is not None)  # (kernels, and modules)
+        modules = [m for m in {id(m): m for m in found}.values() if not self._loaded(m)]
 
         def task():
             for module in modules:
+                settle(module, self.device)  # (a helper compiling it ahead: gpps.pipeline.prefetch)
                 wp.load_module(module, device=self.device)
         report = None if progress is None or not modules else (
             lambda s: progress(s, None, f"loading the solver's kernels ({s:.0f} s)"))
@@ -890,9 +922,7 @@ class PixelSolver(Stage):
     def _uses_split(self, config: SolverConfig | None = None) -> bool:
         """Whether the next whole-image solve (or a :meth:`step_subset` with ``config``) runs the
         starts-parallel kernels (``config.split_starts``)."""
-        c = self.config if config is None else config
-        on = c.split_starts if c.split_starts is not None else self.device.startswith("cuda")
-        return bool(on) and c.starts > 1 and not c.warm_start and c.solver != "none"
+        return _split_starts(self.config if config is None else config, self.device)
 
     def _launch_split(self, ins, outs, config: SolverConfig | None = None, subset: tuple = ()) -> None:
         """A cold solve as :mod:`gpps.kernels.solve_split`'s three launches (recorded once per config; the

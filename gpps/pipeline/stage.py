@@ -19,6 +19,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 
 from gpps.pipeline import buffers
+from gpps.pipeline.prefetch import settle
 
 __all__ = ["Stage"]
 
@@ -49,6 +50,13 @@ class Stage(ABC):
         a = buffers.take(shape, dtype, device, fill)
         self.__dict__.setdefault("_pooled", []).append(a)
         return a
+
+    def _settle(self, *kernels) -> None:
+        """Before this stage's first launches: wait for a helper's compile of these kernels' (or modules') Warp
+        modules if one is running, so the launch loads the helper's binary instead of building it a second time
+        (:func:`gpps.pipeline.prefetch.settle`; a no-op without a helper).  Needs ``self.device``."""
+        for k in kernels:
+            settle(k, self.device)
 
     def _check_open(self) -> None:
         """ValueError naming the stage once :meth:`close` set ``_closed``: its buffers may belong to another

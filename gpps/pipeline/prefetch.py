@@ -1,0 +1,201 @@
+"""Kernel modules compiled ahead of their first launch, on helper threads (a first run's compiles overlapped).
+
+A Warp module compiles at its first launch in an installation: seconds a module on the CPU, more on CUDA.  A
+reconstruction launches some fifteen modules one after the other, so a first run (an empty kernel cache: a new
+install, a new Warp, a changed kernel) spends its compiles one at a time, on one core, between its solves
+(DiLiGenT ball on the 2-core development CPU: 22.6 s of a 67 s first run, none of it overlapped).
+
+:class:`KernelPrefetch` takes the modules a run will launch, in the order it will launch them
+(:meth:`gpps.flows.ron.RON.kernel_plan`), and compiles each into Warp's kernel cache on a helper thread while
+the run goes on.  It only compiles: the stage that launches a kernel still loads its module itself, and finds
+the binary in the cache instead of building it.  So a module is never loaded twice, a plan that names a module
+the run does not launch costs only that compile, and a run that launches a module the plan lacks compiles it
+as before.  Warp builds a module in a directory of its own per thread and moves it into the cache atomically,
+so a stage compiling a module the helper is also compiling builds it twice at worst; :func:`settle` (called by
+the stages' explicit load points) waits for the helper's build instead.
+
+Compiling without loading needs four of ``warp.Module``'s private methods (Warp is pinned to 1.19 in
+``pyproject.toml``); where they are missing the prefetch does nothing and says so in :attr:`KernelPrefetch.skipped`.
+The cache is checked the way ``Module.load`` checks it, so a warm cache costs the helper a module hash each.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Iterable
+
+from gpps._runtime import warp
+
+__all__ = ["KernelPrefetch", "compile_into_cache", "prefetch_enabled", "settle"]
+
+_ACTIVE: dict = {}  # (id(module), device) -> Future of its compile, while a KernelPrefetch holds it
+_ACTIVE_LOCK = threading.Lock()
+
+
+def prefetch_enabled() -> bool:
+    """Whether runs compile their kernels ahead (``GPPS_PREFETCH``: ``0`` turns it off; on by default)."""
+    env = os.environ.get("GPPS_PREFETCH", "1").strip().lower()
+    if env in ("0", "off", "false", "no"):
+        return False
+    if env in ("1", "on", "true", "yes", ""):
+        return True
+    raise ValueError(f"GPPS_PREFETCH: expected 0 or 1, got {env!r}")
+
+
+def _module_of(item):
+    """The Warp module of a kernel or a module (None for None)."""
+    if item is None:
+        return None
+    wp = warp()
+    if isinstance(item, wp.Module):
+        return item
+    module = getattr(item, "module", None)
+    if isinstance(module, wp.Module):
+        return module
+    raise TypeError(f"kernels: expected Warp kernels or modules, got {type(item).__name__}")
+
+
+def compile_into_cache(module, device) -> bool:
+    """Compile ``module`` for ``device`` into Warp's kernel cache unless it is there or loaded; do not load it.
+
+    The variant is the one a plain ``wp.launch`` loads: block size 1 on the CPU, 256 on CUDA.  The cache path,
+    output name and options are those ``Module.load`` uses, so its later load finds this binary.
+
+    Args:
+        module: a ``warp.Module`` (or a kernel: its module).
+        device: a Warp device or its name.
+
+    Returns:
+        True when it compiled, False when the binary was already there (or the module already loaded).
+
+    Raises:
+        AttributeError: this Warp lacks the private methods used (:class:`KernelPrefetch` then skips).
+    """
+    wp = warp()
+    module = _module_of(module)
+    dev = wp.get_device(device)
+    dim = 1 if dev.is_cpu else 256
+    if (dev.context, dim) in module.execs:
+        return False
+    module.get_module_hash(dim)  # (hashes the variant and resolves its options, as Module.load does)
+    options = module.resolved_options[dim]
+    name_short = module.get_module_identifier(dim)
+    module_dir = os.path.join(wp.config.kernel_cache_dir, name_short)
+    output_name = module._get_compile_output_name(dev, block_dim=dim)  # noqa: SLF001 - see the module docstring
+    output_arch = module._get_compile_arch(dev)  # noqa: SLF001
+    return bool(module._compile(dev, module_dir, output_name, output_arch, options=options))  # noqa: SLF001
+
+
+def settle(kernel_or_module, device) -> None:
+    """Wait for a helper's compile of this module for ``device`` if one is running (a stage about to load it);
+    a compile still queued is taken off the queue (the caller builds it now).  A no-op otherwise."""
+    module = _module_of(kernel_or_module)
+    if module is None:
+        return
+    key = (id(module), str(warp().get_device(device)))
+    with _ACTIVE_LOCK:
+        fut = _ACTIVE.get(key)
+    if fut is None:
+        return
+    if not fut.cancel():
+        try:
+            fut.result()
+        except BaseException:  # noqa: BLE001 - the stage's own load reports the failure
+            pass
+
+
+class KernelPrefetch:
+    """Compiles modules into Warp's kernel cache on helper threads, in the order given.
+
+    Args:
+        device: the Warp device the run launches on.
+        workers: helper threads (default: 1 on the CPU, whose other cores run the solves; up to 8 on CUDA, whose
+            compiles run on the host's cores while the GPU solves).
+
+    Use: ``pf = KernelPrefetch("cpu"); pf.submit(kernels)``; the stages launch as usual; ``pf.close()`` drops
+    what has not started.  Failures are kept (:attr:`failed`), not raised: a stage's own load raises them.
+    """
+
+    def __init__(self, device, *, workers: int | None = None):
+        wp = warp()
+        self.device = str(wp.get_device(device))
+        if workers is None:
+            workers = 1 if self.device.startswith("cpu") else min(8, max(1, (os.cpu_count() or 2) - 1))
+        if int(workers) < 1:
+            raise ValueError(f"workers: expected an integer >= 1, got {workers!r}")
+        self.workers = int(workers)
+        self._pool: ThreadPoolExecutor | None = None
+        self._futures: list[tuple[object, Future]] = []
+        self._seen: set[int] = set()
+        self.compiled: list[tuple[str, float]] = []  #: (module name, seconds) of each module it compiled
+        self.failed: list[tuple[str, str]] = []  #: (module name, error) of each compile that failed
+        self.skipped: str | None = None  #: why nothing is compiled ahead (a Warp without the methods used)
+        self._lock = threading.Lock()
+
+    def submit(self, kernels: Iterable) -> int:
+        """Queue the modules of ``kernels`` (Warp kernels or modules; None entries ignored; a module once).
+
+        Returns:
+            How many modules were queued.
+        """
+        if self.skipped is not None:
+            return 0
+        queued = 0
+        for item in kernels:
+            module = _module_of(item)
+            if module is None or id(module) in self._seen:
+                continue
+            self._seen.add(id(module))
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(max_workers=self.workers, thread_name_prefix="gpps-prefetch")
+            fut = self._pool.submit(self._build, module)
+            key = (id(module), self.device)
+            with _ACTIVE_LOCK:
+                _ACTIVE[key] = fut
+            self._futures.append((key, fut))
+            queued += 1
+        return queued
+
+    def _build(self, module) -> None:
+        if self.skipped is not None:
+            return
+        t = time.perf_counter()
+        try:
+            built = compile_into_cache(module, self.device)
+        except AttributeError as e:  # (a Warp whose Module lacks the private methods used)
+            self.skipped = f"this Warp cannot compile without loading ({e})"
+            return
+        except Exception as e:  # noqa: BLE001 - the stage's own load raises it, where the caller sees it
+            with self._lock:
+                self.failed.append((module.name, f"{type(e).__name__}: {e}"))
+            return
+        if built:
+            with self._lock:
+                self.compiled.append((module.name, time.perf_counter() - t))
+
+    def wait(self) -> None:
+        """Block until every queued compile has ended (tests; a run never needs to)."""
+        for _, fut in list(self._futures):
+            if not fut.cancelled():
+                fut.result()
+
+    def close(self) -> None:
+        """Drop the compiles that have not started; those running finish on their thread (not waited for)."""
+        for key, fut in self._futures:
+            fut.cancel()
+            with _ACTIVE_LOCK:
+                if _ACTIVE.get(key) is fut:
+                    del _ACTIVE[key]
+        self._futures.clear()
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

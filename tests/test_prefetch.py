@@ -1,0 +1,247 @@
+"""Kernel modules compiled ahead of their first launch (:mod:`gpps.pipeline.prefetch`): the helper compiles into
+Warp's kernel cache without loading, the stage's own load then finds the binary (no second compile) and the
+kernel computes what it computes without the helper; a run's plan (:meth:`gpps.flows.ron.RON.kernel_plan`) names
+every gpps module the run launches."""
+
+import os
+
+import numpy as np
+import pytest
+import warp as wp
+
+import gpps
+from conftest import RENDER_DEVICE
+from gpps.flows.ron import RON, RONConfig
+from gpps.flows.synthetic import default_lights, render
+from gpps.host.scenes import make_scene
+from gpps.lights import DirectionalLights
+from gpps.material import Material
+from gpps.pipeline import prefetch as pf
+from kernels_for_tests import make_scale_kernel
+
+Module = type(wp.get_module(pf.__name__))
+
+
+@pytest.fixture
+def compiles(monkeypatch, tmp_path):
+    """Every ``Module._compile`` call as ``(module name, built, thread name)``, in a kernel cache of its own."""
+    import threading
+
+    calls = []
+    orig = Module._compile
+
+    def spy(self, *a, **k):
+        built = orig(self, *a, **k)
+        calls.append((self.name, bool(built), threading.current_thread().name))
+        return built
+
+    monkeypatch.setattr(Module, "_compile", spy)
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
+    return calls
+
+
+def _fresh_kernel():
+    """A kernel whose module no cache holds (a factor drawn at random)."""
+    factor = float(np.random.default_rng().uniform(2.0, 3.0))
+    return make_scale_kernel(factor), factor
+
+
+def test_compile_into_cache_then_load_finds_it(device, compiles):
+    k, factor = _fresh_kernel()
+    assert pf.compile_into_cache(k, device) is True
+    assert compiles == [(k.module.name, True, compiles[0][2])]
+    assert pf.compile_into_cache(k.module, device) is False  # (in the cache now)
+    a = wp.array(np.arange(5, dtype=np.float32), device=device)
+    out = wp.zeros(5, dtype=wp.float32, device=device)
+    wp.launch(k, dim=5, inputs=[a], outputs=[out], device=device)  # (loads: must find the binary)
+    assert [c[1] for c in compiles if c[0] == k.module.name] == [True, False, False]  # (the load built nothing)
+    np.testing.assert_allclose(out.numpy(), factor * np.arange(5, dtype=np.float32), rtol=1e-6)
+    assert pf.compile_into_cache(k, device) is False  # (loaded)
+
+
+def test_prefetch_compiles_on_a_helper_in_order(device, compiles):
+    kernels = [_fresh_kernel()[0] for _ in range(3)]
+    with pf.KernelPrefetch(device, workers=1) as p:
+        assert p.submit([kernels[0], None, kernels[1], kernels[0].module, kernels[2]]) == 3  # (each module once)
+        p.wait()
+        assert [name for name, _ in p.compiled] == [k.module.name for k in kernels]
+        assert all(s > 0 for _, s in p.compiled) and p.failed == [] and p.skipped is None
+    assert [c[0] for c in compiles] == [k.module.name for k in kernels]
+    assert all(c[1] and c[2].startswith("gpps-prefetch") for c in compiles)
+    for k in kernels:
+        pf.settle(k, device)  # (done: nothing to wait for)
+        wp.load_module(k.module, device=device)
+    assert len(compiles) == 6 and not any(c[1] for c in compiles[3:])  # (the loads found the binaries)
+
+
+def test_settle_takes_a_queued_compile_back(device, compiles):
+    """A stage about to load a module still queued takes it off the queue and builds it itself: one compile."""
+    import threading
+
+    gate = threading.Event()
+    blocker, _ = _fresh_kernel()
+    queued, factor = _fresh_kernel()
+    orig = pf.compile_into_cache
+
+    def held(module, dev):
+        if module is blocker.module:
+            gate.wait(30)
+        return orig(module, dev)
+
+    p = pf.KernelPrefetch(device, workers=1)
+    try:
+        pf_held = pytest.MonkeyPatch()
+        pf_held.setattr(pf, "compile_into_cache", held)
+        p.submit([blocker, queued])
+        pf.settle(queued, device)  # (queued behind the held compile: cancelled)
+        wp.load_module(queued.module, device=device)
+        gate.set()
+        p.wait()
+        pf_held.undo()
+    finally:
+        gate.set()
+        p.close()
+    assert [c for c in compiles if c[0] == queued.module.name] == [(queued.module.name, True, "MainThread")]
+    assert [n for n, _ in p.compiled] == [blocker.module.name]
+
+
+def test_prefetch_errors_and_switch(monkeypatch):
+    with pytest.raises(TypeError, match="kernels"):
+        pf.KernelPrefetch("cpu").submit(["solve"])
+    with pytest.raises(ValueError, match="workers"):
+        pf.KernelPrefetch("cpu", workers=0)
+    monkeypatch.setenv("GPPS_PREFETCH", "0")
+    assert pf.prefetch_enabled() is False
+    monkeypatch.setenv("GPPS_PREFETCH", "1")
+    assert pf.prefetch_enabled() is True
+    monkeypatch.setenv("GPPS_PREFETCH", "maybe")
+    with pytest.raises(ValueError, match="GPPS_PREFETCH"):
+        pf.prefetch_enabled()
+
+
+def test_a_failed_compile_is_kept_not_raised(monkeypatch):
+    k, _ = _fresh_kernel()
+
+    def boom(module, dev):
+        raise RuntimeError("no compiler")
+
+    monkeypatch.setattr(pf, "compile_into_cache", boom)
+    with pf.KernelPrefetch("cpu" if "cpu" in [str(d) for d in wp.get_devices()] else RENDER_DEVICE) as p:
+        p.submit([k])
+        p.wait()
+    assert p.failed == [(k.module.name, "RuntimeError: no compiler")] and p.compiled == []
+
+
+def test_a_warp_without_the_methods_skips(monkeypatch):
+    k, _ = _fresh_kernel()
+
+    def missing(module, dev):
+        raise AttributeError("'Module' object has no attribute '_compile'")
+
+    monkeypatch.setattr(pf, "compile_into_cache", missing)
+    with pf.KernelPrefetch(RENDER_DEVICE) as p:
+        p.submit([k])
+        p.wait()
+        assert p.skipped is not None and "cannot compile" in p.skipped
+        assert p.submit([_fresh_kernel()[0]]) == 0
+
+
+PLASTIC = Material.from_ior("plastic", 1.5, ks=1.2, roughness=0.15)
+
+
+@pytest.mark.parametrize("warm", [False, True])
+def test_the_plan_names_every_module_a_run_launches(device, monkeypatch, warm):
+    """A RON comparing two models, three rounds, cast shadows: every gpps Warp module its run loads on the device
+    is in :meth:`RON.kernel_plan` (a module outside it would compile at its first launch, as without a plan)."""
+    sc = make_scene("sphere", 32, "perspective")
+    L = default_lights("directional", 6, layout="spiral")
+    img = render(sc, PLASTIC, L, bits=16, noise=0.0, seed=1, device=RENDER_DEVICE)
+    img = img / np.asarray(L.intensities, np.float32)[:, None, None, :]
+    lights = DirectionalLights(L.directions)
+    cfg = RONConfig(models=("cook-torrance",), estimate=("ks", "roughness"), rounds=3, cast_shadows=True)
+    loaded = set()
+    orig = Module.load
+
+    def spy(self, dev, *a, **k):
+        if self.name.startswith("gpps.") and str(wp.get_device(dev)) == str(wp.get_device(device)):
+            loaded.add(self.name)
+        return orig(self, dev, *a, **k)
+
+    monkeypatch.setenv("GPPS_PREFETCH", "0")  # (the plan alone: no helper)
+    ron = RON(img.shape[:3], sc.camera, lights, PLASTIC, sc.mask, cfg, device=device)
+    try:
+        ref = float(sc.depth[sc.mask].mean())
+        start = None
+        if warm:
+            first = ron.run(img, reference_depth=ref)
+            start = (first.normals, first.highlight)
+        monkeypatch.setattr(Module, "load", spy)
+        ron.run(img, reference_depth=ref, start=start)
+        plan = {getattr(x, "module", x).name for x in ron.kernel_plan(warm_start=warm)}
+    finally:
+        ron.close()
+    assert loaded, "the spy saw no load"
+    assert loaded <= plan, f"launched outside the plan: {sorted(loaded - plan)}"
+
+
+_FIRST_RUN = r"""
+import json, sys, threading
+import numpy as np
+import warp as wp
+import gpps
+from gpps.flows.synthetic import default_lights, render
+from gpps.host.scenes import make_scene
+from gpps.lights import DirectionalLights
+from gpps.material import Material
+from gpps.pipeline import prefetch as pf
+
+Module = type(wp.get_module(pf.__name__))
+built = []
+orig = Module._compile
+def spy(self, *a, **k):
+    r = orig(self, *a, **k)
+    if r:
+        built.append((self.name, threading.current_thread().name))
+    return r
+Module._compile = spy
+sc = make_scene("sphere", 24, "perspective")
+L = default_lights("directional", 4, layout="spiral")
+m = Material.from_ior("plastic", 1.5, ks=1.2, roughness=0.15)
+img = render(sc, m, L, bits=16, noise=0.0, seed=2, device="cpu")
+img = img / np.asarray(L.intensities, np.float32)[:, None, None, :]
+rec = gpps.reconstruct(img, sc.mask, DirectionalLights(L.directions), camera=sc.camera, material="plastic",
+                       reference_depth=float(sc.depth[sc.mask].mean()), device="cpu")
+np.save(sys.argv[1], np.stack([rec.normals[..., 0], rec.normals[..., 1], rec.normals[..., 2], rec.depth]))
+print(json.dumps(built))
+"""
+
+
+def test_a_first_run_with_the_helper_equals_one_without(tmp_path):
+    """A first run (an empty kernel cache, a new process) with the helper compiling ahead returns what a run
+    without a helper returns, bit for bit (the helper only moves compiles); the helper built modules and none was
+    built twice (CPU: the process compiles about fifteen modules, ~20 s here)."""
+    import json
+    import subprocess
+    import sys
+
+    if "cpu" not in [str(d) for d in wp.get_devices()]:
+        pytest.skip("needs Warp's CPU device (the first run is timed on the CPU)")
+    env = dict(os.environ, GPPS_CACHE_DIR=str(tmp_path / "cache"), GPPS_PREFETCH="1")
+    out = tmp_path / "first.npy"
+    got = subprocess.run([sys.executable, "-c", _FIRST_RUN, str(out)], env=env, capture_output=True, text=True,
+                         timeout=900)
+    assert got.returncode == 0, got.stderr[-3000:]
+    built = json.loads(got.stdout.strip().splitlines()[-1])
+    names = [n for n, _ in built]
+    assert len(names) == len(set(names)), f"built twice: {names}"
+    assert any(t.startswith("gpps-prefetch") for _, t in built), built
+    sc = make_scene("sphere", 24, "perspective")
+    L = default_lights("directional", 4, layout="spiral")
+    img = render(sc, PLASTIC, L, bits=16, noise=0.0, seed=2, device="cpu")
+    img = img / np.asarray(L.intensities, np.float32)[:, None, None, :]
+    os.environ.setdefault("GPPS_PREFETCH", "1")
+    rec = gpps.reconstruct(img, sc.mask, DirectionalLights(L.directions), camera=sc.camera, material="plastic",
+                           reference_depth=float(sc.depth[sc.mask].mean()), device="cpu")
+    first = np.load(out)
+    np.testing.assert_array_equal(first[:3], np.moveaxis(rec.normals, -1, 0))
+    np.testing.assert_array_equal(first[3], rec.depth)
