@@ -83,10 +83,10 @@ def test_settle_takes_a_queued_compile_back(device, compiles):
     queued, factor = _fresh_kernel()
     orig = pf.compile_into_cache
 
-    def held(module, dev):
+    def held(module, dev, *a):
         if module is blocker.module:
             gate.wait(30)
-        return orig(module, dev)
+        return orig(module, dev, *a)
 
     p = pf.KernelPrefetch(device, workers=1)
     try:
@@ -122,7 +122,7 @@ def test_prefetch_errors_and_switch(monkeypatch):
 def test_a_failed_compile_is_kept_not_raised(monkeypatch):
     k, _ = _fresh_kernel()
 
-    def boom(module, dev):
+    def boom(module, dev, *a):
         raise RuntimeError("no compiler")
 
     monkeypatch.setattr(pf, "compile_into_cache", boom)
@@ -135,7 +135,7 @@ def test_a_failed_compile_is_kept_not_raised(monkeypatch):
 def test_a_warp_without_the_methods_skips(monkeypatch):
     k, _ = _fresh_kernel()
 
-    def missing(module, dev):
+    def missing(module, dev, *a):
         raise AttributeError("'Module' object has no attribute '_compile'")
 
     monkeypatch.setattr(pf, "compile_into_cache", missing)
@@ -151,8 +151,9 @@ PLASTIC = Material.from_ior("plastic", 1.5, ks=1.2, roughness=0.15)
 
 @pytest.mark.parametrize("warm", [False, True])
 def test_the_plan_names_every_module_a_run_launches(device, monkeypatch, warm):
-    """A RON comparing two models, three rounds, cast shadows: every gpps Warp module its run loads on the device
-    is in :meth:`RON.kernel_plan` (a module outside it would compile at its first launch, as without a plan)."""
+    """A RON comparing two models, three rounds, cast shadows: every gpps Warp module variant (module and block size)
+    its run loads on the device is in :meth:`RON.kernel_plan` (one outside it would compile at its first launch, as
+    without a plan)."""
     sc = make_scene("sphere", 32, "perspective")
     L = default_lights("directional", 6, layout="spiral")
     img = render(sc, PLASTIC, L, bits=16, noise=0.0, seed=1, device=RENDER_DEVICE)
@@ -162,12 +163,12 @@ def test_the_plan_names_every_module_a_run_launches(device, monkeypatch, warm):
     loaded = set()
     orig = Module.load
 
-    def spy(self, dev, *a, **k):
+    def spy(self, dev, block_dim=None, *a, **k):
         if self.name.startswith("gpps.") and str(wp.get_device(dev)) == str(wp.get_device(device)):
-            loaded.add(self.name)
-        return orig(self, dev, *a, **k)
+            loaded.add((self.name, int(block_dim if block_dim is not None else self.options["block_dim"])))
+        return orig(self, dev, block_dim, *a, **k)
 
-    monkeypatch.setenv("GPPS_PREFETCH", "0")  # (the plan alone: no helper)
+    # (with the helper on, as runs are: it only compiles, so the loads seen are the run's own)
     ron = RON(img.shape[:3], sc.camera, lights, PLASTIC, sc.mask, cfg, device=device)
     try:
         ref = float(sc.depth[sc.mask].mean())
@@ -177,7 +178,10 @@ def test_the_plan_names_every_module_a_run_launches(device, monkeypatch, warm):
             start = (first.normals, first.highlight)
         monkeypatch.setattr(Module, "load", spy)
         ron.run(img, reference_depth=ref, start=start)
-        plan = {getattr(x, "module", x).name for x in ron.kernel_plan(warm_start=warm)}
+        plan = set()
+        for x in ron.kernel_plan(warm_start=warm):
+            item, dim = x if isinstance(x, tuple) else (x, None)
+            plan.add((getattr(item, "module", item).name, pf.launch_block_dim(device, dim)))
     finally:
         ron.close()
     assert loaded, "the spy saw no load"

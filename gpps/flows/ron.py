@@ -731,7 +731,7 @@ class RON:
         :class:`gpps.pipeline.prefetch.KernelPrefetch` compiles ahead on a first run (an empty kernel cache).
 
         Built from the stages' own choices (:func:`gpps.pipeline.solver.solver_kernels`,
-        :func:`gpps.pipeline.material.scorer_kernels`); the lights-parallel builds, the Taichi kernels and the
+        :func:`gpps.pipeline.material.scorer_kernels`, the stages' ``kernel_modules``); the Taichi kernels and the
         stages a run builds only for unusual settings are left out (they compile at their first launch, as
         without a plan).  The compared models' solve kernels come last: only the chosen model's are launched.
         ``tests/test_prefetch.py`` checks that a run launches no gpps module outside the plan.
@@ -756,6 +756,8 @@ class RON:
             fit = replace(c.solver, starts=c.material_starts, neighbour_radius=0, smoothness=0.0, warm_start=False)
             for b in models:
                 plan += scorer_kernels(fit, b, dev, n)
+            if self._device_loop():
+                plan += NelderMeadSearch.kernel_modules()
         if c.cast_shadows and c.integrate and c.rounds > 1:
             plan += RoundShadows.kernel_modules()
         if compared:

@@ -109,8 +109,9 @@ def _split_starts(config: SolverConfig, device: str, split_starts: bool | None, 
 
 def scorer_kernels(config: SolverConfig, brdf: str, device: str, lights: int) -> list:
     """The kernels a :class:`MaterialScorer` built with ``config`` (and its default ``parallel`` and
-    ``split_starts``) launches for the model ``brdf``, ``lights`` images on ``device``; the lights-parallel build
-    (launched with a block size of its own) left out.  For :mod:`gpps.pipeline.prefetch`'s plans."""
+    ``split_starts``) launches for the model ``brdf``, ``lights`` images on ``device``; the lights-parallel build,
+    when it may be launched, as ``(kernel, block_dim)`` (another module variant).  For
+    :mod:`gpps.pipeline.prefetch`'s plans."""
     robust = config.robust if config.irls_rounds > 0 else "none"
     parallel = resolve_parallel(config.parallel, device, lights)
     kernels = [warp().get_module(sb.__name__)]  # (the trimmed-energy and gather kernels)
@@ -118,6 +119,9 @@ def scorer_kernels(config: SolverConfig, brdf: str, device: str, lights: int) ->
         kernels.append(sb.get_batched_kernel(config.solver, brdf, robust, cache=term_cache_size(device, lights)))
     if _split_starts(config, device, None, parallel):
         kernels += list(sb.get_batched_starts_kernels(config.solver, brdf, robust))
+    if parallel != "pixels":  # (launched with a block of LIGHT_LANES threads: its own module variant)
+        kernels.append((sb.get_batched_kernel(config.solver, brdf, robust, lanes=True),
+                        block_lanes(device, LIGHT_LANES)))
     return kernels
 
 
@@ -226,7 +230,8 @@ class MaterialScorer(Stage):
             self._starts_kernels = sb.get_batched_starts_kernels(config.solver, brdf, robust)
             self._start_bufs = [self._buffer((km, pm, ns), dt, d)
                                 for dt in (wp.vec3, wp.vec3, wp.float32, wp.int32, wp.int32)]
-        self._settle(wp.get_module(sb.__name__), self._kernel, *(self._starts_kernels if self.split_starts else ()))
+        self._settle(wp.get_module(sb.__name__), self._kernel, *(self._starts_kernels if self.split_starts else ()),
+                     (self._kernel_lanes, block_lanes(self.device, LIGHT_LANES)))
         self.strip = self._buffer((n, 1, pm), wp.vec3, d)
         self.strip_valid = self._buffer((n, 1, pm), wp.uint8, d, fill=1)
         self.rows = self._buffer(pm, wp.int32, d)

@@ -78,6 +78,11 @@ class NelderMeadSearch(Stage):
     int32 buffer).
     """
 
+    @staticmethod
+    def kernel_modules() -> list:
+        """The Warp modules this stage launches (:meth:`gpps.flows.ron.RON.kernel_plan`)."""
+        return [warp().get_module(ms.__name__)]
+
     def __init__(self, scorer, dims: int, *, graph: GraphName = "auto"):
         wp = warp()
         self.dims = check_number("dims", dims, lo=1, hi=MAX_DIMS, integer=True)
@@ -91,6 +96,7 @@ class NelderMeadSearch(Stage):
             raise ValueError(f"scorer: expected max_candidates >= {kc}, got {scorer.max_candidates}")
         self.scorer = scorer
         self.device = resolve_device(scorer.device)
+        self._settle(*self.kernel_modules())
         self.points = kc
         d, dev = self.dims, self.device
         # the small per-search arrays live in one float64 and one int32 buffer (views): an upload is two copies and

@@ -29,9 +29,9 @@ from typing import Iterable
 
 from gpps._runtime import warp
 
-__all__ = ["KernelPrefetch", "compile_into_cache", "prefetch_enabled", "settle"]
+__all__ = ["KernelPrefetch", "compile_into_cache", "launch_block_dim", "prefetch_enabled", "settle"]
 
-_ACTIVE: dict = {}  # (id(module), device) -> Future of its compile, while a KernelPrefetch holds it
+_ACTIVE: dict = {}  # (id(module), device, block size) -> Future of its compile, while a KernelPrefetch holds it
 _ACTIVE_LOCK = threading.Lock()
 
 
@@ -46,7 +46,9 @@ def prefetch_enabled() -> bool:
 
 
 def _module_of(item):
-    """The Warp module of a kernel or a module (None for None)."""
+    """The Warp module of a kernel or a module (None for None); of a ``(kernel, block_dim)`` entry, its kernel's."""
+    if isinstance(item, tuple) and len(item) == 2:
+        item = item[0]
     if item is None:
         return None
     wp = warp()
@@ -58,15 +60,28 @@ def _module_of(item):
     raise TypeError(f"kernels: expected Warp kernels or modules, got {type(item).__name__}")
 
 
-def compile_into_cache(module, device) -> bool:
+def launch_block_dim(device, block_dim: int | None = None) -> int:
+    """The block size of the module variant a ``wp.launch(..., block_dim=block_dim)`` on ``device`` loads: 1 on
+    the CPU (Warp runs a CPU block as one thread), ``block_dim`` or Warp's default 256 on CUDA."""
+    if str(device).startswith("cpu"):
+        return 1
+    return 256 if block_dim is None or int(block_dim) <= 0 else int(block_dim)
+
+
+def _block_dim_of(item) -> int | None:
+    return int(item[1]) if isinstance(item, tuple) and len(item) == 2 and item[1] is not None else None
+
+
+def compile_into_cache(module, device, block_dim: int | None = None) -> bool:
     """Compile ``module`` for ``device`` into Warp's kernel cache unless it is there or loaded; do not load it.
 
-    The variant is the one a plain ``wp.launch`` loads: block size 1 on the CPU, 256 on CUDA.  The cache path,
-    output name and options are those ``Module.load`` uses, so its later load finds this binary.
+    The variant is the one ``wp.launch(..., block_dim=block_dim)`` loads (:func:`launch_block_dim`).  The cache
+    path, output name and options are those ``Module.load`` uses, so its later load finds this binary.
 
     Args:
         module: a ``warp.Module`` (or a kernel: its module).
         device: a Warp device or its name.
+        block_dim: the launches' block size (None: Warp's default).
 
     Returns:
         True when it compiled, False when the binary was already there (or the module already loaded).
@@ -77,7 +92,7 @@ def compile_into_cache(module, device) -> bool:
     wp = warp()
     module = _module_of(module)
     dev = wp.get_device(device)
-    dim = 1 if dev.is_cpu else 256
+    dim = launch_block_dim(dev, block_dim)
     if (dev.context, dim) in module.execs:
         return False
     module.get_module_hash(dim)  # (hashes the variant and resolves its options, as Module.load does)
@@ -91,11 +106,13 @@ def compile_into_cache(module, device) -> bool:
 
 def settle(kernel_or_module, device) -> None:
     """Wait for a helper's compile of this module for ``device`` if one is running (a stage about to load it);
-    a compile still queued is taken off the queue (the caller builds it now).  A no-op otherwise."""
+    a compile still queued is taken off the queue (the caller builds it now).  A no-op otherwise.  A
+    ``(kernel, block_dim)`` entry names the variant of that block size."""
     module = _module_of(kernel_or_module)
     if module is None:
         return
-    key = (id(module), str(warp().get_device(device)))
+    dev = str(warp().get_device(device))
+    key = (id(module), dev, launch_block_dim(dev, _block_dim_of(kernel_or_module)))
     with _ACTIVE_LOCK:
         fut = _ACTIVE.get(key)
     if fut is None:
@@ -129,14 +146,15 @@ class KernelPrefetch:
         self.workers = int(workers)
         self._pool: ThreadPoolExecutor | None = None
         self._futures: list[tuple[object, Future]] = []
-        self._seen: set[int] = set()
+        self._seen: set[tuple] = set()
         self.compiled: list[tuple[str, float]] = []  #: (module name, seconds) of each module it compiled
         self.failed: list[tuple[str, str]] = []  #: (module name, error) of each compile that failed
         self.skipped: str | None = None  #: why nothing is compiled ahead (a Warp without the methods used)
         self._lock = threading.Lock()
 
     def submit(self, kernels: Iterable) -> int:
-        """Queue the modules of ``kernels`` (Warp kernels or modules; None entries ignored; a module once).
+        """Queue the modules of ``kernels`` (Warp kernels or modules, or ``(kernel, block_dim)`` for launches of
+        that block size; None entries ignored; a module variant once).
 
         Returns:
             How many modules were queued.
@@ -146,25 +164,28 @@ class KernelPrefetch:
         queued = 0
         for item in kernels:
             module = _module_of(item)
-            if module is None or id(module) in self._seen:
+            if module is None:
                 continue
-            self._seen.add(id(module))
+            dim = launch_block_dim(self.device, _block_dim_of(item))
+            key = (id(module), self.device, dim)
+            if key in self._seen:
+                continue
+            self._seen.add(key)
             if self._pool is None:
                 self._pool = ThreadPoolExecutor(max_workers=self.workers, thread_name_prefix="gpps-prefetch")
-            fut = self._pool.submit(self._build, module)
-            key = (id(module), self.device)
+            fut = self._pool.submit(self._build, module, dim)
             with _ACTIVE_LOCK:
                 _ACTIVE[key] = fut
             self._futures.append((key, fut))
             queued += 1
         return queued
 
-    def _build(self, module) -> None:
+    def _build(self, module, block_dim: int) -> None:
         if self.skipped is not None:
             return
         t = time.perf_counter()
         try:
-            built = compile_into_cache(module, self.device)
+            built = compile_into_cache(module, self.device, block_dim)
         except AttributeError as e:  # (a Warp whose Module lacks the private methods used)
             self.skipped = f"this Warp cannot compile without loading ({e})"
             return

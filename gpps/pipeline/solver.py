@@ -55,7 +55,7 @@ from gpps.names import (
 from gpps.names import ROBUST_TAG as _ROBUST_TAG
 from gpps.names import SOLVER_TAG as _SOLVER_TAG
 from gpps.pipeline.cpu_threads import balanced_bounds, cpu_threads, run_all, run_reporting
-from gpps.pipeline.prefetch import settle
+from gpps.pipeline.prefetch import launch_block_dim, settle
 from gpps.pipeline.params import camera_params, light_params, material_params, resolve_parallel, uses_lanes
 from gpps.pipeline.stage import Stage
 
@@ -532,9 +532,10 @@ def _split_starts(c: SolverConfig, device: str) -> bool:
 
 def solver_kernels(config: SolverConfig, brdf: str, device: str, lights: int, *, split: bool | None = None) -> list:
     """The kernels a :class:`PixelSolver` with ``config`` and the model ``brdf`` launches for a whole-image solve
-    of ``lights`` images on ``device`` (the specialisations :meth:`PixelSolver.load` loads; the lights-parallel
-    build, launched with a block size of its own, is left out), with the modules of its merge and subset scatter.
-    For :mod:`gpps.pipeline.prefetch`'s plans.
+    of ``lights`` images on ``device`` (the specialisations :meth:`PixelSolver.load` loads), with the modules of
+    its merge and subset scatter; the lights-parallel build, when the config may launch it, as ``(kernel,
+    block_dim)`` (launched with a block of its own size: another module variant).  For
+    :mod:`gpps.pipeline.prefetch`'s plans.
 
     Args:
         split: whether the solve runs the starts-parallel kernels (None: as :meth:`PixelSolver` decides for a cold
@@ -546,6 +547,9 @@ def solver_kernels(config: SolverConfig, brdf: str, device: str, lights: int, *,
     wp = warp()
     kernels = [k for k in (solve, under, smooth) if k is not None]
     kernels += [wp.get_module(mk.__name__), wp.get_module(fk.__name__)]  # (the device merge, a subset's scatter)
+    if config.solver != "none" and resolve_parallel(config.parallel, device, lights) != "pixels":
+        # (the lights-parallel build: launched with a block of LIGHT_LANES threads, its own module variant)
+        kernels.append((sk.get_solve_kernel_lanes(config.solver, brdf, robust), block_lanes(device, LIGHT_LANES)))
     if split if split is not None else _split_starts(config, device):
         kernels += list(sk.get_split_kernels(config.solver, brdf, robust))
         if config.neighbour_radius > 0:
@@ -684,25 +688,31 @@ class PixelSolver(Stage):
         """
         self._check_open()
         wp = warp()
-        kernels = [self._lanes_kernel] + solver_kernels(self.config, self.material.brdf, self.device,
-                                                        self.shape[0], split=self._uses_split())
-        found = (getattr(k, "module", k) for k in kernels if k is not None)  # (kernels, and modules)
-        modules = [m for m in {id(m): m for m in found}.values() if not self._loaded(m)]
+        kernels = solver_kernels(self.config, self.material.brdf, self.device, self.shape[0],
+                                 split=self._uses_split())
+        # (kernels, modules and (kernel, block_dim) entries: each module variant once, as its launches load it)
+        found = {}
+        for k in kernels:
+            item, dim = k if isinstance(k, tuple) else (k, None)
+            module = getattr(item, "module", item)
+            found[(id(module), dim)] = (module, dim)
+        modules = [(m, dim) for m, dim in found.values() if not self._loaded(m, dim)]
 
         def task():
-            for module in modules:
-                settle(module, self.device)  # (a helper compiling it ahead: gpps.pipeline.prefetch)
-                wp.load_module(module, device=self.device)
+            for module, dim in modules:
+                settle((module, dim), self.device)  # (a helper compiling it ahead: gpps.pipeline.prefetch)
+                wp.load_module(module, device=self.device, block_dim=dim)
         report = None if progress is None or not modules else (
             lambda s: progress(s, None, f"loading the solver's kernels ({s:.0f} s)"))
         run_reporting(task, report)
 
-    def _loaded(self, module) -> bool:
-        """Whether ``module`` is loaded on this solver's device (Warp's table of loaded variants, keyed by device
-        context and block size; False when it cannot tell, and :meth:`load` loads it, a no-op then)."""
+    def _loaded(self, module, block_dim: int | None = None) -> bool:
+        """Whether ``module``'s variant for launches of ``block_dim`` (None: Warp's default) is loaded on this
+        solver's device (Warp's table of loaded variants, keyed by device context and block size; False when it
+        cannot tell, and :meth:`load` loads it, a no-op then)."""
         try:
             ctx = warp().get_device(self.device).context
-            return any(key[0] == ctx for key in module.execs)
+            return (ctx, launch_block_dim(self.device, block_dim)) in module.execs
         except Exception:  # (a Warp without that table)
             return False
 
