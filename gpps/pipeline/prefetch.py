@@ -139,6 +139,7 @@ class KernelPrefetch:
     def __init__(self, device, *, workers: int | None = None):
         wp = warp()
         self.device = str(wp.get_device(device))
+        self._context = wp.get_device(device).context
         if workers is None:
             workers = 1 if self.device.startswith("cpu") else min(8, max(1, (os.cpu_count() or 2) - 1))
         if int(workers) < 1:
@@ -157,7 +158,7 @@ class KernelPrefetch:
         that block size; None entries ignored; a module variant once).
 
         Returns:
-            How many modules were queued.
+            How many modules were queued (a module variant already loaded in this process is not).
         """
         if self.skipped is not None:
             return 0
@@ -171,6 +172,8 @@ class KernelPrefetch:
             if key in self._seen:
                 continue
             self._seen.add(key)
+            if (self._context, dim) in module.execs:  # (loaded in this process: a later run's plan costs nothing)
+                continue
             if self._pool is None:
                 self._pool = ThreadPoolExecutor(max_workers=self.workers, thread_name_prefix="gpps-prefetch")
             fut = self._pool.submit(self._build, module, dim)
