@@ -210,7 +210,8 @@ class KernelPrefetch:
                 fut.result()
 
     def close(self) -> None:
-        """Drop the compiles that have not started; those running finish on their thread (not waited for)."""
+        """Drop the compiles that have not started; those running finish on their thread (not waited for here;
+        the interpreter waits for them at exit: at most one compile per helper, only on a run that compiled)."""
         for key, fut in self._futures:
             fut.cancel()
             with _ACTIVE_LOCK:
