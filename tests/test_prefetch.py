@@ -245,7 +245,6 @@ def test_a_first_run_with_the_helper_equals_one_without(tmp_path):
     L = default_lights("directional", 4, layout="spiral")
     img = render(sc, PLASTIC, L, bits=16, noise=0.0, seed=2, device="cpu")
     img = img / np.asarray(L.intensities, np.float32)[:, None, None, :]
-    os.environ.setdefault("GPPS_PREFETCH", "1")
     rec = gpps.reconstruct(img, sc.mask, DirectionalLights(L.directions), camera=sc.camera, material="plastic",
                            reference_depth=float(sc.depth[sc.mask].mean()), device="cpu")
     first = np.load(out)
