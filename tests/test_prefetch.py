@@ -162,14 +162,6 @@ def test_the_plan_names_every_module_a_run_launches(device, monkeypatch, warm):
     img = img / np.asarray(L.intensities, np.float32)[:, None, None, :]
     lights = DirectionalLights(L.directions)
     cfg = RONConfig(models=("cook-torrance",), estimate=("ks", "roughness"), rounds=3, cast_shadows=True)
-    loaded = set()
-    orig = Module.load
-
-    def spy(self, dev, block_dim=None, *a, **k):
-        if self.name.startswith("gpps.") and str(wp.get_device(dev)) == str(wp.get_device(device)):
-            loaded.add((self.name, int(block_dim if block_dim is not None else self.options["block_dim"])))
-        return orig(self, dev, block_dim, *a, **k)
-
     # (with the helper on, as runs are: it only compiles, so the loads seen are the run's own)
     ron = RON(img.shape[:3], sc.camera, lights, PLASTIC, sc.mask, cfg, device=device)
     try:
@@ -178,7 +170,7 @@ def test_the_plan_names_every_module_a_run_launches(device, monkeypatch, warm):
         if warm:
             first = ron.run(img, reference_depth=ref)
             start = (first.normals, first.highlight)
-        monkeypatch.setattr(Module, "load", spy)
+        loaded = _loads_on(device, monkeypatch)
         ron.run(img, reference_depth=ref, start=start)
         plan = set()
         for x in ron.kernel_plan(warm_start=warm):
@@ -250,3 +242,72 @@ def test_a_first_run_with_the_helper_equals_one_without(tmp_path):
     first = np.load(out)
     np.testing.assert_array_equal(first[:3], np.moveaxis(rec.normals, -1, 0))
     np.testing.assert_array_equal(first[3], rec.depth)
+
+
+def _loads_on(device, monkeypatch):
+    """The gpps module variants (name, block size) loaded on ``device`` from now on."""
+    loaded = set()
+    orig = Module.load
+
+    def spy(self, dev, block_dim=None, *a, **k):
+        if self.name.startswith("gpps.") and str(wp.get_device(dev)) == str(wp.get_device(device)):
+            loaded.add((self.name, int(block_dim if block_dim is not None else self.options["block_dim"])))
+        return orig(self, dev, block_dim, *a, **k)
+
+    monkeypatch.setattr(Module, "load", spy)
+    return loaded
+
+
+def test_the_compensation_stage_names_its_modules(device, monkeypatch):
+    """The interreflection stage's gather, total and subtraction load only what ``kernel_modules`` names (the folder
+    flow queues those behind the first reconstruction's plan)."""
+    from test_interreflection import _self_lit
+
+    from gpps.camera import Orthographic
+    from gpps.pipeline.interreflection import InterreflectionConfig, Interreflections
+
+    m, depth, n, lights, cam, direct, images = _self_lit(device)
+    loaded = _loads_on(device, monkeypatch)
+    with Interreflections(images.shape[:3], Orthographic(1.0), InterreflectionConfig(max_sources=300),
+                          device=device) as st:
+        st.upload(depth, m, n, images)
+        st.step()
+        st.indirect_total(np.full(m.shape + (3,), 0.5, np.float32))
+        st.subtract_from(wp.array(images, dtype=wp.vec3, device=device), 0.5)
+    named = {(x.name, pf.launch_block_dim(device)) for x in Interreflections.kernel_modules()}
+    assert loaded and loaded <= named, sorted(loaded - named)
+
+
+def test_a_flow_queues_its_later_stages_behind_the_plan(monkeypatch):
+    """``ResidentFrame.compile_ahead`` (the folder flow's compensation): the modules go to the helper after the
+    run's plan, at the first run; with the helper off nothing is queued."""
+    from gpps.flows.reconstruction import ResidentFrame
+    from gpps.pipeline.interreflection import Interreflections
+
+    sc = make_scene("sphere", 16, "orthographic")
+    L = default_lights("directional", 3, layout="ring")
+    img = render(sc, Material("lambertian"), L, bits=16, noise=0.0, seed=3, device=RENDER_DEVICE)
+    img = img / np.asarray(L.intensities, np.float32)[:, None, None, :]
+    submitted = []
+    orig = pf.KernelPrefetch.submit
+
+    def spy(self, kernels):
+        kernels = list(kernels)
+        submitted.append([getattr(k, "module", k) for k in kernels])
+        return orig(self, kernels)
+
+    monkeypatch.setattr(pf.KernelPrefetch, "submit", spy)
+    extra = Interreflections.kernel_modules()
+    with ResidentFrame(img, sc.mask, DirectionalLights(L.directions), camera=sc.camera, material="lambertian",
+                       device=RENDER_DEVICE) as frame:
+        frame.compile_ahead(extra)
+        assert submitted == []  # (queued at the first run)
+        frame.run()
+    assert len(submitted) == 1 and submitted[0][-len(extra):] == extra and len(submitted[0]) > len(extra)
+    monkeypatch.setenv("GPPS_PREFETCH", "0")
+    submitted.clear()
+    with ResidentFrame(img, sc.mask, DirectionalLights(L.directions), camera=sc.camera, material="lambertian",
+                       device=RENDER_DEVICE) as frame:
+        frame.compile_ahead(extra)
+        frame.run()
+    assert submitted == []

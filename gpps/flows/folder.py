@@ -55,6 +55,7 @@ from gpps.material import Material
 from gpps.names import (BRDF, BRDF_NAMES, CONDUCTOR_MIN_IMAGES, INTERREFLECTION_MIN_IMAGES, MANY_IMAGES,
                         SHADOW_RELATIVE_MANY, InterreflectionName, RobustName, SolverName)
 from gpps.pipeline.integration import IntegratorConfig
+from gpps.pipeline.interreflection import Interreflections
 
 __all__ = ["FolderConfig", "FolderResult", "reconstruct_folder", "automatic_solver_options", "flip_decision",
            "MANY_IMAGES", "REFINE_IMAGES", "CONDUCTOR_IMAGES", "AUTOMATIC_MODELS", "automatic_refine", "automatic_models",
@@ -681,9 +682,10 @@ def _calibrated(cap: Capture, camera, config: FolderConfig, reference, source, r
                         refine=refine, refine_two_light=config.two_light,
                         final_integrator=IntegratorConfig(bilateral=True) if config.integration == "bini" else None)
         cfg = replace(cfg, solver=replace(cfg.solver, solver=config.solver, **opts))
-        solve = _FolderSolve(ds.mask, lights, camera, material, estimate, internal_reference, valid, cfg, device,
-                             progress)
         subtract, subtract_why = automatic_interreflections(n, config)
+        # (the compensation's stages launch after the first reconstruction: their kernels compile ahead with its own)
+        solve = _FolderSolve(ds.mask, lights, camera, material, estimate, internal_reference, valid, cfg, device,
+                             progress, ahead=Interreflections.kernel_modules() if subtract else ())
         try:
             if subtract:
                 from gpps.flows.interreflection import reconstruct_subtracting
@@ -740,7 +742,9 @@ class _FolderSolve:
     under point lights the rounds from its depth.  :meth:`close` frees the frame.
     """
 
-    def __init__(self, mask, lights, camera, material, estimate, reference, valid, config, device, progress):
+    def __init__(self, mask, lights, camera, material, estimate, reference, valid, config, device, progress, *,
+                 ahead=()):
+        self.ahead = list(ahead)  #: Warp modules of the stages launched after the first reconstruction (compiled ahead)
         self.mask, self.lights, self.camera = mask, lights, camera
         self.material, self.estimate, self.reference, self.valid = material, estimate, reference, valid
         self.config, self.device, self.progress = config, device, progress
@@ -764,6 +768,8 @@ class _FolderSolve:
             self.frame = ResidentFrame(images, self.mask, self.lights, camera=self.camera, material=self.material,
                                        estimate=self.estimate, reference_depth=self.reference, valid=self.valid,
                                        config=self.config, device=self.device)
+            if self.ahead:
+                self.frame.compile_ahead(self.ahead)
             self.first = self.last = self.frame.run(progress=self.progress)
             return self.first
         last = self.last

@@ -349,6 +349,11 @@ class ResidentFrame:
         self.timings.append(dict(out.timings))
         return out
 
+    def compile_ahead(self, kernels) -> None:
+        """Warp kernels or modules of stages the caller launches after :meth:`run` (the interreflection
+        compensation's), compiled ahead with the run's own on a first run (:meth:`gpps.flows.ron.RON.compile_ahead`)."""
+        self._live().compile_ahead(kernels)
+
     def close(self) -> None:
         """Free the stages' buffers (later calls raise RuntimeError)."""
         if self._ron is not None:

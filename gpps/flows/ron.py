@@ -683,6 +683,7 @@ class RON:
         self._dgmc = None  # DGMC's stage (DeviceDGMC), built at the first run that uses it
         self._front = None  # the solved front's stage on the solver (DeviceFront), likewise
         self._prefetch = None  # the first run's compiles ahead (KernelPrefetch), kept until close
+        self._ahead: list = []  # modules a flow queued behind the plan (compile_ahead)
         self.integrator = None
         if self.config.integrate:
             # default, perspective: BiNI's n_z^2 confidence weighting: grazing rim normals (a few degrees off
@@ -765,6 +766,15 @@ class RON:
                 plan += solver_kernels(c.solver, b, dev, n)
         return plan
 
+    def compile_ahead(self, kernels) -> None:
+        """Queue more Warp kernels or modules behind :meth:`kernel_plan`'s: those of stages a flow launches after the
+        run (the interreflection compensation's), compiled ahead at the first run as the plan is (at once when the
+        first run has begun).  A no-op with ``GPPS_PREFETCH=0``."""
+        kernels = list(kernels)
+        self._ahead += kernels
+        if self._prefetch is not None:
+            self._prefetch.submit(kernels)
+
     def _compile_ahead(self, warm_start: bool) -> None:
         """At the first run: :meth:`kernel_plan`'s modules compiled ahead on helper threads
         (:mod:`gpps.pipeline.prefetch`; ``GPPS_PREFETCH=0`` turns it off).  Each module already in the kernel cache
@@ -776,7 +786,7 @@ class RON:
         # GPU's solves leave idle; on a CPU of few cores a helper's compile takes a core from the solves (DiLiGenT
         # ball on 2 cores: 1.86 cores busy warm), so only from 4 cores on
         compared = not self.device.startswith("cpu") or cpu_threads() >= 4
-        self._prefetch.submit(self.kernel_plan(warm_start=warm_start, compared=compared))
+        self._prefetch.submit(self.kernel_plan(warm_start=warm_start, compared=compared) + self._ahead)
 
     # ------------------------------------------------------------------ steps
 

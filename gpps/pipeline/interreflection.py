@@ -94,6 +94,15 @@ class Interreflections(Stage):
 
     Config = InterreflectionConfig
 
+    @staticmethod
+    def kernel_modules() -> list:
+        """The Warp modules this stage launches, the subtraction's included (a flow queues them behind a run's plan:
+        :meth:`gpps.flows.ron.RON.compile_ahead`)."""
+        from gpps.kernels import interreflection_subtract as isk
+
+        wp = warp()
+        return [wp.get_module(ik.__name__), wp.get_module(sk.__name__), wp.get_module(isk.__name__)]
+
     def __init__(self, shape, camera, config: InterreflectionConfig | None = None, device=None):
         wp = warp()
         n, h, w = check_shape("shape", shape, "NHW")
@@ -101,6 +110,7 @@ class Interreflections(Stage):
         if not isinstance(self.config, InterreflectionConfig):
             raise TypeError(f"config: expected Interreflections.Config, got {type(self.config).__name__}")
         self.device = resolve_device(device)
+        self._settle(*self.kernel_modules())
         self.shape = (n, h, w)
         self.cam = camera_params(camera, (h, w))
         d = self.device
