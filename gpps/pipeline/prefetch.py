@@ -19,7 +19,7 @@ Compiling without loading needs four of ``warp.Module``'s private methods (Warp 
 ``pyproject.toml``); where they are missing the prefetch does nothing and says so in :attr:`KernelPrefetch.skipped`.
 The cache is checked the way ``Module.load`` checks it, so a warm cache costs the helper a module hash each.
 Measured (``perf/results/s42``): DiLiGenT ball's first run on a fresh H200 machine 536 -> 117 s, on the 2-core
-CPU 67 -> 62 s, results unchanged bit for bit.
+CPU 65-69 -> 61-64 s, results unchanged bit for bit.
 """
 
 from __future__ import annotations
