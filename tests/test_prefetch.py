@@ -24,7 +24,9 @@ Module = type(wp.get_module(pf.__name__))
 
 @pytest.fixture
 def compiles(monkeypatch, tmp_path):
-    """Every ``Module._compile`` call as ``(module name, built, thread name)``, in a kernel cache of its own."""
+    """Every ``Module._compile`` call of this file's test kernels (modules named after ``make_scale_kernel``) as
+    ``(module name, built, thread name)``, in a kernel cache of its own (a helper of an earlier test's run may
+    still be compiling gpps's modules in this process)."""
     import threading
 
     calls = []
@@ -32,7 +34,8 @@ def compiles(monkeypatch, tmp_path):
 
     def spy(self, *a, **k):
         built = orig(self, *a, **k)
-        calls.append((self.name, bool(built), threading.current_thread().name))
+        if "make_scale_kernel" in self.name:
+            calls.append((self.name, bool(built), threading.current_thread().name))
         return built
 
     monkeypatch.setattr(Module, "_compile", spy)
@@ -76,7 +79,7 @@ def test_prefetch_compiles_on_a_helper_in_order(device, compiles):
         assert again.submit(kernels) == 0 and again._pool is None
 
 
-def test_settle_takes_a_queued_compile_back(device, compiles):
+def test_settle_takes_a_queued_compile_back(device, compiles, monkeypatch):
     """A stage about to load a module still queued takes it off the queue and builds it itself: one compile."""
     import threading
 
@@ -90,16 +93,14 @@ def test_settle_takes_a_queued_compile_back(device, compiles):
             gate.wait(30)
         return orig(module, dev, *a)
 
+    monkeypatch.setattr(pf, "compile_into_cache", held)
     p = pf.KernelPrefetch(device, workers=1)
     try:
-        pf_held = pytest.MonkeyPatch()
-        pf_held.setattr(pf, "compile_into_cache", held)
         p.submit([blocker, queued])
         pf.settle(queued, device)  # (queued behind the held compile: cancelled)
         wp.load_module(queued.module, device=device)
         gate.set()
         p.wait()
-        pf_held.undo()
     finally:
         gate.set()
         p.close()
@@ -111,7 +112,11 @@ def test_prefetch_errors_and_switch(monkeypatch):
     with pytest.raises(TypeError, match="kernels"):
         pf.KernelPrefetch("cpu").submit(["solve"])
     with pytest.raises(ValueError, match="workers"):
-        pf.KernelPrefetch("cpu", workers=0)
+        pf.KernelPrefetch(RENDER_DEVICE, workers=0)
+    with pytest.raises(TypeError, match="workers"):
+        pf.KernelPrefetch(RENDER_DEVICE, workers=2.5)
+    with pytest.raises(TypeError, match="kernel_or_module"):
+        pf.settle("solve", RENDER_DEVICE)
     monkeypatch.setenv("GPPS_PREFETCH", "0")
     assert pf.prefetch_enabled() is False
     monkeypatch.setenv("GPPS_PREFETCH", "1")
@@ -311,3 +316,62 @@ def test_a_flow_queues_its_later_stages_behind_the_plan(monkeypatch):
         frame.compile_ahead(extra)
         frame.run()
     assert submitted == []
+
+
+def test_close_keeps_a_running_compile_visible_to_settle(device, compiles, monkeypatch):
+    """After ``close()`` a compile still running stays in the registry until it ends: a stage settling on its module
+    waits for it instead of building it a second time; a closed helper's queue is dropped."""
+    import threading
+    import time
+
+    started, gate = threading.Event(), threading.Event()
+    running, _ = _fresh_kernel()
+    queued, _ = _fresh_kernel()
+    orig = pf.compile_into_cache
+
+    def held(module, dev, *a):
+        if module is running.module:
+            started.set()
+            gate.wait(30)
+        return orig(module, dev, *a)
+
+    monkeypatch.setattr(pf, "compile_into_cache", held)
+    p = pf.KernelPrefetch(device, workers=1)
+    p.submit([running, queued])
+    assert started.wait(30)
+    p.close()  # (the queued one dropped; the running one goes on)
+    threading.Timer(0.3, gate.set).start()
+    t = time.perf_counter()
+    pf.settle(running, device)  # (waits for the running compile)
+    assert time.perf_counter() - t >= 0.2
+    wp.load_module(running.module, device=device)
+    assert [c[1] for c in compiles if c[0] == running.module.name] == [True, False]  # (built once)
+    assert not any(c[0] == queued.module.name for c in compiles)  # (dropped at close)
+
+
+def test_exit_drops_what_an_unclosed_helper_has_queued(device, compiles, monkeypatch):
+    """The interpreter-exit hook closes helpers nobody closed (a RON or Reconstructor left open): their queues are
+    dropped rather than compiled while the process exits; a compile already running ends."""
+    import threading
+
+    started, gate = threading.Event(), threading.Event()
+    running, _ = _fresh_kernel()
+    queued, _ = _fresh_kernel()
+    orig = pf.compile_into_cache
+
+    def held(module, dev, *a):
+        if module is running.module:
+            started.set()
+            gate.wait(30)
+        return orig(module, dev, *a)
+
+    monkeypatch.setattr(pf, "compile_into_cache", held)
+    p = pf.KernelPrefetch(device, workers=1)
+    p.submit([running, queued])
+    futures = [f for _, f in p._futures]
+    assert started.wait(30) and p in set(pf._LIVE)
+    pf._close_at_exit()
+    gate.set()
+    futures[0].result(timeout=60)
+    assert futures[1].cancelled()
+    assert [c[0] for c in compiles] == [running.module.name]

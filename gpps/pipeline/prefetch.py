@@ -27,15 +27,35 @@ from __future__ import annotations
 import os
 import threading
 import time
+import weakref
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Iterable
 
+from gpps._check import check_number
 from gpps._runtime import warp
 
 __all__ = ["KernelPrefetch", "compile_into_cache", "launch_block_dim", "prefetch_enabled", "settle"]
 
-_ACTIVE: dict = {}  # (id(module), device, block size) -> Future of its compile, while a KernelPrefetch holds it
+_ACTIVE: dict = {}  # (id(module), device, block size) -> Future of its compile, until it ends or is cancelled
 _ACTIVE_LOCK = threading.Lock()
+_LIVE: "weakref.WeakSet[KernelPrefetch]" = weakref.WeakSet()  # (closed at interpreter exit: see _close_at_exit)
+
+
+def _close_at_exit() -> None:
+    """Drop the queued compiles of every helper not closed (a RON or Reconstructor never closed): the interpreter
+    otherwise runs a helper's whole queue before it exits (``concurrent.futures`` joins its threads then)."""
+    for p in list(_LIVE):
+        p.close()
+
+
+# (threading's exit hooks run last-registered first: this one, registered after concurrent.futures' own, runs
+# before it joins the helpers; a Python without the hook leaves the queue to run)
+_register = getattr(threading, "_register_atexit", None)
+if _register is not None:
+    try:
+        _register(_close_at_exit)
+    except RuntimeError:  # pragma: no cover - (imported during interpreter shutdown)
+        pass
 
 
 def prefetch_enabled() -> bool:
@@ -48,8 +68,9 @@ def prefetch_enabled() -> bool:
     raise ValueError(f"GPPS_PREFETCH: expected 0 or 1, got {env!r}")
 
 
-def _module_of(item):
-    """The Warp module of a kernel or a module (None for None); of a ``(kernel, block_dim)`` entry, its kernel's."""
+def _module_of(item, name: str = "kernels"):
+    """The Warp module of a kernel or a module (None for None); of a ``(kernel, block_dim)`` entry, its kernel's.
+    TypeError naming ``name`` for anything else."""
     if isinstance(item, tuple) and len(item) == 2:
         item = item[0]
     if item is None:
@@ -60,14 +81,25 @@ def _module_of(item):
     module = getattr(item, "module", None)
     if isinstance(module, wp.Module):
         return module
-    raise TypeError(f"kernels: expected Warp kernels or modules, got {type(item).__name__}")
+    raise TypeError(f"{name}: expected a Warp kernel or module (or a (kernel, block_dim) pair), got "
+                    f"{type(item).__name__}")
 
 
 def launch_block_dim(device, block_dim: int | None = None) -> int:
-    """The block size of the module variant a ``wp.launch(..., block_dim=block_dim)`` on ``device`` loads: 1 on
-    the CPU (Warp runs a CPU block as one thread), ``block_dim`` or Warp's default 256 on CUDA."""
+    """The block size of the module variant a ``wp.launch(..., block_dim=block_dim)`` on ``device`` loads (Warp's
+    rule).
+
+    Args:
+        device: a Warp device or its name.
+        block_dim: the launch's block size (None or <= 0: Warp's default).
+
+    Returns:
+        CUDA: ``block_dim``, or 256.  CPU: 1, unless ``warp.config.enable_cpu_blocks`` is on and ``block_dim`` > 1
+        (Warp runs a CPU block as one thread otherwise).
+    """
     if str(device).startswith("cpu"):
-        return 1
+        on = bool(warp().config.enable_cpu_blocks)
+        return int(block_dim) if on and block_dim is not None and int(block_dim) > 1 else 1
     return 256 if block_dim is None or int(block_dim) <= 0 else int(block_dim)
 
 
@@ -93,7 +125,7 @@ def compile_into_cache(module, device, block_dim: int | None = None) -> bool:
         AttributeError: this Warp lacks the private methods used (:class:`KernelPrefetch` then skips).
     """
     wp = warp()
-    module = _module_of(module)
+    module = _module_of(module, "module")
     dev = wp.get_device(device)
     dim = launch_block_dim(dev, block_dim)
     if (dev.context, dim) in module.execs:
@@ -108,10 +140,14 @@ def compile_into_cache(module, device, block_dim: int | None = None) -> bool:
 
 
 def settle(kernel_or_module, device) -> None:
-    """Wait for a helper's compile of this module for ``device`` if one is running (a stage about to load it);
-    a compile still queued is taken off the queue (the caller builds it now).  A no-op otherwise.  A
-    ``(kernel, block_dim)`` entry names the variant of that block size."""
-    module = _module_of(kernel_or_module)
+    """Before a stage loads a module: wait for a helper's compile of it if one is running; a compile still queued is
+    taken off the queue (the caller builds it now).  A no-op otherwise.
+
+    Args:
+        kernel_or_module: a Warp kernel or module, or ``(kernel, block_dim)``: the variant of that block size.
+        device: the Warp device (or its name) the stage launches on.
+    """
+    module = _module_of(kernel_or_module, "kernel_or_module")
     if module is None:
         return
     dev = str(warp().get_device(device))
@@ -125,6 +161,13 @@ def settle(kernel_or_module, device) -> None:
             fut.result()
         except BaseException:  # noqa: BLE001 - the stage's own load reports the failure
             pass
+
+
+def _drop(key, fut) -> None:
+    """``fut`` (ended or cancelled) out of the registry :func:`settle` reads, unless another took its place."""
+    with _ACTIVE_LOCK:
+        if _ACTIVE.get(key) is fut:
+            del _ACTIVE[key]
 
 
 class KernelPrefetch:
@@ -145,9 +188,7 @@ class KernelPrefetch:
         self._context = wp.get_device(device).context
         if workers is None:
             workers = 1 if self.device.startswith("cpu") else min(8, max(1, (os.cpu_count() or 2) - 1))
-        if int(workers) < 1:
-            raise ValueError(f"workers: expected an integer >= 1, got {workers!r}")
-        self.workers = int(workers)
+        self.workers = check_number("workers", workers, lo=1, integer=True)
         self._pool: ThreadPoolExecutor | None = None
         self._futures: list[tuple[object, Future]] = []
         self._seen: set[tuple] = set()
@@ -155,6 +196,7 @@ class KernelPrefetch:
         self.failed: list[tuple[str, str]] = []  #: (module name, error) of each compile that failed
         self.skipped: str | None = None  #: why nothing is compiled ahead (a Warp without the methods used)
         self._lock = threading.Lock()
+        _LIVE.add(self)
 
     def submit(self, kernels: Iterable) -> int:
         """Queue the modules of ``kernels`` (Warp kernels or modules, or ``(kernel, block_dim)`` for launches of
@@ -211,12 +253,13 @@ class KernelPrefetch:
 
     def close(self) -> None:
         """Drop the compiles that have not started; those running finish on their thread (not waited for here;
-        the interpreter waits for them at exit: at most one compile per helper, only on a run that compiled)."""
+        :func:`settle` still waits for them until they end; the interpreter waits for them at exit: at most one
+        compile per helper, only on a run that compiled).  Helpers not closed are closed at interpreter exit."""
         for key, fut in self._futures:
-            fut.cancel()
-            with _ACTIVE_LOCK:
-                if _ACTIVE.get(key) is fut:
-                    del _ACTIVE[key]
+            if fut.cancel():
+                _drop(key, fut)
+            else:
+                fut.add_done_callback(lambda f, key=key: _drop(key, f))
         self._futures.clear()
         if self._pool is not None:
             self._pool.shutdown(wait=False, cancel_futures=True)

@@ -678,8 +678,9 @@ class PixelSolver(Stage):
         return self._solve_kernel, self._underdetermined_kernel, self._smooth_kernel
 
     def load(self, progress=None) -> None:
-        """Compile (first use in this installation) and load the kernels the current config's :meth:`step` launches,
-        now rather than at its first launch: a caller reporting progress can say so between the compile and the
+        """Compile (first use in this installation) and load the kernels the current config's :meth:`step` launches
+        (and the modules of the device merge and a subset's scatter, :func:`solver_kernels`), now rather than at their
+        first launch: a caller reporting progress can say so between the compile and the
         solve (a cold kernel cache costs seconds a module on the CPU, minutes on CUDA).  A no-op for loaded modules.
 
         Args:
