@@ -79,24 +79,32 @@ def test_prefetch_compiles_on_a_helper_in_order(device, compiles):
         assert again.submit(kernels) == 0 and again._pool is None
 
 
-def test_settle_takes_a_queued_compile_back(device, compiles, monkeypatch):
-    """A stage about to load a module still queued takes it off the queue and builds it itself: one compile."""
+def _held_helper(device, monkeypatch):
+    """A one-thread helper given two fresh modules, whose first compile waits for ``gate``: ``(helper, running
+    kernel, queued kernel, started event, gate event)``; ``started`` is set when the first compile begins."""
     import threading
 
-    gate = threading.Event()
-    blocker, _ = _fresh_kernel()
-    queued, factor = _fresh_kernel()
+    started, gate = threading.Event(), threading.Event()
+    running, _ = _fresh_kernel()
+    queued, _ = _fresh_kernel()
     orig = pf.compile_into_cache
 
     def held(module, dev, *a):
-        if module is blocker.module:
+        if module is running.module:
+            started.set()
             gate.wait(30)
         return orig(module, dev, *a)
 
     monkeypatch.setattr(pf, "compile_into_cache", held)
     p = pf.KernelPrefetch(device, workers=1)
+    p.submit([running, queued])
+    return p, running, queued, started, gate
+
+
+def test_settle_takes_a_queued_compile_back(device, compiles, monkeypatch):
+    """A stage about to load a module still queued takes it off the queue and builds it itself: one compile."""
+    p, blocker, queued, _, gate = _held_helper(device, monkeypatch)
     try:
-        p.submit([blocker, queued])
         pf.settle(queued, device)  # (queued behind the held compile: cancelled)
         wp.load_module(queued.module, device=device)
         gate.set()
@@ -324,20 +332,7 @@ def test_close_keeps_a_running_compile_visible_to_settle(device, compiles, monke
     import threading
     import time
 
-    started, gate = threading.Event(), threading.Event()
-    running, _ = _fresh_kernel()
-    queued, _ = _fresh_kernel()
-    orig = pf.compile_into_cache
-
-    def held(module, dev, *a):
-        if module is running.module:
-            started.set()
-            gate.wait(30)
-        return orig(module, dev, *a)
-
-    monkeypatch.setattr(pf, "compile_into_cache", held)
-    p = pf.KernelPrefetch(device, workers=1)
-    p.submit([running, queued])
+    p, running, queued, started, gate = _held_helper(device, monkeypatch)
     assert started.wait(30)
     p.close()  # (the queued one dropped; the running one goes on)
     threading.Timer(0.3, gate.set).start()
@@ -352,22 +347,7 @@ def test_close_keeps_a_running_compile_visible_to_settle(device, compiles, monke
 def test_exit_drops_what_an_unclosed_helper_has_queued(device, compiles, monkeypatch):
     """The interpreter-exit hook closes helpers nobody closed (a RON or Reconstructor left open): their queues are
     dropped rather than compiled while the process exits; a compile already running ends."""
-    import threading
-
-    started, gate = threading.Event(), threading.Event()
-    running, _ = _fresh_kernel()
-    queued, _ = _fresh_kernel()
-    orig = pf.compile_into_cache
-
-    def held(module, dev, *a):
-        if module is running.module:
-            started.set()
-            gate.wait(30)
-        return orig(module, dev, *a)
-
-    monkeypatch.setattr(pf, "compile_into_cache", held)
-    p = pf.KernelPrefetch(device, workers=1)
-    p.submit([running, queued])
+    p, running, queued, started, gate = _held_helper(device, monkeypatch)
     futures = [f for _, f in p._futures]
     assert started.wait(30) and p in set(pf._LIVE)
     pf._close_at_exit()

@@ -107,22 +107,47 @@ def _split_starts(config: SolverConfig, device: str, split_starts: bool | None, 
             else (str(device).startswith("cuda") and max(int(config.starts), 1) > 1)) and parallel != "lights"
 
 
+@dataclass(frozen=True)
+class _Builds:
+    """The kernel builds a :class:`MaterialScorer` launches (:func:`_scorer_builds`)."""
+
+    robust: str
+    parallel: str  #: resolved (:func:`gpps.pipeline.params.resolve_parallel`)
+    split_starts: bool
+    kernel: object  #: the pixels-parallel build, None for parallel "lights"
+    lanes: object  #: the lights-parallel build, None for parallel "pixels"
+    starts: tuple  #: the starts-parallel kernels, () without split_starts
+
+    def launched(self, device: str) -> list:
+        """Every module variant these builds launch on ``device``: the module of the trimmed energy and the gathers,
+        the builds, the lights-parallel one as ``(kernel, block_dim)`` (its own variant)."""
+        out = [warp().get_module(sb.__name__)] + [k for k in (self.kernel, *self.starts) if k is not None]
+        if self.lanes is not None:
+            out.append((self.lanes, block_lanes(device, LIGHT_LANES)))
+        return out
+
+
+def _scorer_builds(config: SolverConfig, brdf: str, device: str, lights: int, parallel: str,
+                   split_starts: bool | None) -> _Builds:
+    """What a :class:`MaterialScorer` with these settings launches: the one place that chooses it."""
+    robust = config.robust if config.irls_rounds > 0 else "none"
+    parallel = resolve_parallel(parallel, device, lights)
+    split = _split_starts(config, device, split_starts, parallel)
+    return _Builds(
+        robust=robust, parallel=parallel, split_starts=split,
+        kernel=(sb.get_batched_kernel(config.solver, brdf, robust, cache=term_cache_size(device, lights))
+                if parallel != "lights" else None),
+        lanes=sb.get_batched_kernel(config.solver, brdf, robust, lanes=True) if parallel != "pixels" else None,
+        starts=tuple(sb.get_batched_starts_kernels(config.solver, brdf, robust)) if split else (),
+    )
+
+
 def scorer_kernels(config: SolverConfig, brdf: str, device: str, lights: int) -> list:
     """The kernels a :class:`MaterialScorer` built with ``config`` (and its default ``parallel`` and
     ``split_starts``) launches for the model ``brdf``, ``lights`` images on ``device``; the lights-parallel build,
     when it may be launched, as ``(kernel, block_dim)`` (another module variant).  For
     :mod:`gpps.pipeline.prefetch`'s plans."""
-    robust = config.robust if config.irls_rounds > 0 else "none"
-    parallel = resolve_parallel(config.parallel, device, lights)
-    kernels = [warp().get_module(sb.__name__)]  # (the trimmed-energy and gather kernels)
-    if parallel != "lights":
-        kernels.append(sb.get_batched_kernel(config.solver, brdf, robust, cache=term_cache_size(device, lights)))
-    if _split_starts(config, device, None, parallel):
-        kernels += list(sb.get_batched_starts_kernels(config.solver, brdf, robust))
-    if parallel != "pixels":  # (launched with a block of LIGHT_LANES threads: its own module variant)
-        kernels.append((sb.get_batched_kernel(config.solver, brdf, robust, lanes=True),
-                        block_lanes(device, LIGHT_LANES)))
-    return kernels
+    return _scorer_builds(config, brdf, device, lights, config.parallel, None).launched(device)
 
 
 class MaterialScorer(Stage):
@@ -212,26 +237,21 @@ class MaterialScorer(Stage):
         self.prm_warm = solver_params(replace(config, warm_start=True, starts=1, shadow_relative=0.0,
                                               max_iters=self.warm_max_iters))
         self._cmds: dict = {}  # recorded launches of _launch_chunk
-        robust = config.robust if config.irls_rounds > 0 else "none"
-        self._robust = robust
         parallel = check_choice("parallel", config.parallel if parallel is None else parallel, ParallelName)
-        parallel = resolve_parallel(parallel, self.device, n)
-        self.parallel = parallel  # "auto" here: per launch (_uses_lanes)
-        self._kernel = (sb.get_batched_kernel(config.solver, brdf, robust, cache=term_cache_size(self.device, n))
-                        if parallel != "lights" else None)
-        self._kernel_lanes = (sb.get_batched_kernel(config.solver, brdf, robust, lanes=True)
-                              if parallel != "pixels" else None)
-        d, pm, km = self.device, int(self.max_samples), int(self.max_candidates)
         if split_starts is not None:
             check_bool("split_starts", split_starts)
+        builds = _scorer_builds(config, brdf, self.device, n, parallel, split_starts)
+        self._robust = builds.robust
+        self.parallel = builds.parallel  # "auto" here: per launch (_uses_lanes)
+        self._kernel, self._kernel_lanes = builds.kernel, builds.lanes
+        d, pm, km = self.device, int(self.max_samples), int(self.max_candidates)
         ns = max(int(config.starts), 1)
-        self.split_starts = _split_starts(config, self.device, split_starts, parallel)
+        self.split_starts = builds.split_starts
         if self.split_starts:
-            self._starts_kernels = sb.get_batched_starts_kernels(config.solver, brdf, robust)
+            self._starts_kernels = builds.starts
             self._start_bufs = [self._buffer((km, pm, ns), dt, d)
                                 for dt in (wp.vec3, wp.vec3, wp.float32, wp.int32, wp.int32)]
-        self._settle(wp.get_module(sb.__name__), self._kernel, *(self._starts_kernels if self.split_starts else ()),
-                     (self._kernel_lanes, block_lanes(self.device, LIGHT_LANES)))
+        self._settle(*builds.launched(self.device))
         self.strip = self._buffer((n, 1, pm), wp.vec3, d)
         self.strip_valid = self._buffer((n, 1, pm), wp.uint8, d, fill=1)
         self.rows = self._buffer(pm, wp.int32, d)
@@ -257,7 +277,7 @@ class MaterialScorer(Stage):
         # one copy of the observations (and, without IRLS, of the weights) serves every candidate
         self._strip_k = _broadcast_k(wp, self.strip, km)
         self._base_k = _broadcast_k(wp, self.base_weights, km)  # (the starts-parallel build's starts read it)
-        if robust == "none":
+        if self._robust == "none":
             self._weights_k = _broadcast_k(wp, self.base_weights, km)
         else:
             self._weights_k = self._buffer((n, km, pm), wp.float32, d)
