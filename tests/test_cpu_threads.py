@@ -213,6 +213,7 @@ def test_solver_load_reports_while_its_modules_load(monkeypatch, device):
 
     monkeypatch.setattr(wp, "load_module", slow_load)
     monkeypatch.setattr(PixelSolver, "_loaded", lambda self, m, block_dim=None: False)
+    ps._loaded_for.clear()  # (the solver's note of configs already loaded: as if none were)
     ps.load(progress=lambda *a: calls.append(a))
     assert calls and all(t is None and "loading the solver's kernels" in msg for _, t, msg in calls)
     out = ps.run(img, sc.mask)

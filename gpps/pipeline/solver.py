@@ -688,6 +688,10 @@ class PixelSolver(Stage):
                 (they load on a helper thread; the callback is called on this one: :func:`run_reporting`).
         """
         self._check_open()
+        key = (self.config, self.material.brdf)
+        done = self.__dict__.setdefault("_loaded_for", set())
+        if key in done:  # (RON asks before every solve: ~17 us a call saved once its kernels are loaded)
+            return
         wp = warp()
         kernels = solver_kernels(self.config, self.material.brdf, self.device, self.shape[0],
                                  split=self._uses_split())
@@ -706,6 +710,7 @@ class PixelSolver(Stage):
         report = None if progress is None or not modules else (
             lambda s: progress(s, None, f"loading the solver's kernels ({s:.0f} s)"))
         run_reporting(task, report)
+        done.add(key)
 
     def _loaded(self, module, block_dim: int | None = None) -> bool:
         """Whether ``module``'s variant for launches of ``block_dim`` (None: Warp's default) is loaded on this
