@@ -63,6 +63,7 @@ from gpps.pipeline.solver import (
     check_problem,
     estimate_noise,
     rgb_images,
+    robust_code,
     solver_params,
 )
 from gpps.pipeline.stage import Stage
@@ -130,7 +131,7 @@ class _Builds:
 def _scorer_builds(config: SolverConfig, brdf: str, device: str, lights: int, parallel: str,
                    split_starts: bool | None) -> _Builds:
     """What a :class:`MaterialScorer` with these settings launches: the one place that chooses it."""
-    robust = config.robust if config.irls_rounds > 0 else "none"
+    robust = robust_code(config)
     parallel = resolve_parallel(parallel, device, lights)
     split = _split_starts(config, device, split_starts, parallel)
     return _Builds(

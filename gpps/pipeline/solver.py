@@ -75,6 +75,8 @@ __all__ = [
     "check_light_configuration",
     "estimate_noise",
     "solver_params",
+    "robust_code",
+    "solver_kernels",
 ]
 
 
@@ -519,8 +521,9 @@ def check_scale(scale: float, *, low: bool = True) -> None:
 OUTPUTS = ("normals", "albedo", "residual", "iterations", "flags", "cond", "weights")
 
 
-def _robust_code(c: SolverConfig) -> str:
-    """The robust loss the kernels are specialised for: none without a reweighting round (no IRLS code)."""
+def robust_code(c: SolverConfig) -> str:
+    """The robust loss the kernels of ``c`` are specialised for (the stages' one rule): ``c.robust``, or ``"none"``
+    without a reweighting round (no IRLS code is emitted)."""
     return c.robust if c.irls_rounds > 0 else "none"
 
 
@@ -541,7 +544,7 @@ def solver_kernels(config: SolverConfig, brdf: str, device: str, lights: int, *,
         split: whether the solve runs the starts-parallel kernels (None: as :meth:`PixelSolver` decides for a cold
             whole-image solve with this config).
     """
-    robust = _robust_code(config)
+    robust = robust_code(config)
     solve, under, smooth = sk.get_solve_kernels(config.solver, brdf, robust,
                                                 cache=sk.term_cache_size(device, lights))
     wp = warp()
@@ -659,7 +662,7 @@ class PixelSolver(Stage):
         compiled on the first launch (or ``wp.load_module(kernel.module)``).
         """
         c = self.config
-        robust = _robust_code(c)
+        robust = robust_code(c)
         self._solve_kernel, self._underdetermined_kernel, self._smooth_kernel = self._sk.get_solve_kernels(
             c.solver, self.material.brdf, robust, cache=self._sk.term_cache_size(self.device, self.shape[0])
         )
@@ -848,8 +851,7 @@ class PixelSolver(Stage):
 
         The stream re-solves the pixels whose warm start failed this way, cold, inside the frame.
         """
-        if (config.solver, config.robust if config.irls_rounds > 0 else "none") != (
-                self.config.solver, self.config.robust if self.config.irls_rounds > 0 else "none"):
+        if (config.solver, robust_code(config)) != (self.config.solver, robust_code(self.config)):
             raise ValueError("config: expected the current solver and robust loss (the same kernel)")
         if not hasattr(mask, "shape") or not hasattr(mask, "dtype"):
             raise TypeError(f"mask: expected an (H, W) uint8 device array, got {type(mask).__name__}")
@@ -953,7 +955,7 @@ class PixelSolver(Stage):
             (subset, c) if config is not None else ())
         cmds = self.__dict__.setdefault("_cmds", {})
         if key not in cmds:
-            robust = c.robust if c.irls_rounds > 0 else "none"
+            robust = robust_code(c)
             pre, starts, finish = self._sk.get_split_kernels(c.solver, self.material.brdf, robust)
             sc = self._split_buffers(ns)
             images, mask, valid, depth, noise, cam, lp, mp = ins
@@ -1011,7 +1013,7 @@ class PixelSolver(Stage):
             wp = warp()
             h, w = self.shape[1:]
             ns = int(c.starts)
-            robust = c.robust if c.irls_rounds > 0 else "none"
+            robust = robust_code(c)
             pre, starts, finish = self._sk.get_split_under_kernels(c.solver, self.material.brdf, robust)
             sc = self._split_buffers(ns)
             scratch = self.__dict__["_split_scratch"]
