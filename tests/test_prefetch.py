@@ -355,3 +355,28 @@ def test_exit_drops_what_an_unclosed_helper_has_queued(device, compiles, monkeyp
     futures[0].result(timeout=60)
     assert futures[1].cancelled()
     assert [c[0] for c in compiles] == [running.module.name]
+
+
+def test_the_rounds_stage_settles_at_its_first_step(device, monkeypatch):
+    """RON builds its device rounds at a run's start and steps them after round 1's solve: the stage settles on its
+    module at its first step, not in its constructor (which took a first run's queued compile off the helper, to
+    be built later on the run's own thread), and once."""
+    from gpps.pipeline import stage
+    from gpps.pipeline.ron_rounds import DeviceRounds
+    from gpps.pipeline.solver import PixelSolver
+
+    settled = []
+    orig = stage.settle
+    monkeypatch.setattr(stage, "settle", lambda k, dev: (settled.append(pf._module_of(k)), orig(k, dev))[1])
+    sc = make_scene("sphere", 16, "orthographic")
+    s = PixelSolver((3, 16, 16), sc.camera, default_lights("directional", 3), Material.default_for("blinn-phong"),
+                    device=device)
+    dr = DeviceRounds(s, sc.mask)
+    (module,) = DeviceRounds.kernel_modules()
+    assert module not in settled
+    dr.step()
+    assert settled.count(module) == 1
+    dr.step()
+    assert settled.count(module) == 1
+    dr.close()
+    s.close()

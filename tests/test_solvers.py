@@ -170,13 +170,51 @@ def test_specialised_kernels_cached_and_selected(device):
 
     img, L, sc, mat = _case(size=8)
     ps = PixelSolver(img.shape[:3], sc.camera, L, mat, SolverConfig(), device=device)
-    assert ps.kernels == sk.get_solve_kernels("lm", mat.brdf, "none")
+    wb = sk.batched_in_solve_module(device)
+    assert wb == (device == "cpu")
+    assert ps.kernels == sk.get_solve_kernels("lm", mat.brdf, "none", with_batched=wb)
     ps.set_config(SolverConfig(solver="bfgs", robust="huber"))
-    assert ps.kernels == sk.get_solve_kernels("bfgs", mat.brdf, "huber")
+    assert ps.kernels == sk.get_solve_kernels("bfgs", mat.brdf, "huber", with_batched=wb)
     ps.set_config(SolverConfig(solver="bfgs", robust="huber", irls_rounds=0))
-    assert ps.kernels == sk.get_solve_kernels("bfgs", mat.brdf, "none")
+    assert ps.kernels == sk.get_solve_kernels("bfgs", mat.brdf, "none", with_batched=wb)
     ps.set_material(Material.default_for("cook-torrance"))
-    assert ps.kernels == sk.get_solve_kernels("bfgs", "cook-torrance", "none")
+    assert ps.kernels == sk.get_solve_kernels("bfgs", "cook-torrance", "none", with_batched=wb)
+
+
+def test_batched_kernel_in_solve_module():
+    """``with_batched``: the same three solve kernels' build, in a module of its own that also holds the scorer's
+    batched kernel (the CPU's layout: gpps.kernels.solve.batched_in_solve_module); solver "none" has none."""
+    from gpps.kernels import solve as sk
+    from gpps.kernels import solve_batched as sb
+
+    plain = sk.get_solve_kernels("lm", "plastic", "cauchy", cache=16)
+    both = sk.get_solve_kernels("lm", "plastic", "cauchy", cache=16, with_batched=True)
+    assert both is sk.get_solve_kernels("lm", "plastic", "cauchy", cache=16, with_batched=True)
+    assert both[0].module is not plain[0].module
+    assert both[0].module.name == sk.module_name("lm", "plastic", "cauchy", cache=16) + "_with_batched"
+    batched = sb.get_batched_kernel("lm", "plastic", "cauchy", cache=16, in_solve_module=True)
+    assert batched is sk.get_solve_batched_kernel("lm", "plastic", "cauchy", cache=16)
+    assert batched.module is both[0].module and batched.module is both[1].module
+    own = sb.get_batched_kernel("lm", "plastic", "cauchy", cache=16)
+    assert own.module is not batched.module and own.module.name.startswith("gpps.kernels.solve_batched.")
+    assert sk.get_solve_kernels("none", "plastic", "cauchy", with_batched=True) is \
+        sk.get_solve_kernels("none", "lambertian", "none")
+    with pytest.raises(ValueError, match="nonlinear"):
+        sk.get_solve_batched_kernel("none", "plastic", "cauchy")
+    with pytest.raises(ValueError, match="lanes"):
+        sb.get_batched_kernel("lm", "plastic", "cauchy", lanes=True, in_solve_module=True)
+    # on the CPU a material comparison's scorer of a model compiles that model's whole-image solve with it
+    from dataclasses import replace
+
+    from gpps.pipeline.material import scorer_kernels
+    from gpps.pipeline.solver import solver_kernels
+
+    cfg = SolverConfig(robust="cauchy", irls_rounds=2)
+    fit = replace(cfg, starts=2, neighbour_radius=0, smoothness=0.0, warm_start=False)
+    for dev, shared in (("cpu", True), ("cuda:0", False)):
+        solve = solver_kernels(cfg, "plastic", dev, 96)[0]
+        scorer = {getattr(k, "module", k) for k in scorer_kernels(fit, "plastic", dev, 96) if not isinstance(k, tuple)}
+        assert (solve.module in scorer) is shared, dev
 
 
 @pytest.mark.parametrize(

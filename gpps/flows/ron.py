@@ -75,7 +75,6 @@ from gpps.host.two_light import dark_observations, two_light_log_depth
 from gpps.lights import PointLights
 from gpps.material import Material
 from gpps.names import BRDF_NAMES, BRDF_TAG, CONDUCTOR, LOBE_PARAMETERS, LOBE_RANGES
-from gpps.pipeline.cpu_threads import cpu_threads
 from gpps.pipeline.depth_refine import DepthRefineConfig, DepthRefiner
 from gpps.pipeline.dgmc import DeviceDGMC
 from gpps.pipeline.front import DeviceFront, propagate_front, propagate_front_device
@@ -782,11 +781,10 @@ class RON:
         if self._prefetch is not None or not prefetch_enabled():
             return
         self._prefetch = KernelPrefetch(self.device)
-        # the compared models' solves: all but one compiled for nothing.  On CUDA they compile on host cores the
-        # GPU's solves leave idle; on a CPU of few cores a helper's compile takes a core from the solves (DiLiGenT
-        # ball on 2 cores: 1.86 cores busy warm), so only from 4 cores on
-        compared = not self.device.startswith("cpu") or cpu_threads() >= 4
-        self._prefetch.submit(self.kernel_plan(warm_start=warm_start, compared=compared) + self._ahead)
+        # (the compared models' solves: all but one compiled for nothing, on host cores the GPU's solves leave
+        # idle.  On the CPU they are the material scorers' modules, compiled for the comparison anyway:
+        # gpps.kernels.solve.batched_in_solve_module)
+        self._prefetch.submit(self.kernel_plan(warm_start=warm_start) + self._ahead)
 
     # ------------------------------------------------------------------ steps
 

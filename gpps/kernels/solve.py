@@ -114,7 +114,8 @@ __all__ = [
     "brightest_half_vector", "cond_frobenius", "grey", "is_determined", "light_gram", "make_pixel",
     "neighbour_stats", "ring_offset", "solve22", "start_normal", "store_least_squares", "store_solution",
     "transport", "evaluate", "run_lm", "run_dogleg", "run_bfgs", "run_method", "solve_pixel",
-    "METHODS", "BRDFS", "ROBUST", "specialisation_key", "module_name", "get_solve_kernels",
+    "METHODS", "BRDFS", "ROBUST", "specialisation_key", "module_name", "get_solve_kernels", "batched_in_solve_module",
+    "get_solve_batched_kernel",
     "get_split_kernels", "get_split_under_kernels",
 ]
 
@@ -242,7 +243,41 @@ def get_split_under_kernels(method, brdf, robust="none"):
                                                                         module, sfx))
 
 
-def get_solve_kernels(method, brdf, robust="none", cache: int = names.SOLVE_TERM_CACHE):
+def batched_in_solve_module(device) -> bool:
+    """Whether, on ``device``, the material scorer's batched kernel (one thread a (candidate, pixel) pair,
+    :func:`gpps.kernels.solve_batched.get_batched_kernel`) is built in the solve kernels' module of its
+    specialisation (:func:`get_solve_kernels` with ``with_batched``) rather than in a module of its own.
+
+    CPU: yes.  Its compiler builds a module's device functions once and every kernel calls them, so the batched
+    kernel adds about 0.5 s to a solve module's 5-6 s, against 3.2-4 s for a module of its own (plastic and
+    conductor, LM with the Cauchy loss, 128 kept lights, the 2-core development CPU: ``perf/results/s43``); and the
+    model a material comparison chooses has its whole-image solve compiled with its scorer, before the choice.
+    CUDA: no.  NVRTC inlines the functions into every kernel, so a merged module costs the sum of its kernels'
+    compiles, in one piece, where two modules compile side by side on a first run's helper threads
+    (:mod:`gpps.pipeline.prefetch`).
+    """
+    return str(device).startswith("cpu")
+
+
+def _kernels_of(method, brdf, robust, cache: int, with_batched: bool) -> tuple:
+    """``((solve, underdetermined, smooth), batched)``: :func:`gpps.kernels.solve_kernels.make_kernels`'s four kernels
+    for one normalised specialisation, built
+    once per ``(key, cache, with_batched)`` and cached; with ``with_batched`` in a module of its own
+    (:func:`module_name` + ``"_with_batched"``)."""
+    key = specialisation_key(method, brdf, robust)
+    cache = int(cache) if key[0] != "none" else names.SOLVE_TERM_CACHE  # (least squares evaluates no model)
+    with_batched = bool(with_batched) and key[0] != "none"  # (solver "none" has no material to score)
+    ks = _KERNELS.get((key, cache, with_batched))
+    if ks is None:
+        name = module_name(*key, cache=cache) + ("_with_batched" if with_batched else "")
+        ks = make_kernels(*key, module_name=name, sfx="__" + name.rsplit(".", 1)[1], cache=cache,
+                          with_batched=with_batched)
+        ks = (ks[:3], ks[3])  # (the three as one tuple, the same object at every call)
+        _KERNELS[(key, cache, with_batched)] = ks
+    return ks
+
+
+def get_solve_kernels(method, brdf, robust="none", cache: int = names.SOLVE_TERM_CACHE, with_batched: bool = False):
     """``(solve_kernel, underdetermined_kernel, smooth_kernel)`` specialised for one solver, reflectance model and robust loss.
 
     Args:
@@ -251,22 +286,27 @@ def get_solve_kernels(method, brdf, robust="none", cache: int = names.SOLVE_TERM
         robust: ``"none"``, ``"huber"`` or ``"cauchy"`` (None: run-time ``prm.robust``);
             ``"none"`` emits no IRLS round (``prm.irls_rounds`` must be 0).
         cache: the lights the evaluation keeps between its passes (:func:`term_cache_size`).
+        with_batched: the build whose module also holds the material scorer's batched kernel
+            (:func:`batched_in_solve_module`; :func:`get_solve_batched_kernel` returns it).  The same kernels
+            otherwise, in another module (:func:`module_name` + ``"_with_batched"``); ignored for ``"none"``.
 
-    The pair is built once per normalised key (:func:`specialisation_key`) and
-    cached; each pair lives in its own Warp module (:func:`module_name`), compiled
-    on first launch or by ``wp.load_module``.  ``underdetermined_kernel`` is
-    None for ``method="none"``, and so is ``smooth_kernel``.  ``prm.method`` / ``mat.model`` / ``prm.robust``
-    must agree with the specialisation (:class:`gpps.pipeline.solver.PixelSolver`
-    sees to it).
+    The kernels are built once per normalised key (:func:`specialisation_key`), cache and ``with_batched`` and
+    cached; each build lives in its own Warp module (:func:`module_name`), compiled on first launch or by
+    ``wp.load_module``.  ``underdetermined_kernel`` is None for ``method="none"``, and so is ``smooth_kernel``.
+    ``prm.method`` / ``mat.model`` / ``prm.robust`` must agree with the specialisation
+    (:class:`gpps.pipeline.solver.PixelSolver` sees to it).
     """
+    return _kernels_of(method, brdf, robust, cache, with_batched)[0]
+
+
+def get_solve_batched_kernel(method, brdf, robust="none", cache: int = names.SOLVE_TERM_CACHE):
+    """The material scorer's batched kernel (:func:`gpps.kernels.solve_batched.batched_kernel_for`, the
+    pixels-parallel build) in the module of :func:`get_solve_kernels` with ``with_batched``: one nonlinear solver,
+    reflectance model and robust loss."""
     key = specialisation_key(method, brdf, robust)
-    cache = int(cache) if key[0] != "none" else names.SOLVE_TERM_CACHE  # (least squares evaluates no model)
-    ks = _KERNELS.get((key, cache))
-    if ks is None:
-        name = module_name(*key, cache=cache)
-        ks = make_kernels(*key, module_name=name, sfx="__" + name.rsplit(".", 1)[1], cache=cache)
-        _KERNELS[(key, cache)] = ks
-    return ks
+    if None in key or key[0] == "none":
+        raise ValueError(f"method, brdf, robust: expected a nonlinear solver and fixed choices, got {key}")
+    return _kernels_of(*key, cache, True)[1]
 
 
 def __getattr__(name):

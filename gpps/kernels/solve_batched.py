@@ -43,7 +43,8 @@ to compile on CUDA); the material's *parameters* are run-time values, so all
 candidates of one model share a build.  Because the same device functions run
 on the same float32 inputs, a pixel's residual equals the one
 ``PixelSolver`` computes, up to the code generator's choices in another
-module (inlining, FMA contraction).
+module (inlining, FMA contraction).  On the CPU the pixels-parallel build lives in the
+solve kernels' own module (:func:`gpps.kernels.solve.batched_in_solve_module`).
 """
 
 import warp as wp
@@ -58,7 +59,7 @@ from gpps.kernels.brdf import (
     view_dir,
 )
 from gpps.kernels.solve import module_name as _solve_module_name
-from gpps.kernels.solve import cache_suffix, specialisation_key
+from gpps.kernels.solve import cache_suffix, get_solve_batched_kernel, specialisation_key
 from gpps.kernels.solve_common import (
     FLAG_FEW_OBSERVATIONS,
     FLAG_ILL_CONDITIONED,
@@ -504,7 +505,8 @@ def get_batched_starts_kernels(method, brdf, robust="none"):
     return k
 
 
-def get_batched_kernel(method, brdf, robust="none", lanes: bool = False, cache: int = names.SOLVE_TERM_CACHE):
+def get_batched_kernel(method, brdf, robust="none", lanes: bool = False, cache: int = names.SOLVE_TERM_CACHE,
+                       in_solve_module: bool = False):
     """The batched solve kernel specialised for one solver, reflectance model and robust loss.
 
     Args:
@@ -515,15 +517,22 @@ def get_batched_kernel(method, brdf, robust="none", lanes: bool = False, cache: 
             round (``prm.irls_rounds`` must be 0) and never writes ``weights_k``.
         lanes: the lights-parallel build (:func:`batched_kernel_for`; launch it tiled).
         cache: the lights the evaluation keeps between its passes (:func:`gpps.kernels.solve.term_cache_size`).
+        in_solve_module: the pixels-parallel build in the module of the solve kernels of the same specialisation
+            (:func:`gpps.kernels.solve.get_solve_batched_kernel`; the rule:
+            :func:`gpps.kernels.solve.batched_in_solve_module`).  Not for ``lanes``.
 
     Built once per key and cached, in a Warp module of its own
-    (:func:`batched_module_name`), compiled on first launch.
+    (:func:`batched_module_name`) unless ``in_solve_module``, compiled on first launch.
     """
     key = specialisation_key(method, brdf, robust)
     if None in key or key[0] == "none":
         raise ValueError(f"method, brdf, robust: expected a nonlinear solver and fixed choices, got {key}")
     lanes = bool(lanes)
     cache = int(cache)
+    if in_solve_module:
+        if lanes:
+            raise ValueError("in_solve_module: expected the pixels-parallel build (lanes=False)")
+        return get_solve_batched_kernel(*key, cache=cache)
     k = _BATCHED.get((key, lanes, cache))
     if k is None:
         name = batched_module_name(*key, lanes=lanes, cache=cache)

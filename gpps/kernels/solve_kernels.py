@@ -570,23 +570,33 @@ def make_lanes_kernel(method, brdf, robust, module_name: str, sfx: str):
     return solve_kernel_for(method, funcs.solve_pixel, module, sfx, lanes=True)
 
 
-def make_kernels(method, brdf, robust, module_name: str, sfx: str, cache: int = names.SOLVE_TERM_CACHE):
-    """``(solve_kernel, underdetermined_kernel, smooth_kernel)`` of one specialisation in the Warp module ``module_name``.
+def make_kernels(method, brdf, robust, module_name: str, sfx: str, cache: int = names.SOLVE_TERM_CACHE,
+                 with_batched: bool = False):
+    """``(solve_kernel, underdetermined_kernel, smooth_kernel, batched_kernel)`` of one specialisation in the Warp
+    module ``module_name``.
 
     Args:
         method, brdf, robust: the normalised key (:func:`gpps.kernels.solve.specialisation_key`).
         module_name: name of the Warp module (:func:`gpps.kernels.solve.module_name`).
         sfx: key suffix of the functions and kernels.
         cache: the lights the evaluation keeps between its passes (:func:`gpps.kernels.solve.term_cache_size`).
+        with_batched: also build the material scorer's batched kernel
+            (:func:`gpps.kernels.solve_batched.batched_kernel_for`, one thread a (candidate, pixel) pair) in this
+            module, from the same device functions (:func:`gpps.kernels.solve.batched_in_solve_module`).
 
     Returns:
-        The three kernels; the last two are None for ``method="none"``.
+        The four kernels; the last three are None for ``method="none"``, the last one without ``with_batched``.
     """
     module = wp.get_module(module_name)
     funcs = solver_funcs(method, brdf, robust, module, sfx, cache=cache)
     solve_kernel = solve_kernel_for(method, funcs.solve_pixel, module, sfx)
     if method == "none":
-        return solve_kernel, None, None
+        return solve_kernel, None, None, None
     underdetermined_kernel = underdetermined_kernel_for(funcs.solve_pixel, funcs.held_dark_refit, module, sfx)
     smooth_kernel = smooth_kernel_for(funcs.run_method, module, sfx)
-    return solve_kernel, underdetermined_kernel, smooth_kernel
+    batched_kernel = None
+    if with_batched:
+        from gpps.kernels.solve_batched import batched_kernel_for  # (it imports this module's package entry)
+
+        batched_kernel = batched_kernel_for(robust, funcs.solve_pixel, module, sfx)
+    return solve_kernel, underdetermined_kernel, smooth_kernel, batched_kernel

@@ -44,7 +44,7 @@ import numpy as np
 from gpps._check import as_array, as_mask, check_bool, check_choice, check_number, check_unit
 from gpps._runtime import block_lanes, resolve_device, warp
 from gpps.kernels import solve_batched as sb
-from gpps.kernels.solve import term_cache_size
+from gpps.kernels.solve import batched_in_solve_module, term_cache_size
 from gpps.kernels.brdf import MaterialParams
 from gpps.lights import PointLights
 from gpps.material import Material
@@ -136,7 +136,8 @@ def _scorer_builds(config: SolverConfig, brdf: str, device: str, lights: int, pa
     split = _split_starts(config, device, split_starts, parallel)
     return _Builds(
         robust=robust, parallel=parallel, split_starts=split,
-        kernel=(sb.get_batched_kernel(config.solver, brdf, robust, cache=term_cache_size(device, lights))
+        kernel=(sb.get_batched_kernel(config.solver, brdf, robust, cache=term_cache_size(device, lights),
+                                      in_solve_module=batched_in_solve_module(device))
                 if parallel != "lights" else None),
         lanes=sb.get_batched_kernel(config.solver, brdf, robust, lanes=True) if parallel != "pixels" else None,
         starts=tuple(sb.get_batched_starts_kernels(config.solver, brdf, robust)) if split else (),

@@ -18,8 +18,9 @@ the stages' explicit load points) waits for the helper's build instead.
 Compiling without loading needs four of ``warp.Module``'s private methods (Warp is pinned to 1.19 in
 ``pyproject.toml``); where they are missing the prefetch does nothing and says so in :attr:`KernelPrefetch.skipped`.
 The cache is checked the way ``Module.load`` checks it, so a warm cache costs the helper a module hash each.
-Measured (``perf/results/s42``): DiLiGenT ball's first run on a fresh H200 machine 536 -> 117 s, on the 2-core
-CPU 65-69 -> 61-64 s, results unchanged bit for bit.
+Measured (``perf/results/s42``, ``s43``): DiLiGenT ball's first run on a fresh H200 machine 536 -> 117 s, on the
+2-core CPU 65-69 -> 52.7-53.6 s (with the CPU's module layout of :func:`gpps.kernels.solve.batched_in_solve_module`),
+results unchanged bit for bit.
 """
 
 from __future__ import annotations
@@ -175,8 +176,11 @@ class KernelPrefetch:
 
     Args:
         device: the Warp device the run launches on.
-        workers: helper threads (default: 1 on the CPU, whose other cores run the solves; up to 8 on CUDA, whose
-            compiles run on the host's cores while the GPU solves).
+        workers: helper threads (default on the CPU: one a core of the CPU's launches (:func:`cpu_threads`), up to
+            8.  A run's first modules (least squares' and round 1's solve) are needed at once and compile side by
+            side; the later ones share the cores with the solves, which is what one helper did too (DiLiGenT ball's
+            first run on the 2-core CPU: 56.2 s with one, 52.7 s with two, ``perf/results/s43``).  On CUDA up to 8,
+            whose compiles run on the host's cores while the GPU solves.)
 
     Use: ``pf = KernelPrefetch("cpu"); pf.submit(kernels)``; the stages launch as usual; ``pf.close()`` drops
     what has not started.  Failures are kept (:attr:`failed`), not raised: a stage's own load raises them.
@@ -187,7 +191,12 @@ class KernelPrefetch:
         self.device = str(wp.get_device(device))
         self._context = wp.get_device(device).context
         if workers is None:
-            workers = 1 if self.device.startswith("cpu") else min(8, max(1, (os.cpu_count() or 2) - 1))
+            if self.device.startswith("cpu"):
+                from gpps.pipeline.cpu_threads import cpu_threads  # (it imports settle from here)
+
+                workers = min(8, cpu_threads())
+            else:
+                workers = min(8, max(1, (os.cpu_count() or 2) - 1))
         self.workers = check_number("workers", workers, lo=1, integer=True)
         self._pool: ThreadPoolExecutor | None = None
         self._futures: list[tuple[object, Future]] = []

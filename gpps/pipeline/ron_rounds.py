@@ -53,7 +53,10 @@ class DeviceRounds(Stage):
         wp = warp()
         self.solver = solver
         self.device = solver.device
-        self._settle(*self.kernel_modules())
+        # (settled at the first step, not here: RON builds this stage at a run's start and steps it after round
+        # 1's solve; settling here took a first run's queued compile of it off the helper, to be built later on
+        # the run's own thread: 1.5 s of DiLiGenT ball's first run on the 2-core CPU, perf/results/s43)
+        self._settled = False
         n, h, w = solver.shape
         m = np.asarray(mask, bool)
         if m.shape != (h, w):
@@ -98,6 +101,9 @@ class DeviceRounds(Stage):
         """The round's sums (squared residuals, normal changes against :attr:`prev`, pixels), then
         :attr:`prev` = the solver's normals; no host sync."""
         wp = warp()
+        if not self._settled:
+            self._settle(*self.kernel_modules())
+            self._settled = True
         s = self.solver
         self.sums.zero_()
         h, w = s.shape[1:]

@@ -545,8 +545,8 @@ def solver_kernels(config: SolverConfig, brdf: str, device: str, lights: int, *,
             whole-image solve with this config).
     """
     robust = robust_code(config)
-    solve, under, smooth = sk.get_solve_kernels(config.solver, brdf, robust,
-                                                cache=sk.term_cache_size(device, lights))
+    solve, under, smooth = sk.get_solve_kernels(config.solver, brdf, robust, cache=sk.term_cache_size(device, lights),
+                                                with_batched=sk.batched_in_solve_module(device))
     wp = warp()
     kernels = [k for k in (solve, under, smooth) if k is not None]
     kernels += [wp.get_module(mk.__name__), wp.get_module(fk.__name__)]  # (the device merge, a subset's scatter)
@@ -664,7 +664,8 @@ class PixelSolver(Stage):
         c = self.config
         robust = robust_code(c)
         self._solve_kernel, self._underdetermined_kernel, self._smooth_kernel = self._sk.get_solve_kernels(
-            c.solver, self.material.brdf, robust, cache=self._sk.term_cache_size(self.device, self.shape[0])
+            c.solver, self.material.brdf, robust, cache=self._sk.term_cache_size(self.device, self.shape[0]),
+            with_batched=self._sk.batched_in_solve_module(self.device),  # (the scorer's kernel beside them)
         )
         self._parallel = resolve_parallel(c.parallel, self.device, self.shape[0]) if c.solver != "none" else "pixels"
         self._lanes_kernel = (self._sk.get_solve_kernel_lanes(c.solver, self.material.brdf, robust)
