@@ -179,8 +179,9 @@ class KernelPrefetch:
         workers: helper threads (default on the CPU: one a core of the CPU's launches (:func:`cpu_threads`), up to
             8.  A run's first modules (least squares' and round 1's solve) are needed at once and compile side by
             side; the later ones share the cores with the solves, which is what one helper did too (DiLiGenT ball's
-            first run on the 2-core CPU: 56.2 s with one, 52.7 s with two, ``perf/results/s43``).  On CUDA up to 8,
-            whose compiles run on the host's cores while the GPU solves.)
+            first run on the 2-core CPU: 56.2 s with one, 52.7 s with two, ``perf/results/s43``).  On CUDA one a
+            host core but the run's own, up to 16: the compiles run on the host's cores while the GPU solves, and
+            the longest (a model's whole-image solve, 50-75 s on a fresh H200) should start early.)
 
     Use: ``pf = KernelPrefetch("cpu"); pf.submit(kernels)``; the stages launch as usual; ``pf.close()`` drops
     what has not started.  Failures are kept (:attr:`failed`), not raised: a stage's own load raises them.
@@ -196,7 +197,7 @@ class KernelPrefetch:
 
                 workers = min(8, cpu_threads())
             else:
-                workers = min(8, max(1, (os.cpu_count() or 2) - 1))
+                workers = min(16, max(1, (os.cpu_count() or 2) - 1))
         self.workers = check_number("workers", workers, lo=1, integer=True)
         self._pool: ThreadPoolExecutor | None = None
         self._futures: list[tuple[object, Future]] = []
