@@ -594,3 +594,78 @@ def test_fill_indices_nearest_inside_and_cached():
     assert again is idx and not again.flags.writeable
     other = fill_indices(m.reshape(31, 23))
     assert other.shape == (31, 23, 2) and other is not idx
+
+
+def _rings_reference(mask, highlight):
+    """front_rings' rings by a plain breadth-first walk, one pixel at a time (the definition): ring 1 the
+    highlight pixels next to a solved pixel (in the mask, off the highlights), ring k those next to ring k - 1."""
+    from collections import deque
+
+    h, w = mask.shape
+    hl = highlight & mask
+    ring = np.where(hl, -1, 0).astype(np.int32)
+    q = deque()
+    for i, j in zip(*np.nonzero(hl)):
+        if any(0 <= i + a < h and 0 <= j + b < w and mask[i + a, j + b] and not hl[i + a, j + b]
+               for a in (-1, 0, 1) for b in (-1, 0, 1)):
+            ring[i, j] = 1
+            q.append((i, j))
+    while q:
+        i, j = q.popleft()
+        for a in (-1, 0, 1):
+            for b in (-1, 0, 1):
+                y, x = i + a, j + b
+                if 0 <= y < h and 0 <= x < w and ring[y, x] == -1:
+                    ring[y, x] = ring[i, j] + 1
+                    q.append((y, x))
+    return ring
+
+
+def test_front_rings_distance_form_equals_the_walk():
+    """front_rings' distance form (with its check) and its breadth-first walk give the definition's rings on
+    highlight regions of every kind: blobs, a region reached round a corner, islands, regions at the image border,
+    none, all; the distance form is used where its check holds and refused where it does not."""
+    from scipy import ndimage as ndi
+
+    from gpps.host import dgmc as hd
+
+    rng = np.random.default_rng(7)
+    yy, xx = np.mgrid[:40, :50]
+    disk = (yy - 20) ** 2 + (xx - 25) ** 2 < 18 ** 2
+    cases = []
+    for k in range(6):  # blobs: smoothed noise thresholded, inside a disk
+        f = ndi.gaussian_filter(rng.standard_normal((40, 50)), 2 + k % 3)
+        cases.append((disk, f > np.quantile(f, 0.6)))
+    ell = np.zeros((40, 50), bool)  # an L-shaped corridor 3 pixels wide, solved only at its left end: the
+    ell[5:8, 5:36] = True  # vertical arm is reached round the corner, further than its chessboard distance
+    ell[5:36, 33:36] = True
+    m_ell = ell.copy()
+    m_ell[5:8, 2:5] = True
+    cases.append((m_ell, ell))
+    island = disk.copy()
+    island[15:25, 20:30] = False
+    hl_i = np.zeros((40, 50), bool)
+    hl_i[16:24, 21:29] = True  # inside the hole: in no mask pixel's reach
+    hl_i[5:9, 22:28] = True
+    cases.append((island | hl_i, hl_i))
+    border = np.zeros((40, 50), bool)
+    border[:12, :] = True
+    cases.append((np.ones((40, 50), bool), border))
+    cases.append((disk, np.zeros((40, 50), bool)))
+    cases.append((disk, disk))  # every mask pixel a highlight: nothing solved
+    used = []
+    for m, hl in cases:
+        want = _rings_reference(m, hl)
+        got_ring, pixels, sizes = hd.front_rings(m, hl)
+        np.testing.assert_array_equal(got_ring, want)
+        walk = hd._rings_listed(hd._front_rings_walk(m, hl & m))
+        for a, b in zip((got_ring, pixels, sizes), walk):
+            np.testing.assert_array_equal(a, b)
+        assert sizes[0] == 0 and sizes.sum() == pixels.size == (want > 0).sum()
+        np.testing.assert_array_equal(want.ravel()[pixels], np.repeat(np.arange(sizes.size), sizes))
+        for k in range(1, sizes.size):  # raster order within a ring
+            part = pixels[sizes[:k].sum():sizes[:k + 1].sum()]
+            assert np.all(np.diff(part) > 0)
+        used.append(hd._front_rings_distance(m, hl & m) is not None)
+    assert all(used[:6]) and not used[6], used  # (the blobs by distance; the L by the walk)
+    assert not used[7] and (_rings_reference(*cases[7]) == -1).any()  # (the island: unreached, fails the check)
