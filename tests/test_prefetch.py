@@ -380,3 +380,15 @@ def test_the_rounds_stage_settles_at_its_first_step(device, monkeypatch):
     assert settled.count(module) == 1
     dr.close()
     s.close()
+
+
+def test_cpu_helpers_follow_the_cpu_threads(monkeypatch):
+    """On the CPU a helper a core of the CPU launches (GPPS_CPU_THREADS), up to 8; an explicit count wins."""
+    for env, want in (("1", 1), ("3", 3), ("20", 8)):
+        monkeypatch.setenv("GPPS_CPU_THREADS", env)
+        p = pf.KernelPrefetch("cpu")
+        assert p.workers == want
+        p.close()
+    p = pf.KernelPrefetch("cpu", workers=2)
+    assert p.workers == 2
+    p.close()
