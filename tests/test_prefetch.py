@@ -134,29 +134,30 @@ def test_prefetch_errors_and_switch(monkeypatch):
         pf.prefetch_enabled()
 
 
-def test_a_failed_compile_is_kept_not_raised(monkeypatch):
+def _failing_helper(monkeypatch, error):
+    """A helper whose every compile raises ``error``, given one fresh kernel and waited for: ``(helper, kernel)``
+    (the caller closes it)."""
     k, _ = _fresh_kernel()
 
-    def boom(module, dev, *a):
-        raise RuntimeError("no compiler")
+    def fail(module, dev, *a):
+        raise error
 
-    monkeypatch.setattr(pf, "compile_into_cache", boom)
-    with pf.KernelPrefetch(RENDER_DEVICE) as p:
-        p.submit([k])
-        p.wait()
+    monkeypatch.setattr(pf, "compile_into_cache", fail)
+    p = pf.KernelPrefetch(RENDER_DEVICE)
+    p.submit([k])
+    p.wait()
+    return p, k
+
+
+def test_a_failed_compile_is_kept_not_raised(monkeypatch):
+    p, k = _failing_helper(monkeypatch, RuntimeError("no compiler"))
+    p.close()
     assert p.failed == [(k.module.name, "RuntimeError: no compiler")] and p.compiled == []
 
 
 def test_a_warp_without_the_methods_skips(monkeypatch):
-    k, _ = _fresh_kernel()
-
-    def missing(module, dev, *a):
-        raise AttributeError("'Module' object has no attribute '_compile'")
-
-    monkeypatch.setattr(pf, "compile_into_cache", missing)
-    with pf.KernelPrefetch(RENDER_DEVICE) as p:
-        p.submit([k])
-        p.wait()
+    p, _ = _failing_helper(monkeypatch, AttributeError("'Module' object has no attribute '_compile'"))
+    with p:
         assert p.skipped is not None and "cannot compile" in p.skipped
         assert p.submit([_fresh_kernel()[0]]) == 0
 

@@ -51,11 +51,12 @@ def cpu_threads() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def load_first(kernel, device) -> None:
-    """Compile / load ``kernel``'s Warp module on this thread before launches from several threads race to (after a
-    helper's compile of it ahead, if one is running: :func:`gpps.pipeline.prefetch.settle`)."""
-    settle(kernel, device)
-    warp().load_module(kernel.module, device=device)
+def load_first(kernel, device, block_dim: int | None = None) -> None:
+    """Compile / load the Warp module of ``kernel`` (a kernel or a module) on this thread, the variant for launches
+    of ``block_dim`` (None: Warp's default), before launches from several threads race to (after a helper's compile
+    of it ahead, if one is running: :func:`gpps.pipeline.prefetch.settle`)."""
+    settle((kernel, block_dim), device)
+    warp().load_module(getattr(kernel, "module", kernel), device=device, block_dim=block_dim)
 
 
 def run_reporting(task: Callable[[], None], report: Callable[[float], None] | None, every: float = 1.0) -> None:

@@ -35,7 +35,7 @@ from typing import Iterable
 from gpps._check import check_number
 from gpps._runtime import warp
 
-__all__ = ["KernelPrefetch", "compile_into_cache", "launch_block_dim", "prefetch_enabled", "settle"]
+__all__ = ["KernelPrefetch", "compile_into_cache", "is_loaded", "launch_block_dim", "prefetch_enabled", "settle"]
 
 _ACTIVE: dict = {}  # (id(module), device, block size) -> Future of its compile, until it ends or is cancelled
 _ACTIVE_LOCK = threading.Lock()
@@ -104,6 +104,16 @@ def launch_block_dim(device, block_dim: int | None = None) -> int:
     return 256 if block_dim is None or int(block_dim) <= 0 else int(block_dim)
 
 
+def is_loaded(module, device, block_dim: int | None = None) -> bool:
+    """Whether ``module``'s variant for launches of ``block_dim`` (None: Warp's default) on ``device`` is loaded in
+    this process (Warp's table of loaded variants, keyed by device context and block size; False when this Warp
+    has no such table: a load is then a no-op for a loaded module anyway)."""
+    try:
+        return (warp().get_device(device).context, launch_block_dim(device, block_dim)) in module.execs
+    except AttributeError:
+        return False
+
+
 def _block_dim_of(item) -> int | None:
     return int(item[1]) if isinstance(item, tuple) and len(item) == 2 and item[1] is not None else None
 
@@ -129,7 +139,7 @@ def compile_into_cache(module, device, block_dim: int | None = None) -> bool:
     module = _module_of(module, "module")
     dev = wp.get_device(device)
     dim = launch_block_dim(dev, block_dim)
-    if (dev.context, dim) in module.execs:
+    if is_loaded(module, dev, dim):
         return False
     module.get_module_hash(dim)  # (hashes the variant and resolves its options, as Module.load does)
     options = module.resolved_options[dim]
@@ -227,7 +237,7 @@ class KernelPrefetch:
             if key in self._seen:
                 continue
             self._seen.add(key)
-            if (self._context, dim) in module.execs:  # (loaded in this process: a later run's plan costs nothing)
+            if is_loaded(module, self.device, dim):  # (loaded in this process: a later run's plan costs nothing)
                 continue
             if self._pool is None:
                 self._pool = ThreadPoolExecutor(max_workers=self.workers, thread_name_prefix="gpps-prefetch")

@@ -54,8 +54,8 @@ from gpps.names import (
 )
 from gpps.names import ROBUST_TAG as _ROBUST_TAG
 from gpps.names import SOLVER_TAG as _SOLVER_TAG
-from gpps.pipeline.cpu_threads import balanced_bounds, cpu_threads, run_all, run_reporting
-from gpps.pipeline.prefetch import launch_block_dim, settle
+from gpps.pipeline.cpu_threads import balanced_bounds, cpu_threads, load_first, run_all, run_reporting
+from gpps.pipeline.prefetch import is_loaded
 from gpps.pipeline.params import camera_params, light_params, material_params, resolve_parallel, uses_lanes
 from gpps.pipeline.stage import Stage
 
@@ -696,7 +696,6 @@ class PixelSolver(Stage):
         done = self.__dict__.setdefault("_loaded_for", set())
         if key in done:  # (RON asks before every solve: ~17 us a call saved once its kernels are loaded)
             return
-        wp = warp()
         kernels = solver_kernels(self.config, self.material.brdf, self.device, self.shape[0],
                                  split=self._uses_split())
         # (kernels, modules and (kernel, block_dim) entries: each module variant once, as its launches load it)
@@ -709,8 +708,7 @@ class PixelSolver(Stage):
 
         def task():
             for module, dim in modules:
-                settle((module, dim), self.device)  # (a helper compiling it ahead: gpps.pipeline.prefetch)
-                wp.load_module(module, device=self.device, block_dim=dim)
+                load_first(module, self.device, dim)  # (after a helper's compile of it ahead: gpps.pipeline.prefetch)
         report = None if progress is None or not modules else (
             lambda s: progress(s, None, f"loading the solver's kernels ({s:.0f} s)"))
         run_reporting(task, report)
@@ -718,13 +716,9 @@ class PixelSolver(Stage):
 
     def _loaded(self, module, block_dim: int | None = None) -> bool:
         """Whether ``module``'s variant for launches of ``block_dim`` (None: Warp's default) is loaded on this
-        solver's device (Warp's table of loaded variants, keyed by device context and block size; False when it
-        cannot tell, and :meth:`load` loads it, a no-op then)."""
-        try:
-            ctx = warp().get_device(self.device).context
-            return (ctx, launch_block_dim(self.device, block_dim)) in module.execs
-        except Exception:  # (a Warp without that table)
-            return False
+        solver's device (:func:`gpps.pipeline.prefetch.is_loaded`; when it cannot tell, :meth:`load` loads it, a
+        no-op then)."""
+        return is_loaded(module, self.device, block_dim)
 
     def set_config(self, config: SolverConfig) -> None:
         if not isinstance(config, SolverConfig):
