@@ -217,6 +217,26 @@ def test_levels_below_equal_the_rule(levels_of, monkeypatch):
             assert got[1].sum() > 0
 
 
+
+def test_largest_equals_a_partition():
+    """``_largest`` (a sampled threshold, then a sort of what passes it) returns a full partition's k largest values,
+    sorted, on uniform, quantised (ties), sorted and partly out-of-use rows, including dense tops the sample
+    misses (the partition then runs)."""
+    from gpps.host.clipping import _largest
+
+    rng = np.random.default_rng(3)
+    for trial in range(600):
+        p = int(rng.integers(1, 6000))
+        k = int(rng.integers(1, p + 1))
+        row = {0: lambda: rng.random(p),
+               1: lambda: np.round(rng.random(p) * int(rng.integers(1, 50))),
+               2: lambda: np.sort(rng.random(p)),
+               3: lambda: np.where(rng.random(p) < 0.3, -np.inf, rng.random(p))}[trial % 4]().astype(np.float32)
+        if trial % 7 == 0:
+            row[rng.integers(0, p, max(1, p // 5))] = row.max()  # a tie-heavy top
+        want = np.sort(row) if k >= p else np.sort(np.partition(row, p - k)[p - k:])
+        np.testing.assert_array_equal(_largest(row, k), want)
+
 # ---------------------------------------------------------------------------------------------- in the flows
 
 

@@ -34,6 +34,8 @@ _TOL = names.PLATEAU_ULPS * float(np.finfo(np.float32).eps)  # relative width of
 #: the largest values :func:`_levels_below` selects beyond a plateau's pixels at first (more when they do not hold
 #: its levels): 8-bit data holds a level in about P / 256 pixels
 _TOP_MARGIN = 256
+#: the sample stride of :func:`_largest`'s threshold
+_STRIDE = 16
 
 
 def _reason(top, count, share) -> str | None:
@@ -75,7 +77,7 @@ def _levels_below(rows, plateau_lo, count, levels):
         row = rows[r]
         k = min(p, int(count[r]) + _TOP_MARGIN)
         while True:
-            top = np.sort(row if k >= p else np.partition(row, p - k)[p - k:])  # (k,) ascending: the k largest
+            top = _largest(row, k)  # (k,) ascending: the k largest
             lo, above, exact = plateau_lo[r], int(count[r]), True
             got = []
             for _ in range(levels):
@@ -99,6 +101,29 @@ def _levels_below(rows, plateau_lo, count, levels):
             values[r, i] = v
             counts[r, i] = cnt
     return values, counts
+
+
+def _largest(row, k: int) -> np.ndarray:
+    """The ``k`` largest values of ``row`` (1-D), sorted ascending: ``np.sort(np.partition(row, p - k)[p - k:])``.
+
+    A full partition reads and moves the whole row (0.24 ms for 65k float32 values); here a threshold comes from
+    every :data:`_STRIDE`-th value (their ``2 k / stride + 8``-th largest), one compare keeps the values at or
+    above it, and only those are sorted.  When they are at least ``k`` they hold the ``k`` largest (every value
+    left out is below all of them), so the result is the partition's exactly; otherwise (a sample that missed a
+    dense top) the partition runs.
+    """
+    p = row.size
+    if k >= p:
+        return np.sort(row)
+    if p >= 8 * _STRIDE and 4 * k <= p:
+        sub = row[::_STRIDE]
+        j = min(sub.size - 1, 2 * k // _STRIDE + 8)
+        thr = np.partition(sub, sub.size - 1 - j)[sub.size - 1 - j]
+        kept = row[row >= thr]
+        if kept.size >= k:
+            kept.sort()
+            return kept[kept.size - k:]
+    return np.sort(np.partition(row, p - k)[p - k:])
 
 
 def clipped_observations(images, mask, *, valid=None) -> tuple[np.ndarray | None, dict]:
