@@ -15,8 +15,9 @@ Variants (``--variants``, comma-separated):
 * ``no-depth``: ``RONConfig(integrate=False)``: no final integration;
 * ``rounds3``, ``rounds2``: ``RONConfig(rounds=3 / 2)``;
 * ``evals20``: ``RONConfig(material_evals=20)``: half the Nelder-Mead budget;
-* ``persistent-pcg``: the integrator's PCG as one persistent launch (``IntegratorConfig(launch="persistent")``)
-  instead of the default one Taichi launch an iteration;
+* ``fused-pcg``: ``RONConfig()`` given: the integrator's PCG one Taichi launch an iteration (``launch="fused"``),
+  where a Reconstructor given no config launches it as one persistent task on CUDA
+  (``gpps.flows.reconstruction.kept_stages_config``, session 44; before it, the default);
 * ``one-thread-neighbours``: the default, but the solver's neighbour pass (pixels with fewer than 3 lit
   observations) as ``underdetermined_kernel``, every start of a pixel in its thread, instead of its
   starts-parallel form (``gpps.kernels.solve_split.split_under_kernels_for``; session 27);
@@ -55,7 +56,7 @@ os.environ.setdefault("GPPS_CACHE_DIR", str(ROOT / ".cache"))
 import gpps  # noqa: E402
 from _common import device_label, reconstruct_inputs  # noqa: E402
 
-VARIANTS = ("default", "known", "no-dgmc", "no-depth", "rounds3", "rounds2", "evals20", "persistent-pcg",
+VARIANTS = ("default", "known", "no-dgmc", "no-depth", "rounds3", "rounds2", "evals20", "fused-pcg",
             "one-thread-neighbours", "warm-uncapped", "host-loop", "no-held-dark")
 
 
@@ -67,16 +68,16 @@ def _sync():
 def variant_kwargs(name: str) -> dict:
     """The Reconstructor's ``material`` and ``config`` of a variant."""
     from gpps.flows.ron import RONConfig
-    from gpps.pipeline.integration import IntegratorConfig
 
     base = RONConfig()
     if name in ("default", "one-thread-neighbours"):
         return {"material": "cook-torrance"}
     if name == "known":
         return {"material": gpps.Material("cook-torrance", ks=0.8, roughness=0.2, f0=0.5)}
+    if name == "fused-pcg":
+        return {"material": "cook-torrance", "config": base}
     changes = {"no-dgmc": {"dgmc": False}, "no-depth": {"integrate": False}, "rounds3": {"rounds": 3},
                "rounds2": {"rounds": 2}, "evals20": {"material_evals": 20},
-               "persistent-pcg": {"integrator": IntegratorConfig(launch="persistent")},
                "warm-uncapped": {"material_warm_iters": None},
                # the material search's steps driven from the host: the same trajectory, but every scorer launch a
                # plain launch (no CUDA graph), so --kernel-times sees all of the GPU's work

@@ -40,7 +40,7 @@ from gpps.flows.photometric import (
     input_saturation,
     working_scale,
 )
-from gpps.flows.ron import LOBE_PARAMETERS, RON, RONConfig
+from gpps.flows.ron import LOBE_PARAMETERS, RON, RONConfig, default_integrator
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import BRDF_NAMES, Material, check_model_images
 from gpps.names import MANY_IMAGES, SHADOW_RELATIVE_MANY
@@ -463,6 +463,21 @@ def _result(res, prep: _Prepared) -> Reconstruction:
     )
 
 
+def kept_stages_config(config: RONConfig, camera) -> RONConfig:
+    """``config`` with the integrator's multigrid CG launched ``"auto"``: one persistent Taichi task a solve on CUDA
+    (:class:`gpps.pipeline.integration.IntegratorConfig`), the fused launches on the CPU.  ``camera``: the call's
+    (a config without an integrator gets RON's default for it, :func:`gpps.flows.ron.default_integrator`).
+
+    :class:`Reconstructor`'s choice when it is given no config (applied to the config :func:`reconstruct` would
+    run).  The persistent task is compiled for a frame size (about 10 s on an H200, once
+    per size and installation: Taichi's offline cache keeps it) and then saves the host's launches of every CG
+    iteration (about 5 ms a 256^2 call on an H200, perf/results/s43 and s44): a cost a kept set-up, whose frames
+    share one size, pays once, and a one-off :func:`reconstruct` at a new size would pay every time.
+    """
+    integ = config.integrator if config.integrator is not None else default_integrator(camera)
+    return replace(config, integrator=replace(integ, launch="auto"))
+
+
 class Reconstructor:
     """:func:`reconstruct` for one fixed capture set-up, called again and again: the stages are kept between calls.
 
@@ -471,7 +486,11 @@ class Reconstructor:
     buffers, the integrator's Taichi fields, the material scorer, the device search and its CUDA graphs) for every
     call and frees them after; a ``Reconstructor`` builds them at its first call and keeps them, so each later call
     pays only for its own work.  The results are those of :func:`reconstruct` with the same arguments, bit for bit
-    (tests/test_reconstructor.py).
+    (tests/test_reconstructor.py), with one exception: without a ``config``, on CUDA, the integrator's CG runs as one
+    persistent task a solve (:func:`kept_stages_config`: compiled once per frame size, then no launch an
+    iteration), which sums its dot products in another order, so the depth's last bits (and, where the depth feeds
+    back: point lights, cast shadows, the depth-rms rule, the normals' last bits) may differ from
+    :func:`reconstruct`'s.  On the CPU, and with a ``config``, there is no exception.
 
     The stages are rebuilt, once, when a call's working scale (:func:`gpps.flows.photometric.working_scale`) or its
     ``saturation`` differs from the previous call's: both enter the stages' lights, material and settings.
@@ -532,6 +551,8 @@ class Reconstructor:
             raise RuntimeError("Reconstructor: closed")
         prep = _prepare(images, self.mask, self.lights, self.camera, self.material, self.estimate, depth,
                         reference_depth, valid, saturation, self.config)
+        if self.config is None:  # (after _prepare's rules for a call without a config)
+            prep = replace(prep, config=kept_stages_config(prep.config, prep.camera))
         ron = self._stages(prep)
         try:
             res = ron.run(prep.images, depth=depth, reference_depth=reference_depth, valid=prep.valid,

@@ -630,6 +630,14 @@ def depth_rms_roughness(depth, mask, camera, *, window: float = 4.0) -> float:
     return float(np.sqrt(np.mean(dev[m] ** 2)))
 
 
+def default_integrator(camera) -> IntegratorConfig:
+    """RON's integrator when ``RONConfig.integrator`` is None: multigrid to a relative residual of 1e-5;
+    perspective cameras with BiNI's n_z^2 confidence weighting (grazing rim normals, a few degrees off with 3
+    images, otherwise dominate the log-depth: sphere 64^2, 2.6 % -> 0.2 % of the range), orthographic ones uniform
+    (with n_z^2 weights a 256^2 sphere under point lights came out 10 % off)."""
+    return IntegratorConfig(tol=1e-5, weighting="normal" if camera.is_perspective else "uniform")
+
+
 class RON:
     """Algorithm 2 on N images: buffers (two pixel solvers, one integrator) allocated once.
 
@@ -685,11 +693,7 @@ class RON:
         self._ahead: list = []  # modules a flow queued behind the plan (compile_ahead)
         self.integrator = None
         if self.config.integrate:
-            # default, perspective: BiNI's n_z^2 confidence weighting: grazing rim normals (a few degrees off
-            # with 3 images) otherwise dominate the log-depth (sphere 64^2: 2.6 % -> 0.2 % of the range).
-            # Orthographic: uniform (with n_z^2 weights a 256^2 sphere under point lights came out 10 % off)
-            wt = "normal" if camera.is_perspective else "uniform"
-            icfg = self.config.integrator if self.config.integrator is not None else IntegratorConfig(tol=1e-5, weighting=wt)
+            icfg = self.config.integrator if self.config.integrator is not None else default_integrator(camera)
             self.integrator = Integrator(self.mask, camera=camera, config=icfg, device=taichi_device(self.device))
 
     def close(self) -> None:
