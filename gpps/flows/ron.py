@@ -889,7 +889,9 @@ class RON:
         k = min(int(np.clip(c.material_observations // self.shape[0], floor, c.material_samples)), idx.size)
         hl = np.flatnonzero((highlight & self.mask).ravel())
         take = rng.choice(hl, min(hl.size, k // 2), replace=False) if hl.size else np.zeros(0, np.int64)
-        rest = np.setdiff1d(idx, take, assume_unique=True)
+        left = self.mask.ravel().copy()
+        left[take] = False
+        rest = np.flatnonzero(left)  # (np.setdiff1d(idx, take): the same ascending indices, without its sort)
         take = np.concatenate([take, rng.choice(rest, min(rest.size, k - take.size), replace=False)])
         s = np.zeros(self.mask.size, bool)
         s[take] = True
