@@ -1725,14 +1725,14 @@ def _rounds_depth_rows(ctx, rounds, integ, d, info):
 
     def write():
         KW.depth_write(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], F["cmax"], F["cden"], F["st"], out, persp,
-                       ref, h, w)
+                       ref, 1, h, w)
 
     (pb, pf), (vb, vf) = COUNTS_CHAIN["rounds_depth_write"]()
     taichi_row("rounds_depth_write", "^depth_write", write, pb * hw + vb * valid, pf * hw + vf * valid,
                "depth_write: the depth of the valid pixels (float32) and the fill value's sums")
 
     def fill():
-        KW.depth_fill(F["cj"], F["lab"], F["mask"], F["st"], out, ref, 1.0, h, w)
+        KW.depth_fill(F["cj"], F["lab"], F["mask"], F["st"], out, ref, 1.0, 1, h, w)
 
     (pb, pf), (ob, _), (mb, mf) = COUNTS_CHAIN["rounds_depth_fill"]()
     taichi_row("rounds_depth_fill", "^depth_fill", fill, pb * hw + ob * (hw - mp) + mb * mp, pf * hw + mf * mp,

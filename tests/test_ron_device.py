@@ -229,7 +229,7 @@ def test_final_depth_on_device_matches_host(camera, with_ref, device, monkeypatc
     depth, once, on the device, from the solver's buffer (not handed to the solver); it equals the host
     run's final depth within 1e-4 of the range (both to a relative residual of 1e-5 in float32, on normals
     that agree to float rounding), with the same depth mask; without a reference depth the host's
-    normalisation (log-depth or depth of mean 0 per component: Integrator.unreferenced)."""
+    normalisation (log-depth or depth of mean 0 per component, as Integrator.fetch without one, on the device)."""
     sc = make_scene("sphere", 64, camera)
     L = default_lights("directional", 3)
     img = render(sc, MAT, L, bits=16, noise=0.0) / np.asarray(L.intensities, np.float32)[:, None, None, :]
@@ -366,8 +366,8 @@ def test_device_rounds_default_by_device(monkeypatch):
             if want:
                 assert (made[-1] is not None) == integ, (device, flag, torch)
                 assert p._rounds_integ == integ
-    # no reference depth: the device integration is still built (the final depth, normalised on the host:
-    # Integrator.unreferenced); the rounds' step 3 needs a reference (RON.run checks it)
+    # no reference depth: the device integration is still built (the final depth, normalised there as
+    # Integrator.fetch does without one); the rounds' step 3 needs a reference (RON.run checks it)
     p = Probe("cpu", None)
     p.solver = p.mask = None
     made.clear()

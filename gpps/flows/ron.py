@@ -1758,17 +1758,14 @@ class RON:
         t = time.perf_counter()
         same = c.final_integrator is None or c.final_integrator == self.integrator.config
         if same and dev is not None and dev.integrates:
-            ref = 1.0 if reference_depth is None else reference_depth  # (the device path always takes one)
-            if dev.integrate(ref, into_solver=False, normals=None if in_solver else normals):
+            # (without a reference depth normalised there as the host's Integrator.fetch does)
+            if dev.integrate(reference_depth, into_solver=False, normals=None if in_solver else normals):
                 # the pixels integrated: the mask, less invalid normals by the host's rule (the device
                 # dropped the same ones and filled them)
                 dmask = self.mask.copy() if dev.last["invalid"] == 0 else self.integrator._check_normals(normals)[1]
                 if self.camera.is_perspective:
                     warn_log_depth_span(dev.last["span"])  # (as the host path's Integrator.fetch)
-                if reference_depth is None:
-                    depth = self.integrator.unreferenced(dev.depth_host(), dmask)
-                else:
-                    depth = np.where(dmask, dev.depth_host(), 0.0).astype(np.float32)
+                depth = np.where(dmask, dev.depth_host(), 0.0).astype(np.float32)
                 timings["integration"] += time.perf_counter() - t
                 return depth, dmask, float(dev.last["residual"])
         if same:

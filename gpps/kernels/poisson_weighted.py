@@ -383,20 +383,26 @@ def depth_exp(z: ti.template(), cj: ti.template(), lab: ti.template(), cmax: ti.
 @ti.kernel
 def depth_write(z: ti.template(), cj: ti.template(), lab: ti.template(), csum: ti.template(), ccnt: ti.template(),
                 cmax: ti.template(), cden: ti.template(), st: ti.template(), out: ti.types.ndarray(),
-                perspective: ti.i32, ref: ti.f64, h: ti.i32, w: ti.i32):
+                perspective: ti.i32, ref: ti.f64, referenced: ti.i32, h: ti.i32, w: ti.i32):
     """The depth of the valid pixels into ``out`` (float32): ``u = z - mean z`` per component; perspective
     ``exp(u) * ref / mean exp(u)``, computed as ``exp(z - max z) * ref / mean exp(z - max z)`` (equal, and free
-    of overflow), orthographic ``u + ref`` (``Integrator.fetch``); ``st[FILL_SUM]``,
-    ``st[FILL_N]``: their float32 values summed and counted (RON's fill value is their mean)."""
+    of overflow), orthographic ``u + ref`` (``Integrator.fetch``); ``referenced`` 0: no reference, perspective
+    ``exp(u)`` and orthographic ``u`` (``Integrator.fetch`` without one; ``ref`` unused, ``cden`` not read);
+    ``st[FILL_SUM]``, ``st[FILL_N]``: their float32 values summed and counted (RON's fill value is their mean)."""
     st[FILL_SUM] = 0.0
     st[FILL_N] = 0.0
     for i, j in ti.ndrange(h, w):
         if cj[i, j] > 0 and lab[i, j] >= 0:
             l = lab[i, j]
             u = ti.cast(z[i, j], ti.f64) - csum[l] / ccnt[l]
-            d = u + ref
+            d = u
+            if referenced:
+                d = u + ref
             if perspective:
-                d = ti.exp(ti.cast(z[i, j], ti.f64) - cmax[l]) * (ref / (cden[l] / ccnt[l]))
+                if referenced:
+                    d = ti.exp(ti.cast(z[i, j], ti.f64) - cmax[l]) * (ref / (cden[l] / ccnt[l]))
+                else:
+                    d = ti.exp(u)
             d32 = ti.cast(d, ti.f32)
             out[i, j] = d32
             st[FILL_SUM] += ti.cast(d32, ti.f64)
@@ -405,14 +411,15 @@ def depth_write(z: ti.template(), cj: ti.template(), lab: ti.template(), csum: t
 
 @ti.kernel
 def depth_fill(cj: ti.template(), lab: ti.template(), mask: ti.template(), st: ti.template(),
-               out: ti.types.ndarray(), ref: ti.f64, outside: ti.f32, h: ti.i32, w: ti.i32):
-    """RON's ``_fill_depth`` on ``out``: mask pixels that were dropped (or came out <= 0) get the mean depth of
-    the valid ones (``ref`` when there are none); pixels outside the mask get ``outside``."""
+               out: ti.types.ndarray(), ref: ti.f64, outside: ti.f32, referenced: ti.i32, h: ti.i32, w: ti.i32):
+    """RON's ``_fill_depth`` on ``out``: mask pixels that were dropped (or came out <= 0, with ``referenced``: an
+    unreferenced orthographic depth has mean 0) get the mean depth of the valid ones (``ref`` when there are
+    none); pixels outside the mask get ``outside``."""
     fill = ti.cast(ref, ti.f32)
     if st[FILL_N] > 0:
         fill = ti.cast(st[FILL_SUM] / st[FILL_N], ti.f32)
     for i, j in ti.ndrange(h, w):
         if mask[i, j] == 0:
             out[i, j] = outside
-        elif not (cj[i, j] > 0 and lab[i, j] >= 0 and out[i, j] > 0):
+        elif not (cj[i, j] > 0 and lab[i, j] >= 0 and (out[i, j] > 0 or referenced == 0)):
             out[i, j] = fill

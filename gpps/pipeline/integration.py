@@ -440,28 +440,6 @@ class Integrator(Stage):
     def _comp_mean(self, a, valid):
         return component_means(a, valid, *self._components(valid))
 
-    def unreferenced(self, depth, valid) -> np.ndarray:
-        """A depth scaled (perspective) or shifted (orthographic) to any positive mean per component, as
-        :meth:`fetch` returns it without a reference depth: perspective ``exp(u)`` with the log-depth ``u``
-        of mean 0 per component of ``valid``, orthographic ``u`` of mean 0 per component; 0 outside ``valid``.
-        (For a depth integrated elsewhere, e.g. on the device, which always takes a reference.)
-
-        Args:
-            depth: (H, W) depth > 0 on ``valid`` (scene units).
-            valid: (H, W) bool, the integrated pixels.
-
-        Returns:
-            (H, W) float32.
-        """
-        v = np.asarray(valid, bool)
-        d = np.asarray(depth, np.float64)
-        if self.camera.is_perspective:
-            u = np.log(np.where(v, d, 1.0))
-            out = np.exp(u - self._comp_mean(u, v))
-        else:
-            out = d - self._comp_mean(d, v)
-        return np.where(v, out, 0.0).astype(np.float32)
-
     # ------------------------------------------------------------------ main entry
 
     def upload(self, normals, warm_start=None, *, reference_depth: float | None = None, cuts=None) -> None:

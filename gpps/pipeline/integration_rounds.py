@@ -117,14 +117,16 @@ class DeviceSystem(Stage):
     def upload(self, *args, **kwargs) -> None:
         """Nothing to copy: :meth:`step` reads the normals where they are (another stage's buffer)."""
 
-    def step(self, normals, out, *, reference_depth: float, outside: float = 1.0) -> bool:
+    def step(self, normals, out, *, reference_depth: float | None, outside: float = 1.0) -> bool:
         """Integrate ``normals`` into ``out`` on the device.
 
         Args:
             normals: (H, W, 3) float32 normals (a numpy view of a CPU Warp array, or a CUDA torch view).
             out: (H, W) float32 array of the same kind: the depth (valid pixels), the mean depth
                 (dropped mask pixels), ``outside`` (outside the mask).
-            reference_depth: mean depth per component (> 0).
+            reference_depth: mean depth per component (> 0); None: none, the depth as
+                :meth:`gpps.pipeline.integration.Integrator.fetch` normalises it without one (perspective ``exp`` of a
+                log-depth of mean 0 per component, orthographic a depth of mean 0 per component).
             outside: the value outside the mask.
 
         Returns:
@@ -226,12 +228,13 @@ class DeviceSystem(Stage):
         h, w = self.shape
         persp = self._cam[0]
         KW.component_sums(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], F["cmax"], F["cmin"], F["st"], h, w)
-        if persp:
+        referenced = reference_depth is not None
+        if persp and referenced:
             KW.depth_exp(d["z"], F["cj"], F["lab"], F["cmax"], F["cden"], h, w)
-        ref = float(reference_depth)
+        ref = float(reference_depth) if referenced else 1.0
         KW.depth_write(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], F["cmax"], F["cden"], F["st"], out, persp, ref,
-                       h, w)
-        KW.depth_fill(F["cj"], F["lab"], F["mask"], F["st"], out, ref, float(outside), h, w)
+                       int(referenced), h, w)
+        KW.depth_fill(F["cj"], F["lab"], F["mask"], F["st"], out, ref, float(outside), int(referenced), h, w)
         return True
 
     def _label(self, h, w) -> None:

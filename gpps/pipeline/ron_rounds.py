@@ -118,16 +118,19 @@ class DeviceRounds(Stage):
         cnt = max(cnt, 1.0)
         return {"energy": se / cnt, "change_deg": math.degrees(sa / cnt)}
 
-    def integrate(self, reference_depth: float, *, into_solver: bool = True, normals=None) -> bool:
+    def integrate(self, reference_depth: float | None, *, into_solver: bool = True, normals=None) -> bool:
         """Step 3 on the device: the solver's normals to :attr:`depth` (filled, mean ``reference_depth``);
         with ``into_solver`` copied into the solver's depth buffer.  False: fewer than 2 normals were
-        valid (nothing written; integrate on the host).
+        valid (nothing written; integrate on the host).  ``reference_depth`` None (the final depth of a
+        run without one; not ``into_solver``): normalised as :meth:`DeviceSystem.step` says.
 
         ``normals``: (H, W, 3) host normals to integrate instead of the solver's (RON's final depth after
         a round solved on the host): copied into :attr:`prev` (one upload), which the rounds no longer
         need then."""
         if self.system is None:
             raise ValueError("integrator: expected one the device path supports, got none")
+        if reference_depth is None and into_solver:
+            raise ValueError("reference_depth: expected a depth (> 0) for a depth the solver uses, got None")
         nrm, dep, prev = self._view()
         if normals is not None:
             self.upload(normals)
@@ -139,7 +142,7 @@ class DeviceRounds(Stage):
             _taichi.ti.sync()
         self.last = self.system.fetch()
         if ok:
-            if not self.last["fill"] > 0:
+            if reference_depth is not None and not self.last["fill"] > 0:
                 raise ValueError(f"depth: expected a positive integrated depth, got mean {self.last['fill']:g}")
             if into_solver:
                 self.solver.set_depth_device(self.depth)
