@@ -1,7 +1,7 @@
 """Where RON's integration stage spends its wall time on a warm ``gpps.reconstruct`` (256^2 x 3 by default).
 
 Wraps the device integration's pieces (``DeviceRounds.integrate``, ``DeviceSystem.step``,
-``Integrator._iterate``, ``Integrator.set_coarsest``, ``Integrator.unreferenced``) and the host path's
+``Integrator._iterate``, ``Integrator.set_coarsest``) and the host path's
 ``Integrator.run`` with wall-clock timers that synchronise the device (Warp and Taichi) before and after,
 so each piece's time includes its own device work and nothing else's.  Prints and writes JSON.
 
@@ -65,7 +65,6 @@ def main(argv=None):
     wrap(DeviceSystem, "__init__", "DeviceSystem.__init__")
     wrap(Integrator, "_iterate", "Integrator._iterate (PCG)")
     wrap(Integrator, "set_coarsest", "Integrator.set_coarsest (pinv)")
-    wrap(Integrator, "unreferenced", "Integrator.unreferenced")
     wrap(Integrator, "run", "Integrator.run (host path)")
     sc = gpps.make_scene("bumps", a.size, "perspective")
     L = gpps.default_lights("directional", a.images, layout="ring" if a.images <= 4 else "spiral")

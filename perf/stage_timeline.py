@@ -122,7 +122,6 @@ WRAPS = [
     (irounds_mod.DeviceSystem, "_solve_system", "system.solve_system"),
     (integ_mod.Integrator, "_iterate", "integrator.pcg"),
     (integ_mod.Integrator, "set_coarsest", "integrator.set_coarsest"),
-    (integ_mod.Integrator, "unreferenced", "integrator.unreferenced"),
     (ron_mod.RON, "_device_rounds", "RON._device_rounds"),
     (ron_mod.RON, "close", "RON.close"),
     (material_mod.MaterialScorer, "set_start", "scorer.set_start"),

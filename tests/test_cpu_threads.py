@@ -56,6 +56,29 @@ def test_run_all_reraises():
     assert 2 in out
 
 
+
+def test_submit_and_run_all_inside_pool_tasks(monkeypatch):
+    """submit returns the task's value (and re-raises its error); run_all called from inside a pool task runs its
+    parts in line on that thread (with every worker of a 2-thread pool in such a task, a queued part would
+    otherwise never start)."""
+    import threading
+
+    monkeypatch.setattr(ct, "_POOL", None)
+    monkeypatch.setenv("GPPS_CPU_THREADS", "2")
+    assert ct.submit(lambda a, b=0: a + b, 2, b=3).result(timeout=30) == 5
+    with pytest.raises(RuntimeError, match="boom"):
+        ct.submit(lambda: (_ for _ in ()).throw(RuntimeError("boom"))).result(timeout=30)
+    both = threading.Barrier(2, timeout=30)
+
+    def outer(k):
+        both.wait()  # both workers busy in an outer task
+        names = []
+        ct.run_all([lambda: names.append(threading.current_thread().name) for _ in range(3)])
+        return names, threading.current_thread().name
+
+    for names, me in [f.result(timeout=60) for f in [ct.submit(outer, k) for k in range(2)]]:
+        assert names == [me] * 3
+
 def _solve(monkeypatch, threads, img, lights, sc, mat, cfg, mask):
     monkeypatch.setenv("GPPS_CPU_THREADS", str(threads))
     s = PixelSolver(img.shape[:3], sc.camera, lights, mat, cfg, device="cpu")

@@ -106,3 +106,31 @@ def test_reconstructor_drops_stages_after_a_failed_call(device):
         got = rc(caps[0])
         assert rc.builds == 2  # (the interrupted run's stages were not kept)
     _same(got, gpps.reconstruct(caps[0], sc.mask, lights, **kw))
+
+
+def test_noise_estimated_beside_the_checks(device):
+    """The call's checks estimate the noise levels on the shared CPU pool (gpps.flows.reconstruction._prepare): the
+    solver's own estimate of the images it gets, bit for bit, and RON run with them gives the same result as RON
+    estimating them in its upload; at a working scale other than 1 none is passed (the solver estimates them on the
+    scaled images)."""
+    from gpps.flows.reconstruction import _prepare
+    from gpps.flows.ron import RON
+    from gpps.pipeline.solver import estimate_noise
+
+    sc, lights, caps = _captures(device)
+    args = (sc.mask, lights, sc.camera, "cook-torrance", "auto", None, None, None, None, None)
+    prep = _prepare(caps[0], *args)
+    assert prep.noise is not None and prep.noise.shape == (3,) and np.all(prep.noise > 0)
+    np.testing.assert_array_equal(prep.noise, estimate_noise(prep.images, prep.mask))
+    got = []
+    for noise in (prep.noise, None):
+        ron = RON(prep.shape, prep.camera, prep.lights, prep.material, prep.mask, prep.config, device=device)
+        try:
+            got.append(ron.run(prep.images, valid=prep.valid, noise=noise))
+            np.testing.assert_array_equal(ron.solver.noise_level, prep.noise)
+        finally:
+            ron.close()
+    for k in ("normals", "albedo", "residual", "flags"):
+        np.testing.assert_array_equal(getattr(got[0], k), getattr(got[1], k), err_msg=k)
+    with pytest.warns(gpps.GppsWarning, match="working"):
+        assert _prepare(caps[0] * 4096.0, *args).noise is None

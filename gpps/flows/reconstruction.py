@@ -44,6 +44,8 @@ from gpps.flows.ron import LOBE_PARAMETERS, RON, RONConfig, default_integrator
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import BRDF_NAMES, Material, check_model_images
 from gpps.names import MANY_IMAGES, SHADOW_RELATIVE_MANY
+from gpps.pipeline.cpu_threads import submit
+from gpps.pipeline.solver import estimate_noise
 
 __all__ = ["reconstruct", "Reconstruction", "Reconstructor", "ResidentFrame", "RONConfig"]
 
@@ -311,7 +313,7 @@ class ResidentFrame:
         pair = _start_pair(start)
         p = self._prep
         res = ron.run(p.images, depth=self._depth, reference_depth=self._reference, valid=p.valid, progress=progress,
-                      start=pair)
+                      start=pair, noise=p.noise)
         self.runs += 1
         out = _result(res, p)
         self.timings.append(dict(out.timings))
@@ -383,6 +385,7 @@ class _Prepared:
     scale: dict
     fixed: dict
     models: tuple
+    noise: np.ndarray | None = None  # (N,) the images' noise levels (estimate_noise), or None: the solver's upload
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -421,13 +424,19 @@ def _prepare(images, mask, lights, camera, material, estimate, depth, reference_
     if ref is None and depth is not None:
         ref = float(np.mean(as_array("depth", depth, shape=(h, w))[m]))
     notes: list[str] = []
+    # beside the checks, on the shared CPU pool: the working scale and the frame's noise levels (the solver's
+    # upload takes these: estimate_noise of the same images; kept only at the working scale 1, where they are
+    # the images the solver gets)
+    ws_job = submit(working_scale, img, m, lights, reference_depth=ref)
+    noise_job = submit(estimate_noise, img, m) if cfg.solver.noise_level is None else None
     # (float images without saturation= or valid=: observations clipped at any level left out, with a warning)
     val, clipped = detect_clipping(images, img, m, saturation=saturation, valid=val, sink=notes)
     determined = check_observations(img, m, lights, valid=val, saturation=input_saturation(images, saturation),
                                     reference_depth=ref, sink=notes, clipped=clipped)
     check_model_images((mat.brdf, *models), n, sink=notes)
     # images or albedos far from order one: solved at powers of two times their scales (working_scale)
-    ws = working_scale(img, m, lights, reference_depth=ref)
+    ws = ws_job.result()
+    noise = noise_job.result() if noise_job is not None and ws["images"] == 1.0 else None
     factor = ws["images"] / ws["lights"]  # (the working albedo and ks over the caller's)
     if ws["images"] != 1.0 or ws["lights"] != 1.0:
         warn(f"images: their scale {ws['image_scale']:.3g} (brightest values) and albedo scale "
@@ -445,7 +454,7 @@ def _prepare(images, mask, lights, camera, material, estimate, depth, reference_
             cfg = replace(cfg, dgmc_config=replace(cfg.dgmc_config,
                                                    saturation=float(cfg.dgmc_config.saturation) * ws["images"]))
     return _Prepared(images=img, mask=m, lights=lights, camera=camera, material=mat, config=cfg, valid=val,
-                     notes=notes, determined=determined, scale=ws, fixed=fixed, models=models)
+                     notes=notes, determined=determined, scale=ws, fixed=fixed, models=models, noise=noise)
 
 
 def _result(res, prep: _Prepared) -> Reconstruction:
@@ -556,7 +565,7 @@ class Reconstructor:
         ron = self._stages(prep)
         try:
             res = ron.run(prep.images, depth=depth, reference_depth=reference_depth, valid=prep.valid,
-                          progress=progress)
+                          progress=progress, noise=prep.noise)
         except BaseException:
             ron.close()  # (a run cut short may leave its stages half-stepped: not kept)
             self._ron = self._key = None

@@ -683,6 +683,7 @@ class RON:
         self._batch = max(25, self.config.material_grid ** max(len(self.config.estimate), 1))
         self._last_move = None  # log-space move of the last material fit (sizes the next fit's simplex)
         self._frame_key = self._frame_depth = None  # the frame on the solver's device (see _frame)
+        self._noise = None  # the run's noise levels, when its caller gave them (run)
         self._solver_mask = None  # the mask in the solver's buffer, when RON set it (see _set_mask)
         self._rounds = None  # the device side of the rounds (DeviceRounds), built at the first run that uses it
         self._rounds_integ = False  # whether self._rounds integrates (step 3 on the device)
@@ -803,7 +804,8 @@ class RON:
             cfg = s.config
             if cfg.warm_start:
                 s.set_config(replace(cfg, warm_start=False))
-            s.upload(images, self.mask, depth=depth, valid=valid)
+            s.upload(images, self.mask, depth=depth, valid=valid,
+                     noise=self._noise if cfg.noise_level is None else None)
             s.set_config(cfg)
             self._frame_key, self._frame_depth = key, depth
             self._solver_mask = self.mask
@@ -1326,7 +1328,7 @@ class RON:
     # ------------------------------------------------------------------ the loop
 
     def run(self, images, *, depth=None, reference_depth: float | None = None, valid=None,
-            progress: Progress | None = None, start=None) -> RONResult:
+            progress: Progress | None = None, start=None, noise=None) -> RONResult:
         """Run Algorithm 2.
 
         Args:
@@ -1344,6 +1346,9 @@ class RON:
                 images (the interreflection compensation's later ones, :mod:`gpps.flows.interreflection`).  Every
                 round then solves warm from the last normals only: no least squares, no DGMC, no cold starts (the
                 earlier reconstruction ran them; a pixel its images moved by a little stays in its basin).
+            noise: optional (N,) noise levels of the images (:func:`gpps.pipeline.solver.estimate_noise` of these
+                images, e.g. computed beside the caller's checks), used instead of the solver's own estimate
+                when its ``noise_level`` is None.
 
         Returns:
             :class:`RONResult`.
@@ -1370,6 +1375,7 @@ class RON:
                                  f"shape {start_highlight.shape}")
         c = self.config
         m = self.mask
+        self._noise = noise
         self._compile_ahead(warm_start)
         self._last_move = None
         self._solver_mask = None

@@ -19,7 +19,7 @@ from __future__ import annotations
 import os
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Callable, Sequence
 
 import numpy as np
@@ -28,9 +28,10 @@ from gpps import _fpenv
 from gpps._runtime import warp
 from gpps.pipeline.prefetch import settle
 
-__all__ = ["cpu_threads", "run_all", "balanced_bounds", "load_first", "run_reporting"]
+__all__ = ["cpu_threads", "run_all", "submit", "balanced_bounds", "load_first", "run_reporting"]
 
 _POOL: ThreadPoolExecutor | None = None
+_PREFIX = "gpps-cpu"
 _POOL_LOCK = threading.Lock()
 
 
@@ -94,8 +95,24 @@ def _in_env(task, env):
     """``task`` run under the floating-point environment ``env`` (the caller's)."""
     def run():
         _fpenv.set_env(env)
-        task()
+        return task()
     return run
+
+
+def _pool() -> ThreadPoolExecutor:
+    """The shared pool, of :func:`cpu_threads` workers (made again when that count changed)."""
+    global _POOL
+    n = cpu_threads()
+    with _POOL_LOCK:
+        if _POOL is None or _POOL._max_workers != n:  # noqa: SLF001 - size check only
+            _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix=_PREFIX)
+        return _POOL
+
+
+def _in_pool() -> bool:
+    """Whether this thread is one of the shared pool's (its tasks then run their parts in line: a worker that
+    waited on parts queued behind it could wait for ever once every worker waits)."""
+    return threading.current_thread().name.startswith(_PREFIX)
 
 
 def run_all(tasks: Sequence[Callable[[], None]]) -> None:
@@ -106,21 +123,23 @@ def run_all(tasks: Sequence[Callable[[], None]]) -> None:
     turns flush-to-zero on in its thread, or a caller's own setting) rounded denormal results otherwise, and
     which thread ran which part depended on timing (normals 7e-40 against 0 on 343 pixels of a rendered
     capture, run to run under load).  A split launch computes what one launch on the calling thread
-    computes, bit for bit.
+    computes, bit for bit.  Called from a task of the pool (:func:`submit`), the tasks run one after another
+    on that thread.
     """
-    global _POOL
-    if len(tasks) <= 1:
+    if len(tasks) <= 1 or _in_pool():
         for t in tasks:
             t()
         return
-    n = cpu_threads()
-    with _POOL_LOCK:
-        if _POOL is None or _POOL._max_workers != n:  # noqa: SLF001 - size check only
-            _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="gpps-cpu")
-        pool = _POOL
+    pool = _pool()
     env = _fpenv.get()
     for f in [pool.submit(_in_env(t, env)) for t in tasks]:
         f.result()
+
+
+def submit(fn: Callable, *args, **kwargs) -> Future:
+    """``fn(*args, **kwargs)`` on the shared pool, under the caller's floating-point environment (as
+    :func:`run_all`'s tasks): host work that overlaps the caller's.  Returns its future."""
+    return _pool().submit(_in_env(lambda: fn(*args, **kwargs), _fpenv.get()))
 
 
 def balanced_bounds(weights, parts: int) -> list[tuple[int, int]]:
