@@ -336,8 +336,7 @@ def estimate_noise(images, mask, *, max_pixels: int = 1 << 16) -> np.ndarray:
         mask: (H, W) bool.
         max_pixels: cap on the pixels used per image.
 
-    Cost: image by image (the blocks stay in cache; the images spread over the shared CPU pool,
-    :func:`gpps.pipeline.cpu_threads.run_all`), only the rows and the column range of the chosen
+    Cost: image by image (the blocks stay in cache), only the rows and the column range of the chosen
     pixels, one grey value per pixel (not once per kernel row), in float32 without a copy of the frame.
     The kernel sums its 9 terms in the same order as a plain 3x3 loop and the median is np.median's, so
     the estimate is the same bit for bit (tests/test_host_overheads.py pins it to that loop).
@@ -376,14 +375,13 @@ def estimate_noise(images, mask, *, max_pixels: int = 1 << 16) -> np.ndarray:
     at = [rows_of(np.searchsorted(used, rows + 1 + di)) for di in (-1, 0, 1)]
     used_rows = rows_of(used)
     taps = [(di, dj, (1 + (di == 0)) * (1 + (dj == 0)) * (-1) ** (di + dj)) for di in (-1, 0, 1) for dj in (-1, 0, 1)]
-
-    def one(k):  # one image (its own buffers): the (U, Wc) blocks stay in cache
-        grey = np.empty((used.size, wc), np.float32)
-        lit = np.empty(grey.shape, bool)
-        lap = np.empty((rows.size, wc - 2), np.float32)
-        tmp = np.empty_like(lap)
-        pos = np.empty(lap.shape, bool)
-        mid = np.empty(2, np.float32)
+    grey = np.empty((used.size, wc), np.float32)
+    lit = np.empty(grey.shape, bool)
+    lap = np.empty((rows.size, wc - 2), np.float32)
+    tmp = np.empty_like(lap)
+    pos = np.empty(lap.shape, bool)
+    mid = np.empty(2, np.float32)
+    for k in range(n):  # one image at a time: the (U, Wc) blocks stay in cache
         blk = img[k, :, c0:c1][used_rows]
         if blk.ndim == 3:  # (U, Wc, C): the mean of R, G, B in float32, summed left to right
             blk = blk.astype(np.float32, copy=False)
@@ -408,7 +406,7 @@ def estimate_noise(images, mask, *, max_pixels: int = 1 << 16) -> np.ndarray:
                 lap += tmp
         v = np.abs(lap[pos])
         if v.size < 64:
-            return
+            continue
         if np.isnan(v).any():  # pragma: no cover - inf in the images; np.median's NaN rule
             med = np.median(v)
         else:
@@ -422,9 +420,6 @@ def estimate_noise(images, mask, *, max_pixels: int = 1 << 16) -> np.ndarray:
                 mid[0], mid[1] = part[j], part[j + 1 :].min()
                 med = np.mean(mid)
         out[k] = float(med) / (0.6745 * 6.0)
-
-    # (the images on the shared CPU pool: numpy releases the GIL in these array operations)
-    run_all([lambda k=k: one(k) for k in range(n)])
     return out
 
 
