@@ -174,6 +174,19 @@ def test_converged_simplex_needs_no_step(device):
         search.step()
         got = search.fetch()
     assert sc.launches == n and got["steps"] == 0 and got["status"] == "converged"
+    # unscored: the init pass scores the simplex, sorts it and stops there (converged)
+    with NelderMeadSearch(sc, 2) as search:
+        assert search.scores_simplex
+        search.upload(base, NAMES, simplex, None, lo=LO, hi=HI, maxfev=40, xatol=1e-3)
+        n = sc.launches
+        search.step()
+        itself = search.fetch()
+    assert sc.launches == n + 1 and itself["steps"] == 1 and itself["status"] == "converged"
+    assert itself["scored"] == 3 and itself["evaluations"] == got["evaluations"]
+    np.testing.assert_array_equal(itself["x"], got["x"])
+    assert itself["f_start"] == sc.score(base, simplex[:1])[0]
+    with NelderMeadSearch(ValleyScorer(device, max_candidates=8), 4) as search:  # (5 vertices: not one pass)
+        assert not search.scores_simplex
 
 
 def _scene(device):
@@ -205,10 +218,18 @@ def test_material_scorer_same_trajectory_as_host(warm, device):
         x0 = np.log([start.ks, start.roughness])
         simplex = initial(x0, np.array([0.15, 0.15]))
         fx, x, _ = host_search(score, simplex, 40, 1e-3)
+        f_init = score(simplex)
         with NelderMeadSearch(sc, 2) as search:
-            got = search.run(start, NAMES, simplex, score(simplex), lo=LO, hi=HI, maxfev=40, xatol=1e-3, warm=warm)
+            got = search.run(start, NAMES, simplex, f_init, lo=LO, hi=HI, maxfev=40, xatol=1e-3, warm=warm)
+            # the simplex scored by the search itself (its init pass): the same trajectory and evaluations, and the
+            # start's energy back
+            itself = search.run(start, NAMES, simplex, None, lo=LO, hi=HI, maxfev=40, xatol=1e-3, warm=warm)
     np.testing.assert_allclose(got["x"], x, rtol=0, atol=1e-12)
     assert abs(got["energy"] - fx) <= 1e-9 * abs(fx)
+    np.testing.assert_array_equal(itself["x"], got["x"])
+    assert itself["energy"] == got["energy"] and itself["evaluations"] == got["evaluations"]
+    assert itself["steps"] == got["steps"] + 1 and itself["scored"] == got["scored"] + 3
+    assert itself["f_start"] == f_init[0] and got["f_start"] is None
     # the true material is nearer than the start
     truth = np.log([mat.ks, mat.roughness])
     assert np.linalg.norm(got["x"] - truth) < np.linalg.norm(x0 - truth)
@@ -325,7 +346,9 @@ def test_nan_energies_sort_last_as_numpy(device):
     energy = wp.array(np.full(4, np.nan), dtype=wp.float64, device=device)
     state = wp.array(np.array([3, 0, 0, 0], np.int32), dtype=wp.int32, device=device)
     cond = wp.array(np.array([1], np.int32), dtype=wp.int32, device=device)
-    args = dict(inputs=[energy, cand, 2, 40, wp.float64(1e-3)], outputs=[sim, fsim, state, cond], device=device)
+    fstart = wp.zeros(1, dtype=wp.float64, device=device)
+    args = dict(inputs=[energy, cand, 2, 40, wp.float64(1e-3)], outputs=[sim, fsim, fstart, state, cond],
+                device=device)
     wp.launch(ms.search_step_kernel, dim=1, **args)
     assert state.numpy()[3] == 1  # a shrink next
     # the shrink pass: vertex 1 gets a number, vertex 2 NaN; numpy's stable argsort puts NaN last

@@ -1083,9 +1083,10 @@ class RON:
                 ``(energy, x, energy at x_start)``."""
                 simplex = initial_simplex(x_start, step, lo, hi)
                 if self._device_loop() and c.material_evals > len(names) + 1:
-                    # the initial simplex in one batch from the host, then every step on the device
-                    f_init = score(list(simplex))
+                    # every step on the device, and there the initial simplex too (its first pass) where its
+                    # vertices fit a pass; else the simplex in one batch from the host first
                     search = self._search_for(material.brdf, len(names))
+                    f_init = None if search.scores_simplex else score(list(simplex))
                     search.upload(material, names, simplex, f_init, lo=lo, hi=hi, maxfev=c.material_evals,
                                   xatol=xatol)
                     search.step(warm=warm)
@@ -1094,7 +1095,7 @@ class RON:
                     report(len(evals) + scored[0], len(evals) + scored[0],
                            f"material: {len(evals) + scored[0]} candidates scored ({got['steps']} steps on the "
                            "device)")
-                    return got["energy"], got["x"], float(f_init[0])
+                    return got["energy"], got["x"], float(f_init[0] if f_init is not None else got["f_start"])
                 # on CUDA a launch costs its slowest thread, not its candidates: score every point a step may
                 # read in one batch (the same trajectory: Nelder-Mead reads only what it needs); the start is
                 # scored with the initial simplex

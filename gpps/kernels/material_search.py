@@ -27,6 +27,11 @@ A pass scores :data:`SEARCH_POINTS` = 4 candidates, whatever the dimension d <= 
   evaluations the method reads exactly as :meth:`gpps.flows.ron.RON._nelder_mead` does (``maxfev``: the search
   stops before a read past it) and clears the loop's condition when the search has converged or spent its budget.
 
+A search uploaded without its simplex's energies starts with an *init* pass (phase 2, ``d + 1 <= 4``): the points
+are the simplex's own vertices (clipped, as the host's scoring clips them; the rows past ``d`` repeat the last),
+and the step kernel takes their energies as the simplex's, keeps vertex 0's (the start's) in ``f0``, sorts and
+tests convergence, as the host does before an upload of a scored simplex: one host round trip less a search.
+
 The trajectory is the host method's: the same points in the same float64 arithmetic, the same comparisons;
 energies agree with the host's to float64 rounding of their sums, so a step can differ only where two energies
 tie to ~1e-16 relative.
@@ -38,7 +43,7 @@ from gpps.kernels.brdf import MaterialParams
 
 __all__ = ["search_points_kernel", "trimmed_rank_kernel", "trimmed_contrib_kernel", "trimmed_partial_kernel",
            "trimmed_energy_kernel", "RANK_SEGMENT",
-           "search_step_kernel", "SEARCH_POINTS", "PARTIAL_LANES", "FIELD_KS", "FIELD_SHININESS",
+           "search_step_kernel", "SEARCH_POINTS", "PARTIAL_LANES", "PHASE_STEP", "PHASE_SHRINK", "PHASE_INIT", "FIELD_KS", "FIELD_SHININESS",
            "FIELD_ROUGHNESS", "FIELD_ETA", "STATUS_RUNNING", "STATUS_CONVERGED", "STATUS_BUDGET"]
 
 SEARCH_POINTS = 4  # candidates a pass: reflection, expansion, outside and inside contraction (or the d shrink points)
@@ -47,9 +52,11 @@ RANK_SEGMENT = 128  # sample values one thread of the rank kernel compares again
 # lobe fields of MaterialParams a search parameter sets (gpps.pipeline.material._LOBE_FIELDS, eta: both)
 FIELD_KS, FIELD_SHININESS, FIELD_ROUGHNESS, FIELD_ETA = 0, 1, 2, 3
 STATUS_RUNNING, STATUS_CONVERGED, STATUS_BUDGET = 0, 1, 2
-# state slots of the search: evaluations read, passes, status, phase (0: a step pass next, 1: a shrink pass)
+# state slots of the search: evaluations read, passes, status, phase (0: a step pass next, 1: a shrink pass,
+# 2: the init pass, which scores the simplex itself)
 STATE_NEED, STATE_PASSES, STATE_STATUS, STATE_PHASE = 0, 1, 2, 3
 STATE_SIZE = 4
+PHASE_STEP, PHASE_SHRINK, PHASE_INIT = 0, 1, 2
 
 
 @wp.kernel(enable_backward=False)
@@ -71,7 +78,8 @@ def search_points_kernel(
     (``state[STATE_PHASE] == 1``): ``sim[0] + 0.5 (sim[i + 1] - sim[0])`` for ``c = i < d`` (the last one
     repeated above).  Each point is clipped to ``[lo, hi]`` and kept clipped (scipy's bounded Nelder-Mead: a point
     kept outside would be scored at its projection, a plateau the simplex could drift on); the material row scores
-    ``exp(cand[c])``.
+    ``exp(cand[c])``.  Init pass (``state[STATE_PHASE] == 2``): ``sim[c]`` itself (``c <= d``; the last vertex
+    repeated above).
     """
     c = wp.tid()
     m = base_row[0]  # (a copy: the lobe fields set below do not touch the base row)
@@ -81,9 +89,12 @@ def search_points_kernel(
     psi = wp.float64(0.5)
     sigma = wp.float64(0.5)
     shrink = state[3] == 1
+    init = state[3] == 2
     for j in range(d):
         x = wp.float64(0.0)
-        if shrink:
+        if init:
+            x = sim[wp.min(c, d), j]
+        elif shrink:
             row = wp.min(c + 1, d)
             x = sim[0, j] + sigma * (sim[row, j] - sim[0, j])
         else:
@@ -226,10 +237,14 @@ def search_step_kernel(
     xatol: wp.float64,
     sim: wp.array2d(dtype=wp.float64),
     fsim: wp.array(dtype=wp.float64),
+    f0: wp.array(dtype=wp.float64),
     state: wp.array(dtype=wp.int32),
     cond: wp.array(dtype=wp.int32),
 ):
     """One pass of Nelder-Mead on the sorted simplex (one thread), :meth:`gpps.flows.ron.RON._nelder_mead`'s rules.
+
+    The init pass (phase 2) takes the first ``d + 1`` energies as the simplex's (``f0[0]``: vertex 0's, the
+    start's), then sorts and tests convergence as after a step.
 
     ``state``: [evaluations read, passes, status, phase].  A step pass decides from the reflection (and reads
     what it needs of the other three); a shrink it asks for sets the phase and leaves the simplex for the next
@@ -243,7 +258,12 @@ def search_step_kernel(
     state[1] = state[1] + 1
     last = d
     budget = int(0)
-    if state[3] == 1:  # the shrink pass: the d shrunk vertices' energies
+    if state[3] == 2:  # the init pass: the simplex's own energies (need counts them already)
+        state[3] = 0
+        for i in range(d + 1):
+            fsim[i] = energy[i]
+        f0[0] = energy[0]
+    elif state[3] == 1:  # the shrink pass: the d shrunk vertices' energies
         state[3] = 0
         if need + d > maxfev:  # a read of the shrink passes the budget: the host keeps its best vertex
             need = maxfev

@@ -101,12 +101,13 @@ class NelderMeadSearch(Stage):
         d, dev = self.dims, self.device
         # the small per-search arrays live in one float64 and one int32 buffer (views): an upload is two copies and
         # the struct row, a fetch two copies (each copy costs ~0.1 ms of host time on CUDA, four searches a call)
-        self._f64 = self._buffer((d + 1) * d + (d + 1) + 2 * d, wp.float64, dev)
+        self._f64 = self._buffer((d + 1) * d + (d + 1) + 2 * d + 1, wp.float64, dev)
         self._i32 = self._buffer(d + ms.STATE_SIZE + 1, wp.int32, dev)
         self.sim = self._f64[0:(d + 1) * d].reshape((d + 1, d))
         self.fsim = self._f64[(d + 1) * d:(d + 1) * (d + 1)]
         self.lo = self._f64[(d + 1) * (d + 1):(d + 1) * (d + 1) + d]
-        self.hi = self._f64[(d + 1) * (d + 1) + d:]
+        self.hi = self._f64[(d + 1) * (d + 1) + d:(d + 1) * (d + 1) + 2 * d]
+        self.f0 = self._f64[(d + 1) * (d + 1) + 2 * d:]  # the start's energy, when the search scores its simplex
         self.fields = self._i32[0:d]
         self.state = self._i32[d:d + ms.STATE_SIZE]
         self.cond = self._i32[d + ms.STATE_SIZE:]
@@ -118,21 +119,29 @@ class NelderMeadSearch(Stage):
         self.base = self._buffer(1, MaterialParams, dev)
         self._graphs: dict = {}
         self._host: dict | None = None  # the uploaded search's host-side result when it needs no step
+        self._init = False  # the uploaded search scores its simplex itself (its first pass)
         self._spec = None
         self._closed = False
 
     # ------------------------------------------------------------------ upload
 
+    @property
+    def scores_simplex(self) -> bool:
+        """Whether :meth:`upload` takes a simplex without energies here (its d + 1 vertices fit one pass)."""
+        return self.dims + 1 <= self.points
+
     def upload(self, material: Material, names: Sequence[str], simplex, energies, *, lo, hi, maxfev: int,
                xatol: float, evaluations: int | None = None) -> None:
-        """Start a search from a scored simplex.
+        """Start a search from a simplex, scored or not.
 
         Args:
             material: the base material (its model is the scorer's); the searched lobe parameters ``names``
                 are set from each point, the rest kept.
             names: the d searched parameters (:data:`gpps.names.LOBE_PARAMETERS` of the model).
             simplex: (d + 1, d) vertices in log-parameter space (vertex 0 the start).
-            energies: (d + 1,) their energies (float64).
+            energies: (d + 1,) their energies (float64), or None (:attr:`scores_simplex`): the search's first pass
+                scores the vertices on the device (clipped to the bounds, as the host's scoring clips them; the
+                kernels' init pass), and :meth:`fetch` returns vertex 0's energy as ``f_start``.
             lo, hi: (d,) log bounds: every point the search makes is clipped to them and kept clipped (scipy's
                 bounded Nelder-Mead; the simplex should lie inside: :func:`gpps.flows.ron.initial_simplex`).
             maxfev: the most evaluations the method reads, the initial simplex's included (> d + 1).
@@ -153,7 +162,12 @@ class NelderMeadSearch(Stage):
             raise ValueError(f"names: expected {d} parameters of {material.brdf!r} from "
                              f"{LOBE_PARAMETERS[material.brdf]}, got {names}")
         sim = as_array("simplex", simplex, shape=(d + 1, d), dtype=np.float64)
-        f = as_array("energies", energies, shape=(d + 1,), dtype=np.float64, finite=False)
+        init = energies is None
+        if init and not self.scores_simplex:
+            raise ValueError(f"energies: expected the simplex's {d + 1} energies ({d + 1} vertices do not fit a "
+                             f"pass of {self.points}), got None")
+        f = (np.zeros(d + 1) if init
+             else as_array("energies", energies, shape=(d + 1,), dtype=np.float64, finite=False))
         lo = as_array("lo", lo, shape=(d,), dtype=np.float64)
         hi = as_array("hi", hi, shape=(d,), dtype=np.float64)
         if np.any(np.isnan(f)):
@@ -163,14 +177,18 @@ class NelderMeadSearch(Stage):
         need = d + 1 if evaluations is None else check_number("evaluations", evaluations, lo=0, integer=True)
         maxfev = check_number("maxfev", maxfev, lo=need + 1, integer=True)
         xatol = check_number("xatol", xatol, lo=0.0)
-        order = np.argsort(f, kind="stable")
-        sim, f = sim[order], f[order]
-        converged = bool(np.max(np.abs(sim[1:] - sim[0])) <= xatol)
+        converged = False
+        if not init:  # (scored: sorted and tested here; else by the init pass)
+            order = np.argsort(f, kind="stable")
+            sim, f = sim[order], f[order]
+            converged = bool(np.max(np.abs(sim[1:] - sim[0])) <= xatol)
         self._host = {"energy": float(f[0]), "x": sim[0].copy(), "evaluations": int(need), "steps": 0,
-                      "status": "converged", "scored": 0} if converged else None
+                      "status": "converged", "scored": 0, "f_start": None} if converged else None
+        self._init = init
         self._spec = (names, int(maxfev), float(xatol))
-        self._f64.assign(np.concatenate([sim.ravel(), f, lo, hi]))  # (sim, fsim, lo, hi)
-        self._i32.assign(np.array([_FIELD_OF[n] for n in names] + [need, 0, ms.STATUS_RUNNING, 0]
+        self._f64.assign(np.concatenate([sim.ravel(), f, lo, hi, [np.nan]]))  # (sim, fsim, lo, hi, f0)
+        phase = ms.PHASE_INIT if init else ms.PHASE_STEP
+        self._i32.assign(np.array([_FIELD_OF[n] for n in names] + [need, 0, ms.STATUS_RUNNING, phase]
                                   + [0 if converged else 1], np.int32))  # (fields, state, cond)
         row = np.zeros(1, dtype=MaterialParams.numpy_dtype())
         m = material
@@ -198,7 +216,7 @@ class NelderMeadSearch(Stage):
         wp.launch(ms.trimmed_energy_kernel, dim=kc, inputs=[self.partial, keep], outputs=[self.energy], device=dev)
         wp.launch(ms.search_step_kernel, dim=1,
                   inputs=[self.energy, self.cand, d, maxfev, wp.float64(xatol)],
-                  outputs=[self.sim, self.fsim, self.state, self.cond], device=dev)
+                  outputs=[self.sim, self.fsim, self.f0, self.state, self.cond], device=dev)
 
     def uses_graph(self) -> bool:
         """Whether :meth:`step` runs the loop as a CUDA graph with a conditional node here."""
@@ -247,8 +265,10 @@ class NelderMeadSearch(Stage):
 
     def fetch(self) -> dict:
         """The search's result (one small copy): ``energy`` (float), ``x`` (d,) the best vertex (log space,
-        inside the bounds, as the host method returns it), ``evaluations`` read, ``steps`` (passes: steps and shrinks),
-        ``status`` (``"converged"`` or ``"budget"``) and ``scored`` (candidates solved: 4 a pass)."""
+        inside the bounds, as the host method returns it), ``evaluations`` read, ``steps`` (passes: steps and shrinks,
+        and the init pass), ``status`` (``"converged"`` or ``"budget"``), ``scored`` (candidates solved: 4 a pass,
+        the init pass's d + 1 vertices) and ``f_start``: vertex 0's energy when the search scored its simplex
+        (``upload(energies=None)``), else None."""
         self._check_open()
         if self._spec is None:
             raise ValueError("fetch: expected upload() first")
@@ -257,8 +277,11 @@ class NelderMeadSearch(Stage):
         d = self.dims
         f64, state = self._f64.numpy(), self._i32.numpy()[d:d + ms.STATE_SIZE]  # (two copies)
         sim, fsim = f64[:(d + 1) * d].reshape(d + 1, d), f64[(d + 1) * d:(d + 1) * (d + 1)]
-        return {"energy": float(fsim[0]), "x": sim[0].copy(), "evaluations": int(state[0]), "steps": int(state[1]),
-                "status": search_status(state[2]), "scored": int(state[1]) * self.points}
+        passes = int(state[1])
+        scored = passes * self.points - ((self.points - (d + 1)) if self._init and passes else 0)
+        return {"energy": float(fsim[0]), "x": sim[0].copy(), "evaluations": int(state[0]), "steps": passes,
+                "status": search_status(state[2]), "scored": scored,
+                "f_start": float(f64[-1]) if self._init else None}
 
     def run(self, *args, warm: bool = False, **kwargs) -> dict:
         """``upload(*args, **kwargs)``, ``step(warm=warm)`` and ``fetch()``."""
