@@ -43,8 +43,9 @@ from gpps.kernels.brdf import MaterialParams
 
 __all__ = ["search_points_kernel", "trimmed_rank_kernel", "trimmed_contrib_kernel", "trimmed_partial_kernel",
            "trimmed_energy_kernel", "RANK_SEGMENT",
-           "search_step_kernel", "SEARCH_POINTS", "PARTIAL_LANES", "PHASE_STEP", "PHASE_SHRINK", "PHASE_INIT", "FIELD_KS", "FIELD_SHININESS",
-           "FIELD_ROUGHNESS", "FIELD_ETA", "STATUS_RUNNING", "STATUS_CONVERGED", "STATUS_BUDGET"]
+           "search_step_kernel", "SEARCH_POINTS", "PARTIAL_LANES", "PHASE_STEP", "PHASE_SHRINK", "PHASE_INIT",
+           "FIELD_KS", "FIELD_SHININESS", "FIELD_ROUGHNESS", "FIELD_ETA", "STATUS_RUNNING", "STATUS_CONVERGED",
+           "STATUS_BUDGET"]
 
 SEARCH_POINTS = 4  # candidates a pass: reflection, expansion, outside and inside contraction (or the d shrink points)
 PARTIAL_LANES = 64  # strided partial sums per candidate of the trimmed energy
