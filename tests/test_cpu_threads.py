@@ -58,8 +58,8 @@ def test_run_all_reraises():
 
 
 def test_submit_and_run_all_inside_pool_tasks(monkeypatch):
-    """submit returns the task's value (and re-raises its error); run_all called from inside a pool task runs its
-    parts in line on that thread (with every worker of a 2-thread pool in such a task, a queued part would
+    """submit returns the task's value (and re-raises its error); run_all and submit called from inside a pool task
+    run in line on that thread (with every worker of a 2-thread pool in such a task, a queued part would
     otherwise never start)."""
     import threading
 
@@ -78,6 +78,15 @@ def test_submit_and_run_all_inside_pool_tasks(monkeypatch):
 
     for names, me in [f.result(timeout=60) for f in [ct.submit(outer, k) for k in range(2)]]:
         assert names == [me] * 3
+
+    def nested(k):
+        both.wait()
+        inner = ct.submit(lambda: threading.current_thread().name)
+        assert inner.done()
+        return inner.result(), threading.current_thread().name
+
+    for got, me in [f.result(timeout=60) for f in [ct.submit(nested, k) for k in range(2)]]:
+        assert got == me
 
 def _solve(monkeypatch, threads, img, lights, sc, mat, cfg, mask):
     monkeypatch.setenv("GPPS_CPU_THREADS", str(threads))

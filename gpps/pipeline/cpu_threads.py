@@ -138,7 +138,15 @@ def run_all(tasks: Sequence[Callable[[], None]]) -> None:
 
 def submit(fn: Callable, *args, **kwargs) -> Future:
     """``fn(*args, **kwargs)`` on the shared pool, under the caller's floating-point environment (as
-    :func:`run_all`'s tasks): host work that overlaps the caller's.  Returns its future."""
+    :func:`run_all`'s tasks): host work that overlaps the caller's.  Returns its future; called from a task of the
+    pool, ``fn`` runs in line and the future comes back done (as :func:`run_all`: no wait on a queued job)."""
+    if _in_pool():
+        done: Future = Future()
+        try:
+            done.set_result(fn(*args, **kwargs))
+        except BaseException as e:  # (raised by result(), as from the pool)
+            done.set_exception(e)
+        return done
     return _pool().submit(_in_env(lambda: fn(*args, **kwargs), _fpenv.get()))
 
 
