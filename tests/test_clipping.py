@@ -217,7 +217,6 @@ def test_levels_below_equal_the_rule(levels_of, monkeypatch):
             assert got[1].sum() > 0
 
 
-
 def test_largest_equals_a_partition():
     """``_largest`` (a sampled threshold, then a sort of what passes it) returns a full partition's k largest values,
     sorted, on uniform, quantised (ties), sorted and partly out-of-use rows, including dense tops the sample
@@ -236,6 +235,7 @@ def test_largest_equals_a_partition():
             row[rng.integers(0, p, max(1, p // 5))] = row.max()  # a tie-heavy top
         want = np.sort(row) if k >= p else np.sort(np.partition(row, p - k)[p - k:])
         np.testing.assert_array_equal(_largest(row, k), want)
+
 
 # ---------------------------------------------------------------------------------------------- in the flows
 

@@ -56,7 +56,6 @@ def test_run_all_reraises():
     assert 2 in out
 
 
-
 def test_submit_and_run_all_inside_pool_tasks(monkeypatch):
     """submit returns the task's value (and re-raises its error); run_all and submit called from inside a pool task
     run in line on that thread (with every worker of a 2-thread pool in such a task, a queued part would
@@ -87,6 +86,7 @@ def test_submit_and_run_all_inside_pool_tasks(monkeypatch):
 
     for got, me in [f.result(timeout=60) for f in [ct.submit(nested, k) for k in range(2)]]:
         assert got == me
+
 
 def _solve(monkeypatch, threads, img, lights, sc, mat, cfg, mask):
     monkeypatch.setenv("GPPS_CPU_THREADS", str(threads))

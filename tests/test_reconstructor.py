@@ -48,7 +48,8 @@ def test_reconstructor_equals_reconstruct(device, config):
         kept = [rc(img) for img in caps + caps[:1]]
         assert rc.builds == 1  # (the same working scale: one set of stages for all three)
         launch = rc._ron.integrator.config.launch
-    assert launch == (kept_stages_config(gpps.RONConfig(), sc.camera).integrator.launch if config == "default" else "fused")
+    kept_launch = kept_stages_config(gpps.RONConfig(), sc.camera).integrator.launch
+    assert launch == (kept_launch if config == "default" else "fused")
     bits = config == "given" or not device.startswith("cuda")
     _same(kept[0], fresh[0], depth_bits=bits)
     _same(kept[1], fresh[1], depth_bits=bits)

@@ -387,7 +387,7 @@ def depth_write(z: ti.template(), cj: ti.template(), lab: ti.template(), csum: t
     """The depth of the valid pixels into ``out`` (float32): ``u = z - mean z`` per component; perspective
     ``exp(u) * ref / mean exp(u)``, computed as ``exp(z - max z) * ref / mean exp(z - max z)`` (equal, and free
     of overflow), orthographic ``u + ref`` (``Integrator.fetch``); ``referenced`` 0: no reference, perspective
-    ``exp(u)`` and orthographic ``u`` (``Integrator.fetch`` without one; ``ref`` unused, ``cden`` not read);
+    ``exp(u)`` (``cden`` not read) and orthographic ``u + ref`` with ``ref`` 0 (``Integrator.fetch`` without one);
     ``st[FILL_SUM]``, ``st[FILL_N]``: their float32 values summed and counted (RON's fill value is their mean)."""
     st[FILL_SUM] = 0.0
     st[FILL_N] = 0.0
@@ -395,9 +395,7 @@ def depth_write(z: ti.template(), cj: ti.template(), lab: ti.template(), csum: t
         if cj[i, j] > 0 and lab[i, j] >= 0:
             l = lab[i, j]
             u = ti.cast(z[i, j], ti.f64) - csum[l] / ccnt[l]
-            d = u
-            if referenced:
-                d = u + ref
+            d = u + ref
             if perspective:
                 if referenced:
                     d = ti.exp(ti.cast(z[i, j], ti.f64) - cmax[l]) * (ref / (cden[l] / ccnt[l]))

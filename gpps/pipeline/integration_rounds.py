@@ -231,7 +231,7 @@ class DeviceSystem(Stage):
         referenced = reference_depth is not None
         if persp and referenced:
             KW.depth_exp(d["z"], F["cj"], F["lab"], F["cmax"], F["cden"], h, w)
-        ref = float(reference_depth) if referenced else 1.0
+        ref = float(reference_depth) if referenced else 0.0  # (unreferenced orthographic: u + 0)
         KW.depth_write(d["z"], F["cj"], F["lab"], F["csum"], F["ccnt"], F["cmax"], F["cden"], F["st"], out, persp, ref,
                        int(referenced), h, w)
         KW.depth_fill(F["cj"], F["lab"], F["mask"], F["st"], out, ref, float(outside), int(referenced), h, w)
