@@ -1,7 +1,8 @@
 """The host's time in ``PixelSolver.upload`` on issue 20's capture (256^2 x 3, perspective Cook-Torrance;
 :func:`_common.reconstruct_inputs`), the whole call and its pieces: the images' checks and float32 copy, the grey
 values and their percentile, and each copy into the device buffers (``wp.array.assign`` of a numpy array: a
-pageable host-to-device copy on CUDA), each device-synchronised.  Median of ``--repeat`` calls after one warm-up,
+pageable host-to-device copy on CUDA), each device-synchronised; ``upload_checked`` is the upload RON makes after
+the flows' checks (``checked=True``: no grey values or percentile).  Median of ``--repeat`` calls after one warm-up,
 milliseconds; one JSON line.
 
 Usage:  python perf/upload_timing.py [--device cuda:0] [--repeat 30]
@@ -58,6 +59,8 @@ def main(argv=None):
     g = masked_grey(img, m, idx=idx)
     out = {
         "upload": ms(lambda: s.upload(img, m, valid=val, noise=p.noise)),
+        "upload_checked": ms(lambda: s.upload(img, m, valid=val, noise=p.noise, checked=True)),  # (RON's, after
+        # the flows' checks: no grey values, no percentile)
         "images_checked": ms(lambda: s._images(img)),
         "grey": ms(lambda: masked_grey(img, m, idx=idx)),
         "percentile": ms(lambda: np.percentile(g, 99.0)),

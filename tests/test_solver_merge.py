@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -102,3 +103,34 @@ def test_recorded_launches_kept_per_config_and_material(device):
     assert len(s._cmd_sets) == SOLVER_CMD_SETS  # noqa: SLF001
     assert (a, mat) not in s._cmd_sets  # noqa: SLF001  (the oldest pairs dropped)
     s.close()
+
+
+def test_checked_upload_defers_the_intensity_scale(device):
+    """A checked upload (the caller ran check_observations) skips the grey values' percentile; a later config with
+    the smoothness term computes it from the device's frame and the upload's mask: the same scale and the same
+    smoothed solve as an unchecked upload; a dark frame's warning is the caller's then."""
+    img, lights, sc, mat = make_case("sphere", 32, "perspective", "directional", "cook-torrance", device=device)
+    noisy = np.clip(img + np.random.default_rng(3).normal(0.0, 0.01, img.shape).astype(np.float32), 0.0, None)
+    half = sc.mask.copy()
+    half[:, :16] = False  # (a mask the re-solve changes after the upload: the scale keeps the upload's)
+    smooth = SolverConfig(starts=2, smoothness=0.3)
+    outs, scales = [], []
+    for checked in (False, True):
+        s = PixelSolver(img.shape[:3], sc.camera, lights, mat, SolverConfig(starts=2), device=device)
+        s.upload(noisy, sc.mask, checked=checked)
+        assert (s.intensity_scale is None) == checked
+        s.set_mask(half)
+        s.set_config(smooth)
+        scales.append(s.intensity_scale)
+        s.step()
+        outs.append(s.fetch(NAMES))
+    grey = noisy[:, sc.mask].mean(axis=-1)
+    assert scales[0] == scales[1] == float(np.percentile(grey, 99.0))
+    for k in NAMES:
+        np.testing.assert_array_equal(outs[1][k], outs[0][k], err_msg=k)
+    s = PixelSolver(img.shape[:3], sc.camera, lights, mat, SolverConfig(starts=2), device=device)
+    with pytest.warns(UserWarning, match="no observation inside the mask is lit"):
+        s.upload(np.zeros_like(img), sc.mask)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        s.upload(np.zeros_like(img), sc.mask, checked=True)

@@ -313,7 +313,7 @@ class ResidentFrame:
         pair = _start_pair(start)
         p = self._prep
         res = ron.run(p.images, depth=self._depth, reference_depth=self._reference, valid=p.valid, progress=progress,
-                      start=pair, noise=p.noise)
+                      start=pair, noise=p.noise, checked=True)
         self.runs += 1
         out = _result(res, p)
         self.timings.append(dict(out.timings))
@@ -565,7 +565,7 @@ class Reconstructor:
         ron = self._stages(prep)
         try:
             res = ron.run(prep.images, depth=depth, reference_depth=reference_depth, valid=prep.valid,
-                          progress=progress, noise=prep.noise)
+                          progress=progress, noise=prep.noise, checked=True)
         except BaseException:
             ron.close()  # (a run cut short may leave its stages half-stepped: not kept)
             self._ron = self._key = None

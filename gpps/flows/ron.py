@@ -684,6 +684,7 @@ class RON:
         self._last_move = None  # log-space move of the last material fit (sizes the next fit's simplex)
         self._frame_key = self._frame_depth = None  # the frame on the solver's device (see _frame)
         self._noise = None  # the run's noise levels, when its caller gave them (run)
+        self._checked = False  # whether the run's caller checked its observations (run)
         self._solver_mask = None  # the mask in the solver's buffer, when RON set it (see _set_mask)
         self._rounds = None  # the device side of the rounds (DeviceRounds), built at the first run that uses it
         self._rounds_integ = False  # whether self._rounds integrates (step 3 on the device)
@@ -805,7 +806,7 @@ class RON:
             if cfg.warm_start:
                 s.set_config(replace(cfg, warm_start=False))
             s.upload(images, self.mask, depth=depth, valid=valid,
-                     noise=self._noise if cfg.noise_level is None else None)
+                     noise=self._noise if cfg.noise_level is None else None, checked=self._checked)
             s.set_config(cfg)
             self._frame_key, self._frame_depth = key, depth
             self._solver_mask = self.mask
@@ -1329,7 +1330,7 @@ class RON:
     # ------------------------------------------------------------------ the loop
 
     def run(self, images, *, depth=None, reference_depth: float | None = None, valid=None,
-            progress: Progress | None = None, start=None, noise=None) -> RONResult:
+            progress: Progress | None = None, start=None, noise=None, checked: bool = False) -> RONResult:
         """Run Algorithm 2.
 
         Args:
@@ -1350,6 +1351,8 @@ class RON:
             noise: optional (N,) noise levels of the images (:func:`gpps.pipeline.solver.estimate_noise` of these
                 images, e.g. computed beside the caller's checks), used instead of the solver's own estimate
                 when its ``noise_level`` is None.
+            checked: the caller ran :func:`gpps.flows.photometric.check_observations` on these images, mask and
+                ``valid``: the solver's upload does not test them again (:meth:`PixelSolver.upload`).
 
         Returns:
             :class:`RONResult`.
@@ -1376,7 +1379,7 @@ class RON:
                                  f"shape {start_highlight.shape}")
         c = self.config
         m = self.mask
-        self._noise = noise
+        self._noise, self._checked = noise, bool(checked)
         self._compile_ahead(warm_start)
         self._last_move = None
         self._solver_mask = None

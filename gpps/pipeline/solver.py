@@ -517,6 +517,11 @@ def check_scale(scale: float, *, low: bool = True) -> None:
                          f"inside the mask at {scale:.3g}; rescale the images (and the lights' intensities with them)")
 
 
+def _intensity_scale(grey) -> float:
+    """The smoothness term's intensity scale: the 99th percentile of the mask's (N, P) grey values (>= 1e-12)."""
+    return float(max(np.percentile(grey, 99.0), 1e-12))
+
+
 #: The outputs :meth:`PixelSolver.fetch` copies.
 OUTPUTS = ("normals", "albedo", "residual", "iterations", "flags", "cond", "weights")
 
@@ -620,7 +625,8 @@ class PixelSolver(Stage):
         self.iterations = self._buffer((h, w), wp.int32, d)
         self.flags = self._buffer((h, w), wp.int32, d)
         self.cond = self._buffer((h, w), wp.float32, d)
-        self.intensity_scale = 1.0
+        self.intensity_scale = 1.0  # (None after a checked upload until a config reads it: _ensure_scale)
+        self._scale_mask = None  # that upload's mask
         self._row_bounds = None  # CPU: the solve launch's row ranges, one thread each (None: one launch)
         self._mask_rows = None  # mask pixels per row of the last upload (balances the CPU row ranges)
 
@@ -724,6 +730,7 @@ class PixelSolver(Stage):
         if not isinstance(config, SolverConfig):
             raise TypeError(f"config: expected PixelSolver.Config, got {type(config).__name__}")
         self.config = config
+        self._ensure_scale()
         # (the struct is built once per config: ~0.1 ms of host time each, and RON switches configs ~16 times a
         # call; it is never changed after, so the launches recorded with it stay valid)
         cache = self.__dict__.setdefault("_prm_current", {})
@@ -734,6 +741,12 @@ class PixelSolver(Stage):
         self.prm = cache[config]
         self._select_kernels()
         self._switch_cmds()
+
+    def _ensure_scale(self) -> None:
+        """:attr:`intensity_scale` of the uploaded frame when the current config's smoothness term reads it and a
+        checked upload left it for later: the frame's images back from the device (once; the upload's mask)."""
+        if self.config.smoothness > 0.0 and self.intensity_scale is None:
+            self.intensity_scale = _intensity_scale(masked_grey(self.images.numpy(), self._scale_mask))
 
     def set_material(self, material: Material) -> None:
         self.material = material
@@ -760,7 +773,8 @@ class PixelSolver(Stage):
         arr = rgb_images(images, self.shape)  # (as_images: finite and >= 0 checked there)
         return np.ascontiguousarray(arr, dtype=np.float32)
 
-    def upload(self, images, mask, *, depth=None, valid=None, init_normals=None, noise=None) -> None:
+    def upload(self, images, mask, *, depth=None, valid=None, init_normals=None, noise=None,
+               checked: bool = False) -> None:
         """Check and copy one frame's inputs into the device buffers.
 
         Args:
@@ -772,6 +786,11 @@ class PixelSolver(Stage):
             init_normals: (H, W, 3) warm-start normals (with ``config.warm_start``).
             noise: (N,) per-image noise levels to use instead of ``config.noise_level`` / the estimate
                 (a tile of a larger frame takes the whole frame's: :mod:`gpps.flows.tiled`).
+            checked: the caller ran :func:`gpps.flows.photometric.check_observations` on these images and mask
+                (it refuses a frame without enough lit observations and one too bright for the solver): the
+                upload's own tests of both are not repeated, and :attr:`intensity_scale` (the grey values'
+                99th percentile, which only the smoothness term reads) is computed when a config with that term
+                is first set, not here.  Default False: both tested, the scale computed.
 
         ``run(images, mask, ...)`` (:meth:`Stage.run`) is ``upload``, :meth:`step` and :meth:`fetch` in one.
         Also sets the per-image noise levels (:attr:`noise`, :attr:`noise_level`):
@@ -814,17 +833,21 @@ class PixelSolver(Stage):
         else:
             self.noise_level = np.full(n, c.noise_level, np.float32)
         self.noise.assign(self.noise_level)
-        # (always: a later config may add the smoothness term without another upload)
-        idx = np.flatnonzero(m)
-        g = masked_grey(img, m, idx=idx)  # (N, P) = img[:, m].mean(-1) exactly
-        self.intensity_scale = float(max(np.percentile(g, 99.0), 1e-12))
-        check_scale(self.intensity_scale, low=False)
-        lit = g > 0 if val is None else (g > 0) & (np.take(val.reshape(n, h * w), idx, axis=1) != 0)
-        if not np.any(lit):
-            # degenerate: no pixel can be solved (a dark tile of a larger frame is the tiled flow's to judge)
-            warnings.warn("images: no observation inside the mask is lit" + ("" if val is None else " and valid")
-                          + ": no normal is determined (every pixel is flagged FLAG_FEW_OBSERVATIONS)",
-                          GppsWarning, stacklevel=2)
+        self._scale_mask = None
+        if checked and c.smoothness == 0.0:
+            # (the caller's checks judged the frame; the scale waits for a config that reads it: _ensure_scale)
+            self.intensity_scale, self._scale_mask = None, m.copy()
+        else:
+            idx = np.flatnonzero(m)
+            g = masked_grey(img, m, idx=idx)  # (N, P) = img[:, m].mean(-1) exactly
+            self.intensity_scale = _intensity_scale(g)
+            check_scale(self.intensity_scale, low=False)
+            lit = g > 0 if val is None else (g > 0) & (np.take(val.reshape(n, h * w), idx, axis=1) != 0)
+            if not np.any(lit):
+                # degenerate: no pixel can be solved (a dark tile of a larger frame is the tiled flow's to judge)
+                warnings.warn("images: no observation inside the mask is lit" + ("" if val is None else " and valid")
+                              + ": no normal is determined (every pixel is flagged FLAG_FEW_OBSERVATIONS)",
+                              GppsWarning, stacklevel=2)
         self.images.assign(img)
         self.mask.assign(m.astype(np.uint8))
         self._split_rows(m)
