@@ -21,6 +21,7 @@ import gpps
 from gpps import GppsWarning
 from gpps.flows.photometric import solve_normals
 from gpps.host.clipping import clipped_observations
+from gpps.host.observations import gather_masked
 
 from conftest import RENDER_DEVICE
 
@@ -151,6 +152,18 @@ def test_valid_observations_alone_count():
     keep, info = clipped_observations(img, sc.mask, valid=valid)
     assert info["clipped_images"] == [1, 2] and not info["images"][0]["clipped"]
     np.testing.assert_array_equal(keep, valid & ~truth)
+    # the observations gathered by the caller (gpps.flows.reconstruction._prepare): the same result, theirs untouched
+    idx = np.flatnonzero(sc.mask)
+    x = gather_masked(img, idx)
+    before = x.copy()
+    for v in (valid, None):
+        k2, i2 = clipped_observations(img, sc.mask, valid=v, gathered=(idx, x))
+        k1, i1 = clipped_observations(img, sc.mask, valid=v)
+        np.testing.assert_array_equal(k2, k1)
+        assert i2 == i1
+    np.testing.assert_array_equal(x, before)
+    with pytest.raises(ValueError, match="gathered"):
+        clipped_observations(img, sc.mask, gathered=(idx[1:], x))
 
 
 def test_no_mask_pixels_or_black_images():

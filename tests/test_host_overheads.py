@@ -378,6 +378,19 @@ def test_masked_grey_is_numpys_channel_mean():
     g, p = masked_grey(frame, m, peak=True)
     np.testing.assert_array_equal(g, frame[:, m].mean(-1))
     np.testing.assert_array_equal(p, frame[:, m].max(-1))
+    from gpps.host.observations import gather_masked, grey_peak  # (the flows' checks: the gather shared)
+
+    idx = np.flatnonzero(m)
+    x = gather_masked(frame, idx)
+    np.testing.assert_array_equal(x, frame[:, m].transpose(0, 2, 1))
+    g2, p2 = grey_peak(x)
+    assert _same(g2, g) and _same(p2, p)
+    assert _same(grey_peak(gather_masked(img, np.flatnonzero(mask)))[0], img.mean(axis=-1)[:, mask])
+    for valid, sat in ((None, None), (rng.random((3, 17, 13)) > 0.2, 0.5)):
+        a = _masked_statistics(frame, m, valid, sat)
+        b = _masked_statistics(frame, m, valid, sat, (idx, x))
+        for u, v in zip(a, b):
+            assert (u is None and v is None) or (np.array_equal(u, v) if u.dtype == bool else _same(u, v))
     rng = np.random.default_rng(5)
     for dtype in (np.float32, np.float64):
         img = rng.random((4, 9, 11, 3)).astype(dtype) ** 3

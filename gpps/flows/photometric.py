@@ -30,7 +30,7 @@ from gpps._check import IMAGE_FULL_SCALE, as_array, as_flags, as_images, as_mask
 from gpps._runtime import warp
 from gpps.camera import Orthographic, Perspective
 from gpps.host.clipping import clipped_observations
-from gpps.host.observations import masked_grey
+from gpps.host.observations import grey_peak, masked_grey
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import Material, check_model_images
 from gpps.pipeline.render import Renderer
@@ -83,7 +83,7 @@ def input_saturation(images, saturation=None):
     return 1.0 if getattr(images, "dtype", None) in IMAGE_FULL_SCALE else None
 
 
-def detect_clipping(images, img, mask, *, saturation=None, valid=None, sink: list | None = None):
+def detect_clipping(images, img, mask, *, saturation=None, valid=None, sink: list | None = None, gathered=None):
     """The observations to use when the caller gave neither ``saturation`` nor ``valid``: clipped ones left out.
 
     Float images clipped by the sensor and divided by the light intensities sit at a value no full-scale rule
@@ -100,6 +100,8 @@ def detect_clipping(images, img, mask, *, saturation=None, valid=None, sink: lis
         saturation: the caller's saturation level or None.
         valid: the caller's (N, H, W) bool observations or None.
         sink: list that collects the warning messages.
+        gathered: optional ``(idx, x)``, the mask's observations gathered once
+            (:func:`gpps.host.observations.gather_masked`; :func:`check_observations` reads them too).
 
     Returns:
         ``(valid, clipped)``: the (N, H, W) bool observations to use (the caller's ``valid`` when nothing was
@@ -108,7 +110,7 @@ def detect_clipping(images, img, mask, *, saturation=None, valid=None, sink: lis
     """
     if valid is not None or input_saturation(images, saturation) is not None:
         return valid, None
-    keep, info = clipped_observations(img, mask)
+    keep, info = clipped_observations(img, mask, gathered=gathered)
     if keep is None:
         return valid, None
     hit = info["clipped_images"]
@@ -235,11 +237,13 @@ def working_scale(images, mask, lights, *, reference_depth: float | None = None)
     return {"images": s_images, "lights": s_images / t, "image_scale": b, "albedo_scale": a}
 
 
-def _masked_statistics(img, mask, valid, saturation):
+def _masked_statistics(img, mask, valid, saturation, gathered=None):
     """The statistics :func:`check_observations` needs, on the mask's pixels only, image by image.
 
     Args:
         img: (N, H, W, C) images; mask: (H, W) bool; valid: (N, H, W) or None; saturation: level or None.
+        gathered: optional ``(idx, x)``: the mask's flat indices and observations
+            (:func:`gpps.host.observations.gather_masked`), read instead of the frames.
 
     Returns:
         ``(grey, bad, peak)``: (N, P) ``img.mean(axis=-1)[:, mask]`` (the same values: numpy's mean over the
@@ -256,10 +260,14 @@ def _masked_statistics(img, mask, valid, saturation):
             inv = ~np.asarray(valid, bool)[:, mask]
             bad = inv if bad is None else bad | inv
         return grey, bad, peak
-    idx = np.flatnonzero(mask)
-    if c == 3:
+    if gathered is not None:
+        idx, x = gathered
+        grey, peak = grey_peak(x) if c == 3 else (x[:, 0], x[:, 0])
+    elif c == 3:
+        idx = np.flatnonzero(mask)
         grey, peak = masked_grey(img, mask, idx=idx, peak=True)
     else:
+        idx = np.flatnonzero(mask)
         grey = np.take(img[..., 0].reshape(n, -1), idx, axis=1)
         peak = grey
     bad = None if saturation is None and valid is None else np.zeros((n, idx.size), bool)
@@ -273,7 +281,7 @@ def _masked_statistics(img, mask, valid, saturation):
 
 
 def check_observations(images, mask, lights, *, valid=None, saturation=None, reference_depth=None,
-                       sink: list | None = None, clipped=None) -> np.ndarray:
+                       sink: list | None = None, clipped=None, gathered=None) -> np.ndarray:
     """Refuse degenerate input and warn about doubtful input, before any solve.
 
     A pixel is *determined* when it has at least 3 usable observations: lit
@@ -303,6 +311,8 @@ def check_observations(images, mask, lights, *, valid=None, saturation=None, ref
         clipped: optional (N, H, W) bool observations :func:`detect_clipping` left out as clipped (already
             out of ``valid``): the full-scale warning counts only the others, and the error of too few
             determined pixels says that they were left out.
+        gathered: optional ``(idx, x)``: ``np.flatnonzero(mask)`` and the images' (N, C, P) observations there
+            (:func:`gpps.host.observations.gather_masked`), read instead of the frames (the same values).
 
     Returns:
         (H, W) bool: the determined pixels.
@@ -310,7 +320,7 @@ def check_observations(images, mask, lights, *, valid=None, saturation=None, ref
 
     img = images if images.ndim == 4 else images[..., None]
     # (N, P) grey values, (N, P) unusable or None, (N, P) brightest channels
-    grey, bad, peak = _masked_statistics(img, mask, valid, saturation)
+    grey, bad, peak = _masked_statistics(img, mask, valid, saturation, gathered)
     scale = float(np.percentile(grey, 99.9)) if grey.size else 0.0
     if not scale > 0.0:
         outside = img.mean(axis=-1)[:, ~mask]

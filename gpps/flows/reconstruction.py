@@ -41,6 +41,7 @@ from gpps.flows.photometric import (
     working_scale,
 )
 from gpps.flows.ron import LOBE_PARAMETERS, RON, RONConfig, default_integrator
+from gpps.host.observations import gather_masked
 from gpps.lights import DirectionalLights, PointLights
 from gpps.material import BRDF_NAMES, Material, check_model_images
 from gpps.names import MANY_IMAGES, SHADOW_RELATIVE_MANY
@@ -429,10 +430,14 @@ def _prepare(images, mask, lights, camera, material, estimate, depth, reference_
     # the images the solver gets)
     ws_job = submit(working_scale, img, m, lights, reference_depth=ref)
     noise_job = submit(estimate_noise, img, m) if cfg.solver.noise_level is None else None
+    # the mask's observations gathered once, for the clipping detection and the observation checks
+    img4 = img if img.ndim == 4 else img[..., None]
+    idx = np.flatnonzero(m)
+    gathered = (idx, gather_masked(img4, idx))
     # (float images without saturation= or valid=: observations clipped at any level left out, with a warning)
-    val, clipped = detect_clipping(images, img, m, saturation=saturation, valid=val, sink=notes)
+    val, clipped = detect_clipping(images, img4, m, saturation=saturation, valid=val, sink=notes, gathered=gathered)
     determined = check_observations(img, m, lights, valid=val, saturation=input_saturation(images, saturation),
-                                    reference_depth=ref, sink=notes, clipped=clipped)
+                                    reference_depth=ref, sink=notes, clipped=clipped, gathered=gathered)
     check_model_images((mat.brdf, *models), n, sink=notes)
     # images or albedos far from order one: solved at powers of two times their scales (working_scale)
     ws = ws_job.result()
