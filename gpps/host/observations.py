@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["masked_grey", "gather_masked", "grey_peak"]
+__all__ = ["masked_grey", "gather_masked", "grey_peak", "noise_selection"]
 
 
 def masked_grey(img: np.ndarray, mask: np.ndarray, *, idx: np.ndarray | None = None, peak: bool = False):
@@ -80,3 +80,38 @@ def grey_peak(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     grey += x[:, 2]
     grey /= 3
     return grey, np.maximum(np.maximum(x[:, 0], x[:, 1]), x[:, 2])
+
+
+def noise_selection(mask, *, max_pixels: int = 1 << 16):
+    """The pixels :func:`gpps.pipeline.solver.estimate_noise` reads (and its device form,
+    :class:`gpps.pipeline.noise.DeviceNoise`).
+
+    Args:
+        mask: (H, W) bool.
+        max_pixels: about the most pixels an image.
+
+    Returns:
+        ``(rows, sel, c0, c1)``, or None when no pixel has its 3x3 neighbourhood in the mask: every ``st``-th row
+        (about ``max_pixels`` pixels) with such pixels, as indices ``r`` whose neighbourhoods span image rows
+        ``r .. r + 2`` (centre ``r + 1``); ``sel`` (R, c1 - c0 - 2) bool, the pixels of those rows whose
+        neighbourhood lies in the mask, centre column ``c0 + 1 + c``; image columns ``c0 .. c1 - 1`` hold every
+        such neighbourhood.
+    """
+    m = np.asarray(mask, bool)
+    h, w = m.shape
+    if h < 3 or w < 3:
+        return None
+    inner = m[1:-1, 1:-1].copy()
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            inner &= m[1 + di : h - 1 + di, 1 + dj : w - 1 + dj]
+    rows = np.nonzero(inner.any(axis=1))[0]
+    if rows.size == 0:
+        return None
+    # every st-th row with inner pixels: about max_pixels pixels
+    st = max(1, int(np.ceil(inner[rows].sum() / max_pixels)))
+    rows = rows[::st]
+    sel = inner[rows]  # (R, W - 2)
+    cols = np.nonzero(sel.any(axis=0))[0]
+    c0, c1 = int(cols[0]), int(cols[-1]) + 3  # image columns c0 .. c1 - 1 hold every 3x3 neighbourhood
+    return rows, sel[:, c0 : c1 - 2], c0, c1

@@ -30,7 +30,7 @@ from gpps._check import (
     check_shape,
 )
 from gpps._runtime import block_lanes, resolve_device, warp
-from gpps.host.observations import masked_grey
+from gpps.host.observations import masked_grey, noise_selection
 from gpps.kernels import front as fk
 from gpps.kernels import merge as mk
 from gpps.kernels import solve as sk
@@ -55,6 +55,7 @@ from gpps.names import (
 from gpps.names import ROBUST_TAG as _ROBUST_TAG
 from gpps.names import SOLVER_TAG as _SOLVER_TAG
 from gpps.pipeline.cpu_threads import balanced_bounds, cpu_threads, load_first, run_all, run_reporting
+from gpps.pipeline.noise import DeviceNoise, noise_on_device
 from gpps.pipeline.prefetch import is_loaded
 from gpps.pipeline.params import camera_params, light_params, material_params, resolve_parallel, uses_lanes
 from gpps.pipeline.stage import Stage
@@ -342,25 +343,12 @@ def estimate_noise(images, mask, *, max_pixels: int = 1 << 16) -> np.ndarray:
     the estimate is the same bit for bit (tests/test_host_overheads.py pins it to that loop).
     """
     img = np.asarray(images)
-    m = np.asarray(mask, bool)
-    n, h, w = img.shape[:3]
+    n = img.shape[0]
     out = np.zeros(n, np.float32)
-    if h < 3 or w < 3:
+    got = noise_selection(mask, max_pixels=max_pixels)
+    if got is None:
         return out
-    inner = m[1:-1, 1:-1].copy()
-    for di in (-1, 0, 1):
-        for dj in (-1, 0, 1):
-            inner &= m[1 + di : h - 1 + di, 1 + dj : w - 1 + dj]
-    rows = np.nonzero(inner.any(axis=1))[0]
-    if rows.size == 0:
-        return out
-    # every st-th row with inner pixels: about max_pixels pixels
-    st = max(1, int(np.ceil(inner[rows].sum() / max_pixels)))
-    rows = rows[::st]
-    sel = inner[rows]  # (R, W - 2)
-    cols = np.nonzero(sel.any(axis=0))[0]
-    c0, c1 = int(cols[0]), int(cols[-1]) + 3  # image columns c0 .. c1 - 1 hold every 3x3 neighbourhood
-    sel = sel[:, c0 : c1 - 2]
+    rows, sel, c0, c1 = got
     wc = c1 - c0
 
     def rows_of(idx):
@@ -618,6 +606,7 @@ class PixelSolver(Stage):
         self.depth = self._buffer((h, w), wp.float32, d, fill=1)
         self.noise = self._buffer(n, wp.float32, d)
         self.noise_level = np.zeros(n, np.float32)
+        self._device_noise = None  # DeviceNoise, on CUDA at the first upload that estimates the noise
         self.weights = self._buffer((n, h, w), wp.float32, d)
         self.normals = self._buffer((h, w), wp.vec3, d)
         self.albedo = self._buffer((h, w), wp.vec3, d)
@@ -742,6 +731,23 @@ class PixelSolver(Stage):
         self._select_kernels()
         self._switch_cmds()
 
+    @property
+    def noise_level(self) -> np.ndarray:
+        """(N,) float32: the host copy of :attr:`noise` (after an upload that estimated it on the device, fetched
+        at the first read)."""
+        if self._noise_host is None:
+            self._noise_host = self.noise.numpy().copy()
+        return self._noise_host
+
+    @noise_level.setter
+    def noise_level(self, value) -> None:
+        self._noise_host = value
+
+    def _noise_on_device(self) -> bool:
+        """Whether an upload estimates the noise on the device (:func:`gpps.pipeline.noise.noise_on_device`; the
+        same bits as :func:`estimate_noise`)."""
+        return noise_on_device(self.device)
+
     def _ensure_scale(self) -> None:
         """:attr:`intensity_scale` of the uploaded frame when the current config's smoothness term reads it and a
         checked upload left it for later: the frame's images back from the device (once; the upload's mask)."""
@@ -794,7 +800,8 @@ class PixelSolver(Stage):
 
         ``run(images, mask, ...)`` (:meth:`Stage.run`) is ``upload``, :meth:`step` and :meth:`fetch` in one.
         Also sets the per-image noise levels (:attr:`noise`, :attr:`noise_level`):
-        ``config.noise_level`` or, when that is None, :func:`estimate_noise` of the frame.
+        ``config.noise_level`` or, when that is None, :func:`estimate_noise` of the frame (on CUDA computed on the
+        device from the uploaded images, :class:`gpps.pipeline.noise.DeviceNoise`: the same values).
         """
         self._check_open()
         n, h, w = self.shape
@@ -829,10 +836,13 @@ class PixelSolver(Stage):
             if np.any(self.noise_level < 0):
                 raise ValueError(f"noise: expected {n} noise levels >= 0, got a minimum of {float(self.noise_level.min()):g}")
         elif c.noise_level is None:
-            self.noise_level = estimate_noise(img, m)
+            if not self._noise_on_device():
+                self.noise_level = estimate_noise(img, m)
         else:
             self.noise_level = np.full(n, c.noise_level, np.float32)
-        self.noise.assign(self.noise_level)
+        device_noise = noise is None and c.noise_level is None and self._noise_on_device()
+        if not device_noise:
+            self.noise.assign(self.noise_level)
         self._scale_mask = None
         if checked and c.smoothness == 0.0:
             # (the caller's checks judged the frame; the scale waits for a config that reads it: _ensure_scale)
@@ -849,6 +859,12 @@ class PixelSolver(Stage):
                               + ": no normal is determined (every pixel is flagged FLAG_FEW_OBSERVATIONS)",
                               GppsWarning, stacklevel=2)
         self.images.assign(img)
+        if device_noise:  # (estimate_noise of the uploaded images, there: the host copy fetched when read)
+            if self._device_noise is None:
+                self._device_noise = DeviceNoise(self.shape, self.device)
+            self._device_noise.upload(m)
+            self._device_noise.step(self.images, self.noise)
+            self._noise_host = None
         self.mask.assign(m.astype(np.uint8))
         self._split_rows(m)
         if dep is None:
@@ -1217,6 +1233,9 @@ class PixelSolver(Stage):
         """Give the device buffers back to the process's pool (:mod:`gpps.pipeline.buffers`); the solver
         refuses work afterwards (its buffers are gone)."""
         self._release_buffers()
+        if self.__dict__.get("_device_noise") is not None:
+            self._device_noise.close()
+            self._device_noise = None
         for name in ("images", "mask", "valid", "depth", "noise", "weights", "normals", "albedo", "residual",
                      "iterations", "flags", "cond", "_saved", "_cmds", "_cmd_sets", "_split_scratch"):
             self.__dict__.pop(name, None)
