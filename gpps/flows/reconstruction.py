@@ -46,6 +46,7 @@ from gpps.lights import DirectionalLights, PointLights
 from gpps.material import BRDF_NAMES, Material, check_model_images
 from gpps.names import MANY_IMAGES, SHADOW_RELATIVE_MANY
 from gpps.pipeline.cpu_threads import submit
+from gpps.pipeline.noise import noise_on_device
 from gpps.pipeline.solver import estimate_noise
 
 __all__ = ["reconstruct", "Reconstruction", "Reconstructor", "ResidentFrame", "RONConfig"]
@@ -279,7 +280,7 @@ class ResidentFrame:
                  depth=None, reference_depth: float | None = None, valid=None, saturation: float | None = None,
                  config: RONConfig | None = None, device=None):
         self._prep = _prepare(images, mask, lights, camera, material, estimate, depth, reference_depth, valid,
-                              saturation, config)
+                              saturation, config, host_noise=not noise_on_device(device))
         self._ron = RON(self._prep.shape, self._prep.camera, self._prep.lights, self._prep.material, self._prep.mask,
                         self._prep.config, device=device)
         self._depth, self._reference = depth, reference_depth
@@ -394,8 +395,10 @@ class _Prepared:
 
 
 def _prepare(images, mask, lights, camera, material, estimate, depth, reference_depth, valid, saturation,
-             config) -> _Prepared:
-    """:func:`reconstruct`'s checks, its configuration of RON and the working scale."""
+             config, *, host_noise: bool = True) -> _Prepared:
+    """:func:`reconstruct`'s checks, its configuration of RON and the working scale; with ``host_noise`` (the
+    solve's device estimates none itself: :func:`gpps.pipeline.noise.noise_on_device`) the images' noise levels
+    too."""
     img, m, lights, camera = check_inputs(images, mask, lights, camera)  # (N >= 3 checked there)
     n, h, w = img.shape[:3]
     if saturation is not None:
@@ -429,7 +432,7 @@ def _prepare(images, mask, lights, camera, material, estimate, depth, reference_
     # upload takes these: estimate_noise of the same images; kept only at the working scale 1, where they are
     # the images the solver gets)
     ws_job = submit(working_scale, img, m, lights, reference_depth=ref)
-    noise_job = submit(estimate_noise, img, m) if cfg.solver.noise_level is None else None
+    noise_job = submit(estimate_noise, img, m) if cfg.solver.noise_level is None and host_noise else None
     # the mask's observations gathered once, for the clipping detection and the observation checks
     img4 = img if img.ndim == 4 else img[..., None]
     idx = np.flatnonzero(m)
@@ -564,7 +567,7 @@ class Reconstructor:
         if self._closed:
             raise RuntimeError("Reconstructor: closed")
         prep = _prepare(images, self.mask, self.lights, self.camera, self.material, self.estimate, depth,
-                        reference_depth, valid, saturation, self.config)
+                        reference_depth, valid, saturation, self.config, host_noise=not noise_on_device(self.device))
         if self.config is None:  # (after _prepare's rules for a call without a config)
             prep = replace(prep, config=kept_stages_config(prep.config, prep.camera))
         ron = self._stages(prep)
