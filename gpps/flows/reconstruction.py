@@ -428,9 +428,9 @@ def _prepare(images, mask, lights, camera, material, estimate, depth, reference_
     if ref is None and depth is not None:
         ref = float(np.mean(as_array("depth", depth, shape=(h, w))[m]))
     notes: list[str] = []
-    # beside the checks, on the shared CPU pool: the working scale and the frame's noise levels (the solver's
-    # upload takes these: estimate_noise of the same images; kept only at the working scale 1, where they are
-    # the images the solver gets)
+    # beside the checks, on the shared CPU pool: the working scale and, where the solver's device does not estimate
+    # them (host_noise), the frame's noise levels (the solver's upload takes these: estimate_noise of the same
+    # images; kept only at the working scale 1, where they are the images the solver gets)
     ws_job = submit(working_scale, img, m, lights, reference_depth=ref)
     noise_job = submit(estimate_noise, img, m) if cfg.solver.noise_level is None and host_noise else None
     # the mask's observations gathered once, for the clipping detection and the observation checks

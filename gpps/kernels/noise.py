@@ -1,7 +1,7 @@
 """Immerkaer's noise estimate of a frame on the device (device math only).
 
 :func:`gpps.pipeline.solver.estimate_noise` on the host reads, for each image, the pixels of
-:func:`gpps.pipeline.solver.noise_selection` whose 3x3 neighbourhood is lit (grey value > 0), applies the kernel
+:func:`gpps.host.observations.noise_selection` whose 3x3 neighbourhood is lit (grey value > 0), applies the kernel
 ``K = [[1, -2, 1], [-2, 4, -2], [1, -2, 1]]`` to the grey values (the channels' float32 mean, summed left to right)
 and takes the median of the magnitudes over ``0.6745 * 6``.  Here :func:`noise_values_kernel` writes each selected
 pixel's ``|I * K|`` (the nine terms summed in the host's order; the taps' factors are powers of two, so a fused
