@@ -2,7 +2,8 @@
 :func:`_common.reconstruct_inputs`), the whole call and its pieces: the images' checks and float32 copy, the grey
 values and their percentile, and each copy into the device buffers (``wp.array.assign`` of a numpy array: a
 pageable host-to-device copy on CUDA), each device-synchronised; ``upload_checked`` is the upload RON makes after
-the flows' checks (``checked=True``: no grey values or percentile).  Median of ``--repeat`` calls after one warm-up,
+the flows' checks (``checked=True``: no grey values or percentile), ``upload_checked_own_noise`` the same with the
+noise levels estimated by the upload (on CUDA on the device: RON's upload there since session 45).  Median of ``--repeat`` calls after one warm-up,
 milliseconds; one JSON line.
 
 Usage:  python perf/upload_timing.py [--device cuda:0] [--repeat 30]
@@ -61,6 +62,8 @@ def main(argv=None):
         "upload": ms(lambda: s.upload(img, m, valid=val, noise=p.noise)),
         "upload_checked": ms(lambda: s.upload(img, m, valid=val, noise=p.noise, checked=True)),  # (RON's, after
         # the flows' checks: no grey values, no percentile)
+        "upload_checked_own_noise": ms(lambda: s.upload(img, m, valid=val, checked=True)),  # (the noise levels
+        # estimated by the upload: on CUDA on the device since session 45, RON's upload there; numpy on the CPU)
         "images_checked": ms(lambda: s._images(img)),
         "grey": ms(lambda: masked_grey(img, m, idx=idx)),
         "percentile": ms(lambda: np.percentile(g, 99.0)),
