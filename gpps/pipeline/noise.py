@@ -48,13 +48,15 @@ class DeviceNoise(Stage):
         self.device = resolve_device(device)
         self.max_pixels = int(max_pixels)
         self._settle(nk.noise_values_kernel, nk.noise_median_kernel)
+        wp = warp()
         n = self.shape[0]
-        self.counts = self._buffer(n, warp().int32, self.device)
+        self.counts = self._buffer(n, wp.int32, self.device)
+        self.keys = self._buffer((n, 2), wp.float32, self.device)  # (grown by upload to the selection's size)
+        self.vals = self._buffer(2, wp.int32, self.device)
         self.out = None
         self._mask = None
         self._sel = None  # (rows, sel, c0) on the device, or None: no pixel selected
         self._size = 0  # pixels a row of the selection times its rows
-        self.keys = self.vals = None
 
     def upload(self, mask) -> None:
         """The selection of ``mask`` ((H, W) bool): made again only when the mask differs from the last one."""
@@ -72,7 +74,7 @@ class DeviceNoise(Stage):
             return
         rows, sel, c0, _ = got
         size = int(sel.size)
-        if self.keys is None or self.keys.shape[1] < 2 * size:
+        if self.keys.shape[1] < 2 * size:
             self.keys = self._buffer((self.shape[0], 2 * size), wp.float32, self.device)
             self.vals = self._buffer(2 * size, wp.int32, self.device)
         self._sel = (wp.array(rows.astype(np.int32), dtype=wp.int32, device=self.device),
@@ -98,13 +100,7 @@ class DeviceNoise(Stage):
                       inputs=[images, rows, sel, c0, self.keys, self.counts], device=self.device)
             for k in range(n):
                 wp.utils.radix_sort_pairs(self.keys[k], self.vals, self._size)
-        wp.launch(nk.noise_median_kernel, dim=n, inputs=[self.keys if self.keys is not None else
-                                                        self._empty_keys(), self.counts, out], device=self.device)
-
-    def _empty_keys(self):
-        """(N, 1) keys for the median launch when nothing was ever selected (it reads none: every count 0)."""
-        self.keys = self._buffer((self.shape[0], 1), warp().float32, self.device)
-        return self.keys
+        wp.launch(nk.noise_median_kernel, dim=n, inputs=[self.keys, self.counts, out], device=self.device)
 
     def fetch(self) -> np.ndarray:
         """The last estimate, (N,) float32 (a host copy)."""

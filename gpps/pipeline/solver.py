@@ -831,16 +831,17 @@ class PixelSolver(Stage):
             pts = self.camera.backproject(np.where(m, dep, 0.0))
             check_light_configuration(self.lights, np.median(pts[m], axis=0))
         c = self.config
+        device_noise = False  # (estimated on the device once the images are there, below)
         if noise is not None:
             self.noise_level = as_array("noise", noise, shape=(n,)).astype(np.float32)
             if np.any(self.noise_level < 0):
                 raise ValueError(f"noise: expected {n} noise levels >= 0, got a minimum of {float(self.noise_level.min()):g}")
-        elif c.noise_level is None:
-            if not self._noise_on_device():
-                self.noise_level = estimate_noise(img, m)
-        else:
+        elif c.noise_level is not None:
             self.noise_level = np.full(n, c.noise_level, np.float32)
-        device_noise = noise is None and c.noise_level is None and self._noise_on_device()
+        elif self._noise_on_device():
+            device_noise = True
+        else:
+            self.noise_level = estimate_noise(img, m)
         if not device_noise:
             self.noise.assign(self.noise_level)
         self._scale_mask = None
