@@ -520,7 +520,9 @@ class RONResult:
             ring reached).
         material_fit: per material update: the parameters, energy, evaluations,
             and, for a fit with a grid (the first), ``ambiguity`` (:func:`material_ambiguity`) and
-            ``identifiable`` (its ``ambiguity_deg`` at most :data:`AMBIGUITY_DEG`; None without a grid).
+            ``identifiable`` (its ``ambiguity_deg`` at most :data:`AMBIGUITY_DEG`; None without a grid); ``kept``:
+            a later fit found no candidate lower than the round's material and returned it as it was (the rounds
+            then stop there, converged, when nothing else feeds the next round: no point lights, no shadow pass).
         integration_residual: relative residual of the last integration.
         timings: seconds per stage (summed over rounds) and ``total``; ``shadows``: the cast-shadow pass.
         shadows: per cast-shadow pass (``cast_shadows``; one after each round but the last): ``round`` (the
@@ -1118,15 +1120,20 @@ class RON:
             best = (float(score([x0])[0]), x0)
             if c.material_evals > 0 and names:  # (a model without lobe parameters: its one energy)
                 best = self._pattern_search(score, best, step, lo, hi, c.material_evals)
-        start = np.clip(np.log([lobe_value(material, k) for k in names]), lo, hi)
+        own = np.log([lobe_value(material, k) for k in names])
+        start = np.clip(own, lo, hi)
         self._last_move = best[1] - start
-        values = dict(zip(names, (float(v) for v in np.exp(best[1]))))
+        # a later fit whose best point is its start, the round's material itself (inside the box): kept as it is
+        kept = not grid and bool(names) and np.array_equal(best[1], start) and np.array_equal(start, own)
+        values = ({k: lobe_value(material, k) for k in names} if kept
+                  else dict(zip(names, (float(v) for v in np.exp(best[1])))))
         info = {"rule": "photometric", "search": c.material_search, "warm": warm, "values": values, "energy": best[0],
                 "evaluations": len(evals) + device_scored, "grid": bool(grid), "restarted": restarted,
-                "identifiable": None if ambiguity is None else ambiguity["ambiguity_deg"] <= AMBIGUITY_DEG}
+                "identifiable": None if ambiguity is None else ambiguity["ambiguity_deg"] <= AMBIGUITY_DEG,
+                "kept": kept}
         if ambiguity is not None:
             info["ambiguity"] = ambiguity
-        return with_lobe(material, values), info
+        return (material if kept else with_lobe(material, values)), info
 
     def _material_settled(self, fits: list) -> bool:
         """Whether the material is at its fixed point: the last fit was a later (fine) one and it moved every
@@ -1560,6 +1567,13 @@ class RON:
                 fits.append(info)
                 timings["material"] += time.perf_counter() - t
             step(1 + 3 * r, total, f"round {r}: material")
+            if estimating and fits[-1].get("kept") and not (self.point or shadows):
+                # the fit kept the material this round's normals were solved with (no candidate scored lower), and
+                # nothing else the next round reads changes (no depth through point lights, no shadow pass): it
+                # would solve with the same material and observations from these normals, its own solve's result,
+                # and reproduce them, then fit from the same start again: Algorithm 2's fixed point
+                converged = True
+                break
 
         in_solver = out is None  # the final normals are the solver's buffer (device rounds)
         if out is None:  # device rounds: the outputs come back once
